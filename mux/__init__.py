@@ -1,0 +1,1 @@
+"""The priority Ackermann command mux: inputs, locks, e-stop, rate limiter."""

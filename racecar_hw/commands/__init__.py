@@ -1,0 +1,1 @@
+"""One module per ``racecar-hw`` command; each provides ``register(subparsers)``."""

@@ -1,0 +1,293 @@
+"""Byte links to devices for one asyncio loop: serial ports (pyserial) and TCP.
+
+A :class:`Link` is the only place where driver bytes meet the OS. ``read()`` awaits at least one
+byte; ``write()`` never blocks (bytes the OS cannot take yet wait in a buffer drained by the loop);
+``close()`` is safe twice. OS and pyserial errors become :class:`~racecar_hw.errors.DeviceNotFound`
+(nothing at that path or address) or :class:`~racecar_hw.errors.DeviceIOError` (it went away).
+
+Serial ports open through ``serial.serial_for_url``, so a path, a pty symlink, ``spy:///dev/ttyACM0``
+(hexdump of the traffic) and ``socket://host:port`` all work. :func:`open_link` picks the link type
+from a spec: ``tcp://HOST:PORT`` or ``HOST:PORT`` with no slash means TCP, anything else serial.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import os
+from abc import ABC, abstractmethod
+
+import serial
+import serial.tools.list_ports
+
+from racecar_hw.errors import DeviceIOError, DeviceNotFound, DeviceTimeout
+
+
+class Link(ABC):
+    """A byte stream to one device. Use it from one event loop; it is an async context manager."""
+
+    name: str = ""
+
+    @abstractmethod
+    async def open(self) -> None:
+        """Open the link; raises DeviceNotFound or DeviceIOError."""
+
+    @abstractmethod
+    async def read(self) -> bytes:
+        """At least one byte from the device; raises DeviceIOError when the device goes away."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Queue ``data`` for the device without blocking; raises DeviceIOError if it is gone."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close the link. Safe to call more than once."""
+
+    @property
+    @abstractmethod
+    def is_open(self) -> bool:
+        """Whether the link is open and has not failed."""
+
+    def set_dtr(self, level: bool) -> None:  # noqa: B027 - optional capability
+        """Set the serial DTR line (RPLIDAR A1 motor control). Links without DTR ignore it."""
+
+    async def __aenter__(self) -> Link:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SerialLink(Link):
+    """A serial port through pyserial, read and written by the event loop without threads."""
+
+    def __init__(self, url: str, baudrate: int = 115200) -> None:
+        self.url = url
+        self.name = url
+        self.baudrate = baudrate
+        self._port: serial.SerialBase | None = None
+        self._fd: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._pending: asyncio.Future[None] | None = None
+        self._rx = bytearray()
+        self._tx = bytearray()
+        self._error: DeviceIOError | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None and self._error is None
+
+    async def open(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._error = None
+        try:
+            port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0,
+                                         exclusive=None)
+        except (FileNotFoundError, serial.SerialException, OSError, ValueError) as err:
+            if _is_missing(err):
+                raise DeviceNotFound(f"no serial device at {self.url}") from err
+            raise DeviceIOError(f"cannot open {self.url}: {err}") from err
+        self._port = port
+        try:
+            fd = port.fileno()
+        except (AttributeError, NotImplementedError, OSError):
+            fd = None
+        if fd is None:
+            port.close()
+            self._port = None
+            raise DeviceIOError(f"{self.url}: only ports with a file descriptor are supported")
+        self._fd = fd
+        with contextlib.suppress(serial.SerialException, OSError):
+            port.reset_input_buffer()
+        os.set_blocking(fd, False)
+        self._loop.add_reader(fd, self._on_readable)
+
+    def _on_readable(self) -> None:
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, 65536)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            self._fail(DeviceIOError(f"{self.url}: {os.strerror(err.errno or 0) or err}"))
+            return
+        if not data:
+            self._fail(DeviceIOError(f"{self.url}: device closed"))
+            return
+        self._rx += data
+        if self._pending is not None and not self._pending.done():
+            self._pending.set_result(None)
+
+    def _on_writable(self) -> None:
+        self._flush()
+
+    def _flush(self) -> None:
+        if self._fd is None:
+            return
+        while self._tx:
+            try:
+                n = os.write(self._fd, self._tx)
+            except BlockingIOError:
+                break
+            except OSError as err:
+                self._fail(DeviceIOError(f"{self.url}: write failed: {err}"))
+                return
+            del self._tx[:n]
+        assert self._loop is not None
+        if self._tx:
+            self._loop.add_writer(self._fd, self._on_writable)
+        else:
+            self._loop.remove_writer(self._fd)
+
+    def _fail(self, err: DeviceIOError) -> None:
+        if self._error is None:
+            self._error = err
+        self._detach()
+        if self._pending is not None and not self._pending.done():
+            self._pending.set_result(None)
+
+    def _detach(self) -> None:
+        if self._fd is not None and self._loop is not None:
+            with contextlib.suppress(Exception):
+                self._loop.remove_reader(self._fd)
+                self._loop.remove_writer(self._fd)
+        self._fd = None
+
+    async def read(self) -> bytes:
+        while not self._rx:
+            if self._error is not None:
+                raise self._error
+            if self._port is None:
+                raise DeviceIOError(f"{self.url}: not open")
+            assert self._loop is not None
+            self._pending = self._loop.create_future()
+            await self._pending
+        data = bytes(self._rx)
+        self._rx.clear()
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._error is not None:
+            raise self._error
+        if self._fd is None:
+            raise DeviceIOError(f"{self.url}: not open")
+        self._tx += data
+        self._flush()
+        if self._error is not None:
+            raise self._error
+
+    @property
+    def tx_pending(self) -> int:
+        """Bytes written but not yet taken by the OS."""
+        return len(self._tx)
+
+    def set_dtr(self, level: bool) -> None:
+        if self._port is None:
+            return
+        try:
+            self._port.dtr = level
+        except (serial.SerialException, OSError) as err:
+            raise DeviceIOError(f"{self.url}: cannot set DTR: {err}") from err
+
+    def close(self) -> None:
+        self._detach()
+        port, self._port = self._port, None
+        if port is not None:
+            with contextlib.suppress(Exception):
+                port.close()
+        if self._pending is not None and not self._pending.done():
+            self._pending.set_result(None)
+        self._tx.clear()
+
+
+class TcpLink(Link):
+    """A TCP connection (Hokuyo UST/UTM over Ethernet)."""
+
+    def __init__(self, host: str, port: int, connect_timeout_s: float = 2.0) -> None:
+        self.host = host
+        self.port = port
+        self.name = f"{host}:{port}"
+        self.connect_timeout_s = connect_timeout_s
+        self._reader: asyncio.StreamReader | None = None
+        self._writer: asyncio.StreamWriter | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._writer is not None and not self._writer.is_closing()
+
+    async def open(self) -> None:
+        try:
+            self._reader, self._writer = await asyncio.wait_for(
+                asyncio.open_connection(self.host, self.port), self.connect_timeout_s)
+        except asyncio.TimeoutError as err:
+            raise DeviceTimeout(f"no answer from {self.name}") from err
+        except ConnectionRefusedError as err:
+            raise DeviceNotFound(f"nothing listens at {self.name}") from err
+        except OSError as err:
+            raise DeviceIOError(f"cannot connect to {self.name}: {err}") from err
+
+    async def read(self) -> bytes:
+        if self._reader is None:
+            raise DeviceIOError(f"{self.name}: not open")
+        try:
+            data = await self._reader.read(65536)
+        except OSError as err:
+            raise DeviceIOError(f"{self.name}: {err}") from err
+        if not data:
+            raise DeviceIOError(f"{self.name}: connection closed by the device")
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._writer is None or self._writer.is_closing():
+            raise DeviceIOError(f"{self.name}: not connected")
+        self._writer.write(data)
+
+    def close(self) -> None:
+        writer, self._writer = self._writer, None
+        self._reader = None
+        if writer is not None:
+            writer.close()
+
+
+def parse_host_port(spec: str, default_port: int | None = None) -> tuple[str, int]:
+    """``HOST:PORT`` (or ``tcp://HOST:PORT``) as a (host, port) pair."""
+    spec = spec.removeprefix("tcp://")
+    host, sep, port = spec.rpartition(":")
+    if not sep:
+        if default_port is None:
+            raise ValueError(f"{spec!r} is not HOST:PORT")
+        return spec, default_port
+    if not port.isdigit():
+        raise ValueError(f"{spec!r}: port {port!r} is not a number")
+    return host.strip("[]"), int(port)
+
+
+def open_link(spec: str, baudrate: int = 115200) -> Link:
+    """A link for ``spec``: ``tcp://HOST:PORT`` for TCP, otherwise a serial path or pyserial URL."""
+    if spec.startswith("tcp://"):
+        host, port = parse_host_port(spec)
+        return TcpLink(host, port)
+    return SerialLink(spec, baudrate)
+
+
+def find_serial_port(vid: int, pid: int, serial_number: str | None = None) -> str:
+    """The device path of the USB serial port with this VID:PID (and serial number, if given)."""
+    for info in serial.tools.list_ports.comports():
+        if info.vid == vid and info.pid == pid and (
+                serial_number is None or info.serial_number == serial_number):
+            return info.device
+    wanted = f"{vid:04x}:{pid:04x}" + (f" serial {serial_number}" if serial_number else "")
+    raise DeviceNotFound(f"no USB serial device {wanted}")
+
+
+def _is_missing(err: BaseException) -> bool:
+    cur: BaseException | None = err
+    while cur is not None:
+        if isinstance(cur, FileNotFoundError) or getattr(cur, "errno", None) in (
+                errno.ENOENT, errno.ENODEV, errno.ENXIO):
+            return True
+        cur = cur.__cause__ or cur.__context__
+    return "No such file" in str(err) or "could not open port" in str(err) and "[Errno 2]" in str(err)

@@ -1,0 +1,199 @@
+"""Typed, documented parameters built from plain mappings (YAML), refusing unknown keys.
+
+A component declares its parameters as a dataclass whose fields use :func:`param`::
+
+    @dataclass
+    class VescParams:
+        port: str = param("/dev/vesc", "serial port path or pyserial URL")
+        poll_rate_hz: float = param(50.0, "telemetry poll rate", unit="Hz", min=1.0, max=500.0)
+
+:func:`build` turns a mapping into an instance. Unknown keys, wrong types, values out of range
+and values outside ``choices`` raise :class:`~racecar_hw.errors.ConfigError` naming the full
+dotted key and what is allowed. Nested dataclasses, lists of dataclasses, tuples, ``X | None``
+and ``dict[str, X]`` fields are supported. :func:`describe` lists every parameter with its default
+and documentation, for ``check-config`` and the docs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Iterator, Mapping
+from typing import Any, TypeVar
+
+from racecar_hw.errors import ConfigError
+
+T = TypeVar("T")
+
+_MISSING = dataclasses.MISSING
+
+
+def param(
+    default: Any,
+    doc: str,
+    *,
+    unit: str | None = None,
+    min: float | None = None,  # noqa: A002 - reads naturally at the call site
+    max: float | None = None,  # noqa: A002
+    choices: tuple[Any, ...] | None = None,
+) -> Any:
+    """A dataclass field with a default, documentation, an optional unit, range and choices.
+
+    Mutable defaults (lists, dicts, dataclass instances) are copied for each instance.
+    """
+    meta = {"doc": doc, "unit": unit, "min": min, "max": max, "choices": choices}
+    if isinstance(default, (list, dict, set)) or dataclasses.is_dataclass(default):
+        import copy
+
+        return dataclasses.field(default_factory=lambda: copy.deepcopy(default), metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
+    """An instance of the parameter dataclass ``cls`` from ``data``; ``key`` prefixes error keys."""
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(key, f"expected a mapping of parameters, got {_show(data)}")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        allowed = ", ".join(sorted(fields))
+        raise ConfigError(_join(key, str(unknown[0])), f"unknown key; allowed keys: {allowed}")
+    hints = typing.get_type_hints(cls)
+    values: dict[str, Any] = {}
+    for name, f in fields.items():
+        if name not in data:
+            if f.default is _MISSING and f.default_factory is _MISSING:
+                raise ConfigError(_join(key, name), "required")
+            continue
+        values[name] = _convert(hints[name], data[name], _join(key, name), f.metadata)
+    try:
+        return cls(**values)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as err:
+        raise ConfigError(key, str(err)) from err
+
+
+def to_dict(obj: Any) -> Any:
+    """A parameter dataclass (or anything inside one) as plain YAML-ready data."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def describe(cls: type, key: str = "") -> Iterator[tuple[str, Any, str]]:
+    """Every parameter of ``cls`` as (dotted key, default, documentation with unit and range)."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        name = _join(key, f.name)
+        if f.default is not _MISSING:
+            default = f.default
+        elif f.default_factory is not _MISSING:
+            default = f.default_factory()
+        else:
+            default = None
+        hint = hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            yield from describe(hint, name)
+            continue
+        meta = f.metadata
+        doc = meta.get("doc", "")
+        extras = []
+        if meta.get("unit"):
+            extras.append(meta["unit"])
+        if meta.get("min") is not None or meta.get("max") is not None:
+            extras.append(f"range {meta.get('min', '-inf')}..{meta.get('max', 'inf')}")
+        if meta.get("choices"):
+            extras.append("one of " + ", ".join(map(str, meta["choices"])))
+        if extras:
+            doc = f"{doc} ({'; '.join(extras)})"
+        yield name, to_dict(default), doc
+
+
+def _convert(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        errors = []
+        for option in inner:
+            try:
+                return _convert(option, value, key, meta)
+            except ConfigError as err:
+                errors.append(str(err))
+        raise ConfigError(key, f"{_show(value)} fits none of {', '.join(map(_name, inner))}")
+    if dataclasses.is_dataclass(hint):
+        return build(hint, value, key)
+    if origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(key, f"expected a list, got {_show(value)}")
+        return [_convert(args[0], v, f"{key}[{i}]", {}) for i, v in enumerate(value)]
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(key, f"expected a list, got {_show(value)}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{key}[{i}]", meta) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(key, f"expected {len(args)} values, got {len(value)}")
+        return tuple(_convert(a, v, f"{key}[{i}]", meta) for i, (a, v) in enumerate(zip(args, value)))
+    if origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(key, f"expected a mapping, got {_show(value)}")
+        return {str(k): _convert(args[1], v, _join(key, str(k)), {}) for k, v in value.items()}
+    if hint is Any:
+        return value
+    return _scalar(hint, value, key, meta)
+
+
+def _scalar(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(key, f"expected true or false, got {_show(value)}")
+        out: Any = value
+    elif hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(key, f"expected an integer, got {_show(value)}")
+        out = value
+    elif hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(key, f"expected a number, got {_show(value)}")
+        out = float(value)
+        if math.isnan(out):
+            raise ConfigError(key, "NaN is not allowed")
+    elif hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(key, f"expected a string, got {_show(value)}")
+        out = value
+    else:
+        raise ConfigError(key, f"unsupported parameter type {_name(hint)}")
+    choices = meta.get("choices")
+    if choices is not None and out not in choices:
+        raise ConfigError(key, f"{_show(out)} is not allowed; allowed values: "
+                               + ", ".join(map(str, choices)))
+    lo, hi = meta.get("min"), meta.get("max")
+    if lo is not None and out < lo or hi is not None and out > hi:
+        raise ConfigError(key, f"{_show(out)} is out of range; allowed: "
+                               f"{'-inf' if lo is None else lo} to {'inf' if hi is None else hi}")
+    return out
+
+
+def _join(prefix: str, name: str) -> str:
+    return f"{prefix}.{name}" if prefix else name
+
+
+def _name(hint: Any) -> str:
+    return getattr(hint, "__name__", str(hint))
+
+
+def _show(value: Any) -> str:
+    return f"{value!r} ({type(value).__name__})"

@@ -1,0 +1,1 @@
+"""The loopback world: occupancy map, car model, lidar ray casting, scenarios."""

@@ -1,0 +1,85 @@
+"""The serial link over a real pty, including an unplug, and the TCP link."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from racecar_hw.errors import DeviceIOError, DeviceNotFound
+from racecar_hw.fakepty import PtyPort
+from racecar_hw.link import SerialLink, TcpLink, open_link, parse_host_port
+
+
+async def _read_exactly(link: SerialLink, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        data += await asyncio.wait_for(link.read(), 5)
+    return data
+
+
+def test_serial_link_both_ways_and_unplug(tmp_path):
+    async def scenario() -> None:
+        port = PtyPort(str(tmp_path / "dev")).open()
+        link = SerialLink(port.path)
+        await link.open()
+        link.write(b"hello device")
+        got = b""
+        for _ in range(500):
+            got += port.read()
+            if len(got) >= 12:
+                break
+            await asyncio.sleep(0.01)
+        assert got == b"hello device"
+        port.write(b"hello host")
+        assert await _read_exactly(link, 10) == b"hello host"
+        port.unplug()
+        with pytest.raises(DeviceIOError):
+            await asyncio.wait_for(link.read(), 5)
+        link.close()
+        link.close()
+        with pytest.raises(DeviceNotFound):
+            await SerialLink(port.path).open()
+        port.replug()
+        again = SerialLink(port.path)
+        await again.open()
+        port.write(b"back")
+        assert await _read_exactly(again, 4) == b"back"
+        again.close()
+        port.close()
+
+    asyncio.run(scenario())
+
+
+def test_tcp_link_echo_and_drop():
+    async def scenario() -> None:
+        conns = []
+
+        async def handle(reader, writer):
+            conns.append(writer)
+            writer.write(await reader.read(100))
+
+        server = await asyncio.start_server(handle, "127.0.0.1", 0)
+        host, port = server.sockets[0].getsockname()[:2]
+        link = open_link(f"tcp://{host}:{port}")
+        assert isinstance(link, TcpLink)
+        async with link:
+            link.write(b"ping")
+            assert await asyncio.wait_for(link.read(), 5) == b"ping"
+            conns[0].close()
+            with pytest.raises(DeviceIOError):
+                await asyncio.wait_for(link.read(), 5)
+        server.close()
+        await server.wait_closed()
+        with pytest.raises(DeviceNotFound):
+            await TcpLink(host, port).open()
+
+    asyncio.run(scenario())
+
+
+def test_parse_host_port():
+    assert parse_host_port("192.168.0.10:10940") == ("192.168.0.10", 10940)
+    assert parse_host_port("tcp://localhost:1") == ("localhost", 1)
+    assert parse_host_port("host", 10940) == ("host", 10940)
+    with pytest.raises(ValueError):
+        parse_host_port("host:abc")
