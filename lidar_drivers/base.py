@@ -1,0 +1,130 @@
+"""What every lidar shares: scan geometry, range sources for fakes, statistics, scan summaries.
+
+Conventions (ROS sensor_msgs/LaserScan, REP-103): angles in radians, counter-clockwise seen from
+above, 0 straight ahead along the laser frame's x axis; ranges in metres.
+
+Invalid-reading policy, the same for every driver: a reading the device flags as an error (Hokuyo
+codes below DMIN, RPLIDAR distance 0 or quality 0) becomes ``inf`` when it means "no return within
+range" and ``nan`` when the device reports a fault for that beam; readings beyond ``range_max``
+become ``inf``. Consumers treat both as "no obstacle seen on this beam"; the safety controller
+additionally refuses a scan whose valid beams are too few (see safety/).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from racecar_hw.messages import LaserScan
+
+
+def beam_count(angle_min: float, angle_max: float, angle_increment: float) -> int:
+    """Beams from the first at ``angle_min`` to the last at ``angle_max``, both included."""
+    return round((angle_max - angle_min) / angle_increment) + 1
+
+
+@dataclass(frozen=True)
+class ScanGeometry:
+    """One sweep's geometry as a device reports it, in ROS conventions.
+
+    ``angle_min``/``angle_max`` are the first and last beam (rad, CCW), ``scan_time`` the sweep
+    period (s), ``time_increment`` the time between beams (s), ranges in metres.
+    """
+
+    angle_min: float
+    angle_max: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+    scan_time: float
+    time_increment: float
+
+    @property
+    def beams(self) -> int:
+        """Number of beams in a sweep."""
+        return beam_count(self.angle_min, self.angle_max, self.angle_increment)
+
+    def angles(self) -> np.ndarray:
+        """The angle of every beam, radians."""
+        return self.angle_min + self.angle_increment * np.arange(self.beams)
+
+
+class RangeSource(Protocol):
+    """What a fake lidar measures: the world simulation, a fixed room, random ranges.
+
+    ``ranges(angles, stamp_ns)`` returns the true distance in metres along each angle (radians,
+    CCW, laser frame) at time ``stamp_ns`` (monotonic ns), ``inf`` where nothing is in reach. It is
+    called from the fake device's thread and must not block.
+    """
+
+    def ranges(self, angles: np.ndarray, stamp_ns: int) -> np.ndarray: ...
+
+
+class RoomRangeSource:
+    """A laser at (``x``, ``y``, heading ``yaw``) inside an axis-aligned rectangular room."""
+
+    def __init__(self, width: float = 8.0, depth: float = 6.0, x: float | None = None,
+                 y: float | None = None, yaw: float = 0.0) -> None:
+        self.width, self.depth = width, depth
+        self.x = width / 2 if x is None else x
+        self.y = depth / 2 if y is None else y
+        self.yaw = yaw
+
+    def ranges(self, angles: np.ndarray, stamp_ns: int = 0) -> np.ndarray:
+        a = np.asarray(angles, dtype=np.float64) + self.yaw
+        c, s = np.cos(a), np.sin(a)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tx = np.where(c > 0, (self.width - self.x) / c, np.where(c < 0, -self.x / c, np.inf))
+            ty = np.where(s > 0, (self.depth - self.y) / s, np.where(s < 0, -self.y / s, np.inf))
+        return np.minimum(tx, ty)
+
+
+class RandomRangeSource:
+    """The seeds' fake scan: every range uniform in [``low``, ``high``) metres."""
+
+    def __init__(self, low: float = 1.0, high: float = 10.0, seed: int | None = None) -> None:
+        self.low, self.high = low, high
+        self._rng = np.random.default_rng(seed)
+
+    def ranges(self, angles: np.ndarray, stamp_ns: int = 0) -> np.ndarray:
+        return self._rng.uniform(self.low, self.high, size=len(angles))
+
+
+@dataclass
+class LidarStats:
+    """Link statistics every lidar driver keeps and publishes."""
+
+    scans: int = 0
+    bytes_in: int = 0
+    checksum_errors: int = 0
+    resyncs: int = 0
+    reconnects: int = 0
+    device_errors: int = 0
+
+
+@dataclass(frozen=True)
+class ScanSummary:
+    """The seeds' scan_range and open space: closest and farthest valid return with their angles."""
+
+    closest: float
+    closest_angle: float
+    farthest: float
+    farthest_angle: float
+    valid_beams: int
+
+
+def summarize(scan: LaserScan) -> ScanSummary:
+    """Closest and farthest finite return within [range_min, range_max]; nan fields if none."""
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    valid = np.isfinite(r) & (r >= scan.range_min) & (r <= scan.range_max)
+    n = int(valid.sum())
+    if n == 0:
+        return ScanSummary(math.nan, math.nan, math.nan, math.nan, 0)
+    idx = np.flatnonzero(valid)
+    lo = idx[np.argmin(r[idx])]
+    hi = idx[np.argmax(r[idx])]
+    return ScanSummary(float(r[lo]), float(scan.angle_min + scan.angle_increment * lo),
+                       float(r[hi]), float(scan.angle_min + scan.angle_increment * hi), n)
