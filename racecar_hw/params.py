@@ -145,7 +145,8 @@ def _convert(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
             return tuple(_convert(args[0], v, f"{key}[{i}]", meta) for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(key, f"expected {len(args)} values, got {len(value)}")
-        return tuple(_convert(a, v, f"{key}[{i}]", meta) for i, (a, v) in enumerate(zip(args, value)))
+        pairs = enumerate(zip(args, value, strict=True))
+        return tuple(_convert(a, v, f"{key}[{i}]", meta) for i, (a, v) in pairs)
     if origin is dict:
         if not isinstance(value, Mapping):
             raise ConfigError(key, f"expected a mapping, got {_show(value)}")
