@@ -12,13 +12,21 @@ additionally refuses a scan whose valid beams are too few (see safety/).
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
+from lidar_drivers.params import LidarParams
+from racecar_hw.bus import Bus
+from racecar_hw.errors import DeviceError
 from racecar_hw.messages import LaserScan
+
+log = logging.getLogger(__name__)
 
 
 def beam_count(angle_min: float, angle_max: float, angle_increment: float) -> int:
@@ -128,3 +136,55 @@ def summarize(scan: LaserScan) -> ScanSummary:
     hi = idx[np.argmax(r[idx])]
     return ScanSummary(float(r[lo]), float(scan.angle_min + scan.angle_increment * lo),
                        float(r[hi]), float(scan.angle_min + scan.angle_increment * hi), n)
+
+
+class LidarDriver(ABC):
+    """One lidar: connect, configure, stream scans to the bus, reconnect forever.
+
+    Subclasses implement :meth:`_session`, one connection's life: open the link, read the
+    device's geometry, stream, and return or raise :class:`~racecar_hw.errors.DeviceError` when the
+    link is lost. :meth:`run` owns the reconnect loop with backoff, statistics and logging.
+    """
+
+    def __init__(self, bus: Bus, params: LidarParams) -> None:
+        self.bus = bus
+        self.params = params
+        self.stats = LidarStats()
+        self.geometry: ScanGeometry | None = None
+        self.info: dict[str, str] = {}
+        self.connected = False
+        self.last_error: str | None = None
+
+    async def run(self) -> None:
+        """Stream scans until cancelled, reconnecting with backoff after any device error."""
+        backoff = self.params.reconnect_backoff_min_s
+        first = True
+        while True:
+            try:
+                if not first:
+                    self.stats.reconnects += 1
+                first = False
+                await self._session()
+                backoff = self.params.reconnect_backoff_min_s
+            except DeviceError as err:
+                self.stats.device_errors += 1
+                if self.last_error != str(err):
+                    log.warning("lidar %s: %s; reconnecting", self.params.model, err)
+                self.last_error = str(err)
+            finally:
+                self.connected = False
+                await self._close()
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, self.params.reconnect_backoff_max_s)
+
+    @abstractmethod
+    async def _session(self) -> None:
+        """One connection: open, configure, stream. Set ``connected`` once streaming."""
+
+    async def _close(self) -> None:  # noqa: B027 - optional hook
+        """Close the link after a session (called even when it failed)."""
+
+    def publish(self, scan: LaserScan) -> None:
+        """Publish one finished scan and count it."""
+        self.stats.scans += 1
+        self.bus.publish(self.params.topic, scan)

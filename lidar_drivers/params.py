@@ -1,0 +1,36 @@
+"""Parameters of the lidar component, the same for every model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from racecar_hw.params import param
+
+#: Models racecar-hw drives, by family.
+HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx")
+RPLIDAR_MODELS = ("a1", "a2m8", "a2m7", "a2m12", "a3", "s1", "c1")
+MODELS = HOKUYO_MODELS + RPLIDAR_MODELS
+
+
+@dataclass
+class LidarParams:
+    """How to reach the lidar and how to shape its scans."""
+
+    model: str = param("ust-10lx", "lidar model", choices=MODELS)
+    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, RPLIDAR)")
+    tcp: str | None = param(None, "HOST:PORT of an Ethernet Hokuyo (UST/UTM: 192.168.0.10:10940)")
+    baudrate: int | None = param(None, "serial baud rate; default: the model's own", min=9600)
+    frame_id: str = param("laser", "frame_id of the published scans")
+    topic: str = param("/scan", "topic of the published sensor_msgs/LaserScan")
+    intensities: bool = param(False, "also publish intensities (Hokuyo ME, RPLIDAR quality)")
+    angle_min: float | None = param(None, "crop: first beam angle; default the device's", unit="rad")
+    angle_max: float | None = param(None, "crop: last beam angle; default the device's", unit="rad")
+    cluster: int = param(1, "Hokuyo: merge this many adjacent steps into one beam", min=1, max=99)
+    skip: int = param(0, "Hokuyo: skip this many scans between published scans", min=0, max=9)
+    scan_mode: str = param("standard", "RPLIDAR scan kind", choices=("standard", "express"))
+    motor_pwm: int = param(660, "RPLIDAR A2/A3 motor PWM when the accessory board allows", min=0,
+                           max=1023)
+    stale_timeout_s: float = param(0.5, "no scan for this long counts as a lost device and "
+                                        "triggers a reconnect", unit="s", min=0.05)
+    reconnect_backoff_min_s: float = param(0.1, "first reconnect delay", unit="s", min=0.01)
+    reconnect_backoff_max_s: float = param(1.0, "longest reconnect delay", unit="s", min=0.05)
