@@ -1,0 +1,45 @@
+"""Packaging: every package directory is installed, shipped data is found, the CLI starts."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import tomllib
+
+from racecar_hw.cli import COMMANDS, build_parser
+from racecar_hw.resources import config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_package_directory_is_listed_in_pyproject():
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = set()
+    for top in ("racecar_hw", "vesc", "lidar_drivers", "mux", "safety"):
+        for init in (ROOT / top).rglob("__init__.py"):
+            found.add(".".join(init.parent.relative_to(ROOT).parts))
+    found.add("racecar_hw.config")
+    assert found == listed
+
+
+def test_shipped_config_dir_is_found():
+    assert (config_dir() / "__init__.py").exists()
+
+
+def test_every_subcommand_has_help():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert len(sub.choices) >= len(COMMANDS)
+    top = parser.format_help()
+    for name, subparser in sub.choices.items():
+        assert name in top
+        assert subparser.format_help().startswith(f"usage: racecar-hw {name}")
+
+
+def test_console_script_runs():
+    out = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "--version"], capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.startswith("racecar-hw ")
