@@ -1,0 +1,104 @@
+"""Acceleration, braking and steering-rate limits on the mux output, in fixed time steps.
+
+The limiter advances by a FIXED period, ``1 / rate_hz``, per step: it never reads a clock, so
+scheduler jitter cannot widen a step and let a larger change through. When the output loop
+misses deadlines it says how many periods passed (``periods``), an integer count of its own
+schedule, so a stop is not slowed down by a late loop either.
+
+Speed: a change toward zero (braking) is limited by ``max_decel_mps2``, a change away from zero by
+``max_accel_mps2``. A target on the other side of zero brakes to zero first and spends the rest of
+the step accelerating the other way. Steering: the angle moves by at most
+``max_steering_rate_radps`` per second.
+
+ROS 1's throttle_interpolator ran its speed timer at ``1 / max_delta_rpm`` instead of
+``1 / rate``, which lets roughly ``gain * max_accel^2 / rate^2`` through (about 10 m/s^2 for a
+configured 3.5 on the MIT car); here the step size and the step period come from the same
+``rate_hz`` (``tests/test_mux_limiter.py`` checks the realized acceleration).
+
+A non-finite target (NaN, inf) is replaced by zero speed or centred steering.
+"""
+
+from __future__ import annotations
+
+import math
+
+from mux.params import MuxParams
+from racecar_hw.messages import AckermannDrive
+
+
+class RateLimiter:
+    """Rate limits for speed (m/s) and steering angle (rad), stepped at a fixed period (s)."""
+
+    def __init__(self, max_accel_mps2: float, max_decel_mps2: float, max_steering_rate_radps: float,
+                 period_s: float, enabled: bool = True) -> None:
+        for name, value in (("max_accel_mps2", max_accel_mps2), ("max_decel_mps2", max_decel_mps2),
+                            ("max_steering_rate_radps", max_steering_rate_radps),
+                            ("period_s", period_s)):
+            if not value > 0.0:
+                raise ValueError(f"{name} must be greater than 0, got {value!r}")
+        self.max_accel_mps2 = max_accel_mps2
+        self.max_decel_mps2 = max_decel_mps2
+        self.max_steering_rate_radps = max_steering_rate_radps
+        self.period_s = period_s
+        self.enabled = enabled
+        #: the last output speed, m/s
+        self.speed = 0.0
+        #: the last output steering angle, rad
+        self.steering_angle = 0.0
+
+    @classmethod
+    def from_params(cls, params: MuxParams) -> RateLimiter:
+        """The limiter configured by the mux parameters, stepping at ``1 / rate_hz``."""
+        return cls(params.max_accel_mps2, params.max_decel_mps2, params.max_steering_rate_radps,
+                   1.0 / params.rate_hz, params.limiter_enabled)
+
+    def reset(self, speed: float = 0.0, steering_angle: float = 0.0) -> None:
+        """Forget the past output: the next step starts from ``speed`` and ``steering_angle``."""
+        self.speed = _finite_or_zero(speed)
+        self.steering_angle = _finite_or_zero(steering_angle)
+
+    def step(self, speed: float, steering_angle: float, periods: int = 1) -> tuple[float, float]:
+        """Move toward the target over ``periods`` fixed periods; returns (speed, steering)."""
+        speed = _finite_or_zero(speed)
+        steering_angle = _finite_or_zero(steering_angle)
+        if self.enabled:
+            dt = self.period_s * max(1, periods)
+            speed = self._speed_toward(speed, dt)
+            steering_angle = _toward(self.steering_angle, steering_angle,
+                                     self.max_steering_rate_radps * dt)
+        self.speed = speed
+        self.steering_angle = steering_angle
+        return speed, steering_angle
+
+    def limit(self, drive: AckermannDrive, periods: int = 1) -> AckermannDrive:
+        """A new command: ``drive`` with speed and steering limited, other fields copied."""
+        speed, steering = self.step(drive.speed, drive.steering_angle, periods)
+        return AckermannDrive(steering, drive.steering_angle_velocity, speed, drive.acceleration,
+                              drive.jerk)
+
+    def _speed_toward(self, target: float, dt: float) -> float:
+        v = self.speed
+        if v == target:
+            return v
+        if (v > 0.0 and target < v) or (v < 0.0 and target > v):
+            # Braking: toward zero, or toward a smaller speed on the same side.
+            floor = max(target, 0.0) if v > 0.0 else min(target, 0.0)
+            gap = abs(v - floor)
+            if gap >= self.max_decel_mps2 * dt:
+                return v - math.copysign(self.max_decel_mps2 * dt, v)
+            dt -= gap / self.max_decel_mps2
+            v = floor
+            if v == target:
+                return v
+        return _toward(v, target, self.max_accel_mps2 * dt)
+
+
+def _toward(value: float, target: float, max_change: float) -> float:
+    if target > value:
+        return min(target, value + max_change)
+    return max(target, value - max_change)
+
+
+def _finite_or_zero(x: float) -> float:
+    x = float(x)
+    return x if math.isfinite(x) else 0.0

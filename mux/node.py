@@ -1,0 +1,397 @@
+"""The command mux on the bus: subscriptions, e-stop latch, diagnostics and the fixed-rate output.
+
+:class:`CommandMux` keeps the last command of each input and the state of each lock as they
+arrive, and on every tick arbitrates (:mod:`mux.arbiter`), runs the optional filters (the daemon
+puts the safety controller there), applies the :class:`~mux.limiter.RateLimiter` and publishes an
+``AckermannDriveStamped`` (frame ``base_link``) on ``output_topic`` whatever the inputs do.
+
+Any unexpected exception inside the mux (a subscriber callback, arbitration, a filter, the
+limiter, diagnostics) is logged and moves the mux to FAULT: zero speed, centred steering, limiter
+bypassed, until :meth:`CommandMux.reset` (which leaves it e-stopped) and then
+:meth:`CommandMux.release_estop`.
+
+Times are monotonic integer nanoseconds from the injected ``clock``; output stamps are wall time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from mux.arbiter import (
+    FAULT,
+    Arbitration,
+    MuxEvent,
+    MuxState,
+    MuxStateMachine,
+    MuxTable,
+    arbitrate,
+    is_fresh,
+    lock_engaged,
+    stopped,
+)
+from mux.limiter import RateLimiter
+from mux.params import MuxParams
+from racecar_hw.bus import Bus, Subscription
+from racecar_hw.clock import NS_PER_S, monotonic_ns, nanoseconds, wall_ns
+from racecar_hw.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    Bool,
+    DiagnosticArray,
+    DiagnosticStatus,
+    KeyValue,
+    String,
+    stamp_now,
+)
+
+log = logging.getLogger(__name__)
+
+#: ``filter(drive, source, now_ns) -> drive``, run between arbitration and the limiter. It must
+#: return a command (a new one, or ``drive`` unchanged) and must not mutate ``drive``.
+Filter = Callable[[AckermannDrive, str, int], AckermannDrive]
+
+OUTPUT_FRAME = "base_link"
+_MAX_SWITCHES = 10_000
+
+
+def next_deadline(deadline_ns: int, now_ns: int, period_ns: int) -> tuple[int, int]:
+    """The first deadline after ``deadline_ns`` on its fixed grid that is not behind ``now_ns``.
+
+    Returns (deadline, periods): ``periods`` is 1 when on time, and k > 1 when the loop fell
+    behind and k - 1 deadlines are skipped (never run in a burst).
+    """
+    behind = now_ns - deadline_ns
+    periods = max(1, -(-behind // period_ns))
+    return deadline_ns + periods * period_ns, periods
+
+
+class CommandMux:
+    """The priority Ackermann command mux bound to ``bus``; see :mod:`mux.arbiter` for the rules.
+
+    Use from the bus's event loop thread only. ``clock`` gives monotonic ns (message arrival,
+    ages, the run loop's deadlines), ``wall_clock`` the output stamps.
+    """
+
+    def __init__(self, bus: Bus, params: MuxParams | None = None, *,
+                 clock: Callable[[], int] = monotonic_ns,
+                 wall_clock: Callable[[], int] = wall_ns) -> None:
+        self.bus = bus
+        self.params = params = params if params is not None else MuxParams()
+        self.table = MuxTable.from_params(params)
+        self.limiter = RateLimiter.from_params(params)
+        self.machine = MuxStateMachine()
+        if params.start_estopped:
+            self.machine.process(MuxEvent.ENGAGE_ESTOP, "start_estopped")
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._start_ns = clock()
+        self._period_ns = nanoseconds(1.0 / params.rate_hz)
+        n, m = len(self.table.inputs), len(self.table.locks)
+        self._drives: list[AckermannDrive | None] = [None] * n
+        self._received: list[int | None] = [None] * n
+        self._lock_values: list[bool | None] = [None] * m
+        self._lock_received: list[int | None] = [None] * m
+        self._held_steering = 0.0
+        self._estop_asserted = False
+        #: (seconds since the mux was created, new source), for reports; the first entry is
+        #: the first arbitration's source. Oldest entries are dropped past 10 000.
+        self.switches: list[tuple[float, str]] = []
+        #: the current source (None before the first arbitration)
+        self.source: str | None = None
+        self.last_output: AckermannDriveStamped | None = None
+        self.outputs = 0
+        #: output deadlines skipped because the loop fell behind
+        self.overruns = 0
+        self.faults = 0
+        #: per input name: messages with a non-finite speed or steering (replaced by a stop)
+        self.rejected: dict[str, int] = dict.fromkeys(self.table.names, 0)
+        self._subs: list[Subscription] = []
+        self._subscribe()
+
+    # --- bus wiring ------------------------------------------------------------------------
+
+    def _subscribe(self) -> None:
+        p = self.params
+        self.bus.declare(p.output_topic, AckermannDriveStamped)
+        self.bus.declare(p.active_topic, String)
+        self.bus.declare(p.diagnostics_topic, DiagnosticArray)
+        for inp in p.inputs:
+            self.bus.declare(inp.topic, AckermannDriveStamped)
+            index = self.table.index_of[inp.name]
+            self._subs.append(self.bus.subscribe(inp.topic, self._input_callback(index)))
+        for index, lock in enumerate(p.locks):
+            self.bus.declare(lock.topic, Bool)
+            self._subs.append(self.bus.subscribe(lock.topic, self._lock_callback(index)))
+        self.bus.declare(p.estop_topic, Bool)
+        self.bus.declare(p.estop_release_topic, Bool)
+        self._subs.append(self.bus.subscribe(p.estop_topic, self._guarded(self._on_estop, "e-stop")))
+        self._subs.append(self.bus.subscribe(p.estop_release_topic,
+                                             self._guarded(self._on_release, "e-stop release")))
+
+    def close(self) -> None:
+        """Unsubscribe from the bus (safe to call twice)."""
+        for sub in self._subs:
+            sub.close()
+        self._subs.clear()
+
+    def __enter__(self) -> CommandMux:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _guarded(self, handler: Callable[[Any], None], what: str) -> Callable[[Any], None]:
+        def callback(msg: Any) -> None:
+            try:
+                handler(msg)
+            except Exception as err:
+                self._fail(f"{what} message", err)
+        return callback
+
+    def _input_callback(self, index: int) -> Callable[[Any], None]:
+        name = self.table.names[index]
+
+        def take(msg: AckermannDriveStamped) -> None:
+            drive = msg.drive
+            if not (math.isfinite(drive.speed) and math.isfinite(drive.steering_angle)):
+                count = self.rejected[name] = self.rejected[name] + 1
+                if count == 1 or count % 100 == 0:
+                    log.warning("mux input %s sent a non-finite command (speed %r, steering %r); "
+                                "treated as a stop (%d so far)", name, drive.speed,
+                                drive.steering_angle, count)
+                drive = AckermannDrive()
+            self._drives[index] = drive
+            self._received[index] = self._clock()
+        return self._guarded(take, f"input {name}")
+
+    def _lock_callback(self, index: int) -> Callable[[Any], None]:
+        def take(msg: Bool) -> None:
+            self._lock_values[index] = bool(msg.data)
+            self._lock_received[index] = self._clock()
+        return self._guarded(take, f"lock {self.table.locks[index].name}")
+
+    def _on_estop(self, msg: Bool) -> None:
+        self._estop_asserted = bool(msg.data)
+        if self._estop_asserted:
+            self.engage_estop(f"{self.params.estop_topic} said true")
+
+    def _on_release(self, msg: Bool) -> None:
+        if msg.data:
+            self.release_estop()
+
+    # --- e-stop and fault ------------------------------------------------------------------
+
+    @property
+    def state(self) -> MuxState:
+        """RUNNING, ESTOP or FAULT."""
+        return self.machine.state
+
+    def engage_estop(self, reason: str = "requested") -> None:
+        """Latch the e-stop: zero speed, centred steering until :meth:`release_estop`."""
+        before = self.machine.state
+        self.machine.process(MuxEvent.ENGAGE_ESTOP, reason)
+        if before is MuxState.RUNNING:
+            log.warning("mux e-stop engaged: %s", reason)
+
+    def release_estop(self) -> bool:
+        """Release a latched e-stop; True when the mux is now RUNNING.
+
+        Refused (False, logged) while the last message on ``estop_topic`` said true, and in FAULT
+        (call :meth:`reset` first).
+        """
+        state = self.machine.state
+        if state is MuxState.FAULT:
+            log.warning("mux e-stop release refused: the mux is in fault (%s); reset first",
+                        self.machine.reason)
+            return False
+        if self._estop_asserted:
+            log.warning("mux e-stop release refused: %s still says true",
+                        self.params.estop_topic)
+            return False
+        self.machine.process(MuxEvent.RELEASE_ESTOP)
+        if state is MuxState.ESTOP:
+            log.warning("mux e-stop released")
+        return True
+
+    def reset(self) -> MuxState:
+        """Leave FAULT for ESTOP (a release is still needed to drive); returns the new state."""
+        before = self.machine.state
+        state = self.machine.process(MuxEvent.RESET)
+        if before is MuxState.FAULT:
+            log.warning("mux fault reset; e-stop stays engaged until released")
+        return state
+
+    def _fail(self, where: str, err: BaseException) -> None:
+        self.faults += 1
+        if self.machine.state is not MuxState.FAULT:
+            log.error("mux fault in %s: %r; output stopped until reset", where, err, exc_info=err)
+        else:
+            log.debug("mux fault in %s while in fault: %r", where, err, exc_info=err)
+        self.machine.process(MuxEvent.ERROR, f"{where}: {err!r}")
+
+    # --- arbitration and output ------------------------------------------------------------
+
+    def arbitrate(self, now_ns: int | None = None) -> Arbitration:
+        """The winning command at ``now_ns`` (default: the clock); records source switches."""
+        now = self._clock() if now_ns is None else now_ns
+        try:
+            arb = arbitrate(self.table, self.machine.state, self._drives, self._received,
+                            self._lock_values, self._lock_received, now, self._held_steering)
+            if arb.source in self.table.index_of:
+                self._held_steering = arb.drive.steering_angle
+            elif arb.source != "idle":
+                self._held_steering = 0.0
+            if arb.source != self.source:
+                self._switch(arb, now)
+            return arb
+        except Exception as err:
+            self._fail("arbitration", err)
+            arb = stopped(self.table)
+            if self.source != FAULT:
+                self.source = FAULT
+                self.switches.append(((now - self._start_ns) / NS_PER_S, FAULT))
+            return arb
+
+    def _switch(self, arb: Arbitration, now_ns: int) -> None:
+        previous = self.source
+        self.source = arb.source
+        if len(self.switches) >= _MAX_SWITCHES:
+            del self.switches[: _MAX_SWITCHES // 2]
+        t = (now_ns - self._start_ns) / NS_PER_S
+        self.switches.append((t, arb.source))
+        log.info("mux source %s -> %s at %.3f s; %s", previous, arb.source, t, self.summary(arb))
+        self.bus.publish(self.params.active_topic, String(arb.source))
+
+    def step(self, now_ns: int | None = None, filters: Sequence[Filter] = (),
+             periods: int = 1) -> AckermannDriveStamped:
+        """One output tick: arbitrate, filter, limit, publish on ``output_topic``; returns it.
+
+        ``periods`` is how many output periods passed since the previous tick (more than 1 only
+        when the run loop skipped deadlines); the limiter advances by that many fixed periods.
+        """
+        now = self._clock() if now_ns is None else now_ns
+        arb = self.arbitrate(now)
+        out: AckermannDrive | None = None
+        if self.machine.state is not MuxState.FAULT:
+            try:
+                drive = arb.drive
+                for f in filters:
+                    drive = f(drive, arb.source, now)
+                out = self.limiter.limit(drive, periods)
+            except Exception as err:
+                self._fail("output filter or limiter", err)
+        if out is None or self.machine.state is MuxState.FAULT:
+            self.limiter.reset()
+            out = AckermannDrive()
+        msg = AckermannDriveStamped(stamp_now(OUTPUT_FRAME, self._wall_clock()), out)
+        self.last_output = msg
+        self.outputs += 1
+        try:
+            self.bus.publish(self.params.output_topic, msg)
+        except Exception as err:
+            self._fail("output publish", err)
+        return msg
+
+    # --- diagnostics -----------------------------------------------------------------------
+
+    def summary(self, arb: Arbitration) -> str:
+        """One line: each input's age and mask, lock states, e-stop; for logs."""
+        parts = []
+        for name, age in zip(arb.names, arb.ages_ns, strict=True):
+            text = "never" if age is None else f"{age / NS_PER_S:.2f}s"
+            parts.append(f"{name} {text}{' masked' if name in arb.masked else ''}")
+        locks = ", ".join(arb.engaged_locks) or "none"
+        estop = self.machine.reason if self.machine.state is not MuxState.RUNNING else "off"
+        return f"inputs: {', '.join(parts)}; engaged locks: {locks}; {self.machine.state.value}: {estop}"
+
+    def diagnostics(self, now_ns: int | None = None) -> DiagnosticArray:
+        """The mux's diagnostic status at ``now_ns``: state, source, inputs, locks, counters."""
+        now = self._clock() if now_ns is None else now_ns
+        state = self.machine.state
+        arb = arbitrate(self.table, state, self._drives, self._received, self._lock_values,
+                        self._lock_received, now, self._held_steering)
+        values = [KeyValue("state", state.value), KeyValue("active", self.source or arb.source)]
+        if state is not MuxState.RUNNING:
+            values.append(KeyValue("reason", self.machine.reason))
+        values.append(KeyValue("estop_topic_asserted", str(self._estop_asserted).lower()))
+        for i, spec in enumerate(self.table.inputs):
+            age = arb.ages_ns[i]
+            if age is None:
+                text = "never received"
+            else:
+                fresh = is_fresh(spec.timeout_ns, self._received[i], now)
+                text = f"{'fresh' if fresh else 'expired'}, age {age / NS_PER_S:.3f} s"
+            if spec.name in arb.masked:
+                text += ", masked"
+            rejected = self.rejected[spec.name]
+            if rejected:
+                text += f", {rejected} non-finite"
+            values.append(KeyValue(f"input {spec.name} (priority {spec.priority})", text))
+        for i, lock in enumerate(self.table.locks):
+            received = self._lock_received[i]
+            if not lock_engaged(lock, self._lock_values[i], received, now):
+                text = "released"
+            elif received is None:
+                text = "engaged (never heard: deadman)"
+            elif lock.timeout_ns and not is_fresh(lock.timeout_ns, received, now):
+                text = f"engaged (silent {(now - received) / NS_PER_S:.3f} s: deadman)"
+            else:
+                text = "engaged"
+            values.append(KeyValue(f"lock {lock.name} (priority {lock.priority})", text))
+        values += [KeyValue("switches", str(len(self.switches))), KeyValue("outputs", str(self.outputs)),
+                   KeyValue("overruns", str(self.overruns)), KeyValue("faults", str(self.faults))]
+        level = {MuxState.RUNNING: DiagnosticStatus.OK, MuxState.ESTOP: DiagnosticStatus.WARN,
+                 MuxState.FAULT: DiagnosticStatus.ERROR}[state]
+        message = (f"active: {arb.source}" if state is MuxState.RUNNING
+                   else f"{state.value}: {self.machine.reason}")
+        status = DiagnosticStatus(level, "racecar_hw: command mux", message, "", values)
+        return DiagnosticArray(stamp_now("", self._wall_clock()), [status])
+
+    def publish_diagnostics(self, now_ns: int | None = None) -> None:
+        """Publish :meth:`diagnostics` on ``diagnostics_topic``."""
+        try:
+            self.bus.publish(self.params.diagnostics_topic, self.diagnostics(now_ns))
+        except Exception as err:
+            self._fail("diagnostics", err)
+
+    # --- the fixed-rate loop ---------------------------------------------------------------
+
+    async def run(self, filters: Sequence[Filter] = ()) -> None:
+        """Tick at ``rate_hz`` on absolute deadlines until cancelled; publish one stop on exit.
+
+        Deadlines sit on a fixed grid from the start, so the rate does not drift; a loop that
+        falls behind skips to the next deadline on the grid (counted in :attr:`overruns`) instead
+        of publishing a burst, and tells the limiter how many periods passed.
+        """
+        filters = tuple(filters)
+        period = self._period_ns
+        diag_every = max(1, round(self.params.rate_hz / self.params.diagnostics_rate_hz))
+        deadline = self._clock()
+        periods = 1
+        tick = 0
+        try:
+            while True:
+                now = self._clock()
+                self.step(now, filters, periods)
+                if tick % diag_every == 0:
+                    self.publish_diagnostics(now)
+                tick += 1
+                deadline, periods = next_deadline(deadline, self._clock(), period)
+                self.overruns += periods - 1
+                await asyncio.sleep(max(0, deadline - self._clock()) / NS_PER_S)
+        finally:
+            self.limiter.reset()
+            try:
+                stop = AckermannDriveStamped(stamp_now(OUTPUT_FRAME, self._wall_clock()), AckermannDrive())
+                self.last_output = stop
+                self.bus.publish(self.params.output_topic, stop)
+            except Exception:
+                log.exception("mux could not publish its final stop")
+
+
+#: The name the daemon wiring uses for the mux node; the same class.
+MuxNode = CommandMux

@@ -1,0 +1,151 @@
+"""Parameters of the priority Ackermann command mux.
+
+Priorities: a larger number wins. Timeouts are measured from the arrival of the last message on
+the topic (monotonic clock), never from its header stamp. The defaults keep the ROS racecar topic
+names (MIT ``mux.launch`` layout, flattened into one mux): safety above teleop above ``nav_0`` ..
+``nav_3``, each with a 0.2 s timeout, and a zero command when nothing is fresh.
+
+Build from YAML with ``racecar_hw.params.build(MuxParams, mapping, "mux")``. Cross-field rules
+(unique priorities, names and topics) are checked when the instance is created and raise
+:class:`~racecar_hw.errors.ConfigError` naming the key under the prefix ``mux``; call
+:meth:`MuxParams.validate` with another prefix when the mux sits elsewhere in a larger config.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from racecar_hw.errors import ConfigError
+from racecar_hw.params import param
+
+#: Source names the mux uses for itself; an input may not take one of them.
+RESERVED_SOURCES: tuple[str, ...] = ("idle", "estop", "fault")
+
+_LOW = "/vesc/low_level/ackermann_cmd_mux"
+_HIGH = "/vesc/high_level/ackermann_cmd_mux"
+
+
+@dataclass
+class InputParams:
+    """One command source: ackermann_msgs/AckermannDriveStamped on ``topic``."""
+
+    name: str = field(metadata={"doc": "source name shown in diagnostics and switch logs"})
+    topic: str = field(metadata={"doc": "topic carrying AckermannDriveStamped commands"})
+    priority: int = param(0, "larger wins; unique among inputs", min=0, max=255)
+    timeout_s: float = param(0.2, "the source expires this long after its last message; 0 = never",
+                             unit="s", min=0.0)
+
+
+@dataclass
+class LockParams:
+    """A lock on std_msgs/Bool: while engaged it masks every input of strictly lower priority.
+
+    Engaged while the last message said true, or (deadman) when ``timeout_s`` > 0 and nothing
+    arrived for longer than that, including a publisher that never spoke.
+    """
+
+    name: str = field(metadata={"doc": "lock name shown in diagnostics"})
+    topic: str = field(metadata={"doc": "topic carrying std_msgs/Bool; true engages the lock"})
+    priority: int = param(0, "inputs of strictly lower priority are masked while engaged",
+                          min=0, max=255)
+    timeout_s: float = param(0.0, "engage when silent for longer than this (deadman); 0 = never",
+                             unit="s", min=0.0)
+
+
+def _default_inputs() -> list[InputParams]:
+    inputs = [
+        InputParams("safety", f"{_LOW}/input/safety", 100, 0.2),
+        InputParams("teleop", f"{_LOW}/input/teleop", 90, 0.2),
+    ]
+    for n, priority in enumerate((20, 15, 10, 5)):
+        inputs.append(InputParams(f"nav_{n}", f"{_HIGH}/input/nav_{n}", priority, 0.2))
+    return inputs
+
+
+@dataclass
+class MuxParams:
+    """The command mux: inputs, locks, e-stop, output rate and the rate limiter."""
+
+    inputs: list[InputParams] = param(
+        _default_inputs(), "command sources; priorities, names and topics unique")
+    locks: list[LockParams] = param([], "locks masking lower-priority inputs (std_msgs/Bool)")
+    estop_topic: str = param("/estop", "std_msgs/Bool; true engages the latched e-stop")
+    estop_release_topic: str = param(
+        "/estop_release", "std_msgs/Bool; true releases the e-stop, refused while estop_topic "
+        "still says true")
+    start_estopped: bool = param(False, "start with the e-stop engaged (release before driving)")
+    rate_hz: float = param(50.0, "output rate; also the limiter's fixed step", unit="Hz",
+                           min=1.0, max=1000.0)
+    output_topic: str = param(f"{_LOW}/output", "AckermannDriveStamped output, frame base_link")
+    active_topic: str = param(f"{_LOW}/active",
+                              "std_msgs/String naming the active source, published on switches")
+    hold_steering_when_idle: bool = param(
+        False, "when no input is fresh keep the last steering angle (speed is still zero)")
+    diagnostics_topic: str = param("/diagnostics", "diagnostic_msgs/DiagnosticArray output")
+    diagnostics_rate_hz: float = param(2.0, "diagnostics publish rate", unit="Hz",
+                                       min=0.1, max=50.0)
+    limiter_enabled: bool = param(True, "apply the acceleration and steering-rate limits")
+    max_accel_mps2: float = param(2.5, "largest speed change away from zero", unit="m/s^2",
+                                  min=1e-3)
+    max_decel_mps2: float = param(8.0, "largest speed change toward zero (vehicle braking)",
+                                  unit="m/s^2", min=1e-3)
+    max_steering_rate_radps: float = param(3.2, "largest steering angle change", unit="rad/s",
+                                           min=1e-3)
+
+    def __post_init__(self) -> None:
+        self.validate("mux")
+
+    def validate(self, key: str = "mux") -> None:
+        """Check cross-field rules; raise ConfigError naming the first offending key."""
+        for name in ("rate_hz", "diagnostics_rate_hz", "max_accel_mps2", "max_decel_mps2",
+                     "max_steering_rate_radps"):
+            value = getattr(self, name)
+            if not value > 0.0:  # also refuses NaN
+                raise ConfigError(f"{key}.{name}", f"{value!r} must be greater than 0")
+        if not math.isfinite(self.rate_hz):
+            raise ConfigError(f"{key}.rate_hz", "must be finite")
+        topics: dict[str, str] = {}
+
+        def claim(topic: str, where: str) -> None:
+            if not topic.startswith("/"):
+                raise ConfigError(where, f"{topic!r} is not an absolute topic name")
+            if topic in topics:
+                raise ConfigError(where, f"{topic} is already used by {topics[topic]}")
+            topics[topic] = where
+
+        for name in ("output_topic", "estop_topic", "estop_release_topic", "active_topic",
+                     "diagnostics_topic"):
+            claim(getattr(self, name), f"{key}.{name}")
+        names: dict[str, str] = {}
+        priorities: dict[int, str] = {}
+        for i, inp in enumerate(self.inputs):
+            where = f"{key}.inputs[{i}]"
+            if not inp.name:
+                raise ConfigError(f"{where}.name", "must not be empty")
+            if inp.name in RESERVED_SOURCES:
+                raise ConfigError(f"{where}.name", f"{inp.name!r} is reserved; reserved names: "
+                                                   + ", ".join(RESERVED_SOURCES))
+            if inp.name in names:
+                raise ConfigError(f"{where}.name", f"{inp.name!r} is already used by {names[inp.name]}")
+            names[inp.name] = where
+            if inp.priority in priorities:
+                raise ConfigError(f"{where}.priority",
+                                  f"{inp.priority} is already used by {priorities[inp.priority]}; "
+                                  "input priorities must be unique")
+            priorities[inp.priority] = where
+            if not math.isfinite(inp.timeout_s):
+                raise ConfigError(f"{where}.timeout_s", "must be finite (0 means never expires)")
+            claim(inp.topic, f"{where}.topic")
+        lock_names: dict[str, str] = {}
+        for i, lock in enumerate(self.locks):
+            where = f"{key}.locks[{i}]"
+            if not lock.name:
+                raise ConfigError(f"{where}.name", "must not be empty")
+            if lock.name in lock_names:
+                raise ConfigError(f"{where}.name",
+                                  f"{lock.name!r} is already used by {lock_names[lock.name]}")
+            lock_names[lock.name] = where
+            if not math.isfinite(lock.timeout_s):
+                raise ConfigError(f"{where}.timeout_s", "must be finite (0 means never expires)")
+            claim(lock.topic, f"{where}.topic")

@@ -1,0 +1,145 @@
+"""Mux parameters: defaults, documentation, and validation errors that name the key."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from mux.params import InputParams, LockParams, MuxParams
+from racecar_hw.errors import ConfigError
+from racecar_hw.params import build, describe
+
+LOW = "/vesc/low_level/ackermann_cmd_mux"
+HIGH = "/vesc/high_level/ackermann_cmd_mux"
+
+
+def _inputs(*priorities: int) -> list[dict]:
+    return [{"name": f"in{i}", "topic": f"/in{i}", "priority": p} for i, p in enumerate(priorities)]
+
+
+def test_defaults_keep_ros_racecar_topics_and_order():
+    p = build(MuxParams, {}, "mux")
+    assert [(i.name, i.topic, i.timeout_s) for i in p.inputs] == [
+        ("safety", f"{LOW}/input/safety", 0.2),
+        ("teleop", f"{LOW}/input/teleop", 0.2),
+        ("nav_0", f"{HIGH}/input/nav_0", 0.2),
+        ("nav_1", f"{HIGH}/input/nav_1", 0.2),
+        ("nav_2", f"{HIGH}/input/nav_2", 0.2),
+        ("nav_3", f"{HIGH}/input/nav_3", 0.2),
+    ]
+    priorities = [i.priority for i in p.inputs]
+    assert priorities == sorted(priorities, reverse=True)
+    assert len(set(priorities)) == len(priorities)
+    assert p.output_topic == f"{LOW}/output"
+    assert (p.rate_hz, p.hold_steering_when_idle, p.limiter_enabled) == (50.0, False, True)
+    assert (p.max_accel_mps2, p.max_decel_mps2, p.max_steering_rate_radps) == (2.5, 8.0, 3.2)
+    assert p.locks == []
+    assert p.estop_topic != p.estop_release_topic
+
+
+def test_instances_do_not_share_default_lists():
+    a, b = MuxParams(), MuxParams()
+    a.inputs.pop()
+    assert len(b.inputs) == 6
+
+
+def test_every_field_is_documented():
+    for cls in (MuxParams, InputParams, LockParams):
+        for f in dataclasses.fields(cls):
+            assert f.metadata.get("doc"), f"{cls.__name__}.{f.name}"
+    keys = [key for key, _default, _doc in describe(MuxParams, "mux")]
+    assert "mux.max_decel_mps2" in keys
+
+
+def test_duplicate_priority_names_the_key():
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": _inputs(30, 20, 30)}, "mux")
+    assert err.value.key == "mux.inputs[2].priority"
+    assert "mux.inputs[0]" in str(err.value)
+
+
+def test_duplicate_name_and_topic_name_the_key():
+    data = _inputs(3, 2, 1)
+    data[1]["name"] = "in0"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": data}, "mux")
+    assert err.value.key == "mux.inputs[1].name"
+    data = _inputs(3, 2, 1)
+    data[2]["topic"] = "/in0"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": data}, "mux")
+    assert err.value.key == "mux.inputs[2].topic"
+
+
+def test_input_on_the_output_topic_is_refused():
+    data = _inputs(3)
+    data[0]["topic"] = f"{LOW}/output"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": data}, "mux")
+    assert err.value.key == "mux.inputs[0].topic"
+    assert "mux.output_topic" in str(err.value)
+
+
+def test_reserved_and_empty_names_are_refused():
+    for bad in ("idle", "estop", "fault", ""):
+        data = _inputs(3)
+        data[0]["name"] = bad
+        with pytest.raises(ConfigError) as err:
+            build(MuxParams, {"inputs": data}, "mux")
+        assert err.value.key == "mux.inputs[0].name"
+
+
+def test_missing_and_out_of_range_fields_name_the_key():
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": [{"name": "a", "priority": 1}]}, "mux")
+    assert err.value.key == "mux.inputs[0].topic"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": [{"name": "a", "topic": "/a", "timeout_s": -1}]}, "mux")
+    assert err.value.key == "mux.inputs[0].timeout_s"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": [{"name": "a", "topic": "/a", "priority": 1.5}]}, "mux")
+    assert err.value.key == "mux.inputs[0].priority"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"max_decel_mps2": 0.0}, "mux")
+    assert err.value.key == "mux.max_decel_mps2"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"rate_hz": 0}, "mux")
+    assert err.value.key == "mux.rate_hz"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"hold_steering_when_idel": True}, "mux")
+    assert err.value.key == "mux.hold_steering_when_idel"
+
+
+def test_direct_construction_is_validated_too():
+    with pytest.raises(ConfigError) as err:
+        MuxParams(max_accel_mps2=float("nan"))
+    assert err.value.key == "mux.max_accel_mps2"
+    with pytest.raises(ConfigError) as err:
+        MuxParams(inputs=[InputParams("a", "/a", 1), InputParams("b", "/b", 1)])
+    assert err.value.key == "mux.inputs[1].priority"
+
+
+def test_validate_with_another_prefix():
+    p = MuxParams()
+    p.inputs[3].priority = p.inputs[0].priority
+    with pytest.raises(ConfigError) as err:
+        p.validate("daemon.mux")
+    assert err.value.key == "daemon.mux.inputs[3].priority"
+
+
+def test_locks_are_built_and_checked():
+    p = build(MuxParams, {"locks": [{"name": "pause", "topic": "/pause", "priority": 50},
+                                    {"name": "deadman", "topic": "/deadman", "priority": 95,
+                                     "timeout_s": 0.5}]}, "mux")
+    assert p.locks[1] == LockParams("deadman", "/deadman", 95, 0.5)
+    assert p.locks[0].timeout_s == 0.0
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"locks": [{"name": "a", "topic": "/a"}, {"name": "a", "topic": "/b"}]}, "mux")
+    assert err.value.key == "mux.locks[1].name"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"locks": [{"name": "a", "topic": "/estop"}]}, "mux")
+    assert err.value.key == "mux.locks[0].topic"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"locks": [{"name": "a", "topic": "relative"}]}, "mux")
+    assert err.value.key == "mux.locks[0].topic"
