@@ -1,0 +1,320 @@
+"""Replay recorded Ackermann commands from a bag into a command-mux input (the lab0 bag follower).
+
+Three pieces, usable alone:
+
+* :func:`load_commands` reads ``ackermann_msgs/AckermannDriveStamped`` (or ``AckermannDrive``) on
+  one topic of a ROS 1 ``.bag`` or a ROS 2 bag (sqlite3 or MCAP), with clear :class:`BagError`\\ s.
+* :func:`schedule` and :class:`CommandSync` turn the commands into timed steps (python-can
+  ``MessageSync`` style): a fixed rate or the bag's own timestamps, optionally time-scaled,
+  forwards or backwards, once or looping.
+* :class:`BagFollower` publishes the steps, re-stamped, into a mux input topic on absolute
+  deadlines, reporting progress.
+
+Backwards = reversed order + negated speed + unchanged steering: an Ackermann path's curvature is
+tan(steering)/wheelbase whatever the direction of travel, so the same steering with the opposite
+speed retraces the path. With timestamps, the gaps between commands are replayed reversed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Connection
+
+from racecar_hw.bagtypes import ros2_types
+from racecar_hw.bus import Bus
+from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.errors import BagError, ConfigError
+from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+from racecar_hw.params import param
+
+log = logging.getLogger(__name__)
+
+TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
+NAV0_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/nav_0"
+ACCEPTED_TYPES = ("ackermann_msgs/msg/AckermannDriveStamped", "ackermann_msgs/msg/AckermannDrive")
+
+
+@dataclass(frozen=True)
+class Command:
+    """One recorded command: its bag time (ns since the epoch) and the drive it asked for."""
+
+    t_ns: int
+    drive: AckermannDrive
+
+
+@dataclass(frozen=True)
+class Step:
+    """One command to publish ``offset_ns`` after the replay started."""
+
+    offset_ns: int
+    drive: AckermannDrive
+
+
+@dataclass
+class FollowerParams:
+    """Parameters of the bag follower."""
+
+    bag: str = param("", "ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP) to follow")
+    topic: str = param(TELEOP_TOPIC, "topic in the bag holding AckermannDriveStamped or AckermannDrive")
+    input_topic: str = param(NAV0_TOPIC, "mux input topic the commands are published on")
+    rate_hz: float = param(20.0, "fixed publish rate when not using the bag timestamps", unit="Hz",
+                           min=0.1, max=1000.0)
+    use_timestamps: bool = param(False, "replay with the bag's own timing instead of rate_hz")
+    time_scale: float = param(1.0, "speed-up of the replay timing (2 = twice as fast); commands "
+                                   "themselves are unchanged", min=0.01, max=100.0)
+    reverse: bool = param(False, "follow the path backwards: reversed order, negated speed, same "
+                                 "steering")
+    loop: bool = param(False, "start again after the last command")
+    frame_id: str = param("base_link", "frame_id of the re-stamped commands")
+    stop_at_end: bool = param(True, "publish one zero-speed, centred command when the replay ends")
+
+    def __post_init__(self) -> None:
+        if not self.input_topic.startswith("/"):
+            raise ConfigError("input_topic", f"{self.input_topic!r} is not an absolute topic name")
+
+
+# --- reading ----------------------------------------------------------------------------------
+
+
+def _describe(conns: Sequence[Connection]) -> str:
+    seen: dict[tuple[str, str], int] = {}
+    for c in conns:
+        seen[(c.topic, c.msgtype)] = seen.get((c.topic, c.msgtype), 0) + c.msgcount
+    return ", ".join(f"{t} ({ty}, {n} msgs)" for (t, ty), n in sorted(seen.items())) or "none"
+
+
+def _open_reader(path: Path) -> AnyReader:
+    if not path.exists():
+        raise BagError(f"bag not found: {path}")
+    if path.is_file() and path.stat().st_size == 0:
+        raise BagError(f"{path} is empty (0 bytes): not a bag (was the recording killed before "
+                       "anything was written?)")
+    if path.is_dir():
+        files = [p for p in path.iterdir() if p.suffix in (".mcap", ".db3")]
+        if files and all(p.stat().st_size == 0 for p in files):
+            raise BagError(f"{path}: its storage file is empty (0 bytes)")
+    reader = AnyReader([path], default_typestore=ros2_types().store)
+    try:
+        reader.open()
+    except Exception as err:
+        text = str(err)
+        hint = ""
+        if "not indexed" in text or "end magic" in text:
+            hint = " (an interrupted recording? try racecar_hw.bag_recover.recover_bag)"
+        raise BagError(f"cannot read bag {path}: {text}{hint}") from err
+    return reader
+
+
+def load_commands(path: str | Path, topic: str = TELEOP_TOPIC) -> list[Command]:
+    """The Ackermann commands on ``topic`` of the bag at ``path``, in bag-time order.
+
+    Raises :class:`BagError` for a missing or zero-byte file, an unreadable bag, an empty bag, a
+    missing topic or one of another type (listing the topics and types found), and a storage that
+    yields nothing although its metadata counts messages.
+    """
+    bag = Path(path)
+    reader = _open_reader(bag)
+    try:
+        conns = reader.connections
+        if not conns or reader.message_count == 0:
+            raise BagError(f"{bag} holds no messages (topics: {_describe(conns)})")
+        mine = [c for c in conns if c.topic == topic]
+        if not mine:
+            raise BagError(f"topic {topic} is not in {bag}; topics found: {_describe(conns)}")
+        expected = sum(c.msgcount for c in mine)
+        raw = [(c, t, data) for c, t, data in reader.messages(connections=mine)]
+        if expected and not raw:
+            raise BagError(
+                f"{bag}: the metadata says {expected} messages on {topic}, but reading yielded 0. "
+                "In ROS 2 bags this happens when the QoS profiles in metadata.yaml do not match "
+                "the storage's topics table; the bag must be repaired (e.g. re-record or convert "
+                "it) before it can be followed")
+        wrong = [c for c in mine if c.msgtype not in ACCEPTED_TYPES]
+        if wrong:
+            raise BagError(f"topic {topic} in {bag} carries {wrong[0].msgtype}, expected one of "
+                           f"{', '.join(ACCEPTED_TYPES)}; topics found: {_describe(conns)}")
+        if not raw:
+            raise BagError(f"{bag} holds no messages on {topic} (topics: {_describe(conns)})")
+        types = ros2_types()
+        out = []
+        for conn, t_ns, data in raw:
+            obj = reader.deserialize(data, conn.msgtype)
+            if conn.msgtype.endswith("Stamped"):
+                drive = types.from_ros(obj.drive, AckermannDrive)
+            else:
+                drive = types.from_ros(obj, AckermannDrive)
+            out.append(Command(t_ns, drive))
+    finally:
+        reader.close()
+    out.sort(key=lambda c: c.t_ns)
+    return out
+
+
+def summarize_bag(path: str | Path) -> dict[str, tuple[str, int]]:
+    """Every topic of the bag with its type and the number of messages actually read.
+
+    Each message is read and deserialized, so an unreadable one raises; a topic whose metadata
+    counts messages that the storage does not yield raises :class:`BagError`.
+    """
+    bag = Path(path)
+    reader = _open_reader(bag)
+    try:
+        found: dict[str, tuple[str, int]] = {}
+        for conn in reader.connections:
+            count = 0
+            for c, _t, data in reader.messages(connections=[conn]):
+                reader.deserialize(data, c.msgtype)
+                count += 1
+            if conn.msgcount and not count:
+                raise BagError(f"{bag}: the metadata says {conn.msgcount} messages on {conn.topic}, "
+                               "but reading yielded 0 (metadata.yaml QoS differs from the storage?)")
+            old_type, old_count = found.get(conn.topic, (conn.msgtype, 0))
+            found[conn.topic] = (old_type, old_count + count)
+    finally:
+        reader.close()
+    return found
+
+
+# --- timing -----------------------------------------------------------------------------------
+
+
+def schedule(commands: Sequence[Command], *, rate_hz: float = 20.0, use_timestamps: bool = False,
+             time_scale: float = 1.0, reverse: bool = False) -> list[Step]:
+    """Timed steps for ``commands``: offsets from the start of one pass, in ns.
+
+    A fixed rate puts step ``i`` at ``i / (rate_hz * time_scale)``; timestamps put it at its
+    bag-time distance from the first (or, reversed, from the last) command divided by
+    ``time_scale``. Reversing also negates speed (steering unchanged).
+    """
+    if rate_hz <= 0 or time_scale <= 0:
+        raise ValueError("rate_hz and time_scale must be positive")
+    cmds = list(reversed(commands)) if reverse else list(commands)
+    if not cmds:
+        return []
+    steps = []
+    period = NS_PER_S / (rate_hz * time_scale)
+    t0 = cmds[0].t_ns
+    for i, cmd in enumerate(cmds):
+        offset = abs(cmd.t_ns - t0) / time_scale if use_timestamps else i * period
+        drive = dataclasses.replace(cmd.drive, speed=-cmd.drive.speed) if reverse else cmd.drive
+        steps.append(Step(round(offset), drive))
+    return steps
+
+
+class CommandSync:
+    """Steps with absolute offsets over one pass or, with ``loop``, forever.
+
+    A new pass starts one ``gap_ns`` after the last step of the previous pass (the fixed-rate
+    period, by default). ``len()`` is the steps of one pass; :attr:`pass_ns` its duration.
+    """
+
+    def __init__(self, steps: Sequence[Step], *, loop: bool = False, gap_ns: int = NS_PER_S // 20) -> None:
+        self.steps = list(steps)
+        self.loop = loop
+        self.gap_ns = gap_ns
+        self.pass_ns = (self.steps[-1].offset_ns if self.steps else 0) + gap_ns
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def __iter__(self) -> Iterator[tuple[int, int, Step]]:
+        """Yields (absolute offset ns, index within the pass, step)."""
+        base = 0
+        while self.steps:
+            for i, step in enumerate(self.steps):
+                yield base + step.offset_ns, i, step
+            if not self.loop:
+                return
+            base += self.pass_ns
+
+    def play(self, sleep: Callable[[float], None] = time.sleep,
+             now_ns: Callable[[], int] = monotonic_ns) -> Iterator[Step]:
+        """Yield each step at its deadline, sleeping in between (for scripts without asyncio)."""
+        start = now_ns()
+        for offset, _i, step in self:
+            delay = (start + offset - now_ns()) / NS_PER_S
+            if delay > 0:
+                sleep(delay)
+            yield step
+
+
+# --- the follower -----------------------------------------------------------------------------
+
+Progress = Callable[[float, float], None]
+
+
+class BagFollower:
+    """Publishes a bag's Ackermann commands, re-stamped, into a mux input topic.
+
+    ``progress(fraction, eta_s)`` is called after each command (fraction of the current pass,
+    seconds left in it). ``done`` turns true when a non-looping replay has finished or ``stop()``
+    was called. Commands enter the mux as a normal source, so deadman, timeouts and safety apply.
+    """
+
+    def __init__(self, bus: Bus, params: FollowerParams, progress: Progress | None = None) -> None:
+        self.bus = bus
+        self.params = params
+        self.progress = progress
+        self.done = False
+        self.published = 0
+        self.late_ns_max = 0
+        self._stop = asyncio.Event()
+        self.commands: list[Command] = []
+
+    def load(self) -> list[Step]:
+        """Read the bag and build the steps (raises BagError)."""
+        p = self.params
+        self.commands = load_commands(p.bag, p.topic)
+        return schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
+                        time_scale=p.time_scale, reverse=p.reverse)
+
+    def stop(self) -> None:
+        """End the replay at the next deadline."""
+        self._stop.set()
+
+    async def run(self) -> int:
+        """Replay; returns the number of commands published."""
+        p = self.params
+        steps = await asyncio.to_thread(self.load)
+        gap = round(NS_PER_S / (p.rate_hz * p.time_scale))
+        sync = CommandSync(steps, loop=p.loop, gap_ns=gap)
+        log.info("following %d commands from %s (%s, %s)", len(sync), p.bag,
+                 "backwards" if p.reverse else "forwards",
+                 "bag timing" if p.use_timestamps else f"{p.rate_hz:g} Hz")
+        start = monotonic_ns()
+        last_offset = sync.steps[-1].offset_ns if sync.steps else 0
+        try:
+            for offset, index, step in sync:
+                deadline = start + offset
+                while not self._stop.is_set() and (delay := deadline - monotonic_ns()) > 0:
+                    await asyncio.sleep(min(delay / NS_PER_S, 0.1))  # wake at least every 0.1 s
+                if self._stop.is_set():
+                    break
+                self.late_ns_max = max(self.late_ns_max, monotonic_ns() - start - offset)
+                self._publish(step.drive)
+                if self.progress is not None:
+                    fraction = (index + 1) / len(sync)
+                    self.progress(fraction, max(0.0, (last_offset - step.offset_ns) / NS_PER_S))
+        finally:
+            if p.stop_at_end:
+                self._publish(AckermannDrive())
+            self.done = True
+        return self.published
+
+    def _publish(self, drive: AckermannDrive) -> None:
+        self.bus.publish(self.params.input_topic,
+                         AckermannDriveStamped(stamp_now(self.params.frame_id, wall_ns()), drive))
+        self.published += 1
+
+
+def follow(bus: Bus, params: FollowerParams, progress: Progress | None = None) -> BagFollower:
+    """A follower for ``params``; ``await follower.run()`` replays (for the CLI's ``follow``)."""
+    return BagFollower(bus, params, progress)

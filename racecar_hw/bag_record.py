@@ -1,0 +1,478 @@
+"""Record bus topics into ROS 2 (MCAP or sqlite3) or ROS 1 bags, without ever delaying the bus.
+
+:class:`Recorder` is a bus listener. Its callback runs in the bus's event-loop thread and only
+appends ``(topic, message, receive time)`` to a bounded queue; a writer thread serializes and writes.
+When the queue is full the message is dropped and counted (``stats.dropped``, and a warning at most
+once per flush interval): never silently, never by blocking the control loop.
+
+Messages must not be mutated after they are published (the bus's rule too): the writer serializes
+them later, in another thread.
+
+Crash safety. Every ``flush_interval_s`` the writer pushes its buffered chunk to the file and
+fsyncs it: for MCAP it closes the pending chunk, for ROS 1 it writes the pending chunk record, for
+sqlite3 it commits. ROS 2 bags also get their ``metadata.yaml`` (re)written at every flush, not only
+at close. A recording killed with SIGKILL or by a power loss therefore keeps everything up to the
+last flush:
+
+* sqlite3: the bag reads as it is (rosbags, ros2 bag) with every committed message.
+* MCAP: the file lacks its summary and footer; the ``mcap`` stream reader reads it up to the last
+  chunk, and :func:`racecar_hw.bag_recover.recover_bag` rewrites it into a closed bag.
+* ROS 1: the file lacks its index (``index_pos`` 0); :func:`~racecar_hw.bag_recover.recover_bag`
+  or the real ``rosbag reindex`` rebuilds it.
+
+Splitting by size or duration closes each split as a complete bag, so only the split being written
+at the moment of the crash needs recovery. Splits are separate bags: ``<name>_<n>/`` directories
+(ROS 2) or ``<name>_<n>.bag`` files (ROS 1). Static transforms (``/tf_static``, latched) are
+written at the start of every split, including those published before recording began.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rosbags.interfaces import (
+    Connection,
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.rosbag2.metadata import dump_qos_v9
+
+from racecar_hw.bagtypes import BagTypes, types_for
+from racecar_hw.bus import Bus, Subscription
+from racecar_hw.clock import NS_PER_S, wall_ns
+from racecar_hw.errors import BagError, ConfigError
+from racecar_hw.messages import Message
+from racecar_hw.params import param
+
+log = logging.getLogger(__name__)
+
+LATCHED_TOPICS = ("/tf_static",)
+LZ4_REFUSAL = (
+    "lz4 is not offered for ROS 1 bags: the real rosbag (ROS Noetic, Debian python3-rosbag) cannot "
+    "read the LZ4 chunks rosbags writes; use compression 'bz2' or 'none'"
+)
+
+
+@dataclass
+class RecorderParams:
+    """Parameters of the bag recorder (the ``bag`` section of the configuration)."""
+
+    enabled: bool = param(False, "record bus topics into a bag")
+    path: str = param("bags", "directory that receives the bags (created if missing)")
+    name: str = param("", "base name of the bag; empty = racecar_<YYYYmmdd-HHMMSS>")
+    format: str = param("mcap", "bag format: ROS 2 mcap or sqlite3, or a ROS 1 .bag",
+                        choices=("mcap", "sqlite3", "ros1"))
+    compression: str = param("none", "chunk compression; bz2 is for ROS 1 only, lz4 is refused",
+                             choices=("none", "bz2", "lz4"))
+    topics: list[str] = param([], "topics to record (shell patterns allowed); empty = all")
+    exclude: list[str] = param([], "topics never recorded (shell patterns allowed)")
+    queue_size: int = param(10000, "messages waiting for the writer before new ones are dropped",
+                            min=1, max=10_000_000)
+    flush_interval_s: float = param(1.0, "push buffered data to disk (crash-safe point) every",
+                                    unit="s", min=0.01, max=3600.0)
+    split_size_mb: float = param(0.0, "start a new bag when the current one exceeds this; 0 = never",
+                                 unit="MB", min=0.0)
+    split_duration_s: float = param(0.0, "start a new bag after this much recording; 0 = never",
+                                    unit="s", min=0.0)
+
+    def __post_init__(self) -> None:
+        if self.compression == "lz4":
+            raise ConfigError("compression", LZ4_REFUSAL)
+        if self.compression == "bz2" and self.format != "ros1":
+            raise ConfigError("compression", f"bz2 is for ROS 1 bags only, not format {self.format!r}; "
+                                             "use 'none'")
+
+
+@dataclass
+class RecorderStats:
+    """A snapshot of what the recorder did: counts, payload bytes and the bag files it created.
+
+    ``flushed`` counts the messages on disk as of the last flush: what survives a crash.
+    """
+
+    written: int = 0
+    dropped: int = 0
+    bytes: int = 0
+    queued: int = 0
+    flushed: int = 0
+    files: list[Path] = field(default_factory=list)
+    error: str | None = None
+
+
+def _static_qos() -> Qos:
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+class BagFile:
+    """One bag being written (one split): connections by topic, flush to disk, close."""
+
+    def __init__(self, path: Path, fmt: str, compression: str, types: BagTypes) -> None:
+        self.path = path
+        self.format = fmt
+        self.types = types
+        self.bytes = 0
+        self.count = 0
+        self.first_ns: int | None = None
+        self.last_ns = 0
+        self._conns: dict[str, Connection] = {}
+        self._counts: dict[str, int] = {}
+        self._seq: dict[str, int] = {}
+        self._writer: Writer1 | Writer2
+        try:
+            if fmt == "ros1":
+                w1 = Writer1(path)
+                if compression == "bz2":
+                    w1.set_compression(Writer1.CompressionFormat.BZ2)
+                self._writer = w1
+            else:
+                plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
+                self._writer = Writer2(path, version=9, storage_plugin=plugin)
+            self._writer.open()
+        except Exception as err:
+            raise BagError(f"cannot create bag {path}: {err}") from err
+        if fmt != "ros1":
+            self._write_metadata()
+
+    def write(self, topic: str, msg: Message, t_ns: int) -> int:
+        """Serialize and append ``msg``; returns the payload size in bytes."""
+        conn = self._conns.get(topic)
+        if conn is None:
+            conn = self._add_connection(topic, type(msg))
+        seq = self._seq[topic] = self._seq[topic] + 1
+        data = self.types.serialize(msg, seq)
+        self._writer.write(conn, t_ns, data)
+        self._counts[topic] += 1
+        self.count += 1
+        self.bytes += len(data)
+        if self.first_ns is None:
+            self.first_ns = t_ns
+        self.last_ns = max(self.last_ns, t_ns)
+        return len(data)
+
+    def flush(self) -> None:
+        """Push buffered messages into the file and fsync: a crash keeps everything up to here."""
+        w = self._writer
+        if isinstance(w, Writer1):
+            if w.bio is None:
+                return
+            w.write_chunk(w.chunks[-1])
+            _sync(w.bio)
+            return
+        storage: Any = w.storage
+        if storage is None:
+            return
+        if self.format == "mcap":
+            if storage.chunk.bio.tell():
+                storage.close_chunk()
+            _sync(storage.bio)
+        else:
+            storage.conn.commit()
+        self._write_metadata()
+
+    def close(self) -> None:
+        """Write the index/summary and metadata: the bag is complete."""
+        self._writer.close()
+
+    def abort(self) -> None:
+        """Close without finishing (after a write error)."""
+        try:
+            self._writer.abort()
+        except Exception:
+            log.exception("aborting bag %s failed", self.path)
+
+    def _add_connection(self, topic: str, cls: type[Message]) -> Connection:
+        typename = cls.ROS_TYPE
+        latched = topic in LATCHED_TOPICS
+        w = self._writer
+        if isinstance(w, Writer1):
+            conn = w.add_connection(topic, typename, typestore=self.types.store,
+                                    callerid="/racecar_hw", latching=1 if latched else None)
+        else:
+            qos = [_static_qos()] if latched else []
+            conn = w.add_connection(topic, typename, typestore=self.types.store,
+                                    offered_qos_profiles=qos)
+        self._conns[topic] = conn
+        self._counts[topic] = 0
+        self._seq[topic] = 0
+        return conn
+
+    def _write_metadata(self) -> None:
+        """metadata.yaml as rosbags writes it at close, for the data flushed so far."""
+        w = self._writer
+        assert isinstance(w, Writer2)
+        storage: Any = w.storage
+        if storage is None:
+            return
+        start = self.first_ns or 0
+        duration = self.last_ns - start if self.first_ns is not None else 0
+        topics = []
+        for topic, conn in self._conns.items():
+            qos = dump_qos_v9(conn.ext.offered_qos_profiles)  # type: ignore[union-attr]
+            topics.append({
+                "topic_metadata": {
+                    "name": topic, "type": conn.msgtype, "serialization_format": "cdr",
+                    "offered_qos_profiles": qos, "type_description_hash": conn.digest,
+                },
+                "message_count": self._counts[topic],
+            })
+        name = Path(storage.path).name
+        info = {
+            "version": 9,
+            "storage_identifier": self.format,
+            "relative_file_paths": [name],
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": self.count,
+            "topics_with_message_count": topics,
+            "compression_format": "",
+            "compression_mode": "",
+            "files": [{"path": name, "starting_time": {"nanoseconds_since_epoch": start},
+                       "duration": {"nanoseconds": duration}, "message_count": self.count}],
+            "custom_data": {"racecar_hw": "in progress: written at flush, rewritten at close"},
+            "ros_distro": "rosbags",
+        }
+        meta = self.path / "metadata.yaml"
+        tmp = meta.with_suffix(".yaml.tmp")
+        with tmp.open("w", encoding="utf8") as fh:
+            yaml.safe_dump({"rosbag2_bagfile_information": info}, fh, sort_keys=False)
+            _sync(fh)
+        tmp.replace(meta)
+
+
+def _sync(fh: Any) -> None:
+    fh.flush()
+    os.fsync(fh.fileno())
+
+
+class Recorder:
+    """Records bus topics into bags; see the module docstring for guarantees.
+
+    ``start()`` opens the first bag (raising :class:`BagError` when it cannot) and subscribes;
+    ``stop()`` flushes and closes (safe twice). Also a context manager.
+    """
+
+    def __init__(self, bus: Bus, params: RecorderParams) -> None:
+        self.bus = bus
+        self.params = params
+        self.types = types_for(1 if params.format == "ros1" else 2)
+        self._queue: collections.deque[tuple[str, Message, int]] = collections.deque()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._sub: Subscription | None = None
+        self._wanted: dict[str, bool] = {}
+        self._static: dict[str, Message] = {}
+        self._file: BagFile | None = None
+        self._split_index = 0
+        self._base = ""
+        self._written = 0
+        self._dropped = 0
+        self._dropped_logged = 0
+        self._bytes = 0
+        self._flushed = 0
+        self._files: list[Path] = []
+        self._error: str | None = None
+
+    # --- public API ---------------------------------------------------------------------------
+
+    @property
+    def stats(self) -> RecorderStats:
+        """Counts so far (written, dropped, payload bytes, waiting) and the bags created."""
+        return RecorderStats(self._written, self._dropped, self._bytes, len(self._queue),
+                             self._flushed, list(self._files), self._error)
+
+    @property
+    def running(self) -> bool:
+        """Whether the writer thread is running."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        """Open the first bag, queue the latched topics already published, and subscribe."""
+        if not self.params.enabled:
+            log.info("bag recording disabled")
+            return
+        if self._thread is not None:
+            return
+        out = Path(self.params.path).expanduser()
+        out.mkdir(parents=True, exist_ok=True)
+        self._base = self.params.name or time.strftime("racecar_%Y%m%d-%H%M%S")
+        self._dir = out
+        now = wall_ns()
+        for topic in LATCHED_TOPICS:
+            latest = self.bus.latest(topic)
+            if latest is not None and self._is_wanted(topic):
+                self._queue.append((topic, latest, now))
+        # The writer thread opens the bag: sqlite3 connections belong to the thread that made them.
+        opened = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(opened,), name="bag-writer",
+                                        daemon=True)
+        self._thread.start()
+        opened.wait()
+        if self._file is None:
+            self._thread.join()
+            self._thread = None
+            raise BagError(self._error or "bag writer did not start")
+        self._sub = self.bus.subscribe_all(self._on_message)
+        log.info("recording %s to %s", ", ".join(self.params.topics) or "all topics",
+                 self._file.path)
+
+    def stop(self) -> RecorderStats:
+        """Unsubscribe, write what is queued, close the bag; returns the final stats."""
+        if self._sub is not None:
+            self._sub.close()
+            self._sub = None
+        thread = self._thread
+        if thread is not None:
+            self._stopping = True
+            self._wake.set()
+            thread.join()
+            self._thread = None
+            stats = self.stats
+            log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
+                     stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
+        return self.stats
+
+    def __enter__(self) -> Recorder:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --- bus thread ---------------------------------------------------------------------------
+
+    def _on_message(self, topic: str, msg: Message) -> None:
+        wanted = self._wanted.get(topic)
+        if wanted is None:
+            wanted = self._is_wanted(topic)
+        if not wanted:
+            return
+        if len(self._queue) >= self.params.queue_size or self._error is not None:
+            self._dropped += 1
+            return
+        self._queue.append((topic, msg, wall_ns()))
+        self._wake.set()
+
+    def _is_wanted(self, topic: str) -> bool:
+        p = self.params
+        wanted = ((not p.topics or any(fnmatchcase(topic, pat) for pat in p.topics))
+                  and not any(fnmatchcase(topic, pat) for pat in p.exclude))
+        self._wanted[topic] = wanted
+        return wanted
+
+    # --- writer thread ------------------------------------------------------------------------
+
+    def _run(self, opened: threading.Event) -> None:
+        try:
+            self._file = self._open_split()
+        except BagError as err:
+            self._error = str(err)
+            return
+        finally:
+            opened.set()
+        interval = self.params.flush_interval_s
+        next_flush = time.monotonic() + interval
+        while True:
+            self._wake.wait(timeout=max(0.0, next_flush - time.monotonic()))
+            self._wake.clear()
+            stopping = self._stopping
+            try:
+                while self._queue:
+                    self._write(*self._queue.popleft())
+                if time.monotonic() >= next_flush:
+                    next_flush = time.monotonic() + interval
+                    self._flush()
+            except Exception as err:
+                self._fail(err)
+            if stopping and not self._queue:
+                break
+        self._close()
+
+    def _write(self, topic: str, msg: Message, t_ns: int) -> None:
+        if self._file is None:
+            self._dropped += 1
+            return
+        if topic in LATCHED_TOPICS:
+            self._static[topic] = msg
+        if self._should_split(t_ns):
+            self._file.close()
+            self._file = self._open_split()
+            for static_topic, static_msg in self._static.items():
+                if static_topic != topic:
+                    self._bytes += self._file.write(static_topic, static_msg, t_ns)
+        self._bytes += self._file.write(topic, msg, t_ns)
+        self._written += 1
+
+    def _should_split(self, t_ns: int) -> bool:
+        f = self._file
+        assert f is not None
+        if f.count == 0:
+            return False
+        p = self.params
+        if p.split_size_mb and f.bytes >= p.split_size_mb * 1e6:
+            return True
+        first = f.first_ns if f.first_ns is not None else t_ns
+        return bool(p.split_duration_s) and t_ns - first >= p.split_duration_s * NS_PER_S
+
+    def _open_split(self) -> BagFile:
+        suffix = ".bag" if self.params.format == "ros1" else ""
+        path = self._dir / f"{self._base}_{self._split_index}{suffix}"
+        self._split_index += 1
+        bag = BagFile(path, self.params.format, self.params.compression, self.types)
+        self._files.append(path)
+        return bag
+
+    def _flush(self) -> None:
+        if self._file is not None:
+            self._file.flush()
+            self._flushed = self._written
+        if self._dropped > self._dropped_logged:
+            log.warning("bag writer is behind: dropped %d messages so far (queue_size %d)",
+                        self._dropped, self.params.queue_size)
+            self._dropped_logged = self._dropped
+
+    def _fail(self, err: Exception) -> None:
+        self._error = f"{type(err).__name__}: {err}"
+        log.error("bag writing failed, recording stops (messages now count as dropped): %s",
+                  self._error)
+        self._dropped += len(self._queue)
+        self._queue.clear()
+        if self._file is not None:
+            self._file.abort()
+            self._file = None
+
+    def _close(self) -> None:
+        if self._file is None:
+            return
+        try:
+            self._file.close()
+            self._flushed = self._written
+        except Exception as err:
+            self._fail(err)
+        self._file = None
+        if self._dropped > self._dropped_logged:
+            log.warning("bag recorder dropped %d messages in total", self._dropped)
+            self._dropped_logged = self._dropped
+
+
+def record_params(path: str | Path, fmt: str = "mcap", **overrides: Any) -> RecorderParams:
+    """Enabled recorder parameters writing ``fmt`` bags into ``path`` (for the CLI's ``--record``)."""
+    return RecorderParams(enabled=True, path=str(path), format=fmt, **overrides)

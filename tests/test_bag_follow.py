@@ -1,0 +1,273 @@
+"""bag_follow: reading real and generated bags, clear errors, timing, and the follower on a real bus."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+from bag_ros1tools import write_real_bag
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+
+from racecar_hw.bag_follow import (
+    NAV0_TOPIC,
+    TELEOP_TOPIC,
+    BagFollower,
+    Command,
+    CommandSync,
+    FollowerParams,
+    load_commands,
+    schedule,
+    summarize_bag,
+)
+from racecar_hw.bagtypes import ros1_types, ros2_types
+from racecar_hw.bus import Bus
+from racecar_hw.clock import NS_PER_S, monotonic_ns
+from racecar_hw.errors import BagError, ConfigError
+from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+
+T0 = 1_700_000_000 * NS_PER_S
+
+
+def figure8(n: int = 12, dt_ns: int = 50_000_000) -> list[tuple[int, float, float]]:
+    """(t_ns, speed, steering): speed rises, steering swings left then right."""
+    return [(T0 + i * dt_ns, 0.5 + 0.1 * i, 0.3 if i < n // 2 else -0.3) for i in range(n)]
+
+
+def write_ours(path: Path, fmt: str, commands: list[tuple[int, float, float]],
+               topic: str = TELEOP_TOPIC, stamped: bool = True) -> Path:
+    """An Ackermann bag written with rosbags (the recorder's own path is tested elsewhere)."""
+    def msg(speed: float, steer: float) -> AckermannDrive | AckermannDriveStamped:
+        drive = AckermannDrive(steering_angle=steer, speed=speed)
+        return AckermannDriveStamped(Header(Time(1, 0), "base_link"), drive) if stamped else drive
+
+    sample = msg(0.0, 0.0)
+    if fmt == "ros1":
+        types = ros1_types()
+        with Writer1(path) as w1:
+            conn = w1.add_connection(topic, sample.ROS_TYPE, typestore=types.store)
+            for t, speed, steer in commands:
+                w1.write(conn, t, types.serialize(msg(speed, steer)))
+        return path
+    types = ros2_types()
+    plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
+    with Writer2(path, version=9, storage_plugin=plugin) as w2:
+        conn = w2.add_connection(topic, sample.ROS_TYPE, typestore=types.store)
+        for t, speed, steer in commands:
+            w2.write(conn, t, types.serialize(msg(speed, steer)))
+    return path
+
+
+# --- reading ----------------------------------------------------------------------------------
+
+
+def test_follows_a_bag_written_by_the_real_rosbag(tmp_path: Path) -> None:
+    cmds = figure8()
+    for compression in ("none", "bz2"):
+        path = tmp_path / f"real-{compression}.bag"
+        md5 = write_real_bag(path, TELEOP_TOPIC, cmds, compression)
+        assert md5 == "1fd5d7f58889cefd44d29f6653240d0c"
+        got = load_commands(path)
+        assert [c.t_ns for c in got] == [t for t, _, _ in cmds]
+        assert [c.drive.speed for c in got] == pytest.approx([s for _, s, _ in cmds])
+        assert [c.drive.steering_angle for c in got] == pytest.approx([a for _, _, a in cmds])
+        back = schedule(got, use_timestamps=True, reverse=True)
+        assert [s.offset_ns for s in back] == [T0 + 11 * 50_000_000 - t for t, _, _ in reversed(cmds)]
+        assert back[0].drive.speed == pytest.approx(-cmds[-1][1])
+        assert back[0].drive.steering_angle == pytest.approx(cmds[-1][2])
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap", "sqlite3"])
+@pytest.mark.parametrize("stamped", [True, False])
+def test_reads_each_format(tmp_path: Path, fmt: str, stamped: bool) -> None:
+    cmds = figure8()
+    path = write_ours(tmp_path / ("b.bag" if fmt == "ros1" else "b"), fmt, cmds, stamped=stamped)
+    got = load_commands(path)
+    assert [(c.t_ns, c.drive.speed, c.drive.steering_angle) for c in got] == [
+        (t, pytest.approx(s), pytest.approx(a)) for t, s, a in cmds]
+
+
+@pytest.mark.parametrize("name", ["example-lz4.bag", "example-bz2.bag"])
+def test_real_ros1_fixtures_read_completely(bag_fixtures: Path, name: str) -> None:
+    topics = summarize_bag(bag_fixtures / "ros1" / name)
+    assert sum(n for _, n in topics.values()) == 8647
+    assert topics["/turtle1/cmd_vel"] == ("geometry_msgs/msg/Twist", 357)
+    assert topics["/tf_static"][0] == "tf2_msgs/msg/TFMessage"
+
+
+def test_unsorted_chunks_fixture(bag_fixtures: Path) -> None:
+    assert summarize_bag(bag_fixtures / "ros1" / "example-unsorted-chunks.bag") == {
+        "foo": ("std_msgs/msg/String", 3)}
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_real_ros2_fixtures(bag_fixtures: Path, storage: str) -> None:
+    topics = summarize_bag(bag_fixtures / "ros2" / storage / "cdr_test")
+    assert topics == {"/array_topic": ("test_msgs/msg/Arrays", 4),
+                      "/test_topic": ("test_msgs/msg/BasicTypes", 3)}
+
+
+@pytest.mark.parametrize("name", ["example-lz4.bag", "example-bz2.bag"])
+def test_missing_topic_lists_topics_and_types(bag_fixtures: Path, name: str) -> None:
+    with pytest.raises(BagError) as err:
+        load_commands(bag_fixtures / "ros1" / name)
+    text = str(err.value)
+    assert f"topic {TELEOP_TOPIC} is not in" in text
+    assert "/turtle1/cmd_vel (geometry_msgs/msg/Twist, 357 msgs)" in text
+    assert "/tf_static (tf2_msgs/msg/TFMessage" in text
+
+
+def test_wrong_type(bag_fixtures: Path) -> None:
+    with pytest.raises(BagError, match="carries geometry_msgs/msg/Twist, expected one of ackermann"):
+        load_commands(bag_fixtures / "ros1" / "example-bz2.bag", "/turtle1/cmd_vel")
+
+
+def test_empty_file_and_empty_bag(bag_fixtures: Path, tmp_path: Path) -> None:
+    with pytest.raises(BagError, match=r"empty \(0 bytes\)"):
+        load_commands(bag_fixtures / "ros1" / "empty-file.bag")
+    with pytest.raises(BagError, match="holds no messages"):
+        load_commands(bag_fixtures / "ros1" / "no-messages.bag")
+    with pytest.raises(BagError, match="bag not found"):
+        load_commands(tmp_path / "nothing.bag")
+    empty = write_ours(tmp_path / "empty", "mcap", [])
+    with pytest.raises(BagError, match="holds no messages"):
+        load_commands(empty)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_talker_metadata_trap(bag_fixtures: Path, storage: str) -> None:
+    path = bag_fixtures / "ros2" / storage / "talker"
+    with pytest.raises(BagError, match="metadata says 10 messages on /topic, but reading yielded 0"):
+        load_commands(path, "/topic")
+    with pytest.raises(BagError, match="metadata says"):
+        summarize_bag(path)
+
+
+def test_unindexed_ros1_bag_hints_at_recovery(tmp_path: Path) -> None:
+    path = write_ours(tmp_path / "b.bag", "ros1", figure8())
+    assert len(load_commands(path)) == 12
+    data = bytearray(path.read_bytes())
+    broken = tmp_path / "broken.bag"
+    index_field = data.find(b"index_pos=")
+    data[index_field + 10:index_field + 18] = bytes(8)
+    broken.write_bytes(bytes(data))
+    with pytest.raises(BagError, match="recover_bag"):
+        load_commands(broken)
+
+
+# --- timing -----------------------------------------------------------------------------------
+
+
+def cmds_from(offsets_ms: list[int]) -> list[Command]:
+    return [Command(T0 + ms * 1_000_000, AckermannDrive(steering_angle=0.1 * i, speed=1.0 + i))
+            for i, ms in enumerate(offsets_ms)]
+
+
+def test_schedule_fixed_rate_and_scaling() -> None:
+    cmds = cmds_from([0, 10, 500, 510])
+    assert [s.offset_ns for s in schedule(cmds, rate_hz=20)] == [0, 50_000_000, 100_000_000,
+                                                                 150_000_000]
+    assert [s.offset_ns for s in schedule(cmds, rate_hz=20, time_scale=2)] == [
+        0, 25_000_000, 50_000_000, 75_000_000]
+    assert [s.offset_ns for s in schedule(cmds, use_timestamps=True, time_scale=0.5)] == [
+        0, 20_000_000, 1_000_000_000, 1_020_000_000]
+    assert schedule([], rate_hz=20) == []
+
+
+def test_schedule_backwards() -> None:
+    cmds = cmds_from([0, 10, 500, 510])
+    back = schedule(cmds, use_timestamps=True, reverse=True)
+    assert [s.offset_ns for s in back] == [0, 10_000_000, 500_000_000, 510_000_000]
+    assert [s.drive.speed for s in back] == [-4.0, -3.0, -2.0, -1.0]
+    assert [s.drive.steering_angle for s in back] == pytest.approx([0.3, 0.2, 0.1, 0.0])
+    assert cmds[0].drive.speed == 1.0  # the recorded commands are not modified
+
+
+def test_command_sync_loops_and_plays() -> None:
+    steps = schedule(cmds_from([0, 100]), use_timestamps=True)
+    sync = CommandSync(steps, loop=True, gap_ns=50_000_000)
+    it = iter(sync)
+    got = [next(it)[0] for _ in range(5)]
+    assert got == [0, 100_000_000, 150_000_000, 250_000_000, 300_000_000]
+    clock = [0]
+    slept: list[float] = []
+
+    def sleep(s: float) -> None:
+        slept.append(s)
+        clock[0] += round(s * NS_PER_S)
+
+    played = list(CommandSync(steps).play(sleep=sleep, now_ns=lambda: clock[0]))
+    assert [p.drive.speed for p in played] == [1.0, 2.0]
+    assert slept == [pytest.approx(0.1)]
+
+
+def test_params_validate() -> None:
+    with pytest.raises(ConfigError, match="input_topic"):
+        FollowerParams(input_topic="nav_0")
+
+
+# --- the follower on a real bus ---------------------------------------------------------------
+
+
+def run_follower(bag: Path, **kw: object) -> tuple[list[tuple[int, AckermannDriveStamped]],
+                                                   BagFollower, list[tuple[float, float]]]:
+    async def main() -> tuple[list[tuple[int, AckermannDriveStamped]], BagFollower,
+                              list[tuple[float, float]]]:
+        bus = Bus()
+        got: list[tuple[int, AckermannDriveStamped]] = []
+        bus.subscribe(NAV0_TOPIC, lambda m: got.append((monotonic_ns(), m)))
+        progress: list[tuple[float, float]] = []
+        follower = BagFollower(bus, FollowerParams(bag=str(bag), **kw),
+                               progress=lambda f, eta: progress.append((f, eta)))
+        task = asyncio.create_task(follower.run())
+        if kw.get("loop"):
+            deadline = monotonic_ns() + 30 * NS_PER_S
+            while len(got) < 30 and monotonic_ns() < deadline:
+                await asyncio.sleep(0.01)
+            follower.stop()
+        await asyncio.wait_for(task, 30)
+        return got, follower, progress
+
+    return asyncio.run(main())
+
+
+def test_follower_forwards_fixed_rate(tmp_path: Path) -> None:
+    bag = write_ours(tmp_path / "f.bag", "ros1", figure8())
+    got, follower, progress = run_follower(bag, rate_hz=100.0)
+    assert follower.done
+    drives = [m.drive for _, m in got]
+    assert [d.speed for d in drives[:-1]] == pytest.approx([s for _, s, _ in figure8()])
+    assert drives[-1] == AckermannDrive()  # stop_at_end
+    assert all(m.header.frame_id == "base_link" and m.header.stamp.sec > 1 for _, m in got)
+    # absolute deadlines: 11 periods of 10 ms at least between the first and last command
+    assert got[11][0] - got[0][0] >= 11 * 10_000_000 - 1_000_000
+    assert progress[-1] == (1.0, 0.0)
+    assert [f for f, _ in progress] == sorted(f for f, _ in progress)
+
+
+def test_follower_backwards_with_timestamps(tmp_path: Path) -> None:
+    cmds = [(T0, 1.0, 0.2), (T0 + 20_000_000, 2.0, 0.3), (T0 + 320_000_000, 3.0, -0.1)]
+    bag = write_ours(tmp_path / "b", "mcap", cmds)
+    got, follower, _ = run_follower(bag, use_timestamps=True, reverse=True, time_scale=2.0,
+                                    stop_at_end=False)
+    assert [m.drive.speed for _, m in got] == pytest.approx([-3.0, -2.0, -1.0])
+    assert [m.drive.steering_angle for _, m in got] == pytest.approx([-0.1, 0.3, 0.2])
+    # reversed gaps, halved: 150 ms then 10 ms
+    assert got[1][0] - got[0][0] >= 150_000_000 - 2_000_000
+    assert follower.published == 3
+
+
+def test_follower_loops_until_stopped(tmp_path: Path) -> None:
+    bag = write_ours(tmp_path / "l", "sqlite3", figure8(4))
+    got, follower, _ = run_follower(bag, rate_hz=200.0, loop=True)
+    speeds = [m.drive.speed for _, m in got]
+    assert len(speeds) >= 30
+    assert speeds[:8] == pytest.approx([0.5, 0.6, 0.7, 0.8] * 2)
+    assert speeds[-1] == 0.0 and follower.done
+
+
+def test_follower_reports_bag_errors(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match="bag not found"):
+        run_follower(tmp_path / "missing.bag")

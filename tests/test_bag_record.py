@@ -1,0 +1,248 @@
+"""bag_record: round trips through every format, read back by independent readers (the real
+rosbag, the mcap packages), drops, splitting, and recovery after SIGKILL."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bag_ros1tools import read_real_bag
+from conftest import wait_for
+from rosbags.highlevel import AnyReader
+
+from racecar_hw.bag_follow import load_commands, summarize_bag
+from racecar_hw.bag_record import Recorder, RecorderParams, record_params
+from racecar_hw.bag_recover import recover_bag, scan_mcap
+from racecar_hw.bagtypes import ros2_types
+from racecar_hw.bus import Bus
+from racecar_hw.clock import wall_ns
+from racecar_hw.errors import BagError, ConfigError
+from racecar_hw.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    Header,
+    LaserScan,
+    TFMessage,
+    Time,
+    TransformStamped,
+)
+
+CMD = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def static_tf() -> TFMessage:
+    return TFMessage([TransformStamped(Header(Time(5, 0), "base_link"), "laser")])
+
+
+def scan(i: int) -> LaserScan:
+    return LaserScan(Header(Time(100 + i, 0), "laser"), -2.35, 2.35, 0.00436, 0.0, 0.025, 0.02,
+                     30.0, np.full(1081, 1.0 + i, np.float32), np.zeros(0, np.float32))
+
+
+def cmd(i: int) -> AckermannDriveStamped:
+    return AckermannDriveStamped(Header(Time(200 + i, 7), "base_link"),
+                                 AckermannDrive(steering_angle=0.25 * (i % 4) - 0.5, speed=0.5 * i))
+
+
+def record(tmp_path: Path, n: int = 20, **kw: object) -> Recorder:
+    bus = Bus()
+    bus.publish("/tf_static", static_tf())  # published before the recording starts (latched)
+    rec = Recorder(bus, record_params(tmp_path, name="run", **kw))  # type: ignore[arg-type]
+    rec.start()
+    for i in range(n):
+        bus.publish("/scan", scan(i))
+        bus.publish(CMD, cmd(i))
+        bus.publish("/ignored", cmd(i))
+    rec.stop()
+    return rec
+
+
+def read_ours(paths: list[Path]) -> dict[str, list[object]]:
+    types = ros2_types()
+    out: dict[str, list[object]] = {}
+    with AnyReader(paths) as reader:
+        for conn, _t, raw in reader.messages():
+            obj = reader.deserialize(raw, conn.msgtype)
+            out.setdefault(conn.topic, []).append(types.from_ros(obj))
+    return out
+
+
+@pytest.mark.parametrize(("fmt", "compression"),
+                         [("mcap", "none"), ("sqlite3", "none"), ("ros1", "none"), ("ros1", "bz2")])
+def test_round_trip(tmp_path: Path, fmt: str, compression: str) -> None:
+    rec = record(tmp_path, fmt=fmt, compression=compression, exclude=["/ign*"])
+    stats = rec.stats
+    assert stats.written == 41 and stats.dropped == 0 and stats.flushed == 41
+    assert len(stats.files) == 1 and stats.bytes > 20 * 1081 * 4
+    got = read_ours(stats.files)
+    assert sorted(got) == ["/scan", "/tf_static", CMD]
+    assert got["/tf_static"] == [static_tf()]
+    assert got[CMD] == [cmd(i) for i in range(20)]
+    for i, s in enumerate(got["/scan"]):
+        assert isinstance(s, LaserScan)
+        np.testing.assert_array_equal(s.ranges, scan(i).ranges)
+        assert s.header == scan(i).header
+    assert [c.drive.speed for c in load_commands(stats.files[0], CMD)] == [0.5 * i for i in range(20)]
+
+
+@pytest.mark.parametrize("compression", ["none", "bz2"])
+def test_real_rosbag_reads_our_ros1_bags(tmp_path: Path, compression: str) -> None:
+    rec = record(tmp_path, n=5, fmt="ros1", compression=compression, topics=[CMD, "/tf_static"])
+    msgs = read_real_bag(rec.stats.files[0])
+    cmds = [m for m in msgs if m["topic"] == CMD]
+    assert [m["type"] for m in cmds] == ["ackermann_msgs/AckermannDriveStamped"] * 5
+    assert cmds[0]["md5"] == "1fd5d7f58889cefd44d29f6653240d0c"
+    for i, m in enumerate(cmds):
+        assert m["msg"]["header"]["seq"] == i + 1
+        assert m["msg"]["header"]["stamp"] == (200 + i) * 10**9 + 7
+        assert m["msg"]["header"]["frame_id"] == "base_link"
+        assert m["msg"]["drive"]["speed"] == pytest.approx(0.5 * i)
+        assert m["msg"]["drive"]["steering_angle"] == 0.25 * (i % 4) - 0.5
+    tf = [m for m in msgs if m["topic"] == "/tf_static"]
+    assert tf[0]["type"] == "tf2_msgs/TFMessage"
+    assert tf[0]["msg"]["transforms"][0]["child_frame_id"] == "laser"
+
+
+def test_mcap_packages_read_our_mcap(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    rec = record(tmp_path, n=5, fmt="mcap", topics=["/scan", CMD])
+    (file,) = rec.stats.files[0].glob("*.mcap")
+    with file.open("rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        decoded = [(ch.topic, sc.name, m) for sc, ch, _msg, m in reader.iter_decoded_messages()]
+    cmds = [m for topic, _name, m in decoded if topic == CMD]
+    assert [c.drive.speed for c in cmds] == pytest.approx([0.5 * i for i in range(5)])
+    assert [c.header.stamp.sec for c in cmds] == [200 + i for i in range(5)]
+    scans = [m for topic, name, m in decoded if topic == "/scan"]
+    assert {name for topic, name, _ in decoded if topic == "/scan"} == {"sensor_msgs/msg/LaserScan"}
+    assert list(scans[3].ranges) == [4.0] * 1081
+
+
+def test_lz4_and_bad_compression_refused() -> None:
+    with pytest.raises(ConfigError, match="real rosbag .* cannot read the LZ4 chunks"):
+        RecorderParams(format="ros1", compression="lz4")
+    with pytest.raises(ConfigError, match="bz2 is for ROS 1 bags only"):
+        RecorderParams(format="mcap", compression="bz2")
+
+
+def test_disabled_recorder_records_nothing(tmp_path: Path) -> None:
+    bus = Bus()
+    rec = Recorder(bus, RecorderParams(path=str(tmp_path / "never")))
+    rec.start()
+    bus.publish(CMD, cmd(0))
+    assert rec.stop().written == 0 and not (tmp_path / "never").exists()
+
+
+def test_existing_bag_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "run_0").mkdir()
+    rec = Recorder(Bus(), record_params(tmp_path, name="run"))
+    with pytest.raises(BagError, match="exists already"):
+        rec.start()
+    rec.stop()  # safe after a failed start
+
+
+def test_drops_are_counted_when_the_queue_is_full(tmp_path: Path) -> None:
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="slow", queue_size=2, topics=["/scan"]))
+    rec.start()
+    big = [scan(i) for i in range(400)]
+    for s in big:  # serializing a 1081-beam scan is far slower than queueing it
+        bus.publish("/scan", s)
+    stats = rec.stop()
+    assert stats.dropped > 0
+    assert stats.written + stats.dropped == 400
+    assert summarize_bag(stats.files[0])["/scan"][1] == stats.written
+    assert rec.stop() == stats  # stop twice is safe
+
+
+def test_split_by_size(tmp_path: Path) -> None:
+    rec = record(tmp_path, n=60, fmt="ros1", split_size_mb=0.05, topics=["/scan", "/tf_static"])
+    files = rec.stats.files
+    assert len(files) >= 4
+    per_file = [read_ours([f]) for f in files]
+    assert all(p["/tf_static"] == [static_tf()] for p in per_file)  # each split is self-contained
+    assert sum(len(p["/scan"]) for p in per_file) == 60
+    assert all(f.stat().st_size < 0.05e6 + 20_000 for f in files[:-1]), [f.stat().st_size for f in files]
+
+
+def test_split_by_duration(tmp_path: Path) -> None:
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="dur", split_duration_s=0.05))
+    rec.start()
+    start = wall_ns()
+    for i in range(3):
+        # bag time is the receive time: let more than one split duration pass between messages
+        wait_for(lambda i=i: wall_ns() - start >= i * 80_000_000)
+        bus.publish(CMD, cmd(i))
+    stats = rec.stop()
+    assert len(stats.files) == 3
+    assert [len(read_ours([f])[CMD]) for f in stats.files] == [1, 1, 1]
+
+
+KILLED_RECORDER = textwrap.dedent("""
+    import sys, time
+    from racecar_hw.bus import Bus
+    from racecar_hw.bag_record import Recorder, record_params
+    from racecar_hw.messages import AckermannDrive, AckermannDriveStamped
+    bus = Bus()
+    rec = Recorder(bus, record_params(sys.argv[1], sys.argv[2], name="killed", flush_interval_s=0.05))
+    rec.start()
+    for i in range(300):
+        bus.publish("/cmd", AckermannDriveStamped(drive=AckermannDrive(speed=float(i))))
+    while rec.stats.flushed < 300:
+        time.sleep(0.01)
+    print("FLUSHED", rec.stats.flushed, flush=True)
+    i = 300
+    while True:   # keep writing until killed
+        bus.publish("/cmd", AckermannDriveStamped(drive=AckermannDrive(speed=float(i))))
+        i += 1
+        time.sleep(0.001)
+""")
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3", "ros1"])
+def test_sigkill_keeps_everything_flushed(tmp_path: Path, fmt: str) -> None:
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_RECORDER, str(tmp_path), fmt],
+                            stdout=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        line = proc.stdout.readline() if proc.stdout else ""
+        assert line.startswith("FLUSHED 300"), line
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    bag = tmp_path / ("killed_0.bag" if fmt == "ros1" else "killed_0")
+    if fmt == "sqlite3":  # readable as it is
+        speeds = [c.drive.speed for c in load_commands(bag, "/cmd")]
+        assert speeds[:300] == [float(i) for i in range(300)]
+    else:
+        with pytest.raises(BagError, match="recover_bag"):
+            load_commands(bag, "/cmd")
+    if fmt == "mcap":
+        scanned = scan_mcap(next(bag.glob("*.mcap")).read_bytes())
+        assert not scanned.complete and len(scanned.messages) >= 300
+    result = recover_bag(bag)
+    assert not result.was_complete and result.messages >= 300
+    speeds = [c.drive.speed for c in load_commands(result.path, "/cmd")]
+    assert len(speeds) == result.messages
+    assert speeds == [float(i) for i in range(len(speeds))]
+    if fmt == "ros1":
+        assert len(read_real_bag(result.path)) == result.messages
+
+
+def test_recover_leaves_complete_bags_alone(tmp_path: Path) -> None:
+    rec = record(tmp_path, n=3, fmt="mcap", topics=[CMD])
+    result = recover_bag(rec.stats.files[0])
+    assert result.was_complete and result.messages == 3 and result.path == rec.stats.files[0]
+    with pytest.raises(BagError, match="bag not found"):
+        recover_bag(tmp_path / "nope")
