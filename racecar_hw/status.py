@@ -1,0 +1,215 @@
+"""A live console status panel for the daemon (``rich``), or a plain line when not on a terminal.
+
+The control loop hands a :class:`StatusSnapshot` to :meth:`StatusPanel.update` (a cheap attribute
+store) whenever it likes; the panel redraws on its own asyncio timer in the same event loop, at
+``refresh_hz`` (4 Hz) on a terminal. When the console is not a terminal (systemd, a pipe, a log
+file) it writes one plain status line every ``plain_interval_s`` seconds instead, even when nothing
+changed, so a log shows the daemon is alive. No rendering thread is started: rich's own
+auto-refresh thread is turned off, and each redraw is a few hundred bytes written from the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from rich.console import Console, RenderableType
+from rich.live import Live
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+log = logging.getLogger(__name__)
+
+NONE = "-"
+
+
+@dataclass(frozen=True)
+class StatusSnapshot:
+    """What the car is doing, for the operator. None means "not known yet" or "not fitted".
+
+    Speed in m/s (rear axle, negative in reverse), steering in rad (positive left), battery in V,
+    scan rate in Hz, the safety controller's state and the speed it allows (m/s), link counters,
+    whether the car is armed (None: no arming input configured), and the simulator's pose in the map
+    frame (x m, y m, yaw rad) when running on fake hardware.
+    """
+
+    speed_mps: float | None = None
+    steering_rad: float | None = None
+    mux_source: str | None = None
+    battery_v: float | None = None
+    scan_rate_hz: float | None = None
+    safety_state: str | None = None
+    safety_allowed_mps: float | None = None
+    vesc_crc_errors: int = 0
+    vesc_reconnects: int = 0
+    lidar_reconnects: int = 0
+    armed: bool | None = None
+    sim_pose: tuple[float, float, float] | None = None
+
+
+def _num(value: float | None, fmt: str, unit: str) -> str:
+    if value is None:
+        return NONE
+    if not math.isfinite(value):
+        return f"{value} {unit}"
+    return f"{value:{fmt}} {unit}"
+
+
+def _armed(armed: bool | None) -> str:
+    return {True: "ARMED", False: "disarmed", None: "n/a"}[armed]
+
+
+def _safety(s: StatusSnapshot) -> str:
+    state = s.safety_state or NONE
+    if s.safety_allowed_mps is not None:
+        state += f" (max {_num(s.safety_allowed_mps, '.2f', 'm/s')})"
+    return state
+
+
+def _pose(pose: tuple[float, float, float] | None) -> str:
+    if pose is None:
+        return NONE
+    x, y, yaw = pose
+    return f"x {x:.2f} m  y {y:.2f} m  yaw {math.degrees(yaw):.0f} deg"
+
+
+def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
+    """(label, text) pairs in display order; the plain line and the panel show the same fields."""
+    fields = [
+        ("speed", _num(s.speed_mps, "+.2f", "m/s")),
+        ("steer", _num(s.steering_rad, "+.3f", "rad")),
+        ("mux", s.mux_source or "idle"),
+        ("battery", _num(s.battery_v, ".1f", "V")),
+        ("scan", _num(s.scan_rate_hz, ".1f", "Hz")),
+        ("safety", _safety(s)),
+        ("vesc", f"crc errors {s.vesc_crc_errors}, reconnects {s.vesc_reconnects}"),
+        ("lidar", f"reconnects {s.lidar_reconnects}"),
+        ("armed", _armed(s.armed)),
+    ]
+    if s.sim_pose is not None:
+        fields.append(("sim pose", _pose(s.sim_pose)))
+    return fields
+
+
+def plain_line(s: StatusSnapshot) -> str:
+    """One line for logs and pipes: ``speed +1.20 m/s | steer +0.150 rad | ...``."""
+    return " | ".join(f"{label} {text}" for label, text in status_fields(s))
+
+
+def _style(label: str, s: StatusSnapshot) -> str:
+    if label == "armed":
+        return {True: "bold green", False: "bold red", None: "dim"}[s.armed]
+    if label == "safety" and s.safety_state and s.safety_state.lower() not in ("ok", "clear", "free"):
+        return "bold yellow"
+    if label == "vesc" and (s.vesc_crc_errors or s.vesc_reconnects):
+        return "yellow"
+    if label == "lidar" and s.lidar_reconnects:
+        return "yellow"
+    return ""
+
+
+def render(s: StatusSnapshot, title: str = "racecar-hw") -> RenderableType:
+    """The snapshot as a rich panel of two label/value columns."""
+    grid = Table.grid(padding=(0, 2))
+    grid.add_column(style="bold cyan", no_wrap=True)
+    grid.add_column(no_wrap=True)
+    grid.add_column(style="bold cyan", no_wrap=True)
+    grid.add_column(no_wrap=True)
+    cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)]
+    for i in range(0, len(cells), 2):
+        row: list[RenderableType] = [cells[i][0], cells[i][1]]
+        if i + 1 < len(cells):
+            row += [cells[i + 1][0], cells[i + 1][1]]
+        grid.add_row(*row)
+    return Panel(grid, title=title, expand=False)
+
+
+class StatusPanel:
+    """Shows the latest snapshot: a rich live panel on a terminal, else a plain line now and then.
+
+    ``update()`` may be called at any rate; ``source``, if given, is polled at each redraw instead.
+    Call :meth:`start` from inside the running event loop and ``await stop()`` at shutdown.
+    """
+
+    def __init__(self, console: Console | None = None, *, refresh_hz: float = 4.0,
+                 plain_interval_s: float = 5.0, title: str = "racecar-hw",
+                 source: Callable[[], StatusSnapshot] | None = None) -> None:
+        if refresh_hz <= 0 or plain_interval_s <= 0:
+            raise ValueError("refresh_hz and plain_interval_s must be positive")
+        self.console = console if console is not None else Console()
+        self.refresh_hz = refresh_hz
+        self.plain_interval_s = plain_interval_s
+        self.title = title
+        self.source = source
+        self.snapshot = StatusSnapshot()
+        self.redraws = 0
+        self.render_errors = 0
+        self._live: Live | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    @property
+    def interactive(self) -> bool:
+        """Whether the console is a terminal (live panel) rather than a pipe or file (plain lines)."""
+        return self.console.is_terminal
+
+    def update(self, snapshot: StatusSnapshot) -> None:
+        """Remember ``snapshot``; it is drawn at the next redraw."""
+        self.snapshot = snapshot
+
+    def renderable(self) -> RenderableType:
+        """The current snapshot as the panel shows it."""
+        return render(self.snapshot, self.title)
+
+    def start(self) -> None:
+        """Start redrawing on a timer in the running event loop (idempotent)."""
+        if self._task is not None:
+            return
+        if self.interactive:
+            self._live = Live(self.renderable(), console=self.console, auto_refresh=False,
+                              redirect_stdout=False, redirect_stderr=False)
+            self._live.start(refresh=True)
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="status-panel")
+
+    async def stop(self) -> None:
+        """Stop redrawing; the terminal keeps the last panel. Safe to call twice."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        live, self._live = self._live, None
+        if live is not None:
+            live.update(self.renderable(), refresh=True)
+            live.stop()
+
+    def draw(self) -> None:
+        """Redraw once now (the timer calls this); never raises."""
+        try:
+            if self.source is not None:
+                self.snapshot = self.source()
+            if self._live is not None:
+                self._live.update(self.renderable(), refresh=True)
+            else:
+                self.console.out(plain_line(self.snapshot), highlight=False)
+            self.redraws += 1
+        except Exception:
+            self.render_errors += 1
+            if self.render_errors == 1:
+                log.exception("status display failed")
+
+    async def _run(self) -> None:
+        period = 1.0 / self.refresh_hz if self._live is not None else self.plain_interval_s
+        loop = asyncio.get_running_loop()
+        deadline = loop.time()
+        while True:
+            self.draw()
+            deadline += period
+            now = loop.time()
+            if deadline < now:  # fell behind (loop busy): skip the missed redraws
+                deadline = now + period
+            await asyncio.sleep(deadline - now)

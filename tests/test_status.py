@@ -1,0 +1,117 @@
+"""The console status panel: rendering, the live terminal panel, and plain lines for pipes."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import math
+
+import pytest
+from conftest import async_wait_for
+from rich.console import Console
+
+from racecar_hw.status import StatusPanel, StatusSnapshot, plain_line, render
+
+FULL = StatusSnapshot(speed_mps=1.25, steering_rad=-0.15, mux_source="nav_0", battery_v=11.8,
+                      scan_rate_hz=39.9, safety_state="limiting", safety_allowed_mps=0.5,
+                      vesc_crc_errors=3, vesc_reconnects=1, lidar_reconnects=2, armed=True,
+                      sim_pose=(1.5, -2.0, math.pi / 2))
+
+
+def console(**kwargs: object) -> tuple[Console, io.StringIO]:
+    out = io.StringIO()
+    return Console(file=out, width=100, **kwargs), out  # type: ignore[arg-type]
+
+
+def test_render_shows_every_field() -> None:
+    con, out = console()
+    con.print(render(FULL))
+    text = out.getvalue()
+    for expected in ("racecar-hw", "+1.25 m/s", "-0.150 rad", "nav_0", "11.8 V", "39.9 Hz",
+                     "limiting (max 0.50 m/s)", "crc errors 3, reconnects 1", "reconnects 2", "ARMED",
+                     "x 1.50 m", "y -2.00 m", "yaw 90 deg"):
+        assert expected in text, expected
+    assert all(len(line) <= 100 for line in text.splitlines())
+
+
+def test_render_unknown_values() -> None:
+    con, out = console()
+    con.print(render(StatusSnapshot()))
+    text = out.getvalue()
+    assert "idle" in text and "n/a" in text and "sim pose" not in text
+    assert "speed" in text and "battery" in text
+
+
+def test_plain_line() -> None:
+    line = plain_line(FULL)
+    assert "\n" not in line
+    assert line.startswith("speed +1.25 m/s | steer -0.150 rad | mux nav_0 | battery 11.8 V")
+    assert "armed ARMED" in line and "sim pose x 1.50 m" in line
+    assert "armed disarmed" in plain_line(StatusSnapshot(armed=False))
+    assert "speed nan m/s" in plain_line(StatusSnapshot(speed_mps=math.nan))
+
+
+def test_plain_lines_when_not_a_terminal() -> None:
+    con, out = console()
+    panel = StatusPanel(con, plain_interval_s=0.05)
+    assert not panel.interactive
+
+    async def scenario() -> None:
+        panel.start()
+        panel.start()  # idempotent
+        panel.update(StatusSnapshot(speed_mps=0.5, mux_source="teleop"))
+        await async_wait_for(lambda: "mux teleop" in out.getvalue())
+        panel.update(StatusSnapshot(speed_mps=-0.5, mux_source="safety"))
+        await async_wait_for(lambda: "mux safety" in out.getvalue())
+        await panel.stop()
+        await panel.stop()
+
+    asyncio.run(scenario())
+    lines = out.getvalue().splitlines()
+    assert len(lines) == panel.redraws >= 2
+    assert all(line.startswith("speed ") for line in lines)
+    assert "speed -0.50 m/s" in lines[-1]
+
+
+def test_live_panel_on_a_terminal() -> None:
+    con, out = console(force_terminal=True, color_system=None)
+    panel = StatusPanel(con, refresh_hz=50.0)
+    assert panel.interactive
+
+    async def scenario() -> None:
+        panel.start()
+        panel.update(FULL)
+        await async_wait_for(lambda: "nav_0" in out.getvalue() and panel.redraws >= 3)
+        await panel.stop()
+
+    asyncio.run(scenario())
+    text = out.getvalue()
+    assert "11.8 V" in text and "ARMED" in text
+    assert "speed +1.25" not in text  # the panel, not the plain line
+
+
+def test_source_is_polled_and_errors_never_escape() -> None:
+    con, out = console()
+    calls = {"n": 0}
+
+    def source() -> StatusSnapshot:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("snapshot failed")
+        return StatusSnapshot(battery_v=12.0 + calls["n"])
+
+    panel = StatusPanel(con, plain_interval_s=0.02, source=source)
+
+    async def scenario() -> None:
+        panel.start()
+        await async_wait_for(lambda: calls["n"] >= 4)
+        await panel.stop()
+
+    asyncio.run(scenario())
+    assert panel.render_errors == 1
+    assert "battery 13.0 V" in out.getvalue() and "battery 15.0 V" in out.getvalue()
+
+
+def test_bad_rates_are_refused() -> None:
+    with pytest.raises(ValueError):
+        StatusPanel(refresh_hz=0)
