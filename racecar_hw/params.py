@@ -110,7 +110,8 @@ def describe(cls: type, key: str = "") -> Iterator[tuple[str, Any, str]]:
         if meta.get("unit"):
             extras.append(meta["unit"])
         if meta.get("min") is not None or meta.get("max") is not None:
-            extras.append(f"range {meta.get('min', '-inf')}..{meta.get('max', 'inf')}")
+            lo, hi = meta.get("min"), meta.get("max")
+            extras.append(f"range {'-inf' if lo is None else lo}..{'inf' if hi is None else hi}")
         if meta.get("choices"):
             extras.append("one of " + ", ".join(map(str, meta["choices"])))
         if extras:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 def config_dir() -> Path:
     """The directory holding the shipped configs, scenarios, maps, systemd unit and udev rules."""
-    return Path(str(resources.files("racecar_hw.config")))
+    return Path(str(resources.files("racecar_hw.shipped")))
 
 
 def config_file(*parts: str) -> Path:
