@@ -1,0 +1,296 @@
+"""The safety-stop controller: cap the commanded speed so the car can always stop before what the
+lidar sees on its path.
+
+:class:`SafetyController` is pure logic (no bus, no clock): feed it scans with :meth:`on_scan` and
+commands with :meth:`limit`, passing monotonic nanoseconds. It only ever lowers the magnitude of
+the speed; it never raises it, never flips its sign and never touches the steering (except to
+centre a non-finite steering angle). See ``docs/safety.md`` for the model.
+
+Allowed speed, for a free path length ``d`` along the commanded arc::
+
+    v * latency + v^2 / (2 * max_decel) <= d - margin
+
+where ``latency`` is the configured reaction delay (with the scan's own ``scan_time`` when it is
+longer than ``scan_period_s``) plus the age of the cached scan.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from racecar_hw.clock import NS_PER_S
+from racecar_hw.messages import AckermannDrive, LaserScan
+from safety.arc import SweptFootprint, free_distance, stopping_speed
+from safety.params import SafetyParams
+
+log = logging.getLogger(__name__)
+
+#: Why the allowed speed is what it is.
+REASONS = ("clear", "obstacle", "stale_scan", "no_scan", "bad_scan", "reverse_cap", "exempt", "off",
+           "fault")
+
+#: A laser->base_link transform: a 4x4 homogeneous matrix, or planar (x, y, yaw) in metres/radians.
+LaserTransform = np.ndarray | Sequence[float]
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """The point that limits the path: base_link coordinates and path length to it, metres."""
+
+    x: float
+    y: float
+    distance: float
+
+
+@dataclass(frozen=True)
+class SafetyState:
+    """The controller's verdict on one command.
+
+    ``allowed_speed``: largest permitted |speed|, m/s. ``free_distance``: free path length along the
+    commanded arc (m, capped at ``max_path_m``; nan when not measured: no usable scan, or reverse
+    without a rear view). ``obstacle``: the nearest point on the path, or None. ``reason``: one of
+    :data:`REASONS`. ``intervening``: the controller is limiting (entered when the command or the
+    measured speed exceeds the allowed speed, left with hysteresis).
+    """
+
+    allowed_speed: float
+    free_distance: float
+    obstacle: Obstacle | None
+    reason: str
+    intervening: bool
+
+
+def planar_transform(laser_to_base: LaserTransform) -> np.ndarray:
+    """A 2x3 matrix mapping laser-frame (x, y, 1) to base_link (x, y), from a 4x4 or (x, y, yaw).
+
+    A 4x4 transform may hold any 3D rotation (a lidar mounted upside down); scan points lie in the
+    laser's xy plane and are projected onto base_link's ground plane.
+    """
+    m = np.asarray(laser_to_base, dtype=np.float64)
+    if m.shape == (4, 4):
+        out = np.array([[m[0, 0], m[0, 1], m[0, 3]], [m[1, 0], m[1, 1], m[1, 3]]])
+    elif m.shape == (3,):
+        x, y, yaw = (float(v) for v in m)
+        c, s = math.cos(yaw), math.sin(yaw)
+        out = np.array([[c, -s, x], [s, c, y]])
+    else:
+        raise ValueError(f"laser->base_link transform must be 4x4 or (x, y, yaw), got shape {m.shape}")
+    if not np.all(np.isfinite(out)):
+        raise ValueError("laser->base_link transform is not finite")
+    return out
+
+
+@dataclass
+class _CachedScan:
+    """One scan, already reduced to its usable returns as base_link points."""
+
+    x: np.ndarray
+    y: np.ndarray
+    received_ns: int
+    usable_fraction: float
+    sweep_s: float
+
+
+class _Hysteresis:
+    """Intervention state: CLEAR or INTERVENING, entered at once, left only after a held release.
+
+    Transitions (evaluated once per command)::
+
+        CLEAR        --needs cut-------------------------------------> INTERVENING (count, log)
+        INTERVENING  --allowed >= ref + margin, held for hold_s------> CLEAR
+        INTERVENING  --otherwise-------------------------------------> INTERVENING
+
+    While a release is pending the cap stays at the last allowed speed seen before it started,
+    so one noisy scan that briefly clears the path cannot make the output jump up and back.
+    """
+
+    def __init__(self, release_margin: float, hold_ns: int) -> None:
+        self.release_margin = release_margin
+        self.hold_ns = hold_ns
+        self.intervening = False
+        self.pending_since: int | None = None
+        self.held_cap = math.inf
+
+    def reset(self) -> None:
+        self.intervening = False
+        self.pending_since = None
+        self.held_cap = math.inf
+
+    def step(self, needs_cut: bool, allowed: float, ref: float, now_ns: int) -> tuple[float, bool]:
+        """The speed cap for this command and whether an intervention just started."""
+        if not self.intervening:
+            if not needs_cut:
+                return math.inf, False
+            self.intervening = True
+            self.pending_since = None
+            self.held_cap = allowed
+            return allowed, True
+        if allowed >= ref + self.release_margin:
+            if self.pending_since is None:
+                self.pending_since = now_ns
+            if now_ns - self.pending_since >= self.hold_ns:
+                self.reset()
+                return math.inf, False
+            return min(allowed, self.held_cap), False
+        self.pending_since = None
+        self.held_cap = allowed
+        return allowed, False
+
+
+class SafetyController:
+    """Limits Ackermann commands by the free distance along the commanded path.
+
+    ``laser_to_base`` is the pose of the laser in base_link (4x4, or (x, y, yaw)); None takes it
+    from ``params.laser``. Times are integer nanoseconds on one monotonic clock of the caller's.
+    """
+
+    def __init__(self, params: SafetyParams, laser_to_base: LaserTransform | None = None) -> None:
+        self.params = params
+        if laser_to_base is None:
+            laser_to_base = (params.laser.x_m, params.laser.y_m, params.laser.yaw_rad)
+        self._to_base = planar_transform(laser_to_base)
+        fp = params.footprint
+        self.footprint = SweptFootprint(front_m=fp.front_m, rear_m=fp.rear_overhang_m,
+                                        half_width_m=fp.width_m / 2.0 + params.lateral_margin_m,
+                                        wheelbase_m=fp.wheelbase_m)
+        self._body = SweptFootprint(fp.front_m, fp.rear_overhang_m, fp.width_m / 2.0, fp.wheelbase_m)
+        # No return farther than this from the laser can be reached within max_path_m.
+        corner = math.hypot(max(fp.front_m, fp.rear_overhang_m), self.footprint.half_width_m)
+        self._reach = params.max_path_m + corner + math.hypot(self._to_base[0, 2], self._to_base[1, 2])
+        self._scan: _CachedScan | None = None
+        self._dirs_key: tuple[float, float, int] | None = None
+        self._dirs: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
+        self._hyst = _Hysteresis(params.release_margin_mps, round(params.release_hold_s * NS_PER_S))
+        self._exempt = set(params.exempt_sources)
+        if params.exempt_teleop:
+            self._exempt.add(params.teleop_source)
+        self.interventions = 0
+        self.rejected_commands = 0
+        self._rejecting = False
+        self.state = SafetyState(0.0, math.nan, None, "no_scan", False)
+
+    # --- scans --------------------------------------------------------------------------------
+
+    def on_scan(self, scan: LaserScan, now_ns: int) -> None:
+        """Cache ``scan`` (received at ``now_ns``) as base_link points of its usable returns.
+
+        A beam is usable when its range is at least ``range_min``: ``inf`` (no return) and
+        readings past ``range_max`` count as usable beams without a point; NaN (a fault) and
+        readings below ``range_min`` (dust, a blocked window) are not usable. Points come from
+        usable finite readings within ``range_max`` (when the scan has a sensible one) and within
+        reach of the path.
+        """
+        r = np.asarray(scan.ranges, dtype=np.float64)
+        n = r.size
+        # NaN compares false and -inf is below range_min: neither is usable.
+        usable = int(np.count_nonzero(r >= scan.range_min))
+        if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)):
+            usable = 0  # beams without directions: refuse the scan
+        far = min(scan.range_max, self._reach) if scan.range_max > scan.range_min else self._reach
+        points = (r >= scan.range_min) & (r <= far)
+        bx, by = self._directions(scan, n)
+        rp = r[points]
+        x = self._to_base[0, 2] + rp * bx[points]
+        y = self._to_base[1, 2] + rp * by[points]
+        if self.params.ignore_inside_footprint:
+            body = self._body
+            outside = (x < -body.rear_m) | (x > body.front_m) | (np.abs(y) > body.half_width_m)
+            x, y = x[outside], y[outside]
+        sweep = float(scan.scan_time) if 0.0 < scan.scan_time <= 1.0 else 0.0
+        self._scan = _CachedScan(x, y, now_ns, usable / n if n else 0.0, sweep)
+
+    def _directions(self, scan: LaserScan, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Unit beam directions in base_link, cached for the scan geometry."""
+        key = (float(scan.angle_min), float(scan.angle_increment), n)
+        if key != self._dirs_key:
+            with np.errstate(invalid="ignore"):
+                angles = key[0] + key[1] * np.arange(n, dtype=np.float64)
+                c, s = np.cos(angles), np.sin(angles)
+            t = self._to_base
+            self._dirs = (t[0, 0] * c + t[0, 1] * s, t[1, 0] * c + t[1, 1] * s)
+            self._dirs_key = key
+        return self._dirs
+
+    # --- commands -----------------------------------------------------------------------------
+
+    def limit(self, drive: AckermannDrive, source: str, measured_speed_mps: float,
+              now_ns: int) -> tuple[AckermannDrive, SafetyState]:
+        """``drive`` with its speed capped to the allowed speed, and the verdict.
+
+        ``source`` is the mux source that produced the command; ``measured_speed_mps`` the
+        odometry speed (m/s, negative in reverse; 0 when unknown); ``now_ns`` monotonic time.
+        """
+        speed, steering = float(drive.speed), float(drive.steering_angle)
+        finite = math.isfinite(speed) and math.isfinite(steering)
+        if not finite:
+            self.rejected_commands += 1
+            if not self._rejecting:  # once per run of bad commands, not at the command rate
+                log.warning("safety: non-finite command from %s (speed %r, steering %r): braking",
+                            source, drive.speed, drive.steering_angle)
+            speed = 0.0
+            steering = steering if math.isfinite(steering) else 0.0
+            drive = dataclasses.replace(drive, speed=0.0, steering_angle=steering)
+        self._rejecting = not finite
+        if not math.isfinite(measured_speed_mps):
+            measured_speed_mps = 0.0
+        mode = self.params.mode
+        if mode == "off" or source in self._exempt:
+            self._hyst.reset()
+            reason = "off" if mode == "off" else "exempt"
+            self.state = SafetyState(math.inf, math.nan, None, reason, False)
+            return drive, self.state
+
+        allowed, free, obstacle, reason = self._assess(steering, speed < 0.0, now_ns)
+        magnitude = abs(speed)
+        along = measured_speed_mps * math.copysign(1.0, speed) if speed != 0.0 else 0.0
+        needs_cut = magnitude > allowed or along > allowed + self.params.measured_tolerance_mps
+        cap, started = self._hyst.step(needs_cut, allowed, max(magnitude, along), now_ns)
+        intervening = self._hyst.intervening
+        if not intervening and reason in ("obstacle", "reverse_cap"):
+            reason = "clear"
+        self.state = SafetyState(allowed, free, obstacle, reason, intervening)
+        if started:
+            self.interventions += 1
+            where = (f"obstacle at ({obstacle.x:.2f}, {obstacle.y:.2f}) m, {obstacle.distance:.2f} m "
+                     "along the path" if obstacle else "no obstacle")
+            log.warning("safety: intervening (%s) on %s: commanded %.2f m/s, measured %.2f m/s, "
+                        "allowed %.2f m/s, %s", reason, source, speed, measured_speed_mps, allowed,
+                        where)
+        if magnitude > cap:
+            drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
+        return drive, self.state
+
+    def _assess(self, steering: float, reverse: bool,
+                now_ns: int) -> tuple[float, float, Obstacle | None, str]:
+        """(allowed |speed|, free distance, obstacle, limiting reason) for the current scan."""
+        p = self.params
+        scan = self._scan
+        if scan is None:
+            return 0.0, math.nan, None, "no_scan"
+        age_ns = now_ns - scan.received_ns
+        if age_ns > p.scan_timeout_s * NS_PER_S:
+            return 0.0, math.nan, None, "stale_scan"
+        if scan.usable_fraction < p.min_valid_fraction or scan.usable_fraction == 0.0:
+            return 0.0, math.nan, None, "bad_scan"
+        if p.mode == "cone":
+            # The cone node stops the car through the mux; here only a blind lidar stops it.
+            return math.inf, math.nan, None, "clear"
+        if reverse and not p.reverse_uses_scan:
+            return p.reverse_speed_cap_mps, math.nan, None, "reverse_cap"
+        hit = free_distance(scan.x, scan.y, steering, self.footprint, p.max_path_m, reverse)
+        # a lidar slower than configured (its scan_time) is taken at its word, never a faster one
+        sweep = max(p.scan_period_s, scan.sweep_s)
+        latency = sweep + p.processing_s + p.command_transfer_s + max(age_ns, 0) / NS_PER_S
+        allowed = stopping_speed(hit.distance_m - p.margin_m, latency, p.max_decel_mps2)
+        obstacle = None
+        if hit.index >= 0:
+            obstacle = Obstacle(float(scan.x[hit.index]), float(scan.y[hit.index]), hit.distance_m)
+        if reverse and p.reverse_speed_cap_mps < allowed:
+            return p.reverse_speed_cap_mps, hit.distance_m, obstacle, "reverse_cap"
+        return allowed, hit.distance_m, obstacle, "obstacle"

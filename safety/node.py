@@ -1,0 +1,256 @@
+"""Bus adapters of the safety controller.
+
+:class:`SafetyNode` sits between the mux and the VESC: the daemon passes every arbitrated command
+through :meth:`SafetyNode.filter`. It listens to ``/scan`` and ``/odom`` and publishes its verdict
+on ``/safety/state`` (diagnostic_msgs/DiagnosticArray) when it changes and at a low rate.
+
+:class:`ConeSafety` is the seeds' simple safety node (UW CSE490R lab 0): while a valid range in a
+forward cone is shorter than a threshold, it publishes a zero-speed AckermannDriveStamped on the
+mux's top-priority safety input at the scan rate, and publishes nothing otherwise so the mux falls
+through to the other sources once the input times out.
+
+All times are ``racecar_hw.clock.monotonic_ns`` unless a caller passes its own clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from racecar_hw.bus import Bus, Subscription
+from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    DiagnosticArray,
+    DiagnosticStatus,
+    Header,
+    KeyValue,
+    LaserScan,
+    Odometry,
+    Time,
+    stamp_now,
+)
+from safety.controller import LaserTransform, SafetyController, SafetyState
+from safety.params import ConeParams, SafetyParams
+
+log = logging.getLogger(__name__)
+
+_LEVELS = {
+    "clear": DiagnosticStatus.OK, "exempt": DiagnosticStatus.OK,
+    "obstacle": DiagnosticStatus.WARN, "reverse_cap": DiagnosticStatus.WARN,
+    "off": DiagnosticStatus.WARN,
+    "stale_scan": DiagnosticStatus.ERROR, "no_scan": DiagnosticStatus.ERROR,
+    "bad_scan": DiagnosticStatus.ERROR, "fault": DiagnosticStatus.ERROR,
+}
+
+
+class SafetyNode:
+    """The safety controller on the bus: scans and odometry in, filtered commands and state out.
+
+    An unexpected exception inside the controller latches a fault: every later command is
+    braked to speed 0 until :meth:`reset_fault`.
+    """
+
+    def __init__(self, bus: Bus, params: SafetyParams, laser_to_base: LaserTransform | None = None,
+                 clock: Callable[[], int] = monotonic_ns) -> None:
+        self.bus = bus
+        self.params = params
+        self.clock = clock
+        self.controller = SafetyController(params, laser_to_base)
+        self.cone = (ConeSafety(bus, params.cone, params.scan_topic) if params.mode == "cone"
+                     else None)
+        self.fault: str | None = None
+        self.faults = 0
+        self._odom: tuple[float, int] | None = None
+        self._last_command_ns: int | None = None
+        self._last_publish_ns: int | None = None
+        self._published_key: tuple[str, bool] | None = None
+        self._source = ""
+        self._commanded = 0.0
+        self._output = 0.0
+        bus.declare(params.state_topic, DiagnosticArray)
+        self._subs: list[Subscription] = [
+            bus.subscribe(params.scan_topic, self._on_scan),
+            bus.subscribe(params.odom_topic, self._on_odom),
+        ]
+
+    @property
+    def state(self) -> SafetyState:
+        """The latest verdict."""
+        if self.fault is not None:
+            return SafetyState(0.0, math.nan, None, "fault", True)
+        return self.controller.state
+
+    @property
+    def interventions(self) -> int:
+        """How many interventions have started."""
+        return self.controller.interventions
+
+    def _on_scan(self, scan: LaserScan) -> None:
+        self.controller.on_scan(scan, self.clock())
+
+    def _on_odom(self, odom: Odometry) -> None:
+        self._odom = (float(odom.twist.twist.linear.x), self.clock())
+
+    def measured_speed(self, now_ns: int) -> float:
+        """The odometry speed (m/s), or 0 when there is none fresher than ``odom_timeout_s``."""
+        if self._odom is None:
+            return 0.0
+        speed, at = self._odom
+        if now_ns - at > self.params.odom_timeout_s * NS_PER_S or not math.isfinite(speed):
+            return 0.0
+        return speed
+
+    def filter(self, drive: AckermannDrive, source: str, now_ns: int | None = None) -> AckermannDrive:
+        """``drive`` from mux source ``source`` with its speed limited; publishes state changes.
+
+        Never raises: a failure inside the controller latches a fault and brakes.
+        """
+        now = self.clock() if now_ns is None else now_ns
+        self._last_command_ns = now
+        self._source = source
+        self._commanded = _finite_or_zero(drive.speed)
+        out = self._limit(drive, source, now)
+        self._output = float(out.speed)
+        self._publish_if_due(now)
+        return out
+
+    def _limit(self, drive: AckermannDrive, source: str, now: int) -> AckermannDrive:
+        if self.fault is None:
+            try:
+                out, _ = self.controller.limit(drive, source, self.measured_speed(now), now)
+                return out
+            except Exception as err:
+                self.fault = f"{type(err).__name__}: {err}"
+                self.faults += 1
+                log.exception("safety: controller failed; braking every command until reset")
+        return dataclasses.replace(drive, speed=0.0, steering_angle=_finite_or_zero(drive.steering_angle))
+
+    def reset_fault(self) -> None:
+        """Clear a latched controller fault."""
+        self.fault = None
+
+    def tick(self, now_ns: int | None = None) -> None:
+        """Refresh and publish the state when due; with no recent command, assess a stop command."""
+        now = self.clock() if now_ns is None else now_ns
+        period = NS_PER_S / self.params.state_rate_hz
+        if self._last_command_ns is None or now - self._last_command_ns >= period:
+            self._limit(AckermannDrive(), "", now)
+            self._source, self._commanded, self._output = "", 0.0, 0.0
+        self._publish_if_due(now)
+
+    async def run(self) -> None:
+        """Publish the state at ``state_rate_hz`` until cancelled."""
+        period = 1.0 / self.params.state_rate_hz
+        while True:
+            self.tick()
+            await asyncio.sleep(period)
+
+    def _publish_if_due(self, now: int) -> None:
+        state = self.state
+        key = (state.reason, state.intervening)
+        due = (self._last_publish_ns is None
+               or now - self._last_publish_ns >= NS_PER_S / self.params.state_rate_hz)
+        if key != self._published_key or due:
+            self.bus.publish(self.params.state_topic, self.state_message())
+            self._published_key = key
+            self._last_publish_ns = now
+
+    def state_message(self) -> DiagnosticArray:
+        """The current state as one DiagnosticStatus named ``safety``."""
+        s = self.state
+        obstacle = s.obstacle
+        values = {
+            "mode": self.params.mode,
+            "reason": s.reason,
+            "intervening": str(s.intervening).lower(),
+            "allowed_speed": f"{s.allowed_speed:.3f}",
+            "free_distance": f"{s.free_distance:.3f}",
+            "obstacle_x": f"{obstacle.x:.3f}" if obstacle else "",
+            "obstacle_y": f"{obstacle.y:.3f}" if obstacle else "",
+            "obstacle_distance": f"{obstacle.distance:.3f}" if obstacle else "",
+            "source": self._source,
+            "commanded_speed": f"{self._commanded:.3f}",
+            "output_speed": f"{self._output:.3f}",
+            "interventions": str(self.controller.interventions),
+            "rejected_commands": str(self.controller.rejected_commands),
+            "fault": self.fault or "",
+        }
+        if self.cone is not None:
+            values["cone_stopping"] = str(self.cone.stopping).lower()
+            values["cone_closest"] = f"{self.cone.closest:.3f}"
+        status = DiagnosticStatus(level=_LEVELS.get(s.reason, DiagnosticStatus.ERROR), name="safety",
+                                  message=s.reason, hardware_id="racecar-hw",
+                                  values=[KeyValue(k, v) for k, v in values.items()])
+        return DiagnosticArray(header=stamp_now("base_link", wall_ns()), status=[status])
+
+    def close(self) -> None:
+        """Stop listening (safe to call twice)."""
+        for sub in self._subs:
+            sub.close()
+        self._subs.clear()
+        if self.cone is not None:
+            self.cone.close()
+
+
+def _finite_or_zero(value: object) -> float:
+    """``value`` as a finite float, or 0.0 when it is not a finite number."""
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return 0.0
+    return number if math.isfinite(number) else 0.0
+
+
+class ConeSafety:
+    """The seeds' safety node: zero speed on the mux safety input while the cone is blocked.
+
+    The cone is ``|angle| <= half_angle_rad`` around the laser's x axis. A range counts when it is
+    finite and within [range_min, range_max]. Once stopping, it keeps stopping until every range in
+    the cone exceeds ``stop_distance_m + release_margin_m``. Steering in the stop command is 0.
+    """
+
+    def __init__(self, bus: Bus, params: ConeParams, scan_topic: str = "/scan",
+                 frame_id: str = "base_link") -> None:
+        self.bus = bus
+        self.params = params
+        self.frame_id = frame_id
+        self.stopping = False
+        self.closest = math.inf
+        self.stops_published = 0
+        bus.declare(params.topic, AckermannDriveStamped)
+        self._sub: Subscription | None = bus.subscribe(scan_topic, self.on_scan)
+
+    def on_scan(self, scan: LaserScan) -> bool:
+        """Judge one scan, publish a stop if the cone is blocked, and return whether it is."""
+        r = np.asarray(scan.ranges, dtype=np.float64)
+        angles = np.mod(scan.angles() + math.pi, 2.0 * math.pi) - math.pi
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(r) & (r >= scan.range_min) & (np.abs(angles) <= self.params.half_angle_rad)
+            if scan.range_max > scan.range_min:
+                valid &= r <= scan.range_max
+        self.closest = float(r[valid].min()) if valid.any() else math.inf
+        threshold = self.params.stop_distance_m
+        if self.stopping:
+            threshold += self.params.release_margin_m
+        if self.closest < threshold and not self.stopping:
+            log.warning("safety cone: stopping, obstacle at %.2f m", self.closest)
+        self.stopping = self.closest < threshold
+        if self.stopping:
+            stamp = Time(scan.header.stamp.sec, scan.header.stamp.nanosec)
+            stop = AckermannDriveStamped(Header(stamp, self.frame_id), AckermannDrive())
+            self.bus.publish(self.params.topic, stop)
+            self.stops_published += 1
+        return self.stopping
+
+    def close(self) -> None:
+        """Stop listening (safe to call twice)."""
+        if self._sub is not None:
+            self._sub.close()
+            self._sub = None

@@ -1,0 +1,421 @@
+"""The safety controller on synthetic scans: closed-form speeds, paths, staleness, hysteresis."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from racecar_hw.errors import ConfigError
+from racecar_hw.messages import AckermannDrive, Header, LaserScan, Time
+from racecar_hw.params import build
+from safety.controller import SafetyController, planar_transform
+from safety.params import SafetyParams
+
+MS = 1_000_000
+LASER_X = 0.265  # the default laser position in base_link
+FRONT = 0.45  # default base_link -> front bumper
+LATENCY = 0.025 + 0.01 + 0.02
+DECEL = 4.0
+MARGIN = 0.25
+
+Segment = tuple[tuple[float, float], tuple[float, float]]
+
+
+def closed_form(free: float) -> float:
+    """The largest v with v * latency + v^2 / (2 a) <= free - margin, solved with numpy's roots."""
+    d = free - MARGIN
+    if d <= 0:
+        return 0.0
+    roots = np.roots([1.0 / (2 * DECEL), LATENCY, -d])
+    return float(max(roots.real))
+
+
+def ust10lx_scan(segments: list[Segment], laser: tuple[float, float] = (LASER_X, 0.0),
+                 n: int = 1081, fov_deg: float = 270.0, range_max: float = 30.0,
+                 stamp_ns: int = 0) -> LaserScan:
+    """A scan (laser frame, heading as base_link) of wall segments given in base_link metres."""
+    half = math.radians(fov_deg) / 2.0
+    angle_min, angle_max = -half, half
+    inc = (angle_max - angle_min) / (n - 1)
+    angles = angle_min + inc * np.arange(n)
+    ranges = raycast(laser, angles, segments, range_max)
+    return LaserScan(header=Header(Time.from_ns(stamp_ns), "laser"), angle_min=angle_min,
+                     angle_max=angle_max, angle_increment=inc, scan_time=0.025,
+                     time_increment=0.025 / 1440, range_min=0.06, range_max=range_max,
+                     ranges=ranges.astype(np.float32))
+
+
+def raycast(origin: tuple[float, float], angles: np.ndarray, segments: list[Segment],
+            range_max: float) -> np.ndarray:
+    """Distance from ``origin`` along each angle to the nearest segment; inf past range_max."""
+    ox, oy = origin
+    dx, dy = np.cos(angles), np.sin(angles)
+    best = np.full(angles.shape, np.inf)
+    for (ax, ay), (bx, by) in segments:
+        ex, ey = bx - ax, by - ay
+        den = dx * ey - dy * ex
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((ax - ox) * ey - (ay - oy) * ex) / den
+            u = ((ax - ox) * dy - (ay - oy) * dx) / den
+        ok = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+        best = np.where(ok & (t < best), t, best)
+    return np.where(best <= range_max, best, np.inf)
+
+
+def wall_ahead(x: float) -> list[Segment]:
+    return [((x, -5.0), (x, 5.0))]
+
+
+def corridor(half_width: float = 0.75) -> list[Segment]:
+    return [((-2.0, half_width), (30.0, half_width)), ((-2.0, -half_width), (30.0, -half_width))]
+
+
+def box(cx: float, cy: float, half: float = 0.05) -> list[Segment]:
+    a, b = (cx - half, cy - half), (cx + half, cy - half)
+    c, d = (cx + half, cy + half), (cx - half, cy + half)
+    return [(a, b), (b, c), (c, d), (d, a)]
+
+
+def controller(**overrides: object) -> SafetyController:
+    return SafetyController(build(SafetyParams, overrides, "safety"))
+
+
+def drive(speed: float, steering: float = 0.0) -> AckermannDrive:
+    return AckermannDrive(steering_angle=steering, speed=speed, acceleration=1.5, jerk=0.5)
+
+
+@pytest.mark.parametrize("wall_x", [0.6, 0.8, 1.0, 1.5, 3.0, 6.0, 9.0])
+def test_wall_ahead_allowed_speed_matches_closed_form(wall_x: float) -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(wall_x)), now_ns=0)
+    out, state = c.limit(drive(20.0), "nav", 0.0, now_ns=0)
+    free = wall_x - FRONT
+    assert state.free_distance == pytest.approx(free, abs=1e-5)
+    assert state.allowed_speed == pytest.approx(closed_form(free), abs=1e-4)
+    assert out.speed == pytest.approx(closed_form(free), abs=1e-4)
+    assert state.intervening and state.reason == "obstacle"
+    assert state.obstacle is not None and state.obstacle.x == pytest.approx(wall_x, abs=1e-5)
+    assert abs(state.obstacle.y) <= 0.2
+
+
+def test_nothing_within_lookahead_allows_the_lookahead_speed() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(25.0)), now_ns=0)
+    out, state = c.limit(drive(20.0), "nav", 0.0, now_ns=0)
+    assert state.free_distance == 10.0 and state.obstacle is None
+    assert out.speed == pytest.approx(closed_form(10.0), abs=1e-4)
+
+
+def test_scan_age_adds_to_the_latency() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(2.0)), now_ns=0)
+    _, fresh = c.limit(drive(20.0), "nav", 0.0, now_ns=0)
+    _, older = c.limit(drive(20.0), "nav", 0.0, now_ns=50 * MS)
+    d = 2.0 - FRONT - MARGIN
+    t = LATENCY + 0.05
+    assert older.allowed_speed < fresh.allowed_speed
+    v = older.allowed_speed
+    assert v * t + v * v / (2 * DECEL) == pytest.approx(d, abs=1e-5)
+
+
+def test_a_slower_lidar_sweep_lengthens_the_latency() -> None:
+    c = controller()
+    slow = ust10lx_scan(wall_ahead(2.0))
+    slow.scan_time = 0.1  # a 10 Hz RPLIDAR
+    c.on_scan(slow, now_ns=0)
+    v = c.limit(drive(20.0), "nav", 0.0, now_ns=0)[1].allowed_speed
+    t = 0.1 + 0.01 + 0.02
+    assert v * t + v * v / (2 * DECEL) == pytest.approx(2.0 - FRONT - MARGIN, abs=1e-5)
+
+
+def test_corridor_walls_beside_the_path_do_not_intervene() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(corridor(0.75)), now_ns=0)
+    for steering in (0.0, 0.02, -0.02):
+        out, state = c.limit(drive(3.0, steering), "nav", 3.0, now_ns=0)
+        assert out.speed == 3.0
+        assert not state.intervening and state.reason == "clear"
+    assert c.interventions == 0
+
+
+def test_obstacle_inside_the_turn_only_when_steering_toward_it() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(corridor(2.0) + box(1.0, 0.45)), now_ns=0)
+    out, state = c.limit(drive(2.0, 0.3), "nav", 0.0, now_ns=0)
+    assert state.intervening and out.speed < 2.0
+    assert state.obstacle is not None and state.obstacle.y > 0.3
+    for steering in (0.0, -0.3):
+        c = controller()
+        c.on_scan(ust10lx_scan(corridor(2.0) + box(1.0, 0.45)), now_ns=0)
+        out, state = c.limit(drive(2.0, steering), "nav", 0.0, now_ns=0)
+        assert out.speed == 2.0 and not state.intervening
+
+
+def test_no_scan_yet_allows_nothing() -> None:
+    c = controller()
+    out, state = c.limit(drive(1.0), "nav", 0.0, now_ns=5 * MS)
+    assert out.speed == 0.0 and state.reason == "no_scan" and state.allowed_speed == 0.0
+
+
+def test_stale_scan_allows_nothing() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(corridor()), now_ns=0)
+    out, state = c.limit(drive(1.0), "nav", 0.0, now_ns=100 * MS)
+    assert out.speed == 1.0 and state.reason == "clear"
+    out, state = c.limit(drive(1.0), "nav", 0.0, now_ns=101 * MS)
+    assert out.speed == 0.0 and state.reason == "stale_scan" and state.intervening
+    out, _ = c.limit(drive(-0.3), "nav", 0.0, now_ns=102 * MS)
+    assert out.speed == 0.0
+
+
+def test_only_reduces_magnitude_and_keeps_sign_steering_and_limits() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(2.0)), now_ns=0)
+    slow = drive(0.4, 0.1)
+    out, _ = c.limit(slow, "nav", 0.0, now_ns=0)
+    assert out == slow
+    out, _ = c.limit(drive(9.0, 0.1), "nav", 0.0, now_ns=0)
+    assert 0.0 < out.speed < 9.0
+    assert (out.steering_angle, out.acceleration, out.jerk) == (0.1, 1.5, 0.5)
+    out, _ = c.limit(drive(0.0, -0.2), "nav", 0.0, now_ns=0)
+    assert out.speed == 0.0 and out.steering_angle == -0.2
+
+
+def test_reverse_is_capped_because_the_lidar_cannot_see_behind() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(corridor()), now_ns=0)
+    out, state = c.limit(drive(-2.0, 0.2), "nav", 0.0, now_ns=0)
+    assert out.speed == -0.5 and out.steering_angle == 0.2
+    assert state.reason == "reverse_cap" and state.intervening
+    c = controller()
+    c.on_scan(ust10lx_scan(corridor()), now_ns=0)
+    out, state = c.limit(drive(-0.3), "nav", 0.0, now_ns=0)
+    assert out.speed == -0.3 and not state.intervening
+
+
+def test_reverse_with_a_360_lidar_sees_the_wall_behind() -> None:
+    c = controller(reverse_uses_scan=True, reverse_speed_cap_mps=5.0)
+    c.on_scan(ust10lx_scan(wall_ahead(-1.0), fov_deg=359.0, n=1000), now_ns=0)
+    out, state = c.limit(drive(-5.0), "nav", 0.0, now_ns=0)
+    free = 1.0 - 0.10  # the rear bumper is 0.10 m behind base_link
+    assert state.free_distance == pytest.approx(free, abs=1e-4)
+    assert out.speed == pytest.approx(-closed_form(free), abs=1e-4)
+    assert state.reason == "obstacle"
+
+
+def test_teleop_exempt_only_when_configured() -> None:
+    scan = ust10lx_scan(wall_ahead(1.0))
+    strict = controller()
+    strict.on_scan(scan, now_ns=0)
+    out, _ = strict.limit(drive(3.0), "teleop", 0.0, now_ns=0)
+    assert out.speed < 3.0
+    lax = controller(exempt_teleop=True, exempt_sources=["bag_follower"])
+    lax.on_scan(scan, now_ns=0)
+    for source in ("teleop", "bag_follower"):
+        out, state = lax.limit(drive(3.0), source, 0.0, now_ns=0)
+        assert out.speed == 3.0 and state.reason == "exempt" and not state.intervening
+    out, state = lax.limit(drive(3.0), "nav", 0.0, now_ns=0)
+    assert out.speed < 3.0 and state.intervening
+
+
+def test_mode_off_passes_everything() -> None:
+    c = controller(mode="off")
+    out, state = c.limit(drive(7.0), "nav", 0.0, now_ns=0)
+    assert out.speed == 7.0 and state.reason == "off"
+
+
+def noisy_run(c: SafetyController, base_wall: float, speed: float, ticks: int = 400) -> int:
+    """Scans at 40 Hz with +-2 cm range noise and occasional dropouts; count intervention flips."""
+    rng = np.random.default_rng(3)
+    clean = ust10lx_scan(wall_ahead(base_wall))
+    flips, last = 0, False
+    for k in range(ticks):
+        now = k * 25 * MS
+        scan = ust10lx_scan(wall_ahead(base_wall))
+        noisy = clean.ranges + rng.uniform(-0.02, 0.02, clean.ranges.size).astype(np.float32)
+        if k % 17 == 0:  # a sweep where the wall's returns drop out
+            noisy = np.where(np.abs(scan.angles()) < 0.6, np.inf, noisy).astype(np.float32)
+        scan.ranges = noisy
+        c.on_scan(scan, now)
+        out, state = c.limit(drive(speed), "nav", speed, now)
+        assert out.speed <= speed
+        flips += state.intervening != last
+        last = state.intervening
+    return flips
+
+
+def test_hysteresis_prevents_chatter_on_noisy_ranges() -> None:
+    wall = 2.0
+    threshold_speed = closed_form(wall - FRONT)
+    without = noisy_run(controller(release_margin_mps=0.0, release_hold_s=0.0), wall, threshold_speed)
+    with_hysteresis = noisy_run(controller(), wall, threshold_speed)
+    assert without > 20, "the scenario must actually sit on the threshold"
+    assert with_hysteresis <= 1
+
+
+def test_release_needs_margin_held_for_the_hold_time() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(1.2)), now_ns=0)
+    out, state = c.limit(drive(2.0), "nav", 0.0, now_ns=0)
+    capped = out.speed
+    assert state.intervening and capped < 2.0
+    # the obstacle is gone: the cap holds for release_hold_s, then the command passes
+    for t in range(10, 300, 10):
+        c.on_scan(ust10lx_scan(corridor()), now_ns=t * MS)
+        out, state = c.limit(drive(2.0), "nav", 0.0, now_ns=t * MS)
+        assert state.intervening and out.speed == pytest.approx(capped)
+    c.on_scan(ust10lx_scan(corridor()), now_ns=310 * MS)
+    out, state = c.limit(drive(2.0), "nav", 0.0, now_ns=310 * MS)
+    assert not state.intervening and out.speed == 2.0 and state.reason == "clear"
+    assert c.interventions == 1
+
+
+def test_measured_speed_above_allowed_intervenes_immediately() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(1.5)), now_ns=0)
+    allowed = closed_form(1.5 - FRONT)
+    # commanded speed is below the allowed one, but the car is already going much faster
+    out, state = c.limit(drive(allowed - 0.2), "nav", allowed + 1.0, now_ns=0)
+    assert state.intervening and c.interventions == 1
+    assert out.speed == pytest.approx(allowed - 0.2)
+    # while a release is pending, a fast measured speed cuts the command at once
+    c2 = controller()
+    c2.on_scan(ust10lx_scan(wall_ahead(1.5)), now_ns=0)
+    c2.limit(drive(3.0), "nav", 0.0, now_ns=0)
+    c2.on_scan(ust10lx_scan(wall_ahead(4.0)), now_ns=10 * MS)
+    wide = c2.limit(drive(1.0), "nav", 0.0, now_ns=10 * MS)[1].allowed_speed
+    c2.on_scan(ust10lx_scan(wall_ahead(1.5)), now_ns=20 * MS)
+    out, state = c2.limit(drive(3.0), "nav", 3.0, now_ns=20 * MS)
+    assert state.intervening and out.speed == pytest.approx(state.allowed_speed) and wide > allowed
+
+
+def test_measured_speed_against_the_command_direction_is_no_reason_to_cut() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(1.5)), now_ns=0)
+    out, state = c.limit(drive(0.3), "nav", -3.0, now_ns=0)
+    assert out.speed == 0.3 and not state.intervening
+
+
+def test_nan_inf_and_short_beams_are_ignored() -> None:
+    clean = ust10lx_scan(wall_ahead(2.0))
+    dirty = ust10lx_scan(wall_ahead(2.0))
+    r = dirty.ranges.copy()
+    r[::7] = np.nan
+    r[1::11] = np.inf
+    r[2::13] = -np.inf
+    r[3::29] = 0.01  # below range_min: dust on the window
+    dirty.ranges = r
+    a, b = controller(), controller()
+    a.on_scan(clean, 0)
+    b.on_scan(dirty, 0)
+    va = a.limit(drive(9.0), "nav", 0.0, 0)[1].allowed_speed
+    vb = b.limit(drive(9.0), "nav", 0.0, 0)[1].allowed_speed
+    assert vb == pytest.approx(va, abs=1e-4)
+
+
+def test_mostly_invalid_scan_is_refused() -> None:
+    scan = ust10lx_scan(corridor())
+    scan.ranges = np.where(np.arange(scan.ranges.size) % 4 == 0, scan.ranges, np.nan).astype(np.float32)
+    c = controller()
+    c.on_scan(scan, 0)
+    out, state = c.limit(drive(1.0), "nav", 0.0, 0)
+    assert out.speed == 0.0 and state.reason == "bad_scan"
+    covered = ust10lx_scan(corridor())
+    covered.ranges = np.full(covered.ranges.size, 0.02, dtype=np.float32)  # a hand over the lidar
+    c.on_scan(covered, 0)
+    assert c.limit(drive(1.0), "nav", 0.0, 0)[0].speed == 0.0
+
+
+def test_scan_with_broken_geometry_is_refused_or_read_safely() -> None:
+    c = controller()
+    no_angles = ust10lx_scan(wall_ahead(1.0))
+    no_angles.angle_increment = math.nan
+    c.on_scan(no_angles, 0)
+    assert c.limit(drive(1.0), "nav", 0.0, 0)[1].reason == "bad_scan"
+    no_max = ust10lx_scan(wall_ahead(1.0))
+    no_max.range_max = math.nan  # the wall must still be seen
+    c.on_scan(no_max, 0)
+    out, state = c.limit(drive(3.0), "nav", 0.0, 0)
+    assert state.free_distance == pytest.approx(1.0 - FRONT, abs=1e-5) and out.speed < 3.0
+
+
+def test_non_finite_command_brakes_and_centres() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(corridor()), now_ns=0)
+    out, _ = c.limit(drive(math.nan, 0.1), "nav", 0.0, now_ns=0)
+    assert out.speed == 0.0 and out.steering_angle == 0.1
+    out, _ = c.limit(drive(1.0, math.inf), "nav", 0.0, now_ns=0)
+    assert out.speed == 0.0 and out.steering_angle == 0.0
+    assert c.rejected_commands == 2
+
+
+def test_interventions_are_counted_once_per_start(caplog: pytest.LogCaptureFixture) -> None:
+    c = controller()
+    caplog.set_level("WARNING", logger="safety.controller")
+    c.on_scan(ust10lx_scan(wall_ahead(1.0)), now_ns=0)
+    for t in range(0, 50, 5):
+        c.limit(drive(3.0), "nav", 0.0, now_ns=t * MS)
+    assert c.interventions == 1
+    assert len([r for r in caplog.records if "intervening" in r.getMessage()]) == 1
+
+
+def test_laser_transform_forms_agree_and_upside_down_lidar_mirrors() -> None:
+    yaw = 0.3
+    m = np.eye(4)
+    m[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    m[:2, 3] = [0.2, 0.05]
+    np.testing.assert_allclose(planar_transform(m), planar_transform((0.2, 0.05, yaw)))
+    # upside down (roll pi): the laser's +angles point to base_link's right
+    flipped = np.diag([1.0, -1.0, -1.0, 1.0])
+    flipped[0, 3] = LASER_X
+    scan = ust10lx_scan(box(1.0, -0.45))  # the scan is cast as if upright, so the box ends up left
+    verdicts = {}
+    for steering in (0.3, -0.3):
+        c = SafetyController(SafetyParams(), flipped)
+        c.on_scan(scan, 0)
+        verdicts[steering] = c.limit(drive(2.0, steering), "nav", 0.0, 0)[1].intervening
+    assert verdicts == {0.3: True, -0.3: False}
+    with pytest.raises(ValueError):
+        planar_transform(np.eye(3))
+
+
+def test_params_validate_footprint() -> None:
+    with pytest.raises(ConfigError, match="safety.footprint"):
+        build(SafetyParams, {"footprint": {"length_m": 0.3, "rear_overhang_m": 0.3}}, "safety")
+    with pytest.raises(ConfigError, match="safety.mode"):
+        build(SafetyParams, {"mode": "panic"}, "safety")
+
+
+finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, width=32)
+range_values = st.one_of(st.floats(0.0, 40.0, width=32), st.just(math.inf), st.just(math.nan),
+                         st.just(-math.inf))
+
+
+@settings(max_examples=300, deadline=None)
+@given(ranges=st.lists(range_values, min_size=0, max_size=300),
+       angle_min=st.floats(-4.0, 0.0), span=st.floats(0.0, 6.3),
+       range_min=st.floats(0.0, 1.0), range_max=st.floats(0.0, 40.0),
+       speed=finite, steering=st.floats(-1.6, 1.6), measured=finite,
+       age_ms=st.integers(-5, 200), reverse_uses_scan=st.booleans(),
+       source=st.sampled_from(["nav", "teleop"]))
+def test_property_output_never_exceeds_input(ranges: list[float], angle_min: float, span: float,
+                                             range_min: float, range_max: float, speed: float,
+                                             steering: float, measured: float, age_ms: int,
+                                             reverse_uses_scan: bool, source: str) -> None:
+    c = controller(reverse_uses_scan=reverse_uses_scan)
+    n = len(ranges)
+    scan = LaserScan(angle_min=angle_min, angle_max=angle_min + span,
+                     angle_increment=span / max(n - 1, 1), range_min=range_min, range_max=range_max,
+                     ranges=np.array(ranges, dtype=np.float32))
+    c.on_scan(scan, now_ns=1000 * MS)
+    command = drive(speed, steering)
+    out, state = c.limit(command, source, measured, now_ns=(1000 + age_ms) * MS)
+    assert math.isfinite(out.speed)
+    assert abs(out.speed) <= abs(speed)
+    assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
+    assert out.steering_angle == steering
+    assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)

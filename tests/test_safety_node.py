@@ -1,0 +1,224 @@
+"""SafetyNode and ConeSafety on the in-process bus."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+from conftest import async_wait_for
+
+from racecar_hw.bus import Bus
+from racecar_hw.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    DiagnosticArray,
+    DiagnosticStatus,
+    Header,
+    LaserScan,
+    Odometry,
+    Time,
+)
+from racecar_hw.params import build
+from safety import ConeSafety, SafetyNode, SafetyParams
+from safety.params import MUX_SAFETY_TOPIC, ConeParams
+
+MS = 1_000_000
+
+
+class ManualClock:
+    """Test time, in monotonic nanoseconds."""
+
+    def __init__(self) -> None:
+        self.now = 10_000 * MS
+
+    def __call__(self) -> int:
+        return self.now
+
+
+def scan_with(ranges: np.ndarray, stamp_ns: int = 123 * MS) -> LaserScan:
+    """A UST-10LX-like scan: 1081 beams over -135..135 degrees."""
+    n = ranges.size
+    angle_min, angle_max = -math.radians(135), math.radians(135)
+    return LaserScan(header=Header(Time.from_ns(stamp_ns), "laser"), angle_min=angle_min,
+                     angle_max=angle_max, angle_increment=(angle_max - angle_min) / (n - 1),
+                     scan_time=0.025, range_min=0.06, range_max=30.0,
+                     ranges=ranges.astype(np.float32))
+
+
+def open_scan() -> LaserScan:
+    return scan_with(np.full(1081, np.inf))
+
+
+def blocked_ahead(distance: float) -> LaserScan:
+    """Open space except an object straight ahead of the laser, 20 beams wide."""
+    r = np.full(1081, np.inf)
+    r[530:551] = distance
+    return scan_with(r)
+
+
+def odom(speed: float) -> Odometry:
+    msg = Odometry()
+    msg.twist.twist.linear.x = speed
+    return msg
+
+
+def states(bus: Bus, topic: str = "/safety/state") -> list[DiagnosticStatus]:
+    got: list[DiagnosticStatus] = []
+    bus.subscribe(topic, lambda m: got.append(m.status[0]))
+    return got
+
+
+def values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_node_filters_commands_with_scans_and_odometry_from_the_bus() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, SafetyParams(), clock=clock)
+    published = states(bus)
+    out = node.filter(AckermannDrive(speed=1.0, steering_angle=0.1), "nav")
+    assert out.speed == 0.0 and node.state.reason == "no_scan"
+    bus.publish("/scan", blocked_ahead(1.0))
+    out = node.filter(AckermannDrive(speed=3.0, steering_angle=0.05), "nav")
+    assert 0.0 < out.speed < 3.0 and out.steering_angle == 0.05
+    assert node.state.intervening and node.interventions == 1
+    last = values(published[-1])
+    assert published[-1].level == DiagnosticStatus.WARN and published[-1].message == "obstacle"
+    assert last["intervening"] == "true"
+    assert float(last["allowed_speed"]) == pytest.approx(out.speed, abs=1e-3)
+    assert float(last["obstacle_x"]) > 1.0 and last["source"] == "nav"
+    # the car is measured going fast although the command is slow: still an intervention
+    bus.publish("/scan", blocked_ahead(1.0))
+    bus.publish("/odom", odom(5.0))
+    node.filter(AckermannDrive(speed=0.1), "nav")
+    assert node.state.intervening
+    node.close()
+    node.close()
+
+
+def test_node_brakes_when_scans_stop() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, SafetyParams(), clock=clock)
+    published = states(bus)
+    bus.publish("/scan", open_scan())
+    assert node.filter(AckermannDrive(speed=2.0), "nav").speed == 2.0
+    clock.now += 150 * MS
+    assert node.filter(AckermannDrive(speed=2.0), "nav").speed == 0.0
+    assert published[-1].message == "stale_scan" and published[-1].level == DiagnosticStatus.ERROR
+
+
+def test_node_publishes_on_change_and_at_a_low_rate() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, build(SafetyParams, {"state_rate_hz": 2.0}), clock=clock)
+    published = states(bus)
+    for _ in range(20):  # 20 commands within 200 ms, nothing changes: one message
+        bus.publish("/scan", open_scan())
+        node.filter(AckermannDrive(speed=1.0), "nav")
+        clock.now += 10 * MS
+    assert len(published) == 1 and published[0].message == "clear"
+    bus.publish("/scan", blocked_ahead(0.5))
+    node.filter(AckermannDrive(speed=1.0), "nav")
+    assert len(published) == 2 and published[-1].message == "obstacle"
+    clock.now += 600 * MS
+    node.tick()  # no command for a while: the state is refreshed and republished
+    assert len(published) == 3
+
+
+def test_node_run_publishes_periodically() -> None:
+    bus = Bus()
+    node = SafetyNode(bus, build(SafetyParams, {"state_rate_hz": 50.0}))
+    published = states(bus)
+
+    async def main() -> None:
+        task = asyncio.create_task(node.run())
+        try:
+            await async_wait_for(lambda: len(published) >= 3, timeout=20.0)
+        finally:
+            task.cancel()
+
+    asyncio.run(main())
+    assert all(s.message == "no_scan" for s in published)
+
+
+def test_node_latches_a_fault_and_brakes() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, SafetyParams(), clock=clock)
+    bus.publish("/scan", open_scan())
+    broken = AckermannDrive(speed="fast", steering_angle=0.2)  # type: ignore[arg-type]
+    out = node.filter(broken, "nav")
+    assert out.speed == 0.0 and out.steering_angle == 0.2
+    assert node.state.reason == "fault" and node.faults == 1
+    assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 0.0
+    node.reset_fault()
+    assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 1.0
+
+
+def test_stale_odometry_is_ignored() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, SafetyParams(), clock=clock)
+    bus.publish("/odom", odom(4.0))
+    assert node.measured_speed(clock.now) == 4.0
+    assert node.measured_speed(clock.now + 600 * MS) == 0.0
+
+
+def cone_bus(**cone: object) -> tuple[Bus, ConeSafety, list[AckermannDriveStamped]]:
+    bus = Bus()
+    safety = ConeSafety(bus, build(ConeParams, cone, "cone"))
+    got: list[AckermannDriveStamped] = []
+    bus.subscribe(MUX_SAFETY_TOPIC, got.append)
+    return bus, safety, got
+
+
+def test_cone_publishes_zero_on_the_mux_safety_input_at_the_scan_rate() -> None:
+    bus, cone, got = cone_bus(stop_distance_m=0.5)
+    for _ in range(3):
+        bus.publish("/scan", blocked_ahead(0.3))
+    assert len(got) == 3
+    assert all(m.drive.speed == 0.0 and m.drive.steering_angle == 0.0 for m in got)
+    assert got[0].header.stamp == Time.from_ns(123 * MS)
+    assert cone.stopping and cone.closest == np.float32(0.3)
+
+
+def test_cone_stays_silent_when_clear_or_obstacle_outside_the_cone() -> None:
+    bus, cone, got = cone_bus(stop_distance_m=0.5, half_angle_rad=0.35)
+    bus.publish("/scan", open_scan())
+    bus.publish("/scan", blocked_ahead(0.8))
+    side = np.full(1081, np.inf)
+    side[900:920] = 0.2  # about 90 degrees to the left
+    bus.publish("/scan", scan_with(side))
+    nan_ahead = np.full(1081, np.inf)
+    nan_ahead[530:551] = np.nan
+    bus.publish("/scan", scan_with(nan_ahead))
+    assert got == [] and not cone.stopping
+
+
+def test_cone_hysteresis_on_noisy_ranges() -> None:
+    bus, cone, got = cone_bus(stop_distance_m=0.5, release_margin_m=0.05)
+    rng = np.random.default_rng(5)
+    flips, last = 0, False
+    for _ in range(200):
+        bus.publish("/scan", blocked_ahead(0.5 + rng.uniform(-0.02, 0.02)))
+        flips += cone.stopping != last
+        last = cone.stopping
+    assert flips == 1
+    bus.publish("/scan", blocked_ahead(0.56))
+    assert not cone.stopping
+    cone.close()
+    cone.close()
+
+
+def test_node_in_cone_mode_runs_the_cone_and_still_brakes_when_blind() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, build(SafetyParams, {"mode": "cone"}), clock=clock)
+    got: list[AckermannDriveStamped] = []
+    bus.subscribe(MUX_SAFETY_TOPIC, got.append)
+    bus.publish("/scan", blocked_ahead(0.3))
+    assert len(got) == 1
+    assert node.filter(AckermannDrive(speed=2.0), "teleop").speed == 2.0
+    assert values(node.state_message().status[0])["cone_stopping"] == "true"
+    clock.now += 200 * MS
+    assert node.filter(AckermannDrive(speed=2.0), "teleop").speed == 0.0
+    assert node.state.reason == "stale_scan"
+    assert isinstance(node.state_message(), DiagnosticArray)
