@@ -1,0 +1,163 @@
+"""The simulated car: a kinematic bicycle driven by motor ERPM and servo position, with a footprint.
+
+Frames (REP-103/105): the car's pose is ``base_link``, the centre of the REAR axle, in the map
+frame: x forward, y left, yaw counter-clockwise from the map's x axis, metres and radians.
+
+Model: the wheels do not slip. The speed of the rear axle centre is the motor's speed,
+``v = (erpm - speed_to_erpm_offset) / speed_to_erpm_gain`` (m/s, negative in reverse), and the
+front-wheel steering angle is the servo's,
+``delta = (servo - steering_angle_to_servo_offset) / steering_angle_to_servo_gain`` (rad, positive
+= left), clipped to +-``max_steering_angle``. The servo reaches its position at once (the fake VESC
+reports the commanded position) and the motor's ERPM is whatever the fake VESC reports (its motor
+model owns acceleration). Over a step with constant ``v`` and ``delta`` the car follows an arc of
+curvature ``tan(delta) / wheelbase`` exactly.
+
+The footprint is a rectangle ``length`` x ``width`` whose rear edge is ``rear_overhang`` behind the
+rear axle. Clearance is measured from that rectangle to occupied map cells (each cell taken as a
+disc of half a cell around its centre) and to dynamic obstacles.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from racecar_hw.params import param
+from racecar_hw.sim.obstacles import Obstacle, rectangle
+from racecar_hw.sim.occupancy import OccupancyMap
+
+#: Clearances beyond this are reported as this value (metres).
+CLEARANCE_RANGE_M = 2.0
+
+
+class Pose2D(NamedTuple):
+    """A planar pose in the map frame: metres, metres, radians (CCW)."""
+
+    x: float
+    y: float
+    yaw: float
+
+
+@dataclass
+class CarParams:
+    """The physical car the simulator drives: its true gains (the F1TENTH defaults) and its size."""
+
+    speed_to_erpm_gain: float = param(4614.0, "motor ERPM per m/s of car speed", unit="ERPM/(m/s)")
+    speed_to_erpm_offset: float = param(0.0, "motor ERPM at standstill", unit="ERPM")
+    steering_angle_to_servo_gain: float = param(-1.2135, "servo position per radian of steering",
+                                                unit="1/rad")
+    steering_angle_to_servo_offset: float = param(0.5304, "servo position that steers straight ahead",
+                                                  min=0.0, max=1.0)
+    wheelbase: float = param(0.25, "rear axle to front axle", unit="m", min=0.05, max=2.0)
+    length: float = param(0.55, "footprint length, bumper to bumper", unit="m", min=0.05, max=3.0)
+    width: float = param(0.30, "footprint width", unit="m", min=0.05, max=2.0)
+    rear_overhang: float = param(0.10, "footprint behind the rear axle (base_link)", unit="m", min=0.0,
+                                 max=2.0)
+    max_steering_angle: float = param(0.4189, "mechanical steering limit either side", unit="rad",
+                                      min=0.0, max=1.5)
+
+    def __post_init__(self) -> None:
+        if self.speed_to_erpm_gain == 0 or self.steering_angle_to_servo_gain == 0:
+            raise ValueError("speed_to_erpm_gain and steering_angle_to_servo_gain must be non-zero")
+
+
+def speed_from_erpm(erpm: float, params: CarParams) -> float:
+    """Car speed (m/s) for a motor ERPM; 0 for a non-finite reading."""
+    if not math.isfinite(erpm):
+        return 0.0
+    return (erpm - params.speed_to_erpm_offset) / params.speed_to_erpm_gain
+
+
+def steering_from_servo(servo: float, params: CarParams) -> float:
+    """Steering angle (rad, + left) for a servo position, clipped to the mechanical limit;
+    straight ahead for a non-finite reading."""
+    if not math.isfinite(servo):
+        return 0.0
+    delta = (servo - params.steering_angle_to_servo_offset) / params.steering_angle_to_servo_gain
+    return max(-params.max_steering_angle, min(params.max_steering_angle, delta))
+
+
+def wrap_angle(a: float) -> float:
+    """An angle in [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def advance(pose: Pose2D, speed: float, steering: float, dt: float, wheelbase: float) -> Pose2D:
+    """The rear-axle pose after ``dt`` seconds at constant ``speed`` (m/s) and ``steering`` (rad)."""
+    x, y, yaw = pose
+    distance = speed * dt
+    curvature = math.tan(steering) / wheelbase
+    turn = distance * curvature
+    if abs(turn) < 1e-9:
+        # straight (or nearly): second-order chord, exact in the limit
+        heading = yaw + turn / 2
+        return Pose2D(x + distance * math.cos(heading), y + distance * math.sin(heading),
+                      wrap_angle(yaw + turn))
+    new_yaw = yaw + turn
+    return Pose2D(x + (math.sin(new_yaw) - math.sin(yaw)) / curvature,
+                  y - (math.cos(new_yaw) - math.cos(yaw)) / curvature, wrap_angle(new_yaw))
+
+
+def footprint(pose: Pose2D | tuple[float, float, float], params: CarParams) -> np.ndarray:
+    """Corners (CCW, shape (4, 2), map frame) of the car's footprint at ``pose``."""
+    x, y, yaw = pose
+    return rectangle(x, y, yaw, -params.rear_overhang, params.length - params.rear_overhang,
+                     -params.width / 2, params.width / 2)
+
+
+class Collider:
+    """Measures the gap between the car's footprint and the map's occupied cells and obstacles."""
+
+    def __init__(self, occ_map: OccupancyMap, params: CarParams) -> None:
+        self.map = occ_map
+        self.params = params
+        self._occ = occ_map.occupied
+
+    def clearance(self, pose: Pose2D | tuple[float, float, float], obstacles: Iterable[Obstacle] = (),
+                  max_distance: float = CLEARANCE_RANGE_M) -> float:
+        """Smallest gap (m) from the footprint at ``pose`` to any obstacle; 0 on contact. Gaps of
+        ``max_distance`` or more are reported as ``max_distance``."""
+        gap = min(self._map_clearance(pose, max_distance), max_distance)
+        if gap > 0:
+            corners = footprint(pose, self.params)
+            for obstacle in obstacles:
+                gap = min(gap, obstacle.distance_to(corners))
+        return gap
+
+    def collides(self, pose: Pose2D | tuple[float, float, float],
+                 obstacles: Iterable[Obstacle] = ()) -> bool:
+        """Whether the footprint at ``pose`` touches an occupied cell or an obstacle."""
+        return self.clearance(pose, obstacles, max_distance=self.map.resolution) <= 0.0
+
+    def _map_clearance(self, pose: Pose2D | tuple[float, float, float], max_distance: float) -> float:
+        m, p = self.map, self.params
+        res = m.resolution
+        x, y, yaw = pose
+        gx, gy = m.world_to_grid_frame(x, y)
+        gx, gy = float(gx), float(gy)
+        gyaw = yaw - m.origin[2]
+        corners = rectangle(gx, gy, gyaw, -p.rear_overhang / res, (p.length - p.rear_overhang) / res,
+                            -p.width / 2 / res, p.width / 2 / res)
+        reach = max_distance / res + 1
+        i0 = max(int(math.floor(corners[:, 0].min() - reach)), 0)
+        i1 = min(int(math.ceil(corners[:, 0].max() + reach)), m.width)
+        j0 = max(int(math.floor(corners[:, 1].min() - reach)), 0)
+        j1 = min(int(math.ceil(corners[:, 1].max() + reach)), m.height)
+        if i0 >= i1 or j0 >= j1:
+            return math.inf
+        jj, ii = np.nonzero(self._occ[j0:j1, i0:i1])
+        if jj.size == 0:
+            return math.inf
+        # occupied cell centres in the car frame, in cells
+        cx = ii + (i0 + 0.5) - gx
+        cy = jj + (j0 + 0.5) - gy
+        c, s = math.cos(gyaw), math.sin(gyaw)
+        lx, ly = c * cx + s * cy, -s * cx + c * cy
+        dx = np.maximum(np.maximum(-p.rear_overhang / res - lx, lx - (p.length - p.rear_overhang) / res), 0)
+        dy = np.maximum(np.abs(ly) - p.width / 2 / res, 0)
+        nearest = float(np.sqrt(np.min(dx * dx + dy * dy)))
+        return max(nearest - 0.5, 0.0) * res

@@ -1,0 +1,141 @@
+"""The kinematic bicycle, the ERPM/servo conversions, footprint collisions and clearance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from racecar_hw.errors import ConfigError
+from racecar_hw.params import build
+from racecar_hw.sim.car import (
+    CLEARANCE_RANGE_M,
+    CarParams,
+    Collider,
+    Pose2D,
+    advance,
+    footprint,
+    speed_from_erpm,
+    steering_from_servo,
+)
+from racecar_hw.sim.obstacles import Box, Circle, polygon_distance
+from racecar_hw.sim.occupancy import OccupancyMap, load_shipped_map
+
+P = CarParams()
+
+
+def test_defaults_match_the_f1tenth_stack() -> None:
+    assert (P.speed_to_erpm_gain, P.speed_to_erpm_offset) == (4614.0, 0.0)
+    assert (P.steering_angle_to_servo_gain, P.steering_angle_to_servo_offset) == (-1.2135, 0.5304)
+    assert (P.wheelbase, P.length, P.width, P.rear_overhang) == (0.25, 0.55, 0.30, 0.10)
+    assert P.max_steering_angle == 0.4189
+    assert build(CarParams, {"wheelbase": 0.33}).wheelbase == 0.33
+    with pytest.raises(ConfigError, match="car.wheelbase"):
+        build(CarParams, {"wheelbase": -1.0}, "car")
+
+
+def test_conversions() -> None:
+    assert speed_from_erpm(4614.0 * 2, P) == pytest.approx(2.0)
+    assert speed_from_erpm(-4614.0, P) == pytest.approx(-1.0)
+    assert steering_from_servo(0.5304, P) == 0.0
+    # a servo below the centre steers left (the gain is negative)
+    assert steering_from_servo(0.5304 - 1.2135 * 0.2, P) == pytest.approx(0.2)
+    assert steering_from_servo(0.0, P) == P.max_steering_angle
+    assert steering_from_servo(1.0, P) == pytest.approx((1.0 - 0.5304) / -1.2135)  # within the limit
+    assert speed_from_erpm(math.nan, P) == 0.0 and steering_from_servo(math.inf, P) == 0.0
+
+
+def test_straight_line_forward_and_reverse() -> None:
+    pose = Pose2D(1.0, 2.0, math.pi / 6)
+    ahead = advance(pose, 2.0, 0.0, 1.5, P.wheelbase)
+    assert ahead.x == pytest.approx(1.0 + 3.0 * math.cos(math.pi / 6))
+    assert ahead.y == pytest.approx(2.0 + 3.0 * math.sin(math.pi / 6))
+    assert ahead.yaw == pytest.approx(math.pi / 6)
+    back = advance(ahead, -2.0, 0.0, 1.5, P.wheelbase)
+    assert back == pytest.approx(pose)
+
+
+@given(st.floats(0.05, 0.4189), st.floats(-5.0, 5.0).filter(lambda v: abs(v) > 0.1))
+def test_constant_steering_drives_a_circle_of_radius_wheelbase_over_tan(delta: float, speed: float) -> None:
+    radius = P.wheelbase / math.tan(delta)
+    centre = (0.0, radius)  # turning left from the origin heading +x
+    pose = Pose2D(0.0, 0.0, 0.0)
+    for _ in range(37):
+        pose = advance(pose, speed, delta, 0.013, P.wheelbase)
+        assert math.hypot(pose.x - centre[0], pose.y - centre[1]) == pytest.approx(radius, rel=1e-9)
+    # the heading stays tangent: yaw grew by distance / radius
+    travelled = speed * 37 * 0.013
+    expected = (travelled / radius + math.pi) % (2 * math.pi) - math.pi
+    assert math.remainder(pose.yaw - expected, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_one_step_equals_many_steps() -> None:
+    pose = Pose2D(0.5, -0.5, 1.0)
+    one = advance(pose, 3.0, -0.3, 0.8, P.wheelbase)
+    many = pose
+    for _ in range(80):
+        many = advance(many, 3.0, -0.3, 0.01, P.wheelbase)
+    assert one == pytest.approx(many, abs=1e-9)
+
+
+def test_footprint_corners() -> None:
+    corners = footprint((1.0, 1.0, math.pi / 2), P)
+    xs, ys = sorted(corners[:, 0]), sorted(corners[:, 1])
+    assert xs[0] == pytest.approx(0.85) and xs[-1] == pytest.approx(1.15)
+    assert ys[0] == pytest.approx(0.9) and ys[-1] == pytest.approx(1.45)
+
+
+def wall_map() -> OccupancyMap:
+    """Free space with a wall whose face is at x = 3.0 m."""
+    occ = np.zeros((80, 100), dtype=bool)
+    occ[:, 60:64] = True
+    return OccupancyMap.from_occupied(occ, 0.05, image_order=False)
+
+
+def test_clearance_to_a_wall() -> None:
+    col = Collider(wall_map(), P)
+    # the front bumper is 0.45 m ahead of the rear axle
+    assert col.clearance((2.0, 2.0, 0.0)) == pytest.approx(0.55, abs=1e-9)
+    assert col.clearance((2.5, 2.0, 0.0)) == pytest.approx(0.05, abs=1e-9)
+    assert col.collides((2.56, 2.0, 0.0))
+    assert not col.collides((2.54, 2.0, 0.0))
+    # facing away, the rear overhang (0.10 m) is what comes close
+    assert col.clearance((2.7, 2.0, math.pi)) == pytest.approx(0.2, abs=1e-9)
+    # sideways the half-width counts
+    assert col.clearance((2.5, 2.0, math.pi / 2)) == pytest.approx(0.35, abs=1e-9)
+    assert col.clearance((0.5, 2.0, math.pi)) == CLEARANCE_RANGE_M
+
+
+def test_corridor_centre_clearance_is_0_6_m() -> None:
+    col = Collider(load_shipped_map("corridor"), P)
+    for x in np.linspace(0.0, 20.0, 9):
+        assert col.clearance((x, 0.0, 0.0)) == pytest.approx(0.6, abs=1e-9)
+
+
+def test_obstacles() -> None:
+    col = Collider(wall_map(), P)
+    pole = Circle(1.5, 2.0, 0.1)  # near edge at x = 1.4; the bumper of a car at x = 0.5 is at 0.95
+    assert col.clearance((0.5, 2.0, 0.0), [pole]) == pytest.approx(0.45, abs=1e-9)
+    assert col.collides((1.0, 2.0, 0.0), [pole])
+    box = Box(1.5, 2.5, 0.2, 0.2)
+    assert box.distance_to(footprint((0.5, 2.0, 0.0), P)) == pytest.approx(
+        math.hypot(1.4 - 0.95, 2.4 - 2.15))
+    assert col.collides((1.3, 2.35, 0.0), [box])
+    assert polygon_distance(box.corners(), box.corners()) == 0.0
+
+
+def test_obstacle_ray_ranges() -> None:
+    angles = np.array([0.0, math.pi, 0.09])
+    c, s = np.cos(angles), np.sin(angles)
+    r = Circle(3.0, 0.0, 0.5).ray_ranges(0.0, 0.0, c, s)
+    assert r[0] == pytest.approx(2.5) and math.isinf(r[1])
+    off = 3.0 * math.sin(0.09)
+    assert r[2] == pytest.approx(3.0 * math.cos(0.09) - math.sqrt(0.25 - off * off))
+    b = Box(3.0, 0.0, 1.0, 2.0, yaw=math.pi / 2).ray_ranges(0.0, 0.0, c, s)
+    assert b[0] == pytest.approx(2.0) and math.isinf(b[1])
+    assert b[2] == pytest.approx(2.0 / math.cos(0.09))
+    inside = Box(0.0, 0.0, 1.0, 1.0).ray_ranges(0.0, 0.0, c, s)
+    assert np.all(inside == 0.0)

@@ -1,0 +1,184 @@
+"""Run outputs: the trajectory CSV and report numbers, the PNG plot, the generated maps."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from racecar_hw.errors import RacecarError
+from racecar_hw.resources import config_file
+from racecar_hw.sim import mapgen
+from racecar_hw.sim.car import CarParams, Collider
+from racecar_hw.sim.occupancy import load_map, load_shipped_map
+from racecar_hw.sim.plot import (
+    COLLISION_RGB,
+    INTERVENTION_RGB,
+    OBSTACLE_RGB,
+    PATH_RGB,
+    image_size,
+    plot_run,
+    plot_world,
+)
+from racecar_hw.sim.raycast import RayCaster
+from racecar_hw.sim.trajectory import (
+    TrajectorySample,
+    distance_travelled,
+    read_csv,
+    report,
+    stop_time,
+    stopping_distance,
+    write_csv,
+)
+from racecar_hw.sim.world import World
+
+
+def braking_run() -> list[TrajectorySample]:
+    """2 m/s along +x for 1 s, then braking at 4 m/s^2 to a stop, sampled at 10 ms."""
+    out, x, v = [], 0.0, 2.0
+    for k in range(200):
+        t = k * 0.01
+        out.append(TrajectorySample(t, x, 0.0, 0.0, v, 0.0))
+        if t >= 1.0:
+            v = max(v - 4.0 * 0.01, 0.0)
+        x += v * 0.01
+    return out
+
+
+def test_csv_round_trip(tmp_path: Path) -> None:
+    run = braking_run()
+    path = tmp_path / "traj.csv"
+    assert write_csv(path, run) == len(run)
+    assert path.read_text().splitlines()[0] == "t,x,y,yaw,speed,steering"
+    back = read_csv(path)
+    assert len(back) == len(run)
+    assert np.allclose(np.asarray(back), np.asarray(run), atol=1e-6)
+    path.write_text("a,b\n1,2\n")
+    with pytest.raises(RacecarError, match="not a trajectory CSV"):
+        read_csv(path)
+
+
+def test_report_numbers() -> None:
+    run = braking_run()
+    rep = report(run)
+    # 2 m in the first second, then v^2 / 2a = 0.5 m of braking
+    assert rep.distance_m == pytest.approx(2.5, abs=0.03)
+    assert rep.duration_s == pytest.approx(1.99)
+    assert rep.max_speed_mps == 2.0
+    assert rep.displacement_m == pytest.approx(rep.distance_m)
+    assert math.isnan(rep.min_clearance_m)
+    assert rep.as_dict()["end_pose"] == rep.end_pose
+    assert stop_time(run, 1.0) == pytest.approx(1.5, abs=0.02)
+    assert stopping_distance(run, 1.0) == pytest.approx(0.5, abs=0.03)
+    assert stopping_distance(run[:120], 1.0) is None
+    assert distance_travelled(run) == pytest.approx(rep.distance_m)
+    assert report([]).distance_m == 0.0
+
+
+def test_report_circle_and_clearance() -> None:
+    p = CarParams()
+    radius, speed = 2.0, 3.0
+    delta = math.atan(p.wheelbase / radius)
+    run = [TrajectorySample(k * 0.01, radius * math.sin(a), radius - radius * math.cos(a), a, speed, delta)
+           for k, a in enumerate(np.arange(0, 2 * math.pi, speed * 0.01 / radius))]
+    corridor = Collider(load_shipped_map("room"), p)
+    rep = report(run, p.wheelbase, clearance=corridor.clearance, clearance_every=10)
+    assert rep.max_lateral_accel_mps2 == pytest.approx(speed * speed / radius)
+    assert rep.distance_m == pytest.approx(2 * math.pi * radius, rel=0.01)
+    # a 2 m circle to the left of the start, in a room 10 m deep centred on the start: the top of the
+    # circle (y = 4 m) has the wall 1 m away, minus half the car's width
+    assert rep.min_clearance_m == pytest.approx(1.0 - 0.15, abs=0.05)
+
+
+def test_plot_writes_a_png_of_the_right_size(tmp_path: Path) -> None:
+    occ = load_shipped_map("track")
+    run = [(k * 0.1, 0.1 * k, 0.0, 0.0, 1.0) for k in range(100)]
+    out = tmp_path / "run.png"
+    size = plot_run(out, occ, run, interventions=[(5.0, 0.0)], collisions=[(9.9, 0.0)],
+                    obstacles=[(3.0, 0.5, 0.2)], title="test run")
+    assert size == image_size(occ) == (800, round(280 * 2) + 30)
+    with Image.open(out) as img:
+        assert img.format == "PNG" and img.size == size
+        rgb = np.asarray(img.convert("RGB"))
+    colours = {tuple(c) for c in rgb.reshape(-1, 3)}
+    assert PATH_RGB in colours and INTERVENTION_RGB in colours and COLLISION_RGB in colours
+    # the path is drawn where the map says: the pixel of the world point (5, 0) is on it
+    row, col = occ.world_to_pixel(5.0, 0.0)
+    scale = 800 / occ.width
+    r, c = int((row + 0.5) * scale), int((col + 0.5) * scale)
+    patch = rgb[r - 3:r + 4, c - 3:c + 4].reshape(-1, 3)
+    assert any(tuple(p) == PATH_RGB for p in patch)
+    small = plot_run(tmp_path / "small.png", occ, [], width_px=400)
+    assert small == (400, 280 + 30)
+
+
+@pytest.mark.parametrize("name", sorted(mapgen.SPECS))
+def test_mapgen_reproduces_the_shipped_maps(tmp_path: Path, name: str) -> None:
+    pgm, yml = mapgen.write_map(mapgen.SPECS[name], tmp_path)
+    assert yml.read_text() == config_file("maps", f"{name}.yaml").read_text()
+    with Image.open(pgm) as new, Image.open(config_file("maps", f"{name}.pgm")) as old:
+        assert new.mode == old.mode == "L"
+        assert np.array_equal(np.asarray(new), np.asarray(old))
+    generated, shipped = load_map(yml), load_shipped_map(name)
+    assert np.array_equal(generated.data, shipped.data) and generated.origin == shipped.origin
+    assert config_file("maps", f"{name}.pgm").stat().st_size < 150_000
+
+
+def test_corridor_geometry() -> None:
+    m = load_shipped_map("corridor")
+    # count free cells across the corridor at several stations: exactly 30 cells of 0.05 m
+    for x in (0.0, 5.0, 15.0, 25.0):
+        i, _ = m.world_to_cell(x, 0.0)
+        assert int((~m.occupied[:, int(i)]).sum()) == 30
+    i0, j0 = m.world_to_cell(0.0, 0.0)
+    free_run = ~m.occupied[int(j0)]
+    assert free_run.sum() * m.resolution == pytest.approx(30.0)  # 30 m long
+    assert RayCaster(m).cast(0.0, 0.0, 0.0, np.array([0.0]), 40.0)[0] >= 25.0
+
+
+def test_room_and_track_layout() -> None:
+    room = RayCaster(load_shipped_map("room"))
+    assert room.cast(0.0, 0.0, 0.0, np.array([0.0]), 30.0)[0] >= 6.0 + 0.45
+    track = load_shipped_map("track")
+    w, h = track.size_m
+    assert (w, h) == pytest.approx((20.0, 14.0))
+    caster = RayCaster(track)
+    up, down = caster.cast(0.0, 0.0, 0.0, np.array([math.pi / 2, -math.pi / 2]), 30.0)
+    assert up + down == pytest.approx(2.0, abs=0.05)  # the bottom corridor is 2 m wide
+    # the loop is closed: a point in every corridor (right, top, left) and the room is free
+    for x, y in [(14.75, 5.0), (10.0, 11.25), (-2.75, 5.0), (9.0, 7.5)]:
+        assert not bool(track.is_occupied(x, y))
+    assert bool(track.is_occupied(2.0, 4.0))  # the central block
+    # the room's doorway (image x 12..14 m) opens onto the top corridor
+    assert not bool(track.is_occupied(9.0, 9.9)) and bool(track.is_occupied(7.5, 9.9))
+
+
+def test_mapgen_command_writes_every_map(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert mapgen.main([str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        f"{n}.{ext}" for n in mapgen.SPECS for ext in ("pgm", "yaml"))
+    assert "corridor.yaml" in capsys.readouterr().out
+
+
+def test_plot_and_report_of_a_world(tmp_path: Path) -> None:
+    p = CarParams()
+    world = World(load_shipped_map("room"), p, (0.0, 0.0, 0.0), lambda: 3.0 * p.speed_to_erpm_gain)
+    world.add_obstacle(4.0, 1.5, box=(0.5, 0.3), yaw=0.5)
+    world.add_obstacle(4.0, -1.5, radius=0.3)
+    for _ in range(1000):
+        world.step(0.005)
+    rep = world.report()
+    assert world.collided and rep.min_clearance_m == 0.0
+    assert rep.distance_m == pytest.approx(8.0 - 0.45, abs=0.03)
+    assert rep.max_speed_mps == pytest.approx(3.0)
+    out = tmp_path / "world.png"
+    assert plot_world(out, world, interventions=[(2.0, 0.0)], width_px=600) == image_size(world.map, 600)
+    rgb = np.asarray(Image.open(out).convert("RGB"))
+    colours = {tuple(c) for c in rgb.reshape(-1, 3)}
+    assert {COLLISION_RGB, OBSTACLE_RGB, PATH_RGB, INTERVENTION_RGB} <= colours
+    csv_path = tmp_path / "world.csv"
+    write_csv(csv_path, world.samples)
+    assert report(read_csv(csv_path)).end_pose == pytest.approx(rep.end_pose, abs=1e-5)
