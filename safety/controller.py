@@ -171,6 +171,8 @@ class SafetyController:
         if params.exempt_teleop:
             self._exempt.add(params.teleop_source)
         self.interventions = 0
+        #: interventions started, by reason (obstacle, stale_scan, no_scan, bad_scan, reverse_cap)
+        self.interventions_by_reason: dict[str, int] = {}
         self.rejected_commands = 0
         self._rejecting = False
         self.state = SafetyState(0.0, math.nan, None, "no_scan", False)
@@ -257,6 +259,7 @@ class SafetyController:
         self.state = SafetyState(allowed, free, obstacle, reason, intervening)
         if started:
             self.interventions += 1
+            self.interventions_by_reason[reason] = self.interventions_by_reason.get(reason, 0) + 1
             where = (f"obstacle at ({obstacle.x:.2f}, {obstacle.y:.2f}) m, {obstacle.distance:.2f} m "
                      "along the path" if obstacle else "no obstacle")
             log.warning("safety: intervening (%s) on %s: commanded %.2f m/s, measured %.2f m/s, "

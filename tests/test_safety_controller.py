@@ -170,6 +170,7 @@ def test_stale_scan_allows_nothing() -> None:
     assert out.speed == 0.0 and state.reason == "stale_scan" and state.intervening
     out, _ = c.limit(drive(-0.3), "nav", 0.0, now_ns=102 * MS)
     assert out.speed == 0.0
+    assert c.interventions == 1 and c.interventions_by_reason == {"stale_scan": 1}
 
 
 def test_only_reduces_magnitude_and_keeps_sign_steering_and_limits() -> None:
