@@ -1,0 +1,739 @@
+"""A MAVLink 2 ground-station link over UDP: telemetry out, teleop, arming and modes in.
+
+The car speaks as an ArduPilot-Rover-like vehicle (MAV_TYPE_GROUND_ROVER, MAV_AUTOPILOT_GENERIC,
+custom modes numbered as ArduPilot Rover numbers them: MANUAL 0, HOLD 4, GUIDED 15) to one ground
+station at ``gcs_address`` (QGroundControl, MAVProxy, a pymavlink script). One UDP socket, bound
+to ``bind_address:bind_port``, sends and receives; replies go to the address the ground station
+last sent an accepted message from (its configured address until then).
+
+Out: HEARTBEAT (1 Hz; armed flag from :class:`~racecar_hw.arming.Arming`), SYS_STATUS and
+BATTERY_STATUS (1 Hz, from ``/vesc/sensors/core``), ATTITUDE and LOCAL_POSITION_NED (from
+``/odom``, REP-103 ENU/FLU converted to NED/FRD) and OBSTACLE_DISTANCE (72 bins of 5 degrees in
+cm, from ``/scan``) at ``telemetry_rate_hz``, STATUSTEXT for events (arming, modes, safety state
+changes on ``/safety/state``, ground-station link lost and regained), COMMAND_ACK for every
+command addressed to us, PARAM_VALUE for parameter requests (a small read-only list).
+
+In: MANUAL_CONTROL (ArduPilot Rover: ``y`` steering, +1000 = full right; ``z`` throttle,
+-1000..1000 with 0 = stop; ``x`` instead of ``z`` when ``throttle_axis: x``) and
+RC_CHANNELS_OVERRIDE (ch1 steering, ch3 throttle, PWM µs; 0 releases a channel, 65535 leaves it
+unchanged) drive the mux's teleop input at ``rate_hz`` while the input is fresh, the mode is MANUAL
+and the ground station's heartbeats are fresh. COMMAND_LONG / COMMAND_INT ARM_DISARM (400) and
+DO_SET_MODE (176), and SET_MODE, change the arming and mode. HOLD stops the car through
+:meth:`MavlinkGcs.filter` (a mux filter). When the ground station's heartbeats stop for more
+than ``heartbeat_timeout_s``, its teleop input is dropped (one zero command, then silence) and a
+STATUSTEXT says so.
+
+Security: a ground station outside loopback needs MAVLink 2 signing (``signing_key_file``;
+:class:`~racecar_hw.errors.ConfigError` otherwise). With signing on, every unsigned or badly
+signed message is refused and counted. Datagrams from any other host than the ground station's
+are dropped and counted whatever the signing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import ipaddress
+import logging
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from racecar_hw.arming import Arming, ArmingChange
+from racecar_hw.bus import Bus, Subscription
+from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.errors import ConfigError
+from racecar_hw.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    DiagnosticArray,
+    DiagnosticStatus,
+    LaserScan,
+    Odometry,
+    VescStateStamped,
+    stamp_now,
+)
+from racecar_hw.params import param
+from racecar_hw.status import StatusSnapshot
+from racecar_hw.ticker import Ticker
+
+os.environ["MAVLINK20"] = "1"  # before pymavlink is imported anywhere: the MAVLink 2 dialects
+from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+#: ArduPilot Rover's custom mode numbers.
+MODES: dict[str, int] = {"MANUAL": 0, "HOLD": 4, "GUIDED": 15}
+MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
+#: COMMAND_ACK ``command`` for a SET_MODE message (its message id, as ArduPilot answers).
+SET_MODE_ACK = mavlink.MAVLINK_MSG_ID_SET_MODE
+FORCE_ARM_MAGIC = 21196
+#: Seconds from the Unix epoch to the MAVLink signing epoch (2015-01-01 00:00:00 UTC).
+SIGNING_EPOCH_S = 1_420_070_400
+OBSTACLE_BINS = 72
+UINT16_MAX = 65535
+INT16_MAX = 32767
+TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
+
+
+def parse_address(text: str, key: str) -> tuple[str, int]:
+    """``host:port`` to (host, port); ConfigError naming ``key`` otherwise."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(key, f"{text!r} is not host:port")
+    return host.strip("[]"), int(port)
+
+
+def is_loopback(host: str) -> bool:
+    """True for a loopback IP literal or ``localhost``; host names are never trusted as loopback."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass
+class MavlinkParams:
+    """The ground-station link: addresses, identity, signing, timeouts and teleop scales."""
+
+    enabled: bool = param(False, "run the MAVLink ground-station link")
+    gcs_address: str = param("127.0.0.1:14550", "ground station host:port telemetry is sent to; "
+                                                "any non-loopback host requires signing")
+    bind_address: str = param("auto", "local address to bind; auto = 127.0.0.1 for a loopback "
+                                      "ground station, 0.0.0.0 otherwise")
+    bind_port: int = param(14555, "local UDP port (0 = ephemeral, for tests)", min=0, max=65535)
+    system_id: int = param(1, "our MAVLink system id", min=1, max=255)
+    component_id: int = param(1, "our MAVLink component id (1 = autopilot)", min=1, max=255)
+    signing_key_file: str = param("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes, or a "
+                                      "passphrase (hashed with SHA-256 as MAVProxy does)")
+    signing_link_id: int = param(0, "link id in our signatures", min=0, max=255)
+    heartbeat_timeout_s: float = param(2.0, "ground station lost after this long without its "
+                                            "heartbeat: its teleop input is dropped", unit="s",
+                                       min=0.2, max=60.0)
+    input_timeout_s: float = param(1.0, "a MANUAL_CONTROL / RC override stops driving this long "
+                                        "after it arrived", unit="s", min=0.05, max=10.0)
+    max_speed_mps: float = param(2.0, "speed at full throttle", unit="m/s", min=0.0, max=20.0)
+    max_steering_rad: float = param(0.34, "steering at full deflection (+ left)", unit="rad",
+                                    min=0.0, max=1.0)
+    throttle_axis: str = param("z", "MANUAL_CONTROL axis carrying throttle (ArduPilot Rover: z)",
+                               choices=("z", "x"))
+    rc_min_us: int = param(1000, "RC override PWM at full reverse / full left", min=500, max=1500)
+    rc_trim_us: int = param(1500, "RC override PWM at rest", min=800, max=2200)
+    rc_max_us: int = param(2000, "RC override PWM at full forward / full right", min=1500, max=2500)
+    start_mode: str = param("MANUAL", "mode at start", choices=tuple(MODES))
+    rate_hz: float = param(20.0, "teleop command rate", unit="Hz", min=1.0, max=100.0)
+    telemetry_rate_hz: float = param(4.0, "ATTITUDE, LOCAL_POSITION_NED, OBSTACLE_DISTANCE rate",
+                                     unit="Hz", min=0.1, max=50.0)
+    teleop_topic: str = param(TELEOP_TOPIC, "mux input the ground station drives")
+    vesc_state_topic: str = param("/vesc/sensors/core", "vesc_msgs/VescStateStamped")
+    odom_topic: str = param("/odom", "nav_msgs/Odometry")
+    scan_topic: str = param("/scan", "sensor_msgs/LaserScan")
+    safety_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray")
+
+    def __post_init__(self) -> None:
+        parse_address(self.gcs_address, "mavlink.gcs_address")
+        if not self.rc_min_us < self.rc_trim_us < self.rc_max_us:
+            raise ConfigError("mavlink.rc_trim_us", "must lie strictly between rc_min_us and rc_max_us")
+
+    @property
+    def gcs(self) -> tuple[str, int]:
+        """The ground station's (host, port)."""
+        return parse_address(self.gcs_address, "mavlink.gcs_address")
+
+    @property
+    def bind(self) -> tuple[str, int]:
+        """The local (host, port) to bind."""
+        host = self.bind_address
+        if host == "auto":
+            host = "127.0.0.1" if is_loopback(self.gcs[0]) else "0.0.0.0"
+        return host, self.bind_port
+
+
+def load_signing_key(path: str, key: str = "mavlink.signing_key_file") -> bytes:
+    """The 32-byte secret from a key file (64 hex digits, 32 raw bytes, or a passphrase)."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as err:
+        raise ConfigError(key, f"cannot read the signing key {path}: {err.strerror}") from err
+    text = raw.strip()
+    if len(text) == 64:
+        with contextlib.suppress(ValueError):
+            return bytes.fromhex(text.decode("ascii"))
+    if len(raw) == 32:
+        return raw
+    if not text:
+        raise ConfigError(key, f"the signing key file {path} is empty")
+    return hashlib.sha256(text).digest()
+
+
+def write_signing_key(path: str | Path) -> bytes:
+    """Create a new random key file (64 hex digits, mode 0600); returns the key."""
+    secret = os.urandom(32)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(secret.hex() + "\n")
+    return secret
+
+
+def signing_timestamp(unix_ns: int) -> int:
+    """MAVLink signing time: units of 10 µs since 2015-01-01 UTC."""
+    return max(0, (unix_ns - SIGNING_EPOCH_S * NS_PER_S) // 10_000)
+
+
+# --- frame conversions (pure) ------------------------------------------------------------------
+
+#: ENU (odom, REP-103) to NED: swap x and y, negate z. Also FLU to FRD after a sign flip of y, z.
+_ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+_FLU_TO_FRD = np.diag([1.0, -1.0, -1.0])
+
+
+def quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (normalised here)."""
+    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def odom_to_ned(odom: Odometry) -> tuple[tuple[float, float, float], tuple[float, float, float],
+                                          tuple[float, float, float], tuple[float, float, float]]:
+    """Position NED (m), velocity NED (m/s), attitude (roll, pitch, yaw rad, FRD in NED) and body
+    rates (rad/s, FRD) from an odometry message whose pose is ENU (odom frame, x treated as east)
+    and whose twist is FLU (base_link)."""
+    p = odom.pose.pose.position
+    q = odom.pose.pose.orientation
+    r_enu_flu = quaternion_matrix(q.x, q.y, q.z, q.w)
+    lin = odom.twist.twist.linear
+    ang = odom.twist.twist.angular
+    v_enu = r_enu_flu @ np.array([lin.x, lin.y, lin.z])
+    r = _ENU_TO_NED @ r_enu_flu @ _FLU_TO_FRD
+    yaw = math.atan2(r[1, 0], r[0, 0])
+    pitch = -math.asin(max(-1.0, min(1.0, r[2, 0])))
+    roll = math.atan2(r[2, 1], r[2, 2])
+    position = (float(p.y), float(p.x), float(-p.z))
+    velocity = (float(v_enu[1]), float(v_enu[0]), float(-v_enu[2]))
+    rates = (float(ang.x), float(-ang.y), float(-ang.z))
+    return position, velocity, (roll, pitch, yaw), rates
+
+
+def obstacle_bins(scan: LaserScan, bins: int = OBSTACLE_BINS) -> tuple[list[int], int, int]:
+    """OBSTACLE_DISTANCE distances (cm, bin 0 = forward, clockwise), min and max distance (cm).
+
+    The laser frame is taken as aligned with base_link (x forward). A bin with no beam is
+    UINT16_MAX (unknown); a bin whose beams saw nothing within range is max + 1 (no obstacle).
+    """
+    max_cm = int(min(UINT16_MAX - 2, max(1.0, scan.range_max * 100.0)))
+    min_cm = int(min(max_cm, max(0.0, scan.range_min * 100.0)))
+    out = np.full(bins, UINT16_MAX, dtype=np.int64)
+    ranges = np.asarray(scan.ranges, dtype=np.float64)
+    if ranges.size == 0:
+        return out.tolist(), min_cm, max_cm
+    width = 360.0 / bins
+    clockwise_deg = np.degrees(-scan.angles())
+    index = np.round(clockwise_deg / width).astype(np.int64) % bins
+    finite = np.isfinite(ranges) & (ranges >= scan.range_min) & (ranges <= scan.range_max)
+    seen = ~np.isnan(ranges)
+    out[np.unique(index[seen])] = max_cm + 1
+    cm = np.clip(np.round(ranges[finite] * 100.0), 0, max_cm).astype(np.int64)
+    hit = np.full(bins, max_cm + 1, dtype=np.int64)
+    np.minimum.at(hit, index[finite], cm)
+    touched = np.zeros(bins, dtype=bool)
+    touched[index[finite]] = True
+    out[touched] = hit[touched]
+    return out.tolist(), min_cm, max_cm
+
+
+# --- the link ----------------------------------------------------------------------------------
+
+
+@dataclass
+class ManualInput:
+    """The ground station's latest teleop request: speed (m/s), steering (rad, + left), arrival (ns)."""
+
+    speed: float
+    steering: float
+    received_ns: int
+    kind: str
+
+
+@dataclass(frozen=True)
+class ReadOnlyParam:
+    """One parameter shown to the ground station (it cannot be set)."""
+
+    name: str
+    value: float
+    type: int
+
+
+_SEVERITY = {
+    DiagnosticStatus.OK: mavlink.MAV_SEVERITY_INFO,
+    DiagnosticStatus.WARN: mavlink.MAV_SEVERITY_WARNING,
+    DiagnosticStatus.ERROR: mavlink.MAV_SEVERITY_CRITICAL,
+    DiagnosticStatus.STALE: mavlink.MAV_SEVERITY_ERROR,
+}
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, owner: MavlinkGcs) -> None:
+        self.owner = owner
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.owner.handle_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # Loopback reports "connection refused" while no ground station listens: not a fault.
+        self.owner.counters["send_errors"] += 1
+
+
+class MavlinkGcs:
+    """The ground-station link on the bus. ``await run()`` until cancelled.
+
+    ``status_source`` (optional) returns the daemon's :class:`~racecar_hw.status.StatusSnapshot`;
+    its link counters go into SYS_STATUS ``errors_count1..3`` (VESC CRC errors, VESC reconnects,
+    lidar reconnects) and its battery voltage is used while no VESC state has arrived.
+
+    :attr:`counters` (for tests and end-to-end checks): ``rx``, ``tx``, ``foreign`` (datagrams from
+    another host), ``bad_data``, ``unsigned_refused``, ``bad_signature``, ``commands``, ``acks``,
+    ``manual_inputs``, ``inputs_ignored`` (teleop outside MANUAL or without a fresh ground-station
+    heartbeat), ``gcs_timeouts``, ``teleop_published``, ``statustexts``, ``send_errors``.
+    """
+
+    def __init__(self, bus: Bus, params: MavlinkParams, arming: Arming,
+                 status_source: Callable[[], StatusSnapshot | None] | None = None, *,
+                 clock: Callable[[], int] = monotonic_ns, wall_clock: Callable[[], int] = wall_ns) -> None:
+        self.bus = bus
+        self.params = params
+        self.arming = arming
+        self.status_source = status_source
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._gcs_host, self._gcs_port = params.gcs
+        self.secret_key: bytes | None = None
+        if params.signing_key_file:
+            self.secret_key = load_signing_key(params.signing_key_file)
+        elif not is_loopback(self._gcs_host):
+            raise ConfigError("mavlink.signing_key_file",
+                              f"the ground station {params.gcs_address} is not on loopback: MAVLink 2 "
+                              "signing is required; set signing_key_file to a key file")
+        self.mav = mavlink.MAVLink(self, params.system_id, params.component_id)
+        self.mav.robust_parsing = True
+        if self.secret_key is not None:
+            self.mav.signing.secret_key = self.secret_key
+            self.mav.signing.link_id = params.signing_link_id
+            self.mav.signing.timestamp = signing_timestamp(wall_clock())
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: False
+        self.mode = MODES[params.start_mode]
+        self.counters: dict[str, int] = dict.fromkeys((
+            "rx", "tx", "foreign", "bad_data", "unsigned_refused", "bad_signature", "commands", "acks",
+            "manual_inputs", "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts",
+            "send_errors"), 0)
+        self.gcs_system_id: int | None = None
+        self.gcs_heartbeat_ns: int | None = None
+        self.gcs_alive = False
+        self.manual: ManualInput | None = None
+        self._rc: dict[int, int | None] = {1: None, 3: None}
+        self._publishing = False
+        self._dest: tuple[str, int] = (self._gcs_host, self._gcs_port)
+        self._transport: asyncio.DatagramTransport | None = None
+        self._start_ns = clock()
+        self._last_slow_ns: int | None = None
+        self._last_fast_ns: int | None = None
+        self._safety_key: tuple[int, str] | None = None
+        self._vesc: VescStateStamped | None = None
+        self._odom: Odometry | None = None
+        self._scan: LaserScan | None = None
+        self.parameters = [
+            ReadOnlyParam("SYSID_THISMAV", params.system_id, mavlink.MAV_PARAM_TYPE_INT32),
+            ReadOnlyParam("FS_GCS_TIMEOUT", params.heartbeat_timeout_s, mavlink.MAV_PARAM_TYPE_REAL32),
+            ReadOnlyParam("TELEOP_MAX_SPD", params.max_speed_mps, mavlink.MAV_PARAM_TYPE_REAL32),
+            ReadOnlyParam("TELEOP_MAX_STR", params.max_steering_rad, mavlink.MAV_PARAM_TYPE_REAL32),
+        ]
+        bus.declare(params.teleop_topic, AckermannDriveStamped)
+        self._subs: list[Subscription] = [
+            bus.subscribe(params.vesc_state_topic, self._on_vesc),
+            bus.subscribe(params.odom_topic, self._on_odom),
+            bus.subscribe(params.scan_topic, self._on_scan),
+            bus.subscribe(params.safety_topic, self._on_safety),
+        ]
+        self._remove_arming_callback = arming.on_change(self._on_arming)
+
+    # --- properties for the daemon and tests -------------------------------------------------
+
+    @property
+    def port(self) -> int:
+        """The bound local UDP port (after :meth:`start`)."""
+        if self._transport is None:
+            raise RuntimeError("the MAVLink link is not started")
+        return int(self._transport.get_extra_info("sockname")[1])
+
+    @property
+    def mode_name(self) -> str:
+        """MANUAL, HOLD or GUIDED."""
+        return MODE_NAMES[self.mode]
+
+    @property
+    def teleop_active(self) -> bool:
+        """True while the ground station's teleop input is being published."""
+        return self._publishing
+
+    # --- transport ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Bind the UDP socket."""
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self),
+                                                           local_addr=self.params.bind)
+        self._transport = transport
+        log.info("MAVLink link on udp %s:%d to ground station %s%s", self.params.bind[0], self.port,
+                 self.params.gcs_address, " (signed)" if self.secret_key else "")
+
+    def write(self, buf: bytes) -> None:
+        """pymavlink's file interface: send one packed message to the ground station."""
+        if self._transport is None:
+            return
+        self._transport.sendto(bytes(buf), self._dest)
+        self.counters["tx"] += 1
+
+    def close(self) -> None:
+        """Unsubscribe and close the socket (safe twice)."""
+        for sub in self._subs:
+            sub.close()
+        self._subs.clear()
+        self._remove_arming_callback()
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+    async def run(self) -> None:
+        """Bind (unless started), then tick at ``rate_hz`` until cancelled; a final stop on exit."""
+        if self._transport is None:
+            await self.start()
+        ticker = Ticker(self.params.rate_hz, self._clock)
+        try:
+            while True:
+                await ticker.tick()
+                self.tick()
+        finally:
+            if self._publishing:
+                self._publish_drive(AckermannDrive())
+                self._publishing = False
+            self.close()
+
+    # --- outgoing ----------------------------------------------------------------------------
+
+    def _time_boot_ms(self, now: int) -> int:
+        return ((now - self._start_ns) // 1_000_000) & 0xFFFFFFFF
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        """Send a STATUSTEXT (at most 50 characters are sent) and log it."""
+        log.info("MAVLink status: %s", text)
+        self.counters["statustexts"] += 1
+        self.mav.statustext_send(severity, text.encode("utf-8", "replace")[:50])
+
+    def send_heartbeat(self) -> None:
+        """HEARTBEAT: rover, armed flag, custom mode."""
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.arming.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        if self.mode == MODES["MANUAL"]:
+            base |= mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        elif self.mode == MODES["GUIDED"]:
+            base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+        state = mavlink.MAV_STATE_ACTIVE if self.arming.armed else mavlink.MAV_STATE_STANDBY
+        self.mav.heartbeat_send(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_GENERIC, base,
+                                self.mode, state)
+
+    def send_power(self, now: int) -> None:
+        """SYS_STATUS always; BATTERY_STATUS once the VESC has reported."""
+        voltage_mv, current_ca = UINT16_MAX, -1
+        snapshot = self.status_source() if self.status_source is not None else None
+        vesc = self._vesc.state if self._vesc is not None else None
+        if vesc is not None:
+            voltage_mv = _clamp_int(vesc.voltage_input * 1000.0, 0, UINT16_MAX - 1)
+            current_ca = _clamp_int(vesc.current_input * 100.0, -32768, INT16_MAX)
+        elif snapshot is not None and snapshot.battery_v is not None and math.isfinite(snapshot.battery_v):
+            voltage_mv = _clamp_int(snapshot.battery_v * 1000.0, 0, UINT16_MAX - 1)
+        errors = (0, 0, 0)
+        if snapshot is not None:
+            errors = (snapshot.vesc_crc_errors, snapshot.vesc_reconnects, snapshot.lidar_reconnects)
+        self.mav.sys_status_send(0, 0, 0, 0, voltage_mv, current_ca, -1, 0, 0,
+                                 *(min(e, UINT16_MAX) for e in errors), 0)
+        if vesc is not None:
+            cells = [voltage_mv] + [UINT16_MAX] * 9
+            self.mav.battery_status_send(
+                0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_UNKNOWN, INT16_MAX, cells,
+                current_ca, _clamp_int(vesc.charge_drawn * 1000.0, -1, 2**31 - 1),
+                _clamp_int(vesc.energy_drawn * 36.0, -1, 2**31 - 1), -1)
+
+    def send_telemetry(self, now: int) -> None:
+        """ATTITUDE and LOCAL_POSITION_NED (from odometry) and OBSTACLE_DISTANCE (from the scan)."""
+        boot_ms = self._time_boot_ms(now)
+        if self._odom is not None:
+            position, velocity, attitude, rates = odom_to_ned(self._odom)
+            if all(math.isfinite(v) for v in (*position, *velocity, *attitude, *rates)):
+                self.mav.attitude_send(boot_ms, *attitude, *rates)
+                self.mav.local_position_ned_send(boot_ms, *position, *velocity)
+        if self._scan is not None:
+            distances, min_cm, max_cm = obstacle_bins(self._scan)
+            self.mav.obstacle_distance_send(
+                self._wall_clock() // 1000, mavlink.MAV_DISTANCE_SENSOR_LASER, distances, 0, min_cm, max_cm,
+                360.0 / OBSTACLE_BINS, 0.0, mavlink.MAV_FRAME_BODY_FRD)
+
+    def _ack(self, command: int, result: int, msg: Any) -> None:
+        self.counters["acks"] += 1
+        self.mav.command_ack_send(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+
+    # --- the fixed-rate step ---------------------------------------------------------------------
+
+    def tick(self, now_ns: int | None = None) -> None:
+        """Heartbeat watch, teleop publishing, and telemetry when due."""
+        now = self._clock() if now_ns is None else now_ns
+        timeout = round(self.params.heartbeat_timeout_s * NS_PER_S)
+        if self.gcs_alive and (self.gcs_heartbeat_ns is None or now - self.gcs_heartbeat_ns > timeout):
+            self.gcs_alive = False
+            self.counters["gcs_timeouts"] += 1
+            self.manual = None
+            self.statustext("GCS heartbeat lost: teleop input dropped", mavlink.MAV_SEVERITY_WARNING)
+        drive = self._teleop_command(now)
+        if drive is not None:
+            self._publish_drive(drive)
+            self._publishing = True
+        elif self._publishing:
+            self._publish_drive(AckermannDrive())
+            self._publishing = False
+        if self._transport is None:
+            return
+        if self._last_slow_ns is None or now - self._last_slow_ns >= NS_PER_S:
+            self._last_slow_ns = now
+            self.send_heartbeat()
+            self.send_power(now)
+        if self._last_fast_ns is None or now - self._last_fast_ns >= NS_PER_S / self.params.telemetry_rate_hz:
+            self._last_fast_ns = now
+            self.send_telemetry(now)
+
+    def _teleop_command(self, now: int) -> AckermannDrive | None:
+        manual = self.manual
+        if manual is None or not self.gcs_alive or self.mode != MODES["MANUAL"]:
+            return None
+        if now - manual.received_ns > round(self.params.input_timeout_s * NS_PER_S):
+            return None
+        return AckermannDrive(steering_angle=manual.steering, speed=manual.speed)
+
+    def _publish_drive(self, drive: AckermannDrive) -> None:
+        msg = AckermannDriveStamped(stamp_now("base_link", self._wall_clock()), drive)
+        self.bus.publish(self.params.teleop_topic, msg)
+        self.counters["teleop_published"] += 1
+
+    def filter(self, drive: AckermannDrive, source: str, now_ns: int) -> AckermannDrive:
+        """Mux filter: a stop while the mode is HOLD; ``drive`` unchanged otherwise."""
+        return AckermannDrive() if self.mode == MODES["HOLD"] else drive
+
+    # --- incoming ----------------------------------------------------------------------------
+
+    def handle_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        """One UDP datagram from ``addr``: parse and act on every message in it."""
+        if addr[0] != self._gcs_host and not (is_loopback(addr[0]) and is_loopback(self._gcs_host)):
+            self.counters["foreign"] += 1
+            return
+        signing = self.mav.signing
+        rejected, badsig = signing.reject_count, signing.badsig_count
+        try:
+            messages = self.mav.parse_buffer(data) or []
+        except mavlink.MAVError:
+            messages = []
+            self.counters["bad_data"] += 1
+        self.counters["bad_signature"] += signing.badsig_count - badsig
+        self.counters["unsigned_refused"] += ((signing.reject_count - rejected)
+                                             - (signing.badsig_count - badsig))
+        now = self._clock()
+        for msg in messages:
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                if "signature" not in str(getattr(msg, "reason", "")):
+                    self.counters["bad_data"] += 1
+                continue
+            self.counters["rx"] += 1
+            self._dest = (addr[0], addr[1])
+            try:
+                self._dispatch(kind, msg, now)
+            except Exception:
+                log.exception("MAVLink %s handling failed", kind)
+
+    def _for_us(self, system: int, component: int | None = None) -> bool:
+        if system not in (0, self.params.system_id):
+            return False
+        return component is None or component in (0, self.params.component_id)
+
+    def _dispatch(self, kind: str, msg: Any, now: int) -> None:
+        if kind == "HEARTBEAT":
+            if msg.type == mavlink.MAV_TYPE_GCS:
+                self.gcs_heartbeat_ns = now
+                self.gcs_system_id = msg.get_srcSystem()
+                if not self.gcs_alive:
+                    self.gcs_alive = True
+                    self.statustext("GCS connected")
+        elif kind == "MANUAL_CONTROL":
+            if self._for_us(msg.target):
+                self._take_manual_control(msg, now)
+        elif kind == "RC_CHANNELS_OVERRIDE":
+            if self._for_us(msg.target_system, msg.target_component):
+                self._take_rc_override(msg, now)
+        elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+            if self._for_us(msg.target_system, msg.target_component):
+                self.counters["commands"] += 1
+                result = self._command(msg.command, msg.param1, msg.param2, msg)
+                self._ack(msg.command, result, msg)
+        elif kind == "SET_MODE":
+            if self._for_us(msg.target_system):
+                self.counters["commands"] += 1
+                self._ack(SET_MODE_ACK, self._set_mode(msg.custom_mode), msg)
+        elif kind == "PARAM_REQUEST_LIST":
+            if self._for_us(msg.target_system, msg.target_component):
+                for index in range(len(self.parameters)):
+                    self._send_param(index)
+        elif kind == "PARAM_REQUEST_READ":
+            if self._for_us(msg.target_system, msg.target_component):
+                index = self._param_index(msg.param_id, msg.param_index)
+                if index is not None:
+                    self._send_param(index)
+        elif kind == "PARAM_SET" and self._for_us(msg.target_system, msg.target_component):
+            index = self._param_index(msg.param_id, -1)
+            if index is not None:
+                self._send_param(index)  # read-only: the unchanged value says "refused"
+
+    def _param_index(self, name: str | bytes, index: int) -> int | None:
+        if isinstance(name, bytes):
+            name = name.decode("ascii", "replace")
+        name = name.rstrip("\x00")
+        if index >= 0:
+            return index if index < len(self.parameters) else None
+        for i, p in enumerate(self.parameters):
+            if p.name == name:
+                return i
+        return None
+
+    def _send_param(self, index: int) -> None:
+        p = self.parameters[index]
+        self.mav.param_value_send(p.name.encode("ascii"), float(p.value), p.type, len(self.parameters), index)
+
+    def _accept_input(self) -> bool:
+        if not self.gcs_alive or self.mode != MODES["MANUAL"]:
+            self.counters["inputs_ignored"] += 1
+            return False
+        self.counters["manual_inputs"] += 1
+        return True
+
+    def _take_manual_control(self, msg: Any, now: int) -> None:
+        if not self._accept_input():
+            return
+        throttle = msg.z if self.params.throttle_axis == "z" else msg.x
+        self.manual = ManualInput(_axis(throttle) * self.params.max_speed_mps,
+                                  -_axis(msg.y) * self.params.max_steering_rad, now, "manual_control")
+
+    def _take_rc_override(self, msg: Any, now: int) -> None:
+        for channel, raw in ((1, msg.chan1_raw), (3, msg.chan3_raw)):
+            if raw == UINT16_MAX:
+                continue  # "ignore this field"
+            self._rc[channel] = None if raw == 0 else raw
+        if self._rc[1] is None and self._rc[3] is None:
+            if self.manual is not None and self.manual.kind == "rc_override":
+                self.manual = None  # both channels released: stop driving now
+            return
+        if not self._accept_input():
+            return
+        self.manual = ManualInput(self._pwm(self._rc[3]) * self.params.max_speed_mps,
+                                  -self._pwm(self._rc[1]) * self.params.max_steering_rad, now, "rc_override")
+
+    def _pwm(self, raw: int | None) -> float:
+        """-1..1 from a PWM width (µs); None (released) is 0."""
+        if raw is None:
+            return 0.0
+        p = self.params
+        if raw >= p.rc_trim_us:
+            return min(1.0, (raw - p.rc_trim_us) / (p.rc_max_us - p.rc_trim_us))
+        return max(-1.0, (raw - p.rc_trim_us) / (p.rc_trim_us - p.rc_min_us))
+
+    def _command(self, command: int, param1: float, param2: float, msg: Any) -> int:
+        if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            if param1 == 1.0:
+                manual = self.manual
+                if manual is not None and manual.speed != 0.0 and param2 != FORCE_ARM_MAGIC:
+                    self.statustext("Arm refused: GCS throttle not centred", mavlink.MAV_SEVERITY_WARNING)
+                    return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                self.arming.arm("gcs", "armed by the ground station")
+                return mavlink.MAV_RESULT_ACCEPTED
+            if param1 == 0.0:
+                self.arming.disarm("gcs", "disarmed by the ground station")
+                return mavlink.MAV_RESULT_ACCEPTED
+            return mavlink.MAV_RESULT_DENIED
+        if command == mavlink.MAV_CMD_DO_SET_MODE:
+            return self._set_mode(round(param2))
+        return mavlink.MAV_RESULT_UNSUPPORTED
+
+    def _set_mode(self, custom_mode: int) -> int:
+        if custom_mode not in MODE_NAMES:
+            self.statustext(f"Mode {custom_mode} not supported", mavlink.MAV_SEVERITY_WARNING)
+            return mavlink.MAV_RESULT_DENIED
+        if custom_mode != self.mode:
+            self.mode = custom_mode
+            self.statustext(f"Mode {MODE_NAMES[custom_mode]}", mavlink.MAV_SEVERITY_NOTICE)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    # --- bus callbacks -----------------------------------------------------------------------
+
+    def _on_vesc(self, msg: VescStateStamped) -> None:
+        self._vesc = msg
+
+    def _on_odom(self, msg: Odometry) -> None:
+        self._odom = msg
+
+    def _on_scan(self, msg: LaserScan) -> None:
+        self._scan = msg
+
+    def _on_safety(self, msg: DiagnosticArray) -> None:
+        """A STATUSTEXT when the safety controller's level or reason changes (not for a first OK)."""
+        status = next((s for s in msg.status if s.name == "safety"), msg.status[0] if msg.status else None)
+        if status is None:
+            return
+        key = (status.level, status.message)
+        if key == self._safety_key:
+            return
+        first = self._safety_key is None
+        self._safety_key = key
+        if not (first and status.level == DiagnosticStatus.OK):
+            self.statustext(f"Safety: {status.message}",
+                            _SEVERITY.get(status.level, mavlink.MAV_SEVERITY_WARNING))
+
+    def _on_arming(self, change: ArmingChange) -> None:
+        self.statustext(("Armed" if change.armed else "Disarmed") + f" by {change.source}",
+                        mavlink.MAV_SEVERITY_NOTICE)
+        self.send_heartbeat()
+
+
+def _axis(value: int) -> float:
+    """A MANUAL_CONTROL axis (-1000..1000; INT16_MAX = unused, taken as centred) to -1..1."""
+    if value == INT16_MAX:
+        return 0.0
+    return max(-1.0, min(1.0, value / 1000.0))
+
+
+def _clamp_int(value: float, lo: int, hi: int) -> int:
+    if not math.isfinite(value):
+        return lo
+    return int(max(lo, min(hi, round(value))))
+
+
+__all__ = ["MODES", "MavlinkGcs", "MavlinkParams", "load_signing_key", "obstacle_bins", "odom_to_ned",
+           "signing_timestamp", "write_signing_key"]
