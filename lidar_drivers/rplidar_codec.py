@@ -1,0 +1,728 @@
+"""Slamtec RPLIDAR serial protocol as a sans-I/O codec, for both ends of the wire.
+
+Host side: :class:`RplidarClient` turns requests into bytes (:meth:`RplidarClient.send`) and bytes
+from the device into typed events (:meth:`RplidarClient.receive_data`, :meth:`next_event`).
+Device side (the fake lidar): :class:`RequestParser` turns host bytes into :class:`Request` events
+and the ``encode_*`` functions build responses, scan nodes and express capsules.
+
+Wire format (reference ``lidars.md`` section 2):
+
+* request ``A5 cmd``; when ``cmd & 0x80`` a payload follows: ``A5 cmd len payload cs`` with ``cs``
+  the XOR of every byte before it;
+* response descriptor ``A5 5A`` + u32 little-endian (low 30 bits: payload size, bits 30-31: mode,
+  1 = loop: payloads repeat with no new descriptor) + a type byte;
+* standard scan node (5 bytes): ``quality<<2 | !S<<1 | S``, u16 ``angle_q6<<1 | 1``, u16 distance
+  in mm x 4 (0 = invalid);
+* express capsule (84 bytes): ``0xA0|cs_lo``, ``0x50|cs_hi`` (cs = XOR of bytes 2..83), u16 start
+  angle q6 (bit 15: first capsule after the scan request), 16 cabins of two samples each.
+
+Angles are the device's own: degrees, clockwise seen from above, [0, 360). Distances are mm.
+Measurements come out in batches of numpy arrays (:class:`Measurements`), in time order.
+
+Nothing from the device raises: garbage is skipped up to the next plausible frame and counted in
+:class:`CodecStats`. Only a caller asking for something the protocol cannot say raises
+:class:`~racecar_hw.errors.LocalProtocolError`.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import deque
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+
+from racecar_hw.errors import LocalProtocolError
+
+SYNC = 0xA5
+SYNC2 = 0x5A
+DESCRIPTOR = b"\xa5\x5a"
+DESCRIPTOR_LEN = 7
+NODE_LEN = 5
+CAPSULE_LEN = 84
+SAMPLES_PER_CAPSULE = 32
+MODE_SINGLE = 0
+MODE_LOOP = 1
+#: Consecutive plausible nodes needed to lock onto the node stream again after a bad node.
+NODE_RESYNC_RUN = 4
+#: Largest angle step (device degrees) between neighbouring nodes while re-locking.
+NODE_RESYNC_MAX_STEP_DEG = 20.0
+FULL_TURN_Q6 = 360 * 64
+#: An express capsule as a packed numpy record (little-endian, 84 bytes).
+CAPSULE_DTYPE = np.dtype([
+    ("sync_cs_lo", "u1"), ("sync_cs_hi", "u1"), ("start", "<u2"),
+    ("cabins", np.dtype([("d1", "<u2"), ("d2", "<u2"), ("dtheta", "u1")]), (16,)),
+])
+
+
+class Command(IntEnum):
+    """Request command bytes."""
+
+    STOP = 0x25
+    RESET = 0x40
+    SCAN = 0x20
+    FORCE_SCAN = 0x21
+    GET_INFO = 0x50
+    GET_HEALTH = 0x52
+    GET_SAMPLERATE = 0x59
+    EXPRESS_SCAN = 0x82
+    GET_LIDAR_CONF = 0x84
+    SET_MOTOR_RPM = 0xA8
+    SET_MOTOR_PWM = 0xF0
+    GET_ACC_BOARD_FLAG = 0xFF
+
+
+class AnswerType(IntEnum):
+    """Response descriptor type bytes."""
+
+    INFO = 0x04
+    HEALTH = 0x06
+    SAMPLERATE = 0x15
+    LIDAR_CONF = 0x20
+    SCAN = 0x81
+    EXPRESS = 0x82
+    ACC_BOARD_FLAG = 0xFF
+
+
+#: (payload size, mode) every answer type must announce; LIDAR_CONF varies in size.
+_ANSWER_SHAPE: dict[int, tuple[int, int]] = {
+    AnswerType.INFO: (20, MODE_SINGLE),
+    AnswerType.HEALTH: (3, MODE_SINGLE),
+    AnswerType.SAMPLERATE: (4, MODE_SINGLE),
+    AnswerType.SCAN: (NODE_LEN, MODE_LOOP),
+    AnswerType.EXPRESS: (CAPSULE_LEN, MODE_LOOP),
+    AnswerType.ACC_BOARD_FLAG: (4, MODE_SINGLE),
+}
+_LIDAR_CONF_MAX = 64
+
+#: The answer type each request gets back; requests missing here get no answer.
+ANSWER_TO: dict[int, int] = {
+    Command.SCAN: AnswerType.SCAN,
+    Command.FORCE_SCAN: AnswerType.SCAN,
+    Command.GET_INFO: AnswerType.INFO,
+    Command.GET_HEALTH: AnswerType.HEALTH,
+    Command.GET_SAMPLERATE: AnswerType.SAMPLERATE,
+    Command.EXPRESS_SCAN: AnswerType.EXPRESS,
+    Command.GET_LIDAR_CONF: AnswerType.LIDAR_CONF,
+    Command.GET_ACC_BOARD_FLAG: AnswerType.ACC_BOARD_FLAG,
+}
+
+HEALTH_STATUS = {0: "good", 1: "warning", 2: "error"}
+HEALTH_MEANING = {
+    0: "the device works normally",
+    1: "the device sees a potential risk of hardware failure but still measures",
+    2: "the device is in protection stop (hardware fault): it will not measure until reset",
+}
+
+
+# --- requests (host -> device) -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Request:
+    """One request: a command byte and, for commands >= 0x80, a payload of at most 255 bytes."""
+
+    command: int
+    payload: bytes = b""
+
+    def encode(self) -> bytes:
+        """The bytes on the wire; raises LocalProtocolError for a request the protocol cannot say."""
+        if not 0 <= self.command <= 0xFF:
+            raise LocalProtocolError(f"command 0x{self.command:x} is not a byte")
+        has_payload = bool(self.command & 0x80)
+        if not has_payload:
+            if self.payload:
+                raise LocalProtocolError(f"command 0x{self.command:02x} (< 0x80) carries no payload")
+            return bytes((SYNC, self.command))
+        if len(self.payload) > 255:
+            raise LocalProtocolError(f"payload of {len(self.payload)} bytes exceeds 255")
+        frame = bytes((SYNC, self.command, len(self.payload))) + self.payload
+        return frame + bytes((xor_checksum(frame),))
+
+    @classmethod
+    def simple(cls, command: Command) -> Request:
+        """A request with no payload (STOP, RESET, SCAN, GET_INFO ...)."""
+        return cls(int(command))
+
+    @classmethod
+    def express_scan(cls, mode: int = 0) -> Request:
+        """EXPRESS_SCAN in working ``mode`` (0 = the legacy express capsules)."""
+        if not 0 <= mode <= 0xFF:
+            raise LocalProtocolError(f"express scan mode {mode} is not a byte")
+        return cls(Command.EXPRESS_SCAN, struct.pack("<BHH", mode, 0, 0))
+
+    @classmethod
+    def set_motor_pwm(cls, pwm: int) -> Request:
+        """SET_MOTOR_PWM, duty 0..1023 (A2/A3 accessory board)."""
+        if not 0 <= pwm <= 1023:
+            raise LocalProtocolError(f"motor PWM {pwm} outside 0..1023")
+        return cls(Command.SET_MOTOR_PWM, struct.pack("<H", pwm))
+
+    @classmethod
+    def get_acc_board_flag(cls) -> Request:
+        """GET_ACC_BOARD_FLAG (u32 payload, 0)."""
+        return cls(Command.GET_ACC_BOARD_FLAG, struct.pack("<I", 0))
+
+
+def xor_checksum(data: bytes | bytearray | memoryview) -> int:
+    """XOR of every byte."""
+    cs = 0
+    for b in bytes(data):
+        cs ^= b
+    return cs
+
+
+# --- events (device -> host) -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """GET_INFO: model id (major<<4 | minor), firmware, hardware revision, 16-byte serial number."""
+
+    model_id: int
+    firmware_major: int
+    firmware_minor: int
+    hardware: int
+    serial: bytes
+
+    @property
+    def major(self) -> int:
+        """Series: 1-3 = A1-A3, 4 = C1, 6-8 = S1-S3."""
+        return self.model_id >> 4
+
+    @property
+    def model_name(self) -> str:
+        """``A1M8`` style name from the two nibbles, as the SDK prints it."""
+        series = {4: "C", 6: "S", 7: "S", 8: "S"}.get(self.major, "A")
+        number = self.major - 5 if series == "S" else (1 if series == "C" else self.major)
+        return f"{series}{number}M{self.model_id & 0xF}"
+
+    @property
+    def firmware(self) -> str:
+        """``major.minor`` with two minor digits, e.g. ``1.29``."""
+        return f"{self.firmware_major}.{self.firmware_minor:02d}"
+
+    @property
+    def serial_hex(self) -> str:
+        """The serial number as upper-case hex."""
+        return self.serial.hex().upper()
+
+
+@dataclass(frozen=True)
+class Health:
+    """GET_HEALTH: status 0 good / 1 warning / 2 error, and a 16-bit error code (little-endian)."""
+
+    status: int
+    error_code: int
+
+    @property
+    def status_name(self) -> str:
+        return HEALTH_STATUS.get(self.status, f"unknown status {self.status}")
+
+    @property
+    def meaning(self) -> str:
+        return HEALTH_MEANING.get(self.status, "undocumented health status")
+
+
+@dataclass(frozen=True)
+class SampleRate:
+    """GET_SAMPLERATE: time per sample in microseconds for standard and express scans."""
+
+    standard_us: int
+    express_us: int
+
+
+@dataclass(frozen=True)
+class AccBoardFlag:
+    """GET_ACC_BOARD_FLAG: bit 0 set means the motor speed is set with SET_MOTOR_PWM."""
+
+    flags: int
+
+    @property
+    def pwm_supported(self) -> bool:
+        return bool(self.flags & 1)
+
+
+@dataclass(frozen=True)
+class LidarConf:
+    """GET_LIDAR_CONF answer: the key asked for and its raw value bytes."""
+
+    key: int
+    value: bytes
+
+
+@dataclass(frozen=True)
+class ScanStarted:
+    """The descriptor of a scan stream: samples follow until the host sends STOP."""
+
+    express: bool
+
+
+@dataclass(frozen=True, eq=False)
+class Measurements:
+    """Consecutive samples in time order (device convention: degrees clockwise, mm).
+
+    ``start`` marks the first sample of a new revolution; ``distance_mm`` 0 means no valid return.
+    ``held_back`` is how many samples the decoder has received after the last one here but not
+    emitted yet (an express capsule waits for the next one), for time-stamping.
+    """
+
+    start: np.ndarray
+    quality: np.ndarray
+    angle_deg: np.ndarray
+    distance_mm: np.ndarray
+    express: bool
+    held_back: int = 0
+
+    def __len__(self) -> int:
+        return len(self.angle_deg)
+
+
+Event = DeviceInfo | Health | SampleRate | AccBoardFlag | LidarConf | ScanStarted | Measurements
+
+
+@dataclass
+class CodecStats:
+    """What the decoder had to throw away."""
+
+    bytes_in: int = 0
+    garbage_bytes: int = 0
+    resyncs: int = 0
+    bad_descriptors: int = 0
+    bad_nodes: int = 0
+    checksum_errors: int = 0
+    samples: int = 0
+
+
+# --- host-side decoder -------------------------------------------------------------------------
+
+
+class _State(IntEnum):
+    HUNT = 0  # looking for A5 5A
+    PAYLOAD = 1  # a single response's payload
+    NODES = 2  # standard scan stream
+    CAPSULES = 3  # express scan stream
+
+
+class RplidarClient:
+    """The host end of an RPLIDAR link, without I/O.
+
+    ``send(request)`` returns the bytes to write and tells the decoder which answer to expect:
+    once a request that has an answer was sent, everything before a descriptor of that answer's
+    type is garbage (stale scan nodes, the text banner after RESET). STOP and RESET end a scan
+    stream. ``receive_data`` accepts arbitrary chunks; ``next_event`` returns the next event or
+    None when more bytes are needed.
+    """
+
+    def __init__(self) -> None:
+        self.stats = CodecStats()
+        self._buf = bytearray()
+        self._state = _State.HUNT
+        self._expect: int | None = None
+        self._size = 0
+        self._type = 0
+        self._node_locked = True
+        self._prev_capsule: np.ndarray | None = None
+        self._events: deque[Event] = deque()
+
+    @property
+    def streaming(self) -> bool:
+        """Whether a scan stream (standard or express) is being decoded."""
+        return self._state in (_State.NODES, _State.CAPSULES)
+
+    @property
+    def buffered(self) -> int:
+        """Bytes received but not decoded yet (a partial frame)."""
+        return len(self._buf)
+
+    def send(self, request: Request) -> bytes:
+        """Bytes for ``request``; updates what the decoder expects next."""
+        data = request.encode()
+        answer = ANSWER_TO.get(request.command)
+        if answer is not None:
+            self._expect = answer
+            self._enter_hunt()
+        elif request.command in (Command.STOP, Command.RESET):
+            self._expect = None
+            self._enter_hunt()
+        return data
+
+    def _enter_hunt(self) -> None:
+        self._state = _State.HUNT
+        self._prev_capsule = None
+
+    def receive_data(self, data: bytes | bytearray | memoryview) -> None:
+        """Feed bytes from the device; decode as far as possible."""
+        self.stats.bytes_in += len(data)
+        self._buf += data
+        self._decode()
+
+    def next_event(self) -> Event | None:
+        """The next decoded event, or None when more data is needed."""
+        return self._events.popleft() if self._events else None
+
+    def events(self) -> list[Event]:
+        """Every event decoded so far."""
+        out = list(self._events)
+        self._events.clear()
+        return out
+
+    def _decode(self) -> None:
+        while True:
+            if self._state == _State.HUNT:
+                if not self._hunt():
+                    return
+            elif self._state == _State.PAYLOAD:
+                if len(self._buf) < self._size:
+                    return
+                payload = bytes(self._buf[: self._size])
+                del self._buf[: self._size]
+                self._state = _State.HUNT
+                self._expect = None
+                self._events.append(_single_event(self._type, payload))
+            elif self._state == _State.NODES:
+                self._decode_nodes()
+                return
+            else:
+                self._decode_capsules()
+                return
+
+    def _hunt(self) -> bool:
+        buf = self._buf
+        while True:
+            at = buf.find(DESCRIPTOR)
+            if at < 0:
+                keep = 1 if buf.endswith(b"\xa5") else 0
+                self._discard(len(buf) - keep)
+                return False
+            self._discard(at)
+            if len(buf) < DESCRIPTOR_LEN:
+                return False
+            word, kind = struct.unpack_from("<IB", buf, 2)
+            size, mode = word & 0x3FFFFFFF, word >> 30
+            if self._plausible(kind, size, mode):
+                del buf[:DESCRIPTOR_LEN]
+                self._type, self._size = kind, size
+                if kind == AnswerType.SCAN:
+                    self._state, self._node_locked = _State.NODES, True
+                    self._events.append(ScanStarted(express=False))
+                elif kind == AnswerType.EXPRESS:
+                    self._state, self._prev_capsule = _State.CAPSULES, None
+                    self._events.append(ScanStarted(express=True))
+                else:
+                    self._state = _State.PAYLOAD
+                return True
+            self.stats.bad_descriptors += 1
+            self.stats.resyncs += 1
+            self._discard(1)
+
+    def _plausible(self, kind: int, size: int, mode: int) -> bool:
+        if self._expect is not None and kind != self._expect:
+            return False
+        if kind == AnswerType.LIDAR_CONF:
+            return mode == MODE_SINGLE and 4 <= size <= _LIDAR_CONF_MAX
+        return _ANSWER_SHAPE.get(kind) == (size, mode)
+
+    def _discard(self, n: int) -> None:
+        if n > 0:
+            self.stats.garbage_bytes += n
+            del self._buf[:n]
+
+    # standard nodes
+
+    def _decode_nodes(self) -> None:
+        buf = self._buf
+        while len(buf) >= NODE_LEN:
+            if not self._node_locked:
+                if not self._relock_nodes():
+                    return
+                continue
+            n = len(buf) // NODE_LEN
+            arr = np.frombuffer(buf, dtype=np.uint8, count=n * NODE_LEN).reshape(n, NODE_LEN)
+            ok = _nodes_valid(arr)
+            bad = n if bool(ok.all()) else int(np.argmin(ok))
+            if bad:
+                self._emit_nodes(arr[:bad])
+            del arr
+            del buf[: bad * NODE_LEN]
+            if bad < n:
+                self.stats.bad_nodes += 1
+                self.stats.resyncs += 1
+                self._node_locked = False
+                self._discard(1)
+
+    def _relock_nodes(self) -> bool:
+        """Skip bytes until NODE_RESYNC_RUN plausible nodes follow; False when more data is needed."""
+        buf = self._buf
+        need = NODE_RESYNC_RUN * NODE_LEN
+        while len(buf) >= need:
+            arr = np.frombuffer(buf, dtype=np.uint8, count=need).reshape(NODE_RESYNC_RUN, NODE_LEN)
+            ok = bool(_nodes_valid(arr).all())
+            if ok:
+                angles = ((arr[:, 1].astype(np.int32) | (arr[:, 2].astype(np.int32) << 8)) >> 1) / 64.0
+                ok = bool((np.mod(np.diff(angles), 360.0) < NODE_RESYNC_MAX_STEP_DEG).all())
+            del arr
+            if ok:
+                self._node_locked = True
+                return True
+            self._discard(1)
+        return False
+
+    def _emit_nodes(self, arr: np.ndarray) -> None:
+        b0 = arr[:, 0]
+        angle_q6 = (arr[:, 1].astype(np.int32) | (arr[:, 2].astype(np.int32) << 8)) >> 1
+        dist_q2 = arr[:, 3].astype(np.int32) | (arr[:, 4].astype(np.int32) << 8)
+        self.stats.samples += len(arr)
+        self._events.append(Measurements(
+            start=(b0 & 1).astype(bool), quality=(b0 >> 2).astype(np.uint8),
+            angle_deg=angle_q6 / 64.0, distance_mm=dist_q2 / 4.0, express=False))
+
+    # express capsules
+
+    def _decode_capsules(self) -> None:
+        buf = self._buf
+        batches: list[np.ndarray] = []
+        while len(buf) >= CAPSULE_LEN:
+            n = len(buf) // CAPSULE_LEN
+            arr = np.frombuffer(buf, dtype=np.uint8, count=n * CAPSULE_LEN).reshape(n, CAPSULE_LEN)
+            ok = _capsules_valid(arr)
+            good = n if bool(ok.all()) else int(np.argmin(ok))
+            if good:
+                batches.append(arr[:good].copy())
+            del arr
+            del buf[: good * CAPSULE_LEN]
+            if good < n:
+                self._flush_capsules(batches)
+                batches = []
+                self._prev_capsule = None
+                self.stats.checksum_errors += 1
+                self.stats.resyncs += 1
+                self._resync_capsules()
+        self._flush_capsules(batches)
+
+    def _resync_capsules(self) -> None:
+        """Drop bytes up to the next position that starts with the two sync nibbles."""
+        buf = self._buf
+        self._discard(1)
+        raw = np.frombuffer(buf, dtype=np.uint8)
+        if len(raw) < 2:
+            return
+        hits = np.flatnonzero(((raw[:-1] & 0xF0) == 0xA0) & ((raw[1:] & 0xF0) == 0x50))
+        del raw
+        self._discard(int(hits[0]) if len(hits) else len(buf) - 1)
+
+    def _flush_capsules(self, batches: list[np.ndarray]) -> None:
+        if not batches:
+            return
+        caps = np.concatenate(batches) if len(batches) > 1 else batches[0]
+        first = (caps[:, 3] & 0x80) != 0
+        # A capsule flagged as the first of a stream has no valid predecessor.
+        if first.any():
+            last_first = int(np.flatnonzero(first)[-1])
+            self._prev_capsule = None
+            caps = caps[last_first:]
+        if self._prev_capsule is not None:
+            caps = np.concatenate([self._prev_capsule[None, :], caps])
+        self._prev_capsule = caps[-1].copy()
+        if len(caps) < 2:
+            return
+        m = decode_capsules(caps)
+        self.stats.samples += len(m)
+        self._events.append(m)
+
+
+def _nodes_valid(arr: np.ndarray) -> np.ndarray:
+    b0 = arr[:, 0]
+    angle_q6 = (arr[:, 1].astype(np.int32) | (arr[:, 2].astype(np.int32) << 8)) >> 1
+    return ((((b0 >> 1) ^ b0) & 1) == 1) & ((arr[:, 1] & 1) == 1) & (angle_q6 < FULL_TURN_Q6)
+
+
+def _capsules_valid(arr: np.ndarray) -> np.ndarray:
+    cs = np.bitwise_xor.reduce(arr[:, 2:], axis=1)
+    sync = ((arr[:, 0] & 0xF0) == 0xA0) & ((arr[:, 1] & 0xF0) == 0x50)
+    declared = (arr[:, 0] & 0x0F) | ((arr[:, 1] & 0x0F) << 4)
+    start_q6 = (arr[:, 2].astype(np.int32) | (arr[:, 3].astype(np.int32) << 8)) & 0x7FFF
+    return sync & (declared == cs) & (start_q6 < FULL_TURN_Q6)
+
+
+def decode_capsules(caps: np.ndarray) -> Measurements:
+    """Samples of every capsule but the last in ``caps`` (K consecutive valid capsules, K x 84).
+
+    As in the SDK, capsule n's 32 samples are spread evenly from its start angle to capsule n+1's,
+    minus each sample's compensation angle dθ (6 bits, 1/8 degree); a sample is the start of a
+    revolution when the angle wraps past 360 degrees before the next sample.
+    """
+    rec = np.ascontiguousarray(caps, dtype=np.uint8).view(CAPSULE_DTYPE).reshape(-1)
+    k = len(rec) - 1
+    start_q8 = (rec["start"].astype(np.int32) & 0x7FFF) << 2
+    cur = start_q8[:-1]
+    diff_q8 = start_q8[1:] - cur
+    diff_q8 += (diff_q8 < 0) * (360 << 8)
+    inc_q16 = (diff_q8 << 3)[:, None]  # per sample: diff / 32, in q16
+    cabins = rec["cabins"][:-1]
+    word = np.empty((k, 16, 2), dtype=np.int32)  # dist_q2 | dθ bits 5:4, two samples per cabin
+    word[:, :, 0] = cabins["d1"]
+    word[:, :, 1] = cabins["d2"]
+    nibbles = cabins["dtheta"]
+    offset_q3 = np.empty((k, 16, 2), dtype=np.int32)
+    offset_q3[:, :, 0] = nibbles & 0xF
+    offset_q3[:, :, 1] = nibbles >> 4
+    offset_q3 |= (word & 3) << 4
+    raw_q16 = (cur << 8)[:, None] + inc_q16 * _CAPSULE_K[None, :]
+    angle_q6 = ((raw_q16 - (offset_q3.reshape(k, SAMPLES_PER_CAPSULE) << 13)) >> 10) % FULL_TURN_Q6
+    start = ((raw_q16 + inc_q16) % (360 << 16)) < inc_q16
+    dist = (word >> 2).ravel().astype(np.float64)
+    return Measurements(
+        start=start.ravel(), quality=(dist > 0).astype(np.uint8) * np.uint8(0x2F),
+        angle_deg=angle_q6.ravel() * (1 / 64), distance_mm=dist, express=True,
+        held_back=SAMPLES_PER_CAPSULE)
+
+
+_CAPSULE_K = np.arange(SAMPLES_PER_CAPSULE, dtype=np.int32)
+
+
+def _single_event(kind: int, payload: bytes) -> Event:
+    if kind == AnswerType.INFO:
+        model, minor, major, hw = payload[:4]
+        return DeviceInfo(model, major, minor, hw, payload[4:20])
+    if kind == AnswerType.HEALTH:
+        status, code = struct.unpack("<BH", payload)
+        return Health(status, code)
+    if kind == AnswerType.SAMPLERATE:
+        std, exp = struct.unpack("<HH", payload)
+        return SampleRate(std, exp)
+    if kind == AnswerType.ACC_BOARD_FLAG:
+        return AccBoardFlag(struct.unpack("<I", payload)[0])
+    (key,) = struct.unpack_from("<I", payload)
+    return LidarConf(key, payload[4:])
+
+
+# --- device side: request parser and response encoders ----------------------------------------
+
+
+@dataclass
+class RequestParser:
+    """The device end: host bytes in, :class:`Request` events out. Garbage is skipped and counted."""
+
+    bad_checksums: int = 0
+    garbage_bytes: int = 0
+    _buf: bytearray = field(default_factory=bytearray)
+
+    def receive_data(self, data: bytes | bytearray | memoryview) -> list[Request]:
+        """Feed host bytes; returns every complete request."""
+        self._buf += data
+        out: list[Request] = []
+        buf = self._buf
+        while buf:
+            at = buf.find(SYNC)
+            if at < 0:
+                self.garbage_bytes += len(buf)
+                buf.clear()
+                break
+            if at:
+                self.garbage_bytes += at
+                del buf[:at]
+            if len(buf) < 2:
+                break
+            cmd = buf[1]
+            if not cmd & 0x80:
+                out.append(Request(cmd))
+                del buf[:2]
+                continue
+            if len(buf) < 3 or len(buf) < 4 + buf[2]:
+                break
+            n = buf[2]
+            frame = bytes(buf[: 4 + n])
+            if xor_checksum(frame[:-1]) != frame[-1]:
+                self.bad_checksums += 1
+                self.garbage_bytes += 1
+                del buf[:1]
+                continue
+            out.append(Request(cmd, frame[3:-1]))
+            del buf[: 4 + n]
+        return out
+
+
+def encode_descriptor(size: int, mode: int, kind: int) -> bytes:
+    """A response descriptor: ``A5 5A`` + size (30 bits) | mode << 30 + type."""
+    if not 0 <= size < (1 << 30) or mode not in (0, 1, 2, 3) or not 0 <= kind <= 0xFF:
+        raise LocalProtocolError(f"descriptor size={size} mode={mode} type={kind} cannot be encoded")
+    return DESCRIPTOR + struct.pack("<IB", size | (mode << 30), kind)
+
+
+def _answer(kind: AnswerType, payload: bytes) -> bytes:
+    size, mode = _ANSWER_SHAPE[kind]
+    return encode_descriptor(size, mode, kind) + payload
+
+
+def encode_info(info: DeviceInfo) -> bytes:
+    """Descriptor and GET_INFO payload."""
+    if len(info.serial) != 16:
+        raise LocalProtocolError("the serial number is 16 bytes")
+    return _answer(AnswerType.INFO, bytes((info.model_id, info.firmware_minor, info.firmware_major,
+                                           info.hardware)) + info.serial)
+
+
+def encode_health(health: Health) -> bytes:
+    """Descriptor and GET_HEALTH payload (error code little-endian, as the SDK reads it)."""
+    return _answer(AnswerType.HEALTH, struct.pack("<BH", health.status, health.error_code))
+
+
+def encode_samplerate(rate: SampleRate) -> bytes:
+    """Descriptor and GET_SAMPLERATE payload."""
+    return _answer(AnswerType.SAMPLERATE, struct.pack("<HH", rate.standard_us, rate.express_us))
+
+
+def encode_acc_board_flag(flag: AccBoardFlag) -> bytes:
+    """Descriptor and GET_ACC_BOARD_FLAG payload."""
+    return _answer(AnswerType.ACC_BOARD_FLAG, struct.pack("<I", flag.flags))
+
+
+def encode_scan_descriptor(express: bool) -> bytes:
+    """The loop-mode descriptor that opens a standard or an express scan stream."""
+    return _answer(AnswerType.EXPRESS if express else AnswerType.SCAN, b"")
+
+
+def encode_nodes(start: np.ndarray, quality: np.ndarray, angle_deg: np.ndarray,
+                 distance_mm: np.ndarray) -> bytes:
+    """Standard 5-byte nodes (device angles in degrees clockwise, distances mm, quality 0..63)."""
+    s = np.asarray(start, dtype=np.uint8) & 1
+    q = np.clip(np.asarray(quality, dtype=np.int64), 0, 63).astype(np.uint8)
+    angle_q6 = np.round(np.mod(np.asarray(angle_deg, dtype=np.float64), 360.0) * 64).astype(np.int64)
+    angle_q6 %= FULL_TURN_Q6
+    dist_q2 = np.clip(np.round(np.asarray(distance_mm, dtype=np.float64) * 4), 0, 0xFFFF).astype(np.int64)
+    out = np.empty((len(s), NODE_LEN), dtype=np.uint8)
+    out[:, 0] = (q << 2) | ((s ^ 1) << 1) | s
+    a = (angle_q6 << 1) | 1
+    out[:, 1], out[:, 2] = a & 0xFF, a >> 8
+    out[:, 3], out[:, 4] = dist_q2 & 0xFF, dist_q2 >> 8
+    return out.tobytes()
+
+
+def encode_capsules(start_angle_deg: np.ndarray, distance_mm: np.ndarray,
+                    first: bool = False) -> bytes:
+    """Express capsules: one start angle (degrees clockwise) and 32 distances (mm) per capsule.
+
+    Compensation angles dθ are 0, so every decoder agrees on the sample angles. ``first`` sets the
+    new-scan bit on the first capsule (the first capsule after the EXPRESS_SCAN request).
+    """
+    starts = np.round(np.mod(np.asarray(start_angle_deg, dtype=np.float64), 360.0) * 64).astype(np.int64)
+    starts %= FULL_TURN_Q6
+    dist = np.clip(np.round(np.asarray(distance_mm, dtype=np.float64)), 0, 0x3FFF).astype(np.int64)
+    dist = dist.reshape(len(starts), SAMPLES_PER_CAPSULE)
+    k = len(starts)
+    out = np.zeros((k, CAPSULE_LEN), dtype=np.uint8)
+    sa = starts.copy()
+    if first and k:
+        sa[0] |= 0x8000
+    out[:, 2], out[:, 3] = sa & 0xFF, sa >> 8
+    cab = np.zeros((k, 16, 5), dtype=np.uint8)
+    d = (dist << 2).reshape(k, 16, 2)
+    cab[:, :, 0], cab[:, :, 1] = d[:, :, 0] & 0xFF, d[:, :, 0] >> 8
+    cab[:, :, 2], cab[:, :, 3] = d[:, :, 1] & 0xFF, d[:, :, 1] >> 8
+    out[:, 4:] = cab.reshape(k, 80)
+    cs = np.bitwise_xor.reduce(out[:, 2:], axis=1)
+    out[:, 0] = 0xA0 | (cs & 0x0F)
+    out[:, 1] = 0x50 | (cs >> 4)
+    return out.tobytes()

@@ -1,0 +1,324 @@
+"""Hokuyo lidars over SCIP 2.0: URG-04LX on USB serial, UST-10LX/20LX and UTM-30LX on Ethernet.
+
+A thin asyncio shell around :mod:`lidar_drivers.scip`. One session: open the link; ``QT`` and
+``RS`` (stop any stream left running, laser off, clock zero); ``VV`` (vendor, product, firmware,
+serial -> :attr:`info`), ``PP`` (the whole scan geometry: nothing is hard-coded per model),
+``II`` (device status); then ``MD`` (or ``ME`` with intensities; back to ``MD`` if the device
+refuses ``ME``) streaming forever, cropped to ``angle_min``/``angle_max``, with ``cluster`` and
+``skip``. Each frame becomes a ``LaserScan`` on ``params.topic``.
+
+Scan conventions (ROS, REP-103): the angle of step ``s`` is ``(s - AFRT) * 2*pi / ARES``,
+counter-clockwise, 0 straight ahead. With a cluster of ``c`` steps, beam ``i`` is at step
+``start + i*c`` and ``angle_increment = c * 2*pi / ARES``. ``angle_min``/``angle_max`` are the
+first and last beam. Ranges in metres; readings below DMIN are error codes: 0 and 1 ("no
+object", URG-04LX "possibly beyond range") become ``inf``, every other code ``nan``; readings
+beyond DMAX become ``inf``. ``time_increment`` = ``c * 60 / (SCAN * ARES)`` s, ``scan_time`` =
+``(skip + 1) * 60 / SCAN`` s (time between published scans).
+
+Stamp: the estimated time of the first beam. The device sends a frame once its last requested
+step is measured, so the stamp is the arrival time (wall clock) of the frame's last byte, minus
+the sweep from the first to the last beam (``(end - start) * 60 / (SCAN * ARES)``), minus the
+transfer time: ``bytes * 10 / baud`` on a serial link (URG-04LX USB CDC ignores the baud, so
+this overestimates there), and 0 over TCP (a frame takes under 1 ms at 100 Mbit/s). The
+device's own millisecond timestamp is not used for the stamp.
+
+Reconnects (the base class loop): a lost link, a reply timeout or no scan for
+``max(stale_timeout_s, 3 scan periods)`` raise :class:`~racecar_hw.errors.DeviceError`. Status
+codes other than 00/99 are logged with their meaning and kept in :attr:`last_error`; a hardware
+fault (50..97) or "laser off" during streaming restarts the session.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidar_drivers.base import LidarDriver, ScanGeometry
+from lidar_drivers.params import LidarParams
+from lidar_drivers.scip import (
+    ChecksumMismatch,
+    Command,
+    Event,
+    InfoReply,
+    MalformedResponse,
+    Reply,
+    ResponseDecoder,
+    ScanCommand,
+    ScanReply,
+    is_hardware_fault,
+)
+from racecar_hw.bus import Bus
+from racecar_hw.clock import NS_PER_S, wall_ns
+from racecar_hw.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
+from racecar_hw.link import Link, SerialLink, TcpLink, parse_host_port
+from racecar_hw.messages import Header, LaserScan, Time
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TCP = ("192.168.0.10", 10940)
+"""Factory address of Ethernet Hokuyos."""
+DEFAULT_SERIAL_PORT = "/dev/ttyACM0"
+SERIAL_BAUD = 115200
+"""Nominal baud of a USB Hokuyo (the USB CDC link ignores it)."""
+REPLY_TIMEOUT_S = 1.0
+"""How long a command may take to be answered (QT may first wait for a frame in flight)."""
+
+
+@dataclass(frozen=True)
+class DeviceParams:
+    """The ``PP`` reply: distances in mm, angles in steps, ``scan_rpm`` the motor speed."""
+
+    model: str
+    dmin: int
+    dmax: int
+    ares: int
+    amin: int
+    amax: int
+    afrt: int
+    scan_rpm: int
+
+    @classmethod
+    def from_fields(cls, fields: dict[str, str]) -> DeviceParams:
+        """From PP's KEY:VALUE fields; RemoteProtocolError if one is missing or not a number."""
+        try:
+            return cls(fields.get("MODL", ""), *(int(fields[k]) for k in
+                                                  ("DMIN", "DMAX", "ARES", "AMIN", "AMAX", "AFRT",
+                                                   "SCAN")))
+        except (KeyError, ValueError) as err:
+            raise RemoteProtocolError(f"PP reply lacks a numeric field: {err}") from err
+
+    @property
+    def step_time_s(self) -> float:
+        """Seconds between adjacent steps."""
+        return 60.0 / (self.scan_rpm * self.ares)
+
+    @property
+    def scan_period_s(self) -> float:
+        return 60.0 / self.scan_rpm
+
+    def step_of(self, angle: float) -> float:
+        """The (fractional) step at ``angle`` radians."""
+        return self.afrt + angle * self.ares / (2.0 * math.pi)
+
+    def angle_of(self, step: int) -> float:
+        """The angle of ``step`` in radians."""
+        return (step - self.afrt) * 2.0 * math.pi / self.ares
+
+
+def crop_steps(dev: DeviceParams, angle_min: float | None, angle_max: float | None) -> tuple[int, int]:
+    """First and last step inside [angle_min, angle_max] (None: the device's AMIN/AMAX)."""
+    start = dev.amin if angle_min is None else max(dev.amin, math.ceil(dev.step_of(angle_min) - 1e-6))
+    end = dev.amax if angle_max is None else min(dev.amax, math.floor(dev.step_of(angle_max) + 1e-6))
+    if start > end:
+        raise ConfigError("lidar.angle_min", f"no step between angle_min {angle_min} and "
+                          f"angle_max {angle_max} (device covers {dev.angle_of(dev.amin):.3f}.."
+                          f"{dev.angle_of(dev.amax):.3f} rad)")
+    return start, end
+
+
+def scan_geometry(dev: DeviceParams, req: ScanCommand) -> ScanGeometry:
+    """The LaserScan geometry of frames answering ``req``."""
+    cluster = max(req.cluster, 1)
+    inc = cluster * 2.0 * math.pi / dev.ares
+    first = dev.angle_of(req.start)
+    return ScanGeometry(angle_min=first, angle_max=first + (req.values - 1) * inc,
+                        angle_increment=inc, range_min=dev.dmin / 1000.0,
+                        range_max=dev.dmax / 1000.0,
+                        scan_time=(req.interval + 1) * dev.scan_period_s,
+                        time_increment=cluster * dev.step_time_s)
+
+
+def ranges_m(dev: DeviceParams, distances: np.ndarray) -> np.ndarray:
+    """Device readings (mm or error codes) as metres with the inf/nan policy (float32)."""
+    d = np.asarray(distances)
+    r = (d / 1000.0).astype(np.float32)
+    codes = d < dev.dmin
+    if codes.any():
+        r[codes] = np.where(d[codes] <= 1, np.inf, np.nan)
+    r[d > dev.dmax] = np.inf
+    return r
+
+
+class HokuyoDriver(LidarDriver):
+    """A Hokuyo lidar speaking SCIP 2.0 over serial (``params.port``) or TCP (``params.tcp``)."""
+
+    def __init__(self, bus: Bus, params: LidarParams) -> None:
+        super().__init__(bus, params)
+        self.device: DeviceParams | None = None
+        self.request: ScanCommand | None = None
+        self._link: Link | None = None
+        self._decoder = ResponseDecoder()
+        self._rx_wall_ns = 0
+        self._baud = params.baudrate or SERIAL_BAUD
+
+    # --- link ---------------------------------------------------------------------------------
+
+    def _make_link(self) -> Link:
+        p = self.params
+        if p.tcp:
+            try:
+                host, port = parse_host_port(p.tcp, DEFAULT_TCP[1])
+            except ValueError as err:
+                raise ConfigError("lidar.tcp", str(err)) from err
+            return TcpLink(host, port)
+        if p.port:
+            return SerialLink(p.port, self._baud)
+        if p.model == "urg-04lx":
+            return SerialLink(DEFAULT_SERIAL_PORT, self._baud)
+        return TcpLink(*DEFAULT_TCP)
+
+    @property
+    def serial(self) -> bool:
+        """Whether the link is a serial port (the transfer time then counts in the stamp)."""
+        return isinstance(self._link, SerialLink)
+
+    async def _close(self) -> None:
+        link, self._link = self._link, None
+        if link is None:
+            return
+        if link.is_open:
+            try:
+                link.write(Command("QT").encode())  # stop streaming, laser off
+            except DeviceError:
+                pass
+        link.close()
+
+    # --- events -------------------------------------------------------------------------------
+
+    async def _next_event(self, deadline: float, what: str) -> Event:
+        """The next event from the device, or DeviceTimeout at ``deadline`` (monotonic s)."""
+        assert self._link is not None
+        while True:
+            event = self._decoder.next_event()
+            if event is not None:
+                if isinstance(event, ChecksumMismatch):
+                    self.stats.checksum_errors += 1
+                    log.debug("lidar: %s", event.reason)
+                elif isinstance(event, MalformedResponse):
+                    self.stats.resyncs += 1
+                    log.debug("lidar: dropped %d bytes: %s", len(event.raw), event.reason)
+                return event
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeviceTimeout(f"{self._link.name}: {what}")
+            try:
+                data = await asyncio.wait_for(self._link.read(), remaining)
+            except asyncio.TimeoutError:
+                raise DeviceTimeout(f"{self._link.name}: {what}") from None
+            self._rx_wall_ns = wall_ns()
+            self.stats.bytes_in += len(data)
+            self._decoder.receive_data(data)
+
+    async def _request(self, cmd: Command, timeout: float = REPLY_TIMEOUT_S) -> Reply:
+        """Send ``cmd`` and return its reply, skipping stale frames and noise."""
+        assert self._link is not None
+        self._link.write(cmd.encode())
+        deadline = time.monotonic() + timeout
+        while True:
+            event = await self._next_event(deadline, f"no reply to {cmd.line}")
+            if isinstance(event, Reply) and event.echo == cmd.line:
+                if not event.ok:
+                    self._note_status(event)
+                return event
+
+    def _note_status(self, reply: Reply) -> None:
+        message = f"{reply.command} status {reply.status}: {reply.meaning}"
+        if self.last_error != message:
+            log.warning("lidar %s: %s", self.params.model, message)
+        self.last_error = message
+
+    async def _info(self, name: str) -> dict[str, str]:
+        reply = await self._request(Command(name))
+        if not isinstance(reply, InfoReply):
+            raise DeviceError(f"{name} refused: status {reply.status} ({reply.meaning})")
+        return dict(reply.fields)
+
+    # --- session ------------------------------------------------------------------------------
+
+    async def _session(self) -> None:
+        self._decoder = ResponseDecoder()
+        self._link = self._make_link()
+        await self._link.open()
+        try:
+            await self._request(Command("QT"), 2 * REPLY_TIMEOUT_S)
+        except DeviceTimeout:
+            # a URG-04LX may still speak SCIP 1.1: switch it, then try again
+            self._link.write(b"SCIP2.0\n")
+            await asyncio.sleep(0.1)
+            await self._request(Command("QT"), 2 * REPLY_TIMEOUT_S)
+        await self._request(Command("RS"))
+        vv = await self._info("VV")
+        pp = await self._info("PP")
+        ii = await self._info("II")
+        try:
+            dev = DeviceParams.from_fields(pp)
+        except RemoteProtocolError as err:
+            raise DeviceError(str(err)) from err
+        self.device = dev
+        self.info = {"vendor": vv.get("VEND", ""), "product": vv.get("PROD", ""),
+                     "firmware": vv.get("FIRM", ""), "protocol": vv.get("PROT", ""),
+                     "serial": vv.get("SERI", ""), "model": dev.model,
+                     "status": ii.get("STAT", "")}
+        log.info("lidar %s: %s %s firmware %s serial %s", self.params.model, self.info["vendor"],
+                 self.info["product"], self.info["firmware"], self.info["serial"])
+        req = await self._start_stream(dev)
+        self.request = req
+        self.geometry = scan_geometry(dev, req)
+        self.connected = True
+        await self._stream(dev, req)
+
+    async def _start_stream(self, dev: DeviceParams) -> ScanCommand:
+        p = self.params
+        start, end = crop_steps(dev, p.angle_min, p.angle_max)
+        kinds = ("ME", "MD") if p.intensities else ("MD",)
+        for kind in kinds:
+            req = ScanCommand(name=kind, start=start, end=end, cluster=p.cluster, interval=p.skip,
+                              count=0)
+            ack = await self._request(req)
+            if ack.status == "00":
+                return req
+            if kind == "ME":
+                log.warning("lidar %s: ME refused (%s); streaming without intensities",
+                            p.model, ack.meaning)
+        raise DeviceError(f"MD refused: status {ack.status} ({ack.meaning})")
+
+    async def _stream(self, dev: DeviceParams, req: ScanCommand) -> None:
+        period = (req.interval + 1) * dev.scan_period_s
+        stale = max(self.params.stale_timeout_s, 3 * period)
+        deadline = time.monotonic() + stale + dev.scan_period_s
+        echo_body = req.echo(0)[:-2]
+        while True:
+            event = await self._next_event(deadline, f"no scan for {stale:.2f} s")
+            if not isinstance(event, Reply) or not event.echo.startswith(echo_body):
+                continue
+            if isinstance(event, ScanReply):
+                if event.status == "99":
+                    self.publish(self.to_laser_scan(event, dev))
+                    deadline = time.monotonic() + stale
+                continue
+            if event.ok:
+                continue
+            self._note_status(event)
+            if is_hardware_fault(event.status) or event.status == "10":
+                raise DeviceError(f"{event.command} status {event.status}: {event.meaning}")
+
+    def to_laser_scan(self, frame: ScanReply, dev: DeviceParams) -> LaserScan:
+        """One frame as a LaserScan stamped with its first beam's estimated time."""
+        req = frame.request
+        geo = scan_geometry(dev, req)
+        sweep_s = (req.end - req.start) * dev.step_time_s
+        transfer_s = frame.nbytes * 10.0 / self._baud if self.serial else 0.0
+        stamp = self._rx_wall_ns - round((sweep_s + transfer_s) * NS_PER_S)
+        intensities = (frame.intensities.astype(np.float32) if frame.intensities is not None
+                       else np.zeros(0, dtype=np.float32))
+        return LaserScan(
+            header=Header(stamp=Time.from_ns(stamp), frame_id=self.params.frame_id),
+            angle_min=geo.angle_min, angle_max=geo.angle_max, angle_increment=geo.angle_increment,
+            time_increment=geo.time_increment, scan_time=geo.scan_time,
+            range_min=geo.range_min, range_max=geo.range_max,
+            ranges=ranges_m(dev, frame.distances), intensities=intensities)

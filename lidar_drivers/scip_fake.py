@@ -1,0 +1,455 @@
+"""A fake Hokuyo that speaks SCIP 2.0 on a pty (like a USB URG) and/or a TCP port (like a UST).
+
+It answers VV, PP, II, BM, QT, RS, RT, %ST, TM0/1/2, GD/GE/GS and MD/ME/MS with the model's
+parameters (:mod:`lidar_drivers.scip_models`), measures ranges from a
+:class:`~lidar_drivers.base.RangeSource`, and streams frames at the model's true scan period on
+absolute deadlines; the first frame follows the acknowledgement by one period, as on a real sensor.
+
+Measurement model: metres become integer mm; nothing in reach or beyond DMAX becomes the model's
+no-return code (1, "no object"), closer than DMIN becomes 2 ("too near"). With a cluster, a group
+reports its nearest valid step, or its smallest code when none is valid. Intensity is a synthetic
+``min(262143, 4e6 / (1000 + mm))`` for a return and 0 otherwise.
+
+Each TCP connection is its own session (laser off, standby); the pty has one session that lives
+until :meth:`unplug` (power loss). Faults for tests: :meth:`inject_garbage`,
+:meth:`corrupt_next_checksum`, :meth:`split_writes`, :meth:`fail_next_frame` (an error status),
+:meth:`mute` (a silent device), :meth:`unplug`/:meth:`replug` (pty) and :meth:`drop_connection`
+(TCP). Run :meth:`serve` in a :class:`~racecar_hw.devicethread.DeviceThread`;
+the fault methods may be called from any thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import random
+import threading
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from lidar_drivers.base import RangeSource
+from lidar_drivers.scip import (
+    Command,
+    CommandDecoder,
+    InvalidCommand,
+    ScanCommand,
+    TimeCommand,
+    UnknownCommand,
+    encode_info,
+    encode_reply,
+    encode_scan,
+    encode_state,
+    encode_time,
+)
+from lidar_drivers.scip_models import HokuyoModel, get_model
+from racecar_hw.clock import monotonic_ns
+from racecar_hw.fakepty import PtyPort
+
+TOO_NEAR = 2
+"""Error code for a return closer than DMIN."""
+
+
+class _Session:
+    """One client's view of the device: laser, time-sync mode and the running stream."""
+
+    def __init__(self, fake: FakeHokuyo, write: Callable[[bytes], Any], name: str) -> None:
+        self.fake = fake
+        self.name = name
+        self._write = write  # plain or async
+        self._lock = asyncio.Lock()
+        self.decoder = CommandDecoder()
+        self.laser_on = False
+        self.time_mode = False
+        self.stream: asyncio.Task[None] | None = None
+        self.closed = False
+
+    async def send(self, data: bytes) -> None:
+        """Write one whole reply; faults (garbage, split writes) apply here."""
+        async with self._lock:
+            fake = self.fake
+            if fake._garbage:
+                data, fake._garbage = fake._garbage + data, b""
+            if not fake._split:
+                await self._out(data)
+                return
+            i = 0
+            while i < len(data) and not self.closed:
+                n = fake._rng.randint(1, 300)
+                await self._out(data[i:i + n])
+                i += n
+                await asyncio.sleep(0.001)
+
+    async def _out(self, data: bytes) -> None:
+        result = self._write(data)
+        if asyncio.iscoroutine(result):
+            await result
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the host: answer every whole command, in order."""
+        self.decoder.receive_data(data)
+        for cmd in self.decoder:
+            self.fake.received.append(getattr(cmd, "line", ""))
+            reply = self.handle(cmd)
+            if reply is not None:
+                self.fake._spawn(self.send(reply))
+
+    def stop_stream(self) -> None:
+        if self.stream is not None:
+            self.stream.cancel()
+            self.stream = None
+
+    def close(self) -> None:
+        self.closed = True
+        self.stop_stream()
+
+    def state(self) -> str:
+        if self.time_mode:
+            return "002"
+        if self.stream is not None:
+            return "004"
+        return "003" if self.laser_on else "000"
+
+    def handle(self, cmd: Command | UnknownCommand | InvalidCommand) -> bytes | None:
+        """The reply to one command (streams start as a side effect)."""
+        m = self.fake.model
+        if isinstance(cmd, UnknownCommand):
+            return encode_reply(cmd.line, "0E")
+        if isinstance(cmd, InvalidCommand):
+            return encode_reply(cmd.line, cmd.status)
+        if isinstance(cmd, ScanCommand):
+            return self._scan_command(cmd)
+        if isinstance(cmd, TimeCommand):
+            return self._time_command(cmd)
+        name = cmd.name
+        if name == "VV":
+            return encode_info(cmd.line, {"VEND": "Hokuyo Automatic Co.,Ltd.", "PROD": m.product,
+                                          "FIRM": m.firmware, "PROT": "SCIP 2.0",
+                                          "SERI": self.fake.serial})
+        if name == "PP":
+            return encode_info(cmd.line, m.pp_fields())
+        if name == "II":
+            return encode_info(cmd.line, {
+                "MODL": m.product, "LASR": "ON" if self.laser_on else "OFF",
+                "SCSP": f"Initial({m.scan_rpm}[rpm])", "MESM": "Measuring by Normal Mode",
+                "SBPS": "USB only" if m.link == "serial" else "Ethernet 100 [Mbps]",
+                "TIME": f"{self.fake.time_ms():06X}", "STAT": "Sensor is working normally"})
+        if name == "%ST":
+            return encode_state(cmd.line, self.state())
+        if name == "BM":
+            if self.laser_on:
+                return encode_reply(cmd.line, "02")
+            self.time_mode = False
+            self.laser_on = True
+            return encode_reply(cmd.line, "00")
+        if name in ("QT", "RS", "RT"):
+            self.stop_stream()
+            self.laser_on = False
+            if name != "QT":
+                self.time_mode = False
+                self.fake.reset_clock()
+            return encode_reply(cmd.line, "00")
+        return encode_reply(cmd.line, "0E")  # SCIP2.0: already in SCIP 2.0
+
+    def _time_command(self, cmd: TimeCommand) -> bytes:
+        if cmd.code == 0:
+            if self.time_mode:
+                return encode_reply(cmd.line, "02")
+            self.stop_stream()
+            self.laser_on = False
+            self.time_mode = True
+            return encode_reply(cmd.line, "00")
+        if cmd.code == 1:
+            if not self.time_mode:
+                return encode_reply(cmd.line, "04")
+            return encode_time(cmd.line, self.fake.time_ms())
+        if not self.time_mode:
+            return encode_reply(cmd.line, "03")
+        self.time_mode = False
+        return encode_reply(cmd.line, "00")
+
+    def _scan_command(self, cmd: ScanCommand) -> bytes:
+        m = self.fake.model
+        if cmd.end > m.amax or cmd.start > m.amax:
+            return encode_reply(cmd.line, "04")
+        if cmd.streaming:
+            self.stop_stream()
+            self.time_mode = False
+            self.laser_on = True
+            self.stream = self.fake._spawn(self._stream(cmd))
+            return encode_reply(cmd.line, "00")
+        if not self.laser_on:
+            return encode_reply(cmd.line, "10")
+        return self.fake.frame(cmd, cmd.line, "00")
+
+    async def _stream(self, cmd: ScanCommand) -> None:
+        loop = asyncio.get_running_loop()
+        period = self.fake.model.scan_period_s * (cmd.interval + 1)
+        deadline = loop.time() + period  # first frame one period after the acknowledgement
+        remaining = cmd.count
+        while True:
+            delay = deadline - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            elif delay < -period:
+                deadline = loop.time()  # fell far behind (loaded machine): do not burst
+            if remaining:
+                remaining -= 1
+            fake = self.fake
+            if fake._fail_status is not None:
+                status, fake._fail_status = fake._fail_status, None
+                await asyncio.shield(self.send(encode_reply(cmd.echo(remaining), status)))
+            elif not fake._muted:
+                frame = fake.frame(cmd, cmd.echo(remaining), "99")
+                await asyncio.shield(self.send(frame))  # QT stops the stream between frames only
+                fake.scans_sent += 1
+            if cmd.count and remaining == 0:
+                self.stream = None
+                return
+            deadline += period
+
+
+class FakeHokuyo:
+    """A Hokuyo lidar on a pty at ``link`` and/or a TCP server at ``tcp`` (port 0: any free port).
+
+    With neither, a pty without a symlink (see :attr:`path`). After :attr:`ready` is set,
+    :attr:`path` and :attr:`tcp_address` tell clients where to connect.
+    """
+
+    def __init__(self, model: str, range_source: RangeSource, link: str | None = None,
+                 tcp: tuple[str, int] | None = None, seed: int | None = None) -> None:
+        self.model: HokuyoModel = get_model(model)
+        self.range_source = range_source
+        self.link = link
+        self.tcp = tcp
+        self.serial = "H1612345"
+        self.ready = threading.Event()
+        self.scans_sent = 0
+        self.received: deque[str] = deque(maxlen=2000)
+        self.tcp_address: tuple[str, int] | None = None
+        self._pty: PtyPort | None = None
+        self._pty_session: _Session | None = None
+        self._server: asyncio.Server | None = None
+        self._tcp_sessions: dict[asyncio.StreamWriter, _Session] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._boot_ns = monotonic_ns()
+        self._rng = random.Random(seed)
+        self._garbage = b""
+        self._split = False
+        self._corrupt = False
+        self._fail_status: str | None = None
+        self._muted = False
+        self.unplugged = False
+
+    # --- where clients connect --------------------------------------------------------------
+
+    @property
+    def path(self) -> str:
+        """The serial path a client opens (the symlink, else the pty slave)."""
+        return self._pty.path if self._pty is not None else (self.link or "")
+
+    # --- the device clock and measurement ---------------------------------------------------
+
+    def time_ms(self) -> int:
+        """The device's millisecond counter (24 bits)."""
+        return ((monotonic_ns() - self._boot_ns) // 1_000_000) & 0xFFFFFF
+
+    def reset_clock(self) -> None:
+        self._boot_ns = monotonic_ns()
+
+    def measure(self, cmd: ScanCommand, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (mm or error codes) and intensities for the steps ``cmd`` asks for."""
+        m = self.model
+        steps = np.arange(cmd.start, cmd.end + 1)
+        angles = (steps - m.afrt) * (2.0 * np.pi / m.ares)
+        r = np.asarray(self.range_source.ranges(angles, stamp_ns), dtype=np.float64)
+        limit = m.dmax if cmd.width == 3 else min(m.dmax, 4095)
+        with np.errstate(invalid="ignore", over="ignore"):
+            mm = np.where(np.isfinite(r), np.rint(r * 1000.0), np.inf)
+            dist = np.where(mm > limit, m.no_return,
+                            np.where(mm < m.dmin, TOO_NEAR, np.nan_to_num(mm, posinf=0)))
+        dist = dist.astype(np.int64)
+        valid = dist >= m.dmin
+        inten = np.where(valid, np.minimum(262143, 4_000_000 // (1000 + dist)), 0)
+        cluster = max(cmd.cluster, 1)
+        if cluster > 1:
+            pad = (-dist.size) % cluster
+            big = 1 << 30
+            d = np.concatenate([dist, np.full(pad, big)]).reshape(-1, cluster)
+            ok = d >= m.dmin
+            nearest = np.where(ok, d, big).min(axis=1)
+            code = np.where(~ok, d, big).min(axis=1)
+            dist = np.where(nearest < big, nearest, code)
+            i = np.concatenate([inten, np.zeros(pad, dtype=np.int64)]).reshape(-1, cluster)
+            inten = i.max(axis=1)
+        return dist, inten
+
+    def frame(self, cmd: ScanCommand, echo: str, status: str) -> bytes:
+        """One encoded scan reply for ``cmd`` measured now."""
+        now = monotonic_ns()
+        dist, inten = self.measure(cmd, now)
+        data = encode_scan(echo, status, self.time_ms(), dist, inten if cmd.intensities else None,
+                           cmd.width)
+        if self._corrupt:
+            self._corrupt = False
+            first_data = len(echo) + 1 + 4 + 6
+            i = data.index(b"\n", first_data) - 1
+            data = data[:i] + bytes([((data[i] - 0x30 + 1) & 0x3F) + 0x30]) + data[i + 1:]
+        return data
+
+    # --- serving ------------------------------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Serve until cancelled."""
+        self._loop = asyncio.get_running_loop()
+        try:
+            if self.link is not None or self.tcp is None:
+                self._open_pty()
+            if self.tcp is not None:
+                self._server = await asyncio.start_server(self._on_client, self.tcp[0], self.tcp[1])
+                host, port = self._server.sockets[0].getsockname()[:2]
+                self.tcp_address = (host, port)
+            self.ready.set()
+            await asyncio.Event().wait()
+        finally:
+            self.ready.clear()
+            if self._server is not None:
+                self._server.close()
+            for writer in list(self._tcp_sessions):
+                self._drop(writer)
+            self._close_pty()
+            for task in list(self._tasks):
+                task.cancel()
+
+    def _spawn(self, coro: Any) -> asyncio.Task[Any]:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    def _open_pty(self) -> None:
+        assert self._loop is not None
+        self._pty = self._pty or PtyPort(self.link)
+        self._pty.open()
+        port = self._pty
+        self._pty_session = _Session(self, port.write, port.path)
+        fd = port.master_fd
+        assert fd is not None
+        self._loop.add_reader(fd, self._on_pty_readable)
+        self.unplugged = False
+
+    def _on_pty_readable(self) -> None:
+        if self._pty is None or self._pty_session is None:
+            return
+        data = self._pty.read()
+        if data:
+            self._pty_session.feed(data)
+
+    def _close_pty(self) -> None:
+        if self._pty is None:
+            return
+        if self._pty.master_fd is not None and self._loop is not None:
+            with contextlib.suppress(Exception):
+                self._loop.remove_reader(self._pty.master_fd)
+        if self._pty_session is not None:
+            self._pty_session.close()
+            self._pty_session = None
+        self._pty.unplug()
+
+    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async def write(data: bytes) -> None:
+            if writer.is_closing():
+                return
+            writer.write(data)
+            with contextlib.suppress(ConnectionError, OSError):
+                await writer.drain()
+
+        session = _Session(self, write, str(writer.get_extra_info("peername")))
+        self._tcp_sessions[writer] = session
+        try:
+            while not session.closed:
+                try:
+                    data = await reader.read(4096)
+                except (ConnectionError, OSError):
+                    break
+                if not data:
+                    break
+                session.feed(data)
+        finally:
+            self._drop(writer)
+
+    def _drop(self, writer: asyncio.StreamWriter) -> None:
+        session = self._tcp_sessions.pop(writer, None)
+        if session is not None:
+            session.close()
+        transport = writer.transport
+        if transport is not None and not transport.is_closing():
+            transport.abort()
+
+    # --- fault injection (any thread) ---------------------------------------------------------
+
+    def _in_loop(self, fn: Callable[[], None]) -> None:
+        loop = self._loop
+        if loop is None:
+            raise RuntimeError("the fake lidar is not serving")
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            fn()
+            return
+
+        async def call() -> None:
+            fn()
+
+        asyncio.run_coroutine_threadsafe(call(), loop).result(10)
+
+    def inject_garbage(self, n: int) -> None:
+        """Send ``n`` random bytes before the next reply."""
+        self._garbage += bytes(self._rng.randrange(256) for _ in range(n))
+
+    def corrupt_next_checksum(self) -> None:
+        """Give the next scan's first data line a wrong checksum."""
+        self._corrupt = True
+
+    def split_writes(self, on: bool = True) -> None:
+        """Write each reply in random pieces of 1..300 bytes, 1 ms apart."""
+        self._split = on
+
+    def fail_next_frame(self, status: str) -> None:
+        """Answer the next streamed scan with ``status`` (e.g. ``"50"``, a hardware fault)."""
+        self._fail_status = status
+
+    def mute(self, on: bool = True) -> None:
+        """Stop (or resume) sending streamed scans while still answering commands."""
+        self._muted = on
+
+    def unplug(self) -> None:
+        """Pull the USB cable: the pty and its symlink disappear, the device loses power."""
+        def do() -> None:
+            self._close_pty()
+            self.unplugged = True
+        self._in_loop(do)
+
+    def replug(self) -> None:
+        """Plug the pty back in at the same path: a freshly powered device (laser off)."""
+        def do() -> None:
+            self._close_pty()
+            self._open_pty()
+        self._in_loop(do)
+
+    def drop_connection(self) -> None:
+        """Reset every TCP connection (cable pulled); the server keeps listening."""
+        def do() -> None:
+            for writer in list(self._tcp_sessions):
+                self._drop(writer)
+        self._in_loop(do)
+
+    @property
+    def clients(self) -> int:
+        """Open TCP connections."""
+        return len(self._tcp_sessions)

@@ -1,0 +1,149 @@
+"""``racecar-hw fake-lidar`` (a fake Hokuyo or RPLIDAR) and ``racecar-hw lidar-info`` (ask a lidar)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import math
+import threading
+import time
+
+from lidar_drivers.base import LidarDriver, RandomRangeSource, RangeSource, RoomRangeSource, summarize
+from lidar_drivers.params import MODELS, LidarParams
+from lidar_drivers.registry import family, make_driver, make_fake
+from racecar_hw.bus import Bus
+from racecar_hw.devicethread import DeviceThread
+from racecar_hw.errors import DeviceError
+from racecar_hw.link import parse_host_port
+from racecar_hw.messages import LaserScan
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add the ``fake-lidar`` and ``lidar-info`` commands."""
+    fake = subparsers.add_parser(
+        "fake-lidar", help="run a fake lidar (Hokuyo on a pty or TCP, RPLIDAR on a pty)",
+        description="Serve a fake lidar speaking the model's real protocol until Ctrl-C: "
+                    "a Hokuyo (SCIP 2.0) on a pty at --link and/or a TCP port at --tcp, or an "
+                    "RPLIDAR on a pty at --link. It measures a rectangular room or random ranges.")
+    fake.add_argument("--model", required=True, choices=MODELS, type=str.lower, help="lidar model")
+    fake.add_argument("--link", metavar="PATH", help="symlink to the pty to create, e.g. /tmp/lidar")
+    fake.add_argument("--tcp", metavar="HOST:PORT", type=_host_port,
+                      help="listen for SCIP clients here (Hokuyo only; port 0 = any free port)")
+    world = fake.add_mutually_exclusive_group()
+    world.add_argument("--room", default=(8.0, 6.0), type=_room, metavar="WxD",
+                       help="the laser in the middle of a W x D metre room (default 8x6)")
+    world.add_argument("--random", action="store_true",
+                       help="uniform random ranges in [1, 10) m instead of a room")
+    fake.set_defaults(func=fake_lidar)
+
+    info = subparsers.add_parser(
+        "lidar-info", help="print a lidar's model, firmware, geometry and one scan's summary",
+        description="Connect to the lidar, read its identity and scan geometry, wait for one "
+                    "scan and print the closest and farthest valid return with their angles.")
+    where = info.add_mutually_exclusive_group(required=True)
+    where.add_argument("--port", metavar="PATH", help="serial path or pyserial URL")
+    where.add_argument("--tcp", metavar="HOST:PORT", help="Ethernet Hokuyo address")
+    info.add_argument("--model", required=True, choices=MODELS, type=str.lower, help="lidar model")
+    info.add_argument("--baudrate", type=int, default=None, help="serial baud (default: the model's)")
+    info.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                      help="seconds to wait for the first scan (default 5)")
+    info.set_defaults(func=lidar_info)
+
+
+def _room(text: str) -> tuple[float, float]:
+    w, sep, d = text.lower().partition("x")
+    try:
+        width, depth = float(w), float(d)
+    except ValueError:
+        width = depth = math.nan
+    if not sep or not (width > 0 and depth > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a room size like 8x6 (metres)")
+    return width, depth
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    try:
+        return parse_host_port(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
+
+
+def fake_lidar(args: argparse.Namespace) -> int:
+    """Serve a fake lidar until Ctrl-C; exits 0."""
+    if args.link is None and args.tcp is None:
+        print("racecar-hw fake-lidar: give --link PATH and/or --tcp HOST:PORT")
+        return 2
+    source: RangeSource = RandomRangeSource() if args.random else RoomRangeSource(*args.room)
+    fake = make_fake(args.model, source, link=args.link, tcp=args.tcp)
+    with DeviceThread("fake-lidar") as thread:
+        served = thread.spawn(fake.serve())
+        ready: threading.Event | None = getattr(fake, "ready", None)
+        if ready is not None and not ready.wait(10):
+            if served.done():
+                served.result()
+            print("racecar-hw fake-lidar: the fake lidar did not start")
+            return 1
+        places = []
+        if args.link:
+            places.append(f"pty {args.link}")
+        address = getattr(fake, "tcp_address", None)
+        if address is not None:
+            places.append(f"tcp {address[0]}:{address[1]}")
+        world = "random ranges" if args.random else f"a {args.room[0]:g} x {args.room[1]:g} m room"
+        print(f"fake {args.model} at {', '.join(places)} measuring {world}; Ctrl-C to stop",
+              flush=True)
+        try:
+            while not served.done():
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            return 0
+        served.result()
+    return 0
+
+
+def lidar_info(args: argparse.Namespace) -> int:
+    """Print the lidar's identity, geometry and one scan's closest/farthest return."""
+    if args.tcp and family(args.model) != "hokuyo":
+        print(f"racecar-hw lidar-info: {args.model} is a serial lidar; use --port")
+        return 2
+    params = LidarParams(model=args.model, port=args.port, tcp=args.tcp, baudrate=args.baudrate,
+                         reconnect_backoff_min_s=0.2)
+    driver, scan = asyncio.run(_first_scan(params, args.timeout))
+    if scan is None:
+        print(f"racecar-hw lidar-info: no scan within {args.timeout:g} s"
+              + (f" ({driver.last_error})" if driver.last_error else ""))
+        return 1
+    reported = driver.info.get("model")
+    print(f"model:      {args.model}" + (f" (device reports {reported})" if reported else ""))
+    for key, value in driver.info.items():
+        if key != "model":
+            print(f"{key + ':':<11} {value}")
+    geo = driver.geometry
+    if geo is not None:
+        print(f"geometry:   {geo.beams} beams, {math.degrees(geo.angle_min):.2f}..."
+              f"{math.degrees(geo.angle_max):.2f} deg every {math.degrees(geo.angle_increment):.3f}"
+              f" deg, {geo.range_min:g}..{geo.range_max:g} m, scan {geo.scan_time * 1000:.1f} ms")
+    s = summarize(scan)
+    print(f"scan:       {len(scan.ranges)} beams, {s.valid_beams} valid")
+    if s.valid_beams:
+        print(f"closest:    {s.closest:.3f} m at {math.degrees(s.closest_angle):.2f} deg")
+        print(f"farthest:   {s.farthest:.3f} m at {math.degrees(s.farthest_angle):.2f} deg")
+    return 0
+
+
+async def _first_scan(params: LidarParams, timeout: float) -> tuple[LidarDriver, LaserScan | None]:
+    bus = Bus()
+    driver = make_driver(bus, params)
+    got: list[LaserScan] = []
+    bus.subscribe(params.topic, got.append)
+    task = asyncio.create_task(driver.run())
+    deadline = time.monotonic() + timeout
+    try:
+        while not got and not task.done() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, DeviceError):
+            await task
+    return driver, (got[0] if got else None)

@@ -1,0 +1,76 @@
+"""``racecar-hw fake-lidar`` and ``racecar-hw lidar-info`` against real ptys, TCP and a subprocess."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.scip_fake import FakeHokuyo
+from racecar_hw.cli import main
+
+
+@pytest.mark.parametrize("command", ["fake-lidar", "lidar-info"])
+def test_help(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    assert "--model" in capsys.readouterr().out
+
+
+def test_bad_arguments_exit_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["fake-lidar", "--model", "ust-10lx", "--tcp", "127.0.0.1:0", "--room", "0x3"])
+    assert exc.value.code == 2
+    assert main(["fake-lidar", "--model", "ust-10lx"]) == 2
+
+
+@pytest.mark.parametrize("transport", ["tcp", "pty"])
+def test_lidar_info_against_the_fake(device_thread, tmp_path, capsys, transport):
+    fake = FakeHokuyo("urg-04lx" if transport == "pty" else "ust-10lx", RoomRangeSource(8, 6),
+                      link=str(tmp_path / "urg") if transport == "pty" else None,
+                      tcp=("127.0.0.1", 0) if transport == "tcp" else None)
+    device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
+    where = (["--tcp", "{}:{}".format(*fake.tcp_address)] if transport == "tcp"
+             else ["--port", fake.path])
+    assert main(["lidar-info", *where, "--model", fake.model.name, "--timeout", "15"]) == 0
+    out = capsys.readouterr().out
+    assert fake.model.product in out and f"firmware:   {fake.model.firmware}" in out
+    assert f"{fake.model.steps} beams" in out
+    # in the middle of an 8 x 6 m room the nearest wall is 3 m away at +-90 deg
+    closest = re.search(r"closest:\s+([\d.]+) m at (-?[\d.]+) deg", out)
+    assert closest and float(closest[1]) == pytest.approx(3.0, abs=0.002)
+    assert abs(float(closest[2])) == pytest.approx(90, abs=2)
+    assert re.search(r"farthest:\s+([\d.]+) m", out)
+
+
+def test_lidar_info_without_a_device_fails_cleanly(tmp_path, capsys):
+    assert main(["lidar-info", "--port", str(tmp_path / "none"), "--model", "urg-04lx",
+                 "--timeout", "0.5"]) == 1
+    assert "no scan" in capsys.readouterr().out
+
+
+def test_fake_lidar_process_serves_until_ctrl_c(capsys):
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-lidar", "--model",
+                             "ust-10lx", "--tcp", "127.0.0.1:0", "--room", "10x4"],
+                            stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        port = re.search(r"tcp 127\.0\.0\.1:(\d+)", line)
+        assert port, line
+        assert main(["lidar-info", "--tcp", f"127.0.0.1:{port[1]}", "--model", "ust-10lx",
+                     "--timeout", "15"]) == 0
+        assert "closest:    2.000 m" in capsys.readouterr().out  # 10 x 4 room: 2 m to the side
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)

@@ -1,0 +1,299 @@
+"""RplidarDriver against FakeRplidar over real ptys: sessions, conventions, faults, reconnects."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Awaitable, Callable
+
+import numpy as np
+import pytest
+from conftest import async_wait_for, wait_for
+
+from lidar_drivers.base import RoomRangeSource, beam_count
+from lidar_drivers.params import LidarParams
+from lidar_drivers.rplidar_codec import Command
+from lidar_drivers.rplidar_driver import RplidarDriver
+from lidar_drivers.rplidar_fake import FakeRplidar
+from lidar_drivers.rplidar_models import MODELS
+from racecar_hw.bus import Bus
+from racecar_hw.errors import ConfigError
+from racecar_hw.messages import LaserScan
+
+ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned: no symmetry
+
+
+def run_driver(device_thread, tmp_path, model: str,
+               scenario: Callable[[RplidarDriver, FakeRplidar, list[LaserScan]], Awaitable[None]],
+               **params: object) -> None:
+    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"))
+    device_thread.spawn(fake.serve())
+    wait_for(lambda: fake.port.plugged)
+
+    async def main() -> None:
+        bus = Bus()
+        scans: list[LaserScan] = []
+        bus.subscribe("/scan", scans.append)
+        driver = RplidarDriver(bus, LidarParams(model=model, port=fake.link, **params))
+        task = asyncio.create_task(driver.run())
+        try:
+            await scenario(driver, fake, scans)
+        finally:
+            task.cancel()
+            done, _ = await asyncio.wait({task}, timeout=10)
+            assert done and task.cancelled()
+
+    asyncio.run(main())
+
+
+def assert_room(scan: LaserScan, tol: float = 0.003) -> None:
+    """Every beam's range is what the room shows within half a beam of the beam's ROS angle.
+
+    The slack covers the wire's quantisation: 1/64 degree angles (express sample angles are
+    interpolated and truncated like the SDK's) and 1/4 mm (standard) or 1 mm (express) distances.
+    """
+    assert np.all(np.isfinite(scan.ranges))
+    half = scan.angle_increment / 2 + math.radians(0.05)
+    window = scan.angles()[:, None] + np.linspace(-half, half, 9)[None, :]
+    truth = ROOM.ranges(window.ravel()).reshape(window.shape)
+    lo, hi = truth.min(axis=1) - tol, truth.max(axis=1) + tol
+    assert np.all((scan.ranges >= lo) & (scan.ranges <= hi))
+
+
+def assert_conventions(scan: LaserScan, model: str) -> None:
+    spec = MODELS[model]
+    assert scan.header.frame_id == "laser"
+    assert scan.angle_increment > 0
+    assert len(scan.ranges) == beam_count(scan.angle_min, scan.angle_max, scan.angle_increment)
+    assert scan.angle_min == pytest.approx(-math.pi)
+    assert scan.angle_max == pytest.approx(math.pi - scan.angle_increment)
+    # beams sweep from high to low index: negative time increment spanning one revolution
+    assert scan.time_increment < 0
+    assert -scan.time_increment * len(scan.ranges) == pytest.approx(scan.scan_time)
+    assert scan.scan_time == pytest.approx(0.1, rel=0.05)
+    assert (scan.range_min, scan.range_max) == (spec.range_min, spec.range_max)
+    assert len(scan.ranges) % 2 == 0
+    assert scan.ranges.dtype == np.float32
+
+
+@pytest.mark.parametrize(("model", "mode"), [("a1", "standard"), ("a2m8", "express"),
+                                              ("a3", "standard"), ("s1", "express")])
+def test_room_through_fake_and_driver_keeps_ros_angles(device_thread, tmp_path, model, mode):
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 3, 15)
+        for scan in scans:
+            assert_conventions(scan, model)
+            assert_room(scan)
+        stamps = [s.header.stamp.to_ns() for s in scans]
+        assert all(b - a == pytest.approx(1e8, rel=0.5) for a, b in zip(stamps[:-1], stamps[1:], strict=True))
+        assert driver.info["model"] == MODELS[model].name
+        assert driver.info["firmware"] == "1.29"
+        assert driver.info["scan_mode"] == mode
+        assert driver.geometry is not None and driver.geometry.beams == len(scans[-1].ranges)
+        samples_per_rev = (fake.samples_per_rev_express if mode == "express"
+                           else fake.samples_per_rev_standard)
+        assert 0.9 * samples_per_rev < len(scans[-1].ranges) < samples_per_rev
+        assert driver.stats.scans == len(scans)
+        assert fake.scans_sent >= len(scans)
+
+    run_driver(device_thread, tmp_path, model, scenario, scan_mode=mode)
+
+
+def test_front_left_is_positive_angle(device_thread, tmp_path):
+    """The wall 1.5 m to the right (y=0) and 4.5 m to the left: CW device data became CCW."""
+    room = RoomRangeSource(8.0, 6.0, x=4.0, y=1.5, yaw=0.0)
+
+    async def scenario(driver, fake, scans):
+        fake.range_source = room
+        await async_wait_for(lambda: len(scans) >= 4, 15)
+        scan = scans[-1]
+        left = scan.ranges[np.argmin(np.abs(scan.angles() - math.pi / 2))]
+        right = scan.ranges[np.argmin(np.abs(scan.angles() + math.pi / 2))]
+        ahead = scan.ranges[len(scan.ranges) // 2]
+        assert scan.angles()[len(scan.ranges) // 2] == pytest.approx(0.0, abs=1e-9)
+        assert (left, right, ahead) == pytest.approx((4.5, 1.5, 4.0), abs=0.02)
+
+    run_driver(device_thread, tmp_path, "a1", scenario)
+
+
+def test_session_requests_and_motor_control(device_thread, tmp_path, caplog):
+    caplog.set_level(logging.WARNING)
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 1, 15)
+        cmds = [r.command for r in fake.requests]
+        assert cmds[:4] == [Command.STOP, Command.GET_INFO, Command.GET_HEALTH, Command.GET_SAMPLERATE]
+        assert Command.GET_ACC_BOARD_FLAG in cmds
+        assert fake.motor_pwm == 700
+        assert driver.info["motor"] == "pwm 700"
+        assert driver.baudrate == 256000
+        assert driver.health is not None and driver.health.status == 0
+        assert driver.sample_rate is not None and driver.sample_rate.standard_us == MODELS["a2m7"].standard_us
+
+    run_driver(device_thread, tmp_path, "a2m7", scenario, motor_pwm=700)
+
+
+def test_a1_dtr_refused_by_the_pty_is_not_fatal(device_thread, tmp_path, caplog):
+    caplog.set_level(logging.WARNING)
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        assert driver.info["motor"] == "dtr"
+        assert driver.baudrate == 115200
+
+    run_driver(device_thread, tmp_path, "a1", scenario)
+    assert sum("cannot set DTR" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_default_baud_rates_and_config_errors():
+    bus = Bus()
+    expected = {"a1": 115200, "a2m8": 115200, "a2m7": 256000, "a2m12": 256000, "a3": 256000,
+                "s1": 256000, "c1": 460800}
+    for model, baud in expected.items():
+        assert RplidarDriver(bus, LidarParams(model=model, port="/dev/null")).baudrate == baud
+    assert RplidarDriver(bus, LidarParams(model="a1", port="/dev/null", baudrate=9600)).baudrate == 9600
+    with pytest.raises(ConfigError, match="port"):
+        RplidarDriver(bus, LidarParams(model="a1"))
+
+
+def test_crop_and_intensities(device_thread, tmp_path):
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        scan = scans[-1]
+        assert scan.angle_min >= -math.pi / 2 - 1e-6 and scan.angle_max <= math.pi / 2 + 1e-6
+        assert scan.angle_min - scan.angle_increment < -math.pi / 2
+        assert len(scan.intensities) == len(scan.ranges)
+        assert np.all(scan.intensities == 47)
+        assert_room(scan)
+        # the stamp is beam 0's time: later crops start later in the sweep, so earlier stamps
+        assert len(scan.ranges) == beam_count(scan.angle_min, scan.angle_max, scan.angle_increment)
+
+    run_driver(device_thread, tmp_path, "a1", scenario, angle_min=-math.pi / 2, angle_max=math.pi / 2,
+               intensities=True)
+
+
+def test_out_of_range_is_inf(device_thread, tmp_path):
+    big = RoomRangeSource(60.0, 60.0, x=30.0, y=5.0)
+
+    async def scenario(driver, fake, scans):
+        fake.range_source = big
+        await async_wait_for(lambda: len(scans) >= 3, 15)
+        scan = scans[-1]
+        half = scan.angle_increment / 2 + math.radians(0.05)
+        window = scan.angles()[:, None] + np.linspace(-half, half, 9)[None, :]
+        truth = big.ranges(window.ravel()).reshape(window.shape)
+        far = (truth > MODELS["a1"].range_max).all(axis=1)
+        near = (truth < MODELS["a1"].range_max).all(axis=1)
+        assert far.sum() > 10 and near.sum() > 10
+        assert np.all(np.isinf(scan.ranges[far]))
+        assert np.all(np.isfinite(scan.ranges[near]))
+        assert np.all((scan.ranges[near] >= truth[near].min(axis=1) - 0.003)
+                      & (scan.ranges[near] <= truth[near].max(axis=1) + 0.003))
+
+    run_driver(device_thread, tmp_path, "a1", scenario)
+
+
+@pytest.mark.parametrize("mode", ["standard", "express"])
+def test_garbage_bad_checksums_and_split_writes(device_thread, tmp_path, mode):
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        fake.split_writes(True)
+        n = len(scans)
+        await async_wait_for(lambda: len(scans) >= n + 3, 15)
+        fake.split_writes(False)
+        for _ in range(3):
+            fake.inject_garbage(37)
+            fake.corrupt_next_checksum()
+            await asyncio.sleep(0.15)
+        await async_wait_for(lambda: driver.stats.resyncs >= 3 and driver.stats.checksum_errors >= 3, 15)
+        n = len(scans)
+        await async_wait_for(lambda: len(scans) >= n + 3, 15)
+        for scan in scans[-2:]:
+            assert_conventions(scan, "a2m8")
+            assert_room(scan)
+        assert driver.stats.reconnects == 0
+
+    run_driver(device_thread, tmp_path, "a2m8", scenario, scan_mode=mode)
+
+
+def test_unplug_replug_reconnects_and_streams_again(device_thread, tmp_path):
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        fake.unplug()
+        await async_wait_for(lambda: not driver.connected and driver.stats.device_errors >= 1, 15)
+        await asyncio.sleep(0.3)
+        fake.replug()
+        n = len(scans)
+        await async_wait_for(lambda: len(scans) >= n + 3, 20)
+        assert driver.stats.reconnects >= 1
+        assert driver.connected
+        assert_room(scans[-1])
+
+    run_driver(device_thread, tmp_path, "a2m8", scenario, scan_mode="express")
+
+
+def test_health_error_is_reset_and_the_banner_skipped(device_thread, tmp_path):
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 1, 15)
+        assert fake.resets == 1
+        assert driver.health is not None and driver.health.status == 0
+        assert driver.stats.reconnects == 0
+        assert_room(scans[-1])
+
+    fake_health = {"status": 2, "error_code": 0x8001}
+
+    def scenario_with_fault(driver, fake, scans):
+        fake.set_health(**fake_health)
+        return scenario(driver, fake, scans)
+
+    run_driver_before_start(device_thread, tmp_path, "a1", scenario_with_fault)
+
+
+def test_health_error_that_persists_is_surfaced(device_thread, tmp_path):
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: driver.last_error is not None, 15)
+        assert "0x8001" in driver.last_error and "protection stop" in driver.last_error
+        assert not scans
+
+    def with_fault(driver, fake, scans):
+        fake.set_health(2, 0x8001, clears_on_reset=False)
+        return scenario(driver, fake, scans)
+
+    run_driver_before_start(device_thread, tmp_path, "a1", with_fault)
+
+
+def test_device_reset_mid_stream_banner_then_recovery(device_thread, tmp_path):
+    """A device that reboots (banner, scanning stopped) goes stale; the driver reconnects."""
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        fake.reboot()
+        await async_wait_for(lambda: driver.stats.device_errors >= 1, 15)
+        n = len(scans)
+        await async_wait_for(lambda: len(scans) >= n + 2, 15)
+        assert_room(scans[-1])
+
+    run_driver(device_thread, tmp_path, "a1", scenario, stale_timeout_s=0.3)
+
+
+def run_driver_before_start(device_thread, tmp_path, model, scenario, **params):
+    """Like run_driver, but ``scenario`` runs its synchronous setup before the driver connects."""
+    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"))
+    device_thread.spawn(fake.serve())
+    wait_for(lambda: fake.port.plugged)
+
+    async def main() -> None:
+        bus = Bus()
+        scans: list[LaserScan] = []
+        bus.subscribe("/scan", scans.append)
+        driver = RplidarDriver(bus, LidarParams(model=model, port=fake.link, **params))
+        body = scenario(driver, fake, scans)
+        task = asyncio.create_task(driver.run())
+        try:
+            await body
+        finally:
+            task.cancel()
+            done, _ = await asyncio.wait({task}, timeout=10)
+            assert done and task.cancelled()
+
+    asyncio.run(main())
