@@ -1,1 +1,1 @@
-"""Shipped data files (configs, scenarios, maps, systemd unit, udev rules), installed as racecar_hw.shipped."""
+"""Shipped data (configs, scenarios, maps, systemd unit, udev rules); installed as racecar_hw.shipped."""
