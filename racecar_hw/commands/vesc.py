@@ -1,0 +1,68 @@
+"""``racecar-hw fake-vesc`` (a fake VESC on a pty) and ``racecar-hw vesc-info`` (ask a VESC)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+
+from vesc.codec import values_layout
+from vesc.driver import probe
+from vesc.fake import FakeVesc
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add the ``fake-vesc`` and ``vesc-info`` commands."""
+    fake = subparsers.add_parser(
+        "fake-vesc", help="run a fake VESC on a pty until interrupted",
+        description="Create a pty that speaks the VESC protocol (motor, servo, battery model) and a "
+                    "symlink to it at --link, then serve until Ctrl-C.")
+    fake.add_argument("--link", required=True, metavar="PATH", help="symlink to create, e.g. /tmp/vesc")
+    fake.add_argument("--firmware", default="6.2", type=_firmware, metavar="X.Y",
+                      help="firmware version to emulate; picks the GET_VALUES layout (default 6.2)")
+    fake.set_defaults(func=fake_vesc)
+
+    info = subparsers.add_parser(
+        "vesc-info", help="print a VESC's firmware version and one telemetry sample",
+        description="Open the VESC at --port, ask FW_VERSION and GET_VALUES, print both.")
+    info.add_argument("--port", required=True, metavar="PATH", help="serial path or pyserial URL")
+    info.add_argument("--baudrate", type=int, default=115200, help="baud rate (default 115200)")
+    info.add_argument("--timeout", type=float, default=2.0, metavar="S",
+                      help="seconds to wait for each reply (default 2)")
+    info.set_defaults(func=vesc_info)
+
+
+def _firmware(text: str) -> tuple[int, int]:
+    major, sep, minor = text.partition(".")
+    if not sep or not major.isdigit() or not minor.isdigit():
+        raise argparse.ArgumentTypeError(f"{text!r} is not a version like 6.2 or 3.40")
+    return int(major), int(minor)
+
+
+def fake_vesc(args: argparse.Namespace) -> int:
+    """Serve a fake VESC at ``args.link`` until Ctrl-C; exits 0."""
+    fake = FakeVesc(args.link, firmware=args.firmware).open()
+    major, minor = args.firmware
+    print(f"fake VESC (firmware {major}.{minor:02d}) at {fake.path} -> {fake.port.slave_path}; "
+          "Ctrl-C to stop", flush=True)
+    try:
+        asyncio.run(fake.serve())
+    except KeyboardInterrupt:
+        pass
+    finally:
+        fake.port.close()
+    return 0
+
+
+def vesc_info(args: argparse.Namespace) -> int:
+    """Print the firmware version and one decoded GET_VALUES reply of the VESC at ``args.port``."""
+    fw, values = asyncio.run(probe(args.port, args.baudrate, args.timeout))
+    print(f"firmware: {fw.major}.{fw.minor:02d}")
+    print(f"hardware: {fw.hw_name if fw.hw_name is not None else '(not reported)'}")
+    if fw.uuid is not None:
+        print(f"uuid:     {fw.uuid.hex()}")
+    layout = values_layout(fw.version)
+    print(f"telemetry (GET_VALUES layout {layout.name}, {layout.value} bytes):")
+    for f in dataclasses.fields(values):
+        print(f"  {f.name:<20} {getattr(values, f.name)}")
+    return 0

@@ -1,0 +1,365 @@
+"""The VESC codec: known frames, every GET_VALUES layout, resync, refusal, fuzzing, pyvesc cross-check."""
+
+from __future__ import annotations
+
+import binascii
+import math
+import struct
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from racecar_hw.errors import LocalProtocolError
+from vesc.codec import (
+    MAX_PAYLOAD,
+    Alive,
+    FwVersion,
+    FwVersionRequest,
+    GetValuesRequest,
+    Layout,
+    RawPacket,
+    Role,
+    SetCurrent,
+    SetCurrentBrake,
+    SetDuty,
+    SetPosition,
+    SetRpm,
+    SetServoPosition,
+    Values,
+    VescCodec,
+    decode_values,
+    encode_values,
+    frame,
+    values_layout,
+)
+
+KNOWN_FRAMES = [
+    (SetRpm(5000), "02 05 08 00 00 13 88 44 8D 03"),
+    (SetServoPosition(0.5), "02 03 0C 01 F4 E9 CB 03"),
+    (GetValuesRequest(), "02 01 04 40 84 03"),
+    (Alive(), "02 01 1E F3 FF 03"),
+    (FwVersionRequest(), "02 01 00 00 00 03"),
+    (SetCurrent(5.0), "02 05 06 00 00 13 88 8B 25 03"),
+]
+
+SAMPLE = Values(
+    temp_fet=41.3, temp_motor=38.2, current_motor=-12.34, current_input=3.21, avg_id=-0.5,
+    avg_iq=12.0, duty=-0.345, erpm=-23250, v_in=15.9, amp_hours=1.2345, amp_hours_charged=0.0123,
+    watt_hours=18.5, watt_hours_charged=0.25, tachometer=-123456, tachometer_abs=987654, fault=0,
+    pid_pos=123.456789, controller_id=7, temp_mos1=40.1, temp_mos2=41.3, temp_mos3=39.9,
+    avg_vd=-0.123, avg_vq=5.432, status=1, temp_pcb=0.0)
+
+#: Fields present in each layout, beyond those of 3.07.
+LAYOUT_FIELDS = {
+    Layout.V3_07: set(),
+    Layout.V3_34: {"pid_pos"},
+    Layout.V3_40: {"pid_pos", "controller_id"},
+    Layout.V3_48: {"pid_pos", "controller_id", "temp_mos1", "temp_mos2", "temp_mos3"},
+    Layout.V3_60: {"pid_pos", "controller_id", "temp_mos1", "temp_mos2", "temp_mos3", "avg_vd", "avg_vq"},
+    Layout.V5_03: {"pid_pos", "controller_id", "temp_mos1", "temp_mos2", "temp_mos3", "avg_vd", "avg_vq",
+                   "status"},
+}
+OPTIONAL = LAYOUT_FIELDS[Layout.V5_03] | {"temp_pcb"}
+
+
+def host() -> VescCodec:
+    return VescCodec(Role.HOST)
+
+
+def device(firmware: tuple[int, int] | None = None) -> VescCodec:
+    return VescCodec(Role.DEVICE, firmware)
+
+
+@pytest.mark.parametrize(("packet", "hexframe"), KNOWN_FRAMES)
+def test_known_frames(packet, hexframe):
+    assert host().send(packet) == bytes.fromhex(hexframe)
+
+
+@pytest.mark.parametrize(("packet", "hexframe"), KNOWN_FRAMES)
+def test_device_decodes_known_frames(packet, hexframe):
+    codec = device()
+    codec.receive_data(bytes.fromhex(hexframe))
+    assert codec.events() == [packet]
+    assert codec.stats.frames == 1
+
+
+def test_crc_is_xmodem():
+    assert binascii.crc_hqx(b"123456789", 0) == 0x31C3
+    assert frame(b"123456789")[-3:-1] == b"\x31\xc3"
+
+
+@pytest.mark.parametrize("packet", [SetDuty(-0.25), SetCurrent(-7.5), SetCurrentBrake(12.0), SetRpm(-1234),
+                                    SetPosition(359.5), SetServoPosition(0.15), SetServoPosition(1.0)])
+def test_commands_round_trip(packet):
+    codec = device()
+    codec.receive_data(host().send(packet))
+    assert codec.events() == [packet]
+
+
+def test_scaling_on_the_wire():
+    h = host()
+    assert h.send(SetDuty(0.5))[3:7] == struct.pack(">i", 50000)
+    assert h.send(SetCurrentBrake(2.5))[3:7] == struct.pack(">i", 2500)
+    assert h.send(SetPosition(90.0))[3:7] == struct.pack(">i", 90_000_000)
+    assert h.send(SetServoPosition(0.123))[3:5] == struct.pack(">h", 123)
+
+
+@pytest.mark.parametrize("packet", [
+    SetRpm(math.nan), SetRpm(math.inf), SetRpm(-math.inf), SetRpm(2.0**31), SetDuty(1.01), SetDuty(math.nan),
+    SetCurrent(math.nan), SetCurrent(3e6), SetCurrentBrake(math.inf), SetPosition(math.nan),
+    SetServoPosition(-0.01), SetServoPosition(1.2), SetServoPosition(math.nan),
+])
+def test_encoding_refuses_unsendable_values(packet):
+    with pytest.raises(LocalProtocolError):
+        host().send(packet)
+
+
+def test_roles_refuse_the_other_sides_packets():
+    with pytest.raises(LocalProtocolError):
+        host().send(FwVersion(6, 2))
+    with pytest.raises(LocalProtocolError):
+        host().send(Values())
+    with pytest.raises(LocalProtocolError):
+        device().send(SetRpm(0))
+    with pytest.raises(LocalProtocolError):
+        frame(b"")
+
+
+def test_firmware_selects_layout():
+    assert values_layout((2, 18)) is Layout.PRE_3_07
+    assert values_layout((3, 7)) is Layout.V3_07
+    assert values_layout((3, 33)) is Layout.V3_07
+    assert values_layout((3, 34)) is Layout.V3_34
+    assert values_layout((3, 40)) is Layout.V3_40
+    assert values_layout((3, 48)) is Layout.V3_48
+    assert values_layout((3, 60)) is Layout.V3_60
+    assert values_layout((5, 2)) is Layout.V3_60
+    assert values_layout((5, 3)) is Layout.V5_03
+    assert values_layout((6, 2)) is Layout.V5_03
+    assert values_layout(None) is Layout.V5_03
+
+
+def _approx_equal(a: Values, b: Values, fields: set[str]) -> None:
+    for name in fields:
+        assert getattr(a, name) == pytest.approx(getattr(b, name), abs=1e-6), name
+
+
+@pytest.mark.parametrize("fw", [(3, 7), (3, 34), (3, 40), (3, 48), (3, 60), (5, 2), (5, 3), (6, 2), (6, 5)])
+def test_values_every_layout_round_trip(fw):
+    layout = values_layout(fw)
+    payload = encode_values(SAMPLE, layout)
+    assert len(payload) == layout.value
+    assert payload[23:27] == struct.pack(">i", -23250)  # rpm at offset 23 since 3.07
+    got = decode_values(payload, fw)
+    assert isinstance(got, Values)
+    present = {f for f in Values.__dataclass_fields__ if f not in OPTIONAL} | LAYOUT_FIELDS[layout]
+    _approx_equal(got, SAMPLE, present)
+    for absent in OPTIONAL - present:
+        assert getattr(got, absent) == 0
+
+
+def test_values_pre_3_07_layout():
+    payload = encode_values(SAMPLE, Layout.PRE_3_07)
+    assert len(payload) == 56
+    assert payload[25:29] == struct.pack(">i", -23250)  # rpm at offset 25 before 3.07
+    got = decode_values(payload, (2, 18))
+    assert isinstance(got, Values)
+    _approx_equal(got, SAMPLE, {"current_motor", "current_input", "duty", "erpm", "v_in", "amp_hours",
+                                "watt_hours", "tachometer", "tachometer_abs", "fault", "temp_mos1",
+                                "temp_mos2", "temp_mos3", "temp_fet"})
+
+
+def test_values_ignore_trailing_bytes_and_refuse_short():
+    payload = encode_values(SAMPLE, Layout.V3_40) + b"\x99" * 20
+    got = decode_values(payload, (3, 40))
+    assert isinstance(got, Values) and got.controller_id == 7 and got.temp_mos1 == 0
+    # an unknown firmware decodes every field the payload carries
+    full = decode_values(encode_values(SAMPLE, Layout.V5_03) + b"\x00\x01", None)
+    assert isinstance(full, Values) and full.status == 1
+    short = decode_values(encode_values(SAMPLE, Layout.V5_03)[:40], (6, 2))
+    assert isinstance(short, RawPacket) and "54" in short.reason
+
+
+def test_host_picks_layout_from_fw_version_reply():
+    dev = device((3, 40))
+    h = host()
+    h.receive_data(dev.send(FwVersion(3, 40, "410", bytes(range(12)))) + dev.send(SAMPLE))
+    fw, values = h.events()
+    assert fw == FwVersion(3, 40, "410", bytes(range(12)))
+    assert h.firmware == (3, 40)
+    assert isinstance(values, Values) and values.controller_id == 7 and values.erpm == -23250
+
+
+@pytest.mark.parametrize("reply", [
+    FwVersion(2, 18), FwVersion(3, 7, "40"), FwVersion(3, 40, "410", bytes(range(12))),
+    FwVersion(5, 2, "60", bytes(range(12)), b"\x00\x00\x00\x00"),
+    FwVersion(6, 5, "60_MK6", bytes(range(12)), b"\x00\x00\x00\x00\x00\x00\x00\x00fw\x00\x12\x34\x56\x78"),
+])
+def test_fw_version_round_trip(reply):
+    h = host()
+    h.receive_data(device().send(reply))
+    assert h.events() == [reply]
+    assert h.firmware == reply.version
+
+
+def test_long_frames_and_three_byte_lengths():
+    payload = bytes([0x15]) + b"x" * 299  # a long PRINT
+    long = frame(payload)
+    assert long[:3] == b"\x03\x01\x2c"
+    huge = b"\x04\x00\x00\x05" + b"\x08\x00\x00\x03\xe8" + struct.pack(">H", binascii.crc_hqx(
+        b"\x08\x00\x00\x03\xe8", 0)) + b"\x03"
+    h, d = host(), device()
+    h.receive_data(long)
+    assert h.events() == [RawPacket(payload)]
+    d.receive_data(huge)
+    assert d.events() == [SetRpm(1000)]
+
+
+def test_unknown_and_malformed_packets_are_raw_events():
+    d = device()
+    d.receive_data(frame(b"\x63\x01\x02") + frame(b"\x08\x00") + frame(b"\x0c"))
+    unknown, short_rpm, short_servo = d.events()
+    assert unknown == RawPacket(b"\x63\x01\x02") and unknown.command_id == 0x63
+    assert isinstance(short_rpm, RawPacket) and short_rpm.reason != "unknown"
+    assert isinstance(short_servo, RawPacket)
+    assert d.stats.raw_packets == 3 and d.stats.frames == 3
+
+
+def test_resync_after_garbage_bad_crc_and_bad_end_byte():
+    good = host().send(SetRpm(777))
+    bad_crc = bytearray(good)
+    bad_crc[-2] ^= 0x01
+    bad_end = bytearray(good)
+    bad_end[-1] = 0x00
+    d = device()
+    d.receive_data(b"\xff\x00\x13" + bytes(bad_crc) + bytes(bad_end) + good)
+    assert d.events() == [SetRpm(777)]
+    assert d.stats.crc_errors == 1
+    assert d.stats.frames == 1
+    assert d.stats.resyncs == 1
+    assert d.stats.dropped_bytes == 3 + 2 * len(good)
+
+
+def test_false_start_inside_a_frame_is_skipped_one_byte_at_a_time():
+    # "02 FF" announces 255 bytes; the real frame starts one byte later and must still be found
+    good = host().send(SetServoPosition(0.25))
+    d = device()
+    d.receive_data(b"\x02" + good + bytes(260))
+    assert d.events() == [SetServoPosition(0.25)]
+
+
+def test_partial_frame_waits():
+    data = host().send(SetRpm(-42))
+    d = device()
+    for b in data[:-1]:
+        d.receive_data(bytes([b]))
+        assert d.next_event() is None
+    d.receive_data(data[-1:])
+    assert d.next_event() == SetRpm(-42)
+    assert d.next_event() is None
+    assert d.stats.dropped_bytes == 0
+
+
+# --- properties --------------------------------------------------------------------------------
+
+requests = st.one_of(
+    st.builds(SetRpm, st.integers(-(2**31), 2**31 - 1)),
+    st.builds(SetDuty, st.integers(-100000, 100000).map(lambda i: i / 1e5)),
+    st.builds(SetCurrent, st.integers(-(2**31), 2**31 - 1).map(lambda i: i / 1e3)),
+    st.builds(SetCurrentBrake, st.integers(0, 2**31 - 1).map(lambda i: i / 1e3)),
+    st.builds(SetPosition, st.integers(0, 360_000_000).map(lambda i: i / 1e6)),
+    st.builds(SetServoPosition, st.integers(0, 1000).map(lambda i: i / 1000)),
+    st.just(Alive()), st.just(GetValuesRequest()), st.just(FwVersionRequest()),
+)
+#: Garbage that cannot start a frame, so frames after it are never swallowed by a false start.
+no_start = st.binary(max_size=40).map(lambda b: bytes(x for x in b if x not in (2, 3, 4)))
+
+
+def _chunks(data: bytes, cuts: list[int]) -> list[bytes]:
+    points = sorted({c % (len(data) + 1) for c in cuts} | {0, len(data)})
+    return [data[a:b] for a, b in zip(points, points[1:], strict=False)]
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=2000), st.lists(st.integers(0, 4000), max_size=20), st.sampled_from(Role))
+def test_decoder_never_raises(data, cuts, role):
+    codec = VescCodec(role, firmware=(5, 2))
+    for chunk in _chunks(data, cuts):
+        codec.receive_data(chunk)
+        for event in codec.events():
+            assert event is not None
+    assert codec.buffered <= len(data)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(no_start, requests), min_size=1, max_size=8), no_start,
+       st.lists(st.integers(0, 5000), max_size=30))
+def test_frames_between_garbage_are_all_recovered(pairs, tail, cuts):
+    h = host()
+    wire = b"".join(g + h.send(p) for g, p in pairs) + tail
+    d = device()
+    out = []
+    for chunk in _chunks(wire, cuts):
+        d.receive_data(chunk)
+        out += d.events()
+    assert out == [p for _, p in pairs]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=300), requests, st.lists(st.integers(0, 5000), max_size=10))
+def test_frame_after_arbitrary_garbage_and_a_gap_is_recovered(garbage, packet, cuts):
+    # Arbitrary garbage may hold false starts (or even valid frames); a gap of idle bytes longer than
+    # the longest frame lets every false start fail before the real frame begins, so the real
+    # frame is always the last event.
+    gap = bytes(MAX_PAYLOAD + 8)
+    wire = garbage + gap + host().send(packet)
+    d = device()
+    out = []
+    for chunk in _chunks(wire, cuts):
+        d.receive_data(chunk)
+        out += d.events()
+    assert out and out[-1] == packet
+
+
+@settings(deadline=None)
+@given(requests)
+def test_requests_round_trip_byte_exact(packet):
+    wire = host().send(packet)
+    d = device()
+    d.receive_data(wire)
+    (back,) = d.events()
+    assert back == packet
+    assert host().send(back) == wire
+
+
+# --- cross-check against pyvesc (an independent implementation, test-time only) ----------------
+
+
+def test_pyvesc_byte_equality():
+    import pyvesc
+    from pyvesc import GetValues, SetDutyCycle, SetRPM
+    from pyvesc import SetCurrent as PvSetCurrent
+    from pyvesc import SetCurrentBrake as PvSetCurrentBrake
+
+    h = host()
+    assert h.send(SetRpm(5000)) == pyvesc.encode(SetRPM(5000))
+    assert h.send(SetRpm(-23250)) == pyvesc.encode(SetRPM(-23250))
+    assert h.send(SetCurrent(5.0)) == pyvesc.encode(PvSetCurrent(5000))  # pyvesc takes mA
+    assert h.send(SetCurrent(-1.5)) == pyvesc.encode(PvSetCurrent(-1500))
+    assert h.send(SetCurrentBrake(20.0)) == pyvesc.encode(PvSetCurrentBrake(20000))
+    assert h.send(SetDuty(0.25)) == pyvesc.encode(SetDutyCycle(25000))  # pyvesc takes duty x 1e5
+    assert h.send(SetDuty(-1.0)) == pyvesc.encode(SetDutyCycle(-100000))
+    assert h.send(GetValuesRequest()) == pyvesc.encode_request(GetValues)
+
+
+def test_pyvesc_decodes_our_pre_3_07_values_reply():
+    import pyvesc
+
+    wire = VescCodec(Role.DEVICE, firmware=(2, 18)).send(SAMPLE)
+    msg, consumed = pyvesc.decode(wire)
+    assert consumed == len(wire)
+    assert msg.rpm == -23250
+    assert msg.v_in == pytest.approx(15.9)
+    assert msg.tachometer == -123456
+    assert msg.current_motor == pytest.approx(-12.34)

@@ -1,0 +1,278 @@
+"""The VESC driver against the fake VESC over real ptys: handshake, commands, telemetry for several
+firmware layouts, resync, reconnect after an unplug, the no-command failsafe and shutdown."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+import pytest
+from conftest import async_wait_for
+
+from racecar_hw.bus import Bus
+from racecar_hw.clock import NS_PER_S, monotonic_ns
+from racecar_hw.messages import AckermannDrive, Float64, Odometry, TFMessage, VescStateStamped
+from vesc.ackermann import AckermannConversion
+from vesc.codec import (
+    Alive,
+    FwVersionRequest,
+    SetCurrentBrake,
+    SetRpm,
+    SetServoPosition,
+)
+from vesc.driver import TOPIC_CORE, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF, VescDriver
+from vesc.fake import CommandRecord, FakeVesc
+from vesc.params import VescParams
+
+CONV = AckermannConversion()
+CENTRE_WIRE = round(CONV.servo_centre * 1000) / 1000  # the centre as the servo receives it
+
+
+def start_fake(device_thread, path, firmware=(6, 2), **kw) -> FakeVesc:
+    fake = FakeVesc(str(path), firmware, **kw).open()
+    device_thread.spawn(fake.serve())
+    return fake
+
+
+class Recorder:
+    """Messages per topic with their monotonic arrival times."""
+
+    def __init__(self, bus: Bus, *topics: str) -> None:
+        self.got: dict[str, list[tuple[int, object]]] = {t: [] for t in topics}
+        for t in topics:
+            bus.subscribe(t, lambda msg, t=t: self.got[t].append((monotonic_ns(), msg)))
+
+    def count(self, topic: str) -> int:
+        return len(self.got[topic])
+
+    def last(self, topic: str):
+        return self.got[topic][-1][1]
+
+
+async def drive_for(driver: VescDriver, seconds: float, speed: float, steer: float = 0.0,
+                    hz: float = 50.0) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        driver.command(AckermannDrive(speed=speed, steering_angle=steer))
+        await asyncio.sleep(1.0 / hz)
+
+
+def is_brake(p) -> bool:
+    return isinstance(p, SetRpm) and p.erpm == 0 or isinstance(p, SetCurrentBrake)
+
+
+def is_centre(p) -> bool:
+    return isinstance(p, SetServoPosition) and p.position == pytest.approx(CENTRE_WIRE)
+
+
+@pytest.mark.parametrize("firmware", [(2, 18), (3, 40), (5, 2), (6, 2)])
+def test_handshake_and_telemetry_per_layout(tmp_path, device_thread, firmware):
+    fake = start_fake(device_thread, tmp_path / "vesc", firmware)
+
+    async def scenario() -> None:
+        bus = Bus()
+        rec = Recorder(bus, TOPIC_CORE, TOPIC_ODOM, TOPIC_TF, TOPIC_SERVO)
+        async with VescDriver(bus, VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            assert driver.firmware == firmware
+            await drive_for(driver, 0.6, 1.0, 0.1)
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= 10)
+            driver.command(AckermannDrive(speed=1.0, steering_angle=0.1))
+            await async_wait_for(lambda: driver.last_state.state.speed == 4614, timeout=5)
+            state = driver.last_state
+            assert isinstance(state, VescStateStamped)
+            assert state.state.voltage_input == pytest.approx(16.8, abs=0.5)
+            assert state.state.displacement > 0  # tachometer advanced
+            mos_temperature_present = firmware >= (3, 48) or firmware < (3, 7)
+            assert (state.state.ntc_temp_mos1 == 31.5) is mos_temperature_present
+            odom = rec.last(TOPIC_ODOM)
+            assert isinstance(odom, Odometry) and odom.pose.pose.position.x > 0
+            assert odom.twist.twist.angular.z > 0  # left steering turns left
+            assert isinstance(rec.last(TOPIC_TF), TFMessage)
+            servo = rec.last(TOPIC_SERVO)
+            assert isinstance(servo, Float64)
+            assert servo.data == pytest.approx(CONV.steering_to_servo(0.1))
+            assert not fake.timed_out  # 50 Hz motor commands keep the firmware timeout fed
+            assert driver.stats.frames_rx >= 10 and driver.stats.crc_errors == 0
+
+    asyncio.run(scenario())
+
+
+def test_commands_arrive_with_exact_values(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            fake.clear_commands()
+            driver.command(AckermannDrive(speed=1.5, steering_angle=-0.1))
+            driver.command(AckermannDrive(speed=-0.5, steering_angle=0.3))
+            await async_wait_for(lambda: sum(isinstance(r.packet, SetServoPosition)
+                                             for r in fake.commands) >= 2)
+            sent = [r.packet for r in fake.commands if isinstance(r.packet, (SetRpm, SetServoPosition))]
+            assert sent[:4] == [SetRpm(6921), SetServoPosition(0.652),  # 0.5304 + 0.12135 -> 652
+                                SetRpm(-2307), SetServoPosition(0.215)]  # 0.3 clamps to 0.26 rad
+            keep_driving = asyncio.create_task(drive_for(driver, 10.0, -0.5, 0.3))
+            await async_wait_for(lambda: fake.erpm == -2307 and fake.servo == 0.215, timeout=5)
+            keep_driving.cancel()
+
+    asyncio.run(scenario())
+
+
+def test_failsafe_brakes_and_centres_within_100ms(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            await drive_for(driver, 0.4, 2.0, 0.2)
+            # the control loop stops here: command loss
+            await async_wait_for(lambda: not driver.moving, timeout=5)
+            await async_wait_for(lambda: sum(is_brake(r.packet) for r in _after_last_motion(fake)) >= 5,
+                                 timeout=5)
+            log = fake.commands
+            last_motion = max(r.t_ns for r in log if isinstance(r.packet, SetRpm) and r.packet.erpm != 0)
+            after = [r for r in log if r.t_ns > last_motion or (r.t_ns == last_motion and is_brake(r.packet))]
+            first_brake = next(r.t_ns for r in after if is_brake(r.packet))
+            first_centre = next(r.t_ns for r in after if is_centre(r.packet))
+            assert first_brake - last_motion <= 100_000_000, (first_brake - last_motion) / 1e6
+            assert first_centre - last_motion <= 100_000_000, (first_centre - last_motion) / 1e6
+            assert driver.stats.failsafes == 1
+            await async_wait_for(lambda: fake.erpm == 0 and fake.servo == CENTRE_WIRE, timeout=5)
+
+    asyncio.run(scenario())
+
+
+def _after_last_motion(fake: FakeVesc) -> list[CommandRecord]:
+    log = fake.commands
+    motion = [i for i, r in enumerate(log) if isinstance(r.packet, SetRpm) and r.packet.erpm != 0]
+    idx = motion[-1] if motion else -1
+    return log[idx + 1:]
+
+
+def test_nan_command_brakes_at_once_and_brake_current_mode(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        params = VescParams(port=fake.path, brake_mode="current", brake_current_a=15.0)
+        async with VescDriver(Bus(), params) as driver:
+            await async_wait_for(lambda: driver.connected)
+            await drive_for(driver, 0.2, 1.0)
+            fake.clear_commands()
+            driver.command(AckermannDrive(speed=math.nan))
+            assert driver.stats.refused_commands == 1 and not driver.moving
+            await async_wait_for(lambda: any(isinstance(r.packet, SetCurrentBrake) for r in fake.commands))
+            motor = [r.packet for r in fake.commands if isinstance(r.packet, (SetRpm, SetCurrentBrake))]
+            assert motor[0] == SetCurrentBrake(15.0)
+            assert not any(isinstance(p, SetRpm) for p in motor)
+            await async_wait_for(lambda: fake.mode == "brake" and fake.erpm == 0, timeout=5)
+
+    asyncio.run(scenario())
+
+
+def test_alive_keeps_the_firmware_fed_between_sparse_commands(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc", timeout_s=0.3)
+
+    async def scenario() -> None:
+        params = VescParams(port=fake.path, command_timeout_s=0.09, alive_interval_s=0.02, poll_rate_hz=100)
+        async with VescDriver(Bus(), params) as driver:
+            await async_wait_for(lambda: driver.connected)
+            fake.clear_commands()
+            await drive_for(driver, 1.0, 1.0, hz=16)  # 62 ms apart: fresh, but sparse
+            assert any(isinstance(r.packet, Alive) for r in fake.commands)
+            assert not fake.timed_out
+
+    asyncio.run(scenario())
+
+
+def test_resync_after_garbage_bad_crc_and_split_replies(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        bus = Bus()
+        rec = Recorder(bus, TOPIC_CORE)
+        async with VescDriver(bus, VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= 3)
+            fake.split_replies(True)
+            fake.inject_garbage(300)
+            fake.corrupt_next_crc()
+            before = rec.count(TOPIC_CORE)
+            await async_wait_for(lambda: driver.stats.crc_errors >= 1 and driver.stats.resyncs >= 1)
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= before + 20)
+            fake.split_replies(False)
+            assert driver.connected and driver.stats.reconnects == 0
+            assert driver.stats.dropped_bytes >= 300
+
+    asyncio.run(scenario())
+
+
+def test_reconnects_within_1s_of_replug_brake_and_centre_first(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        bus = Bus()
+        rec = Recorder(bus, TOPIC_CORE)
+        async with VescDriver(bus, VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            await drive_for(driver, 0.2, 1.0)
+            await asyncio.to_thread(fake.unplug)
+            await async_wait_for(lambda: not driver.connected)
+            # stay unplugged long enough for the reconnect backoff to reach its cap
+            await asyncio.sleep(1.5)
+            assert not driver.connected
+            fake.clear_commands()
+            before = rec.count(TOPIC_CORE)
+            replug_ns = monotonic_ns()
+            await asyncio.to_thread(fake.replug)
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) > before, timeout=10)
+            first_telemetry_ns = rec.got[TOPIC_CORE][before][0]
+            assert first_telemetry_ns - replug_ns < NS_PER_S, (first_telemetry_ns - replug_ns) / 1e6
+            first = [r.packet for r in fake.commands[:3]]
+            assert is_brake(first[0]) and is_centre(first[1]) and isinstance(first[2], FwVersionRequest)
+            assert driver.stats.reconnects == 1
+            await drive_for(driver, 0.2, 1.0)
+            await async_wait_for(lambda: fake.erpm > 0)
+
+    asyncio.run(scenario())
+
+
+def test_shutdown_brakes_centres_and_closes(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        driver = VescDriver(Bus(), VescParams(port=fake.path))
+        task = asyncio.create_task(driver.run())
+        await async_wait_for(lambda: driver.connected)
+        await drive_for(driver, 0.1, 1.0, 0.2)
+        driver.command(AckermannDrive(speed=1.0, steering_angle=0.2))
+        await driver.shutdown()
+        await driver.shutdown()
+        assert task.done() and task.exception() is None
+        assert not driver.connected
+
+        def last_two():
+            return [r.packet for r in fake.commands[-2:]]
+
+        # the final frames on the wire are brake and centre, right after the moving command
+        await async_wait_for(lambda: is_brake(last_two()[0]) and is_centre(last_two()[1]))
+        motion = [r for r in fake.commands if isinstance(r.packet, SetRpm) and r.packet.erpm == 4614]
+        assert motion and fake.commands.index(motion[-1]) < len(fake.commands) - 2
+        driver.command(AckermannDrive(speed=1.0))  # after shutdown: ignored, never raises
+
+    asyncio.run(scenario())
+
+
+def test_run_survives_a_missing_device(tmp_path):
+    async def scenario() -> None:
+        for port in (str(tmp_path / "nothing"), "auto"):
+            params = VescParams(port=port, usb_vid_pid="ffff:fffe")
+            driver = VescDriver(Bus(), params)
+            task = asyncio.create_task(driver.run())
+            driver.command(AckermannDrive(speed=1.0))  # no device: ignored
+            await asyncio.sleep(0.3)
+            assert not task.done() and not driver.connected
+            await asyncio.wait_for(driver.shutdown(), 5)
+            assert task.done() and task.exception() is None
+
+    asyncio.run(scenario())

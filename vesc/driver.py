@@ -1,0 +1,467 @@
+"""The VESC serial driver: an asyncio shell around :class:`~vesc.codec.VescCodec`.
+
+:meth:`VescDriver.run` opens the port, asks for FW_VERSION until the VESC answers (the reply picks
+the GET_VALUES layout), then polls GET_VALUES at ``poll_rate_hz`` and publishes:
+
+=========================================  ========================  ===========================
+topic                                      type                      when
+=========================================  ========================  ===========================
+``/vesc/sensors/core``                     VescStateStamped          every telemetry reply
+``/vesc/sensors/servo_position_command``   Float64 (0..1)            every servo position sent
+``/odom``                                  Odometry                  every telemetry reply
+``/tf``                                    TFMessage (odom->base)    every reply, if publish_tf
+=========================================  ========================  ===========================
+
+:meth:`VescDriver.command` (called by the daemon's control loop at about 50 Hz) converts an
+AckermannDrive and writes SET_RPM + SET_SERVO_POS at once. Those motor commands keep the firmware's
+own 1 s command timeout fed; while moving, ALIVE goes out if no motor command was written for
+``alive_interval_s``.
+
+Failsafe: ``command_timeout_s`` after the last valid command (a precise loop timer, not the poll
+tick) the driver sends brake (SET_RPM 0, or SET_CURRENT_BRAKE in ``brake_mode`` "current") and the
+servo centre, then repeats both on every poll tick until a fresh command arrives. A NaN or infinite
+command brakes at once. The first frames after every (re)connect are brake and centre.
+
+An unplug (DeviceIOError/DeviceNotFound) closes the port and reopens it with exponential backoff
+from ``reconnect_backoff_min_s`` to ``reconnect_backoff_max_s``. No exception leaves :meth:`run`
+except CancelledError; :meth:`shutdown` brakes, centres, closes and is safe twice.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from dataclasses import dataclass
+from typing import TypeVar
+
+from racecar_hw.bus import Bus
+from racecar_hw.clock import monotonic_ns, nanoseconds, seconds, wall_ns
+from racecar_hw.errors import DeviceError, DeviceIOError, DeviceTimeout, LocalProtocolError
+from racecar_hw.link import SerialLink, find_serial_port
+from racecar_hw.messages import (
+    AckermannDrive,
+    Float64,
+    Header,
+    Odometry,
+    TFMessage,
+    Time,
+    VescState,
+    VescStateStamped,
+)
+from vesc.ackermann import AckermannConversion
+from vesc.codec import (
+    TIMEOUT_RESETTING,
+    Alive,
+    FwVersion,
+    FwVersionRequest,
+    GetValuesRequest,
+    Packet,
+    RawPacket,
+    Role,
+    SetCurrentBrake,
+    SetRpm,
+    SetServoPosition,
+    Values,
+    VescCodec,
+)
+from vesc.odometry import OdometryIntegrator
+from vesc.params import VescParams
+
+log = logging.getLogger(__name__)
+R = TypeVar("R")
+
+TOPIC_CORE = "/vesc/sensors/core"
+TOPIC_SERVO = "/vesc/sensors/servo_position_command"
+TOPIC_ODOM = "/odom"
+TOPIC_TF = "/tf"
+
+
+@dataclass
+class VescLinkStats:
+    """Link statistics, cumulative over reconnects.
+
+    ``failsafes``: times the no-command failsafe engaged; ``refused_commands``: NaN/inf drive
+    commands; ``write_errors``: writes that found the port gone.
+    """
+
+    frames_tx: int = 0
+    frames_rx: int = 0
+    crc_errors: int = 0
+    resyncs: int = 0
+    dropped_bytes: int = 0
+    raw_packets: int = 0
+    reconnects: int = 0
+    failsafes: int = 0
+    refused_commands: int = 0
+    write_errors: int = 0
+
+
+def values_to_state(v: Values) -> VescState:
+    """A decoded GET_VALUES reply as vesc_msgs/VescState (``speed`` is ERPM, not negated)."""
+    return VescState(
+        temp_fet=v.temp_fet, temp_motor=v.temp_motor, current_motor=v.current_motor,
+        current_input=v.current_input, avg_id=v.avg_id, avg_iq=v.avg_iq, duty_cycle=v.duty,
+        speed=float(v.erpm), voltage_input=v.v_in, charge_drawn=v.amp_hours,
+        charge_regen=v.amp_hours_charged, energy_drawn=v.watt_hours,
+        energy_regen=v.watt_hours_charged, displacement=v.tachometer,
+        distance_traveled=v.tachometer_abs, fault_code=v.fault, pid_pos_now=v.pid_pos,
+        controller_id=v.controller_id, ntc_temp_mos1=v.temp_mos1, ntc_temp_mos2=v.temp_mos2,
+        ntc_temp_mos3=v.temp_mos3, avg_vd=v.avg_vd, avg_vq=v.avg_vq)
+
+
+class VescDriver:
+    """One VESC on a serial port, publishing on ``bus``. An async context manager running :meth:`run`."""
+
+    def __init__(self, bus: Bus, params: VescParams | None = None) -> None:
+        self.bus = bus
+        self.params = params or VescParams()
+        self.conversion = AckermannConversion.from_params(self.params)
+        self.odometry = OdometryIntegrator.from_params(self.params)
+        self.stats = VescLinkStats()
+        self._codec = VescCodec(Role.HOST)
+        self._link: SerialLink | None = None
+        self._firmware: tuple[int, int] | None = None
+        self._fw_reply: FwVersion | None = None
+        self._last_state: VescStateStamped | None = None
+        self._servo_sent = self.conversion.servo_centre
+        self._moving = False
+        self._last_command_ns = 0
+        self._last_motor_tx_ns = 0
+        self._failsafe_timer: asyncio.TimerHandle | None = None
+        self._stop = asyncio.Event()
+        self._closed = False
+        self._run_task: asyncio.Task[None] | None = None
+        self._ever_connected = False
+
+    # --- public state -------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        """Whether the port is open and the VESC answered FW_VERSION on it."""
+        return self._link is not None and self._link.is_open and self._firmware is not None
+
+    @property
+    def firmware(self) -> tuple[int, int] | None:
+        """(major, minor) of the connected VESC's firmware, None before the handshake."""
+        return self._firmware
+
+    @property
+    def firmware_info(self) -> FwVersion | None:
+        """The whole FW_VERSION reply (hardware name, UUID) of the last handshake."""
+        return self._fw_reply
+
+    @property
+    def last_state(self) -> VescStateStamped | None:
+        """The last telemetry published on ``/vesc/sensors/core``."""
+        return self._last_state
+
+    @property
+    def servo_sent(self) -> float:
+        """The last servo position written to the VESC (0..1)."""
+        return self._servo_sent
+
+    @property
+    def moving(self) -> bool:
+        """Whether a fresh drive command is in force (False: failsafe brake and centre)."""
+        return self._moving
+
+    # --- commands -----------------------------------------------------------------------------
+
+    def command(self, drive: AckermannDrive) -> None:
+        """Drive now: SET_RPM and SET_SERVO_POS are written before this returns. Never blocks or raises.
+
+        Commands before the FW_VERSION handshake only arm the failsafe (as the ROS driver, which
+        drops them). A NaN/inf command is refused and brakes at once.
+        """
+        if self._closed:
+            return
+        try:
+            setpoint = self.conversion.to_vesc(drive)
+        except LocalProtocolError as err:
+            self.stats.refused_commands += 1
+            log.warning("drive command refused (%s): braking", err)
+            self._engage_failsafe()
+            return
+        self._last_command_ns = monotonic_ns()
+        self._moving = True
+        self._arm_failsafe_timer()
+        if self._firmware is not None:
+            self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo))
+
+    def brake_and_centre(self) -> None:
+        """Send brake and the servo centre now (what the failsafe sends)."""
+        brake = (SetRpm(0) if self.params.brake_mode == "rpm"
+                 else SetCurrentBrake(self.params.brake_current_a))
+        self._write(brake, SetServoPosition(self.conversion.servo_centre))
+
+    # --- lifecycle ----------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Connect, handshake, poll and reconnect until :meth:`shutdown` (or cancellation)."""
+        self._run_task = asyncio.current_task()
+        backoff = self.params.reconnect_backoff_min_s
+        failures = 0
+        try:
+            while not self._stop.is_set():
+                try:
+                    await self._open()
+                except DeviceError as err:
+                    failures += 1
+                    (log.warning if failures == 1 else log.debug)("VESC not available: %s", err)
+                    await self._pause(backoff)
+                    backoff = min(backoff * 2.0, self.params.reconnect_backoff_max_s)
+                    continue
+                except Exception:
+                    log.exception("unexpected error opening the VESC port")
+                    await self._pause(backoff)
+                    backoff = min(backoff * 2.0, self.params.reconnect_backoff_max_s)
+                    continue
+                if self._ever_connected:
+                    self.stats.reconnects += 1
+                self._ever_connected = True
+                failures = 0
+                backoff = self.params.reconnect_backoff_min_s
+                try:
+                    await self._session()
+                except asyncio.CancelledError:
+                    self.brake_and_centre()  # leave the car braked
+                    raise
+                except DeviceError as err:
+                    if not self._stop.is_set():
+                        log.warning("VESC link lost: %s", err)
+                except Exception:
+                    log.exception("VESC session failed; reconnecting")
+                finally:
+                    self._close_link()
+        finally:
+            self._close_link()
+
+    async def shutdown(self) -> None:
+        """Brake, centre the servo, close the port and stop :meth:`run`. Safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._moving = False
+        if self._failsafe_timer is not None:
+            self._failsafe_timer.cancel()
+        link = self._link
+        if link is not None and link.is_open:
+            self.brake_and_centre()
+            deadline = monotonic_ns() + nanoseconds(0.2)
+            while link.is_open and link.tx_pending and monotonic_ns() < deadline:
+                await asyncio.sleep(0.005)
+        self._close_link()
+        task = self._run_task
+        if task is not None and task is not asyncio.current_task() and not task.done():
+            done, _ = await asyncio.wait({task}, timeout=2.0)
+            if not done:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+
+    async def __aenter__(self) -> VescDriver:
+        self._run_task = asyncio.create_task(self.run(), name="vesc-driver")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.shutdown()
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _resolve_port(self) -> str:
+        if self.params.port != "auto":
+            return self.params.port
+        vid, pid = self.params.usb_ids
+        return find_serial_port(vid, pid, self.params.usb_serial)
+
+    async def _open(self) -> None:
+        try:
+            url = self._resolve_port()
+        except OSError as err:
+            raise DeviceIOError(f"cannot list serial ports: {err}") from err
+        link = SerialLink(url, self.params.baudrate)
+        await link.open()
+        self._link = link
+        log.info("VESC port %s open", url)
+
+    def _close_link(self) -> None:
+        link, self._link = self._link, None
+        self._firmware = None
+        if link is not None:
+            link.close()
+
+    async def _pause(self, delay_s: float) -> None:
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self._stop.wait(), delay_s)
+
+    async def _session(self) -> None:
+        link = self._link
+        assert link is not None
+        self._codec.reset()
+        self._codec.firmware = None
+        self._firmware = None
+        self.brake_and_centre()
+        ticker = asyncio.create_task(self._tick_loop(link), name="vesc-poll")
+        try:
+            while True:
+                data = await link.read()
+                self._codec.receive_data(data)
+                while (packet := self._codec.next_event()) is not None:
+                    self._on_packet(packet)
+                self._sync_codec_stats()
+        finally:
+            ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await ticker
+
+    async def _tick_loop(self, link: SerialLink) -> None:
+        try:
+            period_ns = nanoseconds(1.0 / self.params.poll_rate_hz)
+            next_ns = monotonic_ns()
+            while link.is_open:
+                now = monotonic_ns()
+                if self._firmware is None:
+                    self._write(FwVersionRequest())
+                    if not self._fresh(now):
+                        self.brake_and_centre()
+                    await asyncio.sleep(self.params.handshake_interval_s)
+                    next_ns = monotonic_ns()
+                    continue
+                self._write(GetValuesRequest())
+                if not self._fresh(now):
+                    self._engage_failsafe()
+                elif now - self._last_motor_tx_ns >= nanoseconds(self.params.alive_interval_s):
+                    self._write(Alive())
+                next_ns += period_ns
+                if next_ns < now:
+                    next_ns = now + period_ns
+                await asyncio.sleep(seconds(next_ns - monotonic_ns()))
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("VESC poll loop failed; dropping the link to reconnect")
+            link.close()
+
+    def _fresh(self, now_ns: int) -> bool:
+        return self._moving and now_ns - self._last_command_ns < nanoseconds(self.params.command_timeout_s)
+
+    def _arm_failsafe_timer(self) -> None:
+        if self._failsafe_timer is not None:
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return  # no loop: the poll tick enforces the timeout instead
+        self._failsafe_timer = loop.call_later(self.params.command_timeout_s, self._on_failsafe_timer)
+
+    def _on_failsafe_timer(self) -> None:
+        self._failsafe_timer = None
+        if not self._moving or self._closed:
+            return
+        remaining = self._last_command_ns + nanoseconds(self.params.command_timeout_s) - monotonic_ns()
+        if remaining > 0:
+            loop = asyncio.get_running_loop()
+            self._failsafe_timer = loop.call_later(seconds(remaining), self._on_failsafe_timer)
+            return
+        self._engage_failsafe()
+
+    def _engage_failsafe(self) -> None:
+        if self._moving:
+            self._moving = False
+            self.stats.failsafes += 1
+            log.warning("no fresh drive command for %.0f ms: brake and centre",
+                        self.params.command_timeout_s * 1e3)
+        self.brake_and_centre()
+
+    def _write(self, *packets: Packet) -> None:
+        link = self._link
+        if link is None or not link.is_open:
+            return
+        data = b"".join(self._codec.send(p) for p in packets)
+        try:
+            link.write(data)
+        except DeviceError as err:
+            self.stats.write_errors += 1
+            log.debug("VESC write failed: %s", err)
+            return
+        self.stats.frames_tx += len(packets)
+        now = monotonic_ns()
+        for p in packets:
+            if isinstance(p, TIMEOUT_RESETTING):
+                self._last_motor_tx_ns = now
+            elif isinstance(p, SetServoPosition):
+                self._servo_sent = p.position
+                self.bus.publish(TOPIC_SERVO, Float64(p.position))
+
+    def _sync_codec_stats(self) -> None:
+        s = self._codec.stats
+        self.stats.frames_rx = s.frames
+        self.stats.crc_errors = s.crc_errors
+        self.stats.resyncs = s.resyncs
+        self.stats.dropped_bytes = s.dropped_bytes
+        self.stats.raw_packets = s.raw_packets
+
+    def _on_packet(self, packet: Packet) -> None:
+        if isinstance(packet, Values):
+            self._on_values(packet)
+        elif isinstance(packet, FwVersion):
+            if self._firmware is None:
+                log.info("VESC firmware %d.%02d, hardware %s", packet.major, packet.minor,
+                         packet.hw_name or "?")
+            self._firmware = packet.version
+            self._fw_reply = packet
+        elif isinstance(packet, RawPacket):
+            if packet.command_id == 21:  # COMM_PRINT
+                log.info("VESC says: %s", packet.payload[1:].decode("utf-8", "replace").rstrip())
+            else:
+                log.debug("VESC packet not decoded (%s): id %d, %d bytes", packet.reason,
+                          packet.command_id, len(packet.payload))
+
+    def _on_values(self, values: Values) -> None:
+        if self._firmware is None:
+            return  # a reply to a poll of the previous connection; its layout is unknown
+        mono, stamp = monotonic_ns(), wall_ns()
+        msg = VescStateStamped(Header(Time.from_ns(stamp), ""), values_to_state(values))
+        self._last_state = msg
+        self.bus.publish(TOPIC_CORE, msg)
+        self.odometry.update(values.erpm, self._servo_sent, mono)
+        odom: Odometry = self.odometry.odometry(stamp)
+        self.bus.publish(TOPIC_ODOM, odom)
+        if self.params.publish_tf:
+            self.bus.publish(TOPIC_TF, TFMessage([self.odometry.transform(stamp)]))
+
+
+async def probe(port: str, baudrate: int = 115200, timeout_s: float = 2.0) -> tuple[FwVersion, Values]:
+    """Ask the VESC at ``port`` for its firmware version and one telemetry sample.
+
+    Raises DeviceNotFound, DeviceIOError, or DeviceTimeout when no reply comes within ``timeout_s``.
+    """
+    link = SerialLink(port, baudrate)
+    await link.open()
+    codec = VescCodec(Role.HOST)
+    try:
+        fw = await _ask(link, codec, FwVersionRequest(), FwVersion, timeout_s)
+        values = await _ask(link, codec, GetValuesRequest(), Values, timeout_s)
+        return fw, values
+    finally:
+        link.close()
+
+
+async def _ask(link: SerialLink, codec: VescCodec, request: Packet, reply_type: type[R],
+               timeout_s: float) -> R:
+    deadline = monotonic_ns() + nanoseconds(timeout_s)
+    while monotonic_ns() < deadline:
+        link.write(codec.send(request))
+        resend = monotonic_ns() + nanoseconds(0.2)
+        while (now := monotonic_ns()) < min(resend, deadline):
+            try:
+                data = await asyncio.wait_for(link.read(), seconds(min(resend, deadline) - now))
+            except asyncio.TimeoutError:
+                break
+            codec.receive_data(data)
+            for packet in codec.events():
+                if isinstance(packet, reply_type):
+                    return packet
+    raise DeviceTimeout(f"no {reply_type.__name__} reply from {link.name} within {timeout_s:g} s")
