@@ -18,6 +18,11 @@ from racecar_hw.errors import RacecarError
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = (
+    "daemon",
+    "sim",
+    "follow",
+    "vesc",
+    "lidar",
 )
 
 

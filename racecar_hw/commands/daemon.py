@@ -1,0 +1,69 @@
+"""``racecar-hw run`` (the daemon on real devices) and ``racecar-hw check-config``."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+
+from racecar_hw.config import describe_config, dump_config, load_config
+from racecar_hw.daemon import Daemon
+from racecar_hw.status import StatusPanel
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """``--config`` and ``--set``, shared by every command that builds the daemon."""
+    parser.add_argument("--config", "-c", metavar="FILE",
+                        help="daemon configuration (default: the shipped car config)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one parameter, e.g. --set vesc.port=/dev/ttyACM0 (repeatable)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run the daemon on the car's real devices",
+                       description="Run the configured components on real devices until SIGINT or "
+                                   "SIGTERM; then brake, centre, flush the recorder and exit 0.")
+    add_config_options(p)
+    p.add_argument("--no-status", action="store_true", help="no live status panel")
+    p.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("check-config", help="validate a config file and print the effective config",
+                       description="Validate FILE (with any --set overrides) and print the effective "
+                                   "configuration, every default filled in.")
+    c.add_argument("file", nargs="?", help="config file (default: the shipped car config)")
+    c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one parameter (repeatable)")
+    c.add_argument("--describe", action="store_true", help="list every parameter with its default")
+    c.set_defaults(func=cmd_check_config)
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    if args.describe:
+        for key, default, doc in describe_config():
+            print(f"{key} = {default!r}\n    {doc}")
+        return 0
+    config = load_config(args.file, args.overrides)
+    sys.stdout.write(dump_config(config))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    config = load_config(args.config, args.overrides)
+    status = (StatusPanel(refresh_hz=config.status.refresh_hz)
+              if config.status.enabled and not args.no_status else None)
+    return asyncio.run(run_daemon(Daemon(config, status=status)))
+
+
+async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None) -> int:
+    """Run ``daemon`` until SIGINT, SIGTERM or ``stop`` is set."""
+    stop = stop if stop is not None else asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await daemon.run(stop)
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+    return 0

@@ -1,0 +1,82 @@
+"""``racecar-hw follow``: replay a bag's Ackermann commands into a mux input of the running car."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+from racecar_hw.bag_follow import BagFollower
+from racecar_hw.commands.daemon import add_config_options, run_daemon
+from racecar_hw.config import load_config
+from racecar_hw.daemon import Daemon
+from racecar_hw.errors import ConfigError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("follow", help="drive the car by replaying a bag's Ackermann commands",
+                       description="Run the daemon with a bag follower: the bag's AckermannDriveStamped "
+                                   "(or AckermannDrive) commands enter a mux input, so the deadman, "
+                                   "priorities and the safety controller still apply. Exits when the "
+                                   "bag ends (brake and centre).")
+    p.add_argument("bag", help="ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP)")
+    p.add_argument("--topic", default="/vesc/low_level/ackermann_cmd_mux/input/teleop",
+                   help="topic in the bag (default: the teleop input, as in CSE490R lab 0)")
+    timing = p.add_mutually_exclusive_group()
+    timing.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="fixed rate (default 20)")
+    timing.add_argument("--timestamps", action="store_true", help="replay at the bag's own timing")
+    p.add_argument("--time-scale", type=float, default=1.0, metavar="X", help="speed up the timing")
+    p.add_argument("--reverse", action="store_true",
+                   help="backwards: reversed order, negated speed, same steering")
+    p.add_argument("--loop", action="store_true", help="start again at the end")
+    p.add_argument("--input", default="nav_0", help="mux input name to drive (default nav_0)")
+    add_config_options(p)
+    p.set_defaults(func=cmd_follow)
+
+
+def follower_overrides(args: argparse.Namespace, input_topic: str) -> list[str]:
+    """``--set`` assignments that enable and configure the follower component."""
+    return [
+        "follower.enabled=true", f"follower.bag={args.bag}", f"follower.topic={args.topic}",
+        f"follower.input_topic={input_topic}", f"follower.rate_hz={args.rate}",
+        f"follower.use_timestamps={str(args.timestamps).lower()}",
+        f"follower.time_scale={args.time_scale}", f"follower.reverse={str(args.reverse).lower()}",
+        f"follower.loop={str(args.loop).lower()}",
+    ]
+
+
+def input_topic(config_path: str | None, overrides: list[str], name: str) -> str:
+    """The topic of mux input ``name`` in the effective config."""
+    mux = load_config(config_path, overrides).mux
+    for inp in mux.inputs:
+        if inp.name == name:
+            return inp.topic
+    raise ConfigError("--input", f"no mux input {name!r}; inputs: " + ", ".join(i.name for i in mux.inputs))
+
+
+def cmd_follow(args: argparse.Namespace) -> int:
+    topic = input_topic(args.config, args.overrides, args.input)
+    config = load_config(args.config, [*args.overrides, *follower_overrides(args, topic)])
+    daemon = Daemon(config)
+    assert daemon.follower is not None
+    with Progress(TextColumn("following"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeRemainingColumn()) as bar:
+        task = bar.add_task("bag", total=1.0)
+        daemon.follower.progress = lambda fraction, eta: bar.update(task, completed=fraction)
+        return asyncio.run(_follow(daemon))
+
+
+async def _follow(daemon: Daemon) -> int:
+    follower: BagFollower | None = daemon.follower
+    assert follower is not None
+    stop = asyncio.Event()
+
+    async def stop_when_done() -> None:
+        while not follower.done:
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.3)  # let the final stop command reach the VESC
+        stop.set()
+
+    daemon.add_task(stop_when_done())
+    return await run_daemon(daemon, stop)

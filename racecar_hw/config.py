@@ -1,0 +1,188 @@
+"""The daemon's one configuration file: which components run, and their parameters.
+
+This file plays the role a ROS launch file plays. Each top-level key is a section; optional
+components have ``enabled``. Every parameter has a documented default
+(``racecar-hw check-config --describe`` lists them all); unknown keys and bad values are refused
+at start with a :class:`~racecar_hw.errors.ConfigError` naming the key and what is allowed.
+
+Shipped configs: ``car.yaml`` (real devices under systemd) and ``sim.yaml`` (the fake-hardware
+loopback), in the package's ``config/`` directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from lidar_drivers.params import LidarParams
+from mux.params import MuxParams
+from racecar_hw.arming import ArmingParams
+from racecar_hw.bag_follow import FollowerParams
+from racecar_hw.bag_record import RecorderParams
+from racecar_hw.errors import ConfigError
+from racecar_hw.figure8 import Figure8Params
+from racecar_hw.mavlink_gcs import MavlinkParams
+from racecar_hw.overrides import apply_override, load_yaml, merge
+from racecar_hw.params import build, describe, param, to_dict
+from racecar_hw.resources import config_file
+from racecar_hw.scan_summary import ScanSummaryParams
+from racecar_hw.setpoint import SetpointParams
+from racecar_hw.teleop_gamepad import GamepadParams
+from racecar_hw.teleop_keyboard import KeyboardParams
+from racecar_hw.transforms import StaticTransformParams, build_static_transforms
+from safety.params import SafetyParams
+from vesc.params import VescParams
+
+
+def _section(cls: type, enabled: bool, what: str) -> type:
+    """``cls`` with an ``enabled`` flag first, for a component that may be switched off."""
+    return dataclasses.make_dataclass(
+        f"{cls.__name__.removesuffix('Params')}Section",
+        [("enabled", bool, param(enabled, f"run the {what}"))],
+        bases=(cls,),
+    )
+
+
+VescSection = _section(VescParams, True, "VESC driver")
+LidarSection = _section(LidarParams, True, "lidar driver")
+ScanSummarySection = _section(ScanSummaryParams, True, "/scan_range and /open_space publisher")
+SetpointSection = _section(SetpointParams, False, "set-point relay (CSE490R lab 0)")
+FollowerSection = _section(FollowerParams, False, "bag follower")
+KeyboardSection = _section(KeyboardParams, False, "keyboard teleop in the terminal (simulation)")
+
+
+@dataclass
+class Figure8Section:
+    """The analytical figure-8 driver; its parameters are checked only when enabled."""
+
+    enabled: bool = param(False, "run the figure-8 driver")
+    speed_mps: float = param(1.0, "speed along the figure", unit="m/s", min=-5.0, max=5.0)
+    steering_angle_rad: float = param(0.3, "steering of the first loop (+ left)", unit="rad",
+                                      min=-0.8, max=0.8)
+    figure8s: int = param(1, "figure-8s to drive; 0 drives until stopped", min=0)
+    rate_hz: float = param(20.0, "command rate", unit="Hz", min=1.0, max=200.0)
+    topic: str = param("/vesc/high_level/ackermann_cmd_mux/input/nav_0", "mux input to drive")
+
+    def params(self, wheelbase_m: float) -> Figure8Params:
+        """The driver's parameters for a car of ``wheelbase_m``."""
+        try:
+            return Figure8Params(speed_mps=self.speed_mps, steering_angle_rad=self.steering_angle_rad,
+                                 wheelbase_m=wheelbase_m, figure8s=self.figure8s, rate_hz=self.rate_hz,
+                                 topic=self.topic)
+        except ConfigError as err:
+            raise ConfigError(f"figure8.{err.key}", str(err).split(": ", 1)[-1]) from err
+
+
+@dataclass
+class StatusSection:
+    """The live console status panel."""
+
+    enabled: bool = param(True, "show the live status panel on the console")
+    refresh_hz: float = param(4.0, "panel refresh rate", unit="Hz", min=0.2, max=30.0)
+
+
+@dataclass
+class WatchdogSection:
+    """systemd integration (only active when started by systemd with NOTIFY_SOCKET set)."""
+
+    stall_s: float = param(0.5, "the control loop counts as stalled (no watchdog ping) after this "
+                                "long without a tick", unit="s", min=0.05, max=60.0)
+
+
+def _default_transforms() -> list[StaticTransformParams]:
+    return [StaticTransformParams(frame_id="base_link", child_frame_id="laser", xyz=(0.265, 0.0, 0.1))]
+
+
+@dataclass
+class Config:
+    """The whole daemon configuration."""
+
+    vesc: VescSection = field(default_factory=VescSection)  # type: ignore[valid-type]
+    lidar: LidarSection = field(default_factory=LidarSection)  # type: ignore[valid-type]
+    mux: MuxParams = field(default_factory=MuxParams)
+    safety: SafetyParams = field(default_factory=SafetyParams)
+    static_transforms: list[StaticTransformParams] = field(default_factory=_default_transforms)
+    scan_summary: ScanSummarySection = field(default_factory=ScanSummarySection)  # type: ignore[valid-type]
+    setpoint: SetpointSection = field(default_factory=SetpointSection)  # type: ignore[valid-type]
+    figure8: Figure8Section = field(default_factory=Figure8Section)
+    follower: FollowerSection = field(default_factory=FollowerSection)  # type: ignore[valid-type]
+    recorder: RecorderParams = field(default_factory=RecorderParams)
+    arming: ArmingParams = field(default_factory=ArmingParams)
+    gamepad: GamepadParams = field(default_factory=GamepadParams)
+    keyboard: KeyboardSection = field(default_factory=KeyboardSection)  # type: ignore[valid-type]
+    mavlink: MavlinkParams = field(default_factory=MavlinkParams)
+    status: StatusSection = field(default_factory=StatusSection)
+    watchdog: WatchdogSection = field(default_factory=WatchdogSection)
+    sim: dict[str, Any] = field(default_factory=dict)
+
+
+_SECTIONS: dict[str, type] = {
+    "vesc": VescSection, "lidar": LidarSection, "mux": MuxParams, "safety": SafetyParams,
+    "scan_summary": ScanSummarySection, "setpoint": SetpointSection, "figure8": Figure8Section,
+    "follower": FollowerSection, "recorder": RecorderParams, "arming": ArmingParams,
+    "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
+    "status": StatusSection, "watchdog": WatchdogSection,
+}
+
+
+def build_config(data: dict[str, Any]) -> Config:
+    """A validated :class:`Config` from a plain mapping (a parsed YAML file)."""
+    allowed = sorted([*_SECTIONS, "static_transforms", "sim"])
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise ConfigError(unknown[0], "unknown section; allowed sections: " + ", ".join(allowed))
+    values: dict[str, Any] = {}
+    for name, cls in _SECTIONS.items():
+        if name in data:
+            values[name] = build(cls, data[name], name)
+    if "static_transforms" in data:
+        values["static_transforms"] = build_static_transforms(data["static_transforms"],
+                                                              "static_transforms")
+    if "sim" in data:
+        if not isinstance(data["sim"], dict):
+            raise ConfigError("sim", "expected a mapping")
+        values["sim"] = data["sim"]
+    config = Config(**values)
+    gamepad = config.gamepad
+    if gamepad.enabled and gamepad.autonomy_lock:
+        lock = gamepad.lock_params()
+        if all(existing.topic != lock.topic for existing in config.mux.locks):
+            config.mux.locks.append(lock)
+    config.mux.validate("mux")
+    if config.figure8.enabled:
+        config.figure8.params(config.vesc.wheelbase_m)
+    return config
+
+
+def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),
+                extra: dict[str, Any] | None = None) -> Config:
+    """The config in ``path`` (None: the shipped car config), merged with ``extra``, then ``--set``s."""
+    data = load_yaml(path if path is not None else shipped_config("car"))
+    if extra:
+        data = merge(data, extra)
+    for assignment in overrides:
+        apply_override(data, assignment)
+    return build_config(data)
+
+
+def shipped_config(name: str) -> Path:
+    """The path of a shipped config: ``car`` or ``sim``."""
+    return config_file(f"{name}.yaml")
+
+
+def dump_config(config: Config) -> str:
+    """The effective configuration as YAML."""
+    return yaml.safe_dump(to_dict(config), sort_keys=False, default_flow_style=None)
+
+
+def describe_config() -> list[tuple[str, Any, str]]:
+    """Every parameter of every section: (dotted key, default, documentation)."""
+    rows: list[tuple[str, Any, str]] = []
+    for name, cls in _SECTIONS.items():
+        rows.extend(describe(cls, name))
+    rows.extend(describe(StaticTransformParams, "static_transforms[]"))
+    return rows

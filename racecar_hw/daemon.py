@@ -1,0 +1,285 @@
+"""The daemon: every configured component on one bus, in one asyncio event loop.
+
+Thread model (see docs/architecture.md): the event loop thread runs the drivers, the mux, the
+safety controller and every publisher; the bag recorder writes from its own thread behind a bounded
+queue; in ``racecar-hw sim`` the fake devices and the world run in a separate device thread.
+
+The control path, at the mux rate (default 50 Hz)::
+
+    mux inputs -> arbitration -> [arming] -> safety -> rate limiter -> output topic -> VESC
+
+and, on every scan, at once: the last output is re-checked by the safety controller against the
+new scan and goes to the VESC without waiting for the next tick, so a scan's verdict reaches the
+motor within a millisecond or two. A cut is also published on the output topic and clamps the
+limiter so later ticks cannot raise it again. The scan path sends nothing while the control loop
+is stalled, so a dead loop still lets the VESC driver's command timeout brake the car. The
+watchdog is pinged from the control tick, so a stalled control loop gets the daemon restarted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import gc
+import logging
+import math
+import sys
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass, field
+from typing import Any
+
+from lidar_drivers.base import LidarDriver
+from lidar_drivers.registry import make_driver
+from mux.node import CommandMux
+from racecar_hw.arming import Arming
+from racecar_hw.bag_follow import BagFollower
+from racecar_hw.bag_record import Recorder
+from racecar_hw.bus import Bus
+from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.config import Config
+from racecar_hw.errors import ConfigError
+from racecar_hw.figure8 import Figure8Driver
+from racecar_hw.mavlink_gcs import MavlinkGcs
+from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, LaserScan
+from racecar_hw.scan_summary import ScanSummaryPublisher
+from racecar_hw.sdnotify import Notifier
+from racecar_hw.setpoint import SetpointRelay
+from racecar_hw.status import StatusPanel, StatusSnapshot
+from racecar_hw.teleop_gamepad import GamepadTeleop
+from racecar_hw.teleop_keyboard import KeyboardTeleop
+from racecar_hw.ticker import Ticker
+from racecar_hw.transforms import TfTree
+from safety.node import SafetyNode
+from vesc.driver import VescDriver
+
+log = logging.getLogger(__name__)
+
+Filter = Callable[[AckermannDrive, str, int], AckermannDrive]
+
+#: GIL switch interval while the daemon runs (seconds); CPython's default is 0.005.
+SWITCH_INTERVAL_S = 0.0005
+
+
+@dataclass
+class ControlStats:
+    """Counters of the control loop."""
+
+    ticks: int = 0
+    missed_ticks: int = 0
+    scan_cuts: int = 0
+    last_tick_ns: int = 0
+    scan_rate_hz: float = 0.0
+    _scan_times: list[int] = field(default_factory=list)
+
+
+class Daemon:
+    """Builds the configured components on ``bus`` and runs them until stopped."""
+
+    def __init__(self, config: Config, *, bus: Bus | None = None, notifier: Notifier | None = None,
+                 status: StatusPanel | None = None, filters: tuple[Filter, ...] = ()) -> None:
+        self.config = config
+        self.bus = bus if bus is not None else Bus()
+        self.notifier = notifier if notifier is not None else Notifier.from_env()
+        self.stats = ControlStats()
+        self.tf = TfTree.from_params(config.static_transforms)
+        self.vesc: VescDriver | None = VescDriver(self.bus, config.vesc) if config.vesc.enabled else None
+        self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
+                                          if config.lidar.enabled else None)
+        self.mux = CommandMux(self.bus, config.mux)
+        self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base())
+        self.arming = Arming.from_params(config.arming)
+        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
+                        if config.gamepad.enabled else None)
+        self.keyboard = KeyboardTeleop(self.bus, config.keyboard) if config.keyboard.enabled else None
+        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
+                        if config.mavlink.enabled else None)
+        hold = (self.mavlink.filter,) if self.mavlink is not None else ()
+        self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, *filters, self.safety.filter)
+        self.scan_summary = (ScanSummaryPublisher(self.bus, config.scan_summary)
+                             if config.scan_summary.enabled else None)
+        self.setpoint = SetpointRelay(self.bus, config.setpoint) if config.setpoint.enabled else None
+        self.figure8 = (Figure8Driver(self.bus, config.figure8.params(config.vesc.wheelbase_m))
+                        if config.figure8.enabled else None)
+        self.follower = BagFollower(self.bus, config.follower) if config.follower.enabled else None
+        self.recorder = Recorder(self.bus, config.recorder) if config.recorder.enabled else None
+        self.status = status
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._extra: list[Coroutine[Any, Any, Any]] = []
+        self._watchdog_period_ns: int | None = None
+        self._last_watchdog_ns = 0
+        self.bus.subscribe(config.mux.output_topic, self._on_output)
+        self.bus.subscribe(config.safety.scan_topic, self._on_scan)
+
+    # --- wiring ---------------------------------------------------------------------------------
+
+    def _laser_to_base(self) -> Any:
+        frame = self.config.lidar.frame_id
+        if self.tf.can_transform("base_link", frame):
+            return self.tf.lookup("base_link", frame)
+        if self.config.lidar.enabled and self.config.safety.mode == "arc":
+            raise ConfigError("static_transforms", f"no transform from base_link to the lidar frame "
+                                                   f"{frame!r}: the safety controller needs one")
+        return None
+
+    def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
+        """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
+        self._extra.append(coro)
+
+    def _on_output(self, msg: AckermannDriveStamped) -> None:
+        if self.vesc is not None:
+            self.vesc.command(msg.drive)
+
+    def _on_scan(self, scan: LaserScan) -> None:
+        now = monotonic_ns()
+        times = self.stats._scan_times
+        times.append(now)
+        if len(times) > 20:
+            del times[0]
+        if len(times) >= 2:
+            self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
+        last = self.mux.last_output
+        if last is None or not self._control_alive(now):
+            return
+        cut = self.safety.filter(last.drive, self.mux.source or "idle", now)
+        if abs(cut.speed) < abs(last.drive.speed):
+            self.stats.scan_cuts += 1
+            limiter = self.mux.limiter
+            limiter.speed = math.copysign(min(abs(limiter.speed), abs(cut.speed)), limiter.speed)
+            self.mux.step(now, (lambda drive, source, t: cut,))
+        elif self.vesc is not None:
+            self.vesc.command(cut)
+
+    def _control_alive(self, now_ns: int) -> bool:
+        """Whether the control loop ticked within the last two periods.
+
+        The scan path re-sends commands only while the control loop runs: a stalled loop must
+        let the VESC driver's command timeout brake the car, not be masked by scans.
+        """
+        period = NS_PER_S / self.config.mux.rate_hz
+        return self.stats.ticks > 0 and now_ns - self.stats.last_tick_ns < 2 * period
+
+    # --- control loop ---------------------------------------------------------------------------
+
+    async def _control_loop(self) -> None:
+        ticker = Ticker(self.config.mux.rate_hz)
+        interval = self.notifier.watchdog_interval_s()
+        if interval:
+            self._watchdog_period_ns = int(interval * NS_PER_S / 2)
+        missed = 0
+        while True:
+            due = await ticker.tick()
+            periods = 1 + ticker.missed - missed
+            missed = ticker.missed
+            self.stats.missed_ticks = missed
+            self.mux.step(due, self.filters, periods)
+            self.stats.ticks += 1
+            self.stats.last_tick_ns = monotonic_ns()
+            if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
+                self.notifier.watchdog()
+                self._last_watchdog_ns = due
+
+    def snapshot(self) -> StatusSnapshot:
+        """What the status panel shows."""
+        out = self.mux.last_output
+        state = self.vesc.last_state if self.vesc is not None else None
+        odom = self.bus.latest(self.config.safety.odom_topic)
+        safety = self.safety.state
+        return StatusSnapshot(
+            speed_mps=float(odom.twist.twist.linear.x) if odom is not None else None,
+            steering_rad=float(out.drive.steering_angle) if out is not None else None,
+            mux_source=self.mux.source,
+            battery_v=state.state.voltage_input if state is not None else None,
+            scan_rate_hz=self.stats.scan_rate_hz if self.lidar is not None else None,
+            safety_state=safety.reason,
+            safety_allowed_mps=safety.allowed_speed if math.isfinite(safety.allowed_speed) else None,
+            vesc_crc_errors=self.vesc.stats.crc_errors if self.vesc is not None else 0,
+            vesc_reconnects=self.vesc.stats.reconnects if self.vesc is not None else 0,
+            lidar_reconnects=self.lidar.stats.reconnects if self.lidar is not None else 0,
+            armed=self.arming.armed,
+        )
+
+    # --- life cycle -----------------------------------------------------------------------------
+
+    def _publish_static_transforms(self) -> None:
+        if not self.config.static_transforms:
+            return
+        self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Run every component until ``stop`` is set; then brake, centre, flush and return."""
+        self.bus.bind_loop(asyncio.get_running_loop())
+        self._publish_static_transforms()
+        if self.recorder is not None:
+            self.recorder.start()
+        if self.scan_summary is not None:
+            self.scan_summary.start()
+        if self.setpoint is not None:
+            self.setpoint.start()
+        coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
+        if self.vesc is not None:
+            coros.append(self.vesc.run())
+        if self.lidar is not None:
+            coros.append(self.lidar.run())
+        if self.setpoint is not None:
+            coros.append(self.setpoint.run())
+        if self.figure8 is not None:
+            coros.append(self.figure8.run())
+        if self.follower is not None:
+            coros.append(self.follower.run())
+        for teleop in (self.gamepad, self.keyboard, self.mavlink):
+            if teleop is not None:
+                coros.append(teleop.run())
+        coros.extend(self._extra)
+        self._extra = []
+        self._tasks = [asyncio.create_task(c) for c in coros]
+        if self.status is not None:
+            self.status.source = self.snapshot
+            self.status.start()
+        # Everything built so far (type stores, drivers, maps) lives until exit: keep it out of the
+        # cyclic garbage collector, whose full passes over it would stall the control path.
+        gc.collect()
+        gc.freeze()
+        # The recorder's writer thread serializes in Python; a short GIL switch interval hands the
+        # GIL back to the control path within half a millisecond instead of CPython's default 5 ms.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        self.notifier.ready("racecar-hw running")
+        log.info("racecar-hw running")
+        waiter = asyncio.create_task(stop.wait())
+        try:
+            done, _ = await asyncio.wait([waiter, *self._tasks], return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if task is not waiter and not task.cancelled() and task.exception() is not None:
+                    log.error("component failed: %r", task.exception(), exc_info=task.exception())
+            # components that finish on their own (a figure-8, a bag) leave the rest running
+            while not stop.is_set():
+                pending = [t for t in self._tasks if not t.done()]
+                await asyncio.wait([waiter, *pending], return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            waiter.cancel()
+            await self.shutdown()
+
+    async def shutdown(self) -> None:
+        """Brake and centre, stop every component, flush the recorder. Safe to call twice."""
+        self.notifier.stopping("racecar-hw stopping")
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks = []
+        if self.vesc is not None:
+            with contextlib.suppress(Exception):
+                await self.vesc.shutdown()
+        if self.status is not None:
+            with contextlib.suppress(Exception):
+                await self.status.stop()
+        if self.recorder is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.get_running_loop().run_in_executor(None, self.recorder.stop)
+        if self.scan_summary is not None:
+            self.scan_summary.close()
+        if self.setpoint is not None:
+            self.setpoint.close()
+        if self.mavlink is not None:
+            self.mavlink.close()
+        self.safety.close()
+        self.mux.close()
+        self.notifier.close()

@@ -1,0 +1,380 @@
+"""``racecar-hw sim``: the real daemon on fake hardware, moved by the world simulation.
+
+The fake VESC (a pty) and the fake lidar (TCP or a pty) run in a :class:`DeviceThread` with the
+:class:`World`: the world reads the fake VESC's motor ERPM and servo position, moves the car, and
+the fake lidar ray-casts the map from the car's laser pose. The daemon runs unchanged in the main
+event loop with its device paths pointed at the fakes, so every byte crosses a real pty or socket.
+
+Sim time is real (monotonic) time since the world started; see docs/sim.md.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lidar_drivers.registry import family, make_fake
+from racecar_hw.clock import wall_ns
+from racecar_hw.config import Config, load_config, shipped_config
+from racecar_hw.daemon import Daemon
+from racecar_hw.devicethread import DeviceThread
+from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+from racecar_hw.overrides import merge
+from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.occupancy import load_map
+from racecar_hw.sim.plot import plot_run
+from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
+from racecar_hw.sim.trajectory import write_csv
+from racecar_hw.sim.world import World
+from racecar_hw.status import StatusPanel
+from racecar_hw.ticker import Ticker
+from racecar_hw.transforms import yaw_of
+from vesc.fake import FakeVesc
+
+log = logging.getLogger(__name__)
+
+#: Longest range the fake lidar casts, metres (UST-10LX: 10 m; others less matter little indoors).
+LIDAR_MAX_RANGE_M = {"urg-04lx": 5.6, "ust-10lx": 10.0, "ust-20lx": 20.0, "utm-30lx": 30.0}
+
+
+@dataclass
+class SimResult:
+    """What a run produced: the report (also written as JSON) and the files next to it."""
+
+    report: dict[str, Any]
+    report_path: Path | None = None
+    trajectory_csv: Path | None = None
+    plot_png: Path | None = None
+    interventions_at: list[tuple[float, float]] = field(default_factory=list)
+
+
+class Loopback:
+    """One scenario on fake hardware: build with a scenario and config, then ``await run()``."""
+
+    def __init__(self, scenario: Scenario, *, config_path: str | Path | None = None,
+                 overrides: tuple[str, ...] | list[str] = (), out_dir: str | Path | None = None,
+                 status: StatusPanel | None = None, duration_s: float | None = None,
+                 setup: Callable[[Loopback], None] | None = None) -> None:
+        self.scenario = scenario
+        self.duration_s = duration_s if duration_s is not None else scenario.duration_s
+        self._tmp = tempfile.TemporaryDirectory(prefix="racecar-hw-sim-")
+        self.dev_dir = Path(self._tmp.name)
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.config_path = config_path if config_path is not None else shipped_config("sim")
+        self.overrides = tuple(overrides)
+        self.status = status
+        self.setup = setup
+        self.devices = DeviceThread("sim-devices")
+        self.map = load_map(scenario.map_path())
+        self.vesc: FakeVesc | None = None
+        self.lidar: Any = None
+        self.world: World | None = None
+        self.daemon: Daemon | None = None
+        self.config: Config | None = None
+        self.interventions_at: list[tuple[float, float]] = []
+        self.fault_log: list[tuple[float, str]] = []
+        self._stop: asyncio.Event | None = None
+
+    # --- building -------------------------------------------------------------------------------
+
+    def _build_config(self, lidar_endpoint: dict[str, Any]) -> Config:
+        extra = merge(self.scenario.config, {
+            "vesc": {"port": str(self.dev_dir / "vesc")},
+            "lidar": {"model": self.scenario.lidar.model, **lidar_endpoint},
+        })
+        return load_config(self.config_path, self.overrides, extra=extra)
+
+    def _car_params(self, config: Config) -> CarParams:
+        v, fp = config.vesc, config.safety.footprint
+        return CarParams(speed_to_erpm_gain=v.speed_to_erpm_gain, speed_to_erpm_offset=v.speed_to_erpm_offset,
+                         steering_angle_to_servo_gain=v.steering_angle_to_servo_gain,
+                         steering_angle_to_servo_offset=v.steering_angle_to_servo_offset,
+                         wheelbase=v.wheelbase_m, length=fp.length_m, width=fp.width_m,
+                         rear_overhang=fp.rear_overhang_m)
+
+    def _start_devices(self) -> Config:
+        sc = self.scenario
+        model = sc.lidar.model
+        # A first config (with placeholder lidar endpoint) gives the car's geometry and laser pose.
+        probe = self._build_config({"tcp": None, "port": None})
+        laser = self._laser_pose(probe)
+        self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
+        self.world = World(self.map, self._car_params(probe), sc.start,
+                           erpm_source=lambda: self.vesc.erpm if self.vesc else 0.0,
+                           servo_source=lambda: self.vesc.servo if self.vesc else 0.5,
+                           laser_pose_in_base=laser, noise_std_m=sc.world.noise_std_m,
+                           seed=sc.world.seed, on_collision=lambda: self.vesc and self.vesc.stall())
+        source = self.world.range_source(max_range=LIDAR_MAX_RANGE_M.get(model, 12.0))
+        use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo"
+        if use_tcp:
+            self.lidar = make_fake(model, source, tcp=("127.0.0.1", 0))
+        else:
+            self.lidar = make_fake(model, source, link=str(self.dev_dir / "lidar"))
+        self.devices.start()
+        self.devices.spawn(self.vesc.serve())
+        self.devices.spawn(self.lidar.serve())
+        self.devices.spawn(self.world.run(sc.world.rate_hz))
+        ready = getattr(self.lidar, "ready", None)
+        if ready is not None and not ready.wait(10):
+            raise RuntimeError("fake lidar did not start")
+        if use_tcp:
+            host, port = self.lidar.tcp_address
+            return self._build_config({"tcp": f"{host}:{port}", "port": None})
+        return self._build_config({"port": str(self.dev_dir / "lidar"), "tcp": None})
+
+    @staticmethod
+    def _laser_pose(config: Config) -> tuple[float, float, float]:
+        for t in config.static_transforms:
+            if t.frame_id == "base_link" and t.child_frame_id == config.lidar.frame_id:
+                m = t.matrix()
+                return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
+        return 0.265, 0.0, 0.0
+
+    # --- running --------------------------------------------------------------------------------
+
+    def sim_time(self) -> float:
+        """Seconds since the world started."""
+        return self.world.sim_time if self.world is not None else 0.0
+
+    async def _wait_until(self, t_s: float) -> None:
+        while self.sim_time() < t_s:
+            await asyncio.sleep(min(0.02, max(0.001, t_s - self.sim_time())))
+
+    async def _wait_ready(self, timeout_s: float = 15.0) -> None:
+        """Wait until the car is ready to drive: the VESC answered and the first scan is in.
+
+        A driver on a real car waits for the same; commanding earlier only makes the safety
+        controller hold the car (no scan yet), which would count as an intervention.
+        """
+        assert self.daemon is not None
+        daemon = self.daemon
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while asyncio.get_running_loop().time() < deadline:
+            vesc_ok = daemon.vesc is None or daemon.vesc.connected
+            lidar_ok = daemon.lidar is None or daemon.lidar.stats.scans > 0
+            if vesc_ok and lidar_ok:
+                return
+            await asyncio.sleep(0.01)
+        log.warning("sim: devices not ready after %.0f s; driving anyway", timeout_s)
+
+    async def _drive(self, spec: DriverSpec) -> None:
+        assert self.config is not None and self.daemon is not None
+        topic = self._input_topic(spec.input)
+        await self._wait_ready()
+        await self._wait_until(spec.from_s)
+        bus = self.daemon.bus
+        if spec.type in ("constant", "script", "setpoint"):
+            ticker = Ticker(spec.rate_hz)
+            while spec.until_s is None or self.sim_time() < spec.until_s:
+                await ticker.tick()
+                speed, steer = spec.speed_mps, spec.steering_rad
+                if spec.type == "script":
+                    speed, steer = _script_at(spec.steps, self.sim_time() - spec.from_s)
+                bus.publish(topic, AckermannDriveStamped(stamp_now("base_link", wall_ns()),
+                                                         AckermannDrive(steering_angle=steer, speed=speed)))
+        elif spec.type == "figure8":
+            from racecar_hw.figure8 import Figure8Driver, Figure8Params
+
+            params = Figure8Params(speed_mps=spec.speed_mps, steering_angle_rad=spec.steering_rad,
+                                   wheelbase_m=self.config.vesc.wheelbase_m, figure8s=spec.figure8s,
+                                   rate_hz=spec.rate_hz, topic=topic)
+            await self._until(Figure8Driver(bus, params).run(), spec.until_s)
+        elif spec.type == "follow":
+            from racecar_hw.bag_follow import BagFollower, FollowerParams
+
+            params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=topic,
+                                    rate_hz=spec.rate_hz, use_timestamps=spec.use_timestamps,
+                                    reverse=spec.reverse)
+            await self._until(BagFollower(bus, params).run(), spec.until_s)
+
+    async def _until(self, coro: Any, until_s: float | None) -> None:
+        task = asyncio.ensure_future(coro)
+        if until_s is None:
+            await task
+            return
+        waiter = asyncio.ensure_future(self._wait_until(until_s))
+        await asyncio.wait([task, waiter], return_when=asyncio.FIRST_COMPLETED)
+        for t in (task, waiter):
+            t.cancel()
+        await asyncio.gather(task, waiter, return_exceptions=True)
+
+    def _input_topic(self, name: str) -> str:
+        assert self.config is not None
+        for inp in self.config.mux.inputs:
+            if inp.name == name:
+                return inp.topic
+        names = ", ".join(i.name for i in self.config.mux.inputs)
+        raise ValueError(f"scenario driver input {name!r} is not a mux input; inputs: {names}")
+
+    async def _faults(self) -> None:
+        for fault in sorted(self.scenario.faults, key=lambda f: f.at_s):
+            await self._wait_until(fault.at_s)
+            self.fault_log.append((round(self.sim_time(), 3), fault.action))
+            log.info("sim fault at %.2f s: %s", self.sim_time(), fault.action)
+            self._apply(fault)
+
+    def _apply(self, fault: FaultSpec) -> None:
+        assert self.vesc is not None and self.world is not None and self.daemon is not None
+        action = fault.action
+        if action == "lidar_unplug":
+            if getattr(self.lidar, "tcp_address", None) is not None:
+                self.lidar.mute(True)
+                self.lidar.drop_connection()
+            else:
+                self.lidar.unplug()
+        elif action == "lidar_replug":
+            if getattr(self.lidar, "tcp_address", None) is not None:
+                self.lidar.mute(False)
+            else:
+                self.lidar.replug()
+        elif action == "vesc_unplug":
+            self.vesc.unplug()
+        elif action == "vesc_replug":
+            self.vesc.replug()
+        elif action == "vesc_garbage":
+            self.vesc.inject_garbage(fault.bytes)
+        elif action == "obstacle_ahead":
+            self.world.add_obstacle_ahead(fault.distance_m, fault.radius_m)
+        elif action == "clear_obstacles":
+            self.world.clear_obstacles()
+        elif action == "estop":
+            self.daemon.mux.engage_estop("scenario")
+        elif action == "estop_release":
+            self.daemon.mux.release_estop()
+
+    async def _watch_interventions(self) -> None:
+        assert self.daemon is not None and self.world is not None
+        seen = 0
+        while True:
+            await asyncio.sleep(0.02)
+            n = self.daemon.safety.interventions
+            if n > seen:
+                pose = self.world.pose
+                self.interventions_at.extend([(pose.x, pose.y)] * (n - seen))
+                seen = n
+
+    async def run(self) -> SimResult:
+        """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
+        try:
+            self.config = self._start_devices()
+            self.daemon = Daemon(self.config, status=self.status)
+            if self.setup is not None:
+                self.setup(self)
+            stop = self._stop = asyncio.Event()
+            for spec in self.scenario.drivers:
+                self.daemon.add_task(self._drive(spec))
+            self.daemon.add_task(self._faults())
+            self.daemon.add_task(self._watch_interventions())
+
+            async def timer() -> None:
+                await self._wait_until(self.duration_s)
+                stop.set()
+
+            self.daemon.add_task(timer())
+            await self.daemon.run(stop)
+            await self._settle()
+            return self._result()
+        finally:
+            self.devices.stop()
+            self._tmp.cleanup()
+
+    def request_stop(self) -> None:
+        """End the run now (from the event loop), as if the duration had passed."""
+        if self._stop is not None:
+            self._stop.set()
+
+    async def _settle(self) -> None:
+        """Let the car roll to rest after the daemon's final brake, for honest final numbers."""
+        assert self.world is not None
+        for _ in range(100):
+            if abs(self.world.speed) < 0.01:
+                return
+            await asyncio.sleep(0.02)
+
+    # --- report ---------------------------------------------------------------------------------
+
+    def _result(self) -> SimResult:
+        assert self.world is not None and self.daemon is not None and self.vesc is not None
+        world, daemon = self.world, self.daemon
+        pose = world.pose
+        vstats = daemon.vesc.stats if daemon.vesc is not None else None
+        lstats = daemon.lidar.stats if daemon.lidar is not None else None
+        sim_time = world.sim_time
+        report: dict[str, Any] = {
+            "scenario": self.scenario.name,
+            "description": self.scenario.description,
+            "sim_time_s": round(sim_time, 3),
+            "collided": world.collided,
+            "collisions": [[round(c.t, 3), round(c.x, 3), round(c.y, 3)] for c in world.collisions],
+            "min_clearance_m": _num(world.min_clearance),
+            "final_clearance_m": _num(world.clearance()),
+            "distance_m": _num(world.distance_travelled),
+            "final_pose": {"x": _num(pose.x), "y": _num(pose.y), "yaw": _num(pose.yaw)},
+            "final_speed_mps": _num(world.speed),
+            "max_speed_mps": _num(max((abs(s[4]) for s in world.trajectory), default=0.0)),
+            "safety_interventions": daemon.safety.interventions,
+            "safety_interventions_by_reason": dict(daemon.safety.controller.interventions_by_reason),
+            "mux_switches": [[round(t, 3), s] for t, s in daemon.mux.switches],
+            "faults": [[t, a] for t, a in self.fault_log],
+            "vesc": {
+                "frames_tx": vstats.frames_tx if vstats else 0,
+                "frames_rx": vstats.frames_rx if vstats else 0,
+                "crc_errors": vstats.crc_errors if vstats else 0,
+                "reconnects": vstats.reconnects if vstats else 0,
+                "firmware": self.scenario.firmware,
+            },
+            "lidar": {
+                "model": self.scenario.lidar.model,
+                "scans": lstats.scans if lstats else 0,
+                "rate_hz": _num(lstats.scans / sim_time if lstats and sim_time > 0 else 0.0),
+                "reconnects": lstats.reconnects if lstats else 0,
+            },
+            "control": {"ticks": daemon.stats.ticks, "missed_ticks": daemon.stats.missed_ticks,
+                        "scan_cuts": daemon.stats.scan_cuts},
+            "trajectory_csv": None,
+            "plot_png": None,
+        }
+        result = SimResult(report, interventions_at=list(self.interventions_at))
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            stem = self.scenario.name or "sim"
+            csv_path = self.out_dir / f"{stem}-trajectory.csv"
+            write_csv(csv_path, world.samples)
+            png_path = self.out_dir / f"{stem}.png"
+            obstacles = [(o.x, o.y, o.radius) for o in world.obstacles.values() if hasattr(o, "radius")]
+            plot_run(png_path, self.map, world.trajectory, self.interventions_at,
+                     [(c.x, c.y) for c in world.collisions], obstacles,
+                     title=stem)
+            report["trajectory_csv"] = str(csv_path)
+            report["plot_png"] = str(png_path)
+            result.trajectory_csv, result.plot_png = csv_path, png_path
+        return result
+
+
+def write_report(result: SimResult, path: str | Path) -> Path:
+    """Write the JSON report to ``path``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(result.report, indent=2) + "\n")
+    result.report_path = p
+    return p
+
+
+def _script_at(steps: list[tuple[float, float, float]], t: float) -> tuple[float, float]:
+    speed, steer = 0.0, 0.0
+    for t0, v, d in steps:
+        if t >= t0:
+            speed, steer = v, d
+    return speed, steer
+
+
+def _num(x: float) -> float | None:
+    return round(float(x), 4) if math.isfinite(x) else None
+

@@ -1,0 +1,117 @@
+"""``racecar-hw run`` as systemd runs it: fake devices, a real NOTIFY_SOCKET, SIGTERM at the end."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+from conftest import wait_for
+
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.scip_fake import FakeHokuyo
+from racecar_hw.config import load_config
+from racecar_hw.errors import ConfigError
+from vesc.codec import SetCurrentBrake, SetRpm, SetServoPosition
+from vesc.fake import FakeVesc
+
+
+def _notifications(sock: socket.socket, until: float) -> list[str]:
+    got: list[str] = []
+    sock.settimeout(0.2)
+    while time.monotonic() < until:
+        try:
+            got.extend(sock.recv(4096).decode().split("\n"))
+        except TimeoutError:
+            continue
+        if any(line == "STOPPING=1" for line in got):
+            break
+    return got
+
+
+@pytest.fixture
+def fakes(device_thread, tmp_path):
+    vesc = FakeVesc(str(tmp_path / "vesc"))
+    lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
+    device_thread.spawn(vesc.serve())
+    device_thread.spawn(lidar.serve())
+    assert lidar.ready.wait(10)
+    return vesc, lidar
+
+
+def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_path):
+    vesc, lidar = fakes
+    host, port = lidar.tcp_address
+    config = {
+        "vesc": {"port": str(tmp_path / "vesc")},
+        "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
+        "status": {"enabled": False},
+        "recorder": {"enabled": True, "path": str(tmp_path / "bags"), "name": "drive",
+                     "format": "mcap"},
+    }
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(yaml.safe_dump(config))
+    notify = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(notify))
+    env = dict(os.environ, NOTIFY_SOCKET=str(notify), WATCHDOG_USEC="400000")
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        got = _notifications(sock, time.monotonic() + 20)
+        assert "READY=1" in got
+        wait_for(lambda: vesc.timed_out is False and len(vesc.commands) > 20, timeout=20)
+        got = _notifications(sock, time.monotonic() + 1.0)
+        assert got.count("WATCHDOG=1") >= 2  # pinged at half of 0.4 s while the loop runs
+        vesc.clear_commands()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    assert proc.returncode == 0, err
+    commands = [c.packet for c in vesc.commands]
+    motor = [p for p in commands if isinstance(p, (SetRpm, SetCurrentBrake))]
+    servo = [p for p in commands if isinstance(p, SetServoPosition)]
+    assert motor and (isinstance(motor[-1], SetCurrentBrake) or motor[-1].erpm == 0)
+    assert servo and servo[-1].position == pytest.approx(0.5304, abs=1e-3)
+    bags = list((tmp_path / "bags").rglob("*.mcap"))
+    assert bags, "the recorder left no bag"
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bags[0].parent]) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert {"/scan", "/odom", "/vesc/sensors/core", "/tf_static"} <= topics
+
+
+def test_config_errors_name_the_key(tmp_path):
+    with pytest.raises(ConfigError, match="^vesc.speed_to_erpm_gian: unknown key"):
+        load_config(None, ["vesc.speed_to_erpm_gian=1"])
+    allowed = r"^lidar.model: 'hokuyo' \(str\) is not allowed; allowed values: urg-04lx"
+    with pytest.raises(ConfigError, match=allowed):
+        load_config(None, ["lidar.model=hokuyo"])
+    with pytest.raises(ConfigError, match="^telemetry: unknown section"):
+        load_config(None, ["telemetry.rate=1"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("vesc: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+
+
+def test_check_config_prints_the_effective_config():
+    out = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "check-config", "--set",
+                          "mux.rate_hz=40"], capture_output=True, text=True, check=True).stdout
+    data = yaml.safe_load(out)
+    assert data["mux"]["rate_hz"] == 40.0
+    assert data["vesc"]["speed_to_erpm_gain"] == 4614.0
+    assert data["static_transforms"][0]["child_frame_id"] == "laser"
+    bad = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "check-config", "--set",
+                          "safety.margin_m=-1"], capture_output=True, text=True)
+    assert bad.returncode == 1
+    assert "safety.margin_m" in bad.stderr and "out of range" in bad.stderr
