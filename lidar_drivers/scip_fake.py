@@ -205,6 +205,7 @@ class _Session:
                 frame = fake.frame(cmd, cmd.echo(remaining), "99")
                 await asyncio.shield(self.send(frame))  # QT stops the stream between frames only
                 fake.scans_sent += 1
+                fake.frames_sent_ns.append(monotonic_ns())
             if cmd.count and remaining == 0:
                 self.stream = None
                 return
@@ -228,6 +229,8 @@ class FakeHokuyo:
         self.ready = threading.Event()
         self.scans_sent = 0
         self.received: deque[str] = deque(maxlen=2000)
+        #: monotonic ns at which each streamed frame's last byte was handed to the link
+        self.frames_sent_ns: deque[int] = deque(maxlen=100_000)
         self.tcp_address: tuple[str, int] | None = None
         self._pty: PtyPort | None = None
         self._pty_session: _Session | None = None

@@ -1,0 +1,135 @@
+"""The daemon at nominal load: CPU share, peak memory, scan-to-command latency.
+
+Load: a UST-10LX streaming 1081-beam scans at 40 Hz over TCP, the VESC polled at 50 Hz with a
+command stream at 50 Hz, the safety controller on, the recorder writing every topic to MCAP, and
+a navigation source (figure-8 driver) at 20 Hz. The fake devices run in this process; the daemon
+runs alone in a ``racecar-hw run`` subprocess, so its CPU time (utime + stime) and peak RSS (VmHWM)
+are its own.
+
+Latency: for every scan frame, the time from the fake lidar handing the frame's last byte to the
+socket until the fake VESC reads the next motor command (SET_RPM / brake / current). That spans TCP,
+the daemon's decode, safety check and command, and the pty back. Because the 50 Hz control tick
+can also land in that window by chance, a few samples may be shorter than the scan path alone.
+
+Run ``python benchmarks/bench_daemon.py [SECONDS]``; ``run()`` returns the rows for run_all.py.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.scip_fake import FakeHokuyo
+from racecar_hw.devicethread import DeviceThread
+from vesc.codec import SetCurrent, SetCurrentBrake, SetRpm
+from vesc.fake import FakeVesc
+
+CPU_TARGET = 10.0   # percent of one core
+RSS_TARGET = 150.0  # MB
+LATENCY_P99_TARGET = 2.0  # ms
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
+    # Each fake in its own thread, and a short GIL switch interval, so that the fake VESC reads a
+    # command when it arrives rather than after the fake lidar has encoded its next frame.
+    sys.setswitchinterval(0.0002)
+    with (tempfile.TemporaryDirectory() as tmp, DeviceThread("bench-vesc") as vesc_thread,
+          DeviceThread("bench-lidar") as lidar_thread):
+        vesc = FakeVesc(f"{tmp}/vesc")
+        lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
+        vesc_thread.spawn(vesc.serve())
+        lidar_thread.spawn(lidar.serve())
+        if not lidar.ready.wait(10):
+            raise RuntimeError("fake lidar did not start")
+        host, port = lidar.tcp_address
+        config = {
+            "vesc": {"port": f"{tmp}/vesc", "poll_rate_hz": 50.0},
+            "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
+            "mux": {"rate_hz": 50.0},
+            "safety": {"mode": "arc"},
+            "recorder": {"enabled": recorder, "path": f"{tmp}/bags", "format": "mcap"},
+            "figure8": {"enabled": True, "speed_mps": 0.5, "steering_angle_rad": 0.25, "figure8s": 0},
+            "arming": {"start_armed": True},
+            "gamepad": {"enabled": False},
+            "status": {"enabled": False},
+        }
+        cfg = Path(tmp) / "bench.yaml"
+        cfg.write_text(yaml.safe_dump(config))
+        profile = os.environ.get("BENCH_PROFILE")  # a path: run the daemon under cProfile
+        prefix = ["-m", "cProfile", "-o", profile] if profile else []
+        command = [sys.executable, *prefix, "-m", "racecar_hw.cli", "run", "--config", str(cfg)]
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 20
+            while lidar.clients == 0 or len(vesc.commands) < 50:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise RuntimeError(f"daemon did not start: {proc.stderr.read() if proc.stderr else ''}")
+                time.sleep(0.05)
+            time.sleep(2.0)  # warm up: caches, first bag chunk
+            lidar.frames_sent_ns.clear()
+            vesc.clear_commands()
+            cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
+            time.sleep(seconds)
+            cpu1, t1 = _cpu_s(proc.pid), time.monotonic()
+            rss = _peak_rss_mb(proc.pid)
+            sent = np.array(lidar.frames_sent_ns, dtype=np.int64)
+            motor = np.array([c.t_ns for c in vesc.commands
+                              if isinstance(c.packet, (SetRpm, SetCurrentBrake, SetCurrent))], dtype=np.int64)
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    idx = np.searchsorted(motor, sent, side="right")
+    ok = idx < len(motor)
+    latency_ms = (motor[idx[ok]] - sent[ok]) / 1e6
+    if os.environ.get("BENCH_VERBOSE"):
+        qs = (50, 75, 90, 95, 98, 99, 100)
+        print("latency percentiles (ms):", {q: round(float(np.percentile(latency_ms, q)), 2) for q in qs},
+              file=sys.stderr)
+    scans = len(sent)
+    return [
+        {"name": "daemon CPU share of one core", "value": 100.0 * (cpu1 - cpu0) / (t1 - t0),
+         "unit": "%", "target": CPU_TARGET},
+        {"name": "daemon peak RSS", "value": rss, "unit": "MB", "target": RSS_TARGET},
+        {"name": "scans during measurement", "value": scans, "unit": "scans", "target": None},
+        {"name": "scan rate", "value": scans / (t1 - t0), "unit": "Hz", "target": None},
+        {"name": "scan to VESC command p50", "value": float(np.percentile(latency_ms, 50)), "unit": "ms",
+         "target": None},
+        {"name": "scan to VESC command p99", "value": float(np.percentile(latency_ms, 99)), "unit": "ms",
+         "target": LATENCY_P99_TARGET},
+    ]
+
+
+def main() -> None:
+    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
+    rows = run(seconds, recorder="--no-recorder" not in sys.argv)
+    print(f"{'benchmark':32} {'value':>10} {'unit':6} {'target':>8}")
+    for r in rows:
+        t = "" if r["target"] is None else f"{r['target']:g}"
+        print(f"{r['name']:32} {r['value']:10.3f} {r['unit']:6} {t:>8}")
+
+
+if __name__ == "__main__":
+    main()
