@@ -25,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"a shipped scenario or a scenario file (default {DEFAULT_SCENARIO})")
     p.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
     p.add_argument("--duration", type=float, metavar="S", help="override the scenario's duration")
-    p.add_argument("--report", metavar="FILE", help="write the JSON report here")
+    p.add_argument("--report", metavar="FILE", help="write the JSON report here "
+                                                    "(default: OUT/report.json)")
     p.add_argument("--out", metavar="DIR", help="directory for the trajectory CSV and plot "
                                                 "(default: next to the report, else ./sim-out)")
     p.add_argument("--scenario-set", dest="scenario_overrides", action="append", default=[],
@@ -62,9 +63,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration)
     result = asyncio.run(_run(loopback))
-    if args.report:
-        write_report(result, args.report)
+    report = write_report(result, args.report or out / "report.json")
     print(json.dumps(result.report, indent=2))
+    print(f"report: {report}\nplot: {result.plot_png}\ntrajectory: {result.trajectory_csv}")
     return 0
 
 

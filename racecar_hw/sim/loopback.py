@@ -170,7 +170,19 @@ class Loopback:
         await self._wait_ready()
         await self._wait_until(spec.from_s)
         bus = self.daemon.bus
-        if spec.type in ("constant", "script", "setpoint"):
+        if spec.type == "setpoint":
+            from racecar_hw.setpoint import SetpointParams, SetpointRelay
+
+            relay = SetpointRelay(bus, SetpointParams(topic=topic, rate_hz=spec.rate_hz,
+                                                      max_speed_mps=max(2.0, abs(spec.speed_mps))))
+            relay.set_velocity(spec.speed_mps)
+            relay.set_steering_angle(spec.steering_rad)
+            relay.start()
+            try:
+                await self._until(relay.run(), spec.until_s)
+            finally:
+                relay.close()
+        elif spec.type in ("constant", "script"):
             ticker = Ticker(spec.rate_hz)
             while spec.until_s is None or self.sim_time() < spec.until_s:
                 await ticker.tick()
