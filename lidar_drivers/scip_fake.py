@@ -203,9 +203,10 @@ class _Session:
                 await asyncio.shield(self.send(encode_reply(cmd.echo(remaining), status)))
             elif not fake._muted:
                 frame = fake.frame(cmd, cmd.echo(remaining), "99")
+                handed_over = monotonic_ns()  # before the write: a reader may react before it returns
                 await asyncio.shield(self.send(frame))  # QT stops the stream between frames only
                 fake.scans_sent += 1
-                fake.frames_sent_ns.append(monotonic_ns())
+                fake.frames_sent_ns.append(handed_over)
             if cmd.count and remaining == 0:
                 self.stream = None
                 return
@@ -229,7 +230,7 @@ class FakeHokuyo:
         self.ready = threading.Event()
         self.scans_sent = 0
         self.received: deque[str] = deque(maxlen=2000)
-        #: monotonic ns at which each streamed frame's last byte was handed to the link
+        #: monotonic ns just before each streamed frame was handed to the link (for latency probes)
         self.frames_sent_ns: deque[int] = deque(maxlen=100_000)
         self.tcp_address: tuple[str, int] | None = None
         self._pty: PtyPort | None = None
