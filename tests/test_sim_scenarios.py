@@ -26,8 +26,15 @@ def run(name: str, tmp_path, *overrides: str, duration_s: float | None = None) -
     return asyncio.run(loopback.run())
 
 
-def speed_at(samples, t: float) -> float:
-    return min(samples, key=lambda s: abs(s.t - t)).speed
+def mean_speed(samples, t0: float, t1: float) -> float:
+    """Mean speed over [t0, t1] (world time): robust to a momentary brake on a loaded machine."""
+    window = [s.speed for s in samples if t0 <= s.t <= t1]
+    assert window, (t0, t1)
+    return sum(window) / len(window)
+
+
+def fault_time(report: dict, action: str) -> float:
+    return next(t for t, a in report["faults"] if a == action)
 
 
 def test_every_shipped_scenario_is_covered():
@@ -92,7 +99,7 @@ def test_teleop_overrides_navigation_then_hands_back(tmp_path):
     # while teleop drives, the car steers right (negative steering) at 0.5 m/s
     mid = [s for s in samples if teleop_at + 0.8 < s.t < teleop_at + 1.8]
     assert mid and all(s.steering < 0 for s in mid)
-    assert all(abs(s.speed - 0.5) < 0.1 for s in mid)
+    assert abs(mean_speed(samples, teleop_at + 0.8, teleop_at + 1.8) - 0.5) < 0.1
     assert not r["collided"]
 
 
@@ -100,14 +107,12 @@ def test_lidar_unplugged_stops_the_car_and_it_drives_on_when_back(tmp_path):
     result = run("lidar-dropout", tmp_path)
     r = result.report
     samples = read_csv(r["trajectory_csv"])
-    unplug_at = next(t for t, a in r["faults"] if a == "lidar_unplug")
-    replug_at = next(t for t, a in r["faults"] if a == "lidar_replug")
-    assert speed_at(samples, unplug_at - 0.1) > 1.0
-    # within a scan timeout plus braking from 1.5 m/s, the car stands still
-    assert abs(speed_at(samples, unplug_at + 1.0)) < 0.05
-    assert abs(speed_at(samples, replug_at - 0.05)) < 0.05
+    unplug_at, replug_at = fault_time(r, "lidar_unplug"), fault_time(r, "lidar_replug")
+    assert mean_speed(samples, unplug_at - 0.4, unplug_at) > 1.2
+    # within a scan timeout plus braking from 1.5 m/s, the car stands still until the lidar is back
+    assert max(abs(s.speed) for s in samples if unplug_at + 1.0 <= s.t <= replug_at) < 0.05
     assert r["lidar"]["reconnects"] >= 1
-    assert speed_at(samples, r["sim_time_s"] - 0.3) > 1.0
+    assert mean_speed(samples, r["sim_time_s"] - 0.8, r["sim_time_s"] - 0.3) > 1.0
     assert not r["collided"]
 
 
@@ -116,8 +121,9 @@ def test_vesc_replug_reconnects_and_drives_on(tmp_path):
     r = result.report
     assert r["vesc"]["reconnects"] >= 1
     samples = read_csv(r["trajectory_csv"])
-    assert speed_at(samples, 1.8) > 0.8
-    assert speed_at(samples, r["sim_time_s"] - 0.3) > 0.8
+    unplug_at = fault_time(r, "vesc_unplug")
+    assert mean_speed(samples, unplug_at - 0.5, unplug_at) > 0.8
+    assert mean_speed(samples, r["sim_time_s"] - 0.8, r["sim_time_s"] - 0.3) > 0.8
     assert not r["collided"]
 
 

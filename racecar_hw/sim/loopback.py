@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from lidar_drivers.registry import family, make_fake
-from racecar_hw.clock import wall_ns
+from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.config import Config, load_config, shipped_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.devicethread import DeviceThread
@@ -81,6 +81,9 @@ class Loopback:
         self.interventions_at: list[tuple[float, float]] = []
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
+        #: world time (s) when the car was ready to drive: the scenario's time zero
+        self.ready_at_s: float | None = None
+        self._mux_offset_s = 0.0
 
     # --- building -------------------------------------------------------------------------------
 
@@ -140,12 +143,18 @@ class Loopback:
     # --- running --------------------------------------------------------------------------------
 
     def sim_time(self) -> float:
-        """Seconds since the world started."""
+        """Seconds since the world started (the time in the report and the trajectory)."""
         return self.world.sim_time if self.world is not None else 0.0
 
+    def scenario_time(self) -> float:
+        """Seconds since the car was ready: drivers, faults and the duration count from there."""
+        return self.sim_time() - (self.ready_at_s if self.ready_at_s is not None else math.inf)
+
     async def _wait_until(self, t_s: float) -> None:
-        while self.sim_time() < t_s:
-            await asyncio.sleep(min(0.02, max(0.001, t_s - self.sim_time())))
+        """Wait until scenario time ``t_s`` (after the car is ready)."""
+        await self._wait_ready()
+        while (left := t_s - self.scenario_time()) > 0:
+            await asyncio.sleep(min(0.02, max(0.001, left)))
 
     async def _wait_ready(self, timeout_s: float = 15.0) -> None:
         """Wait until the car is ready to drive: the VESC answered and the first scan is in.
@@ -156,18 +165,19 @@ class Loopback:
         assert self.daemon is not None
         daemon = self.daemon
         deadline = asyncio.get_running_loop().time() + timeout_s
-        while asyncio.get_running_loop().time() < deadline:
+        while self.ready_at_s is None:
             vesc_ok = daemon.vesc is None or daemon.vesc.connected
             lidar_ok = daemon.lidar is None or daemon.lidar.stats.scans > 0
-            if vesc_ok and lidar_ok:
+            if (vesc_ok and lidar_ok) or asyncio.get_running_loop().time() > deadline:
+                if not (vesc_ok and lidar_ok):
+                    log.warning("sim: devices not ready after %.0f s; starting anyway", timeout_s)
+                self.ready_at_s = self.sim_time()
                 return
             await asyncio.sleep(0.01)
-        log.warning("sim: devices not ready after %.0f s; driving anyway", timeout_s)
 
     async def _drive(self, spec: DriverSpec) -> None:
         assert self.config is not None and self.daemon is not None
         topic = self._input_topic(spec.input)
-        await self._wait_ready()
         await self._wait_until(spec.from_s)
         bus = self.daemon.bus
         if spec.type == "setpoint":
@@ -184,11 +194,11 @@ class Loopback:
                 relay.close()
         elif spec.type in ("constant", "script"):
             ticker = Ticker(spec.rate_hz)
-            while spec.until_s is None or self.sim_time() < spec.until_s:
+            while spec.until_s is None or self.scenario_time() < spec.until_s:
                 await ticker.tick()
                 speed, steer = spec.speed_mps, spec.steering_rad
                 if spec.type == "script":
-                    speed, steer = _script_at(spec.steps, self.sim_time() - spec.from_s)
+                    speed, steer = _script_at(spec.steps, self.scenario_time() - spec.from_s)
                 bus.publish(topic, AckermannDriveStamped(stamp_now("base_link", wall_ns()),
                                                          AckermannDrive(steering_angle=steer, speed=speed)))
         elif spec.type == "figure8":
@@ -276,7 +286,11 @@ class Loopback:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
         try:
             self.config = self._start_devices()
+            assert self.world is not None
+            created_ns = monotonic_ns()
             self.daemon = Daemon(self.config, status=self.status)
+            # world time at which the mux started counting (its switch times are relative to it)
+            self._mux_offset_s = self.world.sim_time - (monotonic_ns() - created_ns) / NS_PER_S
             if self.setup is not None:
                 self.setup(self)
             stop = self._stop = asyncio.Event()
@@ -323,6 +337,7 @@ class Loopback:
             "scenario": self.scenario.name,
             "description": self.scenario.description,
             "sim_time_s": round(sim_time, 3),
+            "ready_at_s": None if self.ready_at_s is None else round(self.ready_at_s, 3),
             "collided": world.collided,
             "collisions": [[round(c.t, 3), round(c.x, 3), round(c.y, 3)] for c in world.collisions],
             "min_clearance_m": _num(world.min_clearance),
@@ -333,7 +348,7 @@ class Loopback:
             "max_speed_mps": _num(max((abs(s[4]) for s in world.trajectory), default=0.0)),
             "safety_interventions": daemon.safety.interventions,
             "safety_interventions_by_reason": dict(daemon.safety.controller.interventions_by_reason),
-            "mux_switches": [[round(t, 3), s] for t, s in daemon.mux.switches],
+            "mux_switches": [[round(t + self._mux_offset_s, 3), s] for t, s in daemon.mux.switches],
             "faults": [[t, a] for t, a in self.fault_log],
             "vesc": {
                 "frames_tx": vstats.frames_tx if vstats else 0,

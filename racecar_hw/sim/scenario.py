@@ -9,9 +9,13 @@ A scenario is YAML (shipped ones in ``config/scenarios/``; any path works too)::
     lidar: {model: ust-10lx, transport: tcp}
     drivers:                   # each publishes on a mux input during [from_s, until_s)
       - {type: constant, input: nav_0, speed_mps: 2.0, steering_rad: 0.0}
-    faults:                    # applied at at_s seconds of sim time
+    faults:                    # applied at at_s seconds of scenario time
       - {at_s: 3.0, action: lidar_unplug}
     config: {safety: {margin_m: 0.3}}   # merged into the daemon's sim config
+
+Scenario time starts when the car is ready to drive (the VESC answered and the first scan is in),
+as a driver on a real car would wait; ``duration_s``, ``from_s``/``until_s`` and ``at_s`` count from
+there. The report and the trajectory use world time, which starts with the simulation.
 
 Driver types: ``constant`` (a fixed command), ``script`` (``steps: [[t_s, speed, steering], ...]``,
 each held until the next), ``figure8`` (``speed_mps``, ``steering_rad``, ``figure8s``), ``setpoint``
@@ -43,8 +47,8 @@ class DriverSpec:
 
     type: str = param("constant", "how commands are made", choices=DRIVER_TYPES)
     input: str = param("nav_0", "mux input name the commands go to")
-    from_s: float = param(0.0, "start publishing at this sim time", unit="s", min=0.0)
-    until_s: float | None = param(None, "stop publishing at this sim time; none: never", unit="s")
+    from_s: float = param(0.0, "start publishing at this scenario time", unit="s", min=0.0)
+    until_s: float | None = param(None, "stop publishing at this scenario time; none: never", unit="s")
     speed_mps: float = param(1.0, "speed (constant, setpoint, figure8)", unit="m/s", min=-10, max=10)
     steering_rad: float = param(0.0, "steering angle, + left (constant, setpoint, figure8)",
                                 unit="rad", min=-1.0, max=1.0)
@@ -61,7 +65,7 @@ class DriverSpec:
 class FaultSpec:
     """One thing that breaks (or is mended) at a given time."""
 
-    at_s: float = param(0.0, "when, in sim time", unit="s", min=0.0)
+    at_s: float = param(0.0, "when, in scenario time", unit="s", min=0.0)
     action: str = param("lidar_unplug", "what happens", choices=FAULT_ACTIONS)
     distance_m: float = param(1.5, "obstacle_ahead: distance ahead of the car's front bumper",
                               unit="m", min=0.0)
@@ -94,7 +98,8 @@ class Scenario:
     map: str = param("track", "shipped map name or path to a map_server YAML")
     start: tuple[float, float, float] = param((0.0, 0.0, 0.0), "start pose x, y, yaw in the map frame",
                                               unit="m, m, rad")
-    duration_s: float = param(20.0, "sim time to run", unit="s", min=0.1, max=3600.0)
+    duration_s: float = param(20.0, "scenario time to run (from when the car is ready)", unit="s",
+                              min=0.1, max=3600.0)
     firmware: str = param("6.2", "fake VESC firmware version X.Y (selects the telemetry layout)")
     lidar: LidarSpec = param(LidarSpec(), "the fake lidar")
     world: WorldSpec = param(WorldSpec(), "the world simulation")
