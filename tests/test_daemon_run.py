@@ -115,3 +115,38 @@ def test_check_config_prints_the_effective_config():
                           "safety.margin_m=-1"], capture_output=True, text=True)
     assert bad.returncode == 1
     assert "safety.margin_m" in bad.stderr and "out of range" in bad.stderr
+
+
+def test_follow_command_drives_the_vesc_and_exits_when_the_bag_ends(fakes, tmp_path):
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    from racecar_hw.bagtypes import ros2_types
+    from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+
+    vesc, lidar = fakes
+    types = ros2_types()
+    bag = tmp_path / "drive"
+    topic = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
+    with Writer2(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection(topic, AckermannDriveStamped.ROS_TYPE, typestore=types.store)
+        for i in range(30):  # 1.5 s at 20 Hz: 0.5 m/s, steering 0.1 rad
+            t = 1_700_000_000_000_000_000 + i * 50_000_000
+            msg = AckermannDriveStamped(stamp_now("base_link", t), AckermannDrive(0.1, 0.0, 0.5))
+            writer.write(conn, t, types.serialize(msg))
+    host, port = lidar.tcp_address
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "vesc": {"port": str(tmp_path / "vesc")},
+        "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
+        "arming": {"start_armed": True}, "gamepad": {"enabled": False}, "status": {"enabled": False},
+    }))
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--config", str(cfg)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    erpms = [c.packet.erpm for c in vesc.commands if isinstance(c.packet, SetRpm)]
+    # 0.5 m/s x 4614 ERPM per m/s, reached through the rate limiter; then brake at the end
+    assert max(erpms) == pytest.approx(0.5 * 4614, abs=2)
+    assert erpms[-1] == 0
+    servo = [c.packet.position for c in vesc.commands if isinstance(c.packet, SetServoPosition)]
+    assert min(servo) == pytest.approx(0.5304 - 1.2135 * 0.1, abs=2e-3)
