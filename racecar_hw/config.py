@@ -18,7 +18,7 @@ from typing import Any
 
 import yaml
 
-from lidar_drivers.params import LidarParams
+from lidar_drivers.params import RPLIDAR_MODELS, LidarParams
 from mux.params import MuxParams
 from racecar_hw.arming import ArmingParams
 from racecar_hw.bag_follow import FollowerParams
@@ -153,9 +153,30 @@ def build_config(data: dict[str, Any]) -> Config:
         if all(existing.topic != lock.topic for existing in config.mux.locks):
             config.mux.locks.append(lock)
     config.mux.validate("mux")
+    _check_scan_timing(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
     return config
+
+
+#: An RPLIDAR's sweep period (s): about 10 Hz revolutions (A1 5.5 Hz at the slowest).
+RPLIDAR_SWEEP_S = 0.1
+
+
+def _check_scan_timing(config: Config) -> None:
+    """Refuse a safety timing that would hold an RPLIDAR car still forever (stale every scan)."""
+    lidar, safety = config.lidar, config.safety
+    if not lidar.enabled or safety.mode != "arc" or lidar.model not in RPLIDAR_MODELS:
+        return
+    if safety.scan_timeout_s < 2.5 * RPLIDAR_SWEEP_S:
+        raise ConfigError("safety.scan_timeout_s", f"{safety.scan_timeout_s} s is shorter than two "
+                          f"sweeps of an RPLIDAR ({lidar.model}, about 10 Hz): every scan would count "
+                          "as stale and the car would never move; set safety.scan_timeout_s: 0.25 "
+                          "(or more) and safety.scan_period_s: 0.1")
+    if safety.scan_period_s < RPLIDAR_SWEEP_S:
+        raise ConfigError("safety.scan_period_s", f"{safety.scan_period_s} s is shorter than an "
+                          f"RPLIDAR's sweep ({lidar.model}, about 0.1 s): the stopping distance would "
+                          "be underestimated; set safety.scan_period_s: 0.1")
 
 
 def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),

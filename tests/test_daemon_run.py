@@ -104,6 +104,14 @@ def test_config_errors_name_the_key(tmp_path):
         load_config(bad)
 
 
+def test_rplidar_needs_safety_timing_for_its_sweep_rate():
+    with pytest.raises(ConfigError, match="^safety.scan_timeout_s: 0.1 s is shorter than two sweeps"):
+        load_config(None, ["lidar.model=a1", "lidar.port=/dev/sensors/rplidar", "lidar.tcp=null"])
+    config = load_config(None, ["lidar.model=a1", "lidar.port=/dev/sensors/rplidar", "lidar.tcp=null",
+                                "safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1"])
+    assert config.safety.scan_timeout_s == 0.3
+
+
 def test_check_config_prints_the_effective_config():
     out = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "check-config", "--set",
                           "mux.rate_hz=40"], capture_output=True, text=True, check=True).stdout

@@ -68,6 +68,17 @@ def test_wall_head_on_never_touched_and_stopped_close(tmp_path, speed):
     assert r["safety_interventions"] >= 1
 
 
+def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
+    scenario = load_scenario("wall", ["lidar.model=a1", "lidar.transport=pty"])
+    loopback = Loopback(scenario, out_dir=tmp_path,
+                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1"])
+    r = asyncio.run(loopback.run()).report
+    assert r["lidar"]["model"] == "a1" and 8.0 < r["lidar"]["rate_hz"] < 12.0
+    assert not r["collided"], r["collisions"]
+    assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+    assert r["final_clearance_m"] <= 1.0
+
+
 def test_corridor_at_3_mps_without_intervention(tmp_path):
     result = run("corridor", tmp_path)
     r = result.report
