@@ -73,7 +73,7 @@ def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     loopback = Loopback(scenario, out_dir=tmp_path,
                         overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1"])
     r = asyncio.run(loopback.run()).report
-    assert r["lidar"]["model"] == "a1" and 8.0 < r["lidar"]["rate_hz"] < 12.0
+    assert r["lidar"]["model"] == "a1" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # ~10 Hz revolutions
     assert not r["collided"], r["collisions"]
     assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
     assert r["final_clearance_m"] <= 1.0
