@@ -11,7 +11,9 @@ Two stores are used:
 Both get ackermann_msgs, vesc_msgs (the f1tenth/vesc ROS 2 ``VescState``) and racecar_msgs,
 registered from the ``MSGDEF`` of :data:`racecar_hw.messages.CUSTOM_TYPES`.
 
-Conversion is generic over dataclass fields, driven by the store's field definitions and cached
+:meth:`BagTypes.serialize` packs our dataclasses directly (:mod:`racecar_hw.bag_serde`); the
+conversion below is its reference and fallback, and serves reading. Conversion is generic over
+dataclass fields, driven by the store's field definitions and cached
 per type: nested messages recurse, numeric arrays become numpy arrays of the ROS element type,
 fields our dataclasses lack (the ROS 1 ``header.seq``) are filled with zero on the way out and
 dropped on the way in.
@@ -30,7 +32,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from racecar_hw import messages
+from racecar_hw import bag_serde, messages
 from racecar_hw.errors import BagError
 from racecar_hw.messages import CUSTOM_TYPES, Message, TFMessage
 
@@ -77,6 +79,7 @@ class BagTypes:
         self.store.register(add)
         self._to: dict[str, ToRos] = {}
         self._from: dict[str, FromRos] = {}
+        self._fast: dict[type[Message], bag_serde.Serializer | None] = {}
 
     # --- type information ---------------------------------------------------------------------
 
@@ -119,7 +122,38 @@ class BagTypes:
         return _from_converter(cls)(obj)
 
     def serialize(self, msg: Message, seq: int = 0) -> bytes:
-        """``msg`` serialized for a bag of this store: ROS 1 bytes or CDR (with its header)."""
+        """``msg`` serialized for a bag of this store: ROS 1 bytes or CDR (with its header).
+
+        Uses the class's direct serializer (:mod:`racecar_hw.bag_serde`) when it has one and it
+        accepts ``msg``; otherwise the generic rosbags path, which gives the same bytes.
+        """
+        try:
+            fast = self._fast[type(msg)]
+        except KeyError:
+            fast = self.fast_serializer(type(msg))
+        if fast is not None:
+            try:
+                return fast(msg, seq)
+            except Exception:  # noqa: BLE001 - the generic path gives the real result or error
+                pass
+        return self.serialize_generic(msg, seq)
+
+    def fast_serializer(self, cls: type[Message]) -> bag_serde.Serializer | None:
+        """The direct serializer of ``cls`` for this store (built once), or None if it has none."""
+        if cls in self._fast:
+            return self._fast[cls]
+        fast: bag_serde.Serializer | None = None
+        if cls.ROS_TYPE in self.store.fielddefs:
+            classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
+            try:
+                fast = bag_serde.generate(self.store, classes, cls.ROS_TYPE, cdr=self.ros_version == 2)
+            except bag_serde.Unsupported:
+                fast = None
+        self._fast[cls] = fast
+        return fast
+
+    def serialize_generic(self, msg: Message, seq: int = 0) -> bytes:
+        """``msg`` serialized through a rosbags message object (the reference for the fast path)."""
         obj = self.to_ros(msg, seq)
         if self.ros_version == 1:
             return bytes(self.store.serialize_ros1(obj, msg.ROS_TYPE))

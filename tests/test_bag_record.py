@@ -9,15 +9,19 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from bag_ros1tools import read_real_bag
 from conftest import wait_for
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Connection
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bag_follow import load_commands, summarize_bag
-from racecar_hw.bag_record import Recorder, RecorderParams, record_params
+from racecar_hw.bag_record import BagFile, Recorder, RecorderParams, record_params
 from racecar_hw.bag_recover import recover_bag, scan_mcap
 from racecar_hw.bagtypes import ros2_types
 from racecar_hw.bus import Bus
@@ -28,6 +32,7 @@ from racecar_hw.messages import (
     AckermannDriveStamped,
     Header,
     LaserScan,
+    Message,
     TFMessage,
     Time,
     TransformStamped,
@@ -246,3 +251,67 @@ def test_recover_leaves_complete_bags_alone(tmp_path: Path) -> None:
     assert result.was_complete and result.messages == 3 and result.path == rec.stats.files[0]
     with pytest.raises(BagError, match="bag not found"):
         recover_bag(tmp_path / "nope")
+
+
+def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
+    types = ros2_types()
+    tf = TFMessage([TransformStamped(Header(Time(1, 2), "odom"), "base_link")])
+    msgs: list[tuple[str, Message]] = []
+    for i in range(160):  # 160 scans cross rosbags' 1 MiB chunk limit
+        msgs += [("/scan", scan(i)), (CMD, cmd(i)), ("/tf", tf)]
+    (tmp_path / "ours").mkdir()
+    (tmp_path / "ref").mkdir()
+    ours = BagFile(tmp_path / "ours" / "bag", "mcap", "none", types)
+    assert ours._mcap is not None  # the lean path is in use with this rosbags
+    ref = Writer2(tmp_path / "ref" / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
+    ref.open()
+    conns: dict[str, Connection] = {}
+    for i, (topic, msg) in enumerate(msgs):
+        t_ns = 1_000_000 + 1000 * i - (500 if i % 7 == 3 else 0)  # not always increasing
+        ours.write(topic, msg, t_ns)
+        if topic not in conns:
+            conns[topic] = ref.add_connection(topic, msg.ROS_TYPE, typestore=types.store,
+                                              offered_qos_profiles=[])
+        ref.write(conns[topic], t_ns, types.serialize_generic(msg))
+        if i == 100:  # a flush closes the pending chunk on both
+            ours.flush()
+            storage: Any = ref.storage
+            storage.close_chunk()
+    ours.close()
+    ref.close()
+    mcap = (tmp_path / "ours" / "bag" / "bag.mcap").read_bytes()
+    assert mcap == (tmp_path / "ref" / "bag" / "bag.mcap").read_bytes()
+    meta = (tmp_path / "ours" / "bag" / "metadata.yaml").read_text()
+    assert meta == (tmp_path / "ref" / "bag" / "metadata.yaml").read_text()
+    assert scan_mcap(mcap).complete
+
+
+def test_writer_drains_the_queue_on_its_own(tmp_path: Path) -> None:
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="drain", flush_interval_s=3600.0))
+    rec.start()
+    bus.publish(CMD, cmd(1))  # one message: below the wake-up threshold, far from a flush
+    wait_for(lambda: rec.stats.written == 1)
+    assert rec.stats.queued == 0
+    assert rec.stop().written == 1
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
+def test_metadata_template_gives_the_yaml_of_a_full_dump(tmp_path: Path, fmt: str) -> None:
+    import yaml
+
+    bag = BagFile(tmp_path / "meta", fmt, "none", ros2_types())
+
+    def full_dump() -> str:
+        return yaml.safe_dump({"rosbag2_bagfile_information": bag.metadata_info()}, sort_keys=False)
+
+    assert bag.metadata_text() == full_dump()  # no topics yet
+    topics = ["/tf_static", CMD, "/scan", "/odd: topic #1", "/ünïcode"]
+    for i in range(40):
+        topic = topics[i % len(topics)] if i < 25 else CMD
+        msg: Message = static_tf() if topic == "/tf_static" else cmd(i)
+        bag.write(topic, msg, 10**18 + 7 * i)
+        assert bag.metadata_text() == full_dump()
+    bag.flush()
+    assert (tmp_path / "meta" / "metadata.yaml").read_text() == full_dump()
+    bag.close()
