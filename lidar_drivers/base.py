@@ -127,13 +127,16 @@ class ScanSummary:
 def summarize(scan: LaserScan) -> ScanSummary:
     """Closest and farthest finite return within [range_min, range_max]; nan fields if none."""
     r = np.asarray(scan.ranges, dtype=np.float64)
-    valid = np.isfinite(r) & (r >= scan.range_min) & (r <= scan.range_max)
-    n = int(valid.sum())
+    range_min, range_max = float(scan.range_min), float(scan.range_max)
+    valid = (r >= range_min) & (r <= range_max)
+    if not (math.isfinite(range_min) and math.isfinite(range_max)):
+        valid &= np.isfinite(r)  # finite bounds already exclude inf and nan
+    n = int(np.count_nonzero(valid))
     if n == 0:
         return ScanSummary(math.nan, math.nan, math.nan, math.nan, 0)
-    idx = np.flatnonzero(valid)
-    lo = idx[np.argmin(r[idx])]
-    hi = idx[np.argmax(r[idx])]
+    # invalid beams masked by values no valid one can tie: argmin/argmax find the first extreme
+    lo = int(np.argmin(np.where(valid, r, np.inf)))
+    hi = int(np.argmax(np.where(valid, r, -np.inf)))
     return ScanSummary(float(r[lo]), float(scan.angle_min + scan.angle_increment * lo),
                        float(r[hi]), float(scan.angle_min + scan.angle_increment * hi), n)
 

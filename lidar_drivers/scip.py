@@ -222,6 +222,63 @@ def join_data_lines(region: bytes) -> np.ndarray:
     return np.frombuffer(b"".join(chunks), dtype=np.uint8)
 
 
+_STRIDE = LINE_CHARS + 2
+
+
+@functools.lru_cache(maxsize=16)
+def _data_layout(region_len: int, width: int) -> tuple[bytes, np.ndarray, np.ndarray,
+                                                       np.ndarray] | None:
+    """Index arrays for data lines filling ``region_len`` bytes (all 64 characters but the last).
+
+    (the LF bytes expected at every 66th position; each line's first character and checksum
+    positions, interleaved, as ``np.add.reduceat`` bounds whose even segments are the lines'
+    characters; the checksum positions; the characters of each value as an (n, width) array).
+    None when no such lines fill the region or their characters do not split into values.
+    """
+    lines = -(-(region_len + 1) // _STRIDE)
+    last = region_len - (lines - 1) * _STRIDE  # the last line's characters and checksum
+    if lines < 1 or last < 2:
+        return None
+    starts = np.arange(lines, dtype=np.intp) * _STRIDE
+    checks = starts + LINE_CHARS
+    checks[-1] = region_len - 1
+    pos = np.arange(region_len, dtype=np.intp)
+    data = np.flatnonzero((pos % _STRIDE < LINE_CHARS) & (pos < region_len - 1))
+    if data.size % width:
+        return None
+    arrays = (np.column_stack([starts, checks]).reshape(-1), checks, data.reshape(-1, width))
+    for a in arrays:
+        a.flags.writeable = False
+    return (b"\n" * (lines - 1), *arrays)
+
+
+_WEIGHTS = {w: np.array([1 << (6 * (w - 1 - i)) for i in range(w)], dtype=np.float32) for w in (2, 3, 4)}
+
+
+def decode_data_lines(region: bytes, width: int) -> np.ndarray | None:
+    """The values (``uint32``) of data lines of 64 characters, or None when ``region`` is anything else.
+
+    The same result as ``decode_values(join_data_lines(region), width)`` when that succeeds, in
+    a few whole-array operations; None where that would raise (a bad checksum, a short line, a
+    character outside 0x30..0x6F), so the caller can take the slow path for its exact error.
+    """
+    layout = _data_layout(len(region), width) if width in _WEIGHTS else None
+    if layout is None:
+        return None
+    lfs, bounds, check_pos, value_pos = layout
+    if region[LINE_CHARS + 1::_STRIDE] != lfs or region.count(b"\n") != len(lfs):
+        return None
+    a = np.frombuffer(region, dtype=np.uint8)
+    line_sums = np.add.reduceat(a, bounds, dtype=np.uint32)[::2]
+    if not bool((((line_sums & 0x3F) + 0x30) == a[check_pos]).all()):
+        return None
+    chars = a[value_pos] - np.uint8(0x30)  # wraps below 0x30, so one bound checks both
+    if chars.size and int(chars.max()) > 0x3F:
+        return None
+    # float32 holds every value of up to 24 bits exactly
+    return (chars.astype(np.float32) @ _WEIGHTS[width]).astype(np.uint32)
+
+
 class ChecksumError(ValueError):
     """Internal: a line whose checksum does not match (becomes a ChecksumMismatch event)."""
 
@@ -616,7 +673,9 @@ class ResponseDecoder:
     @staticmethod
     def _scan(echo: str, req: ScanCommand, status: str, stamp: int, region: bytes,
               nbytes: int) -> ScanReply:
-        values = decode_values(join_data_lines(region), req.width)
+        values = decode_data_lines(region, req.width)
+        if values is None:
+            values = decode_values(join_data_lines(region), req.width)
         n = req.values
         if req.intensities:
             if values.size != 2 * n:

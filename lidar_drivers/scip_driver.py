@@ -31,6 +31,7 @@ fault (50..97) or "laser off" during streaming restarts the session.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import time
@@ -133,9 +134,41 @@ def scan_geometry(dev: DeviceParams, req: ScanCommand) -> ScanGeometry:
                         time_increment=cluster * dev.step_time_s)
 
 
+_NO_INTENSITIES = np.zeros(0, dtype=np.float32)
+_NO_INTENSITIES.flags.writeable = False
+
+_LUT_SIZE = 1 << 18
+"""Readings of up to 3 SCIP characters (18 bits) go through a lookup table."""
+
+
+@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=8)
+def _cached_geometry(dev: DeviceParams, req: ScanCommand) -> ScanGeometry:
+    return scan_geometry(dev, req)
+
+
+@functools.lru_cache(maxsize=8)
+def _range_table(dev: DeviceParams) -> np.ndarray | None:
+    """Metres (float32, with the inf/nan policy) for every 18-bit reading; None if DMAX does not fit."""
+    if not 0 <= dev.dmax < _LUT_SIZE - 1:
+        return None
+    table = _ranges_m(dev, np.arange(_LUT_SIZE, dtype=np.int64))
+    table.flags.writeable = False
+    return table
+
+
 def ranges_m(dev: DeviceParams, distances: np.ndarray) -> np.ndarray:
     """Device readings (mm or error codes) as metres with the inf/nan policy (float32)."""
     d = np.asarray(distances)
+    table = _range_table(dev) if d.dtype.kind in "iu" else None
+    if table is not None:
+        # one gather: below 0 clips onto code 0 (inf), beyond the table onto its last entry (past
+        # DMAX: inf), exactly as the arithmetic below would give
+        return np.take(table, d, mode="clip")
+    return _ranges_m(dev, d)
+
+
+def _ranges_m(dev: DeviceParams, d: np.ndarray) -> np.ndarray:
     r = (d / 1000.0).astype(np.float32)
     codes = d < dev.dmin
     if codes.any():
@@ -207,7 +240,7 @@ class HokuyoDriver(LidarDriver):
             if remaining <= 0:
                 raise DeviceTimeout(f"{self._link.name}: {what}")
             try:
-                data = await asyncio.wait_for(self._link.read(), remaining)
+                data = await self._link.read_within(remaining)
             except asyncio.TimeoutError:
                 raise DeviceTimeout(f"{self._link.name}: {what}") from None
             self._rx_wall_ns = wall_ns()
@@ -310,12 +343,12 @@ class HokuyoDriver(LidarDriver):
     def to_laser_scan(self, frame: ScanReply, dev: DeviceParams) -> LaserScan:
         """One frame as a LaserScan stamped with its first beam's estimated time."""
         req = frame.request
-        geo = scan_geometry(dev, req)
+        geo = _cached_geometry(dev, req)
         sweep_s = (req.end - req.start) * dev.step_time_s
         transfer_s = frame.nbytes * 10.0 / self._baud if self.serial else 0.0
         stamp = self._rx_wall_ns - round((sweep_s + transfer_s) * NS_PER_S)
         intensities = (frame.intensities.astype(np.float32) if frame.intensities is not None
-                       else np.zeros(0, dtype=np.float32))
+                       else _NO_INTENSITIES)
         return LaserScan(
             header=Header(stamp=Time.from_ns(stamp), frame_id=self.params.frame_id),
             angle_min=geo.angle_min, angle_max=geo.angle_max, angle_increment=geo.angle_increment,

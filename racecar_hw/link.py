@@ -17,11 +17,14 @@ import contextlib
 import errno
 import os
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 
 import serial
 import serial.tools.list_ports
 
 from racecar_hw.errors import DeviceIOError, DeviceNotFound, DeviceTimeout
+
+_timeout = getattr(asyncio, "timeout", None)  # Python 3.11+
 
 
 class Link(ABC):
@@ -50,6 +53,15 @@ class Link(ABC):
     def is_open(self) -> bool:
         """Whether the link is open and has not failed."""
 
+    async def read_within(self, timeout_s: float) -> bytes:
+        """:meth:`read`, or asyncio.TimeoutError after ``timeout_s`` seconds without a byte."""
+        if _timeout is None:
+            return await asyncio.wait_for(self.read(), timeout_s)
+        # not wait_for: before Python 3.12 it runs every read in a new Task, two extra loop
+        # iterations between the bytes' arrival and the reader
+        async with _timeout(timeout_s):
+            return await self.read()
+
     def set_dtr(self, level: bool) -> None:  # noqa: B027 - optional capability
         """Set the serial DTR line (RPLIDAR A1 motor control). Links without DTR ignore it."""
 
@@ -75,6 +87,9 @@ class SerialLink(Link):
         self._rx = bytearray()
         self._tx = bytearray()
         self._error: DeviceIOError | None = None
+        self._writer_armed = False
+        self._receiver: Callable[[bytes], None] | None = None
+        self._receiver_error: Exception | None = None
 
     @property
     def is_open(self) -> bool:
@@ -83,6 +98,7 @@ class SerialLink(Link):
     async def open(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._error = None
+        self._receiver_error = None
         try:
             port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0,
                                          exclusive=None)
@@ -117,9 +133,33 @@ class SerialLink(Link):
         if not data:
             self._fail(DeviceIOError(f"{self.url}: device closed"))
             return
+        if self._receiver is not None:
+            self._deliver(data)
+            return
         self._rx += data
         if self._pending is not None and not self._pending.done():
             self._pending.set_result(None)
+
+    def set_receiver(self, receiver: Callable[[bytes], None] | None) -> None:
+        """Hand every chunk read to ``receiver(data)`` in the loop's reader callback, waking no task.
+
+        :meth:`read` then returns only bytes buffered before, and otherwise waits until the link
+        fails. An exception from ``receiver`` fails the link, and :meth:`read` raises it.
+        None goes back to buffering for :meth:`read`.
+        """
+        self._receiver = receiver
+        if receiver is not None and self._rx:
+            data = bytes(self._rx)
+            self._rx.clear()
+            self._deliver(data)
+
+    def _deliver(self, data: bytes) -> None:
+        assert self._receiver is not None
+        try:
+            self._receiver(data)
+        except Exception as err:
+            self._receiver_error = err
+            self._fail(DeviceIOError(f"{self.url}: receiver failed: {err!r}"))
 
     def _on_writable(self) -> None:
         self._flush()
@@ -137,10 +177,15 @@ class SerialLink(Link):
                 return
             del self._tx[:n]
         assert self._loop is not None
+        # the writer callback is registered only while bytes wait, so a write the OS takes at once
+        # (the usual case) costs no selector calls
         if self._tx:
-            self._loop.add_writer(self._fd, self._on_writable)
-        else:
+            if not self._writer_armed:
+                self._loop.add_writer(self._fd, self._on_writable)
+                self._writer_armed = True
+        elif self._writer_armed:
             self._loop.remove_writer(self._fd)
+            self._writer_armed = False
 
     def _fail(self, err: DeviceIOError) -> None:
         if self._error is None:
@@ -155,9 +200,13 @@ class SerialLink(Link):
                 self._loop.remove_reader(self._fd)
                 self._loop.remove_writer(self._fd)
         self._fd = None
+        self._writer_armed = False
 
     async def read(self) -> bytes:
         while not self._rx:
+            if self._receiver_error is not None:
+                err, self._receiver_error = self._receiver_error, None
+                raise err
             if self._error is not None:
                 raise self._error
             if self._port is None:
@@ -194,6 +243,7 @@ class SerialLink(Link):
 
     def close(self) -> None:
         self._detach()
+        self._receiver = None
         port, self._port = self._port, None
         if port is not None:
             with contextlib.suppress(Exception):

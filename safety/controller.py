@@ -26,7 +26,7 @@ import numpy as np
 
 from racecar_hw.clock import NS_PER_S
 from racecar_hw.messages import AckermannDrive, LaserScan
-from safety.arc import SweptFootprint, free_distance, stopping_speed
+from safety.arc import PathHit, SweptFootprint, free_distance, stopping_speed
 from safety.params import SafetyParams
 
 log = logging.getLogger(__name__)
@@ -164,6 +164,10 @@ class SafetyController:
         corner = math.hypot(max(fp.front_m, fp.rear_overhang_m), self.footprint.half_width_m)
         self._reach = params.max_path_m + corner + math.hypot(self._to_base[0, 2], self._to_base[1, 2])
         self._scan: _CachedScan | None = None
+        # the last free-distance query: its scan, (steering, reverse, max_path_m, footprint), PathHit
+        self._hit_scan: _CachedScan | None = None
+        self._hit_key: tuple[float, bool, float, SweptFootprint] | None = None
+        self._hit = PathHit(math.nan, -1)
         self._dirs_key: tuple[float, float, int] | None = None
         self._dirs: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
         self._hyst = _Hysteresis(params.release_margin_mps, round(params.release_hold_s * NS_PER_S))
@@ -191,11 +195,12 @@ class SafetyController:
         r = np.asarray(scan.ranges, dtype=np.float64)
         n = r.size
         # NaN compares false and -inf is below range_min: neither is usable.
-        usable = int(np.count_nonzero(r >= scan.range_min))
+        at_least_min = r >= scan.range_min
+        usable = int(np.count_nonzero(at_least_min))
         if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)):
             usable = 0  # beams without directions: refuse the scan
         far = min(scan.range_max, self._reach) if scan.range_max > scan.range_min else self._reach
-        points = (r >= scan.range_min) & (r <= far)
+        points = at_least_min & (r <= far)
         bx, by = self._directions(scan, n)
         rp = r[points]
         x = self._to_base[0, 2] + rp * bx[points]
@@ -286,7 +291,12 @@ class SafetyController:
             return math.inf, math.nan, None, "clear"
         if reverse and not p.reverse_uses_scan:
             return p.reverse_speed_cap_mps, math.nan, None, "reverse_cap"
-        hit = free_distance(scan.x, scan.y, steering, self.footprint, p.max_path_m, reverse)
+        key = (steering, reverse, p.max_path_m, self.footprint)
+        if scan is self._hit_scan and key == self._hit_key:
+            hit = self._hit  # the same scan and path as the last command: a control tick between scans
+        else:
+            hit = free_distance(scan.x, scan.y, steering, self.footprint, p.max_path_m, reverse)
+            self._hit_scan, self._hit_key, self._hit = scan, key, hit
         # a lidar slower than configured (its scan_time) is taken at its word, never a faster one
         sweep = max(p.scan_period_s, scan.sweep_s)
         latency = sweep + p.processing_s + p.command_transfer_s + max(age_ns, 0) / NS_PER_S

@@ -83,3 +83,49 @@ def test_parse_host_port():
     assert parse_host_port("host", 10940) == ("host", 10940)
     with pytest.raises(ValueError):
         parse_host_port("host:abc")
+
+
+def test_serial_link_receiver_gets_bytes_and_its_error_fails_the_link(tmp_path):
+    async def scenario() -> None:
+        port = PtyPort(str(tmp_path / "dev")).open()
+        link = SerialLink(port.path)
+        await link.open()
+        port.write(b"early")
+        assert await _read_exactly(link, 5) == b"early"
+        chunks: list[bytes] = []
+
+        def receiver(data: bytes) -> None:
+            if b"boom" in data:
+                raise ValueError("receiver broke")
+            chunks.append(data)
+
+        link.set_receiver(receiver)
+        port.write(b"telemetry")
+        for _ in range(500):
+            if b"".join(chunks) == b"telemetry":
+                break
+            await asyncio.sleep(0.01)
+        assert b"".join(chunks) == b"telemetry"
+        port.write(b"boom")
+        with pytest.raises(ValueError, match="receiver broke"):
+            await asyncio.wait_for(link.read(), 5)
+        assert not link.is_open
+        link.close()
+        port.close()
+
+    asyncio.run(scenario())
+
+
+def test_read_within_times_out_and_returns_bytes(tmp_path):
+    async def scenario() -> None:
+        port = PtyPort(str(tmp_path / "dev")).open()
+        link = SerialLink(port.path)
+        await link.open()
+        with pytest.raises(asyncio.TimeoutError):
+            await link.read_within(0.05)
+        port.write(b"x")
+        assert await link.read_within(5) == b"x"
+        link.close()
+        port.close()
+
+    asyncio.run(scenario())

@@ -332,3 +332,34 @@ def test_valid_frames_inside_garbage_are_recovered(pieces, end_garbage_with_lf):
         d.receive_data(stream[i:i + 61])
     got = [e.distances.tolist() for e in d if isinstance(e, ScanReply)]
     assert got == expected
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from([2, 3]), st.lists(st.integers(0, 4095), max_size=200),
+       st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=3),
+       st.booleans())
+def test_fast_data_line_decoder_agrees_with_the_line_by_line_one(width, values, edits, drop):
+    from lidar_drivers.scip import (
+        data_lines,
+        decode_data_lines,
+        decode_values,
+        encode_values,
+        join_data_lines,
+    )
+
+    region = bytearray(data_lines(encode_values(np.array(values, dtype=np.int64), width))[:-1])
+    for pos, byte in edits:
+        if region:
+            region[pos % len(region)] = byte
+    if drop and region:
+        del region[len(region) // 2]
+    region_b = bytes(region)
+    fast = decode_data_lines(region_b, width)
+    try:
+        slow = decode_values(join_data_lines(region_b), width)
+    except ValueError:
+        slow = None
+    if not edits and not drop and values:
+        assert fast is not None  # clean lines always take the fast path
+    if fast is not None:
+        assert slow is not None and fast.dtype == slow.dtype and np.array_equal(fast, slow)

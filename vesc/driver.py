@@ -71,6 +71,9 @@ from vesc.params import VescParams
 log = logging.getLogger(__name__)
 R = TypeVar("R")
 
+#: Encoded frames remembered by :meth:`VescDriver._encode` (host commands: no firmware dependence).
+_MAX_CACHED_FRAMES = 256
+
 TOPIC_CORE = "/vesc/sensors/core"
 TOPIC_SERVO = "/vesc/sensors/servo_position_command"
 TOPIC_ODOM = "/odom"
@@ -129,6 +132,7 @@ class VescDriver:
         self._last_command_ns = 0
         self._last_motor_tx_ns = 0
         self._failsafe_timer: asyncio.TimerHandle | None = None
+        self._frames: dict[Packet, bytes] = {}
         self._stop = asyncio.Event()
         self._closed = False
         self._run_task: asyncio.Task[None] | None = None
@@ -304,13 +308,11 @@ class VescDriver:
         self._firmware = None
         self.brake_and_centre()
         ticker = asyncio.create_task(self._tick_loop(link), name="vesc-poll")
+        # replies are decoded in the link's reader callback, without waking this task
+        link.set_receiver(self._on_bytes)
         try:
             while True:
-                data = await link.read()
-                self._codec.receive_data(data)
-                while (packet := self._codec.next_event()) is not None:
-                    self._on_packet(packet)
-                self._sync_codec_stats()
+                self._on_bytes(await link.read())  # with a receiver set, this raises once the link fails
         finally:
             ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -375,11 +377,22 @@ class VescDriver:
                         self.params.command_timeout_s * 1e3)
         self.brake_and_centre()
 
+    def _encode(self, packet: Packet) -> bytes:
+        """The framed bytes of ``packet``, memoised: a car mostly repeats the same few commands."""
+        frames = self._frames
+        data = frames.get(packet)
+        if data is None:
+            data = self._codec.send(packet)
+            if len(frames) >= _MAX_CACHED_FRAMES:
+                frames.clear()
+            frames[packet] = data
+        return data
+
     def _write(self, *packets: Packet) -> None:
         link = self._link
         if link is None or not link.is_open:
             return
-        data = b"".join(self._codec.send(p) for p in packets)
+        data = b"".join([self._encode(p) for p in packets])
         try:
             link.write(data)
         except DeviceError as err:
@@ -394,6 +407,12 @@ class VescDriver:
             elif isinstance(p, SetServoPosition):
                 self._servo_sent = p.position
                 self.bus.publish(TOPIC_SERVO, Float64(p.position))
+
+    def _on_bytes(self, data: bytes) -> None:
+        self._codec.receive_data(data)
+        while (packet := self._codec.next_event()) is not None:
+            self._on_packet(packet)
+        self._sync_codec_stats()
 
     def _sync_codec_stats(self) -> None:
         s = self._codec.stats
