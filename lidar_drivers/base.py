@@ -157,6 +157,10 @@ class LidarDriver(ABC):
         self.info: dict[str, str] = {}
         self.connected = False
         self.last_error: str | None = None
+        #: monotonic ns when the latest read from the device returned (set by subclasses)
+        self.rx_ns = 0
+        #: monotonic ns when the read that completed the latest published scan returned
+        self.frame_arrival_ns = 0
 
     async def run(self) -> None:
         """Stream scans until cancelled, reconnecting with backoff after any device error."""
@@ -190,4 +194,5 @@ class LidarDriver(ABC):
     def publish(self, scan: LaserScan) -> None:
         """Publish one finished scan and count it."""
         self.stats.scans += 1
+        self.frame_arrival_ns = self.rx_ns
         self.bus.publish(self.params.topic, scan)

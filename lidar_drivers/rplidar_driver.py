@@ -196,6 +196,7 @@ class RplidarDriver(LidarDriver):
             if left <= 0:
                 raise DeviceTimeout(f"no RPLIDAR scan for {timeout:.2f} s")
             chunk = await self._read(left)
+            self.rx_ns = monotonic_ns()
             arrival = wall_ns()
             self._client.receive_data(chunk)
             self.stats.bytes_in += len(chunk)

@@ -24,6 +24,7 @@ import gc
 import logging
 import math
 import sys
+from collections import deque
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,7 +70,19 @@ class ControlStats:
     scan_cuts: int = 0
     last_tick_ns: int = 0
     scan_rate_hz: float = 0.0
+    #: recent scan-to-command latencies (ns): from the read that completed a scan returning to the
+    #: scan path's VESC command written
+    scan_to_command_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
     _scan_times: list[int] = field(default_factory=list)
+
+    def latency_ms(self) -> dict[str, float]:
+        """p50, p99 and max of the recent scan-to-command latencies, milliseconds."""
+        if not self.scan_to_command_ns:
+            return {}
+        ordered = sorted(self.scan_to_command_ns)
+        n = len(ordered)
+        return {"p50": ordered[n // 2] / 1e6, "p99": ordered[min(n - 1, (99 * n) // 100)] / 1e6,
+                "max": ordered[-1] / 1e6, "count": float(n)}
 
 
 class Daemon:
@@ -148,6 +161,10 @@ class Daemon:
             self.mux.step(now, (lambda drive, source, t: cut,))
         elif self.vesc is not None:
             self.vesc.command(cut)
+        if self.vesc is not None and self.vesc.connected and self.lidar is not None:
+            arrived = self.lidar.frame_arrival_ns
+            if arrived:
+                self.stats.scan_to_command_ns.append(monotonic_ns() - arrived)
 
     def _control_alive(self, now_ns: int) -> bool:
         """Whether the control loop ticked within the last two periods.
@@ -261,6 +278,11 @@ class Daemon:
     async def shutdown(self) -> None:
         """Brake and centre, stop every component, flush the recorder. Safe to call twice."""
         self.notifier.stopping("racecar-hw stopping")
+        latency = self.stats.latency_ms()
+        log.info("control summary: %d ticks, %d missed, %d scan cuts; scan-to-command latency "
+                 "p50=%.3f ms p99=%.3f ms max=%.3f ms over %d scans", self.stats.ticks,
+                 self.stats.missed_ticks, self.stats.scan_cuts, latency.get("p50", math.nan),
+                 latency.get("p99", math.nan), latency.get("max", math.nan), int(latency.get("count", 0)))
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
