@@ -48,7 +48,7 @@ from racecar_hw.setpoint import SetpointRelay
 from racecar_hw.status import StatusPanel, StatusSnapshot
 from racecar_hw.teleop_gamepad import GamepadTeleop
 from racecar_hw.teleop_keyboard import KeyboardTeleop
-from racecar_hw.ticker import Ticker
+from racecar_hw.ticker import PeriodicTimer
 from racecar_hw.transforms import TfTree
 from safety.node import SafetyNode
 from vesc.driver import VescDriver
@@ -178,22 +178,33 @@ class Daemon:
     # --- control loop ---------------------------------------------------------------------------
 
     async def _control_loop(self) -> None:
-        ticker = Ticker(self.config.mux.rate_hz)
+        """Tick the mux at its rate from a loop timer (no task wake-up per tick) until cancelled."""
         interval = self.notifier.watchdog_interval_s()
         if interval:
             self._watchdog_period_ns = int(interval * NS_PER_S / 2)
-        missed = 0
-        while True:
-            due = await ticker.tick()
-            periods = 1 + ticker.missed - missed
-            missed = ticker.missed
-            self.stats.missed_ticks = missed
-            self.mux.step(due, self.filters, periods)
-            self.stats.ticks += 1
-            self.stats.last_tick_ns = monotonic_ns()
-            if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
-                self.notifier.watchdog()
-                self._last_watchdog_ns = due
+        failed: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+        def on_error(err: BaseException) -> None:
+            if not failed.done():
+                failed.set_exception(err)
+
+        timer = PeriodicTimer(self.config.mux.rate_hz, self._control_tick, on_error=on_error)
+        timer.start()
+        try:
+            await failed
+        finally:
+            timer.cancel()
+
+    def _control_tick(self, due: int, periods: int) -> None:
+        """One control tick due at ``due`` (monotonic ns), ``periods`` periods after the last."""
+        stats = self.stats
+        stats.missed_ticks += periods - 1
+        self.mux.step(due, self.filters, periods)
+        stats.ticks += 1
+        stats.last_tick_ns = monotonic_ns()
+        if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
+            self.notifier.watchdog()
+            self._last_watchdog_ns = due
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""

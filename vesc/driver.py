@@ -49,6 +49,7 @@ from racecar_hw.messages import (
     VescState,
     VescStateStamped,
 )
+from racecar_hw.ticker import PeriodicTimer
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
     TIMEOUT_RESETTING,
@@ -137,6 +138,8 @@ class VescDriver:
         self._closed = False
         self._run_task: asyncio.Task[None] | None = None
         self._ever_connected = False
+        self._timeout_ns = nanoseconds(self.params.command_timeout_s)
+        self._alive_ns = nanoseconds(self.params.alive_interval_s)
 
     # --- public state -------------------------------------------------------------------------
 
@@ -319,35 +322,57 @@ class VescDriver:
                 await ticker
 
     async def _tick_loop(self, link: SerialLink) -> None:
+        """FW_VERSION until the VESC answers, then GET_VALUES polls from a loop timer until the link closes.
+
+        The polls run as :class:`~racecar_hw.ticker.PeriodicTimer` callbacks on absolute deadlines
+        (missed deadlines are skipped, never burst), so a poll wakes no task.
+        """
+        loop = asyncio.get_running_loop()
         try:
-            period_ns = nanoseconds(1.0 / self.params.poll_rate_hz)
-            next_ns = monotonic_ns()
             while link.is_open:
-                now = monotonic_ns()
                 if self._firmware is None:
+                    now = monotonic_ns()
                     self._write(FwVersionRequest())
                     if not self._fresh(now):
                         self.brake_and_centre()
                     await asyncio.sleep(self.params.handshake_interval_s)
-                    next_ns = monotonic_ns()
                     continue
-                self._write(GetValuesRequest())
-                if not self._fresh(now):
-                    self._engage_failsafe()
-                elif now - self._last_motor_tx_ns >= nanoseconds(self.params.alive_interval_s):
-                    self._write(Alive())
-                next_ns += period_ns
-                if next_ns < now:
-                    next_ns = now + period_ns
-                await asyncio.sleep(seconds(next_ns - monotonic_ns()))
+                ended: asyncio.Future[None] = loop.create_future()
+
+                def poll(due_ns: int, periods: int, ended: asyncio.Future[None] = ended) -> None:
+                    if not (link.is_open and self._firmware is not None):
+                        if not ended.done():
+                            ended.set_result(None)
+                        return
+                    self._poll()
+
+                def failed(err: BaseException, ended: asyncio.Future[None] = ended) -> None:
+                    if not ended.done():
+                        ended.set_exception(err)
+
+                timer = PeriodicTimer(self.params.poll_rate_hz, poll, on_error=failed)
+                timer.start(loop)
+                try:
+                    await ended
+                finally:
+                    timer.cancel()
         except asyncio.CancelledError:
             raise
         except Exception:
             log.exception("VESC poll loop failed; dropping the link to reconnect")
             link.close()
 
+    def _poll(self) -> None:
+        """One poll tick: GET_VALUES, then the failsafe or ALIVE as due."""
+        now = monotonic_ns()
+        self._write(GetValuesRequest())
+        if not self._fresh(now):
+            self._engage_failsafe()
+        elif now - self._last_motor_tx_ns >= self._alive_ns:
+            self._write(Alive())
+
     def _fresh(self, now_ns: int) -> bool:
-        return self._moving and now_ns - self._last_command_ns < nanoseconds(self.params.command_timeout_s)
+        return self._moving and now_ns - self._last_command_ns < self._timeout_ns
 
     def _arm_failsafe_timer(self) -> None:
         if self._failsafe_timer is not None:
