@@ -79,6 +79,20 @@ LZ4_REFUSAL = (
 )
 
 
+#: Niceness the writer thread gives itself (Linux: per thread): disk work yields the CPU to the
+#: control path whenever both want it. Lowering one's own priority needs no privilege.
+WRITER_NICE = 10
+
+
+def _lower_thread_priority(nice: int) -> None:
+    """Make the calling thread nicer by ``nice`` where the OS supports per-thread priorities."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+    except (AttributeError, OSError):
+        log.debug("cannot lower the bag writer's priority on this system")
+
+
 @dataclass
 class RecorderParams:
     """Parameters of the bag recorder (the ``bag`` section of the configuration)."""
@@ -446,6 +460,7 @@ class Recorder:
     # --- writer thread ------------------------------------------------------------------------
 
     def _run(self, opened: threading.Event) -> None:
+        _lower_thread_priority(WRITER_NICE)
         try:
             self._file = self._open_split()
         except BagError as err:
