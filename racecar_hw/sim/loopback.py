@@ -25,6 +25,7 @@ from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.config import Config, load_config, shipped_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.devicethread import DeviceThread
+from racecar_hw.errors import ConfigError
 from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.overrides import merge
 from racecar_hw.sim.car import CarParams
@@ -35,7 +36,7 @@ from racecar_hw.sim.trajectory import write_csv
 from racecar_hw.sim.world import World
 from racecar_hw.status import StatusPanel
 from racecar_hw.ticker import Ticker
-from racecar_hw.transforms import yaw_of
+from racecar_hw.transforms import TfTree, yaw_of
 from vesc.fake import FakeVesc
 
 log = logging.getLogger(__name__)
@@ -87,10 +88,14 @@ class Loopback:
 
     # --- building -------------------------------------------------------------------------------
 
-    def _build_config(self, lidar_endpoint: dict[str, Any]) -> Config:
+    def _build_config(self) -> Config:
+        """The sim config with the scenario's overrides, its VESC port at the fake's pty.
+
+        The lidar endpoint is filled in once the fake lidar listens (a TCP port is only known then).
+        """
         extra = merge(self.scenario.config, {
             "vesc": {"port": str(self.dev_dir / "vesc")},
-            "lidar": {"model": self.scenario.lidar.model, **lidar_endpoint},
+            "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
         return load_config(self.config_path, self.overrides, extra=extra)
 
@@ -105,11 +110,10 @@ class Loopback:
     def _start_devices(self) -> Config:
         sc = self.scenario
         model = sc.lidar.model
-        # A first config (with placeholder lidar endpoint) gives the car's geometry and laser pose.
-        probe = self._build_config({"tcp": None, "port": None})
-        laser = self._laser_pose(probe)
+        config = self._build_config()
+        laser = self._laser_pose(config)
         self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
-        self.world = World(self.map, self._car_params(probe), sc.start,
+        self.world = World(self.map, self._car_params(config), sc.start,
                            erpm_source=lambda: self.vesc.erpm if self.vesc else 0.0,
                            servo_source=lambda: self.vesc.servo if self.vesc else 0.5,
                            laser_pose_in_base=laser, noise_std_m=sc.world.noise_std_m,
@@ -129,16 +133,21 @@ class Loopback:
             raise RuntimeError("fake lidar did not start")
         if use_tcp:
             host, port = self.lidar.tcp_address
-            return self._build_config({"tcp": f"{host}:{port}", "port": None})
-        return self._build_config({"port": str(self.dev_dir / "lidar"), "tcp": None})
+            config.lidar.tcp = f"{host}:{port}"
+        else:
+            config.lidar.port = str(self.dev_dir / "lidar")
+        return config
 
     @staticmethod
     def _laser_pose(config: Config) -> tuple[float, float, float]:
-        for t in config.static_transforms:
-            if t.frame_id == "base_link" and t.child_frame_id == config.lidar.frame_id:
-                m = t.matrix()
-                return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
-        return 0.265, 0.0, 0.0
+        """The laser's (x, y, yaw) in base_link, from the static transforms."""
+        tree = TfTree.from_params(config.static_transforms)
+        frame = config.lidar.frame_id
+        if not tree.can_transform("base_link", frame):
+            raise ConfigError("static_transforms", f"no transform from base_link to the lidar frame "
+                                                   f"{frame!r}: the simulated lidar needs one")
+        m = tree.lookup("base_link", frame)
+        return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
 
     # --- running --------------------------------------------------------------------------------
 
