@@ -9,9 +9,10 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from racecar_hw.bag_follow import BagFollower
 from racecar_hw.commands.daemon import add_config_options, run_daemon
-from racecar_hw.config import load_config
+from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.errors import ConfigError
+from racecar_hw.params import build
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,29 +36,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_follow)
 
 
-def follower_overrides(args: argparse.Namespace, input_topic: str) -> list[str]:
-    """``--set`` assignments that enable and configure the follower component."""
-    return [
-        "follower.enabled=true", f"follower.bag={args.bag}", f"follower.topic={args.topic}",
-        f"follower.input_topic={input_topic}", f"follower.rate_hz={args.rate}",
-        f"follower.use_timestamps={str(args.timestamps).lower()}",
-        f"follower.time_scale={args.time_scale}", f"follower.reverse={str(args.reverse).lower()}",
-        f"follower.loop={str(args.loop).lower()}",
-    ]
-
-
-def input_topic(config_path: str | None, overrides: list[str], name: str) -> str:
-    """The topic of mux input ``name`` in the effective config."""
-    mux = load_config(config_path, overrides).mux
-    for inp in mux.inputs:
-        if inp.name == name:
-            return inp.topic
-    raise ConfigError("--input", f"no mux input {name!r}; inputs: " + ", ".join(i.name for i in mux.inputs))
-
-
 def cmd_follow(args: argparse.Namespace) -> int:
-    topic = input_topic(args.config, args.overrides, args.input)
-    config = load_config(args.config, [*args.overrides, *follower_overrides(args, topic)])
+    config = load_config(args.config, args.overrides)
+    topics = {inp.name: inp.topic for inp in config.mux.inputs}
+    if args.input not in topics:
+        raise ConfigError("--input", f"no mux input {args.input!r}; inputs: " + ", ".join(topics))
+    config.follower = build(FollowerSection, {
+        "enabled": True, "bag": args.bag, "topic": args.topic, "input_topic": topics[args.input],
+        "rate_hz": args.rate, "use_timestamps": args.timestamps, "time_scale": args.time_scale,
+        "reverse": args.reverse, "loop": args.loop}, "follower")
     daemon = Daemon(config)
     assert daemon.follower is not None
     with Progress(TextColumn("following"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
