@@ -73,7 +73,8 @@ class ControlStats:
     #: recent scan-to-command latencies (ns): from the read that completed a scan returning to the
     #: scan path's VESC command written
     scan_to_command_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
-    _scan_times: list[int] = field(default_factory=list)
+    #: arrival times (monotonic ns) of the last scans, for scan_rate_hz
+    scan_times: deque[int] = field(default_factory=lambda: deque(maxlen=20))
 
     def latency_ms(self) -> dict[str, float]:
         """p50, p99 and max of the recent scan-to-command latencies, milliseconds."""
@@ -89,7 +90,7 @@ class Daemon:
     """Builds the configured components on ``bus`` and runs them until stopped."""
 
     def __init__(self, config: Config, *, bus: Bus | None = None, notifier: Notifier | None = None,
-                 status: StatusPanel | None = None, filters: tuple[Filter, ...] = ()) -> None:
+                 status: StatusPanel | None = None) -> None:
         self.config = config
         self.bus = bus if bus is not None else Bus()
         self.notifier = notifier if notifier is not None else Notifier.from_env()
@@ -107,7 +108,7 @@ class Daemon:
         self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
-        self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, *filters, self.safety.filter)
+        self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
         self.scan_summary = (ScanSummaryPublisher(self.bus, config.scan_summary)
                              if config.scan_summary.enabled else None)
         self.setpoint = SetpointRelay(self.bus, config.setpoint) if config.setpoint.enabled else None
@@ -144,10 +145,8 @@ class Daemon:
 
     def _on_scan(self, scan: LaserScan) -> None:
         now = monotonic_ns()
-        times = self.stats._scan_times
+        times = self.stats.scan_times
         times.append(now)
-        if len(times) > 20:
-            del times[0]
         if len(times) >= 2:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
         last = self.mux.last_output
