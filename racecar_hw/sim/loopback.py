@@ -112,12 +112,11 @@ class Loopback:
         model = sc.lidar.model
         config = self._build_config()
         laser = self._laser_pose(config)
-        self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
+        vesc = self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
         self.world = World(self.map, self._car_params(config), sc.start,
-                           erpm_source=lambda: self.vesc.erpm if self.vesc else 0.0,
-                           servo_source=lambda: self.vesc.servo if self.vesc else 0.5,
+                           erpm_source=lambda: vesc.erpm, servo_source=lambda: vesc.servo,
                            laser_pose_in_base=laser, noise_std_m=sc.world.noise_std_m,
-                           seed=sc.world.seed, on_collision=lambda: self.vesc and self.vesc.stall())
+                           seed=sc.world.seed, on_collision=vesc.stall)
         source = self.world.range_source(max_range=LIDAR_MAX_RANGE_M.get(model, 12.0))
         use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo"
         if use_tcp:
