@@ -47,6 +47,20 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds per thread of a process, by thread name (for BENCH_VERBOSE)."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        out[f"{name}[{task.name}]"] = cpu
+    return out
+
+
 def _peak_rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
@@ -95,9 +109,11 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
             time.sleep(2.0)  # warm up: caches, first bag chunk
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
+            threads0 = _thread_cpu_s(proc.pid)
             cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             time.sleep(seconds)
             cpu1, t1 = _cpu_s(proc.pid), time.monotonic()
+            threads1 = _thread_cpu_s(proc.pid)
             rss = _peak_rss_mb(proc.pid)
             sent = np.array(lidar.frames_sent_ns, dtype=np.int64)
             motor = np.array([c.t_ns for c in vesc.commands
@@ -117,6 +133,9 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
         qs = (50, 75, 90, 95, 98, 99, 100)
         print("latency percentiles (ms):", {q: round(float(np.percentile(latency_ms, q)), 2) for q in qs},
               file=sys.stderr)
+        for name, cpu in sorted(threads1.items()):
+            share = 100.0 * (cpu - threads0.get(name, 0.0)) / (t1 - t0)
+            print(f"thread {name}: {share:.2f} % of a core", file=sys.stderr)
     scans = len(sent)
     return [
         {"name": "daemon CPU share of one core", "value": 100.0 * (cpu1 - cpu0) / (t1 - t0),

@@ -160,10 +160,11 @@ class Daemon:
             self.mux.step(now, (lambda drive, source, t: cut,))
         elif self.vesc is not None:
             self.vesc.command(cut)
-        if self.vesc is not None and self.vesc.connected and self.lidar is not None:
+        if self.vesc is not None and self.lidar is not None:
             arrived = self.lidar.frame_arrival_ns
-            if arrived:
-                self.stats.scan_to_command_ns.append(monotonic_ns() - arrived)
+            written = self.vesc.last_motor_write_ns
+            if arrived and written >= arrived:  # this scan's command reached the OS
+                self.stats.scan_to_command_ns.append(written - arrived)
 
     def _control_alive(self, now_ns: int) -> bool:
         """Whether the control loop ticked within the last two periods.

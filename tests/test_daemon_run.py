@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -60,7 +61,7 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(notify))
     env = dict(os.environ, NOTIFY_SOCKET=str(notify), WATCHDOG_USEC="400000")
-    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "-v", "run", "--config", str(cfg)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         got = _notifications(sock, time.monotonic() + 20)
@@ -81,6 +82,12 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     servo = [p for p in commands if isinstance(p, SetServoPosition)]
     assert motor and (isinstance(motor[-1], SetCurrentBrake) or motor[-1].erpm == 0)
     assert servo and servo[-1].position == pytest.approx(0.5304, abs=1e-3)
+    # every scan re-sent the (idle) command at once; the shutdown summary times those writes
+    summary = re.search(r"scan-to-command latency p50=([\d.]+) ms p99=([\d.]+) ms max=([\d.]+) ms "
+                        r"over (\d+) scans", err)
+    assert summary, err[-2000:]
+    p50, p99, worst, scans = map(float, summary.groups())
+    assert scans > 0 and 0.0 < p50 <= p99 <= worst
     bags = list((tmp_path / "bags").rglob("*.mcap"))
     assert bags, "the recorder left no bag"
     from rosbags.highlevel import AnyReader

@@ -153,6 +153,11 @@ class VescDriver:
         return self._link is not None and self._link.is_open and self._firmware is not None
 
     @property
+    def last_motor_write_ns(self) -> int:
+        """Monotonic ns when the OS last took a motor command (RPM, current, brake or duty); 0 if never."""
+        return self._last_motor_tx_ns
+
+    @property
     def firmware(self) -> tuple[int, int] | None:
         """(major, minor) of the connected VESC's firmware, None before the handshake."""
         return self._firmware
