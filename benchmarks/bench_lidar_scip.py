@@ -9,8 +9,8 @@ import time
 
 import numpy as np
 
-from lidar_drivers.scip import ResponseDecoder, ScanCommand, ScanReply, encode_scan
-from lidar_drivers.scip_driver import DeviceParams, ranges_m
+from lidar_drivers.scip import ResponseDecoder, ScanCommand, ScanReply, SensorParams, encode_scan
+from lidar_drivers.scip_driver import ranges_m
 from lidar_drivers.scip_models import get_model
 
 TARGET_MS = 0.2
@@ -41,7 +41,7 @@ def _decode_ms(raw: bytes, rounds: int) -> float:
 def run() -> list[dict]:
     """Rows: decode time per scan (MD, ME), decode + metres conversion, frame size."""
     m = get_model("ust-10lx")
-    dev = DeviceParams(m.product, m.dmin, m.dmax, m.ares, m.amin, m.amax, m.afrt, m.scan_rpm)
+    dev = SensorParams.from_fields({k: str(v) for k, v in m.fields().items()})  # as PP reads
     md, _ = _frame("MD")
     me, _ = _frame("ME")
     rows = [

@@ -24,6 +24,7 @@ Distances are integer millimetres; timestamps are the device's 24-bit millisecon
 from __future__ import annotations
 
 import functools
+import math
 import re
 from collections import deque
 from collections.abc import Mapping, Sequence
@@ -31,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from racecar_hw.errors import LocalProtocolError
+from racecar_hw.errors import LocalProtocolError, RemoteProtocolError
 
 LINE_CHARS = 64
 """Characters of encoded data per data line."""
@@ -292,6 +293,64 @@ def _checked(line: bytes) -> bytes:
     if len(line) < 2 or checksum(line[:-1]) != line[-1]:
         raise ChecksumError(line)
     return line[:-1]
+
+
+# --- sensor parameters (the PP reply) ----------------------------------------------------------
+
+_PP_KEYS = ("DMIN", "DMAX", "ARES", "AMIN", "AMAX", "AFRT", "SCAN")
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """The ``PP`` reply: distances in mm, angles in steps, ``scan_rpm`` the motor speed.
+
+    Step ``AFRT`` points straight ahead; angles are radians, counter-clockwise (REP-103).
+    """
+
+    model: str
+    dmin: int
+    dmax: int
+    ares: int
+    amin: int
+    amax: int
+    afrt: int
+    scan_rpm: int
+
+    @classmethod
+    def from_fields(cls, fields: Mapping[str, str]) -> SensorParams:
+        """From PP's KEY:VALUE fields; RemoteProtocolError if one is missing or not a number."""
+        try:
+            return cls(fields.get("MODL", ""), *(int(fields[k]) for k in _PP_KEYS))
+        except (KeyError, ValueError) as err:
+            raise RemoteProtocolError(f"PP reply lacks a numeric field: {err}") from err
+
+    def fields(self) -> dict[str, str | int]:
+        """The ``PP`` reply's fields in device order."""
+        values = (self.dmin, self.dmax, self.ares, self.amin, self.amax, self.afrt, self.scan_rpm)
+        return {"MODL": self.model, **dict(zip(_PP_KEYS, values, strict=True))}
+
+    @property
+    def steps(self) -> int:
+        """Steps from AMIN to AMAX inclusive."""
+        return self.amax - self.amin + 1
+
+    @property
+    def scan_period_s(self) -> float:
+        """Seconds per revolution."""
+        return 60.0 / self.scan_rpm
+
+    @property
+    def step_time_s(self) -> float:
+        """Seconds between adjacent steps."""
+        return 60.0 / (self.scan_rpm * self.ares)
+
+    def step_of(self, angle: float) -> float:
+        """The (fractional) step at ``angle`` radians."""
+        return self.afrt + angle * self.ares / (2.0 * math.pi)
+
+    def angle_of(self, step: float) -> float:
+        """The angle of ``step`` in radians."""
+        return (step - self.afrt) * 2.0 * math.pi / self.ares
 
 
 # --- commands (host -> device) ------------------------------------------------------------------

@@ -35,7 +35,6 @@ import functools
 import logging
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -51,6 +50,7 @@ from lidar_drivers.scip import (
     ResponseDecoder,
     ScanCommand,
     ScanReply,
+    SensorParams,
     is_hardware_fault,
 )
 from racecar_hw.bus import Bus
@@ -70,48 +70,7 @@ REPLY_TIMEOUT_S = 1.0
 """How long a command may take to be answered (QT may first wait for a frame in flight)."""
 
 
-@dataclass(frozen=True)
-class DeviceParams:
-    """The ``PP`` reply: distances in mm, angles in steps, ``scan_rpm`` the motor speed."""
-
-    model: str
-    dmin: int
-    dmax: int
-    ares: int
-    amin: int
-    amax: int
-    afrt: int
-    scan_rpm: int
-
-    @classmethod
-    def from_fields(cls, fields: dict[str, str]) -> DeviceParams:
-        """From PP's KEY:VALUE fields; RemoteProtocolError if one is missing or not a number."""
-        try:
-            return cls(fields.get("MODL", ""), *(int(fields[k]) for k in
-                                                  ("DMIN", "DMAX", "ARES", "AMIN", "AMAX", "AFRT",
-                                                   "SCAN")))
-        except (KeyError, ValueError) as err:
-            raise RemoteProtocolError(f"PP reply lacks a numeric field: {err}") from err
-
-    @property
-    def step_time_s(self) -> float:
-        """Seconds between adjacent steps."""
-        return 60.0 / (self.scan_rpm * self.ares)
-
-    @property
-    def scan_period_s(self) -> float:
-        return 60.0 / self.scan_rpm
-
-    def step_of(self, angle: float) -> float:
-        """The (fractional) step at ``angle`` radians."""
-        return self.afrt + angle * self.ares / (2.0 * math.pi)
-
-    def angle_of(self, step: int) -> float:
-        """The angle of ``step`` in radians."""
-        return (step - self.afrt) * 2.0 * math.pi / self.ares
-
-
-def crop_steps(dev: DeviceParams, angle_min: float | None, angle_max: float | None) -> tuple[int, int]:
+def crop_steps(dev: SensorParams, angle_min: float | None, angle_max: float | None) -> tuple[int, int]:
     """First and last step inside [angle_min, angle_max] (None: the device's AMIN/AMAX)."""
     start = dev.amin if angle_min is None else max(dev.amin, math.ceil(dev.step_of(angle_min) - 1e-6))
     end = dev.amax if angle_max is None else min(dev.amax, math.floor(dev.step_of(angle_max) + 1e-6))
@@ -122,7 +81,7 @@ def crop_steps(dev: DeviceParams, angle_min: float | None, angle_max: float | No
     return start, end
 
 
-def scan_geometry(dev: DeviceParams, req: ScanCommand) -> ScanGeometry:
+def scan_geometry(dev: SensorParams, req: ScanCommand) -> ScanGeometry:
     """The LaserScan geometry of frames answering ``req``."""
     cluster = max(req.cluster, 1)
     inc = cluster * 2.0 * math.pi / dev.ares
@@ -143,12 +102,12 @@ _LUT_SIZE = 1 << 18
 
 @functools.lru_cache(maxsize=8)
 @functools.lru_cache(maxsize=8)
-def _cached_geometry(dev: DeviceParams, req: ScanCommand) -> ScanGeometry:
+def _cached_geometry(dev: SensorParams, req: ScanCommand) -> ScanGeometry:
     return scan_geometry(dev, req)
 
 
 @functools.lru_cache(maxsize=8)
-def _range_table(dev: DeviceParams) -> np.ndarray | None:
+def _range_table(dev: SensorParams) -> np.ndarray | None:
     """Metres (float32, with the inf/nan policy) for every 18-bit reading; None if DMAX does not fit."""
     if not 0 <= dev.dmax < _LUT_SIZE - 1:
         return None
@@ -157,7 +116,7 @@ def _range_table(dev: DeviceParams) -> np.ndarray | None:
     return table
 
 
-def ranges_m(dev: DeviceParams, distances: np.ndarray) -> np.ndarray:
+def ranges_m(dev: SensorParams, distances: np.ndarray) -> np.ndarray:
     """Device readings (mm or error codes) as metres with the inf/nan policy (float32)."""
     d = np.asarray(distances)
     table = _range_table(dev) if d.dtype.kind in "iu" else None
@@ -168,7 +127,7 @@ def ranges_m(dev: DeviceParams, distances: np.ndarray) -> np.ndarray:
     return _ranges_m(dev, d)
 
 
-def _ranges_m(dev: DeviceParams, d: np.ndarray) -> np.ndarray:
+def _ranges_m(dev: SensorParams, d: np.ndarray) -> np.ndarray:
     r = (d / 1000.0).astype(np.float32)
     codes = d < dev.dmin
     if codes.any():
@@ -182,7 +141,7 @@ class HokuyoDriver(LidarDriver):
 
     def __init__(self, bus: Bus, params: LidarParams) -> None:
         super().__init__(bus, params)
-        self.device: DeviceParams | None = None
+        self.device: SensorParams | None = None
         self.request: ScanCommand | None = None
         self._link: Link | None = None
         self._decoder = ResponseDecoder()
@@ -290,7 +249,7 @@ class HokuyoDriver(LidarDriver):
         pp = await self._info("PP")
         ii = await self._info("II")
         try:
-            dev = DeviceParams.from_fields(pp)
+            dev = SensorParams.from_fields(pp)
         except RemoteProtocolError as err:
             raise DeviceError(str(err)) from err
         self.device = dev
@@ -306,7 +265,7 @@ class HokuyoDriver(LidarDriver):
         self.connected = True
         await self._stream(dev, req)
 
-    async def _start_stream(self, dev: DeviceParams) -> ScanCommand:
+    async def _start_stream(self, dev: SensorParams) -> ScanCommand:
         p = self.params
         start, end = crop_steps(dev, p.angle_min, p.angle_max)
         kinds = ("ME", "MD") if p.intensities else ("MD",)
@@ -321,7 +280,7 @@ class HokuyoDriver(LidarDriver):
                             p.model, ack.meaning)
         raise DeviceError(f"MD refused: status {ack.status} ({ack.meaning})")
 
-    async def _stream(self, dev: DeviceParams, req: ScanCommand) -> None:
+    async def _stream(self, dev: SensorParams, req: ScanCommand) -> None:
         period = (req.interval + 1) * dev.scan_period_s
         stale = max(self.params.stale_timeout_s, 3 * period)
         deadline = time.monotonic() + stale + dev.scan_period_s
@@ -341,7 +300,7 @@ class HokuyoDriver(LidarDriver):
             if is_hardware_fault(event.status) or event.status == "10":
                 raise DeviceError(f"{event.command} status {event.status}: {event.meaning}")
 
-    def to_laser_scan(self, frame: ScanReply, dev: DeviceParams) -> LaserScan:
+    def to_laser_scan(self, frame: ScanReply, dev: SensorParams) -> LaserScan:
         """One frame as a LaserScan stamped with its first beam's estimated time."""
         req = frame.request
         geo = _cached_geometry(dev, req)

@@ -125,14 +125,14 @@ class _Session:
             return self._time_command(cmd)
         name = cmd.name
         if name == "VV":
-            return encode_info(cmd.line, {"VEND": "Hokuyo Automatic Co.,Ltd.", "PROD": m.product,
+            return encode_info(cmd.line, {"VEND": "Hokuyo Automatic Co.,Ltd.", "PROD": m.model,
                                           "FIRM": m.firmware, "PROT": "SCIP 2.0",
                                           "SERI": self.fake.serial})
         if name == "PP":
-            return encode_info(cmd.line, m.pp_fields())
+            return encode_info(cmd.line, m.fields())
         if name == "II":
             return encode_info(cmd.line, {
-                "MODL": m.product, "LASR": "ON" if self.laser_on else "OFF",
+                "MODL": m.model, "LASR": "ON" if self.laser_on else "OFF",
                 "SCSP": f"Initial({m.scan_rpm}[rpm])", "MESM": "Measuring by Normal Mode",
                 "SBPS": "USB only" if m.link == "serial" else "Ethernet 100 [Mbps]",
                 "TIME": f"{self.fake.time_ms():06X}", "STAT": "Sensor is working normally"})

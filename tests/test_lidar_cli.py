@@ -41,7 +41,7 @@ def test_lidar_info_against_the_fake(device_thread, tmp_path, capsys, transport)
              else ["--port", fake.path])
     assert main(["lidar-info", *where, "--model", fake.model.name, "--timeout", "15"]) == 0
     out = capsys.readouterr().out
-    assert fake.model.product in out and f"firmware:   {fake.model.firmware}" in out
+    assert fake.model.model in out and f"firmware:   {fake.model.firmware}" in out
     assert f"{fake.model.steps} beams" in out
     # in the middle of an 8 x 6 m room the nearest wall is 3 m away at +-90 deg
     closest = re.search(r"closest:\s+([\d.]+) m at (-?[\d.]+) deg", out)

@@ -17,6 +17,7 @@ from lidar_drivers.scip import (
     ResponseDecoder,
     ScanCommand,
     ScanReply,
+    SensorParams,
     StateReply,
     StatusReply,
     TimeCommand,
@@ -38,7 +39,7 @@ from lidar_drivers.scip import (
     parse_command,
     status_meaning,
 )
-from racecar_hw.errors import LocalProtocolError
+from racecar_hw.errors import LocalProtocolError, RemoteProtocolError
 
 GD_EXCHANGE = (b"GD0540056101\n00P\n018dm\n"
                b"0H40H50H60H70H80H90H:0H;0H<0H=0H>0H?0H@0HA0HB0HC0HD0HE0HF0HG0HH0N\nHIA\n\n")
@@ -363,3 +364,34 @@ def test_fast_data_line_decoder_agrees_with_the_line_by_line_one(width, values, 
         assert fast is not None  # clean lines always take the fast path
     if fast is not None:
         assert slow is not None and fast.dtype == slow.dtype and np.array_equal(fast, slow)
+
+
+# --- PP: sensor parameters ---------------------------------------------------------------------
+
+
+def test_pp_reply_decodes_into_sensor_params_and_back():
+    fields = {"MODL": "UST-10LX", "DMIN": 20, "DMAX": 30000, "ARES": 1440, "AMIN": 0, "AMAX": 1080,
+              "AFRT": 540, "SCAN": 2400}
+    reply = ResponseDecoder()
+    reply.receive_data(encode_info("PP", fields))
+    event = reply.next_event()
+    assert isinstance(event, InfoReply)
+    pp = SensorParams.from_fields(event.fields)
+    assert pp == SensorParams("UST-10LX", 20, 30000, 1440, 0, 1080, 540, 2400)
+    assert pp.fields() == fields
+    assert pp.steps == 1081 and pp.scan_period_s == pytest.approx(0.025)
+    assert pp.angle_of(540) == 0.0 and pp.angle_of(0) == pytest.approx(-0.75 * np.pi)
+    assert pp.step_of(pp.angle_of(123)) == pytest.approx(123)
+
+
+@given(st.dictionaries(st.sampled_from(["MODL", "DMIN", "DMAX", "ARES", "AMIN", "AMAX", "AFRT",
+                                        "SCAN", "XXXX"]),
+                       st.one_of(st.integers(-10**6, 10**6).map(str), st.text(max_size=6))))
+@settings(max_examples=300)
+def test_sensor_params_from_any_fields_is_a_record_or_a_named_error(fields):
+    try:
+        pp = SensorParams.from_fields(fields)
+    except RemoteProtocolError as err:
+        assert "PP reply" in str(err)
+    else:
+        assert pp.fields()["DMIN"] == int(fields["DMIN"])

@@ -13,8 +13,8 @@ from conftest import async_wait_for
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.params import LidarParams
 from lidar_drivers.registry import DEFAULT_BAUD, make_driver, make_fake
-from lidar_drivers.scip import ScanCommand, encode_scan
-from lidar_drivers.scip_driver import DeviceParams, HokuyoDriver, crop_steps, ranges_m
+from lidar_drivers.scip import ScanCommand, SensorParams, encode_scan
+from lidar_drivers.scip_driver import HokuyoDriver, crop_steps, ranges_m
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.bus import Bus
 from racecar_hw.clock import wall_ns
@@ -75,7 +75,7 @@ def test_streams_laser_scans_in_ros_conventions(device_thread, tmp_path, model, 
     async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
         await more_scans(scans, 3)
         scan = scans[-1]
-        assert driver.connected and driver.info["product"] == m.product
+        assert driver.connected and driver.info["product"] == m.model
         assert driver.info["firmware"] == m.firmware and driver.info["serial"] == fake.serial
         step = 2 * math.pi / m.ares
         assert scan.angle_min == pytest.approx((m.amin - m.afrt) * step)
@@ -201,7 +201,7 @@ def test_hardware_fault_status_is_surfaced_with_its_meaning(device_thread, tmp_p
 
 
 def test_error_codes_become_inf_or_nan():
-    dev = DeviceParams("UTM-30LX", 23, 60000, 1440, 0, 1080, 540, 2400)
+    dev = SensorParams("UTM-30LX", 23, 60000, 1440, 0, 1080, 540, 2400)
     r = ranges_m(dev, np.array([0, 1, 2, 3, 22, 23, 1234, 60000, 65533]))
     assert np.isinf(r[0]) and np.isinf(r[1])
     assert np.isnan(r[2:5]).all()
@@ -211,7 +211,7 @@ def test_error_codes_become_inf_or_nan():
 
 
 def test_crop_steps_clamps_to_the_device_and_refuses_an_empty_crop():
-    dev = DeviceParams("URG-04LX", 20, 5600, 1024, 44, 725, 384, 600)
+    dev = SensorParams("URG-04LX", 20, 5600, 1024, 44, 725, 384, 600)
     assert crop_steps(dev, None, None) == (44, 725)
     assert crop_steps(dev, -10.0, 10.0) == (44, 725)
     assert crop_steps(dev, 0.0, 0.0) == (384, 384)
@@ -221,7 +221,7 @@ def test_crop_steps_clamps_to_the_device_and_refuses_an_empty_crop():
 
 def test_stamp_subtracts_sweep_and_serial_transfer_time():
     driver = HokuyoDriver(Bus(), LidarParams(model="urg-04lx", port="/dev/null"))
-    dev = DeviceParams("URG-04LX", 20, 5600, 1024, 44, 725, 384, 600)
+    dev = SensorParams("URG-04LX", 20, 5600, 1024, 44, 725, 384, 600)
     req = ScanCommand(name="MD", start=44, end=725)
     from lidar_drivers.scip import ResponseDecoder
 
@@ -251,7 +251,7 @@ def test_registry_picks_the_family_and_default_bauds():
 def test_ranges_lookup_table_matches_the_arithmetic():
     from lidar_drivers.scip_driver import _ranges_m
 
-    dev = DeviceParams("UST-10LX", 20, 30000, 1440, 0, 1080, 540, 2400)
+    dev = SensorParams("UST-10LX", 20, 30000, 1440, 0, 1080, 540, 2400)
     readings = np.concatenate([np.arange(0, 40), np.arange(29990, 30010), [65533, 262142, 262143],
                                np.random.default_rng(3).integers(0, 1 << 18, 5000)])
     for dtype in (np.uint32, np.int64):
