@@ -121,6 +121,7 @@ class Daemon:
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
         self._last_watchdog_ns = 0
+        self._switch_interval: float | None = None
         self.bus.subscribe(config.mux.output_topic, self._on_output)
         self.bus.subscribe(config.safety.scan_topic, self._on_scan)
 
@@ -269,6 +270,7 @@ class Daemon:
         gc.freeze()
         # The recorder's writer thread serializes in Python; a short GIL switch interval hands the
         # GIL back to the control path within 0.1 ms instead of CPython's default 5 ms.
+        self._switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         self.notifier.ready("racecar-hw running")
         log.info("racecar-hw running")
@@ -316,3 +318,8 @@ class Daemon:
         self.safety.close()
         self.mux.close()
         self.notifier.close()
+        # A daemon run inside a longer-lived process (the sim, tests) leaves it as it found it.
+        gc.unfreeze()
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None

@@ -8,6 +8,7 @@ it touched anything, read from the report and the trajectory.
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import math
 import subprocess
@@ -58,6 +59,15 @@ def test_figure8_returns_to_the_start(tmp_path):
     by_reason = r["safety_interventions_by_reason"]
     assert r["safety_interventions"] == sum(by_reason.values())
     assert set(by_reason) <= {"stale_scan"}
+
+
+def test_a_daemon_run_in_process_leaves_the_interpreter_as_it_found_it(tmp_path):
+    # the daemon freezes its start-up objects and shortens the GIL switch interval while it runs
+    interval = sys.getswitchinterval()
+    result = run("wall", tmp_path, duration_s=1.0)
+    assert result.report["lidar"]["scans"] > 0
+    assert sys.getswitchinterval() == interval
+    assert gc.get_freeze_count() == 0
 
 
 @pytest.mark.parametrize("speed", [1.0, 2.0, 3.0, 4.0])
