@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "sim", "bags", "daemon")
+ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "daemon")
 
 
 def main(argv: list[str]) -> int:
