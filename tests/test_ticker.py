@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -76,3 +77,32 @@ def test_periodic_timer_error_stops_it_and_reaches_the_handler() -> None:
 def test_periodic_timer_rejects_a_bad_rate() -> None:
     with pytest.raises(ValueError):
         PeriodicTimer(0.0, lambda due, periods: None)
+
+
+def test_timers_of_related_rates_share_their_deadlines() -> None:
+    dues: dict[str, list[int]] = {"a": [], "b": [], "slow": []}
+
+    async def scenario() -> None:
+        done = asyncio.get_running_loop().create_future()
+
+        def tick(name: str) -> Callable[[int, int], None]:
+            def record(due: int, periods: int) -> None:
+                dues[name].append(due)
+                if len(dues["b"]) >= 6 and not done.done():
+                    done.set_result(None)
+            return record
+
+        timers = [PeriodicTimer(50.0, tick("a")), PeriodicTimer(20.0, tick("slow"))]
+        for timer in timers:
+            timer.start()
+        await asyncio.sleep(0.013)  # a later start, off the first timers' phase
+        timers.append(PeriodicTimer(50.0, tick("b")))
+        timers[-1].start()
+        await asyncio.wait_for(done, 10)
+        for timer in timers:
+            timer.cancel()
+
+    asyncio.run(scenario())
+    assert all(d % 20_000_000 == 0 for d in dues["a"] + dues["b"])  # one 50 Hz grid
+    assert all(d % 50_000_000 == 0 for d in dues["slow"])
+    assert set(dues["b"][1:]) <= set(dues["a"])  # the later timer wakes with the first one
