@@ -392,13 +392,19 @@ class VescDriver:
         return self._moving and now_ns - self._last_command_ns < self._timeout_ns
 
     def _arm_failsafe_timer(self) -> None:
-        if self._failsafe_timer is not None:
-            return
+        """Set the failsafe for ``command_timeout_s`` after the latest command.
+
+        Moved at every command rather than left to fire and re-arm, so that it wakes the loop only
+        when commands stop: a wake-up costs far more CPU than moving a timer.
+        """
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
             return  # no loop: the poll tick enforces the timeout instead
-        self._failsafe_timer = loop.call_later(self.params.command_timeout_s, self._on_failsafe_timer)
+        if self._failsafe_timer is not None:
+            self._failsafe_timer.cancel()
+        self._failsafe_timer = loop.call_at(seconds(self._last_command_ns + self._timeout_ns),
+                                            self._on_failsafe_timer)
 
     def _on_failsafe_timer(self) -> None:
         self._failsafe_timer = None
