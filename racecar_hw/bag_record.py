@@ -70,7 +70,7 @@ log = logging.getLogger(__name__)
 
 LATCHED_TOPICS = ("/tf_static",)
 #: The writer thread wakes this often to drain the queue (one wakeup per batch, not per message).
-BATCH_S = 0.05
+BATCH_S = 0.2
 #: ... or as soon as this many messages wait (or a quarter of ``queue_size``, if smaller).
 WAKE_AT = 256
 LZ4_REFUSAL = (
