@@ -15,7 +15,9 @@ Latency, two ways:
   (the fakes share one interpreter here), and a 50 Hz control tick landing in the window by chance
   can make a sample shorter than the scan path alone.
 
-Run ``python benchmarks/bench_daemon.py [SECONDS]``; ``run()`` returns the rows for run_all.py.
+Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder]``; ``run()`` returns the rows for
+run_all.py. ``BENCH_VERBOSE=1`` also prints round-trip percentiles, the CPU share of each daemon
+thread and of the benchmark's own fakes; ``BENCH_PROFILE=PATH`` runs the daemon under cProfile.
 """
 
 from __future__ import annotations
@@ -110,9 +112,11 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
             threads0 = _thread_cpu_s(proc.pid)
+            fakes0 = time.process_time()
             cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             time.sleep(seconds)
             cpu1, t1 = _cpu_s(proc.pid), time.monotonic()
+            fakes1 = time.process_time()
             threads1 = _thread_cpu_s(proc.pid)
             rss = _peak_rss_mb(proc.pid)
             sent = np.array(lidar.frames_sent_ns, dtype=np.int64)
@@ -132,6 +136,8 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
     if os.environ.get("BENCH_VERBOSE"):
         qs = (50, 75, 90, 95, 98, 99, 100)
         print("latency percentiles (ms):", {q: round(float(np.percentile(latency_ms, q)), 2) for q in qs},
+              file=sys.stderr)
+        print(f"the benchmark's fakes: {100.0 * (fakes1 - fakes0) / (t1 - t0):.2f} % of a core",
               file=sys.stderr)
         for name, cpu in sorted(threads1.items()):
             share = 100.0 * (cpu - threads0.get(name, 0.0)) / (t1 - t0)
