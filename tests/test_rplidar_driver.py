@@ -27,6 +27,8 @@ ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned
 def run_driver(device_thread, tmp_path, model: str,
                scenario: Callable[[RplidarDriver, FakeRplidar, list[LaserScan]], Awaitable[None]],
                **params: object) -> None:
+    """Run ``scenario`` against a driver streaming from a fake; what the scenario does before its
+    first ``await`` happens before the driver's first step (set faults there)."""
     fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"))
     device_thread.spawn(fake.serve())
     wait_for(lambda: fake.port.plugged)
@@ -241,13 +243,11 @@ def test_health_error_is_reset_and_the_banner_skipped(device_thread, tmp_path):
         assert driver.stats.reconnects == 0
         assert_room(scans[-1])
 
-    fake_health = {"status": 2, "error_code": 0x8001}
+    async def scenario_with_fault(driver, fake, scans):
+        fake.set_health(status=2, error_code=0x8001)
+        await scenario(driver, fake, scans)
 
-    def scenario_with_fault(driver, fake, scans):
-        fake.set_health(**fake_health)
-        return scenario(driver, fake, scans)
-
-    run_driver_before_start(device_thread, tmp_path, "a1", scenario_with_fault)
+    run_driver(device_thread, tmp_path, "a1", scenario_with_fault)
 
 
 def test_health_error_that_persists_is_surfaced(device_thread, tmp_path):
@@ -256,11 +256,11 @@ def test_health_error_that_persists_is_surfaced(device_thread, tmp_path):
         assert "0x8001" in driver.last_error and "protection stop" in driver.last_error
         assert not scans
 
-    def with_fault(driver, fake, scans):
+    async def with_fault(driver, fake, scans):
         fake.set_health(2, 0x8001, clears_on_reset=False)
-        return scenario(driver, fake, scans)
+        await scenario(driver, fake, scans)
 
-    run_driver_before_start(device_thread, tmp_path, "a1", with_fault)
+    run_driver(device_thread, tmp_path, "a1", with_fault)
 
 
 def test_device_reset_mid_stream_banner_then_recovery(device_thread, tmp_path):
@@ -274,26 +274,3 @@ def test_device_reset_mid_stream_banner_then_recovery(device_thread, tmp_path):
         assert_room(scans[-1])
 
     run_driver(device_thread, tmp_path, "a1", scenario, stale_timeout_s=0.3)
-
-
-def run_driver_before_start(device_thread, tmp_path, model, scenario, **params):
-    """Like run_driver, but ``scenario`` runs its synchronous setup before the driver connects."""
-    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"))
-    device_thread.spawn(fake.serve())
-    wait_for(lambda: fake.port.plugged)
-
-    async def main() -> None:
-        bus = Bus()
-        scans: list[LaserScan] = []
-        bus.subscribe("/scan", scans.append)
-        driver = RplidarDriver(bus, LidarParams(model=model, port=fake.link, **params))
-        body = scenario(driver, fake, scans)
-        task = asyncio.create_task(driver.run())
-        try:
-            await body
-        finally:
-            task.cancel()
-            done, _ = await asyncio.wait({task}, timeout=10)
-            assert done and task.cancelled()
-
-    asyncio.run(main())
