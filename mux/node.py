@@ -363,14 +363,16 @@ class CommandMux:
     async def run(self, filters: Sequence[Filter] = ()) -> None:
         """Tick at ``rate_hz`` on absolute deadlines until cancelled; publish one stop on exit.
 
-        Deadlines sit on a fixed grid from the start, so the rate does not drift; a loop that
+        Deadlines sit on the fixed grid of whole periods of the clock (as those of
+        :class:`~racecar_hw.ticker.PeriodicTimer`), so the rate does not drift; a loop that
         falls behind skips to the next deadline on the grid (counted in :attr:`overruns`) instead
         of publishing a burst, and tells the limiter how many periods passed.
         """
         filters = tuple(filters)
         period = self._period_ns
         diag_every = max(1, round(self.params.rate_hz / self.params.diagnostics_rate_hz))
-        deadline = self._clock()
+        now = self._clock()
+        deadline = now - now % period
         periods = 1
         tick = 0
         try:
