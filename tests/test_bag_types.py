@@ -120,7 +120,7 @@ def test_laserscan_round_trip(header: Header, angle: float, ranges: list[float],
     r = np.array(ranges, dtype=np.float32)
     scan = LaserScan(header, angle_min=-angle, angle_max=angle, angle_increment=0.0043,
                      range_min=0.02, range_max=30.0, ranges=r,
-                     intensities=r * 2 if with_intensities else np.zeros(0, np.float32))
+                     intensities=r[::-1].copy() if with_intensities else np.zeros(0, np.float32))
     for data, types in ((ros2_types().serialize(scan), ros2_types()),
                         (ros1_types().serialize(scan, 3), ros1_types())):
         back = types.deserialize(data, LaserScan)
