@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
+from table import print_rows
 
 from racecar_hw.bag_follow import NAV0_TOPIC, TELEOP_TOPIC, BagFollower, FollowerParams
 from racecar_hw.bag_record import Recorder, record_params
@@ -235,11 +236,7 @@ def run() -> list[dict]:
 
 def main() -> None:
     rows = run()
-    width = max(len(r["name"]) for r in rows)
-    print(f"{'name':<{width}}  {'value':>10}  unit   target")
-    for r in rows:
-        target = "" if r["target"] is None else r["target"]
-        print(f"{r['name']:<{width}}  {r['value']:>10}  {r['unit']:<5}  {target}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from table import print_rows
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
@@ -171,10 +172,7 @@ def _summary(log: str) -> dict[str, float]:
 def main() -> None:
     seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
     rows = run(seconds, recorder="--no-recorder" not in sys.argv)
-    print(f"{'benchmark':40} {'value':>10} {'unit':6} {'target':>8}")
-    for r in rows:
-        t = "" if r["target"] is None else f"{r['target']:g}"
-        print(f"{r['name']:40} {r['value']:10.3f} {r['unit']:6} {t:>8}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import math
 import time
 
 import numpy as np
+from table import print_rows
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.rplidar_codec import (
@@ -90,11 +91,7 @@ def run() -> list[dict]:
 
 def main() -> None:
     rows = run()
-    width = max(len(r["name"]) for r in rows)
-    print(f"{'name':<{width}}  {'value':>9}  unit  target")
-    for r in rows:
-        target = "" if r["target"] is None else f"< {r['target']}"
-        print(f"{r['name']:<{width}}  {r['value']:>9.4f}  {r['unit']:<4}  {target}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

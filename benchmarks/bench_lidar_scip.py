@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from table import print_rows
 
 from lidar_drivers.scip import ResponseDecoder, ScanCommand, ScanReply, SensorParams, encode_scan
 from lidar_drivers.scip_driver import ranges_m
@@ -66,10 +67,7 @@ def run() -> list[dict]:
 
 def main() -> None:
     rows = run()
-    print(f"{'name':<28} {'value':>10} {'unit':<8} target")
-    for r in rows:
-        target = "" if r["target"] is None else f"< {r['target']}"
-        print(f"{r['name']:<28} {r['value']:>10.4f} {r['unit']:<8} {target}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import time
 
+from table import print_rows
+
 from mux.node import CommandMux
 from mux.params import LockParams, MuxParams
 from racecar_hw.bus import Bus
@@ -58,10 +60,7 @@ def run() -> list[dict]:
 
 def main() -> None:
     rows = run()
-    print(f"{'name':<20} {'value':>10} {'unit':<5} target")
-    for r in rows:
-        target = "" if r["target"] is None else f"< {r['target']}"
-        print(f"{r['name']:<20} {r['value']:>10.2f} {r['unit']:<5} {target}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

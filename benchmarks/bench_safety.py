@@ -17,6 +17,7 @@ import math
 import time
 
 import numpy as np
+from table import print_rows
 
 from racecar_hw.messages import AckermannDrive, LaserScan
 from safety.controller import SafetyController
@@ -89,10 +90,7 @@ def run(rounds: int = 3000) -> list[dict]:
 
 def main() -> None:
     rows = run()
-    print(f"{'name':<30} {'value':>10} {'unit':<6} {'target':>8}")
-    for row in rows:
-        target = "" if row["target"] is None else f"< {row['target']}"
-        print(f"{row['name']:<30} {row['value']:>10.4f} {row['unit']:<6} {target:>8}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

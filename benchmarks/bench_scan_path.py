@@ -21,6 +21,7 @@ import time
 import tty
 
 import numpy as np
+from table import print_rows
 
 from lidar_drivers.params import LidarParams
 from lidar_drivers.scip import ResponseDecoder, ScanCommand, SensorParams, encode_scan
@@ -103,9 +104,7 @@ def run(passes: int = 400) -> list[dict]:
 
 def main() -> None:
     rows = run()
-    print(f"{'benchmark':44} {'value':>9} {'unit':4}")
-    for r in rows:
-        print(f"{r['name']:44} {r['value']:9.0f} {r['unit']:4}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import math
 import time
 
 import numpy as np
+from table import print_rows
 
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.occupancy import load_shipped_map
@@ -83,10 +84,7 @@ def run(rounds: int = 300) -> list[dict]:
 def main() -> None:
     """Print the table."""
     rows = run()
-    print(f"{'name':42} {'value':>9} {'unit':5} target")
-    for r in rows:
-        target = "" if r["target"] is None else f"< {r['target']}"
-        print(f"{r['name']:42} {r['value']:9.3f} {r['unit']:5} {target}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from table import print_rows
+
 from racecar_hw.bus import Bus  # noqa: E402
 from racecar_hw.fakepty import PtyPort  # noqa: E402
 from racecar_hw.messages import AckermannDrive  # noqa: E402
@@ -138,11 +140,7 @@ def run() -> list[dict]:
 
 def main() -> None:
     rows = run()
-    width = max(len(r["name"]) for r in rows)
-    print(f"{'name':<{width}}  {'value':>12}  {'unit':<9} target")
-    for r in rows:
-        target = "" if r["target"] is None else f"{r['target']:g}"
-        print(f"{r['name']:<{width}}  {r['value']:>12.1f}  {r['unit']:<9} {target}")
+    print_rows(rows)
 
 
 if __name__ == "__main__":
