@@ -55,7 +55,13 @@ from lidar_drivers.scip import (
 )
 from racecar_hw.bus import Bus
 from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
+from racecar_hw.errors import (
+    ConfigError,
+    DeviceError,
+    DeviceIOError,
+    DeviceTimeout,
+    RemoteProtocolError,
+)
 from racecar_hw.link import Link, SerialLink, TcpLink, parse_host_port
 from racecar_hw.messages import Header, LaserScan, Time
 
@@ -188,12 +194,7 @@ class HokuyoDriver(LidarDriver):
         while True:
             event = self._decoder.next_event()
             if event is not None:
-                if isinstance(event, ChecksumMismatch):
-                    self.stats.checksum_errors += 1
-                    log.debug("lidar: %s", event.reason)
-                elif isinstance(event, MalformedResponse):
-                    self.stats.resyncs += 1
-                    log.debug("lidar: dropped %d bytes: %s", len(event.raw), event.reason)
+                self._count(event)
                 return event
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -202,10 +203,22 @@ class HokuyoDriver(LidarDriver):
                 data = await self._link.read_within(remaining)
             except asyncio.TimeoutError:
                 raise DeviceTimeout(f"{self._link.name}: {what}") from None
-            self.rx_ns = monotonic_ns()
-            self._rx_wall_ns = wall_ns()
-            self.stats.bytes_in += len(data)
-            self._decoder.receive_data(data)
+            self._receive(data)
+
+    def _receive(self, data: bytes) -> None:
+        """Stamp a chunk's arrival and hand it to the decoder."""
+        self.rx_ns = monotonic_ns()
+        self._rx_wall_ns = wall_ns()
+        self.stats.bytes_in += len(data)
+        self._decoder.receive_data(data)
+
+    def _count(self, event: Event) -> None:
+        if isinstance(event, ChecksumMismatch):
+            self.stats.checksum_errors += 1
+            log.debug("lidar: %s", event.reason)
+        elif isinstance(event, MalformedResponse):
+            self.stats.resyncs += 1
+            log.debug("lidar: dropped %d bytes: %s", len(event.raw), event.reason)
 
     async def _request(self, cmd: Command, timeout: float = REPLY_TIMEOUT_S) -> Reply:
         """Send ``cmd`` and return its reply, skipping stale frames and noise."""
@@ -281,24 +294,71 @@ class HokuyoDriver(LidarDriver):
         raise DeviceError(f"MD refused: status {ack.status} ({ack.meaning})")
 
     async def _stream(self, dev: SensorParams, req: ScanCommand) -> None:
+        """Publish frames until the link fails, a scan is overdue or the device reports a fault.
+
+        Frames are decoded and published in the link's reader callback, so a scan reaches the
+        safety controller and the VESC without waking a task; a loop timer checks for overdue
+        scans, rearmed only when it fires.
+        """
+        link = self._link
+        assert link is not None
+        loop = asyncio.get_running_loop()
         period = (req.interval + 1) * dev.scan_period_s
         stale = max(self.params.stale_timeout_s, 3 * period)
-        deadline = time.monotonic() + stale + dev.scan_period_s
         echo_body = req.echo(0)[:-2]
-        while True:
-            event = await self._next_event(deadline, f"no scan for {stale:.2f} s")
+        ended: asyncio.Future[None] = loop.create_future()
+        last_scan = loop.time() + dev.scan_period_s  # the first frame is a scan period away
+
+        def on_event(event: Event) -> None:
+            nonlocal last_scan
+            self._count(event)
             if not isinstance(event, Reply) or not event.echo.startswith(echo_body):
-                continue
+                return
             if isinstance(event, ScanReply):
                 if event.status == "99":
                     self.publish(self.to_laser_scan(event, dev))
-                    deadline = time.monotonic() + stale
-                continue
+                    last_scan = loop.time()
+                return
             if event.ok:
-                continue
+                return
             self._note_status(event)
-            if is_hardware_fault(event.status) or event.status == "10":
-                raise DeviceError(f"{event.command} status {event.status}: {event.meaning}")
+            if (is_hardware_fault(event.status) or event.status == "10") and not ended.done():
+                ended.set_exception(DeviceError(f"{event.command} status {event.status}: "
+                                                f"{event.meaning}"))
+
+        def on_bytes(data: bytes) -> None:
+            self._receive(data)
+            while (event := self._decoder.next_event()) is not None:
+                on_event(event)
+
+        def check_overdue() -> None:
+            nonlocal timer
+            if ended.done():
+                return
+            if loop.time() >= last_scan + stale:
+                ended.set_exception(DeviceTimeout(f"{link.name}: no scan for {stale:.2f} s"))
+            else:
+                timer = loop.call_at(last_scan + stale, check_overdue)
+
+        while (event := self._decoder.next_event()) is not None:  # frames read with the ack
+            on_event(event)
+        timer = loop.call_at(last_scan + stale, check_overdue)
+        link.set_receiver(on_bytes)
+        failed = asyncio.ensure_future(link.read())  # with a receiver set, it ends when the link fails
+        try:
+            await asyncio.wait([ended, failed], return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            timer.cancel()
+            link.set_receiver(None)
+            failed.cancel()
+        if ended.done():
+            ended.result()
+        err = failed.exception() if not failed.cancelled() else None
+        if err is None or isinstance(err, DeviceError):
+            raise err or DeviceIOError(f"{link.name}: the link ended")
+        # not the device: a fault in handling a frame; reconnect rather than stop the lidar
+        log.error("lidar %s: handling a frame failed", self.params.model, exc_info=err)
+        raise DeviceError(f"handling a frame failed: {err!r}") from err
 
     def to_laser_scan(self, frame: ScanReply, dev: SensorParams) -> LaserScan:
         """One frame as a LaserScan stamped with its first beam's estimated time."""

@@ -1,9 +1,11 @@
 """Byte links to devices for one asyncio loop: serial ports (pyserial) and TCP.
 
 A :class:`Link` is the only place where driver bytes meet the OS. ``read()`` awaits at least one
-byte; ``write()`` never blocks (bytes the OS cannot take yet wait in a buffer drained by the loop);
-``close()`` is safe twice. OS and pyserial errors become :class:`~racecar_hw.errors.DeviceNotFound`
-(nothing at that path or address) or :class:`~racecar_hw.errors.DeviceIOError` (it went away).
+byte, or ``set_receiver()`` hands every chunk to a callback straight from the loop's reader
+callback, waking no task (how the drivers stream). ``write()`` never blocks (bytes the OS cannot
+take yet wait in a buffer drained by the loop); ``close()`` is safe twice. OS and pyserial errors
+become :class:`~racecar_hw.errors.DeviceNotFound` (nothing at that path or address) or
+:class:`~racecar_hw.errors.DeviceIOError` (it went away).
 
 Serial ports open through ``serial.serial_for_url``, so a path, a pty symlink, ``spy:///dev/ttyACM0``
 (hexdump of the traffic) and ``socket://host:port`` all work. :func:`open_link` picks the link type
@@ -45,6 +47,10 @@ class Link(ABC):
         """Queue ``data`` for the device without blocking; raises DeviceIOError if it is gone."""
 
     @abstractmethod
+    def set_receiver(self, receiver: Callable[[bytes], None] | None) -> None:
+        """Hand every chunk read to ``receiver(data)`` instead of buffering it for :meth:`read`."""
+
+    @abstractmethod
     def close(self) -> None:
         """Close the link. Safe to call more than once."""
 
@@ -73,72 +79,33 @@ class Link(ABC):
         self.close()
 
 
-class SerialLink(Link):
-    """A serial port through pyserial, read and written by the event loop without threads."""
+class _ReceivingLink(Link):
+    """Reading shared by the links: chunks go to a receiver callback, or into a buffer for read().
 
-    def __init__(self, url: str, baudrate: int = 115200) -> None:
-        self.url = url
-        self.name = url
-        self.baudrate = baudrate
-        self._port: serial.SerialBase | None = None
-        self._fd: int | None = None
+    A subclass calls :meth:`_received` with each chunk the OS hands over and :meth:`_fail` when the
+    device goes away, and implements :meth:`_detach` (stop reading from the OS).
+    """
+
+    def __init__(self) -> None:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._pending: asyncio.Future[None] | None = None
         self._rx = bytearray()
-        self._tx = bytearray()
         self._error: DeviceIOError | None = None
-        self._writer_armed = False
         self._receiver: Callable[[bytes], None] | None = None
         self._receiver_error: Exception | None = None
 
-    @property
-    def is_open(self) -> bool:
-        return self._port is not None and self._error is None
-
-    async def open(self) -> None:
+    def _reset(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._error = None
         self._receiver_error = None
-        try:
-            port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0,
-                                         exclusive=None)
-        except (FileNotFoundError, serial.SerialException, OSError, ValueError) as err:
-            if _is_missing(err):
-                raise DeviceNotFound(f"no serial device at {self.url}") from err
-            raise DeviceIOError(f"cannot open {self.url}: {err}") from err
-        self._port = port
-        try:
-            fd = port.fileno()
-        except (AttributeError, NotImplementedError, OSError):
-            fd = None
-        if fd is None:
-            port.close()
-            self._port = None
-            raise DeviceIOError(f"{self.url}: only ports with a file descriptor are supported")
-        self._fd = fd
-        with contextlib.suppress(serial.SerialException, OSError):
-            port.reset_input_buffer()
-        os.set_blocking(fd, False)
-        self._loop.add_reader(fd, self._on_readable)
+        self._rx.clear()
 
-    def _on_readable(self) -> None:
-        assert self._fd is not None
-        try:
-            data = os.read(self._fd, 65536)
-        except BlockingIOError:
-            return
-        except OSError as err:
-            self._fail(DeviceIOError(f"{self.url}: {os.strerror(err.errno or 0) or err}"))
-            return
-        if not data:
-            self._fail(DeviceIOError(f"{self.url}: device closed"))
-            return
+    def _received(self, data: bytes) -> None:
         if self._receiver is not None:
             self._deliver(data)
             return
         self._rx += data
-        if self._pending is not None and not self._pending.done():
-            self._pending.set_result(None)
+        self._wake()
 
     def set_receiver(self, receiver: Callable[[bytes], None] | None) -> None:
         """Hand every chunk read to ``receiver(data)`` in the loop's reader callback, waking no task.
@@ -159,7 +126,101 @@ class SerialLink(Link):
             self._receiver(data)
         except Exception as err:
             self._receiver_error = err
-            self._fail(DeviceIOError(f"{self.url}: receiver failed: {err!r}"))
+            self._fail(DeviceIOError(f"{self.name}: receiver failed: {err!r}"))
+
+    def _wake(self) -> None:
+        if self._pending is not None and not self._pending.done():
+            self._pending.set_result(None)
+
+    def _fail(self, err: DeviceIOError) -> None:
+        if self._error is None:
+            self._error = err
+        self._detach()
+        self._wake()
+
+    @abstractmethod
+    def _detach(self) -> None:
+        """Stop reading from the OS (the link failed or is closing)."""
+
+    @abstractmethod
+    def _closed(self) -> bool:
+        """Whether the link was never opened or has been closed."""
+
+    async def read(self) -> bytes:
+        while not self._rx:
+            if self._receiver_error is not None:
+                err, self._receiver_error = self._receiver_error, None
+                raise err
+            if self._error is not None:
+                raise self._error
+            if self._closed():
+                raise DeviceIOError(f"{self.name}: not open")
+            assert self._loop is not None
+            self._pending = self._loop.create_future()
+            await self._pending
+        data = bytes(self._rx)
+        self._rx.clear()
+        return data
+
+
+class SerialLink(_ReceivingLink):
+    """A serial port through pyserial, read and written by the event loop without threads."""
+
+    def __init__(self, url: str, baudrate: int = 115200) -> None:
+        super().__init__()
+        self.url = url
+        self.name = url
+        self.baudrate = baudrate
+        self._port: serial.SerialBase | None = None
+        self._fd: int | None = None
+        self._tx = bytearray()
+        self._writer_armed = False
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None and self._error is None
+
+    def _closed(self) -> bool:
+        return self._port is None
+
+    async def open(self) -> None:
+        self._reset()
+        try:
+            port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0,
+                                         exclusive=None)
+        except (FileNotFoundError, serial.SerialException, OSError, ValueError) as err:
+            if _is_missing(err):
+                raise DeviceNotFound(f"no serial device at {self.url}") from err
+            raise DeviceIOError(f"cannot open {self.url}: {err}") from err
+        self._port = port
+        try:
+            fd = port.fileno()
+        except (AttributeError, NotImplementedError, OSError):
+            fd = None
+        if fd is None:
+            port.close()
+            self._port = None
+            raise DeviceIOError(f"{self.url}: only ports with a file descriptor are supported")
+        self._fd = fd
+        with contextlib.suppress(serial.SerialException, OSError):
+            port.reset_input_buffer()
+        os.set_blocking(fd, False)
+        assert self._loop is not None
+        self._loop.add_reader(fd, self._on_readable)
+
+    def _on_readable(self) -> None:
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, 65536)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            self._fail(DeviceIOError(f"{self.url}: {os.strerror(err.errno or 0) or err}"))
+            return
+        if not data:
+            self._fail(DeviceIOError(f"{self.url}: device closed"))
+            return
+        self._received(data)
 
     def _on_writable(self) -> None:
         self._flush()
@@ -187,13 +248,6 @@ class SerialLink(Link):
             self._loop.remove_writer(self._fd)
             self._writer_armed = False
 
-    def _fail(self, err: DeviceIOError) -> None:
-        if self._error is None:
-            self._error = err
-        self._detach()
-        if self._pending is not None and not self._pending.done():
-            self._pending.set_result(None)
-
     def _detach(self) -> None:
         if self._fd is not None and self._loop is not None:
             with contextlib.suppress(Exception):
@@ -201,22 +255,6 @@ class SerialLink(Link):
                 self._loop.remove_writer(self._fd)
         self._fd = None
         self._writer_armed = False
-
-    async def read(self) -> bytes:
-        while not self._rx:
-            if self._receiver_error is not None:
-                err, self._receiver_error = self._receiver_error, None
-                raise err
-            if self._error is not None:
-                raise self._error
-            if self._port is None:
-                raise DeviceIOError(f"{self.url}: not open")
-            assert self._loop is not None
-            self._pending = self._loop.create_future()
-            await self._pending
-        data = bytes(self._rx)
-        self._rx.clear()
-        return data
 
     def write(self, data: bytes) -> None:
         if self._error is not None:
@@ -248,58 +286,83 @@ class SerialLink(Link):
         if port is not None:
             with contextlib.suppress(Exception):
                 port.close()
-        if self._pending is not None and not self._pending.done():
-            self._pending.set_result(None)
+        self._wake()
         self._tx.clear()
 
 
-class TcpLink(Link):
-    """A TCP connection (Hokuyo UST/UTM over Ethernet)."""
+class _TcpProtocol(asyncio.Protocol):
+    """Passes what the transport reports to its :class:`TcpLink`."""
+
+    def __init__(self, link: TcpLink) -> None:
+        self.link = link
+
+    def data_received(self, data: bytes) -> None:
+        self.link._received(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.link._lost(self, exc)
+
+
+class TcpLink(_ReceivingLink):
+    """A TCP connection (Hokuyo UST/UTM over Ethernet), on an asyncio transport."""
 
     def __init__(self, host: str, port: int, connect_timeout_s: float = 2.0) -> None:
+        super().__init__()
         self.host = host
         self.port = port
         self.name = f"{host}:{port}"
         self.connect_timeout_s = connect_timeout_s
-        self._reader: asyncio.StreamReader | None = None
-        self._writer: asyncio.StreamWriter | None = None
+        self._transport: asyncio.Transport | None = None
+        self._protocol: _TcpProtocol | None = None
 
     @property
     def is_open(self) -> bool:
-        return self._writer is not None and not self._writer.is_closing()
+        return (self._transport is not None and not self._transport.is_closing()
+                and self._error is None)
+
+    def _closed(self) -> bool:
+        return self._transport is None
 
     async def open(self) -> None:
+        self._reset()
+        assert self._loop is not None
+        protocol = _TcpProtocol(self)
         try:
-            self._reader, self._writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), self.connect_timeout_s)
+            transport, _ = await asyncio.wait_for(
+                self._loop.create_connection(lambda: protocol, self.host, self.port),
+                self.connect_timeout_s)
         except asyncio.TimeoutError as err:
             raise DeviceTimeout(f"no answer from {self.name}") from err
         except ConnectionRefusedError as err:
             raise DeviceNotFound(f"nothing listens at {self.name}") from err
         except OSError as err:
             raise DeviceIOError(f"cannot connect to {self.name}: {err}") from err
+        self._transport = transport  # type: ignore[assignment]
+        self._protocol = protocol
 
-    async def read(self) -> bytes:
-        if self._reader is None:
-            raise DeviceIOError(f"{self.name}: not open")
-        try:
-            data = await self._reader.read(65536)
-        except OSError as err:
-            raise DeviceIOError(f"{self.name}: {err}") from err
-        if not data:
-            raise DeviceIOError(f"{self.name}: connection closed by the device")
-        return data
+    def _lost(self, protocol: _TcpProtocol, exc: Exception | None) -> None:
+        if protocol is not self._protocol:
+            return  # a connection this link already closed
+        reason = f"{exc}" if exc is not None else "connection closed by the device"
+        self._fail(DeviceIOError(f"{self.name}: {reason}"))
+
+    def _detach(self) -> None:
+        transport, self._transport = self._transport, None
+        self._protocol = None
+        if transport is not None:
+            transport.close()
 
     def write(self, data: bytes) -> None:
-        if self._writer is None or self._writer.is_closing():
+        if self._error is not None:
+            raise self._error
+        if self._transport is None or self._transport.is_closing():
             raise DeviceIOError(f"{self.name}: not connected")
-        self._writer.write(data)
+        self._transport.write(data)
 
     def close(self) -> None:
-        writer, self._writer = self._writer, None
-        self._reader = None
-        if writer is not None:
-            writer.close()
+        self._detach()
+        self._receiver = None
+        self._wake()
 
 
 def parse_host_port(spec: str, default_port: int | None = None) -> tuple[str, int]:

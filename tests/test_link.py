@@ -77,6 +77,59 @@ def test_tcp_link_echo_and_drop():
     asyncio.run(scenario())
 
 
+def test_tcp_link_receiver_gets_bytes_and_a_drop_or_its_error_fails_the_link():
+    async def scenario() -> None:
+        conns: list[asyncio.StreamWriter] = []
+
+        async def handle(reader, writer):
+            conns.append(writer)
+            await reader.read(1)
+
+        server = await asyncio.start_server(handle, "127.0.0.1", 0)
+        host, port = server.sockets[0].getsockname()[:2]
+        chunks: list[bytes] = []
+
+        def receiver(data: bytes) -> None:
+            if b"boom" in data:
+                raise ValueError("receiver broke")
+            chunks.append(data)
+
+        async def until(condition) -> None:
+            for _ in range(500):
+                if condition():
+                    return
+                await asyncio.sleep(0.01)
+            raise AssertionError("condition never held")
+
+        link = TcpLink(host, port)
+        await link.open()
+        await until(lambda: conns)
+        conns[0].write(b"early")
+        assert await asyncio.wait_for(link.read(), 5) == b"early"
+        link.set_receiver(receiver)
+        conns[0].write(b"scan frame")
+        await until(lambda: b"".join(chunks) == b"scan frame")
+        conns[0].write(b"boom")
+        with pytest.raises(ValueError, match="receiver broke"):
+            await asyncio.wait_for(link.read(), 5)
+        assert not link.is_open
+        link.close()
+
+        again = TcpLink(host, port)
+        await again.open()
+        await until(lambda: len(conns) == 2)
+        again.set_receiver(receiver)
+        conns[1].close()
+        with pytest.raises(DeviceIOError, match="closed by the device"):
+            await asyncio.wait_for(again.read(), 5)
+        again.close()
+        again.close()
+        server.close()
+        await server.wait_closed()
+
+    asyncio.run(scenario())
+
+
 def test_parse_host_port():
     assert parse_host_port("192.168.0.10:10940") == ("192.168.0.10", 10940)
     assert parse_host_port("tcp://localhost:1") == ("localhost", 1)
