@@ -225,59 +225,71 @@ def join_data_lines(region: bytes) -> np.ndarray:
 
 _STRIDE = LINE_CHARS + 2
 
+_LINE_CHECK = np.ones(_STRIDE)
+_LINE_CHECK[LINE_CHARS:] = (-1.0, 0.0)
+"""Weights giving a data line's character sum minus its checksum character (the LF weighs 0)."""
+
+_ROUND = 1.5 * 2.0**52
+"""``(x + _ROUND) - _ROUND`` is ``x`` rounded to a whole number, for ``|x| < 2**51``."""
+
 
 @functools.lru_cache(maxsize=16)
-def _data_layout(region_len: int, width: int) -> tuple[bytes, np.ndarray, np.ndarray,
-                                                       np.ndarray] | None:
-    """Index arrays for data lines filling ``region_len`` bytes (all 64 characters but the last).
+def _data_layout(region_len: int, width: int) -> tuple[int, bytes, np.ndarray] | None:
+    """The layout of data lines filling ``region_len`` bytes, all of 64 characters but the last.
 
-    (the LF bytes expected at every 66th position; each line's first character and checksum
-    positions, interleaved, as ``np.add.reduceat`` bounds whose even segments are the lines'
-    characters; the checksum positions; the characters of each value as an (n, width) array).
-    None when no such lines fill the region or their characters do not split into values.
+    (the lines before the last, the LF bytes expected after them, the characters of each value as
+    an (n, width) array of positions). None when no such lines fill the region or their characters
+    do not split into values.
     """
-    lines = -(-(region_len + 1) // _STRIDE)
-    last = region_len - (lines - 1) * _STRIDE  # the last line's characters and checksum
-    if lines < 1 or last < 2:
+    full = (region_len - 2) // _STRIDE
+    last = region_len - full * _STRIDE  # the last line's characters and checksum
+    if full < 0 or not 2 <= last <= LINE_CHARS + 1:
         return None
-    starts = np.arange(lines, dtype=np.intp) * _STRIDE
-    checks = starts + LINE_CHARS
-    checks[-1] = region_len - 1
     pos = np.arange(region_len, dtype=np.intp)
     data = np.flatnonzero((pos % _STRIDE < LINE_CHARS) & (pos < region_len - 1))
     if data.size % width:
         return None
-    arrays = (np.column_stack([starts, checks]).reshape(-1), checks, data.reshape(-1, width))
-    for a in arrays:
-        a.flags.writeable = False
-    return (b"\n" * (lines - 1), *arrays)
+    value_pos = data.reshape(-1, width)
+    value_pos.flags.writeable = False
+    return full, b"\n" * full, value_pos
 
 
-_WEIGHTS = {w: np.array([1 << (6 * (w - 1 - i)) for i in range(w)], dtype=np.float32) for w in (2, 3, 4)}
+_WEIGHTS = {w: np.array([float(1 << (6 * (w - 1 - i))) for i in range(w)]) for w in (2, 3, 4)}
+_ZERO = {w: 0x30 * float(weights.sum()) for w, weights in _WEIGHTS.items()}
 
 
 def decode_data_lines(region: bytes, width: int) -> np.ndarray | None:
-    """The values (``uint32``) of data lines of 64 characters, or None when ``region`` is anything else.
+    """The values (``float64``, whole numbers) of data lines of 64 characters, or None when
+    ``region`` is anything else.
 
-    The same result as ``decode_values(join_data_lines(region), width)`` when that succeeds, in
-    a few whole-array operations; None where that would raise (a bad checksum, a short line, a
-    character outside 0x30..0x6F), so the caller can take the slow path for its exact error.
+    The same values as ``decode_values(join_data_lines(region), width)`` when that succeeds; None
+    where that would raise (a bad checksum, a short line, a character outside 0x30..0x6F), so the
+    caller can take the slow path for its exact error.
+
+    This runs between a scan's last byte and the motor command. After an idle gap the first call
+    of each numpy function costs some 20 us on a shared machine (its code has left the CPU caches),
+    so it uses few functions, most of them the ones the safety check that follows uses too: float
+    arithmetic and comparisons, ``count_nonzero``, one gather and one matrix product.
     """
     layout = _data_layout(len(region), width) if width in _WEIGHTS else None
     if layout is None:
         return None
-    lfs, bounds, check_pos, value_pos = layout
-    if region[LINE_CHARS + 1::_STRIDE] != lfs or region.count(b"\n") != len(lfs):
+    full, lfs, value_pos = layout
+    if region[LINE_CHARS + 1::_STRIDE] != lfs or region.count(b"\n") != full:
         return None
-    a = np.frombuffer(region, dtype=np.uint8)
-    line_sums = np.add.reduceat(a, bounds, dtype=np.uint32)[::2]
-    if not bool((((line_sums & 0x3F) + 0x30) == a[check_pos]).all()):
+    if checksum(region[full * _STRIDE:-1]) != region[-1]:
         return None
-    chars = a[value_pos] - np.uint8(0x30)  # wraps below 0x30, so one bound checks both
-    if chars.size and int(chars.max()) > 0x3F:
+    f = np.frombuffer(region, dtype=np.uint8).astype(np.float64)
+    # every byte but the LFs (checked above) is a character of 0x30..0x6F
+    if np.count_nonzero((f < 0x30) | (f > 0x6F)) != full:
         return None
-    # float32 holds every value of up to 24 bits exactly
-    return (chars.astype(np.float32) @ _WEIGHTS[width]).astype(np.uint32)
+    if full:
+        # a line's checksum c = (sum & 0x3F) + 0x30 holds when sum - c = 16 modulo 64
+        k = (f[:full * _STRIDE].reshape(full, _STRIDE) @ _LINE_CHECK - 16.0) * (1.0 / 64.0)
+        fraction = (k + _ROUND) - _ROUND - k
+        if np.count_nonzero((fraction < 0.0) | (fraction > 0.0)):
+            return None
+    return f[value_pos] @ _WEIGHTS[width] - _ZERO[width]
 
 
 class ChecksumError(ValueError):
@@ -534,9 +546,9 @@ class ScanReply(Reply):
     """One scan: GD/GE/GS reply or an MD/ME/MS frame.
 
     ``request`` is the echoed command (for streamed frames ``count`` holds the scans still to
-    come); ``distances`` in mm (``uint32``; values below DMIN are error codes); ``intensities``
-    for GE/ME, else None; ``timestamp_ms`` the device clock at step 0; ``nbytes`` the reply's
-    length on the wire (for transfer-time corrections).
+    come); ``distances`` in mm (``float64`` holding whole numbers; values below DMIN are error
+    codes); ``intensities`` for GE/ME (``float64``), else None; ``timestamp_ms`` the device clock
+    at step 0; ``nbytes`` the reply's length on the wire (for transfer-time corrections).
     """
 
     request: ScanCommand
@@ -734,7 +746,7 @@ class ResponseDecoder:
               nbytes: int) -> ScanReply:
         values = decode_data_lines(region, req.width)
         if values is None:
-            values = decode_values(join_data_lines(region), req.width)
+            values = decode_values(join_data_lines(region), req.width).astype(np.float64)
         n = req.values
         if req.intensities:
             if values.size != 2 * n:

@@ -102,44 +102,24 @@ def scan_geometry(dev: SensorParams, req: ScanCommand) -> ScanGeometry:
 _NO_INTENSITIES = np.zeros(0, dtype=np.float32)
 _NO_INTENSITIES.flags.writeable = False
 
-_LUT_SIZE = 1 << 18
-"""Readings of up to 3 SCIP characters (18 bits) go through a lookup table."""
 
-
-@functools.lru_cache(maxsize=8)
 @functools.lru_cache(maxsize=8)
 def _cached_geometry(dev: SensorParams, req: ScanCommand) -> ScanGeometry:
     return scan_geometry(dev, req)
 
 
-@functools.lru_cache(maxsize=8)
-def _range_table(dev: SensorParams) -> np.ndarray | None:
-    """Metres (float32, with the inf/nan policy) for every 18-bit reading; None if DMAX does not fit."""
-    if not 0 <= dev.dmax < _LUT_SIZE - 1:
-        return None
-    table = _ranges_m(dev, np.arange(_LUT_SIZE, dtype=np.int64))
-    table.flags.writeable = False
-    return table
-
-
 def ranges_m(dev: SensorParams, distances: np.ndarray) -> np.ndarray:
-    """Device readings (mm or error codes) as metres with the inf/nan policy (float32)."""
-    d = np.asarray(distances)
-    table = _range_table(dev) if d.dtype.kind in "iu" else None
-    if table is not None:
-        # one gather: below 0 clips onto code 0 (inf), beyond the table onto its last entry (past
-        # DMAX: inf), exactly as the arithmetic below would give
-        return np.take(table, d, mode="clip")
-    return _ranges_m(dev, d)
+    """Device readings (mm or error codes) as metres with the inf/nan policy (float32).
 
-
-def _ranges_m(dev: SensorParams, d: np.ndarray) -> np.ndarray:
-    r = (d / 1000.0).astype(np.float32)
-    codes = d < dev.dmin
-    if codes.any():
-        r[codes] = np.where(d[codes] <= 1, np.inf, np.nan)
+    ``d * 0.001`` rounds to the same float32 as ``d / 1000`` for every whole ``d``, and uses an
+    operation the scan path needs anyway (see :func:`lidar_drivers.scip.decode_data_lines`).
+    """
+    d = np.asarray(distances, dtype=np.float64)
+    r = d * 0.001
     r[d > dev.dmax] = np.inf
-    return r
+    r[d < dev.dmin] = np.nan
+    r[d < min(dev.dmin, 2)] = np.inf  # codes 0 and 1: no object (URG-04LX: possibly beyond range)
+    return r.astype(np.float32)
 
 
 class HokuyoDriver(LidarDriver):
