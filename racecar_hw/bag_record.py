@@ -3,7 +3,11 @@
 :class:`Recorder` is a bus listener. Its callback runs in the bus's event-loop thread and only
 appends ``(topic, message, receive time)`` to a bounded queue; a writer thread serializes and writes.
 The writer is not woken per message: it drains the queue every :data:`BATCH_S`, or at once when
-:data:`WAKE_AT` messages (or a quarter of ``queue_size``) wait. Serialization uses the direct
+:data:`WAKE_AT` messages (or a quarter of ``queue_size``) wait. A control loop that has idle
+moments says so with :meth:`Recorder.control_idle`: the daemon calls it when a scan's motor command
+is out, and a drain that is due then runs in the gap before the next scan instead of competing
+with the scan path for the interpreter (the writer then waits at most ``2 * BATCH_S`` on its own).
+Serialization uses the direct
 serializers of :mod:`racecar_hw.bag_serde`, MCAP writes the lean path of :mod:`racecar_hw.bag_mcap`;
 both give the bytes rosbags gives. When the queue is full the message is dropped and counted
 (``stats.dropped``, and a warning at most once per flush interval): never silently, never by
@@ -34,6 +38,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import os
 import re
 import threading
@@ -352,6 +357,7 @@ class Recorder:
         self._wake = threading.Event()
         # The writer drains every BATCH_S; a queue this long wakes it at once (well before drops).
         self._wake_at = max(1, min(WAKE_AT, params.queue_size // 4))
+        self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the writer
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._sub: Subscription | None = None
@@ -450,6 +456,11 @@ class Recorder:
         if len(queue) >= self._wake_at:
             self._wake.set()
 
+    def control_idle(self) -> None:
+        """The control path is idle until its next event: wake the writer if a drain is due."""
+        if self._queue and time.monotonic() >= self._drain_due and not self._wake.is_set():
+            self._wake.set()
+
     def _is_wanted(self, topic: str) -> bool:
         p = self.params
         wanted = ((not p.topics or any(fnmatchcase(topic, pat) for pat in p.topics))
@@ -471,7 +482,9 @@ class Recorder:
         interval = self.params.flush_interval_s
         next_flush = time.monotonic() + interval
         while True:
-            self._wake.wait(timeout=min(BATCH_S, max(0.0, next_flush - time.monotonic())))
+            now = time.monotonic()
+            self._drain_due = now + BATCH_S
+            self._wake.wait(timeout=min(2 * BATCH_S, max(0.0, next_flush - now)))
             self._wake.clear()
             stopping = self._stopping
             try:

@@ -166,6 +166,8 @@ class Daemon:
             written = self.vesc.last_motor_write_ns
             if arrived and written >= arrived:  # this scan's command reached the OS
                 self.stats.scan_to_command_ns.append(written - arrived)
+        if self.recorder is not None:
+            self.recorder.control_idle()
 
     def _control_alive(self, now_ns: int) -> bool:
         """Whether the control loop ticked within the last two periods.

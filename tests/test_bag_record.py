@@ -3,6 +3,7 @@ rosbag, the mcap packages), drops, splitting, and recovery after SIGKILL."""
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -293,6 +294,23 @@ def test_writer_drains_the_queue_on_its_own(tmp_path: Path) -> None:
     bus.publish(CMD, cmd(1))  # one message: below the wake-up threshold, far from a flush
     wait_for(lambda: rec.stats.written == 1)
     assert rec.stats.queued == 0
+    assert rec.stop().written == 1
+
+
+def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monkeypatch) -> None:
+    import racecar_hw.bag_record as bag_record
+
+    monkeypatch.setattr(bag_record, "BATCH_S", 30.0)  # the writer's own wake-up is a minute away
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="idle", flush_interval_s=3600.0))
+    rec.start()
+    wait_for(lambda: rec._drain_due < math.inf)  # noqa: SLF001 - the writer set its first due time
+    bus.publish(CMD, cmd(1))
+    rec.control_idle()  # not due yet: the message waits for its batch
+    assert rec.stats.written == 0 and rec.stats.queued == 1
+    rec._drain_due = 0.0  # noqa: SLF001 - as if BATCH_S had passed
+    rec.control_idle()
+    wait_for(lambda: rec.stats.written == 1)
     assert rec.stop().written == 1
 
 
