@@ -15,6 +15,10 @@ Latency, two ways:
   (the fakes share one interpreter here), and a 50 Hz control tick landing in the window by chance
   can make a sample shorter than the scan path alone.
 
+The last row is the share of the machine's busy CPU time that the hypervisor gave to other
+tenants during the run (``steal`` in /proc/stat): on a shared virtual machine it is what makes the
+p99 vary from run to run.
+
 Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder]``; ``run()`` returns the rows for
 run_all.py. ``BENCH_VERBOSE=1`` also prints round-trip percentiles, the CPU share of each daemon
 thread and of the benchmark's own fakes; ``BENCH_PROFILE=PATH`` runs the daemon under cProfile.
@@ -62,6 +66,14 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
         cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
         out[f"{name}[{task.name}]"] = cpu
     return out
+
+
+def _host_ticks() -> tuple[int, int]:
+    """(busy, stolen) clock ticks of all CPUs so far, from /proc/stat (steal: time the hypervisor
+    gave this virtual machine's CPUs to others while they had work)."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle, iowait
+    return sum(fields[:8]) - idle, fields[7]
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -114,9 +126,11 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
             vesc.clear_commands()
             threads0 = _thread_cpu_s(proc.pid)
             fakes0 = time.process_time()
+            host0 = _host_ticks()
             cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             time.sleep(seconds)
             cpu1, t1 = _cpu_s(proc.pid), time.monotonic()
+            host1 = _host_ticks()
             fakes1 = time.process_time()
             threads1 = _thread_cpu_s(proc.pid)
             rss = _peak_rss_mb(proc.pid)
@@ -158,6 +172,8 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
          "unit": "ms", "target": None},
         {"name": "round trip fake lidar to fake VESC p99", "value": float(np.percentile(latency_ms, 99)),
          "unit": "ms", "target": None},
+        {"name": "host: CPU time stolen by the hypervisor", "unit": "% of busy",
+         "value": 100.0 * (host1[1] - host0[1]) / max(1, host1[0] - host0[0]), "target": None},
     ]
 
 
