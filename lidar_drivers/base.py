@@ -15,7 +15,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -23,7 +25,8 @@ import numpy as np
 
 from lidar_drivers.params import LidarParams
 from racecar_hw.bus import Bus
-from racecar_hw.errors import DeviceError
+from racecar_hw.errors import DeviceError, DeviceIOError, DeviceTimeout
+from racecar_hw.link import Link
 from racecar_hw.messages import LaserScan
 
 log = logging.getLogger(__name__)
@@ -161,6 +164,8 @@ class LidarDriver(ABC):
         self.rx_ns = 0
         #: monotonic ns when the read that completed the latest published scan returned
         self.frame_arrival_ns = 0
+        self._last_scan_s = 0.0  # time.monotonic() of the latest published scan
+        self._ended: asyncio.Future[None] | None = None
 
     async def run(self) -> None:
         """Stream scans until cancelled, reconnecting with backoff after any device error."""
@@ -195,4 +200,62 @@ class LidarDriver(ABC):
         """Publish one finished scan and count it."""
         self.stats.scans += 1
         self.frame_arrival_ns = self.rx_ns
+        self._last_scan_s = time.monotonic()
         self.bus.publish(self.params.topic, scan)
+
+    async def _stream_from(self, link: Link, on_bytes: Callable[[bytes], None],
+                           timeout_s: Callable[[], float],
+                           backlog: Callable[[], None] | None = None) -> None:
+        """Hand every chunk ``link`` reads to ``on_bytes`` until the stream ends; always raises.
+
+        ``backlog`` first handles what was read before (frames that came with the start reply).
+        ``on_bytes`` runs in the link's reader callback, so a scan reaches the safety controller
+        and the VESC without waking a task. The stream ends with the link's DeviceError, with the
+        error given to :meth:`_end_stream`, or with DeviceTimeout when no scan is published for
+        ``timeout_s()`` seconds (checked by a loop timer, rearmed only when it fires). Any other
+        exception from the handlers (a fault in handling a frame) is logged and becomes a
+        DeviceError, so the driver reconnects rather than stops.
+        """
+        loop = asyncio.get_running_loop()
+        ended: asyncio.Future[None] = loop.create_future()
+        self._ended = ended
+        self._last_scan_s = time.monotonic()
+
+        def check_overdue() -> None:
+            nonlocal timer
+            if ended.done():
+                return
+            left = self._last_scan_s + timeout_s() - time.monotonic()
+            if left <= 0:
+                ended.set_exception(DeviceTimeout(f"{link.name}: no scan for {timeout_s():.2f} s"))
+            else:
+                timer = loop.call_later(left, check_overdue)
+
+        timer = loop.call_later(timeout_s(), check_overdue)
+        failed: asyncio.Future[bytes] | None = None
+        try:
+            if backlog is not None:
+                backlog()
+            link.set_receiver(on_bytes)
+            failed = asyncio.ensure_future(link.read())  # with a receiver set: ends when the link fails
+            await asyncio.wait([ended, failed], return_when=asyncio.FIRST_COMPLETED)
+            if ended.done():
+                ended.result()
+            failed.result()  # the link's error, or what on_bytes raised
+            raise DeviceIOError(f"{link.name}: the link ended")
+        except DeviceError:
+            raise
+        except Exception as err:
+            log.error("lidar %s: handling a frame failed", self.params.model, exc_info=err)
+            raise DeviceError(f"handling a frame failed: {err!r}") from err
+        finally:
+            timer.cancel()
+            link.set_receiver(None)
+            if failed is not None:
+                failed.cancel()
+            self._ended = None
+
+    def _end_stream(self, err: DeviceError) -> None:
+        """End the running :meth:`_stream_from` with ``err`` (from ``on_bytes``: a device fault)."""
+        if self._ended is not None and not self._ended.done():
+            self._ended.set_exception(err)

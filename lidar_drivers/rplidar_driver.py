@@ -184,28 +184,31 @@ class RplidarDriver(LidarDriver):
             crop_min=self.params.angle_min, crop_max=self.params.angle_max)
         frame_s = (CAPSULE_LEN if express else NODE_LEN) * BITS_PER_BYTE / self.baudrate
         byte_s = BITS_PER_BYTE / self.baudrate
-        last_scan = monotonic_ns()
-        timeout = STARTUP_TIMEOUT_S
-        events = self._events
-        while events:  # samples that came with the scan descriptor
-            ev = events.popleft()
-            if isinstance(ev, Measurements):
-                self._add(assembler, ev, wall_ns(), frame_s, byte_s, period_s)
-        while True:
-            left = timeout - (monotonic_ns() - last_scan) * 1e-9
-            if left <= 0:
-                raise DeviceTimeout(f"no RPLIDAR scan for {timeout:.2f} s")
-            chunk = await self._read(left)
+        timeout = [STARTUP_TIMEOUT_S]  # until the first scan, then stale_timeout_s
+
+        def add(m: Measurements, arrival_ns: int) -> None:
+            if self._add(assembler, m, arrival_ns, frame_s, byte_s, period_s):
+                timeout[0] = self.params.stale_timeout_s
+
+        def backlog() -> None:  # samples that came with the scan descriptor
+            events = self._events
+            while events:
+                ev = events.popleft()
+                if isinstance(ev, Measurements):
+                    add(ev, wall_ns())
+
+        def on_bytes(chunk: bytes) -> None:
             self.rx_ns = monotonic_ns()
             arrival = wall_ns()
             self._client.receive_data(chunk)
             self.stats.bytes_in += len(chunk)
             while (ev := self._client.next_event()) is not None:
-                if isinstance(ev, Measurements) and self._add(assembler, ev, arrival, frame_s,
-                                                              byte_s, period_s):
-                    last_scan = monotonic_ns()
-                    timeout = self.params.stale_timeout_s
+                if isinstance(ev, Measurements):
+                    add(ev, arrival)
             self._account()
+
+        assert self._link is not None
+        await self._stream_from(self._link, on_bytes, lambda: timeout[0], backlog)
 
     def _add(self, assembler: ScanAssembler, m: Measurements, arrival_ns: int, frame_s: float,
              byte_s: float, period_s: float) -> bool:

@@ -55,13 +55,7 @@ from lidar_drivers.scip import (
 )
 from racecar_hw.bus import Bus
 from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.errors import (
-    ConfigError,
-    DeviceError,
-    DeviceIOError,
-    DeviceTimeout,
-    RemoteProtocolError,
-)
+from racecar_hw.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
 from racecar_hw.link import Link, SerialLink, TcpLink, parse_host_port
 from racecar_hw.messages import Header, LaserScan, Time
 
@@ -274,71 +268,37 @@ class HokuyoDriver(LidarDriver):
         raise DeviceError(f"MD refused: status {ack.status} ({ack.meaning})")
 
     async def _stream(self, dev: SensorParams, req: ScanCommand) -> None:
-        """Publish frames until the link fails, a scan is overdue or the device reports a fault.
-
-        Frames are decoded and published in the link's reader callback, so a scan reaches the
-        safety controller and the VESC without waking a task; a loop timer checks for overdue
-        scans, rearmed only when it fires.
-        """
-        link = self._link
-        assert link is not None
-        loop = asyncio.get_running_loop()
+        """Publish frames from the link's reader callback until the stream ends (always raises)."""
+        assert self._link is not None
         period = (req.interval + 1) * dev.scan_period_s
         stale = max(self.params.stale_timeout_s, 3 * period)
         echo_body = req.echo(0)[:-2]
-        ended: asyncio.Future[None] = loop.create_future()
-        last_scan = loop.time() + dev.scan_period_s  # the first frame is a scan period away
 
         def on_event(event: Event) -> None:
-            nonlocal last_scan
             self._count(event)
             if not isinstance(event, Reply) or not event.echo.startswith(echo_body):
                 return
             if isinstance(event, ScanReply):
                 if event.status == "99":
                     self.publish(self.to_laser_scan(event, dev))
-                    last_scan = loop.time()
                 return
             if event.ok:
                 return
             self._note_status(event)
-            if (is_hardware_fault(event.status) or event.status == "10") and not ended.done():
-                ended.set_exception(DeviceError(f"{event.command} status {event.status}: "
-                                                f"{event.meaning}"))
+            if is_hardware_fault(event.status) or event.status == "10":
+                self._end_stream(DeviceError(f"{event.command} status {event.status}: "
+                                             f"{event.meaning}"))
 
         def on_bytes(data: bytes) -> None:
             self._receive(data)
             while (event := self._decoder.next_event()) is not None:
                 on_event(event)
 
-        def check_overdue() -> None:
-            nonlocal timer
-            if ended.done():
-                return
-            if loop.time() >= last_scan + stale:
-                ended.set_exception(DeviceTimeout(f"{link.name}: no scan for {stale:.2f} s"))
-            else:
-                timer = loop.call_at(last_scan + stale, check_overdue)
+        def backlog() -> None:  # frames read with the acknowledgement
+            while (event := self._decoder.next_event()) is not None:
+                on_event(event)
 
-        while (event := self._decoder.next_event()) is not None:  # frames read with the ack
-            on_event(event)
-        timer = loop.call_at(last_scan + stale, check_overdue)
-        link.set_receiver(on_bytes)
-        failed = asyncio.ensure_future(link.read())  # with a receiver set, it ends when the link fails
-        try:
-            await asyncio.wait([ended, failed], return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            timer.cancel()
-            link.set_receiver(None)
-            failed.cancel()
-        if ended.done():
-            ended.result()
-        err = failed.exception() if not failed.cancelled() else None
-        if err is None or isinstance(err, DeviceError):
-            raise err or DeviceIOError(f"{link.name}: the link ended")
-        # not the device: a fault in handling a frame; reconnect rather than stop the lidar
-        log.error("lidar %s: handling a frame failed", self.params.model, exc_info=err)
-        raise DeviceError(f"handling a frame failed: {err!r}") from err
+        await self._stream_from(self._link, on_bytes, lambda: stale, backlog)
 
     def to_laser_scan(self, frame: ScanReply, dev: SensorParams) -> LaserScan:
         """One frame as a LaserScan stamped with its first beam's estimated time."""
