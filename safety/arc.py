@@ -71,8 +71,10 @@ def path_lengths(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: S
     ``inf`` for points the footprint never sweeps, 0 for points already inside it. ``reverse``
     means driving backwards at the same steering angle. ``x`` and ``y`` must be finite.
     """
-    scale, turns = _sweep(x, y, steering_rad, footprint, reverse)
-    return turns * scale
+    scale, band, values = _sweep(x, y, steering_rad, footprint, reverse)
+    out = np.full(np.shape(x), np.inf)
+    out[band] = values * scale
+    return out
 
 
 def free_distance(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFootprint,
@@ -83,20 +85,24 @@ def free_distance(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: 
     """
     if len(x) == 0:
         return PathHit(max_path_m, -1)
-    lengths = path_lengths(x, y, steering_rad, footprint, reverse)
-    i = int(np.argmin(lengths))
-    nearest = float(lengths[i])
+    scale, band, values = _sweep(x, y, steering_rad, footprint, reverse)
+    if band.size == 0:
+        return PathHit(max_path_m, -1)
+    i = int(np.argmin(values))
+    nearest = float(values[i] * scale)
     if nearest >= max_path_m:
         return PathHit(max_path_m, -1)
-    return PathHit(nearest, i)
+    return PathHit(nearest, int(band[i]))
 
 
 def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFootprint,
-           reverse: bool) -> tuple[float, np.ndarray]:
-    """(scale, per-point values): path length = scale * value; inf where never hit.
+           reverse: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """(scale, band, values): the indices of the points the footprint may sweep, and for each of
+    them path length / scale (inf where never hit); every other point is never hit.
 
     Straight: values are path lengths, scale 1. On an arc: values are rotations about the ICR
-    (radians), scale the turn radius.
+    (radians), scale the turn radius. Runs on every scan, so it sticks to a few numpy operations,
+    each used many times (see :func:`lidar_drivers.scip.decode_data_lines` for why).
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
@@ -107,12 +113,11 @@ def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFo
     radius = footprint.turn_radius(steering_rad)
     hw = footprint.half_width_m
     if math.isinf(radius):
-        on_lane = (np.abs(y) <= hw) & (x >= -rear)
-        return 1.0, np.where(on_lane, np.maximum(x - front, 0.0), np.inf)
+        band = np.flatnonzero((np.abs(y) <= hw) & (x >= -rear))
+        return 1.0, band, np.maximum(x[band] - front, 0.0)
     if radius < 0.0:
         y = -y
         radius = -radius
-    out = np.full(x.shape, np.inf)
     # u: the point's coordinate along the ICR -> base_link direction; rho: distance from the ICR
     u = radius - y
     rho2 = x * x + u * u
@@ -121,7 +126,7 @@ def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFo
     rear_reach2 = rear * rear + outer * outer
     band = np.flatnonzero((rho2 >= inner * inner) & (rho2 <= max(front_reach2, rear_reach2)))
     if band.size == 0:
-        return radius, out
+        return radius, band, np.zeros(0)
     xb, ub, r2 = x[band], u[band], rho2[band]
     # Leading end of the front part of the body at radius rho: the point with the smallest u
     # whose x stays within the front face, u = clip(sqrt(rho^2 - front^2), inner, outer).
@@ -134,24 +139,23 @@ def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFo
     tail = np.flatnonzero((r2 > outer * outer) & (r2 <= rear_reach2))
     if tail.size:
         x_tail = -np.sqrt(r2[tail] - outer * outer)
-        u_tail = np.full(tail.size, outer)
-        turn[tail] = np.minimum(turn[tail], _turn(x_tail, u_tail, xb[tail], ub[tail]))
+        turn[tail] = np.minimum(turn[tail], _turn(x_tail, outer, xb[tail], ub[tail]))
     inside = (xb >= -rear) & (xb <= front) & (np.abs(y[band]) <= hw)
-    # A point on the leading edge can round to a turn just short of a full circle: it is a hit.
+    # A point on the leading edge can round to a turn of about a full circle: it is a hit.
     turn[inside | (turn > _TWO_PI - 1e-9)] = 0.0
-    out[band] = turn
-    return radius, out
+    return radius, band, turn
 
 
-def _turn(x_from: np.ndarray, u_from: np.ndarray, x_to: np.ndarray, u_to: np.ndarray) -> np.ndarray:
-    """Counter-clockwise rotation about the ICR, radians in [0, 2 pi), taking one point onto another.
+def _turn(x_from: np.ndarray, u_from: np.ndarray | float, x_to: np.ndarray,
+          u_to: np.ndarray) -> np.ndarray:
+    """Counter-clockwise rotation about the ICR, radians in [0, 2 pi], taking one point onto another.
 
-    Points are (x, u) with angle ``atan2(x, u)``; both lie on the same circle about the ICR.
+    Points are (x, u) with angle ``atan2(x, u)``; both lie on the same circle about the ICR. The
+    angle of the negated (cross, dot) vector plus pi is the rotation already in [0, 2 pi].
     """
-    cross = u_from * x_to - x_from * u_to
-    dot = u_from * u_to + x_from * x_to
-    turn = np.arctan2(cross, dot)
-    return turn + (turn < 0.0) * _TWO_PI
+    minus_cross = x_from * u_to - u_from * x_to
+    minus_dot = 0.0 - (u_from * u_to + x_from * x_to)
+    return np.arctan2(minus_cross, minus_dot) + math.pi
 
 
 def stopping_speed(free_m: float, latency_s: float, max_decel_mps2: float) -> float:
