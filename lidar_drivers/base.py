@@ -251,9 +251,14 @@ class LidarDriver(ABC):
         finally:
             timer.cancel()
             link.set_receiver(None)
-            if failed is not None:
-                failed.cancel()
             self._ended = None
+            for fut in (ended, failed):
+                if fut is None:
+                    continue
+                if fut.done() and not fut.cancelled():
+                    fut.exception()  # seen: the stream is over either way
+                else:
+                    fut.cancel()
 
     def _end_stream(self, err: DeviceError) -> None:
         """End the running :meth:`_stream_from` with ``err`` (from ``on_bytes``: a device fault)."""

@@ -289,16 +289,15 @@ class HokuyoDriver(LidarDriver):
                 self._end_stream(DeviceError(f"{event.command} status {event.status}: "
                                              f"{event.meaning}"))
 
+        def drain() -> None:  # first: the frames read with the acknowledgement
+            while (event := self._decoder.next_event()) is not None:
+                on_event(event)
+
         def on_bytes(data: bytes) -> None:
             self._receive(data)
-            while (event := self._decoder.next_event()) is not None:
-                on_event(event)
+            drain()
 
-        def backlog() -> None:  # frames read with the acknowledgement
-            while (event := self._decoder.next_event()) is not None:
-                on_event(event)
-
-        await self._stream_from(self._link, on_bytes, lambda: stale, backlog)
+        await self._stream_from(self._link, on_bytes, lambda: stale, drain)
 
     def to_laser_scan(self, frame: ScanReply, dev: SensorParams) -> LaserScan:
         """One frame as a LaserScan stamped with its first beam's estimated time."""
