@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from racecar_hw import __version__
+from racecar_hw.console import setup_logging
 from racecar_hw.errors import RacecarError
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
@@ -45,7 +46,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(level)  # a blocked stderr never stops the control loop
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

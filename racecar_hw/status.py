@@ -4,8 +4,10 @@ The control loop hands a :class:`StatusSnapshot` to :meth:`StatusPanel.update` (
 store) whenever it likes; the panel redraws on its own asyncio timer in the same event loop, at
 ``refresh_hz`` (4 Hz) on a terminal. When the console is not a terminal (systemd, a pipe, a log
 file) it writes one plain status line every ``plain_interval_s`` seconds instead, even when nothing
-changed, so a log shows the daemon is alive. No rendering thread is started: rich's own
-auto-refresh thread is turned off, and each redraw is a few hundred bytes written from the loop.
+changed, so a log shows the daemon is alive. Rendering happens in the loop (rich's own
+auto-refresh thread is turned off); the text goes to the terminal through a
+:class:`~racecar_hw.console.QueuedStream`, so a terminal that stops reading (Ctrl-S) or a busy
+journald never blocks the loop.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -22,6 +25,8 @@ from rich.live import Live
 from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
+
+from racecar_hw.console import QueuedStream
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +146,9 @@ class StatusPanel:
                  source: Callable[[], StatusSnapshot] | None = None) -> None:
         if refresh_hz <= 0 or plain_interval_s <= 0:
             raise ValueError("refresh_hz and plain_interval_s must be positive")
-        self.console = console if console is not None else Console()
+        # a console of our own writes through a queue: a paused terminal never stops the loop
+        self._queued = None if console is not None else QueuedStream(sys.stdout, name="status-writer")
+        self.console = console if console is not None else Console(file=self._queued)
         self.refresh_hz = refresh_hz
         self.plain_interval_s = plain_interval_s
         self.title = title
@@ -176,7 +183,7 @@ class StatusPanel:
         self._task = asyncio.get_running_loop().create_task(self._run(), name="status-panel")
 
     async def stop(self) -> None:
-        """Stop redrawing; the terminal keeps the last panel. Safe to call twice."""
+        """Stop redrawing for good; the terminal keeps the last panel. Safe to call twice."""
         task, self._task = self._task, None
         if task is not None:
             task.cancel()
@@ -186,6 +193,8 @@ class StatusPanel:
         if live is not None:
             live.update(self.renderable(), refresh=True)
             live.stop()
+        if self._queued is not None:
+            self._queued.close()  # the last panel goes out before whatever the caller prints next
 
     def draw(self) -> None:
         """Redraw once now (the timer calls this); never raises."""
