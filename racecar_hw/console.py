@@ -74,7 +74,7 @@ class QueuedStream:
     def drain(self, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
         """Wait until everything queued is written; False if that took longer than ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
-        done = self._queue.all_tasks_done
+        done = self._queue.all_tasks_done  # what Queue.join() waits on, here with a deadline
         with done:
             while self._queue.unfinished_tasks:
                 left = deadline - time.monotonic()
