@@ -21,6 +21,10 @@ ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim
 def main(argv: list[str]) -> int:
     sys.path.insert(0, str(HERE))
     names = argv or list(ALL)
+    unknown = [name for name in names if name not in ALL]
+    if unknown:
+        print(f"unknown benchmark {', '.join(unknown)}; choose from {', '.join(ALL)}", file=sys.stderr)
+        return 2
     rows: list[tuple[str, dict]] = []
     for name in names:
         module = importlib.import_module(f"bench_{name}")
