@@ -89,10 +89,5 @@ def run() -> list[dict]:
     ]
 
 
-def main() -> None:
-    rows = run()
-    print_rows(rows)
-
-
 if __name__ == "__main__":
-    main()
+    print_rows(run())

@@ -65,10 +65,5 @@ def run() -> list[dict]:
     return rows
 
 
-def main() -> None:
-    rows = run()
-    print_rows(rows)
-
-
 if __name__ == "__main__":
-    main()
+    print_rows(run())

@@ -88,10 +88,5 @@ def run(rounds: int = 3000) -> list[dict]:
     ]
 
 
-def main() -> None:
-    rows = run()
-    print_rows(rows)
-
-
 if __name__ == "__main__":
-    main()
+    print_rows(run())

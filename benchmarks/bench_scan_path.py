@@ -102,10 +102,5 @@ def run(passes: int = 400) -> list[dict]:
     return rows
 
 
-def main() -> None:
-    rows = run()
-    print_rows(rows)
-
-
 if __name__ == "__main__":
-    main()
+    print_rows(run())

@@ -138,10 +138,5 @@ def run() -> list[dict]:
     return bench_codec() + bench_latency()
 
 
-def main() -> None:
-    rows = run()
-    print_rows(rows)
-
-
 if __name__ == "__main__":
-    main()
+    print_rows(run())
