@@ -164,9 +164,9 @@ class SafetyController:
         corner = math.hypot(max(fp.front_m, fp.rear_overhang_m), self.footprint.half_width_m)
         self._reach = params.max_path_m + corner + math.hypot(self._to_base[0, 2], self._to_base[1, 2])
         self._scan: _CachedScan | None = None
-        # the last free-distance query: its scan, (steering, reverse, max_path_m, footprint), PathHit
+        # the last free-distance query: its scan, (steering, reverse, max_path_m), PathHit
         self._hit_scan: _CachedScan | None = None
-        self._hit_key: tuple[float, bool, float, SweptFootprint] | None = None
+        self._hit_key: tuple[float, bool, float] | None = None
         self._hit = PathHit(math.nan, -1)
         self._dirs_key: tuple[float, float, int] | None = None
         self._dirs: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
@@ -293,7 +293,7 @@ class SafetyController:
             return math.inf, math.nan, None, "clear"
         if reverse and not p.reverse_uses_scan:
             return p.reverse_speed_cap_mps, math.nan, None, "reverse_cap"
-        key = (steering, reverse, p.max_path_m, self.footprint)
+        key = (steering, reverse, p.max_path_m)
         if scan is self._hit_scan and key == self._hit_key:
             hit = self._hit  # the same scan and path as the last command: a control tick between scans
         else:
