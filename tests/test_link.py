@@ -11,6 +11,14 @@ from racecar_hw.fakepty import PtyPort
 from racecar_hw.link import SerialLink, TcpLink, open_link, parse_host_port
 
 
+async def _open_pty_link(tmp_path) -> tuple[PtyPort, SerialLink]:
+    """A fake serial device on a real pty and an open SerialLink to it."""
+    port = PtyPort(str(tmp_path / "dev")).open()
+    link = SerialLink(port.path)
+    await link.open()
+    return port, link
+
+
 async def _read_exactly(link: SerialLink, n: int) -> bytes:
     data = b""
     while len(data) < n:
@@ -20,9 +28,7 @@ async def _read_exactly(link: SerialLink, n: int) -> bytes:
 
 def test_serial_link_both_ways_and_unplug(tmp_path):
     async def scenario() -> None:
-        port = PtyPort(str(tmp_path / "dev")).open()
-        link = SerialLink(port.path)
-        await link.open()
+        port, link = await _open_pty_link(tmp_path)
         link.write(b"hello device")
         got = b""
         for _ in range(500):
@@ -140,9 +146,7 @@ def test_parse_host_port():
 
 def test_serial_link_receiver_gets_bytes_and_its_error_fails_the_link(tmp_path):
     async def scenario() -> None:
-        port = PtyPort(str(tmp_path / "dev")).open()
-        link = SerialLink(port.path)
-        await link.open()
+        port, link = await _open_pty_link(tmp_path)
         port.write(b"early")
         assert await _read_exactly(link, 5) == b"early"
         chunks: list[bytes] = []
@@ -171,9 +175,7 @@ def test_serial_link_receiver_gets_bytes_and_its_error_fails_the_link(tmp_path):
 
 def test_read_within_times_out_and_returns_bytes(tmp_path):
     async def scenario() -> None:
-        port = PtyPort(str(tmp_path / "dev")).open()
-        link = SerialLink(port.path)
-        await link.open()
+        port, link = await _open_pty_link(tmp_path)
         with pytest.raises(asyncio.TimeoutError):
             await link.read_within(0.05)
         port.write(b"x")
