@@ -226,11 +226,15 @@ def join_data_lines(region: bytes) -> np.ndarray:
 _STRIDE = LINE_CHARS + 2
 
 _LINE_CHECK = np.ones(_STRIDE)
-_LINE_CHECK[LINE_CHARS:] = (-1.0, 0.0)
-"""Weights giving a data line's character sum minus its checksum character (the LF weighs 0)."""
+_LINE_CHECK[LINE_CHARS:] = (-1.0, 24.0)
+"""Weights of a data line's bytes whose weighted sum is a multiple of 64 when its checksum holds.
 
-_ROUND = 1.5 * 2.0**52
-"""``(x + _ROUND) - _ROUND`` is ``x`` rounded to a whole number, for ``|x| < 2**51``."""
+A checksum ``c = (sum & 0x3F) + 0x30`` holds when ``sum - c + 16`` is a multiple of 64; the line's
+LF (0x0A) weighted 24 adds 240, which is 16 modulo 64.
+"""
+
+_DATA_CHARS = bytes(range(0x30, 0x70))
+"""The characters of data lines: encoded values and checksums."""
 
 
 @functools.lru_cache(maxsize=16)
@@ -268,27 +272,21 @@ def decode_data_lines(region: bytes, width: int) -> np.ndarray | None:
 
     This runs between a scan's last byte and the motor command. After an idle gap the first call
     of each numpy function costs some 20 us on a shared machine (its code has left the CPU caches),
-    so it uses few functions, most of them the ones the safety check that follows uses too: float
-    arithmetic and comparisons, ``count_nonzero``, one gather and one matrix product.
+    so it uses few functions: one ``bytes.translate`` checks the characters, one matrix product
+    and ``fmod`` the line checksums, and a gather and another matrix product give the values.
     """
     layout = _data_layout(len(region), width) if width in _WEIGHTS else None
     if layout is None:
         return None
     full, lfs, value_pos = layout
-    if region[LINE_CHARS + 1::_STRIDE] != lfs or region.count(b"\n") != full:
+    # an LF ends every line, and every other byte is a character of 0x30..0x6F
+    if region[LINE_CHARS + 1::_STRIDE] != lfs or region.translate(None, _DATA_CHARS) != lfs:
         return None
     if checksum(region[full * _STRIDE:-1]) != region[-1]:
         return None
     f = np.frombuffer(region, dtype=np.uint8).astype(np.float64)
-    # every byte but the LFs (checked above) is a character of 0x30..0x6F
-    if np.count_nonzero((f < 0x30) | (f > 0x6F)) != full:
+    if full and np.count_nonzero(np.fmod(f[:full * _STRIDE].reshape(full, _STRIDE) @ _LINE_CHECK, 64.0)):
         return None
-    if full:
-        # a line's checksum c = (sum & 0x3F) + 0x30 holds when sum - c = 16 modulo 64
-        k = (f[:full * _STRIDE].reshape(full, _STRIDE) @ _LINE_CHECK - 16.0) * (1.0 / 64.0)
-        fraction = (k + _ROUND) - _ROUND - k
-        if np.count_nonzero((fraction < 0.0) | (fraction > 0.0)):
-            return None
     return f[value_pos] @ _WEIGHTS[width] - _ZERO[width]
 
 
