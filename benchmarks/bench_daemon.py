@@ -9,7 +9,9 @@ are its own.
 Latency, two ways:
 
 - in the daemon (the target): from the read that completed a scan frame returning to the resulting
-  VESC command written, as the daemon measures it and logs in its shutdown summary;
+  VESC command written, as the daemon measures it and logs in its shutdown summary. The daemon
+  also splits each of these into its loop thread's CPU time and the rest, the time the thread was
+  off the CPU: preempted by another thread, or its virtual CPU not running at all (steal);
 - round trip (for information): from the fake lidar handing a frame to the socket until the fake
   VESC reads the next motor command. It adds both links and this process's own thread scheduling
   (the fakes share one interpreter here), and a 50 Hz control tick landing in the window by chance
@@ -168,6 +170,10 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
          "target": None},
         {"name": "scan to VESC command p99 (in daemon)", "value": summary["p99"], "unit": "ms",
          "target": LATENCY_P99_TARGET},
+        {"name": "  the daemon's CPU time in it, p99", "value": summary["cpu_p99"], "unit": "ms",
+         "target": None},
+        {"name": "  the time off the CPU in it, p99", "value": summary["off_cpu_p99"], "unit": "ms",
+         "target": None},
         {"name": "round trip fake lidar to fake VESC p50", "value": float(np.percentile(latency_ms, 50)),
          "unit": "ms", "target": None},
         {"name": "round trip fake lidar to fake VESC p99", "value": float(np.percentile(latency_ms, 99)),
@@ -179,10 +185,12 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
 
 def _summary(log: str) -> dict[str, float]:
     """The scan-to-command latencies from the daemon's shutdown summary line."""
-    match = re.search(r"scan-to-command latency p50=([\d.]+) ms p99=([\d.]+) ms", log)
+    match = re.search(r"scan-to-command latency p50=([\d.]+) ms p99=([\d.]+) ms .*; "
+                      r"on the CPU p50=([\d.]+) ms p99=([\d.]+) ms; off it p99=([\d.]+) ms", log)
     if match is None:
         raise RuntimeError("the daemon logged no control summary:\n" + log[-2000:])
-    return {"p50": float(match.group(1)), "p99": float(match.group(2))}
+    return dict(zip(("p50", "p99", "cpu_p50", "cpu_p99", "off_cpu_p99"),
+                    map(float, match.groups()), strict=True))
 
 
 def main() -> None:

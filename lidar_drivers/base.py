@@ -25,6 +25,7 @@ import numpy as np
 
 from lidar_drivers.params import LidarParams
 from racecar_hw.bus import Bus
+from racecar_hw.clock import monotonic_ns
 from racecar_hw.errors import DeviceError, DeviceIOError, DeviceTimeout
 from racecar_hw.link import Link
 from racecar_hw.messages import LaserScan
@@ -160,10 +161,15 @@ class LidarDriver(ABC):
         self.info: dict[str, str] = {}
         self.connected = False
         self.last_error: str | None = None
-        #: monotonic ns when the latest read from the device returned (set by subclasses)
+        #: monotonic ns when the latest read from the device returned (see :meth:`_stamp_rx`)
         self.rx_ns = 0
+        #: the reading thread's CPU time (ns) when that read returned
+        self.rx_cpu_ns = 0
         #: monotonic ns when the read that completed the latest published scan returned
         self.frame_arrival_ns = 0
+        #: the reading thread's CPU time (ns) then: what the scan path has used of the CPU since is
+        #: ``time.thread_time_ns() - frame_arrival_cpu_ns`` (in the same thread)
+        self.frame_arrival_cpu_ns = 0
         self._last_scan_s = 0.0  # time.monotonic() of the latest published scan
         self._ended: asyncio.Future[None] | None = None
 
@@ -196,10 +202,16 @@ class LidarDriver(ABC):
     async def _close(self) -> None:  # noqa: B027 - optional hook
         """Close the link after a session (called even when it failed)."""
 
+    def _stamp_rx(self) -> None:
+        """Note that a read from the device has just returned (subclasses call it first thing)."""
+        self.rx_ns = monotonic_ns()
+        self.rx_cpu_ns = time.thread_time_ns()
+
     def publish(self, scan: LaserScan) -> None:
         """Publish one finished scan and count it."""
         self.stats.scans += 1
         self.frame_arrival_ns = self.rx_ns
+        self.frame_arrival_cpu_ns = self.rx_cpu_ns
         self._last_scan_s = time.monotonic()
         self.bus.publish(self.params.topic, scan)
 

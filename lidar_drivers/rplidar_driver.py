@@ -198,7 +198,7 @@ class RplidarDriver(LidarDriver):
                     add(ev, wall_ns())
 
         def on_bytes(chunk: bytes) -> None:
-            self.rx_ns = monotonic_ns()
+            self._stamp_rx()
             arrival = wall_ns()
             self._client.receive_data(chunk)
             self.stats.bytes_in += len(chunk)

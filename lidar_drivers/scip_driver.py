@@ -54,7 +54,7 @@ from lidar_drivers.scip import (
     is_hardware_fault,
 )
 from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.clock import NS_PER_S, wall_ns
 from racecar_hw.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
 from racecar_hw.link import Link, SerialLink, TcpLink, parse_host_port
 from racecar_hw.messages import Header, LaserScan, Time
@@ -181,7 +181,7 @@ class HokuyoDriver(LidarDriver):
 
     def _receive(self, data: bytes) -> None:
         """Stamp a chunk's arrival and hand it to the decoder."""
-        self.rx_ns = monotonic_ns()
+        self._stamp_rx()
         self._rx_wall_ns = wall_ns()
         self.stats.bytes_in += len(data)
         self._decoder.receive_data(data)

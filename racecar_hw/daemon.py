@@ -24,6 +24,7 @@ import gc
 import logging
 import math
 import sys
+import time
 from collections import deque
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
@@ -73,17 +74,33 @@ class ControlStats:
     #: recent scan-to-command latencies (ns): from the read that completed a scan returning to the
     #: scan path's VESC command written
     scan_to_command_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
+    #: the loop thread's CPU time (ns) in each of those: the rest of a latency is time the thread
+    #: was off the CPU (preempted, or its virtual CPU not running)
+    scan_to_command_cpu_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
     #: arrival times (monotonic ns) of the last scans, for scan_rate_hz
     scan_times: deque[int] = field(default_factory=lambda: deque(maxlen=20))
 
     def latency_ms(self) -> dict[str, float]:
-        """p50, p99 and max of the recent scan-to-command latencies, milliseconds."""
+        """Percentiles of the recent scan-to-command latencies, milliseconds.
+
+        ``p50``, ``p99``, ``max`` and ``count`` of the latencies; ``cpu_p50`` and ``cpu_p99`` of the
+        CPU time in them, ``off_cpu_p99`` of the time off the CPU.
+        """
         if not self.scan_to_command_ns:
             return {}
-        ordered = sorted(self.scan_to_command_ns)
-        n = len(ordered)
-        return {"p50": ordered[n // 2] / 1e6, "p99": ordered[min(n - 1, (99 * n) // 100)] / 1e6,
-                "max": ordered[-1] / 1e6, "count": float(n)}
+        wall = list(self.scan_to_command_ns)
+        cpu = list(self.scan_to_command_cpu_ns)
+        off = [w - c for w, c in zip(wall, cpu, strict=True)]
+        return {"p50": _percentile(wall, 50) / 1e6, "p99": _percentile(wall, 99) / 1e6,
+                "max": max(wall) / 1e6, "count": float(len(wall)),
+                "cpu_p50": _percentile(cpu, 50) / 1e6, "cpu_p99": _percentile(cpu, 99) / 1e6,
+                "off_cpu_p99": _percentile(off, 99) / 1e6}
+
+
+def _percentile(values: list[int], q: int) -> int:
+    """The ``q``-th percentile of ``values`` (not empty): the nearest rank, no interpolation."""
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, (q * len(ordered)) // 100)]
 
 
 class Daemon:
@@ -166,6 +183,8 @@ class Daemon:
             written = self.vesc.last_motor_write_ns
             if arrived and written >= arrived:  # this scan's command reached the OS
                 self.stats.scan_to_command_ns.append(written - arrived)
+                cpu = time.thread_time_ns() - self.lidar.frame_arrival_cpu_ns
+                self.stats.scan_to_command_cpu_ns.append(min(cpu, written - arrived))
         if self.recorder is not None:
             self.recorder.control_idle()
 
@@ -295,9 +314,12 @@ class Daemon:
         self.notifier.stopping("racecar-hw stopping")
         latency = self.stats.latency_ms()
         log.info("control summary: %d ticks, %d missed, %d scan cuts; scan-to-command latency "
-                 "p50=%.3f ms p99=%.3f ms max=%.3f ms over %d scans", self.stats.ticks,
+                 "p50=%.3f ms p99=%.3f ms max=%.3f ms over %d scans; on the CPU p50=%.3f ms "
+                 "p99=%.3f ms; off it p99=%.3f ms", self.stats.ticks,
                  self.stats.missed_ticks, self.stats.scan_cuts, latency.get("p50", math.nan),
-                 latency.get("p99", math.nan), latency.get("max", math.nan), int(latency.get("count", 0)))
+                 latency.get("p99", math.nan), latency.get("max", math.nan), int(latency.get("count", 0)),
+                 latency.get("cpu_p50", math.nan), latency.get("cpu_p99", math.nan),
+                 latency.get("off_cpu_p99", math.nan))
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

@@ -17,6 +17,7 @@ from conftest import wait_for
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.config import load_config
+from racecar_hw.daemon import ControlStats
 from racecar_hw.errors import ConfigError
 from vesc.codec import SetCurrentBrake, SetRpm, SetServoPosition
 from vesc.fake import FakeVesc
@@ -84,10 +85,13 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     assert servo and servo[-1].position == pytest.approx(0.5304, abs=1e-3)
     # every scan re-sent the (idle) command at once; the shutdown summary times those writes
     summary = re.search(r"scan-to-command latency p50=([\d.]+) ms p99=([\d.]+) ms max=([\d.]+) ms "
-                        r"over (\d+) scans", err)
+                        r"over (\d+) scans; on the CPU p50=([\d.]+) ms p99=([\d.]+) ms; "
+                        r"off it p99=([\d.]+) ms", err)
     assert summary, err[-2000:]
-    p50, p99, worst, scans = map(float, summary.groups())
+    p50, p99, worst, scans, cpu_p50, cpu_p99, off_p99 = map(float, summary.groups())
     assert scans > 0 and 0.0 < p50 <= p99 <= worst
+    # each scan's CPU time is part of its latency, so its percentiles are too
+    assert 0.0 < cpu_p50 <= p50 and cpu_p50 <= cpu_p99 <= p99 and 0.0 <= off_p99 <= worst
     bags = list((tmp_path / "bags").rglob("*.mcap"))
     assert bags, "the recorder left no bag"
     from rosbags.highlevel import AnyReader
@@ -95,6 +99,17 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     with AnyReader([bags[0].parent]) as reader:
         topics = {c.topic for c in reader.connections}
     assert {"/scan", "/odom", "/vesc/sensors/core", "/tf_static"} <= topics
+
+
+def test_latency_summary_splits_time_on_and_off_the_cpu():
+    stats = ControlStats()
+    for k in range(1, 101):  # 1..100 ms, of which k / 2 ms on the CPU and one slow scan off it
+        stats.scan_to_command_ns.append(k * 1_000_000)
+        stats.scan_to_command_cpu_ns.append(k * 500_000 if k < 100 else 1_000_000)
+    got = stats.latency_ms()
+    assert got == {"p50": 51.0, "p99": 100.0, "max": 100.0, "count": 100.0,
+                   "cpu_p50": 25.0, "cpu_p99": 49.5, "off_cpu_p99": 99.0}
+    assert ControlStats().latency_ms() == {}
 
 
 def test_config_errors_name_the_key(tmp_path):
