@@ -133,6 +133,7 @@ class VescDriver:
         self._last_command_ns = 0
         self._last_motor_tx_ns = 0
         self._failsafe_timer: asyncio.TimerHandle | None = None
+        self._failsafe_loop: asyncio.AbstractEventLoop | None = None
         self._frames: dict[Packet, bytes] = {}
         self._stop = asyncio.Event()
         self._closed = False
@@ -392,17 +393,22 @@ class VescDriver:
         return self._moving and now_ns - self._last_command_ns < self._timeout_ns
 
     def _arm_failsafe_timer(self) -> None:
-        """Set the failsafe for ``command_timeout_s`` after the latest command.
+        """Make sure the failsafe fires ``command_timeout_s`` after the latest command.
 
-        Moved at every command rather than left to fire and re-arm, so that it wakes the loop only
-        when commands stop: a wake-up costs far more CPU than moving a timer.
+        A pending timer is left as it is: when it fires it finds the later command and waits out
+        the rest. Commands come every few ms on the scan path, and replacing a loop timer each time
+        costs more there than a timer firing every ``command_timeout_s`` while commands flow.
         """
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
             return  # no loop: the poll tick enforces the timeout instead
-        if self._failsafe_timer is not None:
-            self._failsafe_timer.cancel()
+        timer = self._failsafe_timer
+        if timer is not None and self._failsafe_loop is loop and not timer.cancelled():
+            return
+        if timer is not None:
+            timer.cancel()
+        self._failsafe_loop = loop
         self._failsafe_timer = loop.call_at(seconds(self._last_command_ns + self._timeout_ns),
                                             self._on_failsafe_timer)
 
@@ -410,10 +416,10 @@ class VescDriver:
         self._failsafe_timer = None
         if not self._moving or self._closed:
             return
-        remaining = self._last_command_ns + nanoseconds(self.params.command_timeout_s) - monotonic_ns()
-        if remaining > 0:
-            loop = asyncio.get_running_loop()
-            self._failsafe_timer = loop.call_later(seconds(remaining), self._on_failsafe_timer)
+        deadline = self._last_command_ns + self._timeout_ns
+        if deadline > monotonic_ns():  # commands came after the timer was set
+            self._failsafe_timer = asyncio.get_running_loop().call_at(seconds(deadline),
+                                                                      self._on_failsafe_timer)
             return
         self._engage_failsafe()
 
