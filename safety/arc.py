@@ -113,7 +113,7 @@ def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFo
     radius = footprint.turn_radius(steering_rad)
     hw = footprint.half_width_m
     if math.isinf(radius):
-        band = np.flatnonzero((np.abs(y) <= hw) & (x >= -rear))
+        band = ((np.abs(y) <= hw) & (x >= -rear)).nonzero()[0]
         return 1.0, band, np.maximum(x[band] - front, 0.0)
     if radius < 0.0:
         y = -y
@@ -124,7 +124,7 @@ def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFo
     inner, outer = radius - hw, radius + hw
     front_reach2 = front * front + outer * outer  # the front outer corner's radius, squared
     rear_reach2 = rear * rear + outer * outer
-    band = np.flatnonzero((rho2 >= inner * inner) & (rho2 <= max(front_reach2, rear_reach2)))
+    band = ((rho2 >= inner * inner) & (rho2 <= max(front_reach2, rear_reach2))).nonzero()[0]
     if band.size == 0:
         return radius, band, np.zeros(0)
     xb, ub, r2 = x[band], u[band], rho2[band]
@@ -136,7 +136,7 @@ def _sweep(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFo
     turn[r2 > front_reach2] = np.inf
     # Past radius R + hw the body at that radius splits in two arcs: the front one above, and
     # the rear outer corner region, which swings outwards (tail swing) and leads at u = R + hw.
-    tail = np.flatnonzero((r2 > outer * outer) & (r2 <= rear_reach2))
+    tail = ((r2 > outer * outer) & (r2 <= rear_reach2)).nonzero()[0]
     if tail.size:
         x_tail = -np.sqrt(r2[tail] - outer * outer)
         turn[tail] = np.minimum(turn[tail], _turn(x_tail, outer, xb[tail], ub[tail]))

@@ -200,16 +200,17 @@ class SafetyController:
         if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)):
             usable = 0  # beams without directions: refuse the scan
         far = min(scan.range_max, self._reach) if scan.range_max > scan.range_min else self._reach
-        # index arrays rather than boolean masks: the gathers the path sweep uses too
-        points = np.flatnonzero(at_least_min & (r <= far))
+        # index arrays rather than boolean masks: the gathers the path sweep uses too; nonzero()
+        # rather than np.flatnonzero, a chain of Python calls that costs more than the work here
+        points = (at_least_min & (r <= far)).nonzero()[0]
         bx, by = self._directions(scan, n)
         rp = r[points]
         x = self._to_base[0, 2] + rp * bx[points]
         y = self._to_base[1, 2] + rp * by[points]
         if self.params.ignore_inside_footprint:
             body = self._body
-            outside = np.flatnonzero((x < -body.rear_m) | (x > body.front_m)
-                                     | (np.abs(y) > body.half_width_m))
+            outside = ((x < -body.rear_m) | (x > body.front_m)
+                       | (np.abs(y) > body.half_width_m)).nonzero()[0]
             x, y = x[outside], y[outside]
         sweep = float(scan.scan_time) if 0.0 < scan.scan_time <= 1.0 else 0.0
         self._scan = _CachedScan(x, y, now_ns, usable / n if n else 0.0, sweep)
