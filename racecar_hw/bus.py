@@ -79,10 +79,17 @@ class Bus:
         elif type(msg) is not known:
             raise TopicTypeError(f"{topic} carries {known.ROS_TYPE}, not {type(msg).ROS_TYPE}")
         self._latest[topic] = Latest(msg, monotonic_ns())
+        # the calls inline: a scan passes through here on its way to the motor command
         for sub in self._subs.get(topic, ()):
-            self._call(sub, msg)
+            try:
+                sub.callback(msg)
+            except Exception:
+                self._failed(f"subscriber of {topic}")
         for sub in self._all:
-            self._call_any(sub, topic, msg)
+            try:
+                sub.callback(topic, msg)
+            except Exception:
+                self._failed(f"subscriber of every topic, on {topic}")
 
     def bind_loop(self, loop: asyncio.AbstractEventLoop) -> None:
         """Name the event loop that owns this bus, for :meth:`publish_threadsafe`."""
@@ -124,16 +131,7 @@ class Bus:
         if sub in bucket:
             bucket.remove(sub)
 
-    def _call(self, sub: Subscription, msg: Message) -> None:
-        try:
-            sub.callback(msg)
-        except Exception:
-            self.callback_errors += 1
-            log.exception("subscriber of %s failed", sub.topic)
-
-    def _call_any(self, sub: Subscription, topic: str, msg: Message) -> None:
-        try:
-            sub.callback(topic, msg)
-        except Exception:
-            self.callback_errors += 1
-            log.exception("subscriber of every topic failed on %s", topic)
+    def _failed(self, who: str) -> None:
+        """Count and log the exception being handled, raised by the subscriber ``who``."""
+        self.callback_errors += 1
+        log.exception("%s failed", who)
