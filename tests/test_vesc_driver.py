@@ -144,6 +144,26 @@ def test_failsafe_brakes_and_centres_within_100ms(tmp_path, device_thread):
     asyncio.run(scenario())
 
 
+def test_a_command_stream_leaves_the_failsafe_timer_until_it_is_half_due(tmp_path):
+    async def scenario() -> None:
+        driver = VescDriver(Bus(), VescParams(port=str(tmp_path / "absent")))
+        driver.command(AckermannDrive(speed=1.0))
+        timer = driver._failsafe_timer  # noqa: SLF001
+        assert timer is not None
+        for _ in range(100):  # back to back: the timer is still due a whole timeout from now
+            driver.command(AckermannDrive(speed=1.0))
+        assert driver._failsafe_timer is timer  # noqa: SLF001
+        await asyncio.sleep(0.03)  # past half of the 50 ms timeout (or past all of it)
+        before = time.monotonic()
+        driver.command(AckermannDrive(speed=1.0))
+        assert driver._failsafe_timer is not timer  # noqa: SLF001 - moved, or fired and set anew
+        assert driver._failsafe_timer.when() >= before + 0.05 - 1e-6  # noqa: SLF001
+        await async_wait_for(lambda: not driver.moving, timeout=5)  # commands stop: it brakes
+        assert driver.stats.failsafes >= 1
+
+    asyncio.run(scenario())
+
+
 def _after_last_motion(fake: FakeVesc) -> list[CommandRecord]:
     log = fake.commands
     motion = [i for i, r in enumerate(log) if isinstance(r.packet, SetRpm) and r.packet.erpm != 0]

@@ -395,18 +395,22 @@ class VescDriver:
     def _arm_failsafe_timer(self) -> None:
         """Make sure the failsafe fires ``command_timeout_s`` after the latest command.
 
-        A pending timer is left as it is: when it fires it finds the later command and waits out
-        the rest. Commands come every few ms on the scan path, and replacing a loop timer each time
-        costs more there than a timer firing every ``command_timeout_s`` while commands flow.
+        A pending timer due more than half a timeout from now is left as it is: should commands
+        stop, it fires, finds the later command and waits out the rest. One due sooner is moved.
+        So while commands come at least every half timeout the timer never wakes the loop (a
+        wake-up costs far more than moving a timer), and it is moved at most twice per timeout
+        rather than at every command (the scan path sends one between the safety check and the
+        motor write).
         """
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
             return  # no loop: the poll tick enforces the timeout instead
         timer = self._failsafe_timer
-        if timer is not None and self._failsafe_loop is loop and not timer.cancelled():
-            return
         if timer is not None:
+            if (self._failsafe_loop is loop and not timer.cancelled()
+                    and timer.when() - loop.time() > 0.5 * self.params.command_timeout_s):
+                return
             timer.cancel()
         self._failsafe_loop = loop
         self._failsafe_timer = loop.call_at(seconds(self._last_command_ns + self._timeout_ns),
