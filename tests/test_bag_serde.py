@@ -43,30 +43,41 @@ _INT_RANGES = {
 texts = st.text(st.characters(codec="utf-8"), max_size=12)
 
 
-def _floats(base: str) -> st.SearchStrategy[float]:
-    if base == "float32":  # mostly representable, sometimes too large for float32 (both refuse)
+def _floats(base: str, valid: bool) -> st.SearchStrategy[float]:
+    if base == "float32":
+        if valid:
+            return st.floats(width=32)
+        # mostly representable, sometimes too large for float32 (both refuse)
         return st.one_of(st.floats(width=32), st.floats(width=32),
                          st.floats(allow_nan=True, allow_infinity=True))
     return st.floats(allow_nan=True, allow_infinity=True)
 
 
-def _ints(base: str) -> st.SearchStrategy[int]:
+def _ints(base: str, valid: bool) -> st.SearchStrategy[int]:
     lo, hi = _INT_RANGES[base]
+    if valid:
+        return st.integers(lo, hi)
     return st.one_of(st.integers(lo, hi), st.integers(lo, hi), st.sampled_from([lo, hi, lo - 1, hi + 1]))
 
 
-def _array(base: str, length: int) -> st.SearchStrategy[np.ndarray]:
-    elems = _floats(base) if base.startswith("float") else _ints(base)
+def _array(base: str, length: int, valid: bool) -> st.SearchStrategy[np.ndarray]:
+    elems = _floats(base, valid) if base.startswith("float") else _ints(base, valid)
     size = st.just(length) if length else st.integers(0, 60)
-    if length:  # now and then a wrong length: both paths must refuse it
+    if length and not valid:  # now and then a wrong length: both paths must refuse it
         size = st.one_of(st.just(length), st.just(length), st.just(length), st.just(length + 1))
     dtype = np.float64 if base.startswith("float") else np.int64
     return size.flatmap(lambda n: st.lists(elems, min_size=n, max_size=n)).map(
         lambda v: np.array(v, dtype=dtype))
 
 
-def messages_of(cls: type[Message], types: BagTypes, depth: int = 0) -> st.SearchStrategy[Message]:
-    """Random instances of ``cls``, driven by the store's definition of ``cls.ROS_TYPE``."""
+def messages_of(cls: type[Message], types: BagTypes, depth: int = 0,
+                valid: bool = False) -> st.SearchStrategy[Message]:
+    """Random instances of ``cls``, driven by the store's definition of ``cls.ROS_TYPE``.
+
+    With ``valid``, every value fits its field. Otherwise any field may hold a value that does not
+    fit (an integer out of range, a float too large for float32, a fixed array of the wrong length):
+    a message with many fields then rarely fits as a whole.
+    """
     hints = typing.get_type_hints(cls, vars(messages))
     _, fields = types.store.fielddefs[cls.ROS_TYPE]
     defs = dict(fields)
@@ -81,22 +92,22 @@ def messages_of(cls: type[Message], types: BagTypes, depth: int = 0) -> st.Searc
             elif base == "bool":
                 kwargs[f.name] = st.booleans()
             elif base.startswith("float"):
-                kwargs[f.name] = _floats(base)
+                kwargs[f.name] = _floats(base, valid)
             else:
-                kwargs[f.name] = _ints(base)
+                kwargs[f.name] = _ints(base, valid)
         elif node == 2:  # nested message
-            kwargs[f.name] = messages_of(hint, types, depth + 1)
+            kwargs[f.name] = messages_of(hint, types, depth + 1, valid)
         elif node == 3:  # fixed array
             (_, (base, _)), length = detail
-            kwargs[f.name] = _array(base, length)
+            kwargs[f.name] = _array(base, length, valid)
         else:  # sequence
             (inner_node, inner), _ = detail
             if inner_node == 2:
                 (inner_cls,) = typing.get_args(hint)
-                kwargs[f.name] = st.lists(messages_of(inner_cls, types, depth + 1),
+                kwargs[f.name] = st.lists(messages_of(inner_cls, types, depth + 1, valid),
                                           max_size=3 if depth < 2 else 1)
             else:
-                kwargs[f.name] = _array(inner[0], 0)
+                kwargs[f.name] = _array(inner[0], 0, valid)
     return st.builds(cls, **kwargs)
 
 
@@ -125,7 +136,8 @@ def test_random_messages_serialize_as_rosbags_does(version: int, typename: str) 
     serialized = 0
 
     @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-    @given(msg=messages_of(cls, types), seq=st.integers(0, 2**32 - 1))
+    @given(msg=st.one_of(messages_of(cls, types, valid=True), messages_of(cls, types)),
+           seq=st.integers(0, 2**32 - 1))
     def check(msg: Message, seq: int) -> None:
         nonlocal serialized
         generic = outcome(types.serialize_generic, msg, seq)
