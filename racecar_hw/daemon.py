@@ -140,6 +140,8 @@ class Daemon:
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
         self.bus.subscribe(config.mux.output_topic, self._on_output)
+        # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
+        # this one writes the motor command, and diagnostics subscribed in run() come after it.
         self.bus.subscribe(config.safety.scan_topic, self._on_scan)
 
     # --- wiring ---------------------------------------------------------------------------------

@@ -70,6 +70,25 @@ def test_a_daemon_run_in_process_leaves_the_interpreter_as_it_found_it(tmp_path)
     assert gc.get_freeze_count() == 0
 
 
+def test_a_scans_motor_command_is_written_before_its_summaries_are_made(tmp_path):
+    # /scan_range and /open_space are diagnostics: they must not sit between a scan and the motor
+    written_first: list[bool] = []
+
+    def setup(loopback: Loopback) -> None:
+        daemon = loopback.daemon
+        assert daemon is not None and daemon.vesc is not None and daemon.lidar is not None
+        vesc, lidar = daemon.vesc, daemon.lidar
+        daemon.bus.subscribe("/scan_range", lambda msg: written_first.append(
+            vesc.last_motor_write_ns >= lidar.frame_arrival_ns))
+
+    loopback = Loopback(load_scenario("wall", []), out_dir=tmp_path, duration_s=1.5, setup=setup)
+    asyncio.run(loopback.run())
+    assert loopback.daemon is not None
+    timed = len(loopback.daemon.stats.scan_to_command_ns)  # scans whose command the scan path wrote
+    assert timed > 10 and len(written_first) >= timed
+    assert written_first.count(True) == timed
+
+
 @pytest.mark.parametrize("speed", [1.0, 2.0, 3.0, 4.0])
 def test_wall_head_on_never_touched_and_stopped_close(tmp_path, speed):
     result = run("wall", tmp_path, f"drivers.0.speed_mps={speed}")
