@@ -24,7 +24,6 @@ import gc
 import logging
 import math
 import sys
-import time
 from collections import deque
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
@@ -164,31 +163,39 @@ class Daemon:
             self.vesc.command(msg.drive)
 
     def _on_scan(self, scan: LaserScan) -> None:
+        """Re-check the current command against the new scan and send it at once.
+
+        The motor command goes first; bookkeeping and the safety state come after it.
+        """
         now = monotonic_ns()
+        last = self.mux.last_output
+        if last is not None and self._control_alive(now):
+            cut = self.safety.limit(last.drive, self.mux.source or "idle", now)
+            if abs(cut.speed) < abs(last.drive.speed):
+                self.stats.scan_cuts += 1
+                limiter = self.mux.limiter
+                limiter.speed = math.copysign(min(abs(limiter.speed), abs(cut.speed)), limiter.speed)
+                self.mux.step(now, (lambda drive, source, t: cut,))
+            elif self.vesc is not None:
+                self.vesc.command(cut)
+            self.safety.publish_state_if_due(now)
+            if self.vesc is not None and self.lidar is not None:
+                self._time_scan_path(self.vesc, self.lidar)
         times = self.stats.scan_times
         times.append(now)
         if len(times) >= 2:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
-        last = self.mux.last_output
-        if last is None or not self._control_alive(now):
-            return
-        cut = self.safety.filter(last.drive, self.mux.source or "idle", now)
-        if abs(cut.speed) < abs(last.drive.speed):
-            self.stats.scan_cuts += 1
-            limiter = self.mux.limiter
-            limiter.speed = math.copysign(min(abs(limiter.speed), abs(cut.speed)), limiter.speed)
-            self.mux.step(now, (lambda drive, source, t: cut,))
-        elif self.vesc is not None:
-            self.vesc.command(cut)
-        if self.vesc is not None and self.lidar is not None:
-            arrived = self.lidar.frame_arrival_ns
-            written = self.vesc.last_motor_write_ns
-            if arrived and written >= arrived:  # this scan's command reached the OS
-                self.stats.scan_to_command_ns.append(written - arrived)
-                cpu = time.thread_time_ns() - self.lidar.frame_arrival_cpu_ns
-                self.stats.scan_to_command_cpu_ns.append(min(cpu, written - arrived))
         if self.recorder is not None:
             self.recorder.control_idle()
+
+    def _time_scan_path(self, vesc: VescDriver, lidar: LidarDriver) -> None:
+        """Record the time from the scan's arrival to its motor command, if one was written."""
+        arrived = lidar.frame_arrival_ns
+        written = vesc.last_motor_write_ns
+        if arrived and written >= arrived:  # this scan's command reached the OS
+            self.stats.scan_to_command_ns.append(written - arrived)
+            cpu = vesc.last_motor_write_cpu_ns - lidar.frame_arrival_cpu_ns
+            self.stats.scan_to_command_cpu_ns.append(min(cpu, written - arrived))
 
     def _control_alive(self, now_ns: int) -> bool:
         """Whether the control loop ticked within the last two periods.

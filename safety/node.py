@@ -113,12 +113,20 @@ class SafetyNode:
         Never raises: a failure inside the controller latches a fault and brakes.
         """
         now = self.clock() if now_ns is None else now_ns
-        self._last_command_ns = now
+        out = self.limit(drive, source, now)
+        self.publish_state_if_due(now)
+        return out
+
+    def limit(self, drive: AckermannDrive, source: str, now_ns: int) -> AckermannDrive:
+        """What :meth:`filter` returns, leaving the state to :meth:`publish_state_if_due`.
+
+        For the scan path: it writes the motor command first and publishes the state after.
+        """
+        self._last_command_ns = now_ns
         self._source = source
         self._commanded = _finite_or_zero(drive.speed)
-        out = self._limit(drive, source, now)
+        out = self._limit(drive, source, now_ns)
         self._output = float(out.speed)
-        self._publish_if_due(now)
         return out
 
     def _limit(self, drive: AckermannDrive, source: str, now: int) -> AckermannDrive:
@@ -143,7 +151,7 @@ class SafetyNode:
         if self._last_command_ns is None or now - self._last_command_ns >= period:
             self._limit(AckermannDrive(), "", now)
             self._source, self._commanded, self._output = "", 0.0, 0.0
-        self._publish_if_due(now)
+        self.publish_state_if_due(now)
 
     async def run(self) -> None:
         """Publish the state at ``state_rate_hz`` until cancelled."""
@@ -152,7 +160,8 @@ class SafetyNode:
             self.tick()
             await asyncio.sleep(period)
 
-    def _publish_if_due(self, now: int) -> None:
+    def publish_state_if_due(self, now: int) -> None:
+        """Publish the state if it changed or ``state_rate_hz`` says it is due."""
         state = self.state
         key = (state.reason, state.intervening)
         due = (self._last_publish_ns is None

@@ -126,6 +126,20 @@ def test_node_publishes_on_change_and_at_a_low_rate() -> None:
     assert len(published) == 3
 
 
+def test_limit_leaves_the_state_to_be_published_after_the_motor_command() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, SafetyParams(), clock=clock)
+    published = states(bus)
+    bus.publish("/scan", blocked_ahead(1.0))
+    out = node.limit(AckermannDrive(speed=3.0), "nav", clock.now)
+    assert 0.0 < out.speed < 3.0 and node.state.intervening
+    assert published == []
+    node.publish_state_if_due(clock.now)
+    assert [s.message for s in published] == ["obstacle"]
+    assert values(published[0])["commanded_speed"] == "3.000"
+    assert float(values(published[0])["output_speed"]) == pytest.approx(out.speed, abs=1e-3)
+
+
 def test_node_run_publishes_periodically() -> None:
     bus = Bus()
     node = SafetyNode(bus, build(SafetyParams, {"state_rate_hz": 50.0}))

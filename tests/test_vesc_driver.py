@@ -106,7 +106,11 @@ def test_commands_arrive_with_exact_values(tmp_path, device_thread):
         async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
             await async_wait_for(lambda: driver.connected)
             fake.clear_commands()
+            before, before_cpu = time.monotonic_ns(), time.thread_time_ns()
             driver.command(AckermannDrive(speed=1.5, steering_angle=-0.1))
+            # written before command() returns, stamped on both of this thread's clocks
+            assert before <= driver.last_motor_write_ns <= time.monotonic_ns()
+            assert before_cpu <= driver.last_motor_write_cpu_ns <= time.thread_time_ns()
             driver.command(AckermannDrive(speed=-0.5, steering_angle=0.3))
             await async_wait_for(lambda: sum(isinstance(r.packet, SetServoPosition)
                                              for r in fake.commands) >= 2)

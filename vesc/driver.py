@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -132,6 +133,7 @@ class VescDriver:
         self._moving = False
         self._last_command_ns = 0
         self._last_motor_tx_ns = 0
+        self._last_motor_tx_cpu_ns = 0
         self._failsafe_timer: asyncio.TimerHandle | None = None
         self._failsafe_loop: asyncio.AbstractEventLoop | None = None
         self._frames: dict[Packet, bytes] = {}
@@ -157,6 +159,11 @@ class VescDriver:
     def last_motor_write_ns(self) -> int:
         """Monotonic ns when the OS last took a motor command (RPM, current, brake or duty); 0 if never."""
         return self._last_motor_tx_ns
+
+    @property
+    def last_motor_write_cpu_ns(self) -> int:
+        """The writing thread's CPU time (``time.thread_time_ns``) at :attr:`last_motor_write_ns`."""
+        return self._last_motor_tx_cpu_ns
 
     @property
     def firmware(self) -> tuple[int, int] | None:
@@ -200,17 +207,16 @@ class VescDriver:
             log.warning("drive command refused (%s): braking", err)
             self._engage_failsafe()
             return
-        self._last_command_ns = monotonic_ns()
+        now = self._last_command_ns = monotonic_ns()
         self._moving = True
-        self._arm_failsafe_timer()
         if self._firmware is not None:
-            now = self._last_command_ns
             if now - self._last_poll_ns >= self._poll_due_ns:
                 # the telemetry poll rides along: one write instead of two
                 self._last_poll_ns = now
                 self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo), GetValuesRequest())
             else:
                 self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo))
+        self._arm_failsafe_timer()  # counts from _last_command_ns; the write need not wait for it
 
     def brake_and_centre(self) -> None:
         """Send brake and the servo centre now (what the failsafe sends)."""
@@ -399,8 +405,7 @@ class VescDriver:
         stop, it fires, finds the later command and waits out the rest. One due sooner is moved.
         So while commands come at least every half timeout the timer never wakes the loop (a
         wake-up costs far more than moving a timer), and it is moved at most twice per timeout
-        rather than at every command (the scan path sends one between the safety check and the
-        motor write).
+        rather than at every command. :meth:`command` calls this after its write.
         """
         try:
             loop = asyncio.get_running_loop()
@@ -462,6 +467,7 @@ class VescDriver:
         for p in packets:
             if isinstance(p, TIMEOUT_RESETTING):
                 self._last_motor_tx_ns = now
+                self._last_motor_tx_cpu_ns = time.thread_time_ns()
             elif isinstance(p, SetServoPosition):
                 self._servo_sent = p.position
                 self.bus.publish(TOPIC_SERVO, Float64(p.position))
