@@ -168,6 +168,33 @@ def test_a_command_stream_leaves_the_failsafe_timer_until_it_is_half_due(tmp_pat
     asyncio.run(scenario())
 
 
+def test_a_held_up_process_brakes_only_if_the_next_command_was_not_due_first(tmp_path, device_thread):
+    """The whole process stalls past the failsafe deadline with a command due before it.
+
+    Every overdue timer then runs in one pass, in deadline order: a poll tick (due first), the
+    control tick's command, the failsafe timer. The car was never without a fresh command in that
+    order, so it must not brake; once commands really stop, it brakes.
+    """
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        params = VescParams(port=fake.path, poll_rate_hz=100.0)  # a poll tick every 10 ms
+        async with VescDriver(Bus(), params) as driver:
+            await async_wait_for(lambda: driver.connected)
+            await async_wait_for(lambda: driver.last_state is not None)  # the poll ticks run
+            loop = asyncio.get_running_loop()
+            driver.command(AckermannDrive(speed=1.0))
+            commanded = loop.time()
+            loop.call_at(commanded + 0.03, driver.command, AckermannDrive(speed=1.0))
+            time.sleep(0.09)  # the process held up: the 50 ms deadline passes with nothing running
+            await asyncio.sleep(0.005)
+            assert driver.stats.failsafes == 0 and driver.moving
+            await async_wait_for(lambda: not driver.moving, timeout=5)
+            assert driver.stats.failsafes == 1
+
+    asyncio.run(scenario())
+
+
 def _after_last_motion(fake: FakeVesc) -> list[CommandRecord]:
     log = fake.commands
     motion = [i for i, r in enumerate(log) if isinstance(r.packet, SetRpm) and r.packet.erpm != 0]

@@ -385,15 +385,28 @@ class VescDriver:
             link.close()
 
     def _poll(self) -> None:
-        """One poll tick: GET_VALUES (unless a command just carried one), then the failsafe or ALIVE."""
+        """One poll tick: GET_VALUES (unless a command just carried one), then the failsafe or ALIVE.
+
+        While the failsafe timer is armed, it alone decides when a moving car brakes. After the
+        whole process was held up (a descheduled CPU, a throttled cgroup), every overdue loop timer
+        runs in one pass in the order of its deadline: the control tick, due before the failsafe
+        deadline, sends its command first. A poll tick that ran first and judged the command's
+        age would brake a car whose commands were never stale.
+        """
         now = monotonic_ns()
         if now - self._last_poll_ns >= self._poll_due_ns:
             self._last_poll_ns = now
             self._write(GetValuesRequest())
-        if not self._fresh(now):
-            self._engage_failsafe()
+        if not (self._fresh(now) or self._failsafe_timer_armed()):
+            self._engage_failsafe()  # engages, or repeats brake and centre while braked
         elif now - self._last_motor_tx_ns >= self._alive_ns:
             self._write(Alive())
+
+    def _failsafe_timer_armed(self) -> bool:
+        """Whether a moving car's failsafe timer is pending on the running loop."""
+        timer = self._failsafe_timer
+        return (self._moving and timer is not None and not timer.cancelled()
+                and self._failsafe_loop is asyncio.get_running_loop())
 
     def _fresh(self, now_ns: int) -> bool:
         return self._moving and now_ns - self._last_command_ns < self._timeout_ns
