@@ -209,6 +209,31 @@ def schedule(commands: Sequence[Command], *, rate_hz: float = 20.0, use_timestam
     return steps
 
 
+@dataclass(frozen=True)
+class Hole:
+    """A stretch of the recording with no command: ``at_s`` after the first command, ``gap_s`` long."""
+
+    at_s: float
+    gap_s: float
+
+
+def holes(commands: Sequence[Command], factor: float = 3.0) -> list[Hole]:
+    """The gaps between consecutive commands longer than ``factor`` times the median gap.
+
+    A source that skipped its ticks (a held-up laptop, a dropped wireless link) leaves such holes.
+    A fixed-rate replay closes them up, so the path comes out shorter than the recorded one.
+    """
+    if len(commands) < 3:
+        return []
+    gaps = sorted(b.t_ns - a.t_ns for a, b in zip(commands, commands[1:], strict=False))
+    usual = gaps[len(gaps) // 2]
+    if usual <= 0:
+        return []
+    t0 = commands[0].t_ns
+    return [Hole((a.t_ns - t0) / NS_PER_S, (b.t_ns - a.t_ns) / NS_PER_S)
+            for a, b in zip(commands, commands[1:], strict=False) if b.t_ns - a.t_ns > factor * usual]
+
+
 class CommandSync:
     """Steps with absolute offsets over one pass or, with ``loop``, forever.
 
@@ -273,6 +298,12 @@ class BagFollower:
         """Read the bag and build the steps (raises BagError)."""
         p = self.params
         self.commands = load_commands(p.bag, p.topic)
+        if not p.use_timestamps and (found := holes(self.commands)):
+            longest = max(found, key=lambda h: h.gap_s)
+            log.warning("%s: the recording has %d gap(s) over three times its usual spacing "
+                        "(longest %.0f ms, %.1f s in); a fixed-rate replay closes them up and "
+                        "shortens the path: set use_timestamps to replay them", p.bag, len(found),
+                        longest.gap_s * 1e3, longest.at_s)
         return schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
                         time_scale=p.time_scale, reverse=p.reverse)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,8 @@ from racecar_hw.bag_follow import (
     Command,
     CommandSync,
     FollowerParams,
+    Hole,
+    holes,
     load_commands,
     schedule,
     summarize_bag,
@@ -201,6 +204,28 @@ def test_command_sync_loops_and_plays() -> None:
     played = list(CommandSync(steps).play(sleep=sleep, now_ns=lambda: clock[0]))
     assert [p.drive.speed for p in played] == [1.0, 2.0]
     assert slept == [pytest.approx(0.1)]
+
+
+def test_holes_are_gaps_far_over_the_usual_spacing() -> None:
+    steady = [i * 50 for i in range(20)]  # 20 Hz
+    assert holes(cmds_from(steady)) == []
+    assert holes(cmds_from([0, 50, 100, 260, 310, 360, 410, 700, 750])) == [
+        Hole(0.1, 0.16), Hole(0.41, 0.29)]
+    assert holes(cmds_from([0, 500])) == []  # too few to know the usual spacing
+    assert holes(cmds_from([0, 0, 0, 0])) == []
+
+
+def test_fixed_rate_replay_warns_of_holes_and_timestamps_do_not(tmp_path: Path, caplog) -> None:
+    commands = figure8(12)
+    commands = commands[:5] + [(t + 400_000_000, v, s) for t, v, s in commands[5:]]
+    bag = write_ours(tmp_path / "holes.bag", "ros1", commands)
+    caplog.set_level(logging.WARNING, "racecar_hw.bag_follow")
+    BagFollower(Bus(), FollowerParams(bag=str(bag), use_timestamps=True)).load()
+    assert not caplog.records
+    BagFollower(Bus(), FollowerParams(bag=str(bag))).load()
+    (record,) = caplog.records
+    assert "1 gap(s)" in record.message and "longest 450 ms, 0.2 s in" in record.message
+    assert "use_timestamps" in record.message
 
 
 def test_params_validate() -> None:
