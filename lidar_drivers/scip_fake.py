@@ -45,7 +45,7 @@ from lidar_drivers.scip import (
     encode_time,
 )
 from lidar_drivers.scip_models import HokuyoModel, get_model
-from racecar_hw.clock import monotonic_ns
+from racecar_hw.clock import NS_PER_S, monotonic_ns
 from racecar_hw.fakepty import PtyPort
 
 TOO_NEAR = 2
@@ -202,7 +202,8 @@ class _Session:
                 status, fake._fail_status = fake._fail_status, None
                 await asyncio.shield(self.send(encode_reply(cmd.echo(remaining), status)))
             elif not fake._muted:
-                frame = fake.frame(cmd, cmd.echo(remaining), "99")
+                # measured on the sensor's own schedule, however late this host sends it
+                frame = fake.frame(cmd, cmd.echo(remaining), "99", at_ns=round(deadline * NS_PER_S))
                 handed_over = monotonic_ns()  # before the write: a reader may react before it returns
                 await asyncio.shield(self.send(frame))  # QT stops the stream between frames only
                 fake.scans_sent += 1
@@ -257,9 +258,10 @@ class FakeHokuyo:
 
     # --- the device clock and measurement ---------------------------------------------------
 
-    def time_ms(self) -> int:
-        """The device's millisecond counter (24 bits)."""
-        return ((monotonic_ns() - self._boot_ns) // 1_000_000) & 0xFFFFFF
+    def time_ms(self, at_ns: int | None = None) -> int:
+        """The device's millisecond counter (24 bits), now or at monotonic ``at_ns``."""
+        at = monotonic_ns() if at_ns is None else at_ns
+        return ((at - self._boot_ns) // 1_000_000) & 0xFFFFFF
 
     def reset_clock(self) -> None:
         self._boot_ns = monotonic_ns()
@@ -291,11 +293,11 @@ class FakeHokuyo:
             inten = i.max(axis=1)
         return dist, inten
 
-    def frame(self, cmd: ScanCommand, echo: str, status: str) -> bytes:
-        """One encoded scan reply for ``cmd`` measured now."""
-        now = monotonic_ns()
-        dist, inten = self.measure(cmd, now)
-        data = encode_scan(echo, status, self.time_ms(), dist, inten if cmd.intensities else None,
+    def frame(self, cmd: ScanCommand, echo: str, status: str, at_ns: int | None = None) -> bytes:
+        """One encoded scan reply for ``cmd`` measured at monotonic ``at_ns`` (default: now)."""
+        at = monotonic_ns() if at_ns is None else at_ns
+        dist, inten = self.measure(cmd, at)
+        data = encode_scan(echo, status, self.time_ms(at), dist, inten if cmd.intensities else None,
                            cmd.width)
         if self._corrupt:
             self._corrupt = False
