@@ -26,7 +26,10 @@ TOLERATE_STALLS = "safety.scan_timeout_s=0.5"
 def _run(scenario_overrides: list[str], overrides: list[str] = ()) -> dict:
     scenario = load_scenario("figure8", scenario_overrides)
     loopback = Loopback(scenario, overrides=[TOLERATE_STALLS, *overrides])
-    return asyncio.run(loopback.run()).report
+    report = asyncio.run(loopback.run()).report
+    print(json.dumps({k: report.get(k) for k in ("final_pose", "distance_m", "collided",
+                                                  "safety_interventions_by_reason", "control")}))
+    return report
 
 
 def _pose(report: dict) -> tuple[float, float, float]:

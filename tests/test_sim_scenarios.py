@@ -24,7 +24,14 @@ from racecar_hw.sim.trajectory import read_csv
 def run(name: str, tmp_path, *overrides: str, duration_s: float | None = None) -> SimResult:
     scenario = load_scenario(name, list(overrides))
     loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s)
-    return asyncio.run(loopback.run())
+    result = asyncio.run(loopback.run())
+    # shown with a failure: interventions by reason and missed control ticks tell a loaded
+    # machine's hold-ups (stale_scan, missed ticks) from a wrong outcome
+    r = result.report
+    print(name, json.dumps({k: r.get(k) for k in ("final_pose", "distance_m", "collided",
+                                                   "safety_interventions_by_reason",
+                                                   "mux_switches", "control", "vesc", "lidar")}))
+    return result
 
 
 def mean_speed(samples, t0: float, t1: float) -> float:
