@@ -225,13 +225,13 @@ def holes(commands: Sequence[Command], factor: float = 3.0) -> list[Hole]:
     """
     if len(commands) < 3:
         return []
-    gaps = sorted(b.t_ns - a.t_ns for a, b in zip(commands, commands[1:], strict=False))
-    usual = gaps[len(gaps) // 2]
+    gaps = [b.t_ns - a.t_ns for a, b in zip(commands, commands[1:], strict=False)]
+    usual = sorted(gaps)[len(gaps) // 2]
     if usual <= 0:
         return []
     t0 = commands[0].t_ns
-    return [Hole((a.t_ns - t0) / NS_PER_S, (b.t_ns - a.t_ns) / NS_PER_S)
-            for a, b in zip(commands, commands[1:], strict=False) if b.t_ns - a.t_ns > factor * usual]
+    return [Hole((commands[i].t_ns - t0) / NS_PER_S, gap / NS_PER_S)
+            for i, gap in enumerate(gaps) if gap > factor * usual]
 
 
 class CommandSync:
