@@ -23,12 +23,11 @@ import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
 from table import print_rows
 
-from racecar_hw.bag_follow import NAV0_TOPIC, TELEOP_TOPIC, BagFollower, FollowerParams
-from racecar_hw.bag_record import Recorder, record_params
-from racecar_hw.bagtypes import ros1_types
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns
-from racecar_hw.messages import (
+from racecar_hw.bags.follow import NAV0_TOPIC, TELEOP_TOPIC, BagFollower, FollowerParams
+from racecar_hw.bags.record import Recorder, record_params
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     Bool,
@@ -56,6 +55,7 @@ from racecar_hw.messages import (
     VescState,
     VescStateStamped,
 )
+from racecar_hw.rosmsg.typestore import ros1_types
 
 FORMATS = ("mcap", "sqlite3", "ros1")
 RECORDER_CPU_TARGET = 1.5  # percent of one core at the nominal mix

@@ -42,7 +42,7 @@ from table import print_rows
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
-from racecar_hw.devicethread import DeviceThread
+from racecar_hw.runtime.devicethread import DeviceThread
 from vesc.codec import SetCurrent, SetCurrentBrake, SetRpm
 from vesc.fake import FakeVesc
 

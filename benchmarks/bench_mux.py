@@ -14,9 +14,9 @@ from table import print_rows
 
 from mux.node import CommandMux
 from mux.params import LockParams, MuxParams
-from racecar_hw.bus import Bus
-from racecar_hw.clock import monotonic_ns
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, Bool
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Bool
 
 TARGET_TICK_US = 100.0
 

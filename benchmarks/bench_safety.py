@@ -19,7 +19,7 @@ import time
 import numpy as np
 from table import print_rows
 
-from racecar_hw.messages import AckermannDrive, LaserScan
+from racecar_hw.base.messages import AckermannDrive, LaserScan
 from safety.controller import SafetyController
 from safety.params import SafetyParams
 

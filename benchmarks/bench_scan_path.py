@@ -27,8 +27,8 @@ from lidar_drivers.params import LidarParams
 from lidar_drivers.scip import ResponseDecoder, ScanCommand, SensorParams, encode_scan
 from lidar_drivers.scip_driver import HokuyoDriver
 from lidar_drivers.scip_models import get_model
-from racecar_hw.bus import Bus
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.messages import AckermannDrive
 from safety.controller import SafetyController
 from safety.params import SafetyParams
 from vesc.ackermann import AckermannConversion

@@ -22,9 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from table import print_rows
 
-from racecar_hw.bus import Bus  # noqa: E402
-from racecar_hw.fakepty import PtyPort  # noqa: E402
-from racecar_hw.messages import AckermannDrive  # noqa: E402
+from racecar_hw.base.bus import Bus  # noqa: E402
+from racecar_hw.base.messages import AckermannDrive  # noqa: E402
+from racecar_hw.runtime.fakepty import PtyPort  # noqa: E402
 from vesc.codec import (  # noqa: E402
     FwVersion,
     FwVersionRequest,

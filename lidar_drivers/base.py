@@ -24,11 +24,11 @@ from typing import Protocol
 import numpy as np
 
 from lidar_drivers.params import LidarParams
-from racecar_hw.bus import Bus
-from racecar_hw.clock import monotonic_ns
-from racecar_hw.errors import DeviceError, DeviceIOError, DeviceTimeout
-from racecar_hw.link import Link
-from racecar_hw.messages import LaserScan
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.base.errors import DeviceError, DeviceIOError, DeviceTimeout
+from racecar_hw.base.link import Link
+from racecar_hw.base.messages import LaserScan
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class LidarDriver(ABC):
     """One lidar: connect, configure, stream scans to the bus, reconnect forever.
 
     Subclasses implement :meth:`_session`, one connection's life: open the link, read the
-    device's geometry, stream, and return or raise :class:`~racecar_hw.errors.DeviceError` when the
+    device's geometry, stream, and return or raise :class:`~racecar_hw.base.errors.DeviceError` when the
     link is lost. :meth:`run` owns the reconnect loop with backoff, statistics and logging.
     """
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from racecar_hw.params import param
+from racecar_hw.base.params import param
 
 #: Models racecar-hw drives, by family.
 HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx")

@@ -10,8 +10,8 @@ from typing import Any
 
 from lidar_drivers.base import LidarDriver, RangeSource
 from lidar_drivers.params import HOKUYO_MODELS, MODELS, RPLIDAR_MODELS, LidarParams
-from racecar_hw.bus import Bus
-from racecar_hw.errors import ConfigError
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import ConfigError
 
 #: Serial baud rate by model (reference lidars.md 2.8; Hokuyo USB is nominally 115200).
 DEFAULT_BAUD: dict[str, int] = {

@@ -21,7 +21,7 @@ Measurements come out in batches of numpy arrays (:class:`Measurements`), in tim
 
 Nothing from the device raises: garbage is skipped up to the next plausible frame and counted in
 :class:`CodecStats`. Only a caller asking for something the protocol cannot say raises
-:class:`~racecar_hw.errors.LocalProtocolError`.
+:class:`~racecar_hw.base.errors.LocalProtocolError`.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from racecar_hw.errors import LocalProtocolError
+from racecar_hw.base.errors import LocalProtocolError
 
 SYNC = 0xA5
 SYNC2 = 0x5A

@@ -43,10 +43,10 @@ from lidar_drivers.rplidar_codec import (
     ScanStarted,
 )
 from lidar_drivers.rplidar_scan import ScanAssembler
-from racecar_hw.bus import Bus
-from racecar_hw.clock import monotonic_ns, wall_ns
-from racecar_hw.errors import ConfigError, DeviceError, DeviceIOError, DeviceTimeout
-from racecar_hw.link import Link, open_link
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns, wall_ns
+from racecar_hw.base.errors import ConfigError, DeviceError, DeviceIOError, DeviceTimeout
+from racecar_hw.base.link import Link, open_link
 
 log = logging.getLogger(__name__)
 

@@ -50,8 +50,8 @@ from lidar_drivers.rplidar_codec import (
     encode_scan_descriptor,
 )
 from lidar_drivers.rplidar_models import RplidarModel
-from racecar_hw.clock import monotonic_ns
-from racecar_hw.fakepty import PtyPort
+from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.runtime.fakepty import PtyPort
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from racecar_hw.errors import ConfigError
+from racecar_hw.base.errors import ConfigError
 
 
 @dataclass(frozen=True)

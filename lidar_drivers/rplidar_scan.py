@@ -32,7 +32,7 @@ import numpy as np
 
 from lidar_drivers.base import ScanGeometry
 from lidar_drivers.rplidar_codec import Measurements
-from racecar_hw.messages import Header, LaserScan, Time
+from racecar_hw.base.messages import Header, LaserScan, Time
 
 MIN_BEAMS = 16
 #: Beams per samples of the first revolution: beams a little wider than the sample spacing, so

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from racecar_hw.errors import LocalProtocolError, RemoteProtocolError
+from racecar_hw.base.errors import LocalProtocolError, RemoteProtocolError
 
 LINE_CHARS = 64
 """Characters of encoded data per data line."""

@@ -23,7 +23,7 @@ this overestimates there), and 0 over TCP (a frame takes under 1 ms at 100 Mbit/
 device's own millisecond timestamp is not used for the stamp.
 
 Reconnects (the base class loop): a lost link, a reply timeout or no scan for
-``max(stale_timeout_s, 3 scan periods)`` raise :class:`~racecar_hw.errors.DeviceError`. Status
+``max(stale_timeout_s, 3 scan periods)`` raise :class:`~racecar_hw.base.errors.DeviceError`. Status
 codes other than 00/99 are logged with their meaning and kept in :attr:`last_error`; a hardware
 fault (50..97) or "laser off" during streaming restarts the session.
 """
@@ -53,11 +53,11 @@ from lidar_drivers.scip import (
     SensorParams,
     is_hardware_fault,
 )
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, wall_ns
-from racecar_hw.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
-from racecar_hw.link import Link, SerialLink, TcpLink, parse_host_port
-from racecar_hw.messages import Header, LaserScan, Time
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, wall_ns
+from racecar_hw.base.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
+from racecar_hw.base.link import Link, SerialLink, TcpLink, parse_host_port
+from racecar_hw.base.messages import Header, LaserScan, Time
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ Each TCP connection is its own session (laser off, standby); the pty has one ses
 until :meth:`unplug` (power loss). Faults for tests: :meth:`inject_garbage`,
 :meth:`corrupt_next_checksum`, :meth:`split_writes`, :meth:`fail_next_frame` (an error status),
 :meth:`mute` (a silent device), :meth:`unplug`/:meth:`replug` (pty) and :meth:`drop_connection`
-(TCP). Run :meth:`serve` in a :class:`~racecar_hw.devicethread.DeviceThread`;
+(TCP). Run :meth:`serve` in a :class:`~racecar_hw.runtime.devicethread.DeviceThread`;
 the fault methods may be called from any thread.
 """
 
@@ -45,8 +45,8 @@ from lidar_drivers.scip import (
     encode_time,
 )
 from lidar_drivers.scip_models import HokuyoModel, get_model
-from racecar_hw.clock import NS_PER_S, monotonic_ns
-from racecar_hw.fakepty import PtyPort
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.runtime.fakepty import PtyPort
 
 TOO_NEAR = 2
 """Error code for a return closer than DMIN."""

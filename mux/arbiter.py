@@ -33,8 +33,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from mux.params import MuxParams
-from racecar_hw.clock import NS_PER_S, nanoseconds
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.clock import NS_PER_S, nanoseconds
+from racecar_hw.base.messages import AckermannDrive
 
 IDLE = "idle"
 ESTOP = "estop"

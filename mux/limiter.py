@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 
 from mux.params import MuxParams
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.messages import AckermannDrive
 
 
 class RateLimiter:

@@ -35,9 +35,9 @@ from mux.arbiter import (
 )
 from mux.limiter import RateLimiter
 from mux.params import MuxParams
-from racecar_hw.bus import Bus, Subscription
-from racecar_hw.clock import NS_PER_S, monotonic_ns, nanoseconds, wall_ns
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, nanoseconds, wall_ns
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     Bool,
@@ -364,7 +364,7 @@ class CommandMux:
         """Tick at ``rate_hz`` on absolute deadlines until cancelled; publish one stop on exit.
 
         Deadlines sit on the fixed grid of whole periods of the clock (as those of
-        :class:`~racecar_hw.ticker.PeriodicTimer`), so the rate does not drift; a loop that
+        :class:`~racecar_hw.runtime.ticker.PeriodicTimer`), so the rate does not drift; a loop that
         falls behind skips to the next deadline on the grid (counted in :attr:`overruns`) instead
         of publishing a burst, and tells the limiter how many periods passed.
         """

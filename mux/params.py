@@ -5,9 +5,9 @@ the topic (monotonic clock), never from its header stamp. The defaults keep the 
 names (MIT ``mux.launch`` layout, flattened into one mux): safety above teleop above ``nav_0`` ..
 ``nav_3``, each with a 0.2 s timeout, and a zero command when nothing is fresh.
 
-Build from YAML with ``racecar_hw.params.build(MuxParams, mapping, "mux")``. Cross-field rules
+Build from YAML with ``racecar_hw.base.params.build(MuxParams, mapping, "mux")``. Cross-field rules
 (unique priorities, names and topics) are checked when the instance is created and raise
-:class:`~racecar_hw.errors.ConfigError` naming the key under the prefix ``mux``; call
+:class:`~racecar_hw.base.errors.ConfigError` naming the key under the prefix ``mux``; call
 :meth:`MuxParams.validate` with another prefix when the mux sits elsewhere in a larger config.
 """
 
@@ -16,8 +16,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.params import param
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import param
 
 #: Source names the mux uses for itself; an input may not take one of them.
 RESERVED_SOURCES: tuple[str, ...] = ("idle", "estop", "fault")

@@ -14,8 +14,8 @@ import sys
 from collections.abc import Sequence
 
 from racecar_hw import __version__
-from racecar_hw.console import setup_logging
-from racecar_hw.errors import RacecarError
+from racecar_hw.base.errors import RacecarError
+from racecar_hw.runtime.console import setup_logging
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = (

@@ -3,7 +3,7 @@
 This file plays the role a ROS launch file plays. Each top-level key is a section; optional
 components have ``enabled``. Every parameter has a documented default
 (``racecar-hw check-config --describe`` lists them all); unknown keys and bad values are refused
-at start with a :class:`~racecar_hw.errors.ConfigError` naming the key and what is allowed.
+at start with a :class:`~racecar_hw.base.errors.ConfigError` naming the key and what is allowed.
 
 Shipped configs: ``car.yaml`` (real devices under systemd) and ``sim.yaml`` (the fake-hardware
 loopback), in the package's ``config/`` directory.
@@ -20,20 +20,20 @@ import yaml
 
 from lidar_drivers.params import RPLIDAR_MODELS, LidarParams
 from mux.params import MuxParams
-from racecar_hw.arming import ArmingParams
-from racecar_hw.bag_follow import FollowerParams
-from racecar_hw.bag_record import RecorderParams
-from racecar_hw.errors import ConfigError
-from racecar_hw.figure8 import Figure8Params
-from racecar_hw.mavlink_gcs import MavlinkParams
-from racecar_hw.overrides import apply_override, load_yaml, merge
-from racecar_hw.params import build, describe, param, to_dict
-from racecar_hw.resources import config_file
-from racecar_hw.scan_summary import ScanSummaryParams
-from racecar_hw.setpoint import SetpointParams
-from racecar_hw.teleop_gamepad import GamepadParams
-from racecar_hw.teleop_keyboard import KeyboardParams
-from racecar_hw.transforms import StaticTransformParams, build_static_transforms
+from racecar_hw.bags.follow import FollowerParams
+from racecar_hw.bags.record import RecorderParams
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.overrides import apply_override, load_yaml, merge
+from racecar_hw.base.params import build, describe, param, to_dict
+from racecar_hw.base.resources import config_file
+from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
+from racecar_hw.sources.figure8 import Figure8Params
+from racecar_hw.sources.scan_summary import ScanSummaryParams
+from racecar_hw.sources.setpoint import SetpointParams
+from racecar_hw.teleop.arming import ArmingParams
+from racecar_hw.teleop.gamepad import GamepadParams
+from racecar_hw.teleop.keyboard import KeyboardParams
+from racecar_hw.teleop.mavlink_gcs import MavlinkParams
 from safety.params import SafetyParams
 from vesc.params import VescParams
 

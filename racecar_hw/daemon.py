@@ -32,24 +32,24 @@ from typing import Any
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
 from mux.node import CommandMux
-from racecar_hw.arming import Arming
-from racecar_hw.bag_follow import BagFollower
-from racecar_hw.bag_record import Recorder
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.bags.follow import BagFollower
+from racecar_hw.bags.record import Recorder
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
+from racecar_hw.base.transforms import TfTree
 from racecar_hw.config import Config
-from racecar_hw.errors import ConfigError
-from racecar_hw.figure8 import Figure8Driver
-from racecar_hw.mavlink_gcs import MavlinkGcs
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, LaserScan
-from racecar_hw.scan_summary import ScanSummaryPublisher
-from racecar_hw.sdnotify import Notifier
-from racecar_hw.setpoint import SetpointRelay
-from racecar_hw.status import StatusPanel, StatusSnapshot
-from racecar_hw.teleop_gamepad import GamepadTeleop
-from racecar_hw.teleop_keyboard import KeyboardTeleop
-from racecar_hw.ticker import PeriodicTimer
-from racecar_hw.transforms import TfTree
+from racecar_hw.runtime.sdnotify import Notifier
+from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
+from racecar_hw.runtime.ticker import PeriodicTimer
+from racecar_hw.sources.figure8 import Figure8Driver
+from racecar_hw.sources.scan_summary import ScanSummaryPublisher
+from racecar_hw.sources.setpoint import SetpointRelay
+from racecar_hw.teleop.arming import Arming
+from racecar_hw.teleop.gamepad import GamepadTeleop
+from racecar_hw.teleop.keyboard import KeyboardTeleop
+from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
 from vesc.driver import VescDriver
 

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from racecar_hw.clock import NS_PER_S
-from racecar_hw.messages import AckermannDrive, LaserScan
+from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.messages import AckermannDrive, LaserScan
 from safety.arc import PathHit, SweptFootprint, free_distance, stopping_speed
 from safety.params import SafetyParams
 

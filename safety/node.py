@@ -9,7 +9,7 @@ forward cone is shorter than a threshold, it publishes a zero-speed AckermannDri
 mux's top-priority safety input at the scan rate, and publishes nothing otherwise so the mux falls
 through to the other sources once the input times out.
 
-All times are ``racecar_hw.clock.monotonic_ns`` unless a caller passes its own clock.
+All times are ``racecar_hw.base.clock.monotonic_ns`` unless a caller passes its own clock.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from racecar_hw.bus import Bus, Subscription
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.messages import AckermannDrive
 
 SYSTEM_PYTHON = "/usr/bin/python3"
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from racecar_hw.devicethread import DeviceThread
+from racecar_hw.runtime.devicethread import DeviceThread
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 BAGS = SHARED / "fixtures" / "bags"

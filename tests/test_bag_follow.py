@@ -1,4 +1,4 @@
-"""bag_follow: reading real and generated bags, clear errors, timing, and the follower on a real bus."""
+"""racecar_hw.bags.follow: reading real and generated bags, clear errors, timing, and the follower on a real bus."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
-from racecar_hw.bag_follow import (
+from racecar_hw.bags.follow import (
     NAV0_TOPIC,
     TELEOP_TOPIC,
     BagFollower,
@@ -25,11 +25,11 @@ from racecar_hw.bag_follow import (
     schedule,
     summarize_bag,
 )
-from racecar_hw.bagtypes import ros1_types, ros2_types
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns
-from racecar_hw.errors import BagError, ConfigError
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.errors import BagError, ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
 
 T0 = 1_700_000_000 * NS_PER_S
 
@@ -219,7 +219,7 @@ def test_fixed_rate_replay_warns_of_holes_and_timestamps_do_not(tmp_path: Path, 
     commands = figure8(12)
     commands = commands[:5] + [(t + 400_000_000, v, s) for t, v, s in commands[5:]]
     bag = write_ours(tmp_path / "holes.bag", "ros1", commands)
-    caplog.set_level(logging.WARNING, "racecar_hw.bag_follow")
+    caplog.set_level(logging.WARNING, "racecar_hw.bags.follow")
     BagFollower(Bus(), FollowerParams(bag=str(bag), use_timestamps=True)).load()
     assert not caplog.records
     BagFollower(Bus(), FollowerParams(bag=str(bag))).load()

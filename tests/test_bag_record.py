@@ -1,4 +1,4 @@
-"""bag_record: round trips through every format, read back by independent readers (the real
+"""racecar_hw.bags.record: round trips through every format, read back by independent readers (the real
 rosbag, the mcap packages), drops, splitting, and recovery after SIGKILL."""
 
 from __future__ import annotations
@@ -21,14 +21,13 @@ from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
-from racecar_hw.bag_follow import load_commands, summarize_bag
-from racecar_hw.bag_record import BagFile, Recorder, RecorderParams, record_params
-from racecar_hw.bag_recover import recover_bag, scan_mcap
-from racecar_hw.bagtypes import ros2_types
-from racecar_hw.bus import Bus
-from racecar_hw.clock import wall_ns
-from racecar_hw.errors import BagError, ConfigError
-from racecar_hw.messages import (
+from racecar_hw.bags.follow import load_commands, summarize_bag
+from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, record_params
+from racecar_hw.bags.recover import recover_bag, scan_mcap
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import wall_ns
+from racecar_hw.base.errors import BagError, ConfigError
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     Header,
@@ -38,6 +37,7 @@ from racecar_hw.messages import (
     Time,
     TransformStamped,
 )
+from racecar_hw.rosmsg.typestore import ros2_types
 
 CMD = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 ROOT = Path(__file__).resolve().parents[1]
@@ -197,9 +197,9 @@ def test_split_by_duration(tmp_path: Path) -> None:
 
 KILLED_RECORDER = textwrap.dedent("""
     import sys, time
-    from racecar_hw.bus import Bus
-    from racecar_hw.bag_record import Recorder, record_params
-    from racecar_hw.messages import AckermannDrive, AckermannDriveStamped
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.bags.record import Recorder, record_params
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped
     bus = Bus()
     rec = Recorder(bus, record_params(sys.argv[1], sys.argv[2], name="killed", flush_interval_s=0.05))
     rec.start()
@@ -298,7 +298,7 @@ def test_writer_drains_the_queue_on_its_own(tmp_path: Path) -> None:
 
 
 def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monkeypatch) -> None:
-    import racecar_hw.bag_record as bag_record
+    import racecar_hw.bags.record as bag_record
 
     monkeypatch.setattr(bag_record, "BATCH_S", 30.0)  # the writer's own wake-up is a minute away
     bus = Bus()

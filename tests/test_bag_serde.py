@@ -17,10 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from racecar_hw import messages
-from racecar_hw.bag_serde import Unsupported, generate
-from racecar_hw.bagtypes import MESSAGE_CLASSES, BagTypes, ros1_types, ros2_types
-from racecar_hw.messages import (
+from racecar_hw.base import messages
+from racecar_hw.base.messages import (
     DiagnosticArray,
     DiagnosticStatus,
     Header,
@@ -33,6 +31,8 @@ from racecar_hw.messages import (
     Time,
     TransformStamped,
 )
+from racecar_hw.rosmsg.serde import Unsupported, generate
+from racecar_hw.rosmsg.typestore import MESSAGE_CLASSES, BagTypes, ros1_types, ros2_types
 
 STORES = {1: ros1_types, 2: ros2_types}
 _INT_RANGES = {

@@ -1,4 +1,4 @@
-"""bagtypes: type hashes, the reference's worked bytes, and conversion round trips."""
+"""racecar_hw.rosmsg.typestore: type hashes, the reference's worked bytes, and conversion round trips."""
 
 from __future__ import annotations
 
@@ -9,9 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.bagtypes import MESSAGE_CLASSES, BagTypes, ros1_types, ros2_types
-from racecar_hw.errors import BagError
-from racecar_hw.messages import (
+from racecar_hw.base.errors import BagError
+from racecar_hw.base.messages import (
     CUSTOM_TYPES,
     AckermannDrive,
     AckermannDriveStamped,
@@ -21,6 +20,7 @@ from racecar_hw.messages import (
     Time,
     TransformStamped,
 )
+from racecar_hw.rosmsg.typestore import MESSAGE_CLASSES, BagTypes, ros1_types, ros2_types
 
 CDR_BYTES = ("000100000c000000590100000a000000626173655f6c696e6b0000000000803e000000000000c03f"
              "0000000000000000")

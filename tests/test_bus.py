@@ -7,9 +7,9 @@ import threading
 
 import pytest
 
-from racecar_hw.bus import Bus
-from racecar_hw.errors import TopicTypeError
-from racecar_hw.messages import AckermannDriveStamped, Bool, String
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import TopicTypeError
+from racecar_hw.base.messages import AckermannDriveStamped, Bool, String
 
 
 def test_publish_delivers_in_order_and_caches_latest():

@@ -9,7 +9,7 @@ import textwrap
 
 from conftest import wait_for
 
-from racecar_hw.console import QueuedStream
+from racecar_hw.runtime.console import QueuedStream
 
 
 def full_pipe() -> tuple[int, int]:
@@ -68,7 +68,7 @@ def test_a_daemon_whose_stderr_nobody_reads_still_runs_and_exits(tmp_path):
     # with a plain logging handler this child blocks for good once the pipe is full
     script = textwrap.dedent("""
         import logging
-        from racecar_hw.console import setup_logging
+        from racecar_hw.runtime.console import setup_logging
         setup_logging(logging.INFO)
         log = logging.getLogger("racecar_hw.test")
         for i in range(5000):

@@ -16,9 +16,9 @@ from conftest import wait_for
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.config import load_config
 from racecar_hw.daemon import ControlStats
-from racecar_hw.errors import ConfigError
 from vesc.codec import SetCurrentBrake, SetRpm, SetServoPosition
 from vesc.fake import FakeVesc
 
@@ -151,8 +151,8 @@ def test_follow_command_drives_the_vesc_and_exits_when_the_bag_ends(fakes, tmp_p
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
 
-    from racecar_hw.bagtypes import ros2_types
-    from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+    from racecar_hw.rosmsg.typestore import ros2_types
 
     vesc, lidar = fakes
     types = ros2_types()

@@ -10,18 +10,18 @@ from conftest import async_wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.bus import Bus
-from racecar_hw.errors import ConfigError
-from racecar_hw.figure8 import (
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDriveStamped
+from racecar_hw.base.params import build
+from racecar_hw.sources.figure8 import (
     Figure8Driver,
     Figure8Params,
     figure8_command,
     loop_duration_s,
     turn_radius_m,
 )
-from racecar_hw.messages import AckermannDriveStamped
-from racecar_hw.params import build
-from racecar_hw.setpoint import NAV0_TOPIC
+from racecar_hw.sources.setpoint import NAV0_TOPIC
 
 
 def test_loop_timing() -> None:

@@ -8,11 +8,11 @@ import pytest
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.params import LidarParams
-from racecar_hw.bus import Bus
-from racecar_hw.errors import DeviceError, DeviceIOError, DeviceTimeout
-from racecar_hw.fakepty import PtyPort
-from racecar_hw.link import SerialLink
-from racecar_hw.messages import LaserScan
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import DeviceError, DeviceIOError, DeviceTimeout
+from racecar_hw.base.link import SerialLink
+from racecar_hw.base.messages import LaserScan
+from racecar_hw.runtime.fakepty import PtyPort
 
 
 class LineLidar(LidarDriver):

@@ -6,9 +6,9 @@ import asyncio
 
 import pytest
 
-from racecar_hw.errors import DeviceIOError, DeviceNotFound
-from racecar_hw.fakepty import PtyPort
-from racecar_hw.link import SerialLink, TcpLink, open_link, parse_host_port
+from racecar_hw.base.errors import DeviceIOError, DeviceNotFound
+from racecar_hw.base.link import SerialLink, TcpLink, open_link, parse_host_port
+from racecar_hw.runtime.fakepty import PtyPort
 
 
 async def _open_pty_link(tmp_path) -> tuple[PtyPort, SerialLink]:

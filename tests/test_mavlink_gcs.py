@@ -21,20 +21,10 @@ from pymavlink import mavutil  # noqa: E402
 
 from mux.node import CommandMux  # noqa: E402
 from mux.params import MuxParams  # noqa: E402
-from racecar_hw.arming import Arming  # noqa: E402
-from racecar_hw.bus import Bus  # noqa: E402
-from racecar_hw.clock import wall_ns  # noqa: E402
-from racecar_hw.errors import ConfigError  # noqa: E402
-from racecar_hw.mavlink_gcs import (  # noqa: E402
-    MavlinkGcs,
-    MavlinkParams,
-    load_signing_key,
-    obstacle_bins,
-    odom_to_ned,
-    signing_timestamp,
-    write_signing_key,
-)
-from racecar_hw.messages import (  # noqa: E402
+from racecar_hw.base.bus import Bus  # noqa: E402
+from racecar_hw.base.clock import wall_ns  # noqa: E402
+from racecar_hw.base.errors import ConfigError  # noqa: E402
+from racecar_hw.base.messages import (  # noqa: E402
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
@@ -44,6 +34,16 @@ from racecar_hw.messages import (  # noqa: E402
     Quaternion,
     VescState,
     VescStateStamped,
+)
+from racecar_hw.teleop.arming import Arming  # noqa: E402
+from racecar_hw.teleop.mavlink_gcs import (  # noqa: E402
+    MavlinkGcs,
+    MavlinkParams,
+    load_signing_key,
+    obstacle_bins,
+    odom_to_ned,
+    signing_timestamp,
+    write_signing_key,
 )
 
 mav = mavutil.mavlink

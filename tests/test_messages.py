@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from racecar_hw import messages as m
+from racecar_hw.base import messages as m
 
 
 def _message_classes():

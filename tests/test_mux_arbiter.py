@@ -20,7 +20,7 @@ from mux.arbiter import (
     stopped,
 )
 from mux.params import MuxParams
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.messages import AckermannDrive
 
 MS = 1_000_000
 RUN = MuxState.RUNNING

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from mux.limiter import RateLimiter
 from mux.params import MuxParams
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.messages import AckermannDrive
 
 TOL = 1e-9
 

@@ -15,10 +15,10 @@ from conftest import async_wait_for
 from mux.arbiter import MuxState
 from mux.node import CommandMux, MuxNode, next_deadline
 from mux.params import LockParams, MuxParams
-from racecar_hw.bus import Bus
-from racecar_hw.clock import monotonic_ns, nanoseconds
-from racecar_hw.errors import TopicTypeError
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns, nanoseconds
+from racecar_hw.base.errors import TopicTypeError
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     Bool,

@@ -7,8 +7,8 @@ import dataclasses
 import pytest
 
 from mux.params import InputParams, LockParams, MuxParams
-from racecar_hw.errors import ConfigError
-from racecar_hw.params import build, describe
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import build, describe
 
 LOW = "/vesc/low_level/ackermann_cmd_mux"
 HIGH = "/vesc/high_level/ackermann_cmd_mux"

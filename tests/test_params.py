@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.params import build, describe, param, to_dict
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import build, describe, param, to_dict
 
 
 @dataclass

@@ -29,7 +29,7 @@ from lidar_drivers.rplidar_codec import (
     encode_samplerate,
     encode_scan_descriptor,
 )
-from racecar_hw.errors import LocalProtocolError
+from racecar_hw.base.errors import LocalProtocolError
 
 INFO = DeviceInfo(0x18, 1, 29, 7, bytes(range(16)))
 

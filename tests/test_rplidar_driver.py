@@ -17,9 +17,9 @@ from lidar_drivers.rplidar_codec import Command
 from lidar_drivers.rplidar_driver import RplidarDriver
 from lidar_drivers.rplidar_fake import FakeRplidar
 from lidar_drivers.rplidar_models import MODELS
-from racecar_hw.bus import Bus
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import LaserScan
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import LaserScan
 
 ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned: no symmetry
 

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import AckermannDrive, Header, LaserScan, Time
-from racecar_hw.params import build
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDrive, Header, LaserScan, Time
+from racecar_hw.base.params import build
 from safety.controller import SafetyController, planar_transform
 from safety.params import SafetyParams
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import async_wait_for
 
-from racecar_hw.bus import Bus
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
@@ -20,7 +20,7 @@ from racecar_hw.messages import (
     Odometry,
     Time,
 )
-from racecar_hw.params import build
+from racecar_hw.base.params import build
 from safety import ConeSafety, SafetyNode, SafetyParams
 from safety.params import MUX_SAFETY_TOPIC, ConeParams
 

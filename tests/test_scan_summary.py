@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from lidar_drivers.base import RandomRangeSource, ScanGeometry
-from racecar_hw.bus import Bus
-from racecar_hw.messages import LaserScan, OpenSpace, ScanRange, stamp_now
-from racecar_hw.scan_summary import ScanSummaryParams, ScanSummaryPublisher, open_space, scan_range
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.messages import LaserScan, OpenSpace, ScanRange, stamp_now
+from racecar_hw.sources.scan_summary import ScanSummaryParams, ScanSummaryPublisher, open_space, scan_range
 
 #: The MIT lab 1C fake scan: -2/3 pi .. 2/3 pi every pi/300, ranges 1..10 m, a beam at both ends.
 SEED = ScanGeometry(angle_min=-2 / 3 * math.pi, angle_max=2 / 3 * math.pi, angle_increment=math.pi / 300,

@@ -16,10 +16,10 @@ from lidar_drivers.registry import DEFAULT_BAUD, make_driver, make_fake
 from lidar_drivers.scip import ScanCommand, SensorParams, encode_scan
 from lidar_drivers.scip_driver import HokuyoDriver, crop_steps, ranges_m
 from lidar_drivers.scip_fake import FakeHokuyo
-from racecar_hw.bus import Bus
-from racecar_hw.clock import wall_ns
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import LaserScan
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import LaserScan
 
 ROOM = RoomRangeSource(8, 6)
 FAST = {"reconnect_backoff_min_s": 0.05, "reconnect_backoff_max_s": 0.2}

@@ -23,7 +23,7 @@ from lidar_drivers.scip import (
 )
 from lidar_drivers.scip_fake import FakeHokuyo
 from lidar_drivers.scip_models import MODELS
-from racecar_hw.link import Link, SerialLink, TcpLink
+from racecar_hw.base.link import Link, SerialLink, TcpLink
 
 
 @pytest.fixture

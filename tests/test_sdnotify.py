@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from racecar_hw.sdnotify import Notifier, watchdog_loop
+from racecar_hw.runtime.sdnotify import Notifier, watchdog_loop
 
 
 @pytest.fixture

@@ -10,12 +10,12 @@ from conftest import async_wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.bus import Bus
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import AckermannDriveStamped, Float64, String
-from racecar_hw.params import build
-from racecar_hw.setpoint import NAV0_TOPIC, Pose2D, SetpointParams, SetpointRelay, parse_pose
-from racecar_hw.ticker import Ticker
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDriveStamped, Float64, String
+from racecar_hw.base.params import build
+from racecar_hw.runtime.ticker import Ticker
+from racecar_hw.sources.setpoint import NAV0_TOPIC, Pose2D, SetpointParams, SetpointRelay, parse_pose
 
 finite = st.floats(-1e6, 1e6, allow_nan=False)
 

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.params import build
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import build
 from racecar_hw.sim.car import (
     CLEARANCE_RANGE_M,
     CarParams,

@@ -15,9 +15,9 @@ from conftest import async_wait_for
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
-from racecar_hw.mavlink_gcs import write_signing_key  # noqa: E402
 from racecar_hw.sim.loopback import Loopback  # noqa: E402
 from racecar_hw.sim.scenario import load_scenario  # noqa: E402
+from racecar_hw.teleop.mavlink_gcs import write_signing_key  # noqa: E402
 
 mav = mavutil.mavlink
 

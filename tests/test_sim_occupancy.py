@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from PIL import Image
 
-from racecar_hw.errors import ConfigError, RacecarError
+from racecar_hw.base.errors import ConfigError, RacecarError
 from racecar_hw.sim.occupancy import MapError, OccupancyMap, image_to_grid, load_map, load_shipped_map
 
 YAML = """image: {image}

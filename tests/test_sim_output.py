@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from racecar_hw.errors import RacecarError
-from racecar_hw.resources import config_file
+from racecar_hw.base.errors import RacecarError
+from racecar_hw.base.resources import config_file
 from racecar_hw.sim import mapgen
 from racecar_hw.sim.car import CarParams, Collider
 from racecar_hw.sim.occupancy import load_map, load_shipped_map

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from conftest import wait_for
 
-from racecar_hw.clock import monotonic_ns
-from racecar_hw.devicethread import DeviceThread
-from racecar_hw.errors import ConfigError
+from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.occupancy import load_shipped_map
 from racecar_hw.sim.world import World

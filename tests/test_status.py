@@ -10,7 +10,7 @@ import pytest
 from conftest import async_wait_for
 from rich.console import Console
 
-from racecar_hw.status import StatusPanel, StatusSnapshot, plain_line, render
+from racecar_hw.runtime.status import StatusPanel, StatusSnapshot, plain_line, render
 
 FULL = StatusSnapshot(speed_mps=1.25, steering_rad=-0.15, mux_source="nav_0", battery_v=11.8,
                       scan_rate_hz=39.9, safety_state="limiting", safety_allowed_mps=0.5,

@@ -7,9 +7,9 @@ from hypothesis import strategies as st
 
 from mux.node import CommandMux
 from mux.params import MuxParams
-from racecar_hw.arming import Arming, ArmingChange, ArmingParams
-from racecar_hw.bus import Bus
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped
+from racecar_hw.teleop.arming import Arming, ArmingChange, ArmingParams
 
 
 def test_starts_as_configured_and_reports_changes() -> None:

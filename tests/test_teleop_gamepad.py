@@ -14,11 +14,11 @@ from conftest import async_wait_for
 from hypothesis import given
 from hypothesis import strategies as st
 
-from racecar_hw.arming import Arming
-from racecar_hw.bus import Bus
-from racecar_hw.errors import ConfigError, DeviceNotFound, RemoteProtocolError
-from racecar_hw.messages import AckermannDriveStamped, Bool
-from racecar_hw.teleop_gamepad import (
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import ConfigError, DeviceNotFound, RemoteProtocolError
+from racecar_hw.base.messages import AckermannDriveStamped, Bool
+from racecar_hw.teleop.arming import Arming
+from racecar_hw.teleop.gamepad import (
     ABS_RX,
     ABS_Y,
     BTN_START,

@@ -12,10 +12,10 @@ from conftest import async_wait_for
 from hypothesis import given
 from hypothesis import strategies as st
 
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S
-from racecar_hw.messages import AckermannDriveStamped
-from racecar_hw.teleop_keyboard import Key, KeyboardParams, KeyboardState, KeyboardTeleop, KeyDecoder
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.messages import AckermannDriveStamped
+from racecar_hw.teleop.keyboard import Key, KeyboardParams, KeyboardState, KeyboardTeleop, KeyDecoder
 
 UP, DOWN, RIGHT, LEFT = b"\x1b[A", b"\x1b[B", b"\x1b[C", b"\x1b[D"
 

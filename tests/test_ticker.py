@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from racecar_hw.ticker import PeriodicTimer, _catch_up
+from racecar_hw.runtime.ticker import PeriodicTimer, _catch_up
 
 
 def test_catch_up_skips_whole_missed_periods() -> None:

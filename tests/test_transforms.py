@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import TransformStamped
-from racecar_hw.transforms import (
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import TransformStamped
+from racecar_hw.base.transforms import (
     SEED_CAMERA_TRANSFORMS,
     StaticTransform,
     StaticTransformParams,

@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.clock import NS_PER_S
-from racecar_hw.errors import ConfigError, LocalProtocolError
-from racecar_hw.messages import AckermannDrive
-from racecar_hw.params import build, describe
+from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.errors import ConfigError, LocalProtocolError
+from racecar_hw.base.messages import AckermannDrive
+from racecar_hw.base.params import build, describe
 from vesc.ackermann import AckermannConversion
 from vesc.odometry import OdometryIntegrator
 from vesc.params import VescParams

@@ -38,7 +38,7 @@ def test_vesc_info_without_a_device(tmp_path, capsys):
 
 
 def test_vesc_info_times_out_on_a_silent_port(tmp_path, capsys):
-    from racecar_hw.fakepty import PtyPort
+    from racecar_hw.runtime.fakepty import PtyPort
 
     with PtyPort(str(tmp_path / "silent")) as port:
         assert main(["vesc-info", "--port", port.path, "--timeout", "0.3"]) == 1

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from racecar_hw.errors import LocalProtocolError
+from racecar_hw.base.errors import LocalProtocolError
 from vesc.codec import (
     MAX_PAYLOAD,
     Alive,

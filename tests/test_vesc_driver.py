@@ -10,9 +10,9 @@ import time
 import pytest
 from conftest import async_wait_for
 
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns
-from racecar_hw.messages import AckermannDrive, Float64, Odometry, TFMessage, VescStateStamped
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.messages import AckermannDrive, Float64, Odometry, TFMessage, VescStateStamped
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
     Alive,

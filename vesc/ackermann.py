@@ -9,7 +9,7 @@ Speed is first clamped to +-speed_max_mps and the steering angle (rad, positive 
 +-steering_max_rad, so the limits are symmetric in SI units; the servo value is then clamped to
 [servo_min, servo_max] as a last guard for the mechanical stops. ``invert_motor`` and
 ``invert_servo`` negate the respective gain. NaN or infinite input is refused with
-:class:`~racecar_hw.errors.LocalProtocolError`; the caller brakes instead.
+:class:`~racecar_hw.base.errors.LocalProtocolError`; the caller brakes instead.
 
 Defaults are those of the F1TENTH stack (``f1tenth_stack/config/vesc.yaml``): gain 4614,
 offset 0, servo gain -1.2135, servo offset 0.5304, servo range 0.15..0.85.
@@ -20,8 +20,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from racecar_hw.errors import LocalProtocolError
-from racecar_hw.messages import AckermannDrive
+from racecar_hw.base.errors import LocalProtocolError
+from racecar_hw.base.messages import AckermannDrive
 from vesc.params import VescParams
 
 

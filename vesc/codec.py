@@ -14,7 +14,7 @@ commands and decodes replies; the device (the fake VESC) decodes requests and co
 replies. The decoder never raises on input: a bad start byte, length, CRC or end byte drops ONE
 byte and retries (as the firmware does), counted in :class:`CodecStats`; an unknown or malformed
 packet comes out as :class:`RawPacket`. Encoding refuses NaN, infinities and values the wire
-cannot carry with :class:`~racecar_hw.errors.LocalProtocolError`.
+cannot carry with :class:`~racecar_hw.base.errors.LocalProtocolError`.
 
 GET_VALUES replies change layout with the firmware (see :func:`values_layout`); the codec picks
 the layout from :attr:`VescCodec.firmware`, which the host codec sets itself when it decodes a
@@ -30,7 +30,7 @@ import struct
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from racecar_hw.errors import LocalProtocolError
+from racecar_hw.base.errors import LocalProtocolError
 
 START_SHORT = 0x02
 START_LONG = 0x03

@@ -36,11 +36,11 @@ import time
 from dataclasses import dataclass
 from typing import TypeVar
 
-from racecar_hw.bus import Bus
-from racecar_hw.clock import monotonic_ns, nanoseconds, seconds, wall_ns
-from racecar_hw.errors import DeviceError, DeviceIOError, DeviceTimeout, LocalProtocolError
-from racecar_hw.link import SerialLink, find_serial_port
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns, nanoseconds, seconds, wall_ns
+from racecar_hw.base.errors import DeviceError, DeviceIOError, DeviceTimeout, LocalProtocolError
+from racecar_hw.base.link import SerialLink, find_serial_port
+from racecar_hw.base.messages import (
     AckermannDrive,
     Float64,
     Header,
@@ -50,7 +50,7 @@ from racecar_hw.messages import (
     VescState,
     VescStateStamped,
 )
-from racecar_hw.ticker import PeriodicTimer
+from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
     TIMEOUT_RESETTING,
@@ -346,7 +346,7 @@ class VescDriver:
     async def _tick_loop(self, link: SerialLink) -> None:
         """FW_VERSION until the VESC answers, then GET_VALUES polls from a loop timer until the link closes.
 
-        The polls run as :class:`~racecar_hw.ticker.PeriodicTimer` callbacks on absolute deadlines
+        The polls run as :class:`~racecar_hw.runtime.ticker.PeriodicTimer` callbacks on absolute deadlines
         (missed deadlines are skipped, never burst), so a poll wakes no task.
         """
         loop = asyncio.get_running_loop()

@@ -1,6 +1,6 @@
 """A fake VESC speaking the real protocol over a pty, with a simple motor and battery model.
 
-Run :meth:`FakeVesc.serve` in a :class:`~racecar_hw.devicethread.DeviceThread` (its own loop); any
+Run :meth:`FakeVesc.serve` in a :class:`~racecar_hw.runtime.devicethread.DeviceThread` (its own loop); any
 client opens :attr:`FakeVesc.path` like ``/dev/ttyACM0``. The fake decodes requests with the same
 :class:`~vesc.codec.VescCodec` as the driver (device role) and replies in the GET_VALUES layout of
 its firmware version.
@@ -38,8 +38,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
-from racecar_hw.clock import monotonic_ns, seconds
-from racecar_hw.fakepty import PtyPort
+from racecar_hw.base.clock import monotonic_ns, seconds
+from racecar_hw.runtime.fakepty import PtyPort
 from vesc.codec import (
     TIMEOUT_RESETTING,
     Alive,

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from racecar_hw.clock import seconds
-from racecar_hw.messages import (
+from racecar_hw.base.clock import seconds
+from racecar_hw.base.messages import (
     Header,
     Odometry,
     Point,

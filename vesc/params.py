@@ -11,13 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.params import param
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import param
 
 
 @dataclass
 class VescParams:
-    """Everything the VESC driver needs; build with ``racecar_hw.params.build(VescParams, data)``."""
+    """Everything the VESC driver needs; build with ``racecar_hw.base.params.build(VescParams, data)``."""
 
     # --- link
     port: str = param("/dev/vesc", "serial device path or pyserial URL (spy://, socket://); "

@@ -7,12 +7,12 @@ import asyncio
 
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-from racecar_hw.bag_follow import BagFollower
+from racecar_hw.bags.follow import BagFollower
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
-from racecar_hw.errors import ConfigError
-from racecar_hw.params import build
 
 
 def register(sub: argparse._SubParsersAction) -> None:

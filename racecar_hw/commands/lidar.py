@@ -12,11 +12,11 @@ import time
 from lidar_drivers.base import LidarDriver, RandomRangeSource, RangeSource, RoomRangeSource, summarize
 from lidar_drivers.params import MODELS, LidarParams
 from lidar_drivers.registry import family, make_driver, make_fake
-from racecar_hw.bus import Bus
-from racecar_hw.devicethread import DeviceThread
-from racecar_hw.errors import DeviceError
-from racecar_hw.link import parse_host_port
-from racecar_hw.messages import LaserScan
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import DeviceError
+from racecar_hw.base.link import parse_host_port
+from racecar_hw.base.messages import LaserScan
+from racecar_hw.runtime.devicethread import DeviceThread
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from racecar_hw.params import param
+from racecar_hw.base.params import param
 from racecar_hw.sim.obstacles import Obstacle, rectangle
 from racecar_hw.sim.occupancy import OccupancyMap
 

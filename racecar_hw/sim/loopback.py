@@ -21,22 +21,22 @@ from pathlib import Path
 from typing import Any
 
 from lidar_drivers.registry import family, make_fake
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+from racecar_hw.base.overrides import merge
+from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import Config, load_config, shipped_config
 from racecar_hw.daemon import Daemon
-from racecar_hw.devicethread import DeviceThread
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
-from racecar_hw.overrides import merge
+from racecar_hw.runtime.devicethread import DeviceThread
+from racecar_hw.runtime.status import StatusPanel
+from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
 from racecar_hw.sim.trajectory import write_csv
 from racecar_hw.sim.world import World
-from racecar_hw.status import StatusPanel
-from racecar_hw.ticker import Ticker
-from racecar_hw.transforms import TfTree, yaw_of
 from vesc.fake import FakeVesc
 
 log = logging.getLogger(__name__)
@@ -189,7 +189,7 @@ class Loopback:
         await self._wait_until(spec.from_s)
         bus = self.daemon.bus
         if spec.type == "setpoint":
-            from racecar_hw.setpoint import SetpointParams, SetpointRelay
+            from racecar_hw.sources.setpoint import SetpointParams, SetpointRelay
 
             relay = SetpointRelay(bus, SetpointParams(topic=topic, rate_hz=spec.rate_hz,
                                                       max_speed_mps=max(2.0, abs(spec.speed_mps))))
@@ -210,14 +210,14 @@ class Loopback:
                 bus.publish(topic, AckermannDriveStamped(stamp_now("base_link", wall_ns()),
                                                          AckermannDrive(steering_angle=steer, speed=speed)))
         elif spec.type == "figure8":
-            from racecar_hw.figure8 import Figure8Driver, Figure8Params
+            from racecar_hw.sources.figure8 import Figure8Driver, Figure8Params
 
             params = Figure8Params(speed_mps=spec.speed_mps, steering_angle_rad=spec.steering_rad,
                                    wheelbase_m=self.config.vesc.wheelbase_m, figure8s=spec.figure8s,
                                    rate_hz=spec.rate_hz, topic=topic)
             await self._until(Figure8Driver(bus, params).run(), spec.until_s)
         elif spec.type == "follow":
-            from racecar_hw.bag_follow import BagFollower, FollowerParams
+            from racecar_hw.bags.follow import BagFollower, FollowerParams
 
             params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=topic,
                                     rate_hz=spec.rate_hz, use_timestamps=spec.use_timestamps,

@@ -35,8 +35,8 @@ import numpy as np
 import yaml
 from PIL import Image, UnidentifiedImageError
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.resources import config_file
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.resources import config_file
 
 MODES = ("trinary", "scale", "raw")
 OCCUPIED, FREE, UNKNOWN = 100, 0, -1

@@ -19,7 +19,7 @@ there. The report and the trajectory use world time, which starts with the simul
 
 Driver types: ``constant`` (a fixed command), ``script`` (``steps: [[t_s, speed, steering], ...]``,
 each held until the next), ``figure8`` (``speed_mps``, ``steering_rad``, ``figure8s``), ``setpoint``
-(the lab-0 relay holding ``speed_mps``/``steering_rad``), ``follow`` (a bag, see racecar_hw.bag_follow).
+(the lab-0 relay holding ``speed_mps``/``steering_rad``), ``follow`` (a bag, see racecar_hw.bags.follow).
 Fault actions: ``lidar_unplug``, ``lidar_replug``, ``vesc_unplug``, ``vesc_replug``,
 ``obstacle_ahead`` (``distance_m`` ahead of the car's front, ``radius_m``), ``clear_obstacles``,
 ``vesc_garbage`` (``bytes``), ``estop``, ``estop_release``.
@@ -31,10 +31,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from racecar_hw.errors import ConfigError
-from racecar_hw.overrides import apply_override, load_yaml
-from racecar_hw.params import build, param
-from racecar_hw.resources import config_dir
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.overrides import apply_override, load_yaml
+from racecar_hw.base.params import build, param
+from racecar_hw.base.resources import config_dir
 
 DRIVER_TYPES = ("constant", "script", "figure8", "setpoint", "follow")
 FAULT_ACTIONS = ("lidar_unplug", "lidar_replug", "vesc_unplug", "vesc_replug", "obstacle_ahead",

@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from racecar_hw.errors import RacecarError
+from racecar_hw.base.errors import RacecarError
 
 CSV_FIELDS = ("t", "x", "y", "yaw", "speed", "steering")
 #: Speeds below this (m/s) count as standing still.

@@ -28,8 +28,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from racecar_hw.clock import NS_PER_S, monotonic_ns
-from racecar_hw.errors import ConfigError
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.sim.car import (
     CarParams,
     Collider,

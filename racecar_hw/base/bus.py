@@ -16,9 +16,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
-from racecar_hw.clock import monotonic_ns
-from racecar_hw.errors import TopicTypeError
-from racecar_hw.messages import Message
+from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.base.errors import TopicTypeError
+from racecar_hw.base.messages import Message
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ store) whenever it likes; the panel redraws on its own asyncio timer in the same
 file) it writes one plain status line every ``plain_interval_s`` seconds instead, even when nothing
 changed, so a log shows the daemon is alive. Rendering happens in the loop (rich's own
 auto-refresh thread is turned off); the text goes to the terminal through a
-:class:`~racecar_hw.console.QueuedStream`, so a terminal that stops reading (Ctrl-S) or a busy
+:class:`~racecar_hw.runtime.console.QueuedStream`, so a terminal that stops reading (Ctrl-S) or a busy
 journald never blocks the loop.
 """
 
@@ -26,7 +26,7 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from racecar_hw.console import QueuedStream
+from racecar_hw.runtime.console import QueuedStream
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable
 
-from racecar_hw.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 
 
 def _catch_up(due_ns: int, now_ns: int, period_ns: int) -> tuple[int, int]:

@@ -17,9 +17,9 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from racecar_hw.clock import monotonic_ns
-from racecar_hw.messages import AckermannDrive
-from racecar_hw.params import param
+from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.base.messages import AckermannDrive
+from racecar_hw.base.params import param
 
 log = logging.getLogger(__name__)
 

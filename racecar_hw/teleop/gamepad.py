@@ -35,13 +35,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mux.params import LockParams
-from racecar_hw.arming import Arming
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.errors import ConfigError, DeviceNotFound, RemoteProtocolError
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, Bool, stamp_now
-from racecar_hw.params import param
-from racecar_hw.ticker import Ticker
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.errors import ConfigError, DeviceNotFound, RemoteProtocolError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Bool, stamp_now
+from racecar_hw.base.params import param
+from racecar_hw.runtime.ticker import Ticker
+from racecar_hw.teleop.arming import Arming
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Recover bags whose recording was killed (SIGKILL, power loss) before they were closed.
 
-What a killed :class:`~racecar_hw.bag_record.Recorder` leaves, and what this module does with it:
+What a killed :class:`~racecar_hw.bags.record.Recorder` leaves, and what this module does with it:
 
 * MCAP (ROS 2): header and every chunk flushed so far, no summary and no footer. rosbags refuses
   the file ("File end magic is invalid"). :func:`recover_bag` scans the records up to the last
@@ -30,7 +30,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from racecar_hw.errors import BagError
+from racecar_hw.base.errors import BagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 ROS1_MAGIC = b"#ROSBAG V2.0\n"

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from racecar_hw.errors import ConfigError, RacecarError
-from racecar_hw.messages import (
+from racecar_hw.base.errors import ConfigError, RacecarError
+from racecar_hw.base.messages import (
     Header,
     Quaternion,
     TFMessage,
@@ -33,7 +33,7 @@ from racecar_hw.messages import (
     TransformStamped,
     Vector3,
 )
-from racecar_hw.params import build, param
+from racecar_hw.base.params import build, param
 
 QuaternionTuple = tuple[float, float, float, float]
 

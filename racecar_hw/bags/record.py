@@ -7,8 +7,8 @@ The writer is not woken per message: it drains the queue every :data:`BATCH_S`, 
 moments says so with :meth:`Recorder.control_idle`: the daemon calls it when a scan's motor command
 is out, and a drain that is due then runs in the gap before the next scan instead of competing
 with the scan path for the interpreter (the writer then waits at most ``2 * BATCH_S`` on its own).
-Serialization uses the direct
-serializers of :mod:`racecar_hw.bag_serde`, MCAP writes the lean path of :mod:`racecar_hw.bag_mcap`;
+Serialization uses the direct serializers of :mod:`racecar_hw.rosmsg.serde`, MCAP writes the lean
+path of :mod:`racecar_hw.bags.mcap_appender`;
 both give the bytes rosbags gives. When the queue is full the message is dropped and counted
 (``stats.dropped``, and a warning at most once per flush interval): never silently, never by
 blocking the control loop.
@@ -24,8 +24,8 @@ last flush:
 
 * sqlite3: the bag reads as it is (rosbags, ros2 bag) with every committed message.
 * MCAP: the file lacks its summary and footer; the ``mcap`` stream reader reads it up to the last
-  chunk, and :func:`racecar_hw.bag_recover.recover_bag` rewrites it into a closed bag.
-* ROS 1: the file lacks its index (``index_pos`` 0); :func:`~racecar_hw.bag_recover.recover_bag`
+  chunk, and :func:`racecar_hw.bags.recover.recover_bag` rewrites it into a closed bag.
+* ROS 1: the file lacks its index (``index_pos`` 0); :func:`~racecar_hw.bags.recover.recover_bag`
   or the real ``rosbag reindex`` rebuilds it.
 
 Splitting by size or duration closes each split as a complete bag, so only the split being written
@@ -63,13 +63,13 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.metadata import dump_qos_v9
 
-from racecar_hw.bag_mcap import McapAppender
-from racecar_hw.bagtypes import BagTypes, types_for
-from racecar_hw.bus import Bus, Subscription
-from racecar_hw.clock import NS_PER_S, wall_ns
-from racecar_hw.errors import BagError, ConfigError
-from racecar_hw.messages import Message
-from racecar_hw.params import param
+from racecar_hw.bags.mcap_appender import McapAppender
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import NS_PER_S, wall_ns
+from racecar_hw.base.errors import BagError, ConfigError
+from racecar_hw.base.messages import Message
+from racecar_hw.base.params import param
+from racecar_hw.rosmsg.typestore import BagTypes, types_for
 
 log = logging.getLogger(__name__)
 

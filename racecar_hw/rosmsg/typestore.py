@@ -9,9 +9,9 @@ Two stores are used:
 * ROS 1: ``Stores.ROS1_NOETIC``, plus ``tf2_msgs/msg/TFMessage``, which that store lacks.
 
 Both get ackermann_msgs, vesc_msgs (the f1tenth/vesc ROS 2 ``VescState``) and racecar_msgs,
-registered from the ``MSGDEF`` of :data:`racecar_hw.messages.CUSTOM_TYPES`.
+registered from the ``MSGDEF`` of :data:`racecar_hw.base.messages.CUSTOM_TYPES`.
 
-:meth:`BagTypes.serialize` packs our dataclasses directly (:mod:`racecar_hw.bag_serde`); the
+:meth:`BagTypes.serialize` packs our dataclasses directly (:mod:`racecar_hw.rosmsg.serde`); the
 conversion below is its reference and fallback, and serves reading. Conversion is generic over
 dataclass fields, driven by the store's field definitions and cached
 per type: nested messages recurse, numeric arrays become numpy arrays of the ROS element type,
@@ -32,9 +32,10 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from racecar_hw import bag_serde, messages
-from racecar_hw.errors import BagError
-from racecar_hw.messages import CUSTOM_TYPES, Message, TFMessage
+from racecar_hw.base import messages
+from racecar_hw.base.errors import BagError
+from racecar_hw.base.messages import CUSTOM_TYPES, Message, TFMessage
+from racecar_hw.rosmsg import serde
 
 ROS2_STORE = Stores.ROS2_HUMBLE
 ROS1_STORE = Stores.ROS1_NOETIC
@@ -79,7 +80,7 @@ class BagTypes:
         self.store.register(add)
         self._to: dict[str, ToRos] = {}
         self._from: dict[str, FromRos] = {}
-        self._fast: dict[type[Message], bag_serde.Serializer | None] = {}
+        self._fast: dict[type[Message], serde.Serializer | None] = {}
 
     # --- type information ---------------------------------------------------------------------
 
@@ -124,7 +125,7 @@ class BagTypes:
     def serialize(self, msg: Message, seq: int = 0) -> bytes:
         """``msg`` serialized for a bag of this store: ROS 1 bytes or CDR (with its header).
 
-        Uses the class's direct serializer (:mod:`racecar_hw.bag_serde`) when it has one and it
+        Uses the class's direct serializer (:mod:`racecar_hw.rosmsg.serde`) when it has one and it
         accepts ``msg``; otherwise the generic rosbags path, which gives the same bytes.
         """
         try:
@@ -138,16 +139,16 @@ class BagTypes:
                 pass
         return self.serialize_generic(msg, seq)
 
-    def fast_serializer(self, cls: type[Message]) -> bag_serde.Serializer | None:
+    def fast_serializer(self, cls: type[Message]) -> serde.Serializer | None:
         """The direct serializer of ``cls`` for this store (built once), or None if it has none."""
         if cls in self._fast:
             return self._fast[cls]
-        fast: bag_serde.Serializer | None = None
+        fast: serde.Serializer | None = None
         if cls.ROS_TYPE in self.store.fielddefs:
             classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
             try:
-                fast = bag_serde.generate(self.store, classes, cls.ROS_TYPE, cdr=self.ros_version == 2)
-            except bag_serde.Unsupported:
+                fast = serde.generate(self.store, classes, cls.ROS_TYPE, cdr=self.ros_version == 2)
+            except serde.Unsupported:
                 fast = None
         self._fast[cls] = fast
         return fast

@@ -18,9 +18,9 @@ import logging
 from dataclasses import dataclass
 
 from lidar_drivers.base import summarize
-from racecar_hw.bus import Bus, Subscription
-from racecar_hw.messages import Header, LaserScan, OpenSpace, ScanRange, Time
-from racecar_hw.params import param
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.messages import Header, LaserScan, OpenSpace, ScanRange, Time
+from racecar_hw.base.params import param
 
 log = logging.getLogger(__name__)
 

@@ -8,17 +8,17 @@ dataclass straight into bytes: nested messages are inlined, runs of fixed-size f
 are ``numpy`` ``tobytes()``.
 
 The bytes are those rosbags writes (``tests/test_bag_serde.py`` proves it with hypothesis for
-every class in :mod:`racecar_hw.messages`, CDR and ROS 1):
+every class in :mod:`racecar_hw.base.messages`, CDR and ROS 1):
 
 * CDR (little endian): the 4-byte encapsulation header ``00 01 00 00``; every primitive aligned to
   its size relative to the end of that header; strings as uint32 length including the NUL, the
   UTF-8 bytes, the NUL; sequences as a uint32 count, then the elements.
 * ROS 1: no alignment, strings without NUL, a top-level ``header.seq`` from the ``seq`` argument
-  (nested headers get 0, as rosbags' converter in :mod:`racecar_hw.bagtypes` does).
+  (nested headers get 0, as rosbags' converter in :mod:`racecar_hw.rosmsg.typestore` does).
 
 Values are packed as the generic path packs them after its ``float()``/``int()``/``bool()``
 conversions; anything a serializer cannot pack as is (a wrong type, a wrong array length, an
-unencodable string) raises, and :meth:`racecar_hw.bagtypes.BagTypes.serialize` then falls back to
+unencodable string) raises, and :meth:`racecar_hw.rosmsg.typestore.BagTypes.serialize` then falls back to
 the generic path, which produces the same bytes or the same error as before. Shapes the generator
 does not handle (string arrays, fixed arrays of messages, 8-byte element sequences, big-endian
 hosts) are never generated: those classes always take the generic path.

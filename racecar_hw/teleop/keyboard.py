@@ -29,12 +29,12 @@ import tty
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from racecar_hw.bus import Bus
-from racecar_hw.clock import monotonic_ns, nanoseconds, wall_ns
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
-from racecar_hw.params import param
-from racecar_hw.ticker import Ticker
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns, nanoseconds, wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+from racecar_hw.base.params import param
+from racecar_hw.runtime.ticker import Ticker
 
 log = logging.getLogger(__name__)
 

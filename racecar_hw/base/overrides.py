@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from racecar_hw.errors import ConfigError
+from racecar_hw.base.errors import ConfigError
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:

@@ -28,12 +28,12 @@ from pathlib import Path
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 
-from racecar_hw.bagtypes import ros2_types
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.errors import BagError, ConfigError
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
-from racecar_hw.params import param
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.errors import BagError, ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+from racecar_hw.base.params import param
+from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,7 @@ def _open_reader(path: Path) -> AnyReader:
         text = str(err)
         hint = ""
         if "not indexed" in text or "end magic" in text:
-            hint = " (an interrupted recording? try racecar_hw.bag_recover.recover_bag)"
+            hint = " (an interrupted recording? try racecar_hw.bags.recover.recover_bag)"
         raise BagError(f"cannot read bag {path}: {text}{hint}") from err
     return reader
 

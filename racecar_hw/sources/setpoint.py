@@ -22,10 +22,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from racecar_hw.bus import Bus, Subscription
-from racecar_hw.clock import wall_ns
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     Float64,
@@ -35,8 +35,8 @@ from racecar_hw.messages import (
     String,
     stamp_now,
 )
-from racecar_hw.params import param
-from racecar_hw.ticker import Ticker
+from racecar_hw.base.params import param
+from racecar_hw.runtime.ticker import Ticker
 
 log = logging.getLogger(__name__)
 

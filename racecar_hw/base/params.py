@@ -8,7 +8,7 @@ A component declares its parameters as a dataclass whose fields use :func:`param
         poll_rate_hz: float = param(50.0, "telemetry poll rate", unit="Hz", min=1.0, max=500.0)
 
 :func:`build` turns a mapping into an instance. Unknown keys, wrong types, values out of range
-and values outside ``choices`` raise :class:`~racecar_hw.errors.ConfigError` naming the full
+and values outside ``choices`` raise :class:`~racecar_hw.base.errors.ConfigError` naming the full
 dotted key and what is allowed. Nested dataclasses, lists of dataclasses, tuples, ``X | None``
 and ``dict[str, X]`` fields are supported. :func:`describe` lists every parameter with its default
 and documentation, for ``check-config`` and the docs.
@@ -23,7 +23,7 @@ import typing
 from collections.abc import Iterator, Mapping
 from typing import Any, TypeVar
 
-from racecar_hw.errors import ConfigError
+from racecar_hw.base.errors import ConfigError
 
 T = TypeVar("T")
 

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from racecar_hw.clock import NS_PER_S
+from racecar_hw.base.clock import NS_PER_S
 
 
 def _zeros(n: int):  # noqa: ANN202 - a dataclass default factory

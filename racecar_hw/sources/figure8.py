@@ -17,13 +17,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from racecar_hw.bus import Bus
-from racecar_hw.clock import NS_PER_S, wall_ns
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import AckermannDrive, AckermannDriveStamped, stamp_now
-from racecar_hw.params import param
-from racecar_hw.setpoint import NAV0_TOPIC
-from racecar_hw.ticker import Ticker
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import NS_PER_S, wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
+from racecar_hw.base.params import param
+from racecar_hw.runtime.ticker import Ticker
+from racecar_hw.sources.setpoint import NAV0_TOPIC
 
 #: The smallest |steering angle| accepted: below it a loop would be tens of metres across.
 MIN_STEERING_RAD = 0.01

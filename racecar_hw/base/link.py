@@ -4,8 +4,8 @@ A :class:`Link` is the only place where driver bytes meet the OS. ``read()`` awa
 byte, or ``set_receiver()`` hands every chunk to a callback straight from the loop's reader
 callback, waking no task (how the drivers stream). ``write()`` never blocks (bytes the OS cannot
 take yet wait in a buffer drained by the loop); ``close()`` is safe twice. OS and pyserial errors
-become :class:`~racecar_hw.errors.DeviceNotFound` (nothing at that path or address) or
-:class:`~racecar_hw.errors.DeviceIOError` (it went away).
+become :class:`~racecar_hw.base.errors.DeviceNotFound` (nothing at that path or address) or
+:class:`~racecar_hw.base.errors.DeviceIOError` (it went away).
 
 Serial ports open through ``serial.serial_for_url``, so a path, a pty symlink, ``spy:///dev/ttyACM0``
 (hexdump of the traffic) and ``socket://host:port`` all work. :func:`open_link` picks the link type
@@ -24,7 +24,7 @@ from collections.abc import Callable
 import serial
 import serial.tools.list_ports
 
-from racecar_hw.errors import DeviceIOError, DeviceNotFound, DeviceTimeout
+from racecar_hw.base.errors import DeviceIOError, DeviceNotFound, DeviceTimeout
 
 _timeout = getattr(asyncio, "timeout", None)  # Python 3.11+
 

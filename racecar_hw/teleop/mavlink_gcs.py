@@ -6,7 +6,7 @@ station at ``gcs_address`` (QGroundControl, MAVProxy, a pymavlink script). One U
 to ``bind_address:bind_port``, sends and receives; replies go to the address the ground station
 last sent an accepted message from (its configured address until then).
 
-Out: HEARTBEAT (1 Hz; armed flag from :class:`~racecar_hw.arming.Arming`), SYS_STATUS and
+Out: HEARTBEAT (1 Hz; armed flag from :class:`~racecar_hw.teleop.arming.Arming`), SYS_STATUS and
 BATTERY_STATUS (1 Hz, from ``/vesc/sensors/core``), ATTITUDE and LOCAL_POSITION_NED (from
 ``/odom``, REP-103 ENU/FLU converted to NED/FRD) and OBSTACLE_DISTANCE (72 bins of 5 degrees in
 cm, from ``/scan``) at ``telemetry_rate_hz``, STATUSTEXT for events (arming, modes, safety state
@@ -24,7 +24,7 @@ than ``heartbeat_timeout_s``, its teleop input is dropped (one zero command, the
 STATUSTEXT says so.
 
 Security: a ground station outside loopback needs MAVLink 2 signing (``signing_key_file``;
-:class:`~racecar_hw.errors.ConfigError` otherwise). With signing on, every unsigned or badly
+:class:`~racecar_hw.base.errors.ConfigError` otherwise). With signing on, every unsigned or badly
 signed message is refused and counted. Datagrams from any other host than the ground station's
 are dropped and counted whatever the signing.
 """
@@ -45,11 +45,10 @@ from typing import Any
 
 import numpy as np
 
-from racecar_hw.arming import Arming, ArmingChange
-from racecar_hw.bus import Bus, Subscription
-from racecar_hw.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.errors import ConfigError
-from racecar_hw.messages import (
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
@@ -59,9 +58,10 @@ from racecar_hw.messages import (
     VescStateStamped,
     stamp_now,
 )
-from racecar_hw.params import param
-from racecar_hw.status import StatusSnapshot
-from racecar_hw.ticker import Ticker
+from racecar_hw.base.params import param
+from racecar_hw.runtime.status import StatusSnapshot
+from racecar_hw.runtime.ticker import Ticker
+from racecar_hw.teleop.arming import Arming, ArmingChange
 
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported anywhere: the MAVLink 2 dialects
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
@@ -299,7 +299,7 @@ class _Protocol(asyncio.DatagramProtocol):
 class MavlinkGcs:
     """The ground-station link on the bus. ``await run()`` until cancelled.
 
-    ``status_source`` (optional) returns the daemon's :class:`~racecar_hw.status.StatusSnapshot`;
+    ``status_source`` (optional) returns the daemon's :class:`~racecar_hw.runtime.status.StatusSnapshot`;
     its link counters go into SYS_STATUS ``errors_count1..3`` (VESC CRC errors, VESC reconnects,
     lidar reconnects) and its battery voltage is used while no VESC state has arrived.
 

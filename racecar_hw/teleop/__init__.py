@@ -1,0 +1,1 @@
+"""Teleoperation: arming, the gamepad, the keyboard and the MAVLink ground station link."""
