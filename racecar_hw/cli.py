@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from racecar_hw import __version__
 from racecar_hw.base.errors import RacecarError
 from racecar_hw.runtime.console import setup_logging
+from racecar_hw.runtime.own_packages import find_foreign_packages
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = (
@@ -43,6 +44,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``racecar-hw`` console script."""
+    # Before any command module imports vesc, lidar_drivers, mux or safety.
+    foreign = find_foreign_packages()
+    if foreign:
+        for package in foreign:
+            print(f"racecar-hw: {package.message()}", file=sys.stderr)
+        return 2
     parser = build_parser()
     args = parser.parse_args(argv)
     level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import tomllib
 
+from racecar_hw.base.resources import config_dir
 from racecar_hw.cli import COMMANDS, build_parser
-from racecar_hw.resources import config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,3 +43,15 @@ def test_console_script_runs():
     out = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "--version"], capture_output=True,
                          text=True, check=True)
     assert out.stdout.startswith("racecar-hw ")
+
+
+def test_sim_help_names_the_config_it_uses():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    text = " ".join(sub.choices["sim"].format_help().split())
+    assert "default: the shipped sim config, config/sim.yaml" in text
+    assert "shipped car config" not in text
+
+
+def test_the_demo_output_is_ignored_by_git():
+    assert "sim-out/" in (ROOT / ".gitignore").read_text().split()

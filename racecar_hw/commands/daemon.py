@@ -9,13 +9,16 @@ import sys
 
 from racecar_hw.config import describe_config, dump_config, load_config
 from racecar_hw.daemon import Daemon
-from racecar_hw.status import StatusPanel
+from racecar_hw.runtime.status import StatusPanel
 
 
-def add_config_options(parser: argparse.ArgumentParser) -> None:
-    """``--config`` and ``--set``, shared by every command that builds the daemon."""
+def add_config_options(parser: argparse.ArgumentParser, default: str = "the shipped car config") -> None:
+    """``--config`` and ``--set``, shared by every command that builds the daemon.
+
+    ``default`` names the configuration the command uses when ``--config`` is not given.
+    """
     parser.add_argument("--config", "-c", metavar="FILE",
-                        help="daemon configuration (default: the shipped car config)")
+                        help=f"daemon configuration (default: {default})")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override one parameter, e.g. --set vesc.port=/dev/ttyACM0 (repeatable)")
 

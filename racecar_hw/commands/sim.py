@@ -9,9 +9,9 @@ import signal
 from pathlib import Path
 
 from racecar_hw.commands.daemon import add_config_options
+from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.sim.loopback import Loopback, write_report
 from racecar_hw.sim.scenario import load_scenario, scenario_names
-from racecar_hw.status import StatusPanel
 
 DEFAULT_SCENARIO = "figure8"
 
@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keyboard", action="store_true",
                    help="drive through the teleop input with the keyboard (arrows/WASD, space stops)")
     p.add_argument("--no-status", action="store_true", help="no live status panel")
-    add_config_options(p)
+    add_config_options(p, default="the shipped sim config, config/sim.yaml")
     p.set_defaults(func=cmd_sim)
 
 
