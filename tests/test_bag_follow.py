@@ -1,4 +1,5 @@
-"""racecar_hw.bags.follow: reading real and generated bags, clear errors, timing, and the follower on a real bus."""
+"""racecar_hw.bags.follow: reading real and generated bags, clear errors, timing, and the follower on a
+real bus."""
 
 from __future__ import annotations
 
