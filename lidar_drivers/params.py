@@ -27,7 +27,9 @@ class LidarParams:
     angle_max: float | None = param(None, "crop: last beam angle; default the device's", unit="rad")
     cluster: int = param(1, "Hokuyo: merge this many adjacent steps into one beam", min=1, max=99)
     skip: int = param(0, "Hokuyo: skip this many scans between published scans", min=0, max=9)
-    scan_mode: str = param("standard", "RPLIDAR scan kind", choices=("standard", "express"))
+    scan_mode: str | None = param(None, "RPLIDAR scan mode, by the name the device lists (e.g. "
+                                        "Standard, Express, Boost, Sensitivity, Stability, "
+                                        "DenseBoost; any case); default: the device's typical mode")
     motor_pwm: int = param(660, "RPLIDAR A2/A3 motor PWM when the accessory board allows", min=0,
                            max=1023)
     stale_timeout_s: float = param(0.5, "no scan for this long counts as a lost device and "
