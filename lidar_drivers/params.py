@@ -7,7 +7,9 @@ from dataclasses import dataclass
 from racecar_hw.base.params import param
 
 #: Models racecar-hw drives, by family.
-HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx")
+HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx", "utm-30lx-ew")
+#: Hokuyo models on USB (serial); the others are Ethernet units.
+HOKUYO_USB_MODELS = ("urg-04lx", "utm-30lx")
 RPLIDAR_MODELS = ("a1", "a2m8", "a2m7", "a2m12", "a3", "s1", "c1")
 MODELS = HOKUYO_MODELS + RPLIDAR_MODELS
 
@@ -17,8 +19,9 @@ class LidarParams:
     """How to reach the lidar and how to shape its scans."""
 
     model: str = param("ust-10lx", "lidar model", choices=MODELS)
-    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, RPLIDAR)")
-    tcp: str | None = param(None, "HOST:PORT of an Ethernet Hokuyo (UST/UTM: 192.168.0.10:10940)")
+    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, UTM-30LX, RPLIDAR)")
+    tcp: str | None = param(None, "HOST:PORT of an Ethernet Hokuyo (UST, UTM-30LX-EW: "
+                                  "192.168.0.10:10940)")
     baudrate: int | None = param(None, "serial baud rate; default: the model's own", min=9600)
     frame_id: str = param("laser", "frame_id of the published scans")
     topic: str = param("/scan", "topic of the published sensor_msgs/LaserScan")
