@@ -37,11 +37,11 @@ ULTRA_DTYPE = np.dtype([("sync_cs_lo", "u1"), ("sync_cs_hi", "u1"), ("start", "<
 DENSE_DTYPE = np.dtype([("sync_cs_lo", "u1"), ("sync_cs_hi", "u1"), ("start", "<u2"),
                         ("cabins", "<u2", (DENSE_SAMPLES,))])
 
-#: Variable bit scale: (first scaled value, first distance mm, step as a power of two), top first.
-_VBS = ((3328, 16384, 4), (1792, 4096, 3), (1280, 2048, 2), (512, 512, 1), (0, 0, 0))
+#: Variable bit scale, by level (the step is 2**level mm): first scaled value, first distance mm.
+_VBS_SCALED = np.array([0, 512, 1280, 1792, 3328], dtype=np.int64)
+_VBS_MM = np.array([0, 512, 2048, 4096, 16384], dtype=np.int64)
 #: Largest distance the 12-bit scaled value can carry (mm).
 ULTRA_MAX_MM = 16384 + ((4095 - 3328) << 4)
-_NO_RETURN = (511, -512)
 #: The mean beam lag of an ultra sample with no usable distance, and the base of the
 #: distance-dependent one, in q16 radians (the SDK's constants, truncated as it truncates them).
 _OFFSET_FAR_Q16 = int(8 * 3.1415926535 * 65536 / 180)
@@ -51,27 +51,16 @@ _OFFSET_NEAR_Q16 = int(7.5 * 3.1415926535 * 65536 / 180)
 def varbitscale_decode(scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """12-bit scaled values -> (distance mm, scale level 0..4), elementwise."""
     s = np.asarray(scaled, dtype=np.int64)
-    dist = np.empty_like(s)
-    level = np.empty_like(s)
-    done = np.zeros(s.shape, dtype=bool)
-    for base, target, lvl in _VBS:
-        hit = ~done & (s >= base)
-        dist[hit] = target + ((s[hit] - base) << lvl)
-        level[hit] = lvl
-        done |= hit
-    return dist, level
+    level = np.searchsorted(_VBS_SCALED, s, side="right") - 1
+    return _VBS_MM[level] + ((s - _VBS_SCALED[level]) << level), level
 
 
 def varbitscale_encode(mm: np.ndarray) -> np.ndarray:
     """Distances (mm, >= 0) -> the nearest 12-bit scaled values (clipped at :data:`ULTRA_MAX_MM`)."""
     d = np.clip(np.rint(np.asarray(mm, dtype=np.float64)), 0, ULTRA_MAX_MM).astype(np.int64)
-    out = np.empty_like(d)
-    done = np.zeros(d.shape, dtype=bool)
-    for base, target, lvl in _VBS:
-        hit = ~done & (d >= target)
-        out[hit] = base + ((d[hit] - target + ((1 << lvl) >> 1)) >> lvl)
-        done |= hit
-    return np.minimum(out, 4095)
+    level = np.searchsorted(_VBS_MM, d, side="right") - 1
+    half = (1 << level) >> 1
+    return np.minimum(_VBS_SCALED[level] + ((d - _VBS_MM[level] + half) >> level), 4095)
 
 
 def ultra_angle_offset_q16(dist_q2: np.ndarray) -> np.ndarray:
@@ -122,8 +111,8 @@ def decode_ultra(caps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     base1, lvl1 = np.where(borrow, m2, m1), np.where(borrow, l2, l1)
     p1 = _sign10((cab[:k] >> 12) & 0x3FF).ravel()
     p2 = _sign10((cab[:k] >> 22) & 0x3FF).ravel()
-    d1 = np.where(np.isin(p1, _NO_RETURN), 0, p1 * (1 << lvl1) + base1)
-    d2 = np.where(np.isin(p2, _NO_RETURN), 0, p2 * (1 << l2) + m2)
+    d1 = np.where((p1 == 511) | (p1 == -512), 0, (p1 << lvl1) + base1)  # 511, -512: no return
+    d2 = np.where((p2 == 511) | (p2 == -512), 0, (p2 << l2) + m2)
     dist = np.maximum(np.stack([m1, d1, d2], axis=1).reshape(k, ULTRA_SAMPLES), 0)
     raw, start = _sweep(start_q8, inc_q16, ULTRA_SAMPLES)
     angle_q6 = ((raw - ultra_angle_offset_q16(dist << 2)) >> 10) % FULL_TURN_Q6
