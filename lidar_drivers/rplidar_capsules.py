@@ -127,10 +127,14 @@ def decode_dense(caps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rec = np.ascontiguousarray(caps, dtype=np.uint8).view(DENSE_DTYPE).reshape(-1)
     start_q8 = _start_q8(rec)
     inc_q16 = (_spans_q8(start_q8) << 8) // DENSE_SAMPLES
-    raw, start = _sweep(start_q8, inc_q16, DENSE_SAMPLES)
+    raw, _ = _sweep(start_q8, inc_q16, DENSE_SAMPLES)
+    # the SDK's rule for dense capsules: a wrap within two increments, the first of such a pair
+    # (its increment is truncated, so a wrap exactly at a capsule start shows one sample late)
+    near = (((raw + inc_q16[:, None]) % FULL_TURN_Q16) < (inc_q16[:, None] << 1)).ravel()
+    start = near & ~np.concatenate([[False], near[:-1]])
     angle_q6 = (raw >> 10) % FULL_TURN_Q6
     dist = rec["cabins"][:-1].astype(np.float64)
-    return angle_q6.ravel() * (1 / 64), dist.ravel(), start.ravel()
+    return angle_q6.ravel() * (1 / 64), dist.ravel(), start
 
 
 def capsules_valid(arr: np.ndarray) -> np.ndarray:
@@ -169,8 +173,10 @@ def encode_ultra(start_angle_deg: np.ndarray, distance_mm: np.ndarray, next_mm: 
     """Ultra capsules: one start angle (degrees clockwise) and 96 distances (mm) per capsule.
 
     ``next_mm`` is the first distance of the capsule that will follow (the last cabin's third
-    sample is predicted from it). A prediction that does not fit 10 bits is clipped, as the format
-    allows no more; distances beyond :data:`ULTRA_MAX_MM` read as :data:`ULTRA_MAX_MM`.
+    sample is predicted from it). A sample whose prediction does not fit 10 bits (a jump of more
+    than 510 steps from its base, e.g. a return next to a no-return base) goes out as "no
+    return": the format cannot carry it, and a missing beam is safer than a wrong one. Distances
+    beyond :data:`ULTRA_MAX_MM` read as :data:`ULTRA_MAX_MM`.
     """
     k = len(start_angle_deg)
     d = np.asarray(distance_mm, dtype=np.float64).reshape(k * 32, 3)
@@ -181,8 +187,8 @@ def encode_ultra(start_angle_deg: np.ndarray, distance_mm: np.ndarray, next_mm: 
     base1, lvl1 = np.where(borrow, m2, m1), np.where(borrow, l2, l1)
 
     def predict(target: np.ndarray, base: np.ndarray, lvl: np.ndarray) -> np.ndarray:
-        p = np.clip(np.rint((target - base) / (1 << lvl)), -511, 510).astype(np.int64)
-        return np.where(target > 0, p, 511) & 0x3FF
+        p = np.rint((target - base) / (1 << lvl)).astype(np.int64)
+        return np.where((target > 0) & (p >= -511) & (p <= 510), p, 511) & 0x3FF
 
     word = (scaled[:-1] | (predict(d[:, 1], base1, lvl1) << 12)
             | (predict(d[:, 2], m2, l2) << 22)).astype("<u4")

@@ -9,7 +9,6 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import wait_for
 
 from lidar_drivers.base import RoomRangeSource
