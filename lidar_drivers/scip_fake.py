@@ -229,11 +229,11 @@ class _Session:
                 # measured and stamped at the sweep's step 0, however late this host sends it
                 step0_ns = round(step0 * NS_PER_S)
                 frame = fake.frame(cmd, cmd.echo(remaining), "99", at_ns=step0_ns)
-                handed_over = monotonic_ns()  # before the write: a reader may react before it returns
+                # noted before the write: a reader may react before it returns
+                fake.frames_sent_ns.append(monotonic_ns())
+                fake.sweep_starts_ns.append(step0_ns)
                 await asyncio.shield(self.send(frame))  # QT stops the stream between frames only
                 fake.scans_sent += 1
-                fake.frames_sent_ns.append(handed_over)
-                fake.sweep_starts_ns.append(step0_ns)
             if cmd.count and remaining == 0:
                 self.stream = None
                 return
