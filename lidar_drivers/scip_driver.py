@@ -265,7 +265,7 @@ class HokuyoDriver(LidarDriver):
             except DeviceTimeout:
                 return False
             if isinstance(event, Reply) and event.echo == "QT":
-                return True
+                return event.status != "E"
             if isinstance(event, MalformedResponse) and event.raw.split(b"\n")[-2:] == [b"QT", b"E"]:
                 return False
 
