@@ -1,4 +1,4 @@
-"""Decode time of RPLIDAR revolutions: express capsules and standard nodes, bytes to samples.
+"""Decode time of RPLIDAR revolutions: every capsule format and standard nodes, bytes to samples.
 
 Each revolution's bytes are fed to the codec as one chunk (the driver sees a few chunks per
 revolution); the value is the median time per revolution, bytes in to Measurements out.
@@ -14,8 +14,10 @@ import time
 import numpy as np
 from table import print_rows
 
+from lidar_drivers import rplidar_capsules
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.rplidar_codec import (
+    AnswerType,
     Command,
     Measurements,
     Request,
@@ -60,6 +62,39 @@ def _time_decode(express: bool, per_rev: int, revs: int = 200) -> float:
     return float(np.median(times)) * 1e3  # median: robust to other processes on the machine
 
 
+def _room_mm(theta: np.ndarray) -> np.ndarray:
+    ros = np.mod(-np.radians(theta) + math.pi, 2 * math.pi) - math.pi
+    return RoomRangeSource(8.0, 6.0, x=2.5, y=1.5).ranges(ros) * 1000.0
+
+
+def _time_decode_newer(kind: AnswerType, per_rev: int, revs: int = 200) -> float:
+    """Like :func:`_time_decode` for ultra (96 samples a capsule) or dense (40) capsules."""
+    group = rplidar_capsules.ULTRA_SAMPLES if kind == AnswerType.ULTRA_CAPSULED else \
+        rplidar_capsules.DENSE_SAMPLES
+    n = per_rev * revs // group * group
+    theta = (np.arange(n + group) % per_rev) * 360.0 / per_rev
+    dist = _room_mm(theta)
+    if kind == AnswerType.ULTRA_CAPSULED:
+        data = rplidar_capsules.encode_ultra(theta[:n:group], dist[:n], dist[n], first=True)
+        size = rplidar_capsules.ULTRA_LEN
+    else:
+        data = rplidar_capsules.encode_dense(theta[:n:group], dist[:n], first=True)
+        size = rplidar_capsules.DENSE_LEN
+    step = max(per_rev // group, 1) * size
+    client = RplidarClient()
+    client.send(Request.express_scan(3), kind)
+    client.receive_data(encode_scan_descriptor(True, kind))
+    client.events()
+    times, got = [], 0
+    for i in range(0, len(data), step):
+        t0 = time.perf_counter()
+        client.receive_data(data[i:i + step])
+        got += sum(len(e) for e in client.events() if isinstance(e, Measurements))
+        times.append(time.perf_counter() - t0)
+    assert got >= n - 2 * per_rev
+    return float(np.median(times)) * 1e3
+
+
 def _time_assemble(per_rev: int, revs: int = 200) -> float:
     head, chunks = _revolutions(True, per_rev, revs)
     client = RplidarClient()
@@ -82,6 +117,12 @@ def run() -> list[dict]:
          "value": _time_decode(True, 800), "unit": "ms", "target": TARGET_MS},
         {"name": "rplidar express revolution decode (S1, 928 samples)",
          "value": _time_decode(True, 928), "unit": "ms", "target": TARGET_MS},
+        {"name": "rplidar ultra capsule revolution decode (A3 Sensitivity, 1587 samples)",
+         "value": _time_decode_newer(AnswerType.ULTRA_CAPSULED, 1587), "unit": "ms",
+         "target": TARGET_MS},
+        {"name": "rplidar dense capsule revolution decode (S1 DenseBoost, 920 samples)",
+         "value": _time_decode_newer(AnswerType.DENSE_CAPSULED, 920), "unit": "ms",
+         "target": TARGET_MS},
         {"name": "rplidar standard revolution decode (A1, 200 samples)",
          "value": _time_decode(False, 200), "unit": "ms", "target": None},
         {"name": "rplidar revolution -> LaserScan (800 samples)",

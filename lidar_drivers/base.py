@@ -171,6 +171,8 @@ class LidarDriver(ABC):
         #: ``time.thread_time_ns() - frame_arrival_cpu_ns`` (in the same thread)
         self.frame_arrival_cpu_ns = 0
         self._last_scan_s = 0.0  # time.monotonic() of the latest published scan
+        self._session_scans = 0  # scans published by the current session
+        self._previous_error: str | None = None  # last_error when the current session began
         self._ended: asyncio.Future[None] | None = None
 
     async def run(self) -> None:
@@ -182,6 +184,7 @@ class LidarDriver(ABC):
                 if not first:
                     self.stats.reconnects += 1
                 first = False
+                self._session_scans, self._previous_error = 0, self.last_error
                 await self._session()
                 backoff = self.params.reconnect_backoff_min_s
             except DeviceError as err:
@@ -208,7 +211,11 @@ class LidarDriver(ABC):
         self.rx_cpu_ns = time.thread_time_ns()
 
     def publish(self, scan: LaserScan) -> None:
-        """Publish one finished scan and count it."""
+        """Publish one finished scan and count it. The first scan after a reconnect clears the
+        error that ended the previous session (:attr:`last_error`): the device works again."""
+        if self._session_scans == 0 and self.last_error == self._previous_error:
+            self.last_error = None
+        self._session_scans += 1
         self.stats.scans += 1
         self.frame_arrival_ns = self.rx_ns
         self.frame_arrival_cpu_ns = self.rx_cpu_ns

@@ -7,7 +7,9 @@ from dataclasses import dataclass
 from racecar_hw.base.params import param
 
 #: Models racecar-hw drives, by family.
-HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx")
+HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx", "utm-30lx-ew")
+#: Hokuyo models on USB (serial); the others are Ethernet units.
+HOKUYO_USB_MODELS = ("urg-04lx", "utm-30lx")
 RPLIDAR_MODELS = ("a1", "a2m8", "a2m7", "a2m12", "a3", "s1", "c1")
 MODELS = HOKUYO_MODELS + RPLIDAR_MODELS
 
@@ -17,8 +19,9 @@ class LidarParams:
     """How to reach the lidar and how to shape its scans."""
 
     model: str = param("ust-10lx", "lidar model", choices=MODELS)
-    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, RPLIDAR)")
-    tcp: str | None = param(None, "HOST:PORT of an Ethernet Hokuyo (UST/UTM: 192.168.0.10:10940)")
+    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, UTM-30LX, RPLIDAR)")
+    tcp: str | None = param(None, "HOST:PORT of an Ethernet Hokuyo (UST, UTM-30LX-EW: "
+                                  "192.168.0.10:10940)")
     baudrate: int | None = param(None, "serial baud rate; default: the model's own", min=9600)
     frame_id: str = param("laser", "frame_id of the published scans")
     topic: str = param("/scan", "topic of the published sensor_msgs/LaserScan")
@@ -27,7 +30,9 @@ class LidarParams:
     angle_max: float | None = param(None, "crop: last beam angle; default the device's", unit="rad")
     cluster: int = param(1, "Hokuyo: merge this many adjacent steps into one beam", min=1, max=99)
     skip: int = param(0, "Hokuyo: skip this many scans between published scans", min=0, max=9)
-    scan_mode: str = param("standard", "RPLIDAR scan kind", choices=("standard", "express"))
+    scan_mode: str | None = param(None, "RPLIDAR scan mode, by the name the device lists (e.g. "
+                                        "Standard, Express, Boost, Sensitivity, Stability, "
+                                        "DenseBoost; any case); default: the device's typical mode")
     motor_pwm: int = param(660, "RPLIDAR A2/A3 motor PWM when the accessory board allows", min=0,
                            max=1023)
     stale_timeout_s: float = param(0.5, "no scan for this long counts as a lost device and "

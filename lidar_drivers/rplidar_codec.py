@@ -14,7 +14,11 @@ Wire format (reference ``lidars.md`` section 2):
 * standard scan node (5 bytes): ``quality<<2 | !S<<1 | S``, u16 ``angle_q6<<1 | 1``, u16 distance
   in mm x 4 (0 = invalid);
 * express capsule (84 bytes): ``0xA0|cs_lo``, ``0x50|cs_hi`` (cs = XOR of bytes 2..83), u16 start
-  angle q6 (bit 15: first capsule after the scan request), 16 cabins of two samples each.
+  angle q6 (bit 15: first capsule after the scan request), 16 cabins of two samples each;
+* ultra (0x84) and dense (0x85) capsules: see :mod:`lidar_drivers.rplidar_capsules`;
+* GET_LIDAR_CONF (firmware 1.24+, and every C/S-series unit): request payload u32 key [+ u16 scan
+  mode id], answer u32 key + value (:class:`ConfKey`); the scan modes a device lists are
+  :class:`ScanMode` records.
 
 Angles are the device's own: degrees, clockwise seen from above, [0, 360). Distances are mm.
 Measurements come out in batches of numpy arrays (:class:`Measurements`), in time order.
@@ -33,6 +37,7 @@ from enum import IntEnum
 
 import numpy as np
 
+from lidar_drivers import rplidar_capsules as caps
 from racecar_hw.base.errors import LocalProtocolError
 
 SYNC = 0xA5
@@ -82,7 +87,43 @@ class AnswerType(IntEnum):
     LIDAR_CONF = 0x20
     SCAN = 0x81
     EXPRESS = 0x82
+    HQ = 0x83
+    ULTRA_CAPSULED = 0x84
+    DENSE_CAPSULED = 0x85
+    ULTRA_DENSE_CAPSULED = 0x86
     ACC_BOARD_FLAG = 0xFF
+
+
+#: What each measurement answer type carries, for logs and errors.
+ANSWER_NAMES = {
+    AnswerType.SCAN: "standard nodes", AnswerType.EXPRESS: "express capsules",
+    AnswerType.HQ: "HQ nodes", AnswerType.ULTRA_CAPSULED: "ultra capsules",
+    AnswerType.DENSE_CAPSULED: "dense capsules",
+    AnswerType.ULTRA_DENSE_CAPSULED: "ultra-dense capsules",
+}
+#: Measurement answer types this codec decodes, with their samples per packet.
+DECODED_ANSWERS = {AnswerType.SCAN: 1, AnswerType.EXPRESS: 32,
+                   AnswerType.ULTRA_CAPSULED: caps.ULTRA_SAMPLES,
+                   AnswerType.DENSE_CAPSULED: caps.DENSE_SAMPLES}
+
+
+class ConfKey(IntEnum):
+    """GET_LIDAR_CONF keys (``sl_lidar_cmd.h``). Per-mode keys take the mode id as payload."""
+
+    DESIRED_ROT_FREQ = 0x01  # u16 rpm, u16 PWM reference
+    MIN_ROT_FREQ = 0x04
+    MAX_ROT_FREQ = 0x05
+    SCAN_MODE_COUNT = 0x70  # u16
+    SCAN_MODE_US_PER_SAMPLE = 0x71  # u32, 1/256 µs
+    SCAN_MODE_MAX_DISTANCE = 0x74  # u32, 1/256 m
+    SCAN_MODE_ANS_TYPE = 0x75  # u8
+    SCAN_MODE_TYPICAL = 0x7C  # u16
+    SCAN_MODE_NAME = 0x7F  # NUL-terminated text
+
+
+#: Keys whose request carries a scan mode id.
+PER_MODE_KEYS = frozenset({ConfKey.SCAN_MODE_US_PER_SAMPLE, ConfKey.SCAN_MODE_MAX_DISTANCE,
+                           ConfKey.SCAN_MODE_ANS_TYPE, ConfKey.SCAN_MODE_NAME})
 
 
 #: (payload size, mode) every answer type must announce; LIDAR_CONF varies in size.
@@ -92,8 +133,12 @@ _ANSWER_SHAPE: dict[int, tuple[int, int]] = {
     AnswerType.SAMPLERATE: (4, MODE_SINGLE),
     AnswerType.SCAN: (NODE_LEN, MODE_LOOP),
     AnswerType.EXPRESS: (CAPSULE_LEN, MODE_LOOP),
+    AnswerType.ULTRA_CAPSULED: (caps.ULTRA_LEN, MODE_LOOP),
+    AnswerType.DENSE_CAPSULED: (caps.DENSE_LEN, MODE_LOOP),
     AnswerType.ACC_BOARD_FLAG: (4, MODE_SINGLE),
 }
+#: Packet size of every measurement answer type the codec decodes.
+PACKET_LEN = {kind: _ANSWER_SHAPE[kind][0] for kind in DECODED_ANSWERS}
 _LIDAR_CONF_MAX = 64
 
 #: The answer type each request gets back; requests missing here get no answer.
@@ -146,11 +191,30 @@ class Request:
         return cls(int(command))
 
     @classmethod
-    def express_scan(cls, mode: int = 0) -> Request:
-        """EXPRESS_SCAN in working ``mode`` (0 = the legacy express capsules)."""
-        if not 0 <= mode <= 0xFF:
-            raise LocalProtocolError(f"express scan mode {mode} is not a byte")
-        return cls(Command.EXPRESS_SCAN, struct.pack("<BHH", mode, 0, 0))
+    def express_scan(cls, mode: int = 0, flags: int = 0) -> Request:
+        """EXPRESS_SCAN in working ``mode``: a scan mode id from GET_LIDAR_CONF, or 0 for the
+        legacy express capsules of a device without the configuration commands."""
+        if not 0 <= mode <= 0xFF or not 0 <= flags <= 0xFFFF:
+            raise LocalProtocolError(f"express scan mode {mode} / flags {flags} out of range")
+        return cls(Command.EXPRESS_SCAN, struct.pack("<BHH", mode, flags, 0))
+
+    @classmethod
+    def get_lidar_conf(cls, key: int, mode: int | None = None) -> Request:
+        """GET_LIDAR_CONF for ``key``; per-mode keys (:data:`PER_MODE_KEYS`) need the ``mode`` id."""
+        if not 0 <= key <= 0xFFFFFFFF or (mode is not None and not 0 <= mode <= 0xFFFF):
+            raise LocalProtocolError(f"configuration key 0x{key:x} / mode {mode} out of range")
+        if (key in PER_MODE_KEYS) != (mode is not None):
+            raise LocalProtocolError(f"configuration key 0x{key:x} "
+                                     f"{'needs' if key in PER_MODE_KEYS else 'takes no'} scan mode")
+        payload = struct.pack("<I", key) + (b"" if mode is None else struct.pack("<H", mode))
+        return cls(Command.GET_LIDAR_CONF, payload)
+
+    @classmethod
+    def set_motor_rpm(cls, rpm: int) -> Request:
+        """The motor speed command of the S series (and newer), in revolutions per minute."""
+        if not 0 <= rpm <= 0xFFFF:
+            raise LocalProtocolError(f"motor rpm {rpm} outside 0..65535")
+        return cls(Command.SET_MOTOR_RPM, struct.pack("<H", rpm))
 
     @classmethod
     def set_motor_pwm(cls, pwm: int) -> Request:
@@ -251,12 +315,58 @@ class LidarConf:
     key: int
     value: bytes
 
+    def number(self, size: int) -> int | None:
+        """The value as a little-endian unsigned integer of ``size`` bytes; None if too short."""
+        if len(self.value) < size:
+            return None
+        return int.from_bytes(self.value[:size], "little")
+
+    @property
+    def text(self) -> str:
+        """The value as text (up to the first NUL; undecodable bytes replaced)."""
+        return self.value.split(b"\0", 1)[0].decode("ascii", "replace")
+
+
+@dataclass(frozen=True)
+class ScanMode:
+    """One scan mode a device lists: its id, name, µs per sample, range (m) and answer type."""
+
+    id: int
+    name: str
+    us_per_sample: float
+    max_distance_m: float
+    answer_type: int
+
+    @property
+    def samples_per_s(self) -> float:
+        return 1e6 / self.us_per_sample if self.us_per_sample > 0 else 0.0
+
+    @property
+    def answer_name(self) -> str:
+        return ANSWER_NAMES.get(self.answer_type, f"answer type 0x{self.answer_type:02x}")
+
+    def describe(self) -> str:
+        """``Sensitivity (id 3): 15.9 k samples/s, 25 m, ultra capsules (0x84)``."""
+        return (f"{self.name} (id {self.id}): {self.samples_per_s / 1000:.1f} k samples/s, "
+                f"{self.max_distance_m:g} m, {self.answer_name} (0x{self.answer_type:02x})")
+
+
+def supports_conf_commands(info: DeviceInfo) -> bool:
+    """Whether a device answers GET_LIDAR_CONF, decided as Slamtec's SDK decides it: every
+    C/S-series (and newer) unit, and A-series firmware 1.24 or later."""
+    return info.major >= 4 or (info.firmware_major, info.firmware_minor) >= (1, 24)
+
 
 @dataclass(frozen=True)
 class ScanStarted:
-    """The descriptor of a scan stream: samples follow until the host sends STOP."""
+    """The descriptor of a scan stream: samples follow until the host sends STOP.
+
+    ``express`` is True for every capsule format; ``answer_type`` says which (0 when the event
+    was built by hand without one).
+    """
 
     express: bool
+    answer_type: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -303,6 +413,7 @@ class _State(IntEnum):
     PAYLOAD = 1  # a single response's payload
     NODES = 2  # standard scan stream
     CAPSULES = 3  # express scan stream
+    FRAMES = 4  # ultra or dense capsule stream
 
 
 class RplidarClient:
@@ -325,21 +436,27 @@ class RplidarClient:
         self._node_locked = True
         self._prev_capsule: np.ndarray | None = None
         self._events: deque[Event] = deque()
+        self._prev_frame: np.ndarray | None = None  # the last ultra/dense capsule, not decoded yet
 
     @property
     def streaming(self) -> bool:
         """Whether a scan stream (standard or express) is being decoded."""
-        return self._state in (_State.NODES, _State.CAPSULES)
+        return self._state in (_State.NODES, _State.CAPSULES, _State.FRAMES)
 
     @property
     def buffered(self) -> int:
         """Bytes received but not decoded yet (a partial frame)."""
         return len(self._buf)
 
-    def send(self, request: Request) -> bytes:
-        """Bytes for ``request``; updates what the decoder expects next."""
+    def send(self, request: Request, answer: int | None = None) -> bytes:
+        """Bytes for ``request``; updates what the decoder expects next.
+
+        ``answer`` overrides the answer type expected: an EXPRESS_SCAN in a scan mode is answered
+        with that mode's type (ultra or dense capsules).
+        """
         data = request.encode()
-        answer = ANSWER_TO.get(request.command)
+        if answer is None:
+            answer = ANSWER_TO.get(request.command)
         if answer is not None:
             self._expect = answer
             self._enter_hunt()
@@ -351,6 +468,7 @@ class RplidarClient:
     def _enter_hunt(self) -> None:
         self._state = _State.HUNT
         self._prev_capsule = None
+        self._prev_frame = None
 
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
         """Feed bytes from the device; decode as far as possible."""
@@ -384,6 +502,9 @@ class RplidarClient:
             elif self._state == _State.NODES:
                 self._decode_nodes()
                 return
+            elif self._state == _State.FRAMES:
+                self._decode_frames()
+                return
             else:
                 self._decode_capsules()
                 return
@@ -406,10 +527,13 @@ class RplidarClient:
                 self._type, self._size = kind, size
                 if kind == AnswerType.SCAN:
                     self._state, self._node_locked = _State.NODES, True
-                    self._events.append(ScanStarted(express=False))
+                    self._events.append(ScanStarted(express=False, answer_type=kind))
                 elif kind == AnswerType.EXPRESS:
                     self._state, self._prev_capsule = _State.CAPSULES, None
-                    self._events.append(ScanStarted(express=True))
+                    self._events.append(ScanStarted(express=True, answer_type=kind))
+                elif kind in _FRAME_DECODERS:
+                    self._state, self._prev_frame = _State.FRAMES, None
+                    self._events.append(ScanStarted(express=True, answer_type=kind))
                 else:
                     self._state = _State.PAYLOAD
                 return True
@@ -530,6 +654,54 @@ class RplidarClient:
         m = decode_capsules(caps)
         self.stats.samples += len(m)
         self._events.append(m)
+
+
+    # ultra and dense capsules
+
+    def _decode_frames(self) -> None:
+        """Cut whole capsules of the current type; a bad one is dropped and the stream re-locks
+        on the next sync nibbles. A capsule is decoded when its successor arrives."""
+        size = _ANSWER_SHAPE[self._type][0]
+        buf = self._buf
+        run: list[np.ndarray] = []
+        while len(buf) >= size:
+            n = len(buf) // size
+            arr = np.frombuffer(buf, dtype=np.uint8, count=n * size).reshape(n, size)
+            ok = caps.capsules_valid(arr)
+            good = n if bool(ok.all()) else int(np.argmin(ok))
+            if good:
+                run.append(arr[:good].copy())
+            del arr
+            del buf[: good * size]
+            if good < n:
+                self._emit_frames(run)
+                run, self._prev_frame = [], None
+                self.stats.checksum_errors += 1
+                self.stats.resyncs += 1
+                self._resync_capsules()
+        self._emit_frames(run)
+
+    def _emit_frames(self, run: list[np.ndarray]) -> None:
+        if not run:
+            return
+        frames = np.concatenate(run)
+        first = np.flatnonzero(frames[:, 3] & 0x80)
+        if len(first):  # a capsule flagged as the first of a stream has no valid predecessor
+            self._prev_frame, frames = None, frames[int(first[-1]):]
+        if self._prev_frame is not None:
+            frames = np.concatenate([self._prev_frame[None, :], frames])
+        self._prev_frame = frames[-1].copy()
+        if len(frames) < 2:
+            return
+        angle, dist, start = _FRAME_DECODERS[self._type](frames)
+        self.stats.samples += len(angle)
+        self._events.append(Measurements(
+            start=start, quality=(dist > 0).astype(np.uint8) * np.uint8(0x2F), angle_deg=angle,
+            distance_mm=dist, express=True, held_back=DECODED_ANSWERS[self._type]))
+
+
+_FRAME_DECODERS = {AnswerType.ULTRA_CAPSULED: caps.decode_ultra,
+                   AnswerType.DENSE_CAPSULED: caps.decode_dense}
 
 
 def _nodes_valid(arr: np.ndarray) -> np.ndarray:
@@ -679,9 +851,29 @@ def encode_acc_board_flag(flag: AccBoardFlag) -> bytes:
     return _answer(AnswerType.ACC_BOARD_FLAG, struct.pack("<I", flag.flags))
 
 
-def encode_scan_descriptor(express: bool) -> bytes:
-    """The loop-mode descriptor that opens a standard or an express scan stream."""
-    return _answer(AnswerType.EXPRESS if express else AnswerType.SCAN, b"")
+def encode_scan_descriptor(express: bool, answer_type: int | None = None) -> bytes:
+    """The loop-mode descriptor that opens a scan stream: standard nodes, express capsules, or the
+    measurement ``answer_type`` given (ultra or dense capsules)."""
+    if answer_type is None:
+        answer_type = AnswerType.EXPRESS if express else AnswerType.SCAN
+    return _answer(AnswerType(answer_type), b"")
+
+
+def encode_lidar_conf(key: int, value: bytes) -> bytes:
+    """Descriptor and GET_LIDAR_CONF answer: the key asked for, then its value."""
+    if len(value) + 4 > _LIDAR_CONF_MAX:
+        raise LocalProtocolError(f"configuration value of {len(value)} bytes is too long")
+    return encode_descriptor(4 + len(value), MODE_SINGLE, AnswerType.LIDAR_CONF) + \
+        struct.pack("<I", key) + value
+
+
+def parse_conf_request(req: Request) -> tuple[int, int | None] | None:
+    """(key, scan mode id or None) of a GET_LIDAR_CONF request; None if the payload is malformed."""
+    if len(req.payload) < 4:
+        return None
+    (key,) = struct.unpack_from("<I", req.payload)
+    mode = struct.unpack_from("<H", req.payload, 4)[0] if len(req.payload) >= 6 else None
+    return key, mode
 
 
 def encode_nodes(start: np.ndarray, quality: np.ndarray, angle_deg: np.ndarray,

@@ -2,15 +2,23 @@
 
 Session (each reconnect repeats it): STOP and discard whatever was still streaming; GET_INFO
 (model, firmware, serial -> ``info``); GET_HEALTH (status 2 "protection stop" -> RESET, wait for
-the banner to pass, ask again; still 2 -> DeviceError naming the code and its meaning);
-GET_SAMPLERATE (sample period -> beam timing); motor start; SCAN or EXPRESS_SCAN
-(``params.scan_mode``); then stream until the link fails or no scan arrives for
+the banner to pass, ask again; still 2 -> DeviceError naming the code and its meaning); the scan
+modes; motor start; the scan; then stream until the link fails or no scan arrives for
 ``params.stale_timeout_s`` (3 s allowed for the first one while the motor spins up).
+
+Scan modes, decided as Slamtec's SDK decides: a device with the configuration commands (every C
+and S series unit, A series from firmware 1.24) lists its modes through GET_LIDAR_CONF (id, name,
+µs per sample, maximum distance, answer type) and names its typical one; the driver logs them and
+starts ``params.scan_mode`` (by name) or else the typical mode: SCAN for a standard-node mode,
+EXPRESS_SCAN with the mode's id for the rest. An older device has two modes, Standard (SCAN) and
+Express (EXPRESS_SCAN mode 0, legacy capsules), timed by GET_SAMPLERATE; Express is its typical
+mode (Standard only below firmware 1.17, which had no express scan).
 
 Motor: A1 (model id series 1) runs while DTR is *cleared*; a port without modem lines (a pty,
 some adapters) refuses DTR, which is logged once and otherwise ignored. A2/A3 get
-SET_MOTOR_PWM(``params.motor_pwm``) when GET_ACC_BOARD_FLAG reports the accessory board. S1 and C1
-spin by themselves. Closing a session sends STOP and stops the motor (PWM 0, DTR asserted).
+SET_MOTOR_PWM(``params.motor_pwm``) when GET_ACC_BOARD_FLAG reports the accessory board. The S
+series gets SET_MOTOR_RPM with the speed it asks for (GET_LIDAR_CONF DESIRED_ROT_FREQ). C1 spins
+by itself. Closing a session sends STOP and stops the motor (PWM 0, DTR asserted).
 
 Scan conventions (counter-clockwise fixed grid, negative ``time_increment``): see
 :mod:`lidar_drivers.rplidar_scan`. Stamps are wall-clock ns: the arrival time of the bytes minus
@@ -29,18 +37,23 @@ from lidar_drivers import rplidar_models
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.params import LidarParams
 from lidar_drivers.rplidar_codec import (
-    CAPSULE_LEN,
-    NODE_LEN,
+    DECODED_ANSWERS,
+    PACKET_LEN,
     AccBoardFlag,
+    AnswerType,
     Command,
+    ConfKey,
     DeviceInfo,
     Event,
     Health,
+    LidarConf,
     Measurements,
     Request,
     RplidarClient,
     SampleRate,
+    ScanMode,
     ScanStarted,
+    supports_conf_commands,
 )
 from lidar_drivers.rplidar_scan import ScanAssembler
 from racecar_hw.base.bus import Bus
@@ -61,6 +74,10 @@ RESET_SETTLE_S = 0.5
 #: The first scan may take this long (motor spin-up).
 STARTUP_TIMEOUT_S = 3.0
 BITS_PER_BYTE = 10  # 8N1
+#: The SDK's sample period for an A-series unit older than firmware 1.17 (no GET_SAMPLERATE).
+LEGACY_SAMPLE_US = 476
+#: The speed the SDK sets when a device does not say which it wants.
+DEFAULT_RPM = 600
 
 
 class RplidarDriver(LidarDriver):
@@ -75,11 +92,16 @@ class RplidarDriver(LidarDriver):
         self.device_info: DeviceInfo | None = None
         self.health: Health | None = None
         self.sample_rate: SampleRate | None = None
+        #: the scan modes the device listed (or the legacy two), and the one streaming
+        self.scan_modes: list[ScanMode] = []
+        self.scan_mode: ScanMode | None = None
         self.motor = "unknown"
+        self._logged_modes: tuple[ScanMode, ...] = ()
         self._link: Link | None = None
         self._client = RplidarClient()
         self._events: deque[Event] = deque()
         self._dtr_refused_logged = False
+        self._typical = 0
         self._seen = (0, 0)  # (checksum errors + bad nodes, resyncs) already in self.stats
 
     # --- session -------------------------------------------------------------------------------
@@ -96,15 +118,25 @@ class RplidarDriver(LidarDriver):
         await self._settle(STOP_SETTLE_S)
         info = await self._request(Request.simple(Command.GET_INFO), DeviceInfo)
         self.device_info = info
+        self.info = {"model": info.model_name, "model_id": f"0x{info.model_id:02X}",
+                     "firmware": info.firmware}
         await self._check_health()
-        period_us = await self._sample_period_us()
+        conf = supports_conf_commands(info)
+        if conf:
+            conf = await self._listed_modes()
+        if not conf:
+            await self._legacy_modes(info)
+        mode = self._choose_mode()
+        self.scan_mode = mode
         await self._start_motor(info)
-        express = self.params.scan_mode == "express"
-        self._send(Request.express_scan() if express else Request.simple(Command.SCAN))
+        if mode.answer_type == AnswerType.SCAN:
+            self._send(Request.simple(Command.SCAN))
+        else:
+            self._send(Request.express_scan(mode.id if conf else 0), mode.answer_type)
         await self._wait(ScanStarted, REQUEST_TIMEOUT_S)
-        self._fill_info(info, period_us)
+        self._fill_info(info, mode)
         self.connected = True
-        await self._stream(express, period_us * 1e-6)
+        await self._stream(mode)
 
     async def _check_health(self) -> None:
         health = await self._request(Request.simple(Command.GET_HEALTH), Health)
@@ -123,18 +155,92 @@ class RplidarDriver(LidarDriver):
                         health.error_code, health.meaning)
         self.health = health
 
-    async def _sample_period_us(self) -> float:
-        express = self.params.scan_mode == "express"
+    async def _conf(self, key: ConfKey, mode: int | None = None, size: int = 0) -> LidarConf:
+        """One GET_LIDAR_CONF answer for ``key`` with at least ``size`` value bytes."""
+        ans = await self._request(Request.get_lidar_conf(key, mode), LidarConf)
+        if ans.key != key or len(ans.value) < size:
+            raise DeviceError(f"RPLIDAR answered configuration key 0x{key:x} with key "
+                              f"0x{ans.key:x} and {len(ans.value)} value bytes")
+        return ans
+
+    async def _listed_modes(self) -> bool:
+        """The device's own scan-mode table; False if it does not answer after all."""
         try:
-            rate = await self._request(Request.simple(Command.GET_SAMPLERATE), SampleRate)
+            count = (await self._conf(ConfKey.SCAN_MODE_COUNT, size=2)).number(2) or 0
         except DeviceTimeout:
-            log.info("rplidar: no GET_SAMPLERATE answer; using the %s's nominal rate", self.spec.name)
-            rate = SampleRate(self.spec.standard_us, self.spec.express_us)
+            log.warning("rplidar %s: no GET_LIDAR_CONF answer from a device that should have it; "
+                        "using the legacy scan commands", self.params.port)
+            return False
+        typical = (await self._conf(ConfKey.SCAN_MODE_TYPICAL, size=2)).number(2)
+        modes = []
+        for i in range(count):
+            us = (await self._conf(ConfKey.SCAN_MODE_US_PER_SAMPLE, i, 4)).number(4) or 0
+            dist = (await self._conf(ConfKey.SCAN_MODE_MAX_DISTANCE, i, 4)).number(4) or 0
+            kind = (await self._conf(ConfKey.SCAN_MODE_ANS_TYPE, i, 1)).number(1) or 0
+            name = (await self._conf(ConfKey.SCAN_MODE_NAME, i, 1)).text
+            modes.append(ScanMode(i, name, us / 256, dist / 256, kind))
+        if not modes:
+            raise DeviceError("RPLIDAR lists no scan modes")
+        self.scan_modes = modes
+        self._typical = typical if any(m.id == typical for m in modes) else modes[0].id
+        return True
+
+    async def _legacy_modes(self, info: DeviceInfo) -> None:
+        """Standard and (firmware 1.17+) Express, timed by GET_SAMPLERATE as the SDK times them."""
+        express = info.major >= 4 or (info.firmware_major, info.firmware_minor) >= (1, 17)
+        rate = SampleRate(LEGACY_SAMPLE_US, LEGACY_SAMPLE_US)
+        if express:
+            try:
+                rate = await self._request(Request.simple(Command.GET_SAMPLERATE), SampleRate)
+            except DeviceTimeout:
+                log.info("rplidar: no GET_SAMPLERATE answer; using the %s's nominal rates",
+                         self.spec.name)
+                rate = SampleRate(self.spec.standard_us, self.spec.express_us)
         self.sample_rate = rate
-        period = rate.express_us if express else rate.standard_us
-        return float(period if period > 0 else (self.spec.express_us if express else self.spec.standard_us))
+        modes = [ScanMode(0, "Standard", rate.standard_us or LEGACY_SAMPLE_US, self.spec.range_max,
+                          AnswerType.SCAN)]
+        if express:
+            modes.append(ScanMode(1, "Express", rate.express_us or LEGACY_SAMPLE_US,
+                                  self.spec.range_max, AnswerType.EXPRESS))
+        self.scan_modes = modes
+        self._typical = modes[-1].id
+
+    def _choose_mode(self) -> ScanMode:
+        """``params.scan_mode`` by name (any case), else the typical mode; DeviceError naming the
+        device's modes if that mode is not listed or its format is not decoded here."""
+        modes = self.scan_modes
+        listed = "; ".join(m.describe() for m in modes)
+        if tuple(modes) != self._logged_modes:
+            self._logged_modes = tuple(modes)
+            typical = next(m.name for m in modes if m.id == self._typical)
+            log.info("rplidar %s: scan modes: %s; typical: %s", self.params.port, listed, typical)
+        wanted = self.params.scan_mode
+        if wanted is None:
+            mode = next(m for m in modes if m.id == self._typical)
+        else:
+            found = [m for m in modes if m.name.lower() == wanted.lower()]
+            if not found:
+                raise DeviceError(f"lidar.scan_mode {wanted!r} is not a scan mode of this "
+                                  f"{self.info.get('model', 'RPLIDAR')}; it has: {listed}")
+            mode = found[0]
+        if mode.answer_type not in DECODED_ANSWERS:
+            raise DeviceError(f"scan mode {mode.name} sends {mode.answer_name} "
+                              f"(0x{mode.answer_type:02x}), which racecar-hw does not decode; "
+                              f"set lidar.scan_mode to another of: {listed}")
+        if mode.us_per_sample <= 0:
+            raise DeviceError(f"scan mode {mode.name} reports no sample period")
+        return mode
 
     async def _start_motor(self, info: DeviceInfo) -> None:
+        if rplidar_models.uses_rpm_motor_control(info.model_id):
+            try:
+                rpm = (await self._conf(ConfKey.DESIRED_ROT_FREQ, size=2)).number(2) or 0
+            except DeviceTimeout:
+                rpm = 0
+            rpm = rpm or DEFAULT_RPM
+            self._send(Request.set_motor_rpm(rpm))
+            self.motor = f"rpm {rpm}"
+            return
         if rplidar_models.uses_pwm_motor_control(info.model_id):
             try:
                 flag = await self._request(Request.get_acc_board_flag(), AccBoardFlag)
@@ -162,8 +268,10 @@ class RplidarDriver(LidarDriver):
                 log.warning("rplidar %s: cannot set DTR (%s); the motor is left as it is "
                             "(normal for a pty or an adapter without modem lines)", self.params.port, err)
 
-    def _fill_info(self, info: DeviceInfo, period_us: float) -> None:
+    def _fill_info(self, info: DeviceInfo, mode: ScanMode) -> None:
         health = self.health or Health(0, 0)
+        period_us = mode.us_per_sample
+        typical = next((m.name for m in self.scan_modes if m.id == self._typical), "")
         self.info = {
             "model": info.model_name,
             "model_id": f"0x{info.model_id:02X}",
@@ -173,16 +281,21 @@ class RplidarDriver(LidarDriver):
             "health": f"{health.status_name} (code 0x{health.error_code:04x})",
             "sample_period_us": f"{period_us:g}",
             "baudrate": str(self.baudrate),
-            "scan_mode": self.params.scan_mode,
+            "scan_mode": mode.name,
+            "scan_format": f"{mode.answer_name} (0x{mode.answer_type:02x}), "
+                           f"{mode.samples_per_s / 1000:.1f} k samples/s",
+            "scan_modes": ", ".join(m.name + ("*" if m.name == typical else "")
+                                    for m in self.scan_modes) + " (* typical)",
             "motor": self.motor,
         }
 
-    async def _stream(self, express: bool, period_s: float) -> None:
+    async def _stream(self, mode: ScanMode) -> None:
+        period_s = mode.us_per_sample * 1e-6
         assembler = ScanAssembler(
             range_min=self.spec.range_min, range_max=self.spec.range_max, sample_period_s=period_s,
             frame_id=self.params.frame_id, intensities=self.params.intensities,
             crop_min=self.params.angle_min, crop_max=self.params.angle_max)
-        frame_s = (CAPSULE_LEN if express else NODE_LEN) * BITS_PER_BYTE / self.baudrate
+        frame_s = PACKET_LEN[mode.answer_type] * BITS_PER_BYTE / self.baudrate
         byte_s = BITS_PER_BYTE / self.baudrate
         timeout = [STARTUP_TIMEOUT_S]  # until the first scan, then stale_timeout_s
 
@@ -229,9 +342,9 @@ class RplidarDriver(LidarDriver):
 
     # --- link helpers --------------------------------------------------------------------------
 
-    def _send(self, request: Request) -> None:
+    def _send(self, request: Request, answer: int | None = None) -> None:
         assert self._link is not None
-        self._link.write(self._client.send(request))
+        self._link.write(self._client.send(request, answer))
 
     async def _read(self, timeout_s: float) -> bytes:
         """At least one byte within ``timeout_s`` or DeviceTimeout.

@@ -1,4 +1,5 @@
-"""Hokuyo lidars over SCIP 2.0: URG-04LX on USB serial, UST-10LX/20LX and UTM-30LX on Ethernet.
+"""Hokuyo lidars over SCIP 2.0: URG-04LX and UTM-30LX on USB serial; UST-10LX/20LX and
+UTM-30LX-EW on Ethernet.
 
 A thin asyncio shell around :mod:`lidar_drivers.scip`. One session: open the link; ``QT`` and
 ``RS`` (stop any stream left running, laser off, clock zero); ``VV`` (vendor, product, firmware,
@@ -39,7 +40,7 @@ import time
 import numpy as np
 
 from lidar_drivers.base import LidarDriver, ScanGeometry
-from lidar_drivers.params import LidarParams
+from lidar_drivers.params import HOKUYO_USB_MODELS, LidarParams
 from lidar_drivers.scip import (
     ChecksumMismatch,
     Command,
@@ -140,7 +141,7 @@ class HokuyoDriver(LidarDriver):
             return TcpLink(host, port)
         if p.port:
             return SerialLink(p.port, self._baud)
-        if p.model == "urg-04lx":
+        if p.model in HOKUYO_USB_MODELS:
             return SerialLink(DEFAULT_SERIAL_PORT, self._baud)
         return TcpLink(*DEFAULT_TCP)
 
@@ -224,10 +225,10 @@ class HokuyoDriver(LidarDriver):
         self._decoder = ResponseDecoder()
         self._link = self._make_link()
         await self._link.open()
-        try:
-            await self._request(Command("QT"), 2 * REPLY_TIMEOUT_S)
-        except DeviceTimeout:
-            # a URG-04LX may still speak SCIP 1.1: switch it, then try again
+        if not await self._quiet():
+            # a classic URG-04LX boots speaking SCIP 1.1: switch it, then stop it again
+            log.info("lidar %s: the device speaks SCIP 1.1; switching it to SCIP 2.0",
+                     self.params.model)
             self._link.write(b"SCIP2.0\n")
             await asyncio.sleep(0.1)
             await self._request(Command("QT"), 2 * REPLY_TIMEOUT_S)
@@ -251,6 +252,22 @@ class HokuyoDriver(LidarDriver):
         self.geometry = scan_geometry(dev, req)
         self.connected = True
         await self._stream(dev, req)
+
+    async def _quiet(self) -> bool:
+        """QT: stop any stream a previous client left running. False if the device answers in
+        SCIP 1.1 (``QT``, ``E``: urg_c's test) or not at all (it may be in SCIP 1.1 anyway)."""
+        assert self._link is not None
+        self._link.write(Command("QT").encode())
+        deadline = time.monotonic() + 2 * REPLY_TIMEOUT_S
+        while True:
+            try:
+                event = await self._next_event(deadline, "no reply to QT")
+            except DeviceTimeout:
+                return False
+            if isinstance(event, Reply) and event.echo == "QT":
+                return event.status != "E"
+            if isinstance(event, MalformedResponse) and event.raw.split(b"\n")[-2:] == [b"QT", b"E"]:
+                return False
 
     async def _start_stream(self, dev: SensorParams) -> ScanCommand:
         p = self.params

@@ -5,6 +5,13 @@ parameters (:mod:`lidar_drivers.scip_models`), measures ranges from a
 :class:`~lidar_drivers.base.RangeSource`, and streams frames at the model's true scan period on
 absolute deadlines; the first frame follows the acknowledgement by one period, as on a real sensor.
 
+Timing, as on the devices (and in urg_stamped's urg_sim): a streamed frame carries the device time
+(the 24-bit ms counter) of step 0 of its sweep, and leaves once the sweep has reached the last
+step the command asked for, ``end * period / ARES`` later. :attr:`FakeHokuyo.sweep_starts_ns`
+records the true sweep starts for tests. A URG-04LX has no intensity commands (``ME``/``GE`` get
+``0E``), reads code 19 on its steps outside AMIN..AMAX, and with ``scip1=True`` boots speaking
+SCIP 1.1 as the classic URG-04LX does (every command but ``SCIP2.0`` gets ``E``).
+
 Measurement model: metres become integer mm; nothing in reach or beyond DMAX becomes the model's
 no-return code (1, "no object"), closer than DMIN becomes 2 ("too near"). With a cluster, a group
 reports its nearest valid step, or its smallest code when none is valid. Intensity is a synthetic
@@ -115,6 +122,8 @@ class _Session:
     def handle(self, cmd: Command | UnknownCommand | InvalidCommand) -> bytes | None:
         """The reply to one command (streams start as a side effect)."""
         m = self.fake.model
+        if self.fake.scip1:
+            return self._scip1(cmd)
         if isinstance(cmd, UnknownCommand):
             return encode_reply(cmd.line, "0E")
         if isinstance(cmd, InvalidCommand):
@@ -153,6 +162,14 @@ class _Session:
             return encode_reply(cmd.line, "00")
         return encode_reply(cmd.line, "0E")  # SCIP2.0: already in SCIP 2.0
 
+    def _scip1(self, cmd: Command | UnknownCommand | InvalidCommand) -> bytes:
+        """SCIP 1.1: only the switch to SCIP 2.0 is understood (status ``0``, no checksum)."""
+        line = cmd.line
+        if isinstance(cmd, Command) and cmd.name == "SCIP2.0":
+            self.fake.scip1 = False
+            return f"{line}\n0\n\n".encode()
+        return f"{line}\nE\n\n".encode()
+
     def _time_command(self, cmd: TimeCommand) -> bytes:
         if cmd.code == 0:
             if self.time_mode:
@@ -172,7 +189,9 @@ class _Session:
 
     def _scan_command(self, cmd: ScanCommand) -> bytes:
         m = self.fake.model
-        if cmd.end > m.amax or cmd.start > m.amax:
+        if cmd.intensities and not m.intensities:
+            return encode_reply(cmd.line, "0E")  # no such command on this model
+        if cmd.end > m.max_step or cmd.start > m.max_step:
             return encode_reply(cmd.line, "04")
         if cmd.streaming:
             self.stop_stream()
@@ -182,19 +201,24 @@ class _Session:
             return encode_reply(cmd.line, "00")
         if not self.laser_on:
             return encode_reply(cmd.line, "10")
-        return self.fake.frame(cmd, cmd.line, "00")
+        # the reply leaves once the sweep reaches the last step asked for: step 0 was earlier
+        ready_ns = round(cmd.end * self.fake.model.step_time_s * NS_PER_S)
+        return self.fake.frame(cmd, cmd.line, "00", at_ns=monotonic_ns() - ready_ns)
 
     async def _stream(self, cmd: ScanCommand) -> None:
         loop = asyncio.get_running_loop()
-        period = self.fake.model.scan_period_s * (cmd.interval + 1)
-        deadline = loop.time() + period  # first frame one period after the acknowledgement
+        m = self.fake.model
+        period = m.scan_period_s * (cmd.interval + 1)
+        ready = cmd.end * m.step_time_s  # from step 0 until the last step asked for is measured
+        # the first frame leaves one period after the acknowledgement
+        step0 = loop.time() + period - ready  # loop.time() is the monotonic clock, in s
         remaining = cmd.count
         while True:
-            delay = deadline - loop.time()
+            delay = step0 + ready - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
-            elif delay < -period:
-                deadline = loop.time()  # fell far behind (loaded machine): do not burst
+            elif delay < -period:  # fell far behind (loaded machine): skip sweeps, do not burst
+                step0 += (-delay // period) * period
             if remaining:
                 remaining -= 1
             fake = self.fake
@@ -202,16 +226,18 @@ class _Session:
                 status, fake._fail_status = fake._fail_status, None
                 await asyncio.shield(self.send(encode_reply(cmd.echo(remaining), status)))
             elif not fake._muted:
-                # measured on the sensor's own schedule, however late this host sends it
-                frame = fake.frame(cmd, cmd.echo(remaining), "99", at_ns=round(deadline * NS_PER_S))
-                handed_over = monotonic_ns()  # before the write: a reader may react before it returns
+                # measured and stamped at the sweep's step 0, however late this host sends it
+                step0_ns = round(step0 * NS_PER_S)
+                frame = fake.frame(cmd, cmd.echo(remaining), "99", at_ns=step0_ns)
+                # noted before the write: a reader may react before it returns
+                fake.frames_sent_ns.append(monotonic_ns())
+                fake.sweep_starts_ns.append(step0_ns)
                 await asyncio.shield(self.send(frame))  # QT stops the stream between frames only
                 fake.scans_sent += 1
-                fake.frames_sent_ns.append(handed_over)
             if cmd.count and remaining == 0:
                 self.stream = None
                 return
-            deadline += period
+            step0 += period
 
 
 class FakeHokuyo:
@@ -222,8 +248,13 @@ class FakeHokuyo:
     """
 
     def __init__(self, model: str, range_source: RangeSource, link: str | None = None,
-                 tcp: tuple[str, int] | None = None, seed: int | None = None) -> None:
+                 tcp: tuple[str, int] | None = None, seed: int | None = None,
+                 scip1: bool = False) -> None:
         self.model: HokuyoModel = get_model(model)
+        if scip1 and self.model.name != "urg-04lx":
+            raise ValueError(f"only the URG-04LX boots in SCIP 1.1, not the {self.model.model}")
+        #: speaks SCIP 1.1 until told ``SCIP2.0`` (a classic URG-04LX after power-on)
+        self.scip1 = self.boots_scip1 = scip1
         self.range_source = range_source
         self.link = link
         self.tcp = tcp
@@ -233,6 +264,8 @@ class FakeHokuyo:
         self.received: deque[str] = deque(maxlen=2000)
         #: monotonic ns just before each streamed frame was handed to the link (for latency probes)
         self.frames_sent_ns: deque[int] = deque(maxlen=100_000)
+        #: monotonic ns of step 0 of each streamed frame's sweep (the time its stamp encodes)
+        self.sweep_starts_ns: deque[int] = deque(maxlen=100_000)
         self.tcp_address: tuple[str, int] | None = None
         self._pty: PtyPort | None = None
         self._pty_session: _Session | None = None
@@ -277,7 +310,7 @@ class FakeHokuyo:
             mm = np.where(np.isfinite(r), np.rint(r * 1000.0), np.inf)
             dist = np.where(mm > limit, m.no_return,
                             np.where(mm < m.dmin, TOO_NEAR, np.nan_to_num(mm, posinf=0)))
-        dist = dist.astype(np.int64)
+        dist = np.where((steps < m.amin) | (steps > m.amax), m.unmeasurable, dist).astype(np.int64)
         valid = dist >= m.dmin
         inten = np.where(valid, np.minimum(262143, 4_000_000 // (1000 + dist)), 0)
         cluster = max(cmd.cluster, 1)
@@ -338,6 +371,7 @@ class FakeHokuyo:
 
     def _open_pty(self) -> None:
         assert self._loop is not None
+        self.scip1 = self.boots_scip1  # powered on: back to the protocol it boots in
         self._pty = self._pty or PtyPort(self.link)
         self._pty.open()
         port = self._pty

@@ -9,8 +9,10 @@ import subprocess
 import sys
 
 import pytest
+from conftest import wait_for
 
 from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.rplidar_fake import FakeRplidar
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.cli import main
 
@@ -70,6 +72,39 @@ def test_fake_lidar_process_serves_until_ctrl_c(capsys):
         assert "closest:    2.000 m" in capsys.readouterr().out  # 10 x 4 room: 2 m to the side
         proc.send_signal(signal.SIGINT)
         assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+
+
+def test_lidar_info_names_the_model_the_device_reports(device_thread, tmp_path, capsys):
+    fake = FakeRplidar("c1", RoomRangeSource(8, 6), str(tmp_path / "rplidar"))
+    device_thread.spawn(fake.serve())
+    wait_for(lambda: fake.port.plugged)
+    assert main(["lidar-info", "--port", fake.link, "--model", "a1", "--timeout", "15"]) == 0
+    out = capsys.readouterr().out
+    assert "model:      a1 (device reports C1M1)" in out
+    assert "the device reports C1M1, not A1M8 (a1); use --model c1" in out
+    assert "scan_mode:  DenseBoost" in out
+
+
+def test_fake_rplidar_process_old_firmware_and_sigterm(tmp_path, capsys):
+    """``--firmware 1.20``: the legacy scan commands; SIGTERM removes the link like Ctrl-C."""
+    link = tmp_path / "rplidar"
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-lidar", "--model", "a2m8",
+                             "--link", str(link), "--firmware", "1.20"],
+                            stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        assert proc.stdout is not None
+        assert "fake a2m8 at pty" in proc.stdout.readline()
+        assert main(["lidar-info", "--port", str(link), "--model", "a2m8", "--timeout", "15"]) == 0
+        out = capsys.readouterr().out
+        assert "firmware:   1.20" in out and "scan_mode:  Express" in out
+        assert "scan_modes: Standard, Express* (* typical)" in out
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+        assert not link.exists()
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from lidar_drivers.rplidar_codec import (
     AccBoardFlag,
+    AnswerType,
     Command,
     DeviceInfo,
     Health,
@@ -130,7 +131,7 @@ def test_worked_scan_node():
     client = RplidarClient()
     client.send(Request.simple(Command.SCAN))
     events = feed(client, bytes.fromhex("a55a0500004081") + bytes.fromhex("3d012d4a13"))
-    assert events[0] == ScanStarted(express=False)
+    assert events[0] == ScanStarted(express=False, answer_type=AnswerType.SCAN)
     m = events[1]
     assert isinstance(m, Measurements)
     assert m.start.tolist() == [True] and m.quality.tolist() == [15]
@@ -192,7 +193,7 @@ def test_express_capsules_decode_with_the_next_capsule():
     client = RplidarClient()
     client.send(Request.express_scan())
     events = feed(client, encode_scan_descriptor(True) + data, [84])
-    assert events[0] == ScanStarted(express=True)
+    assert events[0] == ScanStarted(express=True, answer_type=AnswerType.EXPRESS)
     a, d, s = samples(events)
     assert len(d) == 29 * 32  # the last capsule waits for its successor
     np.testing.assert_array_equal(d, dist[:len(d)])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import Awaitable, Callable
 
 import numpy as np
@@ -19,6 +20,7 @@ from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.link import SerialLink, TcpLink
 from racecar_hw.base.messages import LaserScan
 
 ROOM = RoomRangeSource(8, 6)
@@ -67,7 +69,7 @@ def expected_ranges(scan: LaserScan) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("model", "tcp"), [("ust-10lx", True), ("urg-04lx", False),
-                                            ("utm-30lx", True)])
+                                            ("utm-30lx", False), ("utm-30lx-ew", True)])
 def test_streams_laser_scans_in_ros_conventions(device_thread, tmp_path, model, tcp):
     fake = start_fake(device_thread, model, tmp_path, tcp)
     m = fake.model
@@ -258,3 +260,46 @@ def test_every_reading_becomes_its_metres_or_the_error_policy():
         assert np.array_equal(r[valid], (readings[valid] / 1000.0).astype(np.float32))
         assert np.isinf(r[:2]).all() and np.isnan(r[2:20]).all() and np.isinf(r[30001:]).all()
     assert np.array_equal(ranges_m(dev, np.array([-3, 1 << 20])), [np.inf, np.inf])
+
+
+def test_urg04lx_refuses_me_and_the_driver_falls_back_to_md(device_thread, tmp_path, caplog):
+    fake = start_fake(device_thread, "urg-04lx", tmp_path, tcp=False)
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        await more_scans(scans, 2)
+        assert driver.request is not None and driver.request.name == "MD"
+        assert len(scans[-1].intensities) == 0
+        np.testing.assert_allclose(scans[-1].ranges, expected_ranges(scans[-1]), atol=1e-6)
+        sent = list(fake.received)
+        assert sent.index("ME0044072501000") < sent.index("MD0044072501000")
+
+    drive(params_for(fake, intensities=True), scenario)
+    assert any("ME refused" in r.getMessage() and "unknown command" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_classic_urg04lx_in_scip11_is_switched_to_scip20(device_thread, tmp_path):
+    fake = FakeHokuyo("urg-04lx", ROOM, link=str(tmp_path / "urg"), scip1=True)
+    device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        started = time.monotonic()
+        await more_scans(scans, 2)
+        # the SCIP 1.1 answer is recognised at once, not after the 2 s QT timeout
+        assert time.monotonic() - started < 1.9
+        assert list(fake.received)[:4] == ["QT", "SCIP2.0", "QT", "RS"]
+        assert not fake.scip1 and driver.info["protocol"] == "SCIP 2.0"
+        np.testing.assert_allclose(scans[-1].ranges, expected_ranges(scans[-1]), atol=1e-6)
+
+    drive(params_for(fake), scenario)
+
+
+def test_default_links_follow_the_model():
+    usb = ("urg-04lx", "utm-30lx")
+    for model in ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx", "utm-30lx-ew"):
+        link = make_driver(Bus(), LidarParams(model=model))._make_link()  # type: ignore[attr-defined]
+        if model in usb:
+            assert isinstance(link, SerialLink) and link.name.startswith("/dev/ttyACM0")
+        else:
+            assert isinstance(link, TcpLink) and "192.168.0.10:10940" in link.name

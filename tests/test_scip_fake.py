@@ -157,9 +157,12 @@ def test_models_match_the_reference():
     assert (urg.dmin, urg.dmax, urg.ares, urg.amin, urg.amax, urg.afrt, urg.scan_rpm) == (
         20, 5600, 1024, 44, 725, 384, 600)
     assert urg.scan_period_s == pytest.approx(0.1)
-    utm = MODELS["utm-30lx"]
-    assert (utm.dmin, utm.dmax, utm.ares, utm.amin, utm.amax, utm.afrt, utm.scan_rpm) == (
-        23, 60000, 1440, 0, 1080, 540, 2400)
+    for name in ("utm-30lx", "utm-30lx-ew"):  # one scan geometry, USB and Ethernet
+        utm = MODELS[name]
+        assert (utm.dmin, utm.dmax, utm.ares, utm.amin, utm.amax, utm.afrt, utm.scan_rpm) == (
+            23, 60000, 1440, 0, 1080, 540, 2400)
+    assert (MODELS["utm-30lx"].link, MODELS["utm-30lx-ew"].link) == ("serial", "tcp")
+    assert MODELS["utm-30lx-ew"].model == "UTM-30LX-EW"
     assert MODELS["ust-10lx"].dmax == 30000 and MODELS["ust-20lx"].scan_period_s == pytest.approx(0.025)
 
 
@@ -201,3 +204,116 @@ def test_hokuyolx_reads_the_fake_ust10lx_over_tcp(fake):
         assert lx.laser_state()[0] == 3
     finally:
         lx.close()
+
+
+# --- timing: the device clock at step 0, the frame at the end of the sweep ---------------------
+
+
+async def device_clock_offset_ms(c: Client, probes: int = 20) -> float:
+    """Host monotonic ms minus device ms, from the TM1 round trip with the shortest delay (the
+    device's clock is read somewhere inside it; the counter truncates, hence the half ms)."""
+    assert (await c.ask(TimeCommand(code=0))).status == "00"
+    best = (float("inf"), 0.0)
+    for _ in range(probes):
+        sent = time.monotonic_ns() / 1e6
+        reply = await c.ask(TimeCommand(code=1))
+        got = time.monotonic_ns() / 1e6
+        assert isinstance(reply, TimeReply)
+        best = min(best, (got - sent, (sent + got) / 2 - (reply.time_ms + 0.5)))
+    assert (await c.ask(TimeCommand(code=2))).status == "00"
+    return best[1]
+
+
+@pytest.mark.parametrize(("model", "end"), [("utm-30lx", 1080), ("urg-04lx", 725)])
+def test_frames_carry_the_device_time_of_their_sweep_start(device_thread, tmp_path, model, end):
+    """Our own TM-based client: each MD frame's timestamp, mapped through the device clock, lies
+    within 2 ms of the true start of its sweep; the frame itself leaves when the sweep reaches
+    the last step asked for (step ``end``), ``end / ARES`` of a period later."""
+    f = FakeHokuyo(model, RoomRangeSource(8, 6), link=str(tmp_path / "hokuyo"))
+    device_thread.spawn(f.serve())
+    assert f.ready.wait(10)
+    m = f.model
+
+    async def scenario(c: Client) -> None:
+        offset = await device_clock_offset_ms(c)
+        c.link.write(ScanCommand(name="MD", start=m.amin, end=end, cluster=1, interval=0,
+                                 count=6).encode())
+        ack, *frames = await c.events(7)
+        assert ack.status == "00" and len(frames) == 6
+        starts = list(f.sweep_starts_ns)[-6:]
+        for frame, start_ns in zip(frames, starts, strict=True):
+            stamp_ms = frame.timestamp_ms + 0.5 + offset  # on the host's monotonic clock
+            assert abs(stamp_ms - start_ns / 1e6) < 2.0
+        sent = list(f.frames_sent_ns)[-6:]
+        ready_ms = end * m.step_time_s * 1000
+        for start_ns, sent_ns in zip(starts, sent, strict=True):
+            assert (sent_ns - start_ns) / 1e6 >= ready_ms - 0.001  # not before the sweep got there
+
+    run_client(f, "pty", scenario)
+
+
+def test_hokuyolx_time_sync_sees_stamps_at_the_sweep_start(fake):
+    """hokuyolx syncs to the device clock (TM0, ten TM1, TM2) and turns frame stamps into UNIX
+    ms: they match the sweep starts within 2 ms, a sweep (18.75 ms) before the frames leave."""
+    lx = HokuyoLX(addr=fake.tcp_address, buf=4096, timeout=10)  # tsync=True: syncs on connect
+    try:
+        frames = list(lx.iter_dist(scans=4, skips=9))
+    finally:
+        lx.close()
+    unix_minus_mono_ms = time.time() * 1000 - time.monotonic_ns() / 1e6
+    starts = [s / 1e6 + unix_minus_mono_ms for s in list(fake.sweep_starts_ns)[-4:]]
+    sent = [s / 1e6 + unix_minus_mono_ms for s in list(fake.frames_sent_ns)[-4:]]
+    errors = [ts - start for (_, ts, _), start in zip(frames, starts, strict=True)]
+    assert abs(float(np.median(errors))) < 2.0, errors
+    assert all(abs(e) < 4.0 for e in errors), errors
+    for (_, ts, _), out in zip(frames, sent, strict=True):
+        assert out - ts > 15.0  # sent once the sweep reached step 1080, not stamped at sending
+
+
+# --- the URG-04LX as the device is --------------------------------------------------------------
+
+
+def test_urg04lx_has_no_intensities_and_unmeasurable_steps_read_19(device_thread, tmp_path):
+    f = FakeHokuyo("urg-04lx", RoomRangeSource(8, 6), link=str(tmp_path / "urg"))
+    device_thread.spawn(f.serve())
+    assert f.ready.wait(10)
+
+    async def scenario(c: Client) -> None:
+        assert (await c.ask(Command("BM"))).ok
+        for name in ("GE", "ME"):
+            cmd = ScanCommand(name=name, start=44, end=725, cluster=1,
+                              count=0 if name == "GE" else 1)
+            reply = await c.ask(cmd)
+            assert isinstance(reply, StatusReply) and reply.status == "0E"
+        scan = await c.ask(ScanCommand(name="GD", start=0, end=768, cluster=1))
+        assert isinstance(scan, ScanReply) and scan.distances.size == 769
+        assert (scan.distances[:44] == 19).all() and (scan.distances[726:] == 19).all()
+        assert (scan.distances[44:726] >= 20).all()  # the room is in reach everywhere else
+        assert (await c.ask(ScanCommand(name="GD", start=0, end=769, cluster=1))).status == "04"
+
+    run_client(f, "pty", scenario)
+
+
+def test_classic_urg04lx_boots_in_scip11_until_switched(device_thread, tmp_path):
+    f = FakeHokuyo("urg-04lx", RoomRangeSource(8, 6), link=str(tmp_path / "urg"), scip1=True)
+    device_thread.spawn(f.serve())
+    assert f.ready.wait(10)
+
+    async def scenario(c: Client) -> None:
+        def scip11_status(reply: object) -> str | None:
+            """A SCIP 1.1 reply's one-character status (no checksum), however the decoder files it."""
+            raw = getattr(reply, "raw", None)
+            return raw.split(b"\n")[-1].decode() if raw else getattr(reply, "status", None)
+
+        c.link.write(b"QT\n")
+        [reply] = await c.events(1)
+        assert scip11_status(reply) == "E"
+        c.link.write(b"SCIP2.0\n")
+        [reply] = await c.events(1)
+        assert scip11_status(reply) == "0"
+        assert (await c.ask(Command("QT"))).ok  # SCIP 2.0 from now on
+        assert (await c.ask(Command("VV"))).fields["PROD"] == f.model.model
+
+    run_client(f, "pty", scenario)
+    with pytest.raises(ValueError, match="SCIP 1.1"):
+        FakeHokuyo("ust-10lx", RoomRangeSource(8, 6), scip1=True)

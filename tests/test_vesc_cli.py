@@ -45,7 +45,8 @@ def test_vesc_info_times_out_on_a_silent_port(tmp_path, capsys):
     assert "no FwVersion reply" in capsys.readouterr().err
 
 
-def test_fake_vesc_command_serves_until_ctrl_c(tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_fake_vesc_command_serves_until_ctrl_c(tmp_path, stop):
     link = tmp_path / "vesc"
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-vesc", "--link", str(link),
                              "--firmware", "3.40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -56,9 +57,9 @@ def test_fake_vesc_command_serves_until_ctrl_c(tmp_path):
                               capture_output=True, text=True, timeout=60)
         assert info.returncode == 0, info.stderr
         assert "firmware: 3.40" in info.stdout
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         assert proc.wait(30) == 0
-        assert not os.path.exists(link)
+        assert not os.path.exists(link)  # the symlink goes with the fake, however it is stopped
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -11,12 +11,13 @@ import time
 
 from lidar_drivers.base import LidarDriver, RandomRangeSource, RangeSource, RoomRangeSource, summarize
 from lidar_drivers.params import MODELS, LidarParams
-from lidar_drivers.registry import family, make_driver, make_fake
+from lidar_drivers.registry import family, make_driver, make_fake, model_for_reported, model_name
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import DeviceError
 from racecar_hw.base.link import parse_host_port
 from racecar_hw.base.messages import LaserScan
 from racecar_hw.runtime.devicethread import DeviceThread
+from racecar_hw.runtime.signals import terminate_as_interrupt
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -30,6 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     fake.add_argument("--link", metavar="PATH", help="symlink to the pty to create, e.g. /tmp/lidar")
     fake.add_argument("--tcp", metavar="HOST:PORT", type=_host_port,
                       help="listen for SCIP clients here (Hokuyo only; port 0 = any free port)")
+    fake.add_argument("--firmware", type=_firmware, metavar="X.Y",
+                      help="RPLIDAR: the firmware version to report (default: the model's own); "
+                           "an A-series unit below 1.24 has no GET_LIDAR_CONF scan modes")
     world = fake.add_mutually_exclusive_group()
     world.add_argument("--room", default=(8.0, 6.0), type=_room, metavar="WxD",
                        help="the laser in the middle of a W x D metre room (default 8x6)")
@@ -62,6 +66,13 @@ def _room(text: str) -> tuple[float, float]:
     return width, depth
 
 
+def _firmware(text: str) -> tuple[int, int]:
+    major, sep, minor = text.partition(".")
+    if not sep or not major.isdigit() or not minor.isdigit() or int(major) > 255 or int(minor) > 255:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a firmware version like 1.20")
+    return int(major), int(minor)
+
+
 def _host_port(text: str) -> tuple[str, int]:
     try:
         return parse_host_port(text)
@@ -75,7 +86,10 @@ def fake_lidar(args: argparse.Namespace) -> int:
         print("racecar-hw fake-lidar: give --link PATH and/or --tcp HOST:PORT")
         return 2
     source: RangeSource = RandomRangeSource() if args.random else RoomRangeSource(*args.room)
-    fake = make_fake(args.model, source, link=args.link, tcp=args.tcp)
+    if args.firmware is not None and family(args.model) != "rplidar":
+        print("racecar-hw fake-lidar: --firmware is for RPLIDAR models")
+        return 2
+    fake = make_fake(args.model, source, link=args.link, tcp=args.tcp, firmware=args.firmware)
     with DeviceThread("fake-lidar") as thread:
         served = thread.spawn(fake.serve())
         ready: threading.Event | None = getattr(fake, "ready", None)
@@ -94,8 +108,9 @@ def fake_lidar(args: argparse.Namespace) -> int:
         print(f"fake {args.model} at {', '.join(places)} measuring {world}; Ctrl-C to stop",
               flush=True)
         try:
-            while not served.done():
-                time.sleep(0.2)
+            with terminate_as_interrupt():  # SIGTERM cleans up like Ctrl-C: the link is removed
+                while not served.done():
+                    time.sleep(0.2)
         except KeyboardInterrupt:
             return 0
         served.result()
@@ -110,12 +125,17 @@ def lidar_info(args: argparse.Namespace) -> int:
     params = LidarParams(model=args.model, port=args.port, tcp=args.tcp, baudrate=args.baudrate,
                          reconnect_backoff_min_s=0.2)
     driver, scan = asyncio.run(_first_scan(params, args.timeout))
+    reported = driver.info.get("model")
+    mismatch = _model_mismatch(args.model, reported)
     if scan is None:
         print(f"racecar-hw lidar-info: no scan within {args.timeout:g} s"
               + (f" ({driver.last_error})" if driver.last_error else ""))
+        if mismatch:
+            print(f"racecar-hw lidar-info: {mismatch}")
         return 1
-    reported = driver.info.get("model")
     print(f"model:      {args.model}" + (f" (device reports {reported})" if reported else ""))
+    if mismatch:
+        print(f"warning:    {mismatch}")
     for key, value in driver.info.items():
         if key != "model":
             print(f"{key + ':':<11} {value}")
@@ -130,6 +150,15 @@ def lidar_info(args: argparse.Namespace) -> int:
         print(f"closest:    {s.closest:.3f} m at {math.degrees(s.closest_angle):.2f} deg")
         print(f"farthest:   {s.farthest:.3f} m at {math.degrees(s.farthest_angle):.2f} deg")
     return 0
+
+
+def _model_mismatch(model: str, reported: str | None) -> str | None:
+    """What to tell the user when the device names itself differently from ``--model``."""
+    if not reported or reported.strip().lower() == model_name(model).lower():
+        return None
+    key = model_for_reported(reported)
+    advice = f"use --model {key} (lidar.model: {key})" if key else "check lidar.model"
+    return f"the device reports {reported}, not {model_name(model)} ({model}); {advice}"
 
 
 async def _first_scan(params: LidarParams, timeout: float) -> tuple[LidarDriver, LaserScan | None]:

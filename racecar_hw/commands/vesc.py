@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import dataclasses
 
+from racecar_hw.runtime.signals import terminate_as_interrupt
 from vesc.codec import values_layout
 from vesc.driver import probe
 from vesc.fake import FakeVesc
@@ -46,7 +47,8 @@ def fake_vesc(args: argparse.Namespace) -> int:
     print(f"fake VESC (firmware {major}.{minor:02d}) at {fake.path} -> {fake.port.slave_path}; "
           "Ctrl-C to stop", flush=True)
     try:
-        asyncio.run(fake.serve())
+        with terminate_as_interrupt():  # SIGTERM cleans up like Ctrl-C: the link is removed
+            asyncio.run(fake.serve())
     except KeyboardInterrupt:
         pass
     finally:

@@ -42,7 +42,8 @@ from vesc.fake import FakeVesc
 log = logging.getLogger(__name__)
 
 #: Longest range the fake lidar casts, metres (UST-10LX: 10 m; others less matter little indoors).
-LIDAR_MAX_RANGE_M = {"urg-04lx": 5.6, "ust-10lx": 10.0, "ust-20lx": 20.0, "utm-30lx": 30.0}
+LIDAR_MAX_RANGE_M = {"urg-04lx": 5.6, "ust-10lx": 10.0, "ust-20lx": 20.0, "utm-30lx": 30.0,
+                     "utm-30lx-ew": 30.0}
 
 
 @dataclass

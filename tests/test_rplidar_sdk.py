@@ -1,0 +1,73 @@
+"""Slamtec's own SDK (pyrplidarsdk, wrapping rplidar_sdk) reads our fake RPLIDAR, every model.
+
+The SDK decides from the model and firmware whether the device has the configuration commands,
+asks GET_LIDAR_CONF for the typical scan mode and its answer type, sets the motor speed, starts
+that mode and decodes its measurement format. With firmware 1.20 an A-series unit has no
+configuration commands: the SDK falls back to GET_SAMPLERATE and legacy express capsules. C- and
+S-series units always have them, whatever their firmware number.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import wait_for
+from rplidar_sdk_peer import sdk_scan
+
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.params import RPLIDAR_MODELS
+from lidar_drivers.rplidar_codec import AnswerType, Command
+from lidar_drivers.rplidar_fake import FakeRplidar
+
+ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)
+REVOLUTIONS = 4
+
+
+@pytest.mark.parametrize("firmware", [None, (1, 20)], ids=["current-firmware", "firmware-1.20"])
+@pytest.mark.parametrize("model", RPLIDAR_MODELS)
+def test_the_sdk_scans_the_fake_in_its_default_mode(model, firmware, device_thread, tmp_path):
+    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"), firmware=firmware)
+    device_thread.spawn(fake.serve())
+    wait_for(lambda: fake.port.plugged)
+
+    report = sdk_scan(fake.link, fake.spec.baudrate, REVOLUTIONS)
+
+    assert report["connected"], report["stderr"]
+    info = report["info"]
+    assert info["model"] == fake.spec.model_id
+    assert info["firmware"] == (fake.info.firmware_major << 8) | fake.info.firmware_minor
+    assert info["serial"] == fake.info.serial_hex.lower()
+    assert report["health"] == {"status": 0, "error_code": 0}
+    assert report["started"], report["stderr"]
+
+    # the mode the SDK chose, as the device saw it
+    conf_asked = any(r.command == Command.GET_LIDAR_CONF for r in fake.requests)
+    if fake.conf_commands:
+        mode = fake.spec.mode(fake.spec.typical)
+        assert conf_asked
+    else:
+        mode = fake.spec.mode(1)  # legacy express capsules at the GET_SAMPLERATE rate
+        assert any(r.command == Command.GET_SAMPLERATE for r in fake.requests)
+    assert mode is not None
+    if mode.answer_type != AnswerType.SCAN:
+        scan_requests = [r for r in fake.requests if r.command == Command.EXPRESS_SCAN]
+        assert scan_requests and scan_requests[-1].payload[0] == (mode.id if fake.conf_commands else 0)
+    per_rev = mode.samples_per_s / fake.scan_hz
+
+    scans = report["scans"]
+    assert len(scans) == REVOLUTIONS and all(s is not None for s in scans)
+    for angles, ranges, _quality in scans[-3:]:  # full revolutions, as the SDK assembles them
+        order = np.argsort(angles)
+        angles, ranges = np.asarray(angles)[order], np.asarray(ranges)[order]
+        assert abs(len(angles) - per_rev) <= max(2.0, 0.005 * per_rev), (len(angles), per_rev)
+        # the whole circle, with no hole wider than a few samples
+        gaps = np.diff(np.concatenate([angles, [angles[0] + 2 * math.pi]]))
+        assert gaps.max() < 4 * 2 * math.pi / per_rev
+        assert angles.min() >= 0 and angles.max() < 2 * math.pi
+        # the room, seen along ROS angle -device angle
+        expected = ROOM.ranges(np.mod(-angles + math.pi, 2 * math.pi) - math.pi)
+        error = np.abs(ranges - expected)
+        assert np.percentile(error, 99) < 0.01, np.percentile(error, 99)
+        assert np.median(error) < 0.003
