@@ -32,6 +32,7 @@ from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, map_to_odom, publish_truth
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import ControlSample, Mark, plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
@@ -119,6 +120,8 @@ class Loopback:
         sc = self.scenario
         model = sc.lidar.model
         config = self._build_config()
+        if all(t.child_frame_id != "odom" for t in config.static_transforms):
+            config.static_transforms.append(map_to_odom(sc.start))  # odometry drawn in the map
         laser = self._laser_pose(config)
         vesc = self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
         self.world = World(self.map, self._car_params(config), sc.start,
@@ -334,6 +337,10 @@ class Loopback:
                 self.daemon.add_task(self._drive(spec))
             self.daemon.add_task(self._faults())
             self.daemon.add_task(self._watch_interventions())
+            self.daemon.live_topics.extend(SIM_TOPICS)
+            self.daemon.add_task(publish_truth(self.daemon.bus, self.world, self.map))
+            assert self.vesc is not None
+            self.daemon.add_task(log_estop_timing(self.daemon, self.vesc))
 
             async def timer() -> None:
                 await self._wait_until(self.duration_s)
