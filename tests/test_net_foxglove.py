@@ -246,6 +246,30 @@ def test_teleop_twist_drives_and_the_estop_service_stops_until_release(sim):
     asyncio.run(main())
 
 
+def test_the_safety_scene_the_speeds_and_the_log_reach_a_subscriber(sim):
+    async def main() -> None:
+        client = await _client(sim.port("foxglove"))
+        try:
+            assert client.channels["/safety/speeds"]["encoding"] == "json"
+            scene = await client.subscribe("/safety/scene")
+            speeds = await client.subscribe("/safety/speeds")
+            logs = await client.subscribe("/log")
+            assert len(await client.next_message(scene)) > 100  # protobuf: entities with triangles
+            numbers = json.loads(await client.next_message(speeds))
+            assert set(numbers) >= {"commanded", "output", "allowed", "measured", "steering", "state"}
+            assert numbers["state"] in ("clear", "limiting", "stopped")
+            started = time.monotonic()
+            assert (await client.call("/racecar/arm", 11))[4] == 1
+            deadline = time.monotonic() + 20
+            while not any(b"/racecar/arm" in p for t, p in client.messages.get(logs, []) if t > started):
+                assert time.monotonic() < deadline, "the service call's log record did not arrive"
+                await asyncio.sleep(0.05)
+        finally:
+            await client.close()
+
+    asyncio.run(main())
+
+
 def test_twist_to_ackermann_uses_the_wheelbase_and_the_limits():
     def drive(v: float, w: float) -> AckermannDrive:
         return twist_to_drive(Twist(Vector3(v, 0, 0), Vector3(0, 0, w)), 0.25, 1.0, 0.34)
