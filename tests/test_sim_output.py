@@ -138,7 +138,9 @@ def test_the_figure_reads_in_metres_with_the_path_coloured_by_speed_and_the_even
                 if line.get_xdata()[0] == line.get_xdata()[1]]
     assert 2.0 in vertical and 4.5 in vertical
     labels = [line.get_label() for line in ax_speed.get_lines() if not line.get_label().startswith("_")]
-    assert labels == ["commanded", "output", "allowed", "measured"]
+    assert labels == ["commanded", "output", "allowed (top: above)", "measured"]
+    allowed = next(line for line in ax_speed.get_lines() if line.get_label().startswith("allowed"))
+    assert max(allowed.get_ydata()) < ax_speed.get_ylim()[1]  # drawn on the plot even where it is high
     assert ax_speed.get_ylabel() == "speed (m/s)" and ax_steer.get_ylabel() == "steering (rad)"
     # the active source as spans: idle 0-0.5, nav_0 0.5-3, estop to the end of the run (4.9 s)
     spans = {gid: art.get_paths()[0].get_extents() for gid in ("source:idle", "source:nav_0", "source:estop")

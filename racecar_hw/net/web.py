@@ -213,7 +213,10 @@ class WebServer:
             now = monotonic_ns()
             if not self._clients or now < self._next_push_ns:
                 continue
-            self._next_push_ns = now + int(period * NS_PER_S)
+            step = int(period * NS_PER_S)
+            if now - self._next_push_ns > step:  # the first push, or the loop was held up: start afresh
+                self._next_push_ns = now
+            self._next_push_ns += step  # on a fixed grid: pushes after scans still average push_rate_hz
             self.push()
 
     def push(self) -> None:

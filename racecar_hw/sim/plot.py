@@ -263,14 +263,17 @@ def _draw_speeds(ax: Any, samples: np.ndarray, interventions: list[Mark], collis
     columns = {"commanded": 1, "output": 2, "allowed": 3, "measured": 4}
     shown = [samples[:, columns[name]] for name in ("commanded", "output", "measured")]
     top = max(0.5, float(np.nanmax(np.abs(np.concatenate(shown)))) * 1.3)
-    allowed = np.where(np.isfinite(samples[:, 3]), samples[:, 3], np.nan)
+    # the allowed speed is often far above anything driven (and inf when not limiting): drawn along
+    # the top edge there, so the line is always on the plot
+    allowed = np.minimum(np.nan_to_num(samples[:, 3], nan=top, posinf=top), top * 0.985)
     styles = {"commanded": "-", "output": "--", "allowed": "-", "measured": "-"}
     for name, col in columns.items():
         values = allowed if name == "allowed" else samples[:, col]
-        ax.step(t, values, where="post", label=name, color=SPEED_COLOURS[name],
-                linestyle=styles[name], linewidth=1.8 if name == "allowed" else 1.3)
+        wide = name == "allowed"
+        ax.step(t, values, where="post", label="allowed (top: above)" if wide else name,
+                color=SPEED_COLOURS[name], linestyle=styles[name], linewidth=1.8 if wide else 1.3)
     bottom = min(0.0, float(np.nanmin(np.concatenate(shown))) * 1.3)
-    ax.set_ylim(bottom, top)  # the allowed speed can be far above anything driven: clipped
+    ax.set_ylim(bottom, top)
     ax.legend(loc="upper right", fontsize="small", ncols=4, framealpha=0.85)
 
 
