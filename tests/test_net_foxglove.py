@@ -16,12 +16,14 @@ import time
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from live_sim import SimProcess
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from websockets.asyncio.client import connect
 
 from racecar_hw.base.messages import AckermannDrive, Twist, Vector3
-from racecar_hw.net.foxglove_server import FoxgloveParams, trigger_response, twist_to_drive
+from racecar_hw.net.foxglove_server import FoxgloveParams, decode_twist, trigger_response, twist_to_drive
 from racecar_hw.rosmsg.typestore import ros2_types
 
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -299,3 +301,24 @@ def test_a_non_loopback_bind_needs_a_token():
         FoxgloveParams(host="0.0.0.0")
     assert FoxgloveParams(host="0.0.0.0", token="secret").token == "secret"
     assert FoxgloveParams(host="::1").host == "::1"
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(
+    st.binary(max_size=80),
+    st.binary(max_size=60).map(lambda b: b"\x00\x01\x00\x00" + b),  # a CDR header, then anything
+    st.builds(lambda x, z: ros2_types().serialize(Twist(Vector3(x, 0, 0), Vector3(0, 0, z))),
+              st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True, allow_infinity=True)),
+    st.recursive(st.none() | st.booleans() | st.floats() | st.text(max_size=5),
+                 lambda inner: st.lists(inner, max_size=3) | st.dictionaries(
+                     st.sampled_from(["linear", "angular", "x", "z"]), inner, max_size=3),
+                 ).map(lambda v: json.dumps(v).encode()),
+), st.sampled_from(["cdr", "json"]))
+def test_any_bytes_from_a_client_become_a_finite_bounded_command_or_a_refusal(data, encoding):
+    try:
+        twist = decode_twist(data, encoding)
+    except Exception:  # noqa: BLE001 - refused: FoxgloveServer.message counts and logs it
+        return
+    drive = twist_to_drive(twist, 0.25, 1.0, 0.34)
+    assert math.isfinite(drive.speed) and abs(drive.speed) <= 1.0
+    assert math.isfinite(drive.steering_angle) and abs(drive.steering_angle) <= 0.34

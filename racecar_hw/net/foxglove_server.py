@@ -60,6 +60,9 @@ SERVICE_PREFIX = "/racecar/"
 TWIST_TYPES = ("geometry_msgs/msg/Twist", "geometry_msgs/Twist")
 #: How long a service call waits for the event loop (s).
 SERVICE_TIMEOUT_S = 2.0
+#: Twists closer together than this (per client channel) are dropped: a flooding client cannot load
+#: the control loop (the Teleop panel sends 10 Hz, at most tens).
+MIN_TWIST_INTERVAL_NS = 5_000_000
 
 _SPEEDS_SCHEMA = {
     "title": "racecar_hw.SafetySpeeds", "type": "object",
@@ -169,6 +172,7 @@ class FoxgloveServer:
         self._scene_id = self._speeds_id = self._log_id = -1
         self._next_scene_ns = 0
         self._teleop_channels: dict[tuple[int, int], str] = {}  # (client, channel) -> encoding
+        self._last_twist_ns: dict[tuple[int, int], int] = {}
         self._log_handler: _LogHandler | None = None
         #: Twist messages turned into commands, and refused ones
         self.twists = 0
@@ -335,15 +339,22 @@ class FoxgloveServer:
         log.info("foxglove: client %d drives through the mux input on %s", client_id, self.teleop_input)
 
     def unadvertised(self, client_id: int, channel_id: int) -> None:
+        self._last_twist_ns.pop((client_id, channel_id), None)
         if self._teleop_channels.pop((client_id, channel_id), None) is not None and self._loop is not None:
             self._loop.call_soon_threadsafe(self._drive, AckermannDrive())  # stop now, not at the timeout
 
     def message(self, client_id: int, channel_id: int, data: bytes) -> None:
-        encoding = self._teleop_channels.get((client_id, channel_id))
+        key = (client_id, channel_id)
+        encoding = self._teleop_channels.get(key)
         if encoding is None or self._loop is None:
             return
+        now = monotonic_ns()
+        if now - self._last_twist_ns.get(key, 0) < MIN_TWIST_INTERVAL_NS:
+            self.refused += 1
+            return
+        self._last_twist_ns[key] = now
         try:
-            twist = _decode_twist(data, encoding)
+            twist = decode_twist(data, encoding)
         except Exception as err:  # noqa: BLE001 - a client's bad bytes: refused, counted, logged
             self.refused += 1
             if self.refused == 1 or self.refused % 100 == 0:
@@ -412,7 +423,8 @@ def trigger_response(success: bool, message: str) -> bytes:
             + (len(text) + 1).to_bytes(4, "little") + text + b"\x00")
 
 
-def _decode_twist(data: bytes, encoding: str) -> Twist:
+def decode_twist(data: bytes, encoding: str) -> Twist:
+    """A client's Twist (``cdr`` or ``json``); raises on anything that is not one."""
     if encoding == "json":
         obj = json.loads(data)
         lin, ang = obj.get("linear", {}), obj.get("angular", {})
