@@ -23,7 +23,13 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from websockets.asyncio.client import connect
 
 from racecar_hw.base.messages import AckermannDrive, Twist, Vector3
-from racecar_hw.net.foxglove_server import FoxgloveParams, decode_twist, trigger_response, twist_to_drive
+from racecar_hw.net.foxglove_server import (
+    FoxgloveParams,
+    decode_twist,
+    flatten_parameters,
+    trigger_response,
+    twist_to_drive,
+)
 from racecar_hw.rosmsg.typestore import ros2_types
 
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -292,6 +298,16 @@ def test_trigger_response_is_the_cdr_rosbags_writes():
     for ok, text in ((True, "e-stop latched"), (False, ""), (True, "ü")):
         msg = store.types[name](success=ok, message=text)
         assert trigger_response(ok, text) == bytes(store.serialize_cdr(msg, name))
+
+
+def test_parameters_are_flat_and_hide_the_tokens():
+    params = flatten_parameters({"web": {"token": "s3cret", "port": 8080}, "foxglove": {"token": ""},
+                                 "mux": {"inputs": [{"name": "teleop"}], "rate_hz": 50.0},
+                                 "static_transforms": [[0.1, 0.2]], "xyz": [0.265, 0, 0.1]})
+    assert params["web.token"] == "(set, hidden)" and params["foxglove.token"] == ""
+    assert "s3cret" not in json.dumps(params)
+    assert params["web.port"] == 8080 and params["mux.rate_hz"] == 50.0 and params["xyz"] == [0.265, 0.0, 0.1]
+    assert json.loads(params["mux.inputs"]) == [{"name": "teleop"}]
 
 
 def test_a_non_loopback_bind_needs_a_token():

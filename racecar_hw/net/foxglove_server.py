@@ -152,7 +152,7 @@ class FoxgloveServer:
         self.control = control
         self._rows = topics  # read at start(): the simulator adds its rows after building the daemon
         self.topics: list[Topic] = []
-        self.parameters = _flatten(parameters or {})
+        self.parameters = flatten_parameters(parameters or {})
         self.teleop_input = teleop_input if params.teleop else None
         self.wheelbase_m = wheelbase_m
         self.max_steering_rad = max_steering_rad
@@ -436,13 +436,19 @@ def decode_twist(data: bytes, encoding: str) -> Twist:
     return msg
 
 
-def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Dotted keys to parameter values: scalars as they are, anything else as JSON text."""
+#: Parameters whose value a client never sees (the web page's token, the relay's).
+SECRET_WORDS = ("token", "password", "secret")
+
+
+def flatten_parameters(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Dotted keys to parameter values: scalars as they are, anything else as JSON text, secrets hidden."""
     out: dict[str, Any] = {}
     for key, value in tree.items():
         name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(_flatten(value, name + "."))
+        if any(word in str(key).lower() for word in SECRET_WORDS):
+            out[name] = "(set, hidden)" if value else ""
+        elif isinstance(value, dict):
+            out.update(flatten_parameters(value, name + "."))
         elif isinstance(value, (bool, int, float, str)):
             out[name] = value
         elif isinstance(value, (list, tuple)) and value and all(
