@@ -228,7 +228,9 @@ class WebServer:
             if ws.closed:
                 self._clients.pop(ws, None)
                 continue
-            self._clients[ws] = asyncio.ensure_future(ws.send_str(text))
+            task = asyncio.ensure_future(ws.send_str(text))
+            task.add_done_callback(_forget)  # a page that went away: its receive loop removes it
+            self._clients[ws] = task
         self.pushes += 1
 
     def payload(self, s: LiveState, scan: bool = True) -> dict[str, Any]:
@@ -269,6 +271,11 @@ class WebServer:
         r, a = r[ok], a[ok] + lyaw
         xy = np.column_stack([lx + r * np.cos(a), ly + r * np.sin(a)])
         return np.round(xy, 2).ravel().tolist()
+
+
+def _forget(task: asyncio.Task[Any]) -> None:
+    if not task.cancelled():
+        task.exception()
 
 
 def _f(value: float | None) -> float | None:
