@@ -109,8 +109,38 @@ def test_the_foxglove_relay_wants_its_token(open_sim):
     asyncio.run(main())
 
 
-def test_an_open_loopback_page_refuses_a_foreign_host_name(tmp_path):
+@pytest.fixture(scope="module")
+def loopback_sim(tmp_path_factory):
+    """A sim whose page listens on loopback without a token (the default)."""
+    proc = SimProcess(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
+                       "--set", "web.port=0", "--set", "foxglove.enabled=false",
+                       "--out", str(tmp_path_factory.mktemp("sim"))])
+    try:
+        proc.wait_for("racecar-hw running")
+        yield proc
+    finally:
+        proc.stop()
+
+
+def test_an_open_loopback_page_refuses_a_foreign_host_name_and_origin(loopback_sim):
     from racecar_hw.net.auth import local_host_header, same_origin
+
+    base = f"http://127.0.0.1:{loopback_sim.port('web')}"
+
+    async def main() -> None:
+        async with aiohttp.ClientSession() as http:
+            async with http.get(f"{base}/") as res:
+                assert res.status == 200
+            # DNS rebinding: a page of evil.example resolved to 127.0.0.1 names its own host
+            async with http.get(f"{base}/", headers={"Host": "evil.example:8080"}) as res:
+                assert res.status == 403
+            evil = {"Origin": "http://evil.example"}
+            async with http.post(f"{base}/api/estop", json={}, headers=evil) as res:
+                assert res.status == 403
+            async with http.get(f"{base}/api/state") as res:
+                assert (await res.json())["mux"]["state"] == "running"
+
+    asyncio.run(main())
 
     # DNS rebinding: evil.example resolving to 127.0.0.1 reaches the port, but names itself
     assert not local_host_header("evil.example:8080") and local_host_header("127.0.0.1:8080")
