@@ -7,7 +7,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 
 class SimProcess:
@@ -65,3 +66,14 @@ class SimProcess:
                 self.proc.wait(10)
         self._reader.join(5)
 
+
+
+@contextmanager
+def running_sim(args: Sequence[str]) -> Iterator[SimProcess]:
+    """A sim started with ``args`` once the daemon runs; stopped at the end."""
+    proc = SimProcess(args)
+    try:
+        proc.wait_for("racecar-hw running")
+        yield proc
+    finally:
+        proc.stop()

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from live_sim import SimProcess
+from live_sim import running_sim
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from websockets.asyncio.client import connect
 
@@ -48,15 +48,10 @@ EXPECTED = {  # topic: schema name
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    proc = SimProcess(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
-                       "--set", "foxglove.port=0", "--set", "web.enabled=false",
-                       "--out", str(tmp_path_factory.mktemp("sim"))])
-    try:
-        proc.port("foxglove")
-        proc.wait_for("racecar-hw running")
+    with running_sim(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
+                      "--set", "foxglove.port=0", "--set", "web.enabled=false",
+                      "--out", str(tmp_path_factory.mktemp("sim"))]) as proc:
         yield proc
-    finally:
-        proc.stop()
 
 
 class Client:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import aiohttp
 import pytest
-from live_sim import SimProcess
+from live_sim import SimProcess, running_sim
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
@@ -26,15 +26,12 @@ CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver"
 @pytest.fixture(scope="module")
 def open_sim(tmp_path_factory):
     """A sim whose page and Foxglove relay listen on every interface, behind tokens."""
-    proc = SimProcess(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
-                       "--set", "web.host=0.0.0.0", "--set", "web.port=0",
-                       "--set", "foxglove.host=0.0.0.0", "--set", "foxglove.port=0",
-                       "--set", "foxglove.token=fox-secret", "--out", str(tmp_path_factory.mktemp("sim"))])
-    try:
-        proc.wait_for("racecar-hw running")
+    with running_sim(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
+                      "--set", "web.host=0.0.0.0", "--set", "web.port=0",
+                      "--set", "foxglove.host=0.0.0.0", "--set", "foxglove.port=0",
+                      "--set", "foxglove.token=fox-secret",
+                      "--out", str(tmp_path_factory.mktemp("sim"))]) as proc:
         yield proc
-    finally:
-        proc.stop()
 
 
 def test_without_the_token_the_page_the_websocket_and_the_estop_get_401(open_sim):
@@ -112,14 +109,10 @@ def test_the_foxglove_relay_wants_its_token(open_sim):
 @pytest.fixture(scope="module")
 def loopback_sim(tmp_path_factory):
     """A sim whose page listens on loopback without a token (the default)."""
-    proc = SimProcess(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
-                       "--set", "web.port=0", "--set", "foxglove.enabled=false",
-                       "--out", str(tmp_path_factory.mktemp("sim"))])
-    try:
-        proc.wait_for("racecar-hw running")
+    with running_sim(["--scenario", "figure8", "--scenario-set", "drivers=[]", "--duration", "300",
+                      "--set", "web.port=0", "--set", "foxglove.enabled=false",
+                      "--out", str(tmp_path_factory.mktemp("sim"))]) as proc:
         yield proc
-    finally:
-        proc.stop()
 
 
 def test_an_open_loopback_page_refuses_a_foreign_host_name_and_origin(loopback_sim):
