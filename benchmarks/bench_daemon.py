@@ -34,6 +34,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager, ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +87,11 @@ def _peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
+def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | None = None,
+        attach: Callable[[Path], AbstractContextManager[object]] | None = None) -> list[dict]:
+    """Measure the daemon at nominal load; ``config_extra`` sections are merged into its config, and
+    ``attach(log_path)`` (once the daemon runs) returns a context kept open while measuring: clients of
+    the live interfaces, for bench_live.py."""
     # Each fake in its own thread, and a short GIL switch interval, so that the fake VESC reads a
     # command when it arrives rather than after the fake lidar has encoded its next frame.
     sys.setswitchinterval(0.0002)
@@ -108,7 +114,12 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
             "arming": {"start_armed": True},
             "gamepad": {"enabled": False},
             "status": {"enabled": False},
+            # the shipped defaults (on, loopback) on free ports: no clients, so they send nothing
+            "foxglove": {"port": 0},
+            "web": {"port": 0},
         }
+        for section, values in (config_extra or {}).items():
+            config.setdefault(section, {}).update(values)
         cfg = Path(tmp) / "bench.yaml"
         cfg.write_text(yaml.safe_dump(config))
         profile = os.environ.get("BENCH_PROFILE")  # a path: run the daemon under cProfile
@@ -117,12 +128,15 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
         log_path = Path(tmp) / "daemon.log"
         log_file = log_path.open("w")
         proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, text=True)
+        clients = ExitStack()
         try:
             deadline = time.monotonic() + 20
             while lidar.clients == 0 or len(vesc.commands) < 50:
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError(f"daemon did not start: {log_path.read_text()[-2000:]}")
                 time.sleep(0.05)
+            if attach is not None:
+                clients.enter_context(attach(log_path))
             time.sleep(2.0)  # warm up: caches, first bag chunk
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
@@ -140,6 +154,7 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
             motor = np.array([c.t_ns for c in vesc.commands
                               if isinstance(c.packet, (SetRpm, SetCurrentBrake, SetCurrent))], dtype=np.int64)
         finally:
+            clients.close()
             proc.terminate()
             try:
                 proc.wait(15)

@@ -183,6 +183,11 @@ class CommandMux:
         if msg.data:
             self.release_estop()
 
+    def last_command(self, name: str | None) -> AckermannDrive | None:
+        """The last command input ``name`` sent (None: never, or not an input: idle, estop, fault)."""
+        index = self.table.index_of.get(name) if name is not None else None
+        return None if index is None else self._drives[index]
+
     # --- e-stop and fault ------------------------------------------------------------------
 
     @property

@@ -19,7 +19,7 @@ from typing import Any
 import yaml
 
 from lidar_drivers.params import RPLIDAR_MODELS, LidarParams
-from mux.params import MuxParams
+from mux.params import InputParams, MuxParams
 from racecar_hw.bags.follow import FollowerParams
 from racecar_hw.bags.record import RecorderParams
 from racecar_hw.base.errors import ConfigError
@@ -27,6 +27,8 @@ from racecar_hw.base.overrides import apply_override, load_yaml, merge
 from racecar_hw.base.params import build, describe, param, to_dict
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
+from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.web import WebParams
 from racecar_hw.sources.figure8 import Figure8Params
 from racecar_hw.sources.scan_summary import ScanSummaryParams
 from racecar_hw.sources.setpoint import SetpointParams
@@ -117,6 +119,8 @@ class Config:
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     status: StatusSection = field(default_factory=StatusSection)
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
+    foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
+    web: WebParams = field(default_factory=WebParams)
     sim: dict[str, Any] = field(default_factory=dict)
 
 
@@ -126,7 +130,12 @@ _SECTIONS: dict[str, type] = {
     "follower": FollowerSection, "recorder": RecorderParams, "arming": ArmingParams,
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
     "status": StatusSection, "watchdog": WatchdogSection,
+    "foxglove": FoxgloveParams, "web": WebParams,
 }
+
+#: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
+FOXGLOVE_INPUT = "foxglove"
+FOXGLOVE_INPUT_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/foxglove"
 
 
 def build_config(data: dict[str, Any]) -> Config:
@@ -152,11 +161,20 @@ def build_config(data: dict[str, Any]) -> Config:
         lock = gamepad.lock_params()
         if all(existing.topic != lock.topic for existing in config.mux.locks):
             config.mux.locks.append(lock)
+    _add_foxglove_input(config)
     config.mux.validate("mux")
     _check_scan_timing(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
     return config
+
+
+def _add_foxglove_input(config: Config) -> None:
+    """Give Foxglove's Teleop panel a mux input of its own, unless the config already names one."""
+    fox = config.foxglove
+    if fox.enabled and fox.teleop and all(i.name != FOXGLOVE_INPUT for i in config.mux.inputs):
+        config.mux.inputs.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
+                                             fox.teleop_timeout_s))
 
 
 #: An RPLIDAR's sweep period (s): about 10 Hz revolutions (A1 5.5 Hz at the slowest).

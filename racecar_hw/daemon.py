@@ -38,8 +38,13 @@ from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
-from racecar_hw.base.transforms import TfTree
-from racecar_hw.config import Config
+from racecar_hw.base.params import to_dict
+from racecar_hw.base.transforms import TfTree, yaw_of
+from racecar_hw.config import FOXGLOVE_INPUT, Config
+from racecar_hw.net.control import CarShape, LiveState
+from racecar_hw.net.foxglove_server import FoxgloveServer
+from racecar_hw.net.topics import Topic, topic_table
+from racecar_hw.net.web import WebServer
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
@@ -138,6 +143,7 @@ class Daemon:
         self._watchdog_period_ns: int | None = None
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
+        self._build_live()
         self.bus.subscribe(config.mux.output_topic, self._on_output)
         # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
         # this one writes the motor command, and diagnostics subscribed in run() come after it.
@@ -161,6 +167,8 @@ class Daemon:
     def _on_output(self, msg: AckermannDriveStamped) -> None:
         if self.vesc is not None:
             self.vesc.command(msg.drive)
+        if self.foxglove is not None:
+            self.foxglove.on_output()
 
     def _on_scan(self, scan: LaserScan) -> None:
         """Re-check the current command against the new scan and send it at once.
@@ -187,6 +195,10 @@ class Daemon:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
         if self.recorder is not None:
             self.recorder.control_idle()
+        if self.foxglove is not None:
+            self.foxglove.control_idle()
+        if self.web is not None:
+            self.web.control_idle()
 
     def _time_scan_path(self, vesc: VescDriver, lidar: LidarDriver) -> None:
         """Record the time from the scan's arrival to its motor command, if one was written."""
@@ -257,6 +269,105 @@ class Daemon:
             armed=self.arming.armed,
         )
 
+    # --- live interfaces: the Foxglove server and the status page (racecar_hw.net) ---------------
+
+    def _build_live(self) -> None:
+        config = self.config
+        laser = self._laser_to_base()
+        fp, safety = config.safety.footprint, config.safety
+        self.shape = CarShape(
+            front_m=fp.front_m, rear_m=fp.rear_overhang_m,
+            half_width_m=fp.width_m / 2 + safety.lateral_margin_m,
+            wheelbase_m=fp.wheelbase_m, latency_s=safety.latency_s, max_decel_mps2=safety.max_decel_mps2,
+            margin_m=safety.margin_m, max_path_m=safety.max_path_m,
+            laser=((float(laser[0, 3]), float(laser[1, 3]), yaw_of(laser)) if laser is not None
+                   else (safety.laser.x_m, safety.laser.y_m, safety.laser.yaw_rad)))
+        #: e-stops asked for through the live interfaces: (monotonic ns, who), for reports
+        self.estop_requests: deque[tuple[int, str]] = deque(maxlen=1000)
+        summary = config.scan_summary
+        #: the topics the live interfaces serve; the simulator adds its own before run()
+        self.live_topics: list[Topic] = topic_table(
+            config.mux, safety, scan_topic=config.lidar.topic,
+            scan_range_topic=summary.scan_range_topic if summary.enabled else None,
+            open_space_topic=summary.open_space_topic if summary.enabled else None)
+        teleop = next((i.topic for i in config.mux.inputs if i.name == FOXGLOVE_INPUT), None)
+        self.foxglove = (FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
+                                        parameters=to_dict(config), teleop_input=teleop,
+                                        wheelbase_m=config.vesc.wheelbase_m,
+                                        max_steering_rad=config.vesc.steering_max_rad)
+                         if config.foxglove.enabled else None)
+        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic)
+                    if config.web.enabled else None)
+
+    def live_state(self) -> LiveState:
+        """The car now, for the live interfaces (:class:`racecar_hw.net.control.CarControl`)."""
+        out = self.mux.last_output
+        drive = out.drive if out is not None else AckermannDrive()
+        asked = self.mux.last_command(self.mux.source)
+        odom = self.bus.latest(self.config.safety.odom_topic)
+        safety = self.safety.state
+        vesc, lidar = self.vesc, self.lidar
+        state = vesc.last_state if vesc is not None else None
+        scan = self.bus.latest_entry(self.config.safety.scan_topic)
+        return LiveState(
+            commanded_mps=float(asked.speed) if asked is not None else 0.0,
+            output_mps=float(drive.speed), allowed_mps=float(safety.allowed_speed),
+            measured_mps=float(odom.twist.twist.linear.x) if odom is not None else None,
+            steering_rad=float(drive.steering_angle), source=self.mux.source or "idle",
+            mux_state=self.mux.state.value, mux_reason=self.mux.machine.reason, armed=self.arming.armed,
+            safety_reason=safety.reason, intervening=safety.intervening,
+            free_distance_m=float(safety.free_distance),
+            obstacle=(safety.obstacle.x, safety.obstacle.y) if safety.obstacle is not None else None,
+            battery_v=float(state.state.voltage_input) if state is not None else None,
+            vesc_connected=vesc.connected if vesc is not None else None,
+            vesc_reconnects=vesc.stats.reconnects if vesc is not None else 0,
+            vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
+            lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
+            lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
+            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0)
+
+    def engage_estop(self, who: str) -> str:
+        """Latch the mux e-stop and write the brake command now (not at the next tick)."""
+        now = monotonic_ns()
+        self.estop_requests.append((now, who))
+        self.mux.engage_estop(f"e-stop from {who}")
+        if self.stats.ticks:  # the control loop runs: one step out of turn sends the brake
+            self.mux.step(now, self.filters)
+        return f"e-stop latched ({who}); release it to drive again"
+
+    def release_estop(self, who: str) -> tuple[bool, str]:
+        """Release the latched e-stop, unless the mux refuses (fault, or the e-stop topic holds it)."""
+        if self.mux.release_estop():
+            log.warning("e-stop released by %s", who)
+            return True, f"e-stop released by {who}"
+        if self.mux.state.value == "fault":
+            return False, f"the mux is in fault ({self.mux.machine.reason}); it needs a reset"
+        return False, f"refused: {self.config.mux.estop_topic} still says true"
+
+    def arm(self, who: str) -> tuple[bool, str]:
+        """Arm the car for every source."""
+        self.arming.arm(who)
+        return True, "armed"
+
+    def disarm(self, who: str) -> tuple[bool, str]:
+        """Disarm: every source is stopped until armed again."""
+        self.arming.disarm(who)
+        return True, "disarmed"
+
+    async def _start_live(self) -> None:
+        if self.foxglove is not None and not self.foxglove.start():
+            self.foxglove = None
+        if self.web is not None and not await self.web.start():
+            self.web = None
+
+    async def _stop_live(self) -> None:
+        if self.foxglove is not None:
+            with contextlib.suppress(Exception):
+                self.foxglove.stop()
+        if self.web is not None:
+            with contextlib.suppress(Exception):
+                await self.web.stop()
+
     # --- life cycle -----------------------------------------------------------------------------
 
     def _publish_static_transforms(self) -> None:
@@ -274,6 +385,7 @@ class Daemon:
             self.scan_summary.start()
         if self.setpoint is not None:
             self.setpoint.start()
+        await self._start_live()
         coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
         if self.vesc is not None:
             coros.append(self.vesc.run())
@@ -339,6 +451,7 @@ class Daemon:
         if self.status is not None:
             with contextlib.suppress(Exception):
                 await self.status.stop()
+        await self._stop_live()
         if self.recorder is not None:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(None, self.recorder.stop)

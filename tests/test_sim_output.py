@@ -15,13 +15,13 @@ from racecar_hw.sim import mapgen
 from racecar_hw.sim.car import CarParams, Collider
 from racecar_hw.sim.occupancy import load_map, load_shipped_map
 from racecar_hw.sim.plot import (
-    COLLISION_RGB,
-    INTERVENTION_RGB,
-    OBSTACLE_RGB,
-    PATH_RGB,
+    ControlSample,
+    Mark,
+    as_marks,
     image_size,
     plot_run,
     plot_world,
+    run_figure,
 )
 from racecar_hw.sim.raycast import RayCaster
 from racecar_hw.sim.trajectory import (
@@ -93,26 +93,71 @@ def test_report_circle_and_clearance() -> None:
     assert rep.min_clearance_m == pytest.approx(1.0 - 0.15, abs=0.05)
 
 
+def _by_gid(fig, gid):
+    return [a for ax in fig.axes for a in ax.get_children() if a.get_gid() == gid]
+
+
 def test_plot_writes_a_png_of_the_right_size(tmp_path: Path) -> None:
     occ = load_shipped_map("track")
     run = [(k * 0.1, 0.1 * k, 0.0, 0.0, 1.0) for k in range(100)]
     out = tmp_path / "run.png"
     size = plot_run(out, occ, run, interventions=[(5.0, 0.0)], collisions=[(9.9, 0.0)],
                     obstacles=[(3.0, 0.5, 0.2)], title="test run")
-    assert size == image_size(occ) == (800, round(280 * 2) + 30)
+    assert size == image_size(occ, with_series=False)
     with Image.open(out) as img:
         assert img.format == "PNG" and img.size == size
-        rgb = np.asarray(img.convert("RGB"))
-    colours = {tuple(c) for c in rgb.reshape(-1, 3)}
-    assert PATH_RGB in colours and INTERVENTION_RGB in colours and COLLISION_RGB in colours
-    # the path is drawn where the map says: the pixel of the world point (5, 0) is on it
-    row, col = occ.world_to_pixel(5.0, 0.0)
-    scale = 800 / occ.width
-    r, c = int((row + 0.5) * scale), int((col + 0.5) * scale)
-    patch = rgb[r - 3:r + 4, c - 3:c + 4].reshape(-1, 3)
-    assert any(tuple(p) == PATH_RGB for p in patch)
     small = plot_run(tmp_path / "small.png", occ, [], width_px=400)
-    assert small == (400, 280 + 30)
+    assert small[0] == 400
+
+
+def test_the_figure_reads_in_metres_with_the_path_coloured_by_speed_and_the_events_marked() -> None:
+    occ = load_shipped_map("room")
+    run = [(k * 0.1, 0.1 * k, 0.05 * k, 0.0, 0.02 * k) for k in range(50)]
+    series = [ControlSample(k * 0.1, 1.0, 0.9, 2.0 - 0.02 * k, 0.8, 0.1) for k in range(50)]
+    fig = run_figure(occ, run, interventions=[{"t": 2.0, "x": 2.0, "y": 1.0, "reason": "obstacle"}],
+                     collisions=[(4.5, 4.0, 2.0)], obstacles=[(3.0, 0.5, 0.2)], title="a run",
+                     series=series, switches=[[0.0, "idle"], [0.5, "nav_0"], [3.0, "estop"]])
+    ax_map, ax_speed, ax_steer, ax_source = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    assert (ax_map.get_xlabel(), ax_map.get_ylabel()) == ("x (m)", "y (m)")
+    assert ax_map.get_title() == "a run" and ax_source.get_xlabel() == "sim time (s)"
+    # the map spans the grid in metres
+    w_m, h_m = occ.size_m
+    x0, x1 = ax_map.get_xlim()
+    assert x1 - x0 == pytest.approx(w_m) and x0 == pytest.approx(occ.origin[0])
+    # the path: one segment per step, coloured by the speed at its end
+    (path,) = _by_gid(fig, "path")
+    assert len(path.get_segments()) == 49
+    assert np.allclose(path.get_array(), [0.02 * k for k in range(1, 50)])
+    assert any(ax.get_label() == "<colorbar>" and "speed (m/s)" in ax.get_ylabel() for ax in fig.axes)
+    (ring,) = _by_gid(fig, "interventions")
+    assert np.allclose(ring.get_offsets(), [[2.0, 1.0]])
+    (cross,) = _by_gid(fig, "collisions")
+    assert np.allclose(cross.get_offsets(), [[4.0, 2.0]])
+    # interventions and collisions also stand on the time axis
+    vertical = [line.get_xdata()[0] for line in ax_speed.get_lines()
+                if line.get_xdata()[0] == line.get_xdata()[1]]
+    assert 2.0 in vertical and 4.5 in vertical
+    labels = [line.get_label() for line in ax_speed.get_lines() if not line.get_label().startswith("_")]
+    assert labels == ["commanded", "output", "allowed (top: above)", "measured"]
+    allowed = next(line for line in ax_speed.get_lines() if line.get_label().startswith("allowed"))
+    assert max(allowed.get_ydata()) < ax_speed.get_ylim()[1]  # drawn on the plot even where it is high
+    assert ax_speed.get_ylabel() == "speed (m/s)" and ax_steer.get_ylabel() == "steering (rad)"
+    # the active source as spans: idle 0-0.5, nav_0 0.5-3, estop to the end of the run (4.9 s)
+    spans = {gid: art.get_paths()[0].get_extents() for gid in ("source:idle", "source:nav_0", "source:estop")
+             for art in _by_gid(fig, gid)}
+    assert spans["source:nav_0"].x0 == pytest.approx(0.5) and spans["source:nav_0"].x1 == pytest.approx(3.0)
+    assert spans["source:estop"].x1 == pytest.approx(4.9)
+    assert "nav_0" in [t.get_text() for t in ax_source.texts]
+
+
+def test_marks_accept_every_shape_a_report_holds() -> None:
+    class Event:
+        t, x, y = 1.0, 2.0, 3.0
+
+    shapes = [(2.0, 3.0), (1.0, 2.0, 3.0), {"x": 2, "y": 3, "t": 1, "reason": "obstacle"}, Event(),
+              Mark(2.0, 3.0)]
+    assert as_marks(shapes) == [Mark(2.0, 3.0), Mark(2.0, 3.0, 1.0), Mark(2.0, 3.0, 1.0, "obstacle"),
+                                Mark(2.0, 3.0, 1.0), Mark(2.0, 3.0)]
 
 
 @pytest.mark.parametrize("name", sorted(mapgen.SPECS))
@@ -175,10 +220,10 @@ def test_plot_and_report_of_a_world(tmp_path: Path) -> None:
     assert rep.distance_m == pytest.approx(8.0 - 0.45, abs=0.03)
     assert rep.max_speed_mps == pytest.approx(3.0)
     out = tmp_path / "world.png"
-    assert plot_world(out, world, interventions=[(2.0, 0.0)], width_px=600) == image_size(world.map, 600)
-    rgb = np.asarray(Image.open(out).convert("RGB"))
-    colours = {tuple(c) for c in rgb.reshape(-1, 3)}
-    assert {COLLISION_RGB, OBSTACLE_RGB, PATH_RGB, INTERVENTION_RGB} <= colours
+    assert plot_world(out, world, interventions=[(2.0, 0.0)], width_px=600) == image_size(
+        world.map, 600, with_series=False)
+    with Image.open(out) as img:
+        assert img.format == "PNG"
     csv_path = tmp_path / "world.csv"
     write_csv(csv_path, world.samples)
     assert report(read_csv(csv_path)).end_pose == pytest.approx(rep.end_pose, abs=1e-5)

@@ -333,7 +333,50 @@ class Imu(Message):
     linear_acceleration_covariance: np.ndarray = field(default_factory=_zeros(9))
 
 
+@dataclass
+class PoseStamped(Message):
+    """geometry_msgs/PoseStamped: a pose in ``header.frame_id`` (the simulator's true pose in map)."""
+
+    ROS_TYPE: ClassVar[str] = "geometry_msgs/msg/PoseStamped"
+    MSGDEF: ClassVar[str] = "std_msgs/Header header\nPose pose\n"
+
+    header: Header = field(default_factory=Header)
+    pose: Pose = field(default_factory=Pose)
+
+
 # --- nav_msgs ---------------------------------------------------------------------------------
+
+
+@dataclass
+class MapMetaData(Message):
+    """nav_msgs/MapMetaData: cell size (m), grid size (cells), pose of cell (0, 0)'s corner in map."""
+
+    ROS_TYPE: ClassVar[str] = "nav_msgs/msg/MapMetaData"
+    MSGDEF: ClassVar[str] = (
+        "builtin_interfaces/Time map_load_time\n"
+        "float32 resolution\n"
+        "uint32 width\n"
+        "uint32 height\n"
+        "geometry_msgs/Pose origin\n"
+    )
+
+    map_load_time: Time = field(default_factory=Time)
+    resolution: float = 0.0
+    width: int = 0
+    height: int = 0
+    origin: Pose = field(default_factory=Pose)
+
+
+@dataclass
+class OccupancyGrid(Message):
+    """nav_msgs/OccupancyGrid: int8 cells row-major from the origin; 0 free, 100 occupied, -1 unknown."""
+
+    ROS_TYPE: ClassVar[str] = "nav_msgs/msg/OccupancyGrid"
+    MSGDEF: ClassVar[str] = "std_msgs/Header header\nMapMetaData info\nint8[] data\n"
+
+    header: Header = field(default_factory=Header)
+    info: MapMetaData = field(default_factory=MapMetaData)
+    data: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
 
 
 @dataclass

@@ -32,14 +32,19 @@ from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, map_to_odom, publish_truth
 from racecar_hw.sim.occupancy import load_map
-from racecar_hw.sim.plot import plot_run
+from racecar_hw.sim.plot import ControlSample, Mark, plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
 from racecar_hw.sim.trajectory import write_csv
 from racecar_hw.sim.world import World
 from vesc.fake import FakeVesc
 
 log = logging.getLogger(__name__)
+
+#: How often the control path is sampled for the plot (s of sim time), and at most how many samples.
+SAMPLE_PERIOD_S = 0.05
+MAX_SAMPLES = 200_000
 
 #: Longest range the fake lidar casts, metres (UST-10LX: 10 m; others less matter little indoors).
 LIDAR_MAX_RANGE_M = {"urg-04lx": 5.6, "ust-10lx": 10.0, "ust-20lx": 20.0, "utm-30lx": 30.0,
@@ -81,6 +86,10 @@ class Loopback:
         self.daemon: Daemon | None = None
         self.config: Config | None = None
         self.interventions_at: list[tuple[float, float]] = []
+        #: the interventions with their sim time, for the plot
+        self.intervention_marks: list[Mark] = []
+        #: the control path sampled every :data:`SAMPLE_PERIOD_S`, for the plot
+        self.control_samples: list[ControlSample] = []
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
         #: world time (s) when the car was ready to drive: the scenario's time zero
@@ -112,6 +121,8 @@ class Loopback:
         sc = self.scenario
         model = sc.lidar.model
         config = self._build_config()
+        if all(t.child_frame_id != "odom" for t in config.static_transforms):
+            config.static_transforms.append(map_to_odom(sc.start))  # odometry drawn in the map
         laser = self._laser_pose(config)
         vesc = self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
         self.world = World(self.map, self._car_params(config), sc.start,
@@ -281,15 +292,35 @@ class Loopback:
             self.daemon.mux.release_estop()
 
     async def _watch_interventions(self) -> None:
+        """Note where and when interventions start, and sample the control path for the plot."""
         assert self.daemon is not None and self.world is not None
+        daemon, world = self.daemon, self.world
         seen = 0
+        next_sample = 0.0
         while True:
             await asyncio.sleep(0.02)
-            n = self.daemon.safety.interventions
+            n = daemon.safety.interventions
+            t = world.sim_time
             if n > seen:
-                pose = self.world.pose
+                pose = world.pose
                 self.interventions_at.extend([(pose.x, pose.y)] * (n - seen))
+                self.intervention_marks.extend([Mark(pose.x, pose.y, t)] * (n - seen))
                 seen = n
+            if t >= next_sample and len(self.control_samples) < MAX_SAMPLES:
+                next_sample = t + SAMPLE_PERIOD_S
+                self.control_samples.append(self._control_sample(t))
+
+    def _control_sample(self, t: float) -> ControlSample:
+        assert self.daemon is not None
+        daemon = self.daemon
+        out = daemon.mux.last_output
+        odom = daemon.bus.latest(daemon.config.safety.odom_topic)
+        asked = daemon.mux.last_command(daemon.mux.source)
+        return ControlSample(t, float(asked.speed) if asked is not None else 0.0,
+                             float(out.drive.speed) if out is not None else 0.0,
+                             float(daemon.safety.state.allowed_speed),
+                             float(odom.twist.twist.linear.x) if odom is not None else 0.0,
+                             float(out.drive.steering_angle) if out is not None else 0.0)
 
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
@@ -307,6 +338,10 @@ class Loopback:
                 self.daemon.add_task(self._drive(spec))
             self.daemon.add_task(self._faults())
             self.daemon.add_task(self._watch_interventions())
+            self.daemon.live_topics.extend(SIM_TOPICS)
+            self.daemon.add_task(publish_truth(self.daemon.bus, self.world, self.map))
+            assert self.vesc is not None
+            self.daemon.add_task(log_estop_timing(self.daemon, self.vesc))
 
             async def timer() -> None:
                 await self._wait_until(self.duration_s)
@@ -384,10 +419,9 @@ class Loopback:
             csv_path = self.out_dir / f"{stem}-trajectory.csv"
             write_csv(csv_path, world.samples)
             png_path = self.out_dir / f"{stem}.png"
-            obstacles = [(o.x, o.y, o.radius) for o in world.obstacles.values() if hasattr(o, "radius")]
-            plot_run(png_path, self.map, world.trajectory, self.interventions_at,
-                     [(c.x, c.y) for c in world.collisions], obstacles,
-                     title=stem)
+            plot_run(png_path, self.map, world.trajectory, self.intervention_marks, world.collisions,
+                     world.obstacles.values(), title=stem, series=self.control_samples,
+                     switches=report["mux_switches"])
             report["trajectory_csv"] = str(csv_path)
             report["plot_png"] = str(png_path)
             result.trajectory_csv, result.plot_png = csv_path, png_path

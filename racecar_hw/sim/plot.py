@@ -1,136 +1,305 @@
-"""A PNG picture of a run: the map, the driven path, start and end poses, interventions, collisions.
+"""The picture of a run: a matplotlib figure a person reads, written as a PNG.
 
-Pillow only. The map is scaled to ``width_px`` wide (nearest neighbour, so cells stay crisp), north
-(map +y) up when the map's origin yaw is 0; a legend band sits under the map. Points are map-frame
-metres.
+Top: the map in metres (map frame, x right, y up), the driven path coloured by speed, the start and
+end poses, the obstacles, interventions (orange rings) and collisions (red crosses). Under it, on one
+time axis (seconds of sim time): the commanded, output, allowed and measured speed (m/s) with the
+interventions and collisions as vertical marks, the steering angle (rad, + left), and the mux's active
+source as a band of coloured spans.
+
+matplotlib's Agg canvas draws without pyplot, so no global figure state is touched and the plot can be
+made from any thread. The inputs are plain sequences so a report read back from JSON plots as well as a
+live run: interventions and collisions may be (x, y), (t, x, y), objects with ``x``/``y`` (and ``t``)
+attributes, or mappings with those keys (and ``reason``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Circle as CirclePatch
+from matplotlib.patches import Polygon
+from matplotlib.transforms import Affine2D
 
 from racecar_hw.sim.obstacles import Box, Circle, Obstacle
 from racecar_hw.sim.occupancy import OccupancyMap
-from racecar_hw.sim.world import Collision, World
+from racecar_hw.sim.world import World
 
-LEGEND_PX = 30
-FREE_RGB, OCCUPIED_RGB, UNKNOWN_RGB = (255, 255, 255), (40, 40, 40), (190, 190, 190)
-PATH_RGB = (30, 90, 220)
-START_RGB, END_RGB = (20, 160, 60), (140, 40, 180)
-INTERVENTION_RGB, COLLISION_RGB, OBSTACLE_RGB = (245, 150, 0), (220, 20, 20), (120, 120, 120)
+#: Figure width in inches; ``width_px`` sets the resolution.
+FIGURE_WIDTH_IN = 8.0
+FREE_GREY, OCCUPIED_GREY, UNKNOWN_GREY = 1.0, 0.16, 0.75
+START_COLOUR, END_COLOUR = "#14a03c", "#8c28b4"
+INTERVENTION_COLOUR, COLLISION_COLOUR, OBSTACLE_COLOUR = "#f59600", "#dc1414", "#787878"
+SPEED_COLOURS = {"commanded": "#1f77b4", "output": "#17becf", "allowed": "#f59600", "measured": "#2ca02c"}
+SPEED_CMAP = "viridis"
 
 
-def image_size(occ_map: OccupancyMap, width_px: int = 800) -> tuple[int, int]:
+class ControlSample(NamedTuple):
+    """One sample of the control path during a run (sim time ``t`` in seconds, speeds in m/s).
+
+    ``commanded``: what the active source asked for; ``output``: what the mux sent to the VESC after
+    the safety controller and the rate limiter; ``allowed``: the safety controller's allowed speed
+    (inf when it does not limit); ``measured``: the odometry speed; ``steering``: the output steering
+    angle (rad, + left).
+    """
+
+    t: float
+    commanded: float
+    output: float
+    allowed: float
+    measured: float
+    steering: float
+
+
+@dataclass(frozen=True)
+class Mark:
+    """A point event on the map and, when its time is known, on the time axis."""
+
+    x: float
+    y: float
+    t: float | None = None
+    label: str = ""
+
+
+def as_marks(items: Iterable[Any]) -> list[Mark]:
+    """Interventions or collisions in any of the accepted shapes, as :class:`Mark` s."""
+    marks = []
+    for item in items:
+        if isinstance(item, Mark):
+            marks.append(item)
+        elif isinstance(item, Mapping):
+            marks.append(Mark(float(item["x"]), float(item["y"]), _opt(item.get("t")),
+                              str(item.get("reason", ""))))
+        elif hasattr(item, "x") and hasattr(item, "y"):
+            marks.append(Mark(float(item.x), float(item.y), _opt(getattr(item, "t", None)),
+                              str(getattr(item, "reason", ""))))
+        elif len(item) == 2:
+            marks.append(Mark(float(item[0]), float(item[1])))
+        else:
+            marks.append(Mark(float(item[1]), float(item[2]), float(item[0])))
+    return marks
+
+
+def _opt(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def image_size(occ_map: OccupancyMap, width_px: int = 800, with_series: bool = True) -> tuple[int, int]:
     """(width, height) in pixels of the picture :func:`plot_run` draws for this map."""
-    scale = width_px / occ_map.width
-    return width_px, max(1, round(occ_map.height * scale)) + LEGEND_PX
+    w_in, h_in = _figure_inches(occ_map, with_series)
+    dpi = width_px / w_in
+    return round(w_in * dpi), round(h_in * dpi)
 
 
-def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
-    try:
-        return ImageFont.load_default(size=size)
-    except (TypeError, OSError, ImportError):
-        return ImageFont.load_default()
+def _map_inches(occ_map: OccupancyMap) -> float:
+    """Height of the map panel (inches): the map's aspect, kept between 2.5 and 8 inches."""
+    w_m, h_m = occ_map.size_m
+    return min(8.0, max(2.5, (FIGURE_WIDTH_IN - 1.6) * h_m / w_m + 0.8))
+
+
+def _figure_inches(occ_map: OccupancyMap, with_series: bool) -> tuple[float, float]:
+    return FIGURE_WIDTH_IN, _map_inches(occ_map) + (4.4 if with_series else 0.0)
 
 
 def plot_run(path: str | Path, occ_map: OccupancyMap,
              trajectory: Sequence[Sequence[float]],
-             interventions: Iterable[tuple[float, float]] = (),
-             collisions: Iterable[tuple[float, float] | Collision] = (),
+             interventions: Iterable[Any] = (),
+             collisions: Iterable[Any] = (),
              obstacles: Iterable[tuple[float, float, float] | Obstacle] = (),
-             width_px: int = 800, title: str | None = None) -> tuple[int, int]:
-    """Write the picture to ``path`` (PNG). ``trajectory`` rows start with (t, x, y, yaw, ...);
-    ``collisions`` are (x, y) points or :class:`~racecar_hw.sim.world.Collision`; ``obstacles`` are
-    discs (x, y, radius), :class:`Circle` or :class:`Box`. Returns the image size (width, height)."""
-    width, height = image_size(occ_map, width_px)
-    map_h = height - LEGEND_PX
-    scale = width / occ_map.width  # pixels per cell
-
-    rgb = np.empty(occ_map.data.shape + (3,), dtype=np.uint8)
-    img_data = occ_map.image()
-    rgb[:] = FREE_RGB
-    rgb[img_data < 0] = UNKNOWN_RGB
-    rgb[occ_map.occupied[::-1]] = OCCUPIED_RGB
-    base = Image.fromarray(rgb, mode="RGB").resize((width, map_h), Image.Resampling.NEAREST)
-    img = Image.new("RGB", (width, height), (250, 250, 250))
-    img.paste(base, (0, 0))
-    draw = ImageDraw.Draw(img)
-
-    def px(x: float, y: float) -> tuple[float, float]:
-        gx, gy = occ_map.world_to_grid_frame(x, y)
-        return float(gx) * scale, map_h - float(gy) * scale
-
-    unit = max(4.0, width / 110)  # marker size in pixels
-    for obstacle in obstacles:
-        if isinstance(obstacle, Box):
-            draw.polygon([px(x, y) for x, y in obstacle.corners()], fill=OBSTACLE_RGB)
-            continue
-        ox, oy, r = ((obstacle.x, obstacle.y, obstacle.radius) if isinstance(obstacle, Circle)
-                     else obstacle)
-        cx, cy = px(ox, oy)
-        rp = max(r / occ_map.resolution * scale, 2.0)
-        draw.ellipse((cx - rp, cy - rp, cx + rp, cy + rp), fill=OBSTACLE_RGB)
-
-    points = [px(row[1], row[2]) for row in trajectory]
-    if len(points) >= 2:
-        draw.line(points, fill=PATH_RGB, width=max(2, round(unit / 2.5)), joint="curve")
-    if trajectory:
-        # the start marker is the larger one, so it still shows when a run ends where it began
-        _pose_marker(draw, points[0], trajectory[0][3] - occ_map.origin[2], unit * 2.2, START_RGB)
-        _pose_marker(draw, points[-1], trajectory[-1][3] - occ_map.origin[2], unit * 1.3, END_RGB)
-    for x, y in interventions:
-        cx, cy = px(x, y)
-        draw.ellipse((cx - unit, cy - unit, cx + unit, cy + unit), outline=INTERVENTION_RGB,
-                     width=max(2, round(unit / 3)))
-    for collision in collisions:
-        cx, cy = px(*((collision.x, collision.y) if isinstance(collision, Collision) else collision))
-        w = max(3, round(unit / 2))
-        draw.line((cx - unit, cy - unit, cx + unit, cy + unit), fill=COLLISION_RGB, width=w)
-        draw.line((cx - unit, cy + unit, cx + unit, cy - unit), fill=COLLISION_RGB, width=w)
-
-    _legend(draw, width, map_h, occ_map, title)
-    img.save(path, format="PNG")
-    return width, height
+             width_px: int = 800, title: str | None = None, *,
+             series: Sequence[Sequence[float]] = (),
+             switches: Sequence[Sequence[Any]] = ()) -> tuple[int, int]:
+    """Write :func:`run_figure` to ``path`` (PNG); returns its size in pixels (width, height)."""
+    fig = run_figure(occ_map, trajectory, interventions, collisions, obstacles, width_px, title,
+                     series=series, switches=switches)
+    fig.savefig(path, format="png")
+    width, height = fig.get_size_inches() * fig.dpi
+    return round(width), round(height)
 
 
-def plot_world(path: str | Path, world: World, interventions: Iterable[tuple[float, float]] = (),
+def run_figure(occ_map: OccupancyMap, trajectory: Sequence[Sequence[float]],
+               interventions: Iterable[Any] = (), collisions: Iterable[Any] = (),
+               obstacles: Iterable[tuple[float, float, float] | Obstacle] = (),
+               width_px: int = 800, title: str | None = None, *,
+               series: Sequence[Sequence[float]] = (),
+               switches: Sequence[Sequence[Any]] = ()) -> Figure:
+    """The figure of a run, ``width_px`` pixels wide.
+
+    ``trajectory`` rows start with (t, x, y, yaw, speed) in sim time, map-frame metres and m/s;
+    ``obstacles`` are discs (x, y, radius), :class:`Circle` or :class:`Box`; ``series`` are
+    :class:`ControlSample` rows; ``switches`` are the mux's (t, source) switches in sim time. Without
+    ``series`` and ``switches`` only the map panel is drawn.
+    """
+    traj = np.asarray([row[:5] for row in trajectory], dtype=np.float64).reshape(-1, 5)
+    samples = np.asarray([tuple(row)[:6] for row in series], dtype=np.float64).reshape(-1, 6)
+    marks_i, marks_c = as_marks(interventions), as_marks(collisions)
+    with_series = bool(len(samples) or len(switches))
+    w_in, h_in = _figure_inches(occ_map, with_series)
+    fig = Figure(figsize=(w_in, h_in), dpi=width_px / w_in, layout="constrained")
+    FigureCanvasAgg(fig)
+    if with_series:
+        grid = fig.add_gridspec(4, 1, height_ratios=[_map_inches(occ_map), 2.0, 1.3, 0.7])
+        ax_map = fig.add_subplot(grid[0])
+        ax_speed = fig.add_subplot(grid[1])
+        ax_steer = fig.add_subplot(grid[2], sharex=ax_speed)
+        ax_source = fig.add_subplot(grid[3], sharex=ax_speed)
+    else:
+        ax_map = fig.add_subplot(1, 1, 1)
+    _draw_map(fig, ax_map, occ_map, traj, marks_i, marks_c, obstacles)
+    if title:
+        ax_map.set_title(title)
+    if with_series:
+        ends = ([traj[-1, 0]] if len(traj) else []) + ([samples[-1, 0]] if len(samples) else [])
+        end_t = float(max(ends, default=0.0))
+        _draw_speeds(ax_speed, samples, marks_i, marks_c)
+        _draw_steering(ax_steer, samples)
+        _draw_sources(ax_source, switches, end_t)
+        ax_source.set_xlim(0.0, max(end_t, 1e-3))
+        ax_source.set_xlabel("sim time (s)")
+        for ax in (ax_speed, ax_steer):
+            ax.tick_params(labelbottom=False)
+    return fig
+
+
+def plot_world(path: str | Path, world: World, interventions: Iterable[Any] = (),
                width_px: int = 800, title: str | None = None) -> tuple[int, int]:
     """:func:`plot_run` with the map, path, collisions and current obstacles of a :class:`World`."""
     return plot_run(path, world.map, world.trajectory, interventions, world.collisions,
                     world.obstacles.values(), width_px, title)
 
 
-def _pose_marker(draw: ImageDraw.ImageDraw, at: tuple[float, float], yaw: float, size: float,
-                 colour: tuple[int, int, int]) -> None:
-    """A triangle pointing along ``yaw`` (image y points down, so the angle is mirrored)."""
-    x, y = at
-    c, s = math.cos(yaw), -math.sin(yaw)
-    tip = (x + c * size, y + s * size)
-    left = (x - c * size * 0.6 - s * size * 0.6, y - s * size * 0.6 + c * size * 0.6)
-    right = (x - c * size * 0.6 + s * size * 0.6, y - s * size * 0.6 - c * size * 0.6)
-    draw.polygon([tip, left, right], fill=colour, outline=(0, 0, 0))
+# --- panels ---------------------------------------------------------------------------------------
 
 
-def _legend(draw: ImageDraw.ImageDraw, width: int, top: int, occ_map: OccupancyMap,
-            title: str | None) -> None:
-    font = _font(14)
-    y = top + LEGEND_PX // 2
-    x = 8
-    entries = [("path", PATH_RGB), ("start", START_RGB), ("end", END_RGB),
-               ("intervention", INTERVENTION_RGB), ("collision", COLLISION_RGB)]
-    for label, colour in entries:
-        draw.rectangle((x, y - 5, x + 10, y + 5), fill=colour)
-        draw.text((x + 14, y), label, fill=(0, 0, 0), font=font, anchor="lm")
-        x += 24 + int(draw.textlength(label, font=font))
-    # a 1 m scale bar
-    bar = 1.0 / occ_map.resolution * (width / occ_map.width)
-    right = width - 8
-    draw.line((right - bar, y + 6, right, y + 6), fill=(0, 0, 0), width=3)
-    draw.text((right - bar - 6, y), "1 m", fill=(0, 0, 0), font=font, anchor="rm")
-    if title:
-        draw.text((x + 10, y), title, fill=(0, 0, 0), font=font, anchor="lm")
+def _draw_map(fig: Figure, ax: Any, occ_map: OccupancyMap, traj: np.ndarray, interventions: list[Mark],
+              collisions: list[Mark], obstacles: Iterable[Any]) -> None:
+    grey = np.full(occ_map.data.shape, FREE_GREY)
+    grey[occ_map.data < 0] = UNKNOWN_GREY
+    grey[occ_map.occupied] = OCCUPIED_GREY
+    ox, oy, oyaw = occ_map.origin
+    w_m, h_m = occ_map.size_m
+    image = ax.imshow(grey, cmap="gray", vmin=0.0, vmax=1.0, origin="lower", interpolation="nearest",
+                      extent=(ox, ox + w_m, oy, oy + h_m), zorder=0)
+    if oyaw:
+        image.set_transform(Affine2D().rotate_around(ox, oy, oyaw) + ax.transData)
+    corners = np.array([occ_map.grid_frame_to_world(gx, gy)
+                        for gx, gy in ((0, 0), (occ_map.width, 0), (0, occ_map.height),
+                                       (occ_map.width, occ_map.height))])
+    ax.set_xlim(corners[:, 0].min(), corners[:, 0].max())
+    ax.set_ylim(corners[:, 1].min(), corners[:, 1].max())
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    for obstacle in obstacles:
+        if isinstance(obstacle, Box):
+            ax.add_patch(Polygon(obstacle.corners(), closed=True, color=OBSTACLE_COLOUR, zorder=1))
+            continue
+        x, y, r = ((obstacle.x, obstacle.y, obstacle.radius) if isinstance(obstacle, Circle) else obstacle)
+        ax.add_patch(CirclePatch((x, y), r, color=OBSTACLE_COLOUR, zorder=1))
+    handles: list[Any] = []
+    if len(traj) >= 2:
+        points = traj[:, 1:3]
+        segments = np.stack([points[:-1], points[1:]], axis=1)
+        speed = np.abs(traj[1:, 4])
+        lines = LineCollection(segments, cmap=colormaps[SPEED_CMAP], linewidths=2.5, zorder=2, gid="path")
+        lines.set_array(speed)
+        lines.set_clim(0.0, max(float(speed.max()), 0.1))
+        ax.add_collection(lines)
+        fig.colorbar(lines, ax=ax, label="speed (m/s)", shrink=0.85, pad=0.01)
+    if len(traj):
+        _pose_marker(ax, traj[0], START_COLOUR, 13)
+        _pose_marker(ax, traj[-1], END_COLOUR, 9)
+        handles += [_handle("^", START_COLOUR, "start"), _handle("^", END_COLOUR, "end")]
+    if interventions:
+        ax.scatter([m.x for m in interventions], [m.y for m in interventions], s=110, facecolors="none",
+                   edgecolors=INTERVENTION_COLOUR, linewidths=2.2, zorder=4, gid="interventions")
+        handles.append(_handle("o", INTERVENTION_COLOUR, f"intervention ({len(interventions)})", hollow=True))
+    if collisions:
+        ax.scatter([m.x for m in collisions], [m.y for m in collisions], s=120, marker="x",
+                   color=COLLISION_COLOUR, linewidths=2.8, zorder=5, gid="collisions")
+        handles.append(_handle("x", COLLISION_COLOUR, f"collision ({len(collisions)})"))
+    if handles:
+        ax.legend(handles=handles, loc="upper right", fontsize="small", framealpha=0.85)
+
+
+def _pose_marker(ax: Any, row: np.ndarray, colour: str, size: float) -> None:
+    """A triangle at (x, y) pointing along yaw."""
+    marker = (3, 0, math.degrees(float(row[3])) - 90.0)
+    ax.plot(row[1], row[2], marker=marker, markersize=size, color=colour, markeredgecolor="black",
+            linestyle="none", zorder=6)
+
+
+def _handle(marker: str, colour: str, label: str, hollow: bool = False) -> Line2D:
+    return Line2D([], [], marker=marker, linestyle="none", label=label, markersize=8,
+                  color=colour, markerfacecolor="none" if hollow else colour,
+                  markeredgewidth=2 if marker in ("x", "o") else 1)
+
+
+def _event_lines(ax: Any, interventions: list[Mark], collisions: list[Mark]) -> None:
+    for mark in interventions:
+        if mark.t is not None:
+            ax.axvline(mark.t, color=INTERVENTION_COLOUR, linewidth=1.0, alpha=0.8)
+    for mark in collisions:
+        if mark.t is not None:
+            ax.axvline(mark.t, color=COLLISION_COLOUR, linewidth=1.5)
+
+
+def _draw_speeds(ax: Any, samples: np.ndarray, interventions: list[Mark], collisions: list[Mark]) -> None:
+    ax.set_ylabel("speed (m/s)")
+    ax.grid(True, alpha=0.3)
+    _event_lines(ax, interventions, collisions)
+    if not len(samples):
+        return
+    t = samples[:, 0]
+    columns = {"commanded": 1, "output": 2, "allowed": 3, "measured": 4}
+    shown = [samples[:, columns[name]] for name in ("commanded", "output", "measured")]
+    top = max(0.5, float(np.nanmax(np.abs(np.concatenate(shown)))) * 1.3)
+    # the allowed speed is often far above anything driven (and inf when not limiting): drawn along
+    # the top edge there, so the line is always on the plot
+    allowed = np.minimum(np.nan_to_num(samples[:, 3], nan=top, posinf=top), top * 0.985)
+    styles = {"commanded": "-", "output": "--", "allowed": "-", "measured": "-"}
+    for name, col in columns.items():
+        values = allowed if name == "allowed" else samples[:, col]
+        wide = name == "allowed"
+        ax.step(t, values, where="post", label="allowed (top: above)" if wide else name,
+                color=SPEED_COLOURS[name], linestyle=styles[name], linewidth=1.8 if wide else 1.3)
+    bottom = min(0.0, float(np.nanmin(np.concatenate(shown))) * 1.3)
+    ax.set_ylim(bottom, top)
+    ax.legend(loc="upper right", fontsize="small", ncols=4, framealpha=0.85)
+
+
+def _draw_steering(ax: Any, samples: np.ndarray) -> None:
+    ax.set_ylabel("steering (rad)")
+    ax.grid(True, alpha=0.3)
+    if len(samples):
+        ax.step(samples[:, 0], samples[:, 5], where="post", color="#9467bd", linewidth=1.3)
+        ax.axhline(0.0, color="black", linewidth=0.6)
+
+
+def _draw_sources(ax: Any, switches: Sequence[Sequence[Any]], end_t: float) -> None:
+    """The active mux source over time, one coloured span per stretch, labelled when wide enough."""
+    ax.set_yticks([])
+    ax.set_ylabel("source", rotation=0, ha="right", va="center")
+    spans = [(float(t), str(source)) for t, source in switches]
+    names = list(dict.fromkeys(source for _, source in spans))
+    palette = colormaps["tab10"]
+    colours = {name: ("#bbbbbb" if name == "idle" else "#222222" if name in ("estop", "fault")
+                      else palette(i % 10)) for i, name in enumerate(names)}
+    for k, (start, source) in enumerate(spans):
+        stop = spans[k + 1][0] if k + 1 < len(spans) else end_t
+        if stop <= start:
+            continue
+        ax.broken_barh([(start, stop - start)], (0, 1), color=colours[source], gid=f"source:{source}")
+        if end_t > 0 and (stop - start) / end_t > 0.06:
+            ax.text((start + stop) / 2, 0.5, source, ha="center", va="center", fontsize="small",
+                    color="white" if source not in ("idle",) else "black")
+    ax.set_ylim(0, 1)

@@ -1,0 +1,188 @@
+"""What the live view costs: the daemon at nominal load with Foxglove and the status page off, then on
+with one client each, in one run (bench_daemon.py's harness: UST-10LX at 40 Hz, VESC at 50 Hz, the
+figure-8 driver, the recorder writing MCAP).
+
+The Foxglove client is a raw WebSocket client (``foxglove.sdk.v1``) that subscribes to every channel
+the server advertises (more than any layout shows); the page client opens the status page's
+WebSocket as a browser does and takes its pushes (10 Hz, scan and band included). Both run in a
+thread of this process, so their own CPU time is not the daemon's.
+
+A third configuration has both on with no client (the shipped default: they listen, but send nothing).
+The configurations alternate (off, on with clients, on idle, off, ...) ``ROUNDS`` times and each row is
+the median over the rounds, so a burst of load from elsewhere on a shared machine does not land on one
+side only. The p99 of a run is dominated by the time the loop thread spends off the CPU when the
+machine is shared; the daemon's CPU time in the scan path (its p99) is the part the live view can add.
+
+Run ``python benchmarks/bench_live.py [SECONDS] [ROUNDS]``; ``run()`` returns the rows for run_all.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import statistics
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import bench_daemon
+from table import print_rows
+
+ADDED_P99_TARGET = 0.05  # ms
+OFF = {"foxglove": {"enabled": False}, "web": {"enabled": False}}
+ON = {"foxglove": {"enabled": True, "port": 0}, "web": {"enabled": True, "port": 0}}
+
+
+class Clients:
+    """One Foxglove client subscribed to everything and one status-page client, in a thread."""
+
+    def __init__(self, log_path: Path) -> None:
+        self.log_path = log_path
+        self.foxglove_messages = 0
+        self.page_messages = 0
+        self.channels = 0
+        self.started = self.ended = 0.0
+        self._stop = threading.Event()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="bench-clients", daemon=True)
+
+    def _ports(self) -> tuple[int, int]:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            text = self.log_path.read_text()
+            fox = re.search(r"foxglove: live view on ws://[^:]+:(\d+)", text)
+            web = re.search(r"web: status page on http://[^:]+:(\d+)/", text)
+            if fox and web:
+                return int(fox.group(1)), int(web.group(1))
+            time.sleep(0.1)
+        raise RuntimeError("the daemon did not log its live-view ports")
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as err:  # noqa: BLE001 - reported by __enter__/__exit__
+            self._error = err
+            self._ready.set()
+
+    async def _main(self) -> None:
+        from websockets.asyncio.client import connect
+
+        fox_port, web_port = self._ports()
+        fox = await connect(f"ws://127.0.0.1:{fox_port}/", subprotocols=["foxglove.sdk.v1"], max_size=None)
+        page = await connect(f"ws://127.0.0.1:{web_port}/ws", origin=f"http://127.0.0.1:{web_port}")
+        channels: list[int] = []
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and len(channels) < 10:
+            frame = await asyncio.wait_for(fox.recv(), 10)
+            if isinstance(frame, str) and json.loads(frame)["op"] == "advertise":
+                channels += [ch["id"] for ch in json.loads(frame)["channels"]]
+        self.channels = len(channels)
+        await fox.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": i, "channelId": c} for i, c in enumerate(channels)]}))
+        self.started = time.monotonic()
+        self._ready.set()
+
+        async def count_fox() -> None:
+            async for _ in fox:
+                self.foxglove_messages += 1
+
+        async def count_page() -> None:
+            async for _ in page:
+                self.page_messages += 1
+
+        readers = [asyncio.ensure_future(count_fox()), asyncio.ensure_future(count_page())]
+        while not self._stop.is_set():
+            await asyncio.sleep(0.1)
+        self.ended = time.monotonic()
+        for task in readers:
+            task.cancel()
+        await fox.close()
+        await page.close()
+
+    @property
+    def elapsed(self) -> float:
+        return max(1e-9, self.ended - self.started)
+
+    def __enter__(self) -> Clients:
+        self._thread.start()
+        self._ready.wait(30)
+        if self._error is not None or not self._ready.is_set():
+            raise RuntimeError(f"bench clients did not connect: {self._error!r}")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+
+def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
+    off: list[dict[str, float]] = []
+    on: list[dict[str, float]] = []
+    idle: list[dict[str, float]] = []
+    clients: list[Clients] = []
+
+    @contextlib.contextmanager
+    def attach(log_path: Path) -> Iterator[Clients]:
+        with Clients(log_path) as c:
+            clients.append(c)
+            yield c
+
+    for _ in range(rounds):
+        off.append(_numbers(bench_daemon.run(seconds, config_extra=OFF)))
+        on.append(_numbers(bench_daemon.run(seconds, config_extra=ON, attach=attach)))
+        idle.append(_numbers(bench_daemon.run(seconds, config_extra=ON)))
+
+    def median(runs: list[dict[str, float]], key: str) -> float:
+        return statistics.median(r[key] for r in runs)
+
+    rows = []
+    for key, label, unit in (("cpu", "daemon CPU share of one core", "%"),
+                             ("p50", "scan to VESC command p50 (in daemon)", "ms"),
+                             ("p99", "scan to VESC command p99 (in daemon)", "ms"),
+                             ("cpu_p99", "  the daemon's CPU time in it, p99", "ms")):
+        rows.append({"name": f"{label}, live view off", "value": median(off, key), "unit": unit,
+                     "target": None})
+        rows.append({"name": f"{label}, on with one client each", "value": median(on, key), "unit": unit,
+                     "target": None})
+        rows.append({"name": f"{label}, on with no client", "value": median(idle, key), "unit": unit,
+                     "target": None})
+    rows.append({"name": "p99 added by the live view", "value": median(on, "p99") - median(off, "p99"),
+                 "unit": "ms", "target": ADDED_P99_TARGET})
+    rows.append({"name": "  of it the daemon's CPU time on the scan path, p99",
+                 "value": median(on, "cpu_p99") - median(off, "cpu_p99"), "unit": "ms", "target": None})
+    rows.append({"name": "CPU share added by the live view", "value": median(on, "cpu") - median(off, "cpu"),
+                 "unit": "%", "target": None})
+    rows.append({"name": "Foxglove messages received per second (all channels)",
+                 "value": statistics.median(c.foxglove_messages / c.elapsed for c in clients),
+                 "unit": "msg/s", "target": None})
+    rows.append({"name": "status page pushes received per second",
+                 "value": statistics.median(c.page_messages / c.elapsed for c in clients),
+                 "unit": "msg/s", "target": None})
+    rows.append({"name": "host: CPU time stolen by the hypervisor (median)",
+                 "value": statistics.median([r["steal"] for r in off + on + idle]), "unit": "% of busy",
+                 "target": None})
+    return rows
+
+
+def _numbers(rows: list[dict]) -> dict[str, float]:
+    by_name = {row["name"]: row["value"] for row in rows}
+    return {"cpu": by_name["daemon CPU share of one core"],
+            "p50": by_name["scan to VESC command p50 (in daemon)"],
+            "p99": by_name["scan to VESC command p99 (in daemon)"],
+            "cpu_p99": by_name["  the daemon's CPU time in it, p99"],
+            "steal": by_name["host: CPU time stolen by the hypervisor"]}
+
+
+def main() -> None:
+    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
+    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 2
+    print_rows(run(seconds, rounds))
+
+
+if __name__ == "__main__":
+    main()

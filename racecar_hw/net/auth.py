@@ -1,0 +1,64 @@
+"""Who may connect: loopback binds are open to the car's own users; anything else needs a token.
+
+A token is compared in constant time (:func:`secrets.compare_digest`). Browsers also get an
+``Origin`` check on WebSocket upgrades and POSTs (a page on another site must not drive the car
+through the user's browser), and on an open loopback bind a ``Host`` check (DNS rebinding).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import secrets
+from urllib.parse import urlsplit
+
+#: Host names that always mean this machine.
+LOCAL_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether binding ``host`` keeps a server on this machine: a loopback address or ``localhost``."""
+    name = host.strip().strip("[]").lower()
+    if name in LOCAL_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(name).is_loopback
+    except ValueError:
+        return False  # a host name or 0.0.0.0 / :: (every interface)
+
+
+def new_token() -> str:
+    """A fresh random token (32 URL-safe characters, 192 bits)."""
+    return secrets.token_urlsafe(24)
+
+
+def token_ok(given: str | None, expected: str) -> bool:
+    """Whether ``given`` is the token, compared in constant time; no token expected: always."""
+    if not expected:
+        return True
+    return given is not None and secrets.compare_digest(given.encode(), expected.encode())
+
+
+def bearer(header: str | None) -> str | None:
+    """The token in an ``Authorization: Bearer <token>`` header, or None."""
+    if not header:
+        return None
+    scheme, _, value = header.partition(" ")
+    return value.strip() if scheme.lower() == "bearer" and value.strip() else None
+
+
+def same_origin(origin: str | None, host: str | None) -> bool:
+    """Whether a browser's ``Origin`` is the page's own ``Host``; no Origin (not a browser): True."""
+    if origin is None:
+        return True
+    if not host:
+        return False
+    parts = urlsplit(origin)
+    return parts.scheme in ("http", "https") and parts.netloc.lower() == host.lower()
+
+
+def local_host_header(host: str | None) -> bool:
+    """Whether a ``Host`` header names this machine (a loopback address or localhost, any port)."""
+    if not host:
+        return False
+    name = urlsplit(f"//{host}").hostname or ""
+    return is_loopback(name)

@@ -1,0 +1,510 @@
+"""The live view in Foxglove: a WebSocket server (the Foxglove SDK, subprotocol ``foxglove.sdk.v1``).
+
+What it serves:
+
+* every ``OUT`` row of the topic table (:mod:`racecar_hw.net.topics`) as a channel with its ROS 2
+  schema (``ros2msg``, the full definition with its dependencies, as bags store it) and CDR payloads
+  from :mod:`racecar_hw.rosmsg`, the serializer the recorder uses; latched rows (``/tf_static``,
+  the mux's active source, the simulator's ``/map``) are sent again to each new subscriber;
+* ``/safety/scene`` (``foxglove.SceneUpdate`` in base_link: the swept footprint out to the stopping
+  distance, the limiting obstacle, coloured clear/limiting/stopped; see :mod:`racecar_hw.net.scene`)
+  and ``/safety/speeds`` (JSON: commanded, output, allowed and measured speed, steering) at
+  ``scene_rate_hz``;
+* ``/log``: Python logging records (INFO and up) as ``foxglove.Log``;
+* client publishing: ``geometry_msgs/msg/Twist`` on ``teleop_topic`` (the Teleop panel), converted
+  with the wheelbase into the mux input ``foxglove``, whose short timeout stops the car when the tab
+  closes or the Wi-Fi drops; services ``/racecar/estop``, ``/racecar/release``, ``/racecar/arm`` and
+  ``/racecar/disarm`` (``std_srvs/srv/Trigger``); the effective configuration as read-only parameters.
+
+Threads: bus callbacks run in the event loop and only queue jobs (:class:`~racecar_hw.net.outbox.Outbox`,
+drop oldest) while a client subscribes to the channel; the outbox thread serializes and hands the bytes
+to the SDK, whose own threads send them. The SDK calls the listener and the service handlers from its
+threads; they hand work to the event loop (``call_soon_threadsafe``), and a service waits for its answer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import json
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import foxglove
+from foxglove import Capability, MessageSchema, Parameter, Schema, Service, ServiceRequest, ServiceSchema
+from foxglove.channels import LogChannel, SceneUpdateChannel
+from foxglove.messages import Log, LogLevel, Timestamp
+
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Message, Twist, stamp_now
+from racecar_hw.base.params import param
+from racecar_hw.net.auth import is_loopback
+from racecar_hw.net.control import CarControl, LiveState
+from racecar_hw.net.outbox import Outbox
+from racecar_hw.net.scene import scene_update
+from racecar_hw.net.topics import Direction, Topic
+from racecar_hw.rosmsg.typestore import ros2_types
+
+log = logging.getLogger(__name__)
+
+SCENE_TOPIC = "/safety/scene"
+SPEEDS_TOPIC = "/safety/speeds"
+LOG_TOPIC = "/log"
+SERVICE_PREFIX = "/racecar/"
+TWIST_TYPES = ("geometry_msgs/msg/Twist", "geometry_msgs/Twist")
+#: How long a service call waits for the event loop (s).
+SERVICE_TIMEOUT_S = 2.0
+#: Twists closer together than this (per client channel) are dropped: a flooding client cannot load
+#: the control loop (the Teleop panel sends 10 Hz, at most tens).
+MIN_TWIST_INTERVAL_NS = 5_000_000
+
+_SPEEDS_SCHEMA = {
+    "title": "racecar_hw.SafetySpeeds", "type": "object",
+    "properties": {
+        "commanded": {"type": "number", "description": "speed the active source asks for, m/s"},
+        "output": {"type": "number", "description": "speed sent to the VESC, m/s"},
+        "allowed": {"type": ["number", "null"], "description": "safety controller's allowed speed, m/s"},
+        "measured": {"type": ["number", "null"], "description": "odometry speed, m/s"},
+        "steering": {"type": "number", "description": "output steering angle, rad, + left"},
+        "state": {"type": "string", "description": "clear, limiting or stopped"},
+        "reason": {"type": "string", "description": "the safety controller's reason"},
+        "source": {"type": "string", "description": "the mux's active source"},
+    },
+}
+_TRIGGER_RESPONSE = "bool success\nstring message\n"
+
+
+@dataclass
+class FoxgloveParams:
+    """The Foxglove live-view server."""
+
+    enabled: bool = param(True, "serve the live view to Foxglove and Lichtblick (WebSocket)")
+    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs token")
+    port: int = param(8765, "TCP port (0: any free port, logged at start)", min=0, max=65535)
+    token: str = param("", "required in the URL (ws://car:8765/?token=...) when host is not loopback")
+    teleop: bool = param(True, "let Foxglove's Teleop panel drive through the mux input 'foxglove'")
+    teleop_topic: str = param("/foxglove/cmd_vel", "geometry_msgs/Twist topic the Teleop panel publishes")
+    teleop_priority: int = param(85, "priority of the mux input 'foxglove' (below teleop's 90)",
+                                 min=0, max=255)
+    teleop_timeout_s: float = param(0.3, "the car stops this long after the last Twist (a closed tab, "
+                                         "dropped Wi-Fi); the shipped layout publishes at 10 Hz",
+                                    unit="s", min=0.05, max=2.0)
+    teleop_max_speed_mps: float = param(1.0, "largest speed a Twist may ask for", unit="m/s",
+                                        min=0.0, max=10.0)
+    scene_rate_hz: float = param(10.0, "rate of /safety/scene and /safety/speeds", unit="Hz",
+                                 min=0.5, max=50.0)
+    queue_size: int = param(1000, "messages waiting for the sender thread before the oldest are dropped",
+                            min=10, max=100_000)
+
+    def __post_init__(self) -> None:
+        if self.enabled and not is_loopback(self.host) and not self.token:
+            raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
+                                                "foxglove.token (clients add ?token=... to the URL), or "
+                                                "keep host 127.0.0.1 and reach it over ssh -L")
+
+
+def twist_to_drive(twist: Twist, wheelbase_m: float, max_speed_mps: float,
+                   max_steering_rad: float) -> AckermannDrive:
+    """A Twist (m/s forward, rad/s yaw rate) as an Ackermann command for a car of ``wheelbase_m``.
+
+    ``steering = atan(wheelbase * yaw_rate / speed)``, so the car turns at the asked yaw rate; with no
+    speed a yaw rate points the wheels fully to its side. Non-finite values become a stop; speed and
+    steering are clamped to the limits.
+    """
+    v, w = float(twist.linear.x), float(twist.angular.z)
+    if not (math.isfinite(v) and math.isfinite(w)):
+        return AckermannDrive()
+    v = max(-max_speed_mps, min(max_speed_mps, v))
+    if abs(v) < 1e-3:
+        steering = math.copysign(max_steering_rad, w) if w else 0.0
+    else:
+        steering = math.atan(wheelbase_m * w / v)
+    steering = max(-max_steering_rad, min(max_steering_rad, steering))
+    return AckermannDrive(steering_angle=steering, speed=v)
+
+
+@dataclass
+class _Channel:
+    topic: Topic
+    channel: foxglove.Channel
+    subscribers: int = 0
+
+
+class FoxgloveServer:
+    """The Foxglove WebSocket server on ``bus``; :meth:`start` in the event loop, :meth:`stop` at exit.
+
+    ``topics`` are the rows to serve, ``parameters`` the effective configuration (a nested mapping),
+    ``teleop_input`` the mux input topic a Twist drives through, ``wheelbase_m`` and
+    ``max_steering_rad`` convert it.
+    """
+
+    def __init__(self, bus: Bus, params: FoxgloveParams, control: CarControl, topics: list[Topic], *,
+                 parameters: dict[str, Any] | None = None, teleop_input: str | None = None,
+                 wheelbase_m: float = 0.25, max_steering_rad: float = 0.34, name: str = "racecar-hw") -> None:
+        self.bus = bus
+        self.params = params
+        self.control = control
+        self._rows = topics  # read at start(): the simulator adds its rows after building the daemon
+        self.topics: list[Topic] = []
+        self.parameters = flatten_parameters(parameters or {})
+        self.teleop_input = teleop_input if params.teleop else None
+        self.wheelbase_m = wheelbase_m
+        self.max_steering_rad = max_steering_rad
+        self.name = name
+        self.outbox = Outbox("foxglove-sender", params.queue_size)
+        self.server: Any = None
+        self.relay: Any = None
+        self._context: foxglove.Context | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._channels: dict[int, _Channel] = {}
+        self._by_bus: dict[str, _Channel] = {}
+        self._subs: list[Subscription] = []
+        self._scene: Any = None
+        self._speeds: foxglove.Channel | None = None
+        self._log: Any = None
+        self._special: dict[int, int] = {}  # SDK channel id -> subscribers, for scene/speeds/log
+        self._scene_id = self._speeds_id = self._log_id = -1
+        self._next_scene_ns = 0
+        self._teleop_channels: dict[tuple[int, int], str] = {}  # (client, channel) -> encoding
+        self._last_twist_ns: dict[tuple[int, int], int] = {}
+        self._log_handler: _LogHandler | None = None
+        #: Twist messages turned into commands, and refused ones
+        self.twists = 0
+        self.refused = 0
+
+    # --- life cycle -----------------------------------------------------------------------------
+
+    @property
+    def port(self) -> int | None:
+        """The port clients connect to (the relay's when there is one), or None when not running."""
+        if self.relay is not None:
+            return int(self.relay.port)
+        return int(self.server.port) if self.server is not None else None
+
+    def start(self) -> bool:
+        """Create the channels and start listening; False (logged) when the port cannot be had."""
+        self._loop = asyncio.get_running_loop()
+        ctx = self._context = foxglove.Context()
+        types = ros2_types()
+        self.topics = [t for t in self._rows if t.direction is Direction.OUT]
+        for row in self.topics:
+            schema = Schema(name=row.msgtype.ROS_TYPE, encoding="ros2msg",
+                            data=types.msgdef(row.msgtype.ROS_TYPE).encode())
+            channel = foxglove.Channel(row.ros, schema=schema, message_encoding="cdr", context=ctx,
+                                       metadata={"what": row.what} if row.what else None)
+            entry = _Channel(row, channel)
+            self._channels[channel.id()] = entry
+            self._by_bus[row.bus] = entry
+        self._scene = SceneUpdateChannel(SCENE_TOPIC, context=ctx)
+        self._speeds = foxglove.Channel(SPEEDS_TOPIC, schema=_SPEEDS_SCHEMA, context=ctx)
+        self._log = LogChannel(LOG_TOPIC, context=ctx)
+        self._scene_id, self._speeds_id, self._log_id = (
+            c.id() for c in (self._scene, self._speeds, self._log))
+        self._special = dict.fromkeys((self._scene_id, self._speeds_id, self._log_id), 0)
+        capabilities = [Capability.Services, Capability.Parameters]
+        if self.teleop_input is not None:
+            capabilities.append(Capability.ClientPublish)
+        internal = not is_loopback(self.params.host)  # behind the token relay, on loopback
+        try:
+            self.server = foxglove.start_server(
+                name=self.name, host="127.0.0.1" if internal else self.params.host,
+                port=0 if internal else self.params.port, capabilities=capabilities,
+                server_listener=_Listener(self), supported_encodings=["cdr", "json"],
+                services=self._services(), context=ctx)
+        except RuntimeError as err:
+            log.error("foxglove: cannot listen on %s:%d (%s); the Foxglove live view is off",
+                      self.params.host, self.params.port, err)
+            return False
+        if internal:
+            from racecar_hw.net.relay import TokenRelay
+
+            self.relay = TokenRelay(self.params.host, self.params.port, self.server.port, self.params.token)
+            try:
+                self.relay.start()
+            except OSError as err:
+                log.error("foxglove: cannot listen on %s:%d (%s); the Foxglove live view is off",
+                          self.params.host, self.params.port, err)
+                self.relay = None
+                self.server.stop()
+                self.server = None
+                return False
+        self.outbox.start()
+        for row in self.topics:
+            self._subs.append(self.bus.subscribe(row.bus, self._sender(self._by_bus[row.bus])))
+        self._log_handler = _LogHandler(self)
+        logging.getLogger().addHandler(self._log_handler)
+        log.info("foxglove: live view on ws://%s:%d (%d channels)", self.params.host, self.port,
+                 len(self._channels) + 3)
+        return True
+
+    def stop(self) -> None:
+        """Stop serving (safe to call twice)."""
+        if self._log_handler is not None:
+            logging.getLogger().removeHandler(self._log_handler)
+            self._log_handler = None
+        for sub in self._subs:
+            sub.close()
+        self._subs.clear()
+        if self.relay is not None:
+            self.relay.stop()
+            self.relay = None
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        self.outbox.stop()
+
+    def control_idle(self) -> None:
+        """The control path is idle until the next scan: let the sender run if due."""
+        self.outbox.control_idle()
+
+    # --- outgoing -------------------------------------------------------------------------------
+
+    def _sender(self, entry: _Channel) -> Callable[[Message], None]:
+        put, send = self.outbox.put, self._send
+
+        def on_message(msg: Message) -> None:
+            if entry.subscribers:
+                put(send, entry, msg, wall_ns())
+        return on_message
+
+    @staticmethod
+    def _send(entry: _Channel, msg: Message, t_ns: int) -> None:
+        entry.channel.log(ros2_types().serialize(msg), log_time=t_ns)
+
+    def on_output(self) -> None:
+        """A mux output went out: queue the safety scene and speeds when due and wanted."""
+        special = self._special
+        if not (special.get(self._scene_id) or special.get(self._speeds_id)):
+            return
+        now = monotonic_ns()
+        if now < self._next_scene_ns:
+            return
+        self._next_scene_ns = now + int(NS_PER_S / self.params.scene_rate_hz)
+        self.outbox.put(self._send_scene, self.control.live_state(), wall_ns())
+
+    def _send_scene(self, state: LiveState, t_ns: int) -> None:
+        if self._special[self._scene_id]:
+            self._scene.log(scene_update(state, self.control.shape, t_ns), log_time=t_ns)
+        if self._speeds is not None and self._special[self._speeds_id]:
+            self._speeds.log({
+                "commanded": state.commanded_mps, "output": state.output_mps,
+                "allowed": state.allowed_mps if math.isfinite(state.allowed_mps) else None,
+                "measured": state.measured_mps, "steering": state.steering_rad,
+                "state": state.safety_colour, "reason": state.safety_reason, "source": state.source,
+            }, log_time=t_ns)
+
+    def _send_log(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        if record.exc_info and record.exc_info[1] is not None:
+            text += f": {record.exc_info[1]!r}"
+        t_ns = int(record.created * NS_PER_S)
+        self._log.log(Log(timestamp=Timestamp(sec=t_ns // NS_PER_S, nsec=t_ns % NS_PER_S),
+                          level=_LEVELS.get(record.levelno, LogLevel.Unknown), message=text,
+                          name=record.name, file=record.pathname, line=record.lineno), log_time=t_ns)
+
+    @property
+    def log_wanted(self) -> bool:
+        return bool(self._special.get(self._log_id))
+
+    # --- from the SDK's threads -----------------------------------------------------------------
+
+    def subscribed(self, channel_id: int, delta: int) -> None:
+        entry = self._channels.get(channel_id)
+        if entry is None:
+            if channel_id in self._special:
+                self._special[channel_id] = max(0, self._special[channel_id] + delta)
+            return
+        entry.subscribers = max(0, entry.subscribers + delta)
+        if delta > 0 and entry.topic.qos.latched:
+            latest = self.bus.latest(entry.topic.bus)  # a dict read: safe from this thread
+            if latest is not None:
+                self.outbox.put(self._send, entry, latest, wall_ns())
+
+    def advertised(self, client_id: int, channel: Any) -> None:
+        if channel.topic != self.params.teleop_topic or self.teleop_input is None:
+            log.info("foxglove: client %d advertised %s (%s); only %s is taken", client_id, channel.topic,
+                     channel.schema_name, self.params.teleop_topic)
+            return
+        if channel.schema_name not in TWIST_TYPES or channel.encoding not in ("cdr", "json"):
+            log.warning("foxglove: %s must carry geometry_msgs/msg/Twist as cdr or json, not %s as %s",
+                        channel.topic, channel.schema_name, channel.encoding)
+            return
+        self._teleop_channels[(client_id, channel.id)] = channel.encoding
+        log.info("foxglove: client %d drives through the mux input on %s", client_id, self.teleop_input)
+
+    def unadvertised(self, client_id: int, channel_id: int) -> None:
+        self._last_twist_ns.pop((client_id, channel_id), None)
+        if self._teleop_channels.pop((client_id, channel_id), None) is not None and self._loop is not None:
+            self._loop.call_soon_threadsafe(self._drive, AckermannDrive())  # stop now, not at the timeout
+
+    def message(self, client_id: int, channel_id: int, data: bytes) -> None:
+        key = (client_id, channel_id)
+        encoding = self._teleop_channels.get(key)
+        if encoding is None or self._loop is None:
+            return
+        now = monotonic_ns()
+        if now - self._last_twist_ns.get(key, 0) < MIN_TWIST_INTERVAL_NS:
+            self.refused += 1
+            return
+        self._last_twist_ns[key] = now
+        try:
+            twist = decode_twist(data, encoding)
+        except Exception as err:  # noqa: BLE001 - a client's bad bytes: refused, counted, logged
+            self.refused += 1
+            if self.refused == 1 or self.refused % 100 == 0:
+                log.warning("foxglove: refused a Twist from client %d (%s; %d so far)", client_id, err,
+                            self.refused)
+            return
+        drive = twist_to_drive(twist, self.wheelbase_m, self.params.teleop_max_speed_mps,
+                               self.max_steering_rad)
+        self.twists += 1
+        self._loop.call_soon_threadsafe(self._drive, drive)
+
+    def _drive(self, drive: AckermannDrive) -> None:
+        if self.teleop_input is not None:
+            msg = AckermannDriveStamped(stamp_now("base_link", wall_ns()), drive)
+            self.bus.publish(self.teleop_input, msg)
+
+    def get_parameters(self, names: list[str]) -> list[Parameter]:
+        wanted = names or list(self.parameters)
+        return [Parameter(name, value=self.parameters[name]) for name in wanted if name in self.parameters]
+
+    # --- services -------------------------------------------------------------------------------
+
+    def _services(self) -> list[Service]:
+        actions: dict[str, tuple[str, Callable[[str], tuple[bool, str]]]] = {
+            "estop": ("latch the mux e-stop: the car brakes and stays braked until release",
+                      lambda who: (True, self.control.engage_estop(who))),
+            "release": ("release the latched e-stop", self.control.release_estop),
+            "arm": ("arm the car", self.control.arm),
+            "disarm": ("disarm the car: every source is stopped", self.control.disarm),
+        }
+        schema = ServiceSchema(
+            "std_srvs/srv/Trigger",
+            request=MessageSchema(encoding="cdr", schema=Schema(name="std_srvs/srv/Trigger_Request",
+                                                                 encoding="ros2msg", data=b"")),
+            response=MessageSchema(encoding="cdr", schema=Schema(
+                name="std_srvs/srv/Trigger_Response", encoding="ros2msg", data=_TRIGGER_RESPONSE.encode())))
+        return [Service(SERVICE_PREFIX + name, schema=schema, handler=self._handler(name, action))
+                for name, (_, action) in actions.items()]
+
+    def _handler(self, name: str,
+                 action: Callable[[str], tuple[bool, str]]) -> Callable[[ServiceRequest], bytes]:
+        def handle(request: ServiceRequest) -> bytes:
+            assert self._loop is not None
+            done: concurrent.futures.Future[tuple[bool, str]] = concurrent.futures.Future()
+            who = f"foxglove client {request.client_id}"
+
+            def run() -> None:
+                try:
+                    done.set_result(action(who))
+                except Exception as err:  # noqa: BLE001 - reported to the caller
+                    done.set_exception(err)
+
+            self._loop.call_soon_threadsafe(run)
+            success, message = done.result(SERVICE_TIMEOUT_S)
+            log.info("foxglove: %s%s from %s: %s", SERVICE_PREFIX, name, who, message)
+            if request.encoding == "json":
+                return json.dumps({"success": success, "message": message}).encode()
+            return trigger_response(success, message)
+        return handle
+
+
+def trigger_response(success: bool, message: str) -> bytes:
+    """``std_srvs/srv/Trigger_Response`` in CDR (little endian, with the encapsulation header)."""
+    text = message.encode()
+    return (b"\x00\x01\x00\x00" + bytes([1 if success else 0]) + b"\x00\x00\x00"
+            + (len(text) + 1).to_bytes(4, "little") + text + b"\x00")
+
+
+def decode_twist(data: bytes, encoding: str) -> Twist:
+    """A client's Twist (``cdr`` or ``json``); raises on anything that is not one."""
+    if encoding == "json":
+        obj = json.loads(data)
+        lin, ang = obj.get("linear", {}), obj.get("angular", {})
+        twist = Twist()
+        twist.linear.x, twist.angular.z = float(lin.get("x", 0.0)), float(ang.get("z", 0.0))
+        return twist
+    msg = ros2_types().deserialize(data, Twist)
+    assert isinstance(msg, Twist)
+    return msg
+
+
+#: Parameters whose value a client never sees (the web page's token, the relay's).
+SECRET_WORDS = ("token", "password", "secret")
+
+
+def flatten_parameters(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Dotted keys to parameter values: scalars as they are, anything else as JSON text, secrets hidden."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if any(word in str(key).lower() for word in SECRET_WORDS):
+            out[name] = "(set, hidden)" if value else ""
+        elif isinstance(value, dict):
+            out.update(flatten_parameters(value, name + "."))
+        elif isinstance(value, (bool, int, float, str)):
+            out[name] = value
+        elif isinstance(value, (list, tuple)) and value and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            out[name] = [float(v) for v in value]
+        else:
+            out[name] = json.dumps(value, default=str)
+    return out
+
+
+_LEVELS = {logging.DEBUG: LogLevel.Debug, logging.INFO: LogLevel.Info, logging.WARNING: LogLevel.Warning,
+           logging.ERROR: LogLevel.Error, logging.CRITICAL: LogLevel.Fatal}
+
+
+class _LogHandler(logging.Handler):
+    """Hands INFO-and-up records to the sender while a client subscribes to ``/log``."""
+
+    def __init__(self, server: FoxgloveServer) -> None:
+        super().__init__(logging.INFO)
+        self.server = server
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.server.log_wanted and not record.name.startswith("foxglove"):
+            self.server.outbox.put(self.server._send_log, record)
+
+
+class _Listener:
+    """The SDK's ServerListener: called from its threads, forwards to the server."""
+
+    def __init__(self, server: FoxgloveServer) -> None:
+        self.server = server
+        self._lock = threading.Lock()
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            self.server.subscribed(channel.id, +1)
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            self.server.subscribed(channel.id, -1)
+
+    def on_client_advertise(self, client: Any, channel: Any) -> None:
+        self.server.advertised(client.id, channel)
+
+    def on_client_unadvertise(self, client: Any, client_channel_id: int) -> None:
+        self.server.unadvertised(client.id, client_channel_id)
+
+    def on_message_data(self, client: Any, client_channel_id: int, data: bytes) -> None:
+        self.server.message(client.id, client_channel_id, data)
+
+    def on_get_parameters(self, client: Any, param_names: list[str],
+                          request_id: str | None = None) -> list[Parameter]:
+        return self.server.get_parameters(param_names)
+
+    def on_set_parameters(self, client: Any, parameters: list[Parameter],
+                          request_id: str | None = None) -> list[Parameter]:
+        log.warning("foxglove: client %d tried to set parameters; they are read-only (edit the config "
+                    "file and restart)", client.id)
+        return self.server.get_parameters([p.name for p in parameters])
