@@ -108,6 +108,7 @@ def run(seconds: float = 20.0, recorder: bool = True) -> list[dict]:
             "arming": {"start_armed": True},
             "gamepad": {"enabled": False},
             "status": {"enabled": False},
+            "zenoh": {"enabled": False},
         }
         cfg = Path(tmp) / "bench.yaml"
         cfg.write_text(yaml.safe_dump(config))
