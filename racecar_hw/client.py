@@ -160,14 +160,15 @@ class Car:
     ``client`` (through what it connects to) or ``peer``; ``namespace`` and ``domain_id`` as the
     daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile``: the
     daemon's topic profile; ``input``: the mux input :meth:`drive` commands by default;
-    ``user``/``password`` when the daemon requires them.
+    ``user``/``password`` when the daemon requires them; ``session``: an open Zenoh session to share
+    (another :class:`Car`'s, to reach several cars through one session; it is not closed here).
     """
 
     def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
                  domain_id: int | None = None, mode: str = "client", profile: str = "racecar",
                  input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
                  node_name: str = "", mux: MuxParams | None = None,
-                 safety: SafetyParams | None = None) -> None:
+                 safety: SafetyParams | None = None, session: Any = None) -> None:
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
 
         self.endpoints = [connect] if isinstance(connect, str) else list(connect)
@@ -182,8 +183,10 @@ class Car:
         self.input_topic(input)  # refuse an unknown input now
         safety = safety if safety is not None else SafetyParams()
         auth = ZenohAuthParams(user=user, password=password)
+        self._own_session = session is None
         try:
-            self.session = zenoh.open(session_config(mode, [], self.endpoints, auth=auth))
+            self.session = session if session is not None else zenoh.open(
+                session_config(mode, [], self.endpoints, auth=auth))
         except zenoh.ZError as err:
             raise ClientError(f"cannot connect to {', '.join(self.endpoints)} ({mode} mode): {err}") from None
         self.zid = str(self.session.zid())
@@ -354,8 +357,9 @@ class Car:
         for entity in (*self._tokens, *self._subs, *(p for p, _, _ in self._pubs.values())):
             with contextlib.suppress(Exception):
                 entity.undeclare()
-        with contextlib.suppress(Exception):
-            self.session.close()
+        if self._own_session:
+            with contextlib.suppress(Exception):
+                self.session.close()
 
     def __enter__(self) -> Car:
         return self
