@@ -1,0 +1,135 @@
+"""The Zenoh bridge at nominal load: what it adds to the scan path and the CPU, and a remote round trip.
+
+Four runs of the nominal-load daemon of ``bench_daemon.py`` (UST-10LX at 40 Hz, VESC at 50 Hz,
+figure-8 source, safety, recorder), one after the other in this one invocation:
+
+(a) the bridge off; on with no subscriber; on with three subscribers, each a Zenoh session in a
+    separate process subscribed to every topic the car publishes (``<domain>/**``): the daemon's
+    own scan-to-VESC-command p50/p99 and its CPU share, side by side (c);
+(b) the external round trip: a ``racecar_hw.client`` in another process answers every scan with a
+    drive command on nav_0 (steering alternating +-0.03 rad, so each answer changes the servo
+    position); the time from the fake lidar handing a scan frame to its socket until the fake
+    VESC reads the servo position that answers it. Scans whose answer came after the next scan
+    was sent (the client skipped one) are not counted.
+
+``python benchmarks/bench_zenoh.py [SECONDS]``; ``run()`` returns the rows for run_all.py.
+"""
+
+from __future__ import annotations
+
+import socket
+import sys
+
+import numpy as np
+from bench_daemon import run as run_daemon
+from table import print_rows
+
+from vesc.codec import SetServoPosition
+
+SUBSCRIBERS = '''
+import sys, time, zenoh
+from racecar_hw.net.zenoh_config import session_config
+port, n = sys.argv[1], int(sys.argv[2])
+received = [0]
+def take(sample):
+    sample.payload.to_bytes()
+    received[0] += 1
+sessions = [zenoh.open(session_config("client", [], [f"tcp/127.0.0.1:{port}"])) for _ in range(n)]
+subs = [s.declare_subscriber("0/**", take) for s in sessions]
+while True:
+    time.sleep(1)
+'''
+
+CLIENT = '''
+import sys
+from racecar_hw.client import Car
+# --drives: answer every scan with a command, the steering alternating so each answer shows
+car = Car(f"tcp/127.0.0.1:{sys.argv[1]}")
+sign = 1.0
+for scan in car.scans(timeout=30):
+    sign = -sign
+    car.drive(0.3, 0.03 * sign)
+'''
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _percentiles(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return float("nan"), float("nan")
+    return float(np.percentile(values, 50)), float(np.percentile(values, 99))
+
+
+def _round_trip(sent: np.ndarray, commands: list) -> list[dict]:
+    """Frame sent -> first later servo command whose position differs from the one before it."""
+    servo = [(c.t_ns, c.packet.position) for c in commands if isinstance(c.packet, SetServoPosition)]
+    times = np.array([t for t, _ in servo], dtype=np.int64)
+    latencies = []
+    for i, t_sent in enumerate(sent[:-1]):
+        j = int(np.searchsorted(times, t_sent, side="right"))
+        if j == 0:
+            continue
+        before = servo[j - 1][1]
+        for t, position in servo[j:]:
+            if t >= sent[i + 1]:
+                break
+            if abs(position - before) > 0.01:
+                latencies.append((t - t_sent) / 1e6)
+                break
+    p50, p99 = _percentiles(latencies)
+    return [
+        {"name": "(b) remote round trip: scan frame out -> client's command at the VESC, p50",
+         "value": p50, "unit": "ms", "target": None},
+        {"name": "(b) remote round trip, p99", "value": p99, "unit": "ms", "target": 2.0},
+        {"name": "(b) scans answered and matched", "value": len(latencies), "unit": "scans", "target": None},
+    ]
+
+
+def _pick(rows: list[dict], name: str) -> float:
+    return next(r["value"] for r in rows if r["name"] == name)
+
+
+def run(seconds: float = 20.0) -> list[dict]:
+    py = sys.executable
+    off = run_daemon(seconds)
+    port = _free_port()
+    quiet = run_daemon(seconds, zenoh_port=port)
+    port = _free_port()
+    three = run_daemon(seconds, zenoh_port=port, helpers=[[py, "-c", SUBSCRIBERS, str(port), "3"]])
+    port = _free_port()
+    trip = run_daemon(seconds, zenoh_port=port, helpers=[[py, "-c", CLIENT, str(port), "--drives"]],
+                      on_results=_round_trip)
+    rows = []
+    p50, p99, cpu = ("scan to VESC command p50 (in daemon)", "scan to VESC command p99 (in daemon)",
+                     "daemon CPU share of one core")
+    for label, result in (("off", off), ("on, no subscriber", quiet), ("on, 3 subscribers", three)):
+        rows.append({"name": f"(a) bridge {label}: scan to VESC command p50", "value": _pick(result, p50),
+                     "unit": "ms", "target": None})
+        rows.append({"name": f"(a) bridge {label}: scan to VESC command p99", "value": _pick(result, p99),
+                     "unit": "ms", "target": 2.0})
+        rows.append({"name": f"(c) bridge {label}: daemon CPU share", "value": _pick(result, cpu),
+                     "unit": "%", "target": 10.0})
+    rows.append({"name": "(a) p99 added by the bridge with 3 subscribers",
+                 "value": _pick(three, p99) - _pick(off, p99), "unit": "ms", "target": 0.05})
+    rows.append({"name": "(c) CPU added by the bridge with 3 subscribers",
+                 "value": _pick(three, cpu) - _pick(off, cpu), "unit": "% of a core", "target": None})
+    rows.extend(r for r in trip if r["name"].startswith("(b)"))
+    rows.append({"name": "(b) daemon CPU share with the remote client driving", "value": _pick(trip, cpu),
+                 "unit": "%", "target": None})
+    steal = "host: CPU time stolen by the hypervisor"
+    rows.append({"name": "host steal, the four runs (max)", "unit": "% of busy",
+                 "value": max(_pick(r, steal) for r in (off, quiet, three, trip)), "target": None})
+    return rows
+
+
+def main() -> None:
+    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
+    print_rows(run(seconds))
+
+
+if __name__ == "__main__":
+    main()
