@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import async_wait_for
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from zenoh_util import endpoint, free_port
 
 from mux.params import MuxParams
@@ -273,3 +275,36 @@ def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command()
     callbacks = asyncio.run(run())
     bridge_at = next(i for i, c in enumerate(callbacks) if c.__qualname__.startswith("ZenohBridge"))
     assert callbacks.index(daemon._on_scan) < bridge_at
+
+
+class _Bytes:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    def __init__(self, payload: bytes, attachment: bytes | None) -> None:
+        self.payload = _Bytes(payload)
+        self.attachment = None if attachment is None else _Bytes(attachment)
+
+
+@given(payload=st.one_of(st.binary(max_size=120), st.just(ros2_types().serialize(Bool(True))),
+                        st.just(ros2_types().serialize(Twist(Vector3(x=math.inf))))),
+       attachment=st.one_of(st.none(), st.binary(max_size=40)),
+       topic=st.sampled_from([NAV0, "/estop", "/cmd_vel"]))
+@settings(max_examples=300, deadline=None)
+def test_any_bytes_from_the_network_are_counted_never_raised(payload, attachment, topic):
+    if attachment is not None and len(attachment) == 33:
+        attachment = attachment[:16] + b"\x10" + attachment[17:]  # often well-formed
+    rows = {r.bus: r for r in topic_table(MuxParams(), SafetyParams(), cmd_vel_topic="/cmd_vel")}
+    bridge = ZenohBridge(Bus(), ZenohParams(), list(rows.values()))
+    bridge._loop = loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    try:
+        bridge._receiver(rows[topic])(_Sample(payload, attachment))
+    finally:
+        loop.close()
+    s = bridge.stats
+    assert s.no_attachment + s.malformed + s.non_finite + s.received == 1
