@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import socket
 import sys
+import time
 
 import numpy as np
 from bench_daemon import run as run_daemon
@@ -94,6 +95,34 @@ def _round_trip(sent: np.ndarray, commands: list) -> list[dict]:
     ]
 
 
+def _callback_cost(n: int = 20000) -> list[dict]:
+    """The bridge's own work on the scan path, per scan: its bus callback (after the motor write)."""
+    from mux.params import MuxParams
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.base.messages import LaserScan
+    from racecar_hw.net.topics import topic_table
+    from racecar_hw.net.zenoh_bridge import ZenohBridge, _Out
+    from racecar_hw.net.zenoh_config import ZenohParams
+    from safety.params import SafetyParams
+
+    rows = topic_table(MuxParams(), SafetyParams())
+    bridge = ZenohBridge(Bus(), ZenohParams(), rows)
+    out = _Out(rows[0], None, bytes(16), latched=False)
+    enqueue = bridge._enqueuer(out)
+    scan = LaserScan()
+    result = []
+    for matching in (False, True):
+        out.matching = matching
+        start = time.perf_counter()
+        for _ in range(n):
+            enqueue(scan)
+        cost = (time.perf_counter() - start) / n * 1e6
+        who = "a subscriber listens" if matching else "nobody listens"
+        result.append({"name": f"(a) the bridge's callback per scan, {who}", "value": cost, "unit": "us",
+                       "target": None})
+    return result
+
+
 def _pick(rows: list[dict], name: str) -> float:
     return next(r["value"] for r in rows if r["name"] == name)
 
@@ -129,6 +158,7 @@ def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
                      "value": medians[label, cpu_p99] - medians["off", cpu_p99]})
         rows.append({"name": f"(c) CPU added, bridge {label}", "unit": "% of a core", "target": None,
                      "value": medians[label, cpu] - medians["off", cpu]})
+    rows.extend(_callback_cost())
     rows.extend(r for r in trip if r["name"].startswith("(b)"))
     rows.append({"name": "(b) daemon CPU share with the remote client driving", "value": _pick(trip, cpu),
                  "unit": "%", "target": None})

@@ -310,7 +310,7 @@ class Car:
             entry = self._pubs.get(topic)
             if entry is None:
                 entity = self._entity(rmw.PUBLISHER, topic, type(msg), DEFAULT)
-                publisher = self.session.declare_publisher(self._key(topic, type(msg)), express=True)
+                publisher = self.session.declare_publisher(self._key(topic, type(msg)))
                 self._tokens.append(self.session.liveliness().declare_token(entity.token()))
                 entry = self._pubs[topic] = (publisher, entity.gid(), [0])
             publisher, gid, sequence = entry

@@ -168,7 +168,7 @@ class ZenohBridge:
 
     def _declare_out(self, row: Topic, zenoh: Any) -> None:
         reliable = row.qos.reliability is Reliability.RELIABLE
-        options = dict(congestion_control=zenoh.CongestionControl.DROP, express=True,
+        options = dict(congestion_control=zenoh.CongestionControl.DROP,
                        reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT)
         entity = self._entity(rmw.PUBLISHER, row)
         key = self.key(row)
