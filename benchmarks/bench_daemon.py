@@ -87,11 +87,19 @@ def _peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | None = None,
+def run(seconds: float = 20.0, recorder: bool = True, zenoh_port: int | None = None,
+        helpers: list[list[str]] | None = None, on_results: object = None, *,
+        config_extra: dict | None = None,
         attach: Callable[[Path], AbstractContextManager[object]] | None = None) -> list[dict]:
-    """Measure the daemon at nominal load; ``config_extra`` sections are merged into its config, and
-    ``attach(log_path)`` (once the daemon runs) returns a context kept open while measuring: clients of
-    the live interfaces, for bench_live.py."""
+    """The rows for one run. ``zenoh_port``: the Zenoh bridge on, listening there (None: off).
+
+    ``helpers``: commands started once the daemon runs and stopped after the measurement (Zenoh
+    subscribers, a remote client); ``on_results(sent_ns, commands)``, if given, is called with the
+    fake lidar's frame send times and the fake VESC's commands, and returns extra rows.
+    ``config_extra`` sections are merged into the daemon's config, and ``attach(log_path)`` (once the
+    daemon runs) returns a context kept open while measuring: clients of the live interfaces, for
+    bench_live.py.
+    """
     # Each fake in its own thread, and a short GIL switch interval, so that the fake VESC reads a
     # command when it arrives rather than after the fake lidar has encoded its next frame.
     sys.setswitchinterval(0.0002)
@@ -117,7 +125,11 @@ def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | No
             # the shipped defaults (on, loopback) on free ports: no clients, so they send nothing
             "foxglove": {"port": 0},
             "web": {"port": 0},
+            "zenoh": ({"enabled": True, "listen": [f"tcp/127.0.0.1:{zenoh_port}"]}
+                      if zenoh_port else {"enabled": False}),
         }
+        if helpers and any("--drives" in h for h in helpers):
+            config["figure8"] = {"enabled": False}  # the remote client drives nav_0
         for section, values in (config_extra or {}).items():
             config.setdefault(section, {}).update(values)
         cfg = Path(tmp) / "bench.yaml"
@@ -129,6 +141,7 @@ def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | No
         log_file = log_path.open("w")
         proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, text=True)
         clients = ExitStack()
+        others: list[subprocess.Popen] = []
         try:
             deadline = time.monotonic() + 20
             while lidar.clients == 0 or len(vesc.commands) < 50:
@@ -137,7 +150,8 @@ def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | No
                 time.sleep(0.05)
             if attach is not None:
                 clients.enter_context(attach(log_path))
-            time.sleep(2.0)  # warm up: caches, first bag chunk
+            others = [subprocess.Popen(h, stdout=subprocess.DEVNULL) for h in helpers or []]
+            time.sleep(4.0 if others else 2.0)  # warm up: caches, first bag chunk, helpers connected
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
             threads0 = _thread_cpu_s(proc.pid)
@@ -151,10 +165,17 @@ def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | No
             threads1 = _thread_cpu_s(proc.pid)
             rss = _peak_rss_mb(proc.pid)
             sent = np.array(lidar.frames_sent_ns, dtype=np.int64)
-            motor = np.array([c.t_ns for c in vesc.commands
+            commands = list(vesc.commands)
+            motor = np.array([c.t_ns for c in commands
                               if isinstance(c.packet, (SetRpm, SetCurrentBrake, SetCurrent))], dtype=np.int64)
         finally:
             clients.close()
+            for other in others:
+                other.terminate()
+                try:
+                    other.wait(10)
+                except subprocess.TimeoutExpired:
+                    other.kill()
             proc.terminate()
             try:
                 proc.wait(15)
@@ -175,7 +196,8 @@ def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | No
             share = 100.0 * (cpu - threads0.get(name, 0.0)) / (t1 - t0)
             print(f"thread {name}: {share:.2f} % of a core", file=sys.stderr)
     scans = len(sent)
-    return [
+    extra = on_results(sent, commands) if callable(on_results) else []
+    rows = [
         {"name": "daemon CPU share of one core", "value": 100.0 * (cpu1 - cpu0) / (t1 - t0),
          "unit": "%", "target": CPU_TARGET},
         {"name": "daemon peak RSS", "value": rss, "unit": "MB", "target": RSS_TARGET},
@@ -198,6 +220,7 @@ def run(seconds: float = 20.0, recorder: bool = True, *, config_extra: dict | No
         {"name": "host: CPU time stolen by the hypervisor", "unit": "% of busy",
          "value": 100.0 * (host1[1] - host0[1]) / max(1, host1[0] - host0[0]), "target": None},
     ]
+    return rows + list(extra)
 
 
 def _summary(log: str) -> dict[str, float]:

@@ -76,6 +76,14 @@ class RateLimiter:
         return AckermannDrive(steering, drive.steering_angle_velocity, speed, drive.acceleration,
                               drive.jerk)
 
+    def preview(self, drive: AckermannDrive, periods: int = 1) -> AckermannDrive:
+        """What :meth:`limit` would return, without taking the step (the state is unchanged)."""
+        speed, steering = self.speed, self.steering_angle
+        try:
+            return self.limit(drive, periods)
+        finally:
+            self.speed, self.steering_angle = speed, steering
+
     def _speed_toward(self, target: float, dt: float) -> float:
         v = self.speed
         if v == target:

@@ -279,14 +279,33 @@ class CommandMux:
         when the run loop skipped deadlines); the limiter advances by that many fixed periods.
         """
         now = self._clock() if now_ns is None else now_ns
+        return self._output(now, self.arbitrate(now), filters, periods, commit=True)
+
+    def step_early(self, source: str, now_ns: int | None = None,
+                   filters: Sequence[Filter] = ()) -> AckermannDriveStamped | None:
+        """Publish now what the next tick would publish, if ``source`` wins arbitration; else None.
+
+        For a command that just arrived from a remote client: it reaches the output (and the VESC)
+        without waiting up to a period for the tick. The limiter previews its next step without
+        taking it, so the next tick takes the same step and the limits hold; the output is at most
+        one step ahead of the limiter, as if that tick had come early.
+        """
+        now = self._clock() if now_ns is None else now_ns
         arb = self.arbitrate(now)
+        if arb.source != source or self.machine.state is not MuxState.RUNNING:
+            return None
+        return self._output(now, arb, filters, 1, commit=False)
+
+    def _output(self, now: int, arb: Arbitration, filters: Sequence[Filter], periods: int,
+                commit: bool) -> AckermannDriveStamped:
         out: AckermannDrive | None = None
         if self.machine.state is not MuxState.FAULT:
             try:
                 drive = arb.drive
                 for f in filters:
                     drive = f(drive, arb.source, now)
-                out = self.limiter.limit(drive, periods)
+                limit = self.limiter.limit if commit else self.limiter.preview
+                out = limit(drive, periods)
             except Exception as err:
                 self._fail("output filter or limiter", err)
         if out is None or self.machine.state is MuxState.FAULT:

@@ -25,6 +25,7 @@ COMMANDS: tuple[str, ...] = (
     "follow",
     "vesc",
     "lidar",
+    "topic",
 )
 
 

@@ -29,6 +29,8 @@ from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.foxglove_server import FoxgloveParams
 from racecar_hw.net.web import WebParams
+from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
+from racecar_hw.net.zenoh_config import ZenohParams
 from racecar_hw.sources.figure8 import Figure8Params
 from racecar_hw.sources.scan_summary import ScanSummaryParams
 from racecar_hw.sources.setpoint import SetpointParams
@@ -118,6 +120,7 @@ class Config:
     keyboard: KeyboardSection = field(default_factory=KeyboardSection)  # type: ignore[valid-type]
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     status: StatusSection = field(default_factory=StatusSection)
+    zenoh: ZenohParams = field(default_factory=ZenohParams)
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
@@ -130,7 +133,7 @@ _SECTIONS: dict[str, type] = {
     "follower": FollowerSection, "recorder": RecorderParams, "arming": ArmingParams,
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
     "status": StatusSection, "watchdog": WatchdogSection,
-    "foxglove": FoxgloveParams, "web": WebParams,
+    "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams,
 }
 
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
@@ -162,7 +165,11 @@ def build_config(data: dict[str, Any]) -> Config:
         if all(existing.topic != lock.topic for existing in config.mux.locks):
             config.mux.locks.append(lock)
     _add_foxglove_input(config)
+    _add_cmd_vel_input(config)
     config.mux.validate("mux")
+    if config.zenoh.enabled:
+        config.zenoh.validate("zenoh")
+        network_topics(config)
     _check_scan_timing(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
@@ -175,6 +182,34 @@ def _add_foxglove_input(config: Config) -> None:
     if fox.enabled and fox.teleop and all(i.name != FOXGLOVE_INPUT for i in config.mux.inputs):
         config.mux.inputs.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
                                              fox.teleop_timeout_s))
+
+
+#: The bus topic of the mux input that ROS 2 velocity commands (/cmd_vel) drive.
+CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
+
+
+def _add_cmd_vel_input(config: Config) -> None:
+    """With Zenoh's /cmd_vel on, the mux gets the input ``cmd_vel`` (priority 18) unless it has one."""
+    z = config.zenoh
+    if z.enabled and z.cmd_vel and all(i.name != CMD_VEL_INPUT for i in config.mux.inputs):
+        config.mux.inputs.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, 0.2))
+
+
+def cmd_vel_input_topic(config: Config) -> str | None:
+    """The bus topic of the mux input ``cmd_vel``, or None when there is none."""
+    return next((i.topic for i in config.mux.inputs if i.name == CMD_VEL_INPUT), None)
+
+
+def network_topics(config: Config) -> list[Topic]:
+    """The topic table the network interfaces offer, named by ``zenoh.profile`` and ``zenoh.remap``."""
+    z = config.zenoh
+    summary = config.scan_summary
+    rows = topic_table(
+        config.mux, config.safety, scan_topic=config.lidar.topic,
+        scan_range_topic=summary.scan_range_topic if summary.enabled else None,
+        open_space_topic=summary.open_space_topic if summary.enabled else None,
+        cmd_vel_topic=z.cmd_vel_topic if z.cmd_vel and cmd_vel_input_topic(config) else None)
+    return named(rows, config.mux, z.profile, z.remap, "zenoh")
 
 
 #: An RPLIDAR's sweep period (s): about 10 Hz revolutions (A1 5.5 Hz at the slowest).

@@ -40,14 +40,16 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import FOXGLOVE_INPUT, Config
+from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
-from racecar_hw.net.topics import Topic, topic_table
+from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
+from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
+from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
 from racecar_hw.sources.figure8 import Figure8Driver
 from racecar_hw.sources.scan_summary import ScanSummaryPublisher
 from racecar_hw.sources.setpoint import SetpointRelay
@@ -148,6 +150,7 @@ class Daemon:
         # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
         # this one writes the motor command, and diagnostics subscribed in run() come after it.
         self.bus.subscribe(config.safety.scan_topic, self._on_scan)
+        self._build_network(config)
 
     # --- wiring ---------------------------------------------------------------------------------
 
@@ -159,6 +162,32 @@ class Daemon:
             raise ConfigError("static_transforms", f"no transform from base_link to the lidar frame "
                                                    f"{frame!r}: the safety controller needs one")
         return None
+
+    def _build_network(self, config: Config) -> None:
+        """The Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
+
+        Built after the scan path's subscriptions, so a scan reaches the bridge's queue only after
+        its motor command is written.
+        """
+        self.zenoh: ZenohBridge | None = None
+        self.cmd_vel: CmdVelConverter | None = None
+        z = config.zenoh
+        if not z.enabled:
+            return
+        self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
+        twist_input = cmd_vel_input_topic(config)
+        if z.cmd_vel and twist_input:
+            self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
+                z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
+            self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
+        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input)
+
+    def _on_remote_input(self, topic: str) -> None:
+        """A command from a remote client is on the bus: if its input wins, send it at once."""
+        name = self._remote_inputs.get(topic)
+        now = monotonic_ns()
+        if name is not None and self._control_alive(now):
+            self.mux.step_early(name, now, self.filters)
 
     def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
@@ -284,12 +313,9 @@ class Daemon:
                    else (safety.laser.x_m, safety.laser.y_m, safety.laser.yaw_rad)))
         #: e-stops asked for through the live interfaces: (monotonic ns, who), for reports
         self.estop_requests: deque[tuple[int, str]] = deque(maxlen=1000)
-        summary = config.scan_summary
-        #: the topics the live interfaces serve; the simulator adds its own before run()
-        self.live_topics: list[Topic] = topic_table(
-            config.mux, safety, scan_topic=config.lidar.topic,
-            scan_range_topic=summary.scan_range_topic if summary.enabled else None,
-            open_space_topic=summary.open_space_topic if summary.enabled else None)
+        #: the topics the live interfaces (Foxglove, Zenoh) serve, named by ``zenoh.profile`` and
+        #: ``zenoh.remap``; the simulator adds its own before run()
+        self.live_topics: list[Topic] = network_topics(config)
         teleop = next((i.topic for i in config.mux.inputs if i.name == FOXGLOVE_INPUT), None)
         self.foxglove = (FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
                                         parameters=to_dict(config), teleop_input=teleop,
@@ -377,7 +403,10 @@ class Daemon:
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
-        self.bus.bind_loop(asyncio.get_running_loop())
+        loop = asyncio.get_running_loop()
+        self.bus.bind_loop(loop)
+        if self.zenoh is not None:
+            await loop.run_in_executor(None, self.zenoh.open, loop)
         self._publish_static_transforms()
         if self.recorder is not None:
             self.recorder.start()
@@ -461,6 +490,11 @@ class Daemon:
             self.setpoint.close()
         if self.mavlink is not None:
             self.mavlink.close()
+        if self.zenoh is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)
+        if self.cmd_vel is not None:
+            self.cmd_vel.close()
         self.safety.close()
         self.mux.close()
         self.notifier.close()

@@ -14,6 +14,10 @@ from racecar_hw.runtime.devicethread import DeviceThread
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 BAGS = SHARED / "fixtures" / "bags"
 
+#: Tests whose subject is not the network keep the daemon's Zenoh bridge off: its default listen
+#: port (7447) is shared by every process on this machine, and a test never binds a fixed port.
+NO_ZENOH = "zenoh.enabled=false"
+
 
 @pytest.fixture
 def bag_fixtures() -> Path:

@@ -52,7 +52,7 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     config = {
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
-        "status": {"enabled": False},
+        "status": {"enabled": False}, "zenoh": {"enabled": False},
         "recorder": {"enabled": True, "path": str(tmp_path / "bags"), "name": "drive",
                      "format": "mcap"},
     }
@@ -170,6 +170,7 @@ def test_follow_command_drives_the_vesc_and_exits_when_the_bag_ends(fakes, tmp_p
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
         "arming": {"start_armed": True}, "gamepad": {"enabled": False}, "status": {"enabled": False},
+        "zenoh": {"enabled": False},
     }))
     proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--config", str(cfg)],
                           capture_output=True, text=True, timeout=60)

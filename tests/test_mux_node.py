@@ -403,3 +403,24 @@ def test_node_that_falls_behind_skips_deadlines():
         assert after[-1] - after[0] > nanoseconds(0.04)
 
     asyncio.run(scenario())
+
+
+def test_an_early_step_sends_the_next_ticks_output_now_without_taking_the_limiters_step():
+    bus, mux, clock = _mux()
+    outputs: list[AckermannDriveStamped] = []
+    bus.subscribe(OUTPUT, outputs.append)
+    mux.step()
+    bus.publish(NAV0, _cmd(2.0, 0.2))
+    early = mux.step_early("nav_0")
+    assert early is outputs[-1] and early is mux.last_output
+    assert early.drive.speed == pytest.approx(2.5 / 50)            # one limiter step, not more
+    assert mux.limiter.speed == 0.0                                 # the step is not taken yet
+    again = mux.step_early("nav_0")                                 # a second early step: the same
+    assert again.drive.speed == pytest.approx(2.5 / 50)
+    clock.advance(0.02)
+    tick = mux.step()
+    assert tick.drive.speed == pytest.approx(2.5 / 50) and mux.limiter.speed == pytest.approx(2.5 / 50)
+    bus.publish(TELEOP, _cmd(1.0))
+    assert mux.step_early("nav_0") is None                          # nav_0 no longer wins
+    mux.engage_estop("test")
+    assert mux.step_early("teleop") is None                         # never while e-stopped

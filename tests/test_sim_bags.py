@@ -10,6 +10,8 @@ import asyncio
 import json
 import math
 
+from conftest import NO_ZENOH
+
 from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.scenario import load_scenario
 
@@ -25,7 +27,7 @@ TOLERATE_STALLS = "safety.scan_timeout_s=0.5"
 
 def _run(scenario_overrides: list[str], overrides: list[str] = ()) -> dict:
     scenario = load_scenario("figure8", scenario_overrides)
-    loopback = Loopback(scenario, overrides=[TOLERATE_STALLS, *overrides])
+    loopback = Loopback(scenario, overrides=[TOLERATE_STALLS, NO_ZENOH, *overrides])
     report = asyncio.run(loopback.run()).report
     print(json.dumps({k: report.get(k) for k in ("final_pose", "distance_m", "collided",
                                                   "safety_interventions_by_reason", "control")}))

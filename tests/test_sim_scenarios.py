@@ -15,6 +15,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import NO_ZENOH
 
 from racecar_hw.sim.loopback import Loopback, SimResult
 from racecar_hw.sim.scenario import load_scenario, scenario_names
@@ -23,7 +24,7 @@ from racecar_hw.sim.trajectory import read_csv
 
 def run(name: str, tmp_path, *overrides: str, duration_s: float | None = None) -> SimResult:
     scenario = load_scenario(name, list(overrides))
-    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s)
+    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s, overrides=[NO_ZENOH])
     result = asyncio.run(loopback.run())
     # shown with a failure: interventions by reason and missed control ticks tell a loaded
     # machine's hold-ups (stale_scan, missed ticks) from a wrong outcome
@@ -88,7 +89,8 @@ def test_a_scans_motor_command_is_written_before_its_summaries_are_made(tmp_path
         daemon.bus.subscribe("/scan_range", lambda msg: written_first.append(
             vesc.last_motor_write_ns >= lidar.frame_arrival_ns))
 
-    loopback = Loopback(load_scenario("wall", []), out_dir=tmp_path, duration_s=1.5, setup=setup)
+    loopback = Loopback(load_scenario("wall", []), out_dir=tmp_path, duration_s=1.5, setup=setup,
+                        overrides=[NO_ZENOH])
     asyncio.run(loopback.run())
     assert loopback.daemon is not None
     timed = len(loopback.daemon.stats.scan_to_command_ns)  # scans whose command the scan path wrote
@@ -111,7 +113,7 @@ def test_wall_head_on_never_touched_and_stopped_close(tmp_path, speed):
 def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     scenario = load_scenario("wall", ["lidar.model=a1", "lidar.transport=pty"])
     loopback = Loopback(scenario, out_dir=tmp_path,
-                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1"])
+                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", NO_ZENOH])
     r = asyncio.run(loopback.run()).report
     assert r["lidar"]["model"] == "a1" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # ~10 Hz revolutions
     assert not r["collided"], r["collisions"]
@@ -182,7 +184,7 @@ def test_cli_sim_writes_report_csv_and_plot(tmp_path):
     report = tmp_path / "out" / "report.json"
     proc = subprocess.run(
         [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall", "--duration", "3",
-         "--no-status", "--report", str(report)],
+         "--no-status", "--set", NO_ZENOH, "--report", str(report)],
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     data = json.loads(report.read_text())

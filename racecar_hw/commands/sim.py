@@ -70,10 +70,20 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 async def _run(loopback: Loopback):  # noqa: ANN202
+    """Run the scenario; the first Ctrl-C (or SIGTERM) ends it early with its report, a second aborts."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
+    signals = [0]
+
+    def on_signal() -> None:
+        signals[0] += 1
+        if signals[0] == 1:
+            loopback.request_stop()
+        else:
+            task.cancel()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, task.cancel)
+        loop.add_signal_handler(sig, on_signal)
     try:
         return await task
     finally:

@@ -6,17 +6,23 @@ each row says what a bus topic is to the outside world. ``OUT`` rows go from the
 e-stop and its release). Payloads are serialized by :mod:`racecar_hw.rosmsg`, the serializer the
 recorder uses, so a live message and a recorded one are the same bytes.
 
-The ROS name of a row is its bus topic unless a profile or remap changes it (see the bridge); QoS
-follows the drivers the daemon replaces: the sensor-data profile for ``/scan`` (best effort, depth
-5), transient local depth 1 for ``/tf_static`` (late joiners get it), reliable depth 10 otherwise.
+The ROS name of a row is its bus topic unless a profile or remap changes it (:func:`named`):
+``racecar`` keeps the MIT/MuSHR ROS 1 names of the bus, ``f1tenth`` offers the F1TENTH ROS 2 names
+(autonomy on ``/drive``, the joystick on ``/teleop``, ``/sensors/core``, ...). QoS follows the
+drivers the daemon replaces: the sensor-data profile for ``/scan`` (best effort,
+depth 5), transient local depth 1 for ``/tf_static`` (late joiners get it), reliable depth 10
+otherwise.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from mux.params import MuxParams
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import (
     AckermannDriveStamped,
     Bool,
@@ -29,6 +35,7 @@ from racecar_hw.base.messages import (
     ScanRange,
     String,
     TFMessage,
+    Twist,
     VescStateStamped,
 )
 from safety.params import SafetyParams
@@ -98,11 +105,13 @@ class Topic:
 
 def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/scan",
                 scan_range_topic: str | None = "/scan_range",
-                open_space_topic: str | None = "/open_space") -> list[Topic]:
+                open_space_topic: str | None = "/open_space",
+                cmd_vel_topic: str | None = None) -> list[Topic]:
     """The default rows for a daemon with these mux and safety parameters.
 
     ``scan_topic`` is the lidar's topic; the scan summary topics are left out when ``None`` (their
-    publisher is off).
+    publisher is off). ``cmd_vel_topic`` adds an ``IN`` row of geometry_msgs/Twist (Nav2's velocity
+    commands), which :mod:`racecar_hw.sources.cmd_vel` turns into the mux input ``cmd_vel``.
     """
     out = Direction.OUT
     rows = [
@@ -129,4 +138,58 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
         rows.append(Topic(lock.topic, Bool, into, DEFAULT, f"mux lock {lock.name}"))
     rows.append(Topic(mux.estop_topic, Bool, into, DEFAULT, "e-stop: true engages (latched)"))
     rows.append(Topic(mux.estop_release_topic, Bool, into, DEFAULT, "e-stop release: true releases"))
+    if cmd_vel_topic:
+        rows.append(Topic(cmd_vel_topic, Twist, into, DEFAULT,
+                          "velocity commands (Nav2), into mux input cmd_vel"))
     return rows
+
+
+#: The mux input the /cmd_vel converter drives, and its priority (between nav_0 and nav_1).
+CMD_VEL_INPUT = "cmd_vel"
+CMD_VEL_PRIORITY = 18
+
+#: F1TENTH's ROS 2 names (f1tenth_system): by mux input name, or by bus topic.
+F1TENTH_INPUTS = {"nav_0": "/drive", "teleop": "/teleop"}
+F1TENTH_TOPICS = {
+    "/vesc/sensors/core": "/sensors/core",
+    "/vesc/sensors/servo_position_command": "/sensors/servo_position_command",
+    "/vesc/low_level/ackermann_cmd_mux/output": "/ackermann_cmd",
+}
+
+
+def profile_names(profile: str, mux: MuxParams) -> dict[str, str]:
+    """bus topic -> ROS name for a profile: ``racecar`` (none renamed) or ``f1tenth``."""
+    if profile == "racecar":
+        return {}
+    if profile != "f1tenth":
+        raise ValueError(f"unknown topic profile {profile!r}")
+    names = dict(F1TENTH_TOPICS)
+    for source in mux.inputs:
+        if source.name in F1TENTH_INPUTS:
+            names[source.topic] = F1TENTH_INPUTS[source.name]
+    return names
+
+
+def named(rows: list[Topic], mux: MuxParams, profile: str = "racecar",
+          remap: Mapping[str, str] | None = None, key: str = "zenoh") -> list[Topic]:
+    """``rows`` with their ROS names set by the profile, then by ``remap`` (bus topic -> ROS name).
+
+    Raises :class:`ConfigError` naming ``key.remap.<topic>`` for a remap of a topic the table does
+    not have, and ``key.remap`` or ``key.profile`` when two bus topics would share a ROS name.
+    """
+    remap = dict(remap or {})
+    buses = {row.bus for row in rows}
+    for bus in remap:
+        if bus not in buses:
+            raise ConfigError(f"{key}.remap.{bus}", "not a topic the car offers or takes; topics: "
+                              + ", ".join(sorted(buses)))
+    names = {**profile_names(profile, mux), **remap}
+    out = [dataclasses.replace(row, ros=names.get(row.bus, row.bus)) for row in rows]
+    seen: dict[str, str] = {}
+    for row in out:
+        if row.ros in seen:
+            where = f"{key}.remap" if row.bus in remap or seen[row.ros] in remap else f"{key}.profile"
+            raise ConfigError(where, f"{seen[row.ros]} and {row.bus} would both be {row.ros} (profile "
+                                     f"{profile}); two topics cannot share a ROS name")
+        seen[row.ros] = row.bus
+    return out

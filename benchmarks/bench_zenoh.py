@@ -1,0 +1,184 @@
+"""The Zenoh bridge at nominal load: what it adds to the scan path and the CPU, and a remote round trip.
+
+Four runs of the nominal-load daemon of ``bench_daemon.py`` (UST-10LX at 40 Hz, VESC at 50 Hz,
+figure-8 source, safety, recorder), one after the other in this one invocation:
+
+(a) the bridge off; on with no subscriber; on with three subscribers, each a Zenoh session in a
+    separate process subscribed to every topic the car publishes (``<domain>/**``): the daemon's
+    own scan-to-VESC-command p50/p99 and its CPU share, side by side (c);
+(b) the external round trip: a ``racecar_hw.client`` in another process answers every scan with a
+    drive command on nav_0 (steering alternating +-0.03 rad, so each answer changes the servo
+    position); the time from the fake lidar handing a scan frame to its socket until the fake
+    VESC reads the servo position that answers it. Scans whose answer came after the next scan
+    was sent (the client skipped one) are not counted.
+
+The settings of (a) run interleaved, ``ROUNDS`` times (default 2), and each row is the median over
+the rounds: on a shared host a noisy spell then hits every setting alike. The p99 of the daemon's
+own CPU time in the scan path is shown too: unlike the wall-clock p99 it hardly moves with the
+other tenants of the machine.
+
+``python benchmarks/bench_zenoh.py [SECONDS [ROUNDS]]``; ``run()`` returns the rows for run_all.py.
+"""
+
+from __future__ import annotations
+
+import socket
+import sys
+import time
+
+import numpy as np
+from bench_daemon import run as run_daemon
+from table import print_rows
+
+from vesc.codec import SetServoPosition
+
+SUBSCRIBERS = '''
+import sys, time, zenoh
+from racecar_hw.net.zenoh_config import session_config
+port, n = sys.argv[1], int(sys.argv[2])
+received = [0]
+def take(sample):
+    sample.payload.to_bytes()
+    received[0] += 1
+sessions = [zenoh.open(session_config("client", [], [f"tcp/127.0.0.1:{port}"])) for _ in range(n)]
+subs = [s.declare_subscriber("0/**", take) for s in sessions]
+while True:
+    time.sleep(1)
+'''
+
+CLIENT = '''
+import sys
+from racecar_hw.client import Car
+# --drives: answer every scan with a command, the steering alternating so each answer shows
+car = Car(f"tcp/127.0.0.1:{sys.argv[1]}")
+sign = 1.0
+for scan in car.scans(timeout=30):
+    sign = -sign
+    car.drive(0.3, 0.03 * sign)
+'''
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _percentiles(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return float("nan"), float("nan")
+    return float(np.percentile(values, 50)), float(np.percentile(values, 99))
+
+
+def _round_trip(sent: np.ndarray, commands: list) -> list[dict]:
+    """Frame sent -> first later servo command whose position differs from the one before it."""
+    servo = [(c.t_ns, c.packet.position) for c in commands if isinstance(c.packet, SetServoPosition)]
+    times = np.array([t for t, _ in servo], dtype=np.int64)
+    latencies = []
+    for i, t_sent in enumerate(sent[:-1]):
+        j = int(np.searchsorted(times, t_sent, side="right"))
+        if j == 0:
+            continue
+        before = servo[j - 1][1]
+        for t, position in servo[j:]:
+            if t >= sent[i + 1]:
+                break
+            if abs(position - before) > 0.01:
+                latencies.append((t - t_sent) / 1e6)
+                break
+    p50, p99 = _percentiles(latencies)
+    return [
+        {"name": "(b) remote round trip: scan frame out -> client's command at the VESC, p50",
+         "value": p50, "unit": "ms", "target": None},
+        {"name": "(b) remote round trip, p99", "value": p99, "unit": "ms", "target": 2.0},
+        {"name": "(b) scans answered and matched", "value": len(latencies), "unit": "scans", "target": None},
+    ]
+
+
+def _callback_cost(n: int = 20000) -> list[dict]:
+    """The bridge's own work on the scan path, per scan: its bus callback (after the motor write)."""
+    from mux.params import MuxParams
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.base.messages import LaserScan
+    from racecar_hw.net.topics import topic_table
+    from racecar_hw.net.zenoh_bridge import ZenohBridge, _Out
+    from racecar_hw.net.zenoh_config import ZenohParams
+    from safety.params import SafetyParams
+
+    rows = topic_table(MuxParams(), SafetyParams())
+    bridge = ZenohBridge(Bus(), ZenohParams(), rows)
+    out = _Out(rows[0], None, bytes(16), latched=False)
+    enqueue = bridge._enqueuer(out)
+    scan = LaserScan()
+    result = []
+    for matching in (False, True):
+        out.matching = matching
+        start = time.perf_counter()
+        for _ in range(n):
+            enqueue(scan)
+        cost = (time.perf_counter() - start) / n * 1e6
+        who = "a subscriber listens" if matching else "nobody listens"
+        result.append({"name": f"(a) the bridge's callback per scan, {who}", "value": cost, "unit": "us",
+                       "target": None})
+    return result
+
+
+def _pick(rows: list[dict], name: str) -> float:
+    return next(r["value"] for r in rows if r["name"] == name)
+
+
+def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
+    py = sys.executable
+    configs = {"off": lambda: run_daemon(seconds),
+               "on, no subscriber": lambda: run_daemon(seconds, zenoh_port=_free_port()),
+               "on, 3 subscribers": lambda: _three(seconds)}
+    results: dict[str, list[list[dict]]] = {label: [] for label in configs}
+    for _ in range(rounds):  # interleaved, so a noisy spell on a shared host hits every setting
+        for label, measure in configs.items():
+            results[label].append(measure())
+    port = _free_port()
+    trip = run_daemon(seconds, zenoh_port=port, helpers=[[py, "-c", CLIENT, str(port), "--drives"]],
+                      on_results=_round_trip)
+    p50, p99, cpu_p99, cpu = ("scan to VESC command p50 (in daemon)", "scan to VESC command p99 (in daemon)",
+                              "  the daemon's CPU time in it, p99", "daemon CPU share of one core")
+    rows = []
+    medians: dict[tuple[str, str], float] = {}
+    for label, runs in results.items():
+        for name, short, unit, target in ((p50, "scan to VESC command p50", "ms", None),
+                                          (p99, "scan to VESC command p99", "ms", 2.0),
+                                          (cpu_p99, "the daemon's CPU time in it, p99", "ms", None),
+                                          (cpu, "daemon CPU share", "%", 10.0)):
+            value = float(np.median([_pick(r, name) for r in runs]))
+            medians[label, name] = value
+            rows.append({"name": f"bridge {label}: {short}", "value": value, "unit": unit, "target": target})
+    for label in ("on, no subscriber", "on, 3 subscribers"):
+        rows.append({"name": f"(a) p99 added, bridge {label}", "unit": "ms", "target": 0.05,
+                     "value": medians[label, p99] - medians["off", p99]})
+        rows.append({"name": f"(a) CPU-time p99 added, bridge {label}", "unit": "ms", "target": 0.05,
+                     "value": medians[label, cpu_p99] - medians["off", cpu_p99]})
+        rows.append({"name": f"(c) CPU added, bridge {label}", "unit": "% of a core", "target": None,
+                     "value": medians[label, cpu] - medians["off", cpu]})
+    rows.extend(_callback_cost())
+    rows.extend(r for r in trip if r["name"].startswith("(b)"))
+    rows.append({"name": "(b) daemon CPU share with the remote client driving", "value": _pick(trip, cpu),
+                 "unit": "%", "target": None})
+    steal = "host: CPU time stolen by the hypervisor"
+    every = [r for runs in results.values() for r in runs] + [trip]
+    rows.append({"name": "host steal, all runs (max)", "unit": "% of busy",
+                 "value": max(_pick(r, steal) for r in every), "target": None})
+    return rows
+
+
+def _three(seconds: float) -> list[dict]:
+    port = _free_port()
+    return run_daemon(seconds, zenoh_port=port, helpers=[[sys.executable, "-c", SUBSCRIBERS, str(port), "3"]])
+
+
+def main() -> None:
+    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
+    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 2
+    print_rows(run(seconds, rounds))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,435 @@
+"""Drive the car from Python code that is not ROS: scans, odometry and safety state in, commands out.
+
+::
+
+    from racecar_hw.client import Car
+
+    with Car() as car:                      # the daemon on this machine (tcp/127.0.0.1:7447)
+        for scan in car.scans():            # the newest scan each time; older ones are skipped
+            ahead = scan.ranges[abs(scan.angles) < 0.1].min()
+            car.drive(speed=1.0 if ahead > 1.5 else 0.0, steering=0.0)
+    # leaving the block sends a stop
+
+It speaks ROS 2's rmw_zenoh wire format (:mod:`racecar_hw.net.rmw`) on the car's topic names, so it
+also talks to real ROS 2 nodes. :meth:`Car.drive` publishes an ``AckermannDriveStamped`` on a mux
+input (``nav_0`` unless told otherwise): the mux's timeout applies (0.2 s by default), so code
+that stops sending stops the car; send at 10-50 Hz. :class:`AsyncCar` is the same for asyncio.
+
+Units: metres, radians (+ left, counter-clockwise), seconds, m/s; scans in the laser frame, odometry
+in ``odom``. Stamps are seconds since the epoch (the sender's clock).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import threading
+import time
+from collections.abc import AsyncIterator, Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+
+from mux.params import MuxParams
+from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.errors import RacecarError
+from racecar_hw.base.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    Bool,
+    DiagnosticArray,
+    LaserScan,
+    Message,
+    Odometry,
+    Twist,
+    Vector3,
+    stamp_now,
+)
+from racecar_hw.net import rmw
+from racecar_hw.net.topics import CMD_VEL_INPUT, DEFAULT, SENSOR_DATA, Qos, profile_names
+from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, ZenohAuthParams, session_config
+from racecar_hw.rosmsg.typestore import ros2_types
+from safety.params import SafetyParams
+
+T = TypeVar("T")
+#: The mux input of /cmd_vel Twists on the daemon's bus (racecar_hw.config.CMD_VEL_BUS_TOPIC).
+CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
+
+
+class ClientError(RacecarError):
+    """The client could not connect, or was asked for something the car does not offer."""
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left)."""
+
+    stamp_s: float
+    frame_id: str
+    ranges: np.ndarray
+    angles: np.ndarray
+    range_min: float
+    range_max: float
+    msg: LaserScan = field(repr=False)
+
+
+@dataclass(frozen=True)
+class Odom:
+    """Wheel odometry: pose in ``odom`` (x, y m; yaw rad), forward speed (m/s), yaw rate (rad/s)."""
+
+    stamp_s: float
+    x: float
+    y: float
+    yaw: float
+    speed: float
+    yaw_rate: float
+    msg: Odometry = field(repr=False)
+
+
+@dataclass(frozen=True)
+class SafetyState:
+    """The safety controller's state: why it limits (``reason``), the speed it allows (m/s)."""
+
+    stamp_s: float
+    reason: str
+    intervening: bool
+    allowed_speed: float
+    values: dict[str, str]
+    msg: DiagnosticArray = field(repr=False)
+
+
+def _scan(msg: LaserScan) -> Scan:
+    ranges = np.asarray(msg.ranges, dtype=np.float64)
+    return Scan(msg.header.stamp.to_ns() / NS_PER_S, msg.header.frame_id, ranges,
+                msg.angle_min + msg.angle_increment * np.arange(len(ranges)),
+                float(msg.range_min), float(msg.range_max), msg)
+
+
+def _odom(msg: Odometry) -> Odom:
+    pose, twist = msg.pose.pose, msg.twist.twist
+    return Odom(msg.header.stamp.to_ns() / NS_PER_S, pose.position.x, pose.position.y,
+                pose.orientation.yaw(), twist.linear.x, twist.angular.z, msg)
+
+
+def _safety(msg: DiagnosticArray) -> SafetyState:
+    status = msg.status[0] if msg.status else None
+    values = {kv.key: kv.value for kv in status.values} if status else {}
+    try:
+        allowed = float(values.get("allowed_speed", "nan"))
+    except ValueError:
+        allowed = math.nan
+    return SafetyState(msg.header.stamp.to_ns() / NS_PER_S, values.get("reason", ""),
+                       values.get("intervening") == "true", allowed, values, msg)
+
+
+class _Stream(Generic[T]):
+    """One subscribed topic: the newest decoded value, callbacks, and a one-slot mailbox per reader."""
+
+    def __init__(self, convert: Callable[[Any], T]) -> None:
+        self.convert = convert
+        self.latest: T | None = None
+        self.count = 0
+        self.callbacks: list[Callable[[T], None]] = []
+        self._cond = threading.Condition()
+
+    def push(self, value: T) -> None:
+        with self._cond:
+            self.latest = value
+            self.count += 1
+            self._cond.notify_all()
+        for callback in list(self.callbacks):
+            callback(value)
+
+    def wait_newer(self, seen: int, timeout: float | None) -> tuple[T, int]:
+        """The newest value once the count passed ``seen``; ClientError after ``timeout`` s."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.count > seen, timeout):
+                raise ClientError(f"nothing received for {timeout} s: is the daemon running and "
+                                  "reachable, with the same domain id and namespace?")
+            assert self.latest is not None
+            return self.latest, self.count
+
+
+class Car:
+    """A connection to one car. See the module documentation.
+
+    ``connect``: Zenoh endpoints of the daemon (or of a router it is connected to); ``mode``:
+    ``client`` (through what it connects to) or ``peer``; ``namespace`` and ``domain_id`` as the
+    daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile``: the
+    daemon's topic profile; ``input``: the mux input :meth:`drive` commands by default;
+    ``user``/``password`` when the daemon requires them; ``session``: an open Zenoh session to share
+    (another :class:`Car`'s, to reach several cars through one session; it is not closed here).
+    """
+
+    def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
+                 domain_id: int | None = None, mode: str = "client", profile: str = "racecar",
+                 input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
+                 node_name: str = "", mux: MuxParams | None = None,
+                 safety: SafetyParams | None = None, session: Any = None) -> None:
+        import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
+
+        self.endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self.namespace = rmw.check_namespace(namespace)
+        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        self.domain_id = domain_id if domain_id is not None else (int(env) if env.isdigit() else 0)
+        self.mux = mux if mux is not None else MuxParams()
+        self._names = profile_names(profile, self.mux)
+        self._inputs = {i.name: i.topic for i in self.mux.inputs}
+        self._inputs.setdefault(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC)
+        self.input = input
+        self.input_topic(input)  # refuse an unknown input now
+        safety = safety if safety is not None else SafetyParams()
+        auth = ZenohAuthParams(user=user, password=password)
+        self._own_session = session is None
+        try:
+            self.session = session if session is not None else zenoh.open(
+                session_config(mode, [], self.endpoints, auth=auth))
+        except zenoh.ZError as err:
+            raise ClientError(f"cannot connect to {', '.join(self.endpoints)} ({mode} mode): {err}") from None
+        self.zid = str(self.session.zid())
+        self._node = node_name or f"racecar_client_{os.getpid()}"
+        self._next_entity = 1
+        self._tokens: list[Any] = [self.session.liveliness().declare_token(
+            rmw.Entity(self.domain_id, self.zid, 0, 0, rmw.NODE, "", self.namespace, self._node).token())]
+        self._subs: list[Any] = []
+        self._pubs: dict[str, tuple[Any, bytes, list[int]]] = {}
+        self._lock = threading.Lock()
+        self._closed = False
+        self.scan_stream: _Stream[Scan] = self._subscribe("/scan", LaserScan, _scan, SENSOR_DATA)
+        self.odom_stream: _Stream[Odom] = self._subscribe("/odom", Odometry, _odom, DEFAULT)
+        self.safety_stream: _Stream[SafetyState] = self._subscribe(safety.state_topic, DiagnosticArray,
+                                                                   _safety, DEFAULT)
+
+    # --- names --------------------------------------------------------------------------------
+
+    def ros_name(self, bus_topic: str) -> str:
+        """The full ROS name of a daemon topic: namespace, then the profile's name for it."""
+        return self.namespace + self._names.get(bus_topic, bus_topic)
+
+    def input_topic(self, name: str) -> str:
+        """The bus topic of the mux input ``name``; ClientError naming the inputs if unknown."""
+        try:
+            return self._inputs[name]
+        except KeyError:
+            raise ClientError(f"no mux input {name!r}; inputs: {', '.join(self._inputs)}") from None
+
+    def _entity(self, kind: str, topic: str, msgtype: type[Message], qos: Qos) -> rmw.Entity:
+        entity_id, self._next_entity = self._next_entity, self._next_entity + 1
+        return rmw.Entity(self.domain_id, self.zid, 0, entity_id, kind, "", self.namespace, self._node,
+                          topic, rmw.dds_type(msgtype.ROS_TYPE), rmw.type_hash(msgtype.ROS_TYPE),
+                          rmw.RmwQos.from_qos(qos))
+
+    def _key(self, topic: str, msgtype: type[Message]) -> str:
+        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE, rmw.type_hash(msgtype.ROS_TYPE))
+
+    # --- subscriptions ------------------------------------------------------------------------
+
+    def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
+                   qos: Qos) -> _Stream[T]:
+        stream: _Stream[T] = _Stream(convert)
+        topic = self.ros_name(bus_topic)
+        types = ros2_types()
+
+        def on_sample(sample: Any) -> None:
+            try:
+                value = convert(types.deserialize(sample.payload.to_bytes(), msgtype))
+            except Exception:  # noqa: BLE001 - a malformed sample is skipped
+                return
+            stream.push(value)
+
+        self._subs.append(self.session.declare_subscriber(self._key(topic, msgtype), on_sample))
+        token = self._entity(rmw.SUBSCRIPTION, topic, msgtype, qos).token()
+        self._tokens.append(self.session.liveliness().declare_token(token))
+        return stream
+
+    @staticmethod
+    def _iterate(stream: _Stream[T], timeout: float | None) -> Iterator[T]:
+        seen = stream.count
+        while True:
+            value, seen = stream.wait_newer(seen, timeout)
+            yield value
+
+    def scans(self, timeout: float | None = 5.0) -> Iterator[Scan]:
+        """Scans as they arrive; a slow reader gets the newest (ClientError after ``timeout`` s of none)."""
+        return self._iterate(self.scan_stream, timeout)
+
+    def odometry(self, timeout: float | None = 5.0) -> Iterator[Odom]:
+        """Odometry as it arrives (newest first, as :meth:`scans`)."""
+        return self._iterate(self.odom_stream, timeout)
+
+    def safety_states(self, timeout: float | None = 5.0) -> Iterator[SafetyState]:
+        """The safety controller's state as it arrives."""
+        return self._iterate(self.safety_stream, timeout)
+
+    def next_scan(self, timeout: float | None = 5.0) -> Scan:
+        """The next scan to arrive."""
+        return next(self.scans(timeout))
+
+    def next_odom(self, timeout: float | None = 5.0) -> Odom:
+        """The next odometry to arrive."""
+        return next(self.odometry(timeout))
+
+    @property
+    def scan(self) -> Scan | None:
+        """The newest scan so far, or None."""
+        return self.scan_stream.latest
+
+    @property
+    def odom(self) -> Odom | None:
+        """The newest odometry so far, or None."""
+        return self.odom_stream.latest
+
+    @property
+    def safety(self) -> SafetyState | None:
+        """The newest safety state so far, or None."""
+        return self.safety_stream.latest
+
+    def on_scan(self, callback: Callable[[Scan], None]) -> None:
+        """Call ``callback(scan)`` for every scan, in Zenoh's thread: keep it short."""
+        self.scan_stream.callbacks.append(callback)
+
+    def on_odom(self, callback: Callable[[Odom], None]) -> None:
+        """Call ``callback(odom)`` for every odometry message, in Zenoh's thread."""
+        self.odom_stream.callbacks.append(callback)
+
+    def on_safety(self, callback: Callable[[SafetyState], None]) -> None:
+        """Call ``callback(state)`` for every safety state, in Zenoh's thread."""
+        self.safety_stream.callbacks.append(callback)
+
+    # --- commands -----------------------------------------------------------------------------
+
+    def publish(self, bus_topic: str, msg: Message) -> None:
+        """Publish ``msg`` on a daemon topic (by its bus name; the profile and namespace apply)."""
+        topic = self.ros_name(bus_topic)
+        with self._lock:
+            if self._closed:
+                raise ClientError("the client is closed")
+            entry = self._pubs.get(topic)
+            if entry is None:
+                entity = self._entity(rmw.PUBLISHER, topic, type(msg), DEFAULT)
+                publisher = self.session.declare_publisher(self._key(topic, type(msg)))
+                self._tokens.append(self.session.liveliness().declare_token(entity.token()))
+                entry = self._pubs[topic] = (publisher, entity.gid(), [0])
+            publisher, gid, sequence = entry
+            sequence[0] += 1
+            attachment = rmw.encode_attachment(sequence[0], time.time_ns(), gid)
+            publisher.put(ros2_types().serialize(msg), attachment=attachment)
+
+    def drive(self, speed: float, steering: float, input: str | None = None) -> None:  # noqa: A002
+        """Command ``speed`` (m/s, + forward) and ``steering`` (rad, + left) on a mux input.
+
+        The command holds for the input's timeout (0.2 s by default): call this at 10-50 Hz.
+        """
+        if not (math.isfinite(speed) and math.isfinite(steering)):
+            raise ValueError(f"speed and steering must be finite, got {speed!r}, {steering!r}")
+        msg = AckermannDriveStamped(stamp_now("base_link", time.time_ns()),
+                                    AckermannDrive(steering_angle=float(steering), speed=float(speed)))
+        self.publish(self.input_topic(input or self.input), msg)
+
+    def twist(self, linear: float, angular: float, topic: str = "/cmd_vel") -> None:
+        """Send a geometry_msgs/Twist (m/s, rad/s) as Nav2 would, to the daemon's /cmd_vel."""
+        self.publish(topic, Twist(Vector3(x=float(linear)), Vector3(z=float(angular))))
+
+    def stop(self, input: str | None = None) -> None:  # noqa: A002
+        """Command zero speed, centred steering on the input (the mux then times it out)."""
+        self.drive(0.0, 0.0, input)
+
+    def estop(self) -> None:
+        """Engage the daemon's latched e-stop."""
+        self.publish(self.mux.estop_topic, Bool(True))
+
+    def release_estop(self) -> None:
+        """Release the e-stop (refused by the daemon while something still asserts it)."""
+        self.publish(self.mux.estop_topic, Bool(False))
+        self.publish(self.mux.estop_release_topic, Bool(True))
+
+    # --- life cycle ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (safe twice)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        for entity in (*self._tokens, *self._subs, *(p for p, _, _ in self._pubs.values())):
+            with contextlib.suppress(Exception):
+                entity.undeclare()
+        if self._own_session:
+            with contextlib.suppress(Exception):
+                self.session.close()
+
+    def __enter__(self) -> Car:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        with contextlib.suppress(Exception):
+            if self._pubs:
+                self.stop()
+        self.close()
+
+
+class AsyncCar:
+    """:class:`Car` for asyncio: ``async with AsyncCar() as car: async for scan in car.scans(): ...``.
+
+    Construct it inside a running event loop. Commands are the same non-blocking calls as
+    :class:`Car`'s; iteration yields the newest value when the loop gets to it.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self.car = Car(*args, **kwargs)
+        self._loop = asyncio.get_running_loop()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.car, name)
+
+    async def _iterate(self, stream: _Stream[T], timeout: float | None) -> AsyncIterator[T]:
+        box: asyncio.Queue[T] = asyncio.Queue(maxsize=1)
+        loop = self._loop
+
+        def put(value: T) -> None:
+            if box.full():
+                box.get_nowait()
+            box.put_nowait(value)
+
+        def callback(value: T) -> None:
+            with contextlib.suppress(RuntimeError):  # the loop closed
+                loop.call_soon_threadsafe(put, value)
+
+        stream.callbacks.append(callback)
+        try:
+            while True:
+                try:
+                    yield await asyncio.wait_for(box.get(), timeout)
+                except asyncio.TimeoutError:
+                    raise ClientError(f"nothing received for {timeout} s: is the daemon running and "
+                                      "reachable?") from None
+        finally:
+            stream.callbacks.remove(callback)
+
+    def scans(self, timeout: float | None = 5.0) -> AsyncIterator[Scan]:
+        """Scans as they arrive (the newest when the loop gets to it)."""
+        return self._iterate(self.car.scan_stream, timeout)
+
+    def odometry(self, timeout: float | None = 5.0) -> AsyncIterator[Odom]:
+        """Odometry as it arrives."""
+        return self._iterate(self.car.odom_stream, timeout)
+
+    def safety_states(self, timeout: float | None = 5.0) -> AsyncIterator[SafetyState]:
+        """The safety state as it arrives."""
+        return self._iterate(self.car.safety_stream, timeout)
+
+    async def close(self) -> None:
+        """Close the connection without blocking the loop."""
+        await self._loop.run_in_executor(None, self.car.close)
+
+    async def __aenter__(self) -> AsyncCar:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        with contextlib.suppress(Exception):
+            if self.car._pubs:
+                self.car.stop()
+        await self.close()

@@ -1,0 +1,338 @@
+"""The Zenoh bridge: the daemon's topics as ROS 2 topics in rmw_zenoh's format (:mod:`racecar_hw.net.rmw`).
+
+A thin I/O shell around the codec, with one Zenoh session:
+
+* **Out** (``/scan``, ``/odom``, ...). The bus callback only appends ``(row, message, wall ns)``
+  to a bounded queue (the oldest entry goes when it is full, counted) and wakes the publisher
+  thread, which serializes with the recorder's serializers and puts the CDR bytes with the 33-byte
+  attachment. A row nobody subscribes to (Zenoh's matching status, kept up to date by a listener)
+  is not even queued: no serialization while nobody listens. Latched rows (``/tf_static``: ROS 2
+  TRANSIENT_LOCAL) use Zenoh's advanced publisher with a cache of ``depth`` samples, so a
+  subscriber that starts later still gets them; they are always queued.
+* **In** (mux inputs, locks, e-stop, ``/cmd_vel``). Zenoh calls back in its own threads; there the
+  sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
+  decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
+  bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
+* **Graph.** A liveliness token for the node and one per publisher and subscriber, so
+  ``ros2 node list`` and ``ros2 topic list`` on a machine running rmw_zenoh show the car.
+
+Nothing here runs on the control path except the enqueue; a put that blocks (10 ms was seen with a
+slow subscriber) holds up only the publisher thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import dataclasses
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import Message
+from racecar_hw.net import rmw
+from racecar_hw.net.topics import Direction, Reliability, Topic
+from racecar_hw.net.zenoh_config import ZenohParams, config_for
+from racecar_hw.rosmsg.typestore import ros2_types
+
+log = logging.getLogger(__name__)
+
+#: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
+HEARTBEAT_S = 0.5
+
+
+@dataclass
+class BridgeStats:
+    """Counters of the bridge (read from any thread; written under the bridge's lock)."""
+
+    published: int = 0       #: samples put
+    dropped_queue: int = 0   #: outgoing messages dropped because the queue was full
+    skipped: int = 0         #: outgoing messages not queued: nobody subscribed
+    publish_errors: int = 0  #: serialization or put failures
+    received: int = 0        #: incoming samples handed to the bus
+    no_attachment: int = 0   #: incoming samples without rmw_zenoh's attachment (dropped)
+    malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
+    non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
+
+
+class _Out:
+    """One outgoing row: its Zenoh publisher, sequence number and GID, and whether anyone listens."""
+
+    def __init__(self, row: Topic, publisher: Any, gid: bytes, latched: bool) -> None:
+        self.row = row
+        self.publisher = publisher
+        self.gid = gid
+        self.latched = latched
+        self.sequence = 0
+        self.matching = latched
+        self.listener: Any = None
+        self.serialize = ros2_types().fast_serializer(row.msgtype)
+
+
+class ZenohBridge:
+    """The bus's network rows on Zenoh. Build, ``open()`` (blocking, from any thread), ``close()``.
+
+    ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
+    the bus (the daemon uses it to send a fresh remote command to the VESC at once).
+    """
+
+    def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
+                 on_input: Callable[[str], None] | None = None) -> None:
+        self.bus = bus
+        self.params = params
+        self.rows = rows
+        self.on_input = on_input
+        self.domain_id = params.resolved_domain_id()
+        self.namespace = rmw.check_namespace(params.namespace)
+        self.stats = BridgeStats()
+        self.session: Any = None
+        self.zid = ""
+        self._lock = threading.Lock()
+        self._queue: collections.deque[tuple[_Out, Message, int]] = collections.deque()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._outs: list[_Out] = []
+        self._subscribers: list[Any] = []
+        self._tokens: list[Any] = []
+        self._bus_subs: list[Subscription] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._next_entity = 1
+
+    # --- names --------------------------------------------------------------------------------
+
+    def ros_name(self, row: Topic) -> str:
+        """The topic's full ROS name: the namespace, then the row's ROS name."""
+        return self.namespace + row.ros
+
+    def key(self, row: Topic) -> str:
+        """The Zenoh key of a row's samples."""
+        ros_type = row.msgtype.ROS_TYPE
+        return rmw.topic_key(self.domain_id, self.ros_name(row), ros_type, rmw.type_hash(ros_type))
+
+    def _entity(self, kind: str, row: Topic | None = None) -> rmw.Entity:
+        common = (self.domain_id, self.zid, 0)
+        node = (self.namespace, self.params.node_name)
+        if row is None:
+            return rmw.Entity(*common, 0, rmw.NODE, "", *node)
+        entity_id, self._next_entity = self._next_entity, self._next_entity + 1
+        ros_type = row.msgtype.ROS_TYPE
+        return rmw.Entity(*common, entity_id, kind, "", *node, self.ros_name(row), rmw.dds_type(ros_type),
+                          rmw.type_hash(ros_type), rmw.RmwQos.from_qos(row.qos))
+
+    # --- life cycle ---------------------------------------------------------------------------
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Open the session, declare every row and token, start the publisher thread.
+
+        Raises :class:`ConfigError` naming ``zenoh.listen`` or ``zenoh.connect`` when Zenoh cannot
+        listen or reach the endpoints (a port already in use, a client with no router).
+        """
+        import zenoh  # noqa: PLC0415 - the Rust extension loads only when the bridge runs
+        import zenoh.ext  # noqa: PLC0415
+
+        self._loop = loop
+        p = self.params
+        try:
+            self.session = zenoh.open(config_for(p))
+        except zenoh.ZError as err:
+            key = "zenoh.connect" if p.mode == "client" else "zenoh.listen"
+            raise ConfigError(key, f"Zenoh could not start ({p.mode} mode, listen {p.listen}, "
+                                   f"connect {p.connect}): {err}") from None
+        self.zid = str(self.session.zid())
+        liveliness = self.session.liveliness()
+        self._tokens.append(liveliness.declare_token(self._entity(rmw.NODE).token()))
+        for row in self.rows:
+            if row.direction is Direction.OUT:
+                self._declare_out(row, zenoh)
+            else:
+                self._declare_in(row, zenoh)
+        self._thread = threading.Thread(target=self._run, name="zenoh-publisher", daemon=True)
+        self._thread.start()
+        for out in self._outs:
+            self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
+            latest = self.bus.latest(out.row.bus)
+            if out.latched and latest is not None:
+                self._enqueuer(out)(latest)
+        log.info("zenoh bridge up: %s mode, session %s, domain %d, namespace %r, listen %s, "
+                 "connect %s; %d topics out, %d in", p.mode, self.zid, self.domain_id,
+                 self.namespace or "/", p.listen, p.connect, len(self._outs), len(self._subscribers))
+
+    def _declare_out(self, row: Topic, zenoh: Any) -> None:
+        reliable = row.qos.reliability is Reliability.RELIABLE
+        options = dict(congestion_control=zenoh.CongestionControl.DROP,
+                       reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT)
+        entity = self._entity(rmw.PUBLISHER, row)
+        key = self.key(row)
+        if row.qos.latched:
+            miss = zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT_S) \
+                if reliable else None
+            publisher = zenoh.ext.declare_advanced_publisher(
+                self.session, key, cache=zenoh.ext.CacheConfig(row.qos.depth),
+                publisher_detection=True, sample_miss_detection=miss, **options)
+            out = _Out(row, publisher, entity.gid(), latched=True)
+        else:
+            publisher = self.session.declare_publisher(key, **options)
+            out = _Out(row, publisher, entity.gid(), latched=False)
+            out.matching = bool(publisher.matching_status.matching)
+
+            def on_matching(status: Any, out: _Out = out) -> None:
+                out.matching = bool(status.matching)
+
+            out.listener = publisher.declare_matching_listener(on_matching)
+        self._outs.append(out)
+        self._tokens.append(self.session.liveliness().declare_token(entity.token()))
+
+    def _declare_in(self, row: Topic, zenoh: Any) -> None:
+        key = self.key(row)
+        callback = self._receiver(row)
+        if row.qos.latched:
+            history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=row.qos.depth)
+            sub = zenoh.ext.declare_advanced_subscriber(self.session, key, callback, history=history,
+                                                        subscriber_detection=True)
+        else:
+            sub = self.session.declare_subscriber(key, callback)
+        self._subscribers.append(sub)
+        token = self._entity(rmw.SUBSCRIPTION, row).token()
+        self._tokens.append(self.session.liveliness().declare_token(token))
+
+    def close(self) -> None:
+        """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
+        for sub in self._bus_subs:
+            sub.close()
+        self._bus_subs.clear()
+        self._stopping = True
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+        session, self.session = self.session, None
+        if session is None:
+            return
+        for entity in [*self._tokens, *self._subscribers, *(o.listener for o in self._outs if o.listener),
+                       *(o.publisher for o in self._outs)]:
+            try:
+                entity.undeclare()
+            except Exception:  # noqa: BLE001 - closing the session below undeclares the rest
+                pass
+        self._tokens.clear()
+        self._subscribers.clear()
+        self._outs.clear()
+        try:
+            session.close()
+        except Exception as err:  # noqa: BLE001 - shutting down: report and go on
+            log.warning("zenoh session close failed: %r", err)
+        s = self.stats
+        log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
+                 "%d received, %d without attachment, %d malformed, %d non-finite", s.published,
+                 s.dropped_queue, s.skipped, s.received, s.no_attachment, s.malformed, s.non_finite)
+
+    # --- out: bus thread, then the publisher thread -------------------------------------------
+
+    def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
+        queue, wake, limit, stats = self._queue, self._wake, self.params.queue_size, self.stats
+
+        def enqueue(msg: Message) -> None:
+            if not out.matching:
+                stats.skipped += 1
+                return
+            if len(queue) >= limit:
+                queue.popleft()
+                stats.dropped_queue += 1
+            queue.append((out, msg, wall_ns()))
+            wake.set()
+
+        return enqueue
+
+    def _run(self) -> None:
+        queue, wake = self._queue, self._wake
+        types = ros2_types()
+        while not self._stopping:
+            wake.wait()
+            wake.clear()
+            while queue:
+                try:
+                    out, msg, stamp = queue.popleft()
+                except IndexError:
+                    break
+                try:
+                    payload = out.serialize(msg, 0) if out.serialize is not None else types.serialize(msg)
+                    out.sequence += 1
+                    out.publisher.put(payload, attachment=rmw.encode_attachment(out.sequence, stamp, out.gid))
+                    self.stats.published += 1
+                except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
+                    if out.serialize is not None:
+                        out.serialize = None  # the generic serializer gives the real error next time
+                    self.stats.publish_errors += 1
+                    if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
+                        log.warning("zenoh: could not publish %s (%d so far): %r", out.row.ros,
+                                    self.stats.publish_errors, err)
+
+    # --- in: Zenoh's threads, then the event loop ---------------------------------------------
+
+    def _receiver(self, row: Topic) -> Callable[[Any], None]:
+        types = ros2_types()
+        cls, topic = row.msgtype, row.bus
+        stats, lock = self.stats, self._lock
+
+        def count(name: str) -> None:
+            with lock:
+                setattr(stats, name, getattr(stats, name) + 1)
+                n = getattr(stats, name)
+            if n in (1, 10, 100) or n % 1000 == 0:
+                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros,
+                            name.replace("_", " "), n)
+
+        def receive(sample: Any) -> None:
+            attachment = sample.attachment
+            if attachment is None:
+                count("no_attachment")
+                return
+            try:
+                rmw.Attachment.decode(attachment.to_bytes())
+                msg = types.deserialize(sample.payload.to_bytes(), cls)
+            except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
+                count("malformed")
+                return
+            if not all_finite(msg):
+                count("non_finite")
+                return
+            loop = self._loop
+            if loop is None or loop.is_closed():
+                return
+            with lock:
+                stats.received += 1
+            try:
+                loop.call_soon_threadsafe(self._deliver, topic, msg)
+            except RuntimeError:  # the loop closed meanwhile
+                pass
+
+        return receive
+
+    def _deliver(self, topic: str, msg: Message) -> None:
+        if self.session is None:
+            return
+        self.bus.publish(topic, msg)
+        if self.on_input is not None:
+            self.on_input(topic)
+
+
+def all_finite(msg: Any) -> bool:
+    """Whether every float (and float array) in a message is finite."""
+    if isinstance(msg, float):
+        return math.isfinite(msg)
+    if isinstance(msg, np.ndarray):
+        return msg.dtype.kind != "f" or bool(np.isfinite(msg).all())
+    if isinstance(msg, list):
+        return all(all_finite(item) for item in msg)
+    if dataclasses.is_dataclass(msg):
+        return all(all_finite(getattr(msg, f.name)) for f in dataclasses.fields(msg))
+    return True

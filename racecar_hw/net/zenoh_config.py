@@ -1,0 +1,206 @@
+"""The ``zenoh`` config section, and the Zenoh session configuration it makes.
+
+Safe by default: the daemon listens on loopback only (``tcp/127.0.0.1:7447``) with multicast
+scouting off, so nothing on the LAN reaches it or is reached by it. Listening on any other address
+needs authentication: Zenoh's TLS (a ``tls/`` or ``quic/`` endpoint with ``tls.listen_certificate``
+and ``tls.listen_private_key``) or user/password (``auth.dictionary_file``); otherwise the daemon
+refuses to start, naming the key (the same rule as MAVLink signing).
+
+Router mode mirrors rmw_zenoh's ``DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5`` (multicast scouting off,
+gossip on and one hop, peers not brokered, timestamping on for the publication caches that
+TRANSIENT_LOCAL needs, a 60 s query timeout); peer and client modes mirror its session config.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import param
+
+MODES = ("peer", "router", "client")
+PROFILES = ("racecar", "f1tenth")
+DEFAULT_PORT = 7447
+DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream")
+_ENCRYPTED = ("tls", "quic")
+
+
+@dataclass
+class ZenohAuthParams:
+    """Zenoh user/password authentication."""
+
+    dictionary_file: str = param("", "file of user:password lines; a session that connects to this "
+                                     "daemon must present one of them")
+    user: str = param("", "user name this daemon presents when it connects out (client/peer connect)")
+    password: str = param("", "password this daemon presents with user")
+
+
+@dataclass
+class ZenohTlsParams:
+    """Zenoh TLS (for ``tls/`` and ``quic/`` endpoints)."""
+
+    listen_certificate: str = param("", "PEM certificate this daemon presents on tls/ and quic/ listens")
+    listen_private_key: str = param("", "PEM private key of listen_certificate")
+    root_ca_certificate: str = param("", "PEM CA certificate that signed the peers' certificates")
+    enable_mtls: bool = param(False, "require connecting sessions to present a certificate signed by "
+                                     "root_ca_certificate (mutual TLS)")
+
+
+@dataclass
+class ZenohParams:
+    """ROS 2 topics over Zenoh in rmw_zenoh's format (see docs/interop.md)."""
+
+    enabled: bool = param(True, "run the Zenoh bridge (loopback only unless listen says otherwise)")
+    mode: str = param("peer", "peer (talk to peers directly), router (be the Zenoh router that ROS 2 "
+                              "nodes and laptops connect to, like rmw_zenohd) or client (go through "
+                              "the router in connect)", choices=MODES)
+    listen: list[str] = param([DEFAULT_ENDPOINT], "Zenoh endpoints to listen on; a non-loopback "
+                                                  "address needs tls or auth")
+    connect: list[str] = param([], "Zenoh endpoints to connect to (a router such as rmw_zenohd, or "
+                                   "another car)")
+    domain_id: int | None = param(None, "ROS domain id; none: ROS_DOMAIN_ID, else 0", min=0, max=232)
+    namespace: str = param("", "ROS namespace of every topic and of the node, e.g. /car1")
+    node_name: str = param("racecar_hw", "the ROS node name the car shows in ros2 node list")
+    profile: str = param("racecar", "topic names: racecar (MIT/MuSHR ROS 1 names, as on the bus) or "
+                                    "f1tenth (F1TENTH ROS 2 names: /drive, /teleop, /sensors/core)",
+                         choices=PROFILES)
+    remap: dict[str, str] = param({}, "bus topic -> ROS name, after the profile; two topics may not "
+                                      "share a name")
+    cmd_vel: bool = param(True, "accept geometry_msgs/Twist on cmd_vel_topic as the mux input "
+                                "cmd_vel (priority 18), converted with vesc.wheelbase_m")
+    cmd_vel_topic: str = param("/cmd_vel", "the Twist topic")
+    queue_size: int = param(64, "outgoing messages waiting for the publisher thread before the "
+                                "oldest is dropped", min=1, max=100000)
+    multicast_scouting: bool = param(False, "find peers by UDP multicast (reaches the whole LAN)")
+    auth: ZenohAuthParams = field(default_factory=ZenohAuthParams, metadata={"doc": "user/password"})
+    tls: ZenohTlsParams = field(default_factory=ZenohTlsParams, metadata={"doc": "TLS"})
+
+    def validate(self, key: str = "zenoh") -> None:
+        """Refuse bad endpoints, names and an unauthenticated non-loopback listen, naming the key."""
+        from racecar_hw.net import rmw  # noqa: PLC0415 - rmw imports the typestore; keep config light
+
+        for name in ("listen", "connect"):
+            for i, endpoint in enumerate(getattr(self, name)):
+                parse_endpoint(endpoint, f"{key}.{name}[{i}]")
+        checks = (("namespace", lambda: rmw.check_namespace(self.namespace)),
+                  ("node_name", lambda: rmw.check_topic_name("/" + self.node_name)),
+                  ("cmd_vel_topic", lambda: rmw.check_topic_name(self.cmd_vel_topic)))
+        for name, check in checks:
+            try:
+                check()
+            except rmw.WireError as err:
+                raise ConfigError(f"{key}.{name}", str(err)) from None
+        if "/" in self.node_name:
+            raise ConfigError(f"{key}.node_name", "a node name has no '/'")
+        for bus, ros in self.remap.items():
+            try:
+                rmw.check_topic_name(ros)
+            except rmw.WireError as err:
+                raise ConfigError(f"{key}.remap.{bus}", str(err)) from None
+        a, t = self.auth, self.tls
+        if bool(a.user) != bool(a.password):
+            raise ConfigError(f"{key}.auth.password" if a.user else f"{key}.auth.user",
+                              "user and password go together")
+        if bool(t.listen_certificate) != bool(t.listen_private_key):
+            raise ConfigError(f"{key}.tls.listen_private_key", "listen_certificate and "
+                              "listen_private_key go together")
+        for i, endpoint in enumerate(self.listen):
+            proto, host, _ = parse_endpoint(endpoint, f"{key}.listen[{i}]")
+            if is_loopback(host, proto):
+                continue
+            if a.dictionary_file:
+                continue
+            if proto in _ENCRYPTED and t.listen_certificate and (t.enable_mtls or a.dictionary_file):
+                continue
+            raise ConfigError(f"{key}.listen[{i}]", f"{endpoint} listens beyond this machine without "
+                              "authentication: anyone on the network could read the car and drive it. "
+                              f"Set {key}.auth.dictionary_file (user/password), or use a tls/ endpoint "
+                              f"with {key}.tls.listen_certificate, listen_private_key, "
+                              "root_ca_certificate and enable_mtls: true; or listen on 127.0.0.1")
+
+    def resolved_domain_id(self) -> int:
+        """``domain_id``, else ``ROS_DOMAIN_ID`` from the environment, else 0."""
+        if self.domain_id is not None:
+            return self.domain_id
+        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        if not env:
+            return 0
+        if not env.isdigit() or int(env) > 232:
+            raise ConfigError("zenoh.domain_id", f"ROS_DOMAIN_ID={env!r} is not a domain id (0..232)")
+        return int(env)
+
+
+def parse_endpoint(endpoint: str, key: str) -> tuple[str, str, int | None]:
+    """``proto/host:port[#...]`` as (protocol, host, port); ConfigError naming ``key`` if malformed."""
+    proto, sep, rest = endpoint.partition("/")
+    if not sep or proto not in _PROTOCOLS:
+        raise ConfigError(key, f"{endpoint!r} is not a Zenoh endpoint (like tcp/127.0.0.1:7447); "
+                               f"protocols: {', '.join(_PROTOCOLS)}")
+    address = rest.split("#", 1)[0].split("?", 1)[0]
+    if proto == "unixsock-stream":
+        return proto, address, None
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit() or not host or int(port) > 65535:
+        raise ConfigError(key, f"{endpoint!r}: expected host:port")
+    return proto, host.strip("[]"), int(port)
+
+
+def is_loopback(host: str, proto: str = "tcp") -> bool:
+    """Whether ``host`` only reaches this machine (127.0.0.0/8, ::1, localhost, a unix socket)."""
+    if proto == "unixsock-stream" or host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def session_config(mode: str, listen: list[str], connect: list[str], *, multicast: bool = False,
+                   auth: ZenohAuthParams | None = None, tls: ZenohTlsParams | None = None) -> Any:
+    """A ``zenoh.Config`` for a session: rmw_zenoh's router or session defaults, these endpoints."""
+    import zenoh  # noqa: PLC0415 - the Rust extension loads only when a session is opened
+
+    values: dict[str, Any] = {
+        "mode": mode,
+        "listen/endpoints": listen,
+        "connect/endpoints": connect,
+        "scouting/multicast/enabled": multicast,
+        "scouting/gossip/enabled": True,
+        "scouting/gossip/multihop": False,
+        "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
+        "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
+        "timestamping/enabled": {"router": True, "peer": True, "client": True},
+        "queries_default_timeout": 60000,
+        "routing/router/peers_failover_brokering": False,
+        # a listen that fails (port in use) ends the open with an error instead of retrying
+        "listen/exit_on_failure": True,
+    }
+    if mode == "client":
+        values["connect/timeout_ms"] = 3000
+    if auth is not None:
+        if auth.dictionary_file:
+            values["transport/auth/usrpwd/dictionary_file"] = auth.dictionary_file
+        if auth.user:
+            values["transport/auth/usrpwd/user"] = auth.user
+            values["transport/auth/usrpwd/password"] = auth.password
+    if tls is not None:
+        for name in ("listen_certificate", "listen_private_key", "root_ca_certificate"):
+            if getattr(tls, name):
+                values[f"transport/link/tls/{name}"] = getattr(tls, name)
+        if tls.enable_mtls:
+            values["transport/link/tls/enable_mtls"] = True
+    config = zenoh.Config()
+    for path, value in values.items():
+        config.insert_json5(path, json.dumps(value))
+    return config
+
+
+def config_for(params: ZenohParams) -> Any:
+    """The daemon's ``zenoh.Config`` from its section."""
+    return session_config(params.mode, params.listen, params.connect,
+                          multicast=params.multicast_scouting, auth=params.auth, tls=params.tls)

@@ -1,0 +1,146 @@
+"""racecar_hw.client against ``racecar-hw sim`` in processes of their own: the wall-follower example
+drives a lap of the track; two cars with namespaces behind one of them acting as the Zenoh router,
+driven independently through one client session; user/password keeps out a session without it."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
+
+from racecar_hw.client import AsyncCar, Car, ClientError
+from racecar_hw.sim.trajectory import read_csv
+
+
+def _wait_listening(port: int, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1.0):
+                return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"nothing listens on port {port} after {timeout} s") from None
+            time.sleep(0.1)
+
+
+def test_the_wall_follower_example_drives_a_lap_of_the_track(tmp_path):
+    port = free_port()
+    sim = start_sim(tmp_path, port, scenario_sets=("map=track", "drivers=[]"), duration=240.0)
+    try:
+        example = subprocess.run([sys.executable, str(ROOT / "examples" / "wall_follower.py"),
+                                  "--connect", endpoint(port), "--laps", "1", "--timeout", "180"],
+                                 capture_output=True, text=True, timeout=240, cwd=ROOT)
+        sim.proc.send_signal(signal.SIGINT)  # the sim ends early and still writes its report
+        report = sim.report()
+    finally:
+        sim.kill()
+    assert example.returncode == 0, example.stdout + example.stderr
+    assert "1 lap(s)" in example.stdout
+    assert not report["collided"], report["collisions"]
+    # ground truth from the world: the car went round all four corridors and back past its start
+    samples = read_csv(report["trajectory_csv"])
+    xs, ys = [s.x for s in samples], [s.y for s in samples]
+    assert max(xs) > 13.0 and max(ys) > 10.5 and min(xs) < -2.0, (min(xs), max(xs), max(ys))
+    left_corridor = next(i for i, s in enumerate(samples) if s.x < -2.0)
+    assert any(s.x > 0.0 and s.y < 1.0 for s in samples[left_corridor:])
+    assert report["distance_m"] > 50.0
+    assert set(report["safety_interventions_by_reason"]) <= {"stale_scan"}
+
+
+def test_two_cars_behind_one_as_router_are_driven_independently(tmp_path):
+    router_port = free_port()
+    car1 = start_sim(tmp_path / "car1", router_port, "zenoh.mode=router", "zenoh.namespace=/car1",
+                     duration=12.0)
+    car2 = None
+    try:
+        _wait_listening(router_port)
+        car2 = start_sim(tmp_path / "car2", None, "zenoh.mode=client", "zenoh.listen=[]",
+                         f'zenoh.connect=["{endpoint(router_port)}"]', "zenoh.namespace=/car2",
+                         duration=10.0)
+        with Car(endpoint(router_port), namespace="/car1") as one:
+            two = Car(namespace="/car2", session=one.session)  # one client session, both cars
+            assert one.next_scan(timeout=30).ranges.size == 1081
+            assert two.next_scan(timeout=30).ranges.size == 1081
+            for _ in range(30):  # 1.5 s at 20 Hz
+                one.drive(0.5, 0.0)
+                two.drive(1.0, 0.2)
+                time.sleep(0.05)
+            odom1, odom2 = one.next_odom(), two.next_odom()
+            two.close()
+        r1, r2 = car1.report(), car2.report()
+    finally:
+        car1.kill()
+        if car2 is not None:
+            car2.kill()
+    assert "nav_0" in switches(r1) and "nav_0" in switches(r2)
+    assert r1["max_speed_mps"] == pytest.approx(0.5, abs=0.05)
+    assert r2["max_speed_mps"] == pytest.approx(1.0, abs=0.08)
+    assert abs(r1["final_pose"]["yaw"]) < 0.05 < r2["final_pose"]["yaw"]
+    assert 0.3 < odom1.speed < 0.6 and 0.7 < odom2.speed < 1.1
+    assert r1["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+    assert r2["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+
+
+def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(tmp_path):
+    users = tmp_path / "users.txt"
+    users.write_text("driver:s3cret\n")
+    port = free_port()
+    sim = start_sim(tmp_path / "sim", port, f"zenoh.auth.dictionary_file={users}", duration=8.0)
+    try:
+        _wait_listening(port)
+        with pytest.raises(ClientError, match="cannot connect"):
+            Car(endpoint(port))  # client mode: the daemon refuses the link
+        with pytest.raises(ClientError, match="cannot connect"):
+            Car(endpoint(port), user="driver", password="wrong")
+        # a peer without credentials opens (it keeps retrying) but nothing flows either way
+        intruder = Car(endpoint(port), mode="peer")
+        with Car(endpoint(port), user="driver", password="s3cret") as good:
+            assert good.next_scan(timeout=30).ranges.size == 1081
+            for _ in range(20):
+                intruder.drive(2.0, 0.2)
+                time.sleep(0.05)
+            assert intruder.scan is None and intruder.odom is None
+            with pytest.raises(ClientError):
+                intruder.next_scan(timeout=0.5)
+        intruder.close()
+        report = sim.report()
+    finally:
+        sim.kill()
+    assert "nav_0" not in switches(report)
+    assert report["distance_m"] < 0.05
+
+
+def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
+    port = free_port()
+    sim = start_sim(tmp_path, port, duration=5.0)
+
+    async def use() -> tuple[int, float]:
+        async with AsyncCar(endpoint(port)) as car:
+            n = 0
+            async for scan in car.scans(timeout=30):
+                assert scan.ranges.size == scan.angles.size == 1081
+                n += 1
+                car.drive(0.3, 0.0)
+                if n == 30:
+                    break
+            async for odom in car.odometry(timeout=5):
+                return n, odom.speed
+        raise AssertionError("no odometry")
+
+    try:
+        _wait_listening(port)
+        n, speed = asyncio.run(use())
+        report = sim.report()
+    finally:
+        sim.kill()
+    assert n == 30 and 0.05 < speed < 0.4
+    assert "nav_0" in switches(report)
+    assert math.isclose(report["final_speed_mps"], 0.0, abs_tol=0.02)

@@ -1,0 +1,50 @@
+"""``racecar-hw topic list | echo | hz | pub`` against ``racecar-hw sim``, each in its own process."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import yaml
+from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
+
+
+def _topic(port: int, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "racecar_hw.cli", "topic", "--connect", endpoint(port),
+                           *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
+    port = free_port()
+    sim = start_sim(tmp_path, port, duration=14.0)
+    try:
+        listed = _topic(port, "list", "-v")
+        while "/scan" not in listed.stdout and sim.proc.poll() is None:  # the sim may still start
+            listed = _topic(port, "list", "-v")
+        unknown = _topic(port, "echo", "/no_such_topic", "-n", "1")
+        odom = _topic(port, "echo", "/odom", "-n", "1")
+        active = _topic(port, "echo", "/vesc/low_level/ackermann_cmd_mux/active", "-n", "1")
+        hz = _topic(port, "hz", "/scan", "--duration", "2.5")
+        pub = _topic(port, "pub", "/vesc/high_level/ackermann_cmd_mux/input/nav_0",
+                     "ackermann_msgs/msg/AckermannDriveStamped", "{drive: {speed: 0.4}}", "--rate", "20",
+                     "--times", "20")
+        bad = _topic(port, "pub", "/estop", "std_msgs/msg/Bool", "{data: maybe}")
+        report = sim.report()
+    finally:
+        sim.kill()
+    assert listed.returncode == 0, listed.stderr
+    out = listed.stdout
+    assert re.search(r"^/scan\s+\[sensor_msgs/msg/LaserScan\]\s+publishers: /racecar_hw", out, re.M)
+    assert re.search(r"^/cmd_vel\s+\[geometry_msgs/msg/Twist\].*subscribers: /racecar_hw", out, re.M)
+    assert odom.returncode == 0, odom.stderr
+    first = yaml.safe_load(odom.stdout.split("---")[0])
+    assert first["header"]["frame_id"] == "odom" and first["child_frame_id"] == "base_link"
+    assert active.returncode == 0 and yaml.safe_load(active.stdout.split("---")[0])["data"] == "idle"
+    rates = [float(m) for m in re.findall(r"average rate ([\d.]+) Hz", hz.stdout)]
+    assert rates and 30.0 < rates[-1] < 50.0, hz.stdout  # the UST-10LX's 40 Hz
+    assert pub.returncode == 0 and pub.stdout.count("publishing #") == 20
+    assert "nav_0" in switches(report)
+    assert 0.3 < report["max_speed_mps"] < 0.5
+    assert bad.returncode == 1 and "expected true or false" in bad.stderr and "Traceback" not in bad.stderr
+    assert unknown.returncode == 1 and "not in the ROS graph" in unknown.stderr

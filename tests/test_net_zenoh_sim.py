@@ -1,0 +1,79 @@
+"""The acceptance runs: ``racecar-hw sim`` in its own process, its Zenoh bridge on a free loopback
+port, and an independent ROS 2 peer (zenoh-ros2-sdk, tests/zenoh_peer.py) in another process that
+reads /scan and /odom and drives the car with AckermannDriveStamped, then with a Twist on /cmd_vel.
+The sim's report and trajectory say whether the car moved as commanded and stopped once the
+publisher stopped (the mux's 0.2 s timeout)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from zenoh_util import ROOT, free_port, start_sim, switch_times, switches
+
+from racecar_hw.sim.trajectory import read_csv
+
+pytest.importorskip("zenoh_ros2_sdk", reason="zenoh-ros2-sdk (the test extra) is not installed")
+if not (Path(sys.prefix) / "share" / "sensor_msgs" / "msg" / "LaserScan.msg").exists():
+    pytest.skip("the official ROS 2 message packages (ros-*-msgs wheels, x86_64 only) are not installed: "
+                "the independent peer reads its definitions from them", allow_module_level=True)
+
+PEER = str(ROOT / "tests" / "zenoh_peer.py")
+
+
+def _peer(port: int, *args: str, timeout: float = 60) -> dict:
+    proc = subprocess.run([sys.executable, PEER, str(port), *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _speed_near(samples, t: float) -> float:
+    return min(samples, key=lambda s: abs(s.t - t)).speed
+
+
+@pytest.mark.parametrize(("profile", "input_topic"), [
+    ("racecar", "/vesc/high_level/ackermann_cmd_mux/input/nav_0"),
+    ("f1tenth", "/drive"),
+])
+def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile, input_topic):
+    port = free_port()
+    sim = start_sim(tmp_path, port, f"zenoh.profile={profile}", duration=14.0)
+    try:
+        seen = _peer(port, "drive", "--input", input_topic)
+        # /tf_static is latched (TRANSIENT_LOCAL): a subscriber starting now, long after the
+        # daemon published it once at start, still gets it from the publisher's cache
+        assert time.monotonic() - sim.started > 5.0
+        latched = _peer(port, "latched", "/tf_static")
+        report = sim.report()
+    finally:
+        sim.kill()
+    assert seen["scan_before_driving"] >= 5 and seen["odom_before_driving"] >= 5
+    assert seen["scan_beams"] == 1081 and seen["odom_frame"] == "odom"
+    assert latched["frames"] == ["laser", "left_cam", "right_cam"]
+    order = switches(report)
+    assert "nav_0" in order and "cmd_vel" in order, report["mux_switches"]
+    assert order.index("cmd_vel") > order.index("nav_0")
+    assert order[order.index("nav_0") + 1] == "idle" and order[order.index("cmd_vel") + 1] == "idle"
+    samples = read_csv(report["trajectory_csv"])
+    nav_on, = switch_times(report, "nav_0")
+    twist_on, = switch_times(report, "cmd_vel")
+    idle = switch_times(report, "idle")
+    nav_off = min(t for t in idle if t > nav_on)
+    twist_off = min(t for t in idle if t > twist_on)
+    # AckermannDriveStamped at 0.6 m/s for 1.5 s: the car reaches that speed (limiter: 2.5 m/s^2)
+    assert 0.5 < max(s.speed for s in samples if nav_on <= s.t <= nav_off + 0.05) < 0.7
+    # then the peer stopped sending: 0.2 s of mux timeout, then the mux stops the car
+    assert nav_off - nav_on == pytest.approx(1.5 + 0.2, abs=0.35)
+    assert abs(_speed_near(samples, nav_off + 0.4)) < 0.05
+    # Twist 0.5 m/s, 0.6 rad/s: forward and turning left (yaw grows)
+    during = [s for s in samples if twist_on <= s.t <= twist_off]
+    assert 0.4 < max(s.speed for s in during) < 0.6
+    assert during[-1].yaw - during[0].yaw > 0.3
+    assert abs(_speed_near(samples, twist_off + 0.4)) < 0.05
+    assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+    assert not report["collided"]

@@ -1,0 +1,167 @@
+"""An independent ROS 2 peer for the tests: zenoh-ros2-sdk in a process of its own.
+
+It knows nothing of racecar-hw: message definitions come from the official ROS 2 packages' ``.msg``
+files (the PyPI ``ros-*-msgs`` wheels install them under ``<prefix>/share``) and the type hashes
+from their JSON type descriptions, injected because zenoh-ros2-sdk computes wrong ones offline.
+ackermann_msgs has no wheel: its two definitions (ros-drivers/ackermann_msgs, ros2 branch) are
+below, with the hash ROS 2's own generator gives them (tests/test_net_rmw.py checks it).
+
+    python tests/zenoh_peer.py PORT drive [--namespace /car1] [--input TOPIC] [--twist-topic T]
+    python tests/zenoh_peer.py PORT latched TOPIC
+
+``drive``: wait for /scan and /odom, then publish AckermannDriveStamped on the input topic at
+20 Hz for 1.5 s (0.6 m/s, steering 0), pause 1.5 s, then Twist on /cmd_vel for 1.5 s (0.5 m/s,
+0.6 rad/s), pause; print a JSON line of what it saw. ``latched``: subscribe TRANSIENT_LOCAL to a
+TFMessage topic and print the frames of the first message (or none after 10 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import threading
+import time
+from pathlib import Path
+
+from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber
+from zenoh_ros2_sdk.session import ZenohSession
+
+SHARE = Path(sys.prefix) / "share"
+ACKERMANN = {
+    "ackermann_msgs/msg/AckermannDrive": "float32 steering_angle\nfloat32 steering_angle_velocity\n"
+                                         "float32 speed\nfloat32 acceleration\nfloat32 jerk\n",
+    "ackermann_msgs/msg/AckermannDriveStamped": "std_msgs/Header header\nAckermannDrive drive\n",
+}
+ACKERMANN_HASH = "RIHS01_48ca7612a08d3bb72744fd98b71b7cf2ea24c6ad50fa4e1aa0bbad963c90d8cf"
+TF_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+TF_DEF = "geometry_msgs/TransformStamped[] transforms\n"
+_PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
+               "uint32", "int64", "uint64", "string", "wstring"}
+
+
+def definition(name: str) -> str:
+    if name in ACKERMANN:
+        return ACKERMANN[name]
+    if name == "tf2_msgs/msg/TFMessage":
+        return TF_DEF
+    pkg, _, short = name.split("/")
+    return (SHARE / pkg / "msg" / f"{short}.msg").read_text()
+
+
+def official_hash(name: str) -> str:
+    if name.startswith("ackermann_msgs/"):
+        return ACKERMANN_HASH
+    if name == "tf2_msgs/msg/TFMessage":
+        return TF_HASH
+    pkg, _, short = name.split("/")
+    return json.loads((SHARE / pkg / "msg" / f"{short}.json").read_text())["type_hashes"][0]["hash_string"]
+
+
+def register(session: ZenohSession, name: str, done: set[str]) -> None:
+    """Register ``name`` and every type it nests, dependencies first."""
+    if name in done:
+        return
+    pkg = name.split("/")[0]
+    text = definition(name)
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].strip()
+        parts = line.split()
+        if len(parts) < 2 or "=" in line:  # blank, comment or constant
+            continue
+        ftype = re.sub(r"\[.*\]", "", parts[0]).split("<=")[0]
+        if ftype in _PRIMITIVES:
+            continue
+        nested = ftype if "/" in ftype else f"{pkg}/{ftype}"
+        if nested.count("/") == 1:
+            nested = nested.replace("/", "/msg/")
+        register(session, nested, done)
+    session.register_message_type(text, name)
+    done.add(name)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("port", type=int)
+    parser.add_argument("mode", choices=("drive", "latched"))
+    parser.add_argument("topic", nargs="?", default="/tf_static")
+    parser.add_argument("--namespace", default="")
+    parser.add_argument("--input", default="/vesc/high_level/ackermann_cmd_mux/input/nav_0")
+    parser.add_argument("--twist-topic", default="/cmd_vel")
+    args = parser.parse_args()
+    session = ZenohSession.get_instance("127.0.0.1", args.port)
+    done: set[str] = set()
+    common = dict(router_ip="127.0.0.1", router_port=args.port)
+    if args.mode == "latched":
+        register(session, "tf2_msgs/msg/TFMessage", done)
+        got: list = []
+        arrived = threading.Event()
+
+        def on_tf(msg) -> None:  # noqa: ANN001 - a rosbags message of the SDK's own store
+            got.append([t.child_frame_id for t in msg.transforms])
+            arrived.set()
+
+        sub = ROS2Subscriber(args.topic, "tf2_msgs/msg/TFMessage", on_tf, msg_definition=TF_DEF,
+                             type_hash=TF_HASH, qos=":1:,1:,:,:,,", **common)
+        arrived.wait(10)
+        print(json.dumps({"frames": got[0] if got else None}), flush=True)
+        sub.close()
+        return 0
+    for name in ("sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist",
+                 "ackermann_msgs/msg/AckermannDriveStamped"):
+        register(session, name, done)
+    seen = {"scan": 0, "odom": 0, "scan_beams": 0, "odom_frame": ""}
+
+    def on_scan(msg) -> None:  # noqa: ANN001
+        seen["scan"] += 1
+        seen["scan_beams"] = len(msg.ranges)
+
+    def on_odom(msg) -> None:  # noqa: ANN001
+        seen["odom"] += 1
+        seen["odom_frame"] = msg.header.frame_id
+
+    ns = args.namespace
+    subs = [ROS2Subscriber(f"{ns}/scan", "sensor_msgs/msg/LaserScan", on_scan,
+                           msg_definition=definition("sensor_msgs/msg/LaserScan"),
+                           type_hash=official_hash("sensor_msgs/msg/LaserScan"), **common),
+            ROS2Subscriber(f"{ns}/odom", "nav_msgs/msg/Odometry", on_odom,
+                           msg_definition=definition("nav_msgs/msg/Odometry"),
+                           type_hash=official_hash("nav_msgs/msg/Odometry"), **common)]
+    deadline = time.monotonic() + 30
+    while (seen["scan"] < 5 or seen["odom"] < 5) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    seen["scan_before_driving"], seen["odom_before_driving"] = seen["scan"], seen["odom"]
+    store = session.store.types
+    drive_pub = ROS2Publisher(f"{ns}{args.input}", "ackermann_msgs/msg/AckermannDriveStamped",
+                              msg_definition=ACKERMANN["ackermann_msgs/msg/AckermannDriveStamped"],
+                              type_hash=ACKERMANN_HASH, **common)
+    twist_pub = ROS2Publisher(f"{ns}{args.twist_topic}", "geometry_msgs/msg/Twist",
+                              msg_definition=definition("geometry_msgs/msg/Twist"),
+                              type_hash=official_hash("geometry_msgs/msg/Twist"), **common)
+    time.sleep(0.5)  # let the daemon's subscriber see the new publishers' session
+    Time, Header = store["builtin_interfaces/msg/Time"], store["std_msgs/msg/Header"]
+    Drive, Vector3 = store["ackermann_msgs/msg/AckermannDrive"], store["geometry_msgs/msg/Vector3"]
+    sent = {"drive": 0, "twist": 0}
+    for _ in range(30):
+        now = time.time_ns()
+        stamp = Time(sec=now // 10**9, nanosec=now % 10**9)
+        drive_pub.publish(header=Header(stamp=stamp, frame_id="base_link"),
+                          drive=Drive(steering_angle=0.0, steering_angle_velocity=0.0, speed=0.6,
+                                      acceleration=0.0, jerk=0.0))
+        sent["drive"] += 1
+        time.sleep(0.05)
+    time.sleep(1.5)
+    for _ in range(30):
+        twist_pub.publish(linear=Vector3(x=0.5, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=0.6))
+        sent["twist"] += 1
+        time.sleep(0.05)
+    time.sleep(1.0)
+    print(json.dumps({**seen, **sent}), flush=True)
+    for entity in (*subs, drive_pub, twist_pub):
+        entity.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,76 @@
+"""Helpers for the Zenoh tests: free ports, ``racecar-hw sim`` in a process of its own, its report."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    """A TCP port nobody listens on now (the OS picks it)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+@dataclass
+class SimProcess:
+    """``racecar-hw sim`` running in a subprocess; :meth:`report` waits for it and reads the report."""
+
+    proc: subprocess.Popen
+    out: Path
+    started: float
+
+    def report(self, timeout: float = 120) -> dict:
+        try:
+            _, err = self.proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            _, err = self.proc.communicate()
+            raise AssertionError(f"sim did not finish: {err[-3000:]}") from None
+        assert self.proc.returncode == 0, err[-3000:]
+        self.log = err
+        return json.loads((self.out / "report.json").read_text())
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate()
+
+
+def start_sim(out: Path, listen_port: int | None, *sets: str, scenario: str = "wall",
+              scenario_sets: tuple[str, ...] = ("drivers=[]",), duration: float = 12.0) -> SimProcess:
+    """Start ``racecar-hw sim`` with its Zenoh bridge listening on ``listen_port`` (None: ``sets`` say)."""
+    out.mkdir(parents=True, exist_ok=True)
+    command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", scenario,
+               "--duration", str(duration), "--no-status", "--out", str(out),
+               "--report", str(out / "report.json")]
+    for item in scenario_sets:
+        command += ["--scenario-set", item]
+    if listen_port is not None:
+        command += ["--set", f'zenoh.listen=["{endpoint(listen_port)}"]']
+    for item in sets:
+        command += ["--set", item]
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    return SimProcess(proc, out, time.monotonic())
+
+
+def switches(report: dict) -> list[str]:
+    """The mux's sources in the order they became active."""
+    return [source for _, source in report["mux_switches"]]
+
+
+def switch_times(report: dict, source: str) -> list[float]:
+    """World times (s) at which ``source`` became active."""
+    return [t for t, s in report["mux_switches"] if s == source]
