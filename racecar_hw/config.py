@@ -28,8 +28,8 @@ from racecar_hw.base.params import build, describe, param, to_dict
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.foxglove_server import FoxgloveParams
-from racecar_hw.net.web import WebParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
+from racecar_hw.net.web import WebParams
 from racecar_hw.net.zenoh_config import ZenohParams
 from racecar_hw.sources.figure8 import Figure8Params
 from racecar_hw.sources.scan_summary import ScanSummaryParams
