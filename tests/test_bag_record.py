@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 from bag_ros1tools import read_real_bag
 from conftest import wait_for
 from rosbags.highlevel import AnyReader
@@ -22,8 +23,9 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bags.follow import load_commands, summarize_bag
-from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, record_params
+from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, offered_qos, record_params
 from racecar_hw.bags.recover import recover_bag, scan_mcap
+from racecar_hw.bags.writers import ROS2_METADATA_VERSION
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -150,7 +152,7 @@ def test_disabled_recorder_records_nothing(tmp_path: Path) -> None:
 
 
 def test_existing_bag_is_a_clear_error(tmp_path: Path) -> None:
-    (tmp_path / "run_0").mkdir()
+    (tmp_path / "run").mkdir()
     rec = Recorder(Bus(), record_params(tmp_path, name="run"))
     with pytest.raises(BagError, match="exists already"):
         rec.start()
@@ -191,8 +193,15 @@ def test_split_by_duration(tmp_path: Path) -> None:
         wait_for(lambda i=i: wall_ns() - start >= i * 80_000_000)
         bus.publish(CMD, cmd(i))
     stats = rec.stop()
-    assert len(stats.files) == 3
-    assert [len(read_ours([f])[CMD]) for f in stats.files] == [1, 1, 1]
+    # one rosbag2 bag whose three files are the splits, as ros2 bag record --max-bag-duration makes
+    (bag,) = stats.files
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == ["dur_0.mcap", "dur_1.mcap", "dur_2.mcap"]
+    assert [f["message_count"] for f in info["files"]] == [1, 1, 1]
+    assert info["message_count"] == 3 and info["custom_data"] == {"racecar_hw": "closed"}
+    assert sorted(p.name for p in bag.iterdir()) == ["dur_0.mcap", "dur_1.mcap", "dur_2.mcap",
+                                                     "metadata.yaml"]
+    assert [c.drive.speed for c in load_commands(bag, CMD)] == [0.0, 0.5, 1.0]
 
 
 KILLED_RECORDER = textwrap.dedent("""
@@ -227,7 +236,7 @@ def test_sigkill_keeps_everything_flushed(tmp_path: Path, fmt: str) -> None:
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
-    bag = tmp_path / ("killed_0.bag" if fmt == "ros1" else "killed_0")
+    bag = tmp_path / ("killed_0.bag" if fmt == "ros1" else "killed")
     if fmt == "sqlite3":  # readable as it is
         speeds = [c.drive.speed for c in load_commands(bag, "/cmd")]
         assert speeds[:300] == [float(i) for i in range(300)]
@@ -262,9 +271,10 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
         msgs += [("/scan", scan(i)), (CMD, cmd(i)), ("/tf", tf)]
     (tmp_path / "ours").mkdir()
     (tmp_path / "ref").mkdir()
-    ours = BagFile(tmp_path / "ours" / "bag", "mcap", "none", types)
+    ours = BagFile(tmp_path / "ours" / "bag" / "bag", "mcap", "none", types)
     assert ours._mcap is not None  # the lean path is in use with this rosbags
-    ref = Writer2(tmp_path / "ref" / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
+    ref = Writer2(tmp_path / "ref" / "bag", version=ROS2_METADATA_VERSION,
+                  storage_plugin=StoragePlugin.MCAP)
     ref.open()
     conns: dict[str, Connection] = {}
     for i, (topic, msg) in enumerate(msgs):
@@ -272,7 +282,7 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
         ours.write(topic, msg, t_ns)
         if topic not in conns:
             conns[topic] = ref.add_connection(topic, msg.ROS_TYPE, typestore=types.store,
-                                              offered_qos_profiles=[])
+                                              offered_qos_profiles=offered_qos(topic, type(msg)))
         ref.write(conns[topic], t_ns, types.serialize_generic(msg))
         if i == 100:  # a flush closes the pending chunk on both
             ours.flush()
@@ -282,8 +292,12 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
     ref.close()
     mcap = (tmp_path / "ours" / "bag" / "bag.mcap").read_bytes()
     assert mcap == (tmp_path / "ref" / "bag" / "bag.mcap").read_bytes()
-    meta = (tmp_path / "ours" / "bag" / "metadata.yaml").read_text()
-    assert meta == (tmp_path / "ref" / "bag" / "metadata.yaml").read_text()
+    meta = yaml.safe_load((tmp_path / "ours" / "bag" / "metadata.yaml").read_text())
+    ref_meta = yaml.safe_load((tmp_path / "ref" / "bag" / "metadata.yaml").read_text())
+    # rosbags' metadata for one file, but for custom_data (ours says the recording was closed)
+    assert meta["rosbag2_bagfile_information"].pop("custom_data") == {"racecar_hw": "closed"}
+    assert ref_meta["rosbag2_bagfile_information"].pop("custom_data") is None
+    assert meta == ref_meta
     assert scan_mcap(mcap).complete
 
 
@@ -316,20 +330,29 @@ def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monke
 
 @pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
 def test_metadata_template_gives_the_yaml_of_a_full_dump(tmp_path: Path, fmt: str) -> None:
-    import yaml
+    bag = BagFile(tmp_path / "meta" / "meta_0", fmt, "none", ros2_types())
+    meta = bag.meta
+    assert meta is not None
 
-    bag = BagFile(tmp_path / "meta", fmt, "none", ros2_types())
+    def full_dump(current: BagFile | None) -> str:
+        info = meta.info(meta.file_names(current), meta.numbers(current))
+        return yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
 
-    def full_dump() -> str:
-        return yaml.safe_dump({"rosbag2_bagfile_information": bag.metadata_info()}, sort_keys=False)
-
-    assert bag.metadata_text() == full_dump()  # no topics yet
+    assert meta.text(bag) == full_dump(bag)  # no topics yet
     topics = ["/tf_static", CMD, "/scan", "/odd: topic #1", "/ünïcode"]
     for i in range(40):
+        if i == 30:  # a split: the second file of the same bag
+            bag.close(last=False)
+            assert meta.text(None) == full_dump(None)
+            bag = BagFile(tmp_path / "meta" / "meta_1", fmt, "none", ros2_types(), meta)
         topic = topics[i % len(topics)] if i < 25 else CMD
         msg: Message = static_tf() if topic == "/tf_static" else cmd(i)
         bag.write(topic, msg, 10**18 + 7 * i)
-        assert bag.metadata_text() == full_dump()
+        assert meta.text(bag) == full_dump(bag)
     bag.flush()
-    assert (tmp_path / "meta" / "metadata.yaml").read_text() == full_dump()
+    assert (tmp_path / "meta" / "metadata.yaml").read_text() == full_dump(bag)
     bag.close()
+    info = yaml.safe_load((tmp_path / "meta" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert [f["message_count"] for f in info["files"]] == [30, 10]
+    assert info["message_count"] == 40 and info["duration"]["nanoseconds"] == 7 * 39
+    assert summarize_bag(tmp_path / "meta")[CMD][1] == 5 + 5 + 10
