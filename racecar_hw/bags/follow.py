@@ -108,7 +108,7 @@ def _open_reader(path: Path) -> AnyReader:
         text = str(err)
         hint = ""
         if "not indexed" in text or "end magic" in text:
-            hint = " (an interrupted recording? try racecar_hw.bags.recover.recover_bag)"
+            hint = f" (an interrupted recording? try: racecar-hw bag recover {path})"
         raise BagError(f"cannot read bag {path}: {text}{hint}") from err
     return reader
 

@@ -68,7 +68,13 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.metadata import dump_qos_v8
 
 from racecar_hw.bags.mcap_appender import McapAppender
-from racecar_hw.bags.writers import ROS2_METADATA_VERSION, Ros1Writer, Ros2FileWriter
+from racecar_hw.bags.writers import (
+    RECORDING_CLOSED,
+    RECORDING_OPEN,
+    ROS2_METADATA_VERSION,
+    Ros1Writer,
+    Ros2FileWriter,
+)
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -294,11 +300,6 @@ class Ros2BagMetadata:
             fh.write(text)
             _sync(fh)
         tmp.replace(meta)
-
-
-#: ``custom_data.racecar_hw`` of a bag still being written (or cut off) and of a closed one.
-RECORDING_OPEN = "in progress: written at flush, rewritten at close"
-RECORDING_CLOSED = "closed"
 
 
 class BagFile:

@@ -36,6 +36,11 @@ from rosbags.rosbag2 import Writer as Writer2
 #: type description hashes (RIHS01) that Iron and newer use, which Humble ignores.
 ROS2_METADATA_VERSION = 8
 
+#: ``custom_data.racecar_hw`` in the metadata.yaml of a bag still being written (or cut off by a
+#: crash), and of one whose recorder closed it.
+RECORDING_OPEN = "in progress: written at flush, rewritten at close"
+RECORDING_CLOSED = "closed"
+
 #: rosbag's ``_FILE_HEADER_LENGTH``: the file header's fields are padded to this many bytes.
 ROS1_FILE_HEADER_LENGTH = 4096
 ROS1_MAGIC = b"#ROSBAG V2.0\n"
