@@ -23,6 +23,7 @@ COMMANDS: tuple[str, ...] = (
     "daemon",
     "sim",
     "follow",
+    "bag",
     "vesc",
     "lidar",
 )
