@@ -102,6 +102,12 @@ def _percentile(values: list[int], q: int) -> int:
     return ordered[min(len(ordered) - 1, (q * len(ordered)) // 100)]
 
 
+def reverse_speed_cap(config: Config) -> float | None:
+    """The fastest the safety controller lets the car reverse (m/s); None when it does not cap
+    (``off``, and ``cone``, which only stops the car through the mux)."""
+    return config.safety.reverse_speed_cap_mps if config.safety.mode == "arc" else None
+
+
 class Daemon:
     """Builds the configured components on ``bus`` and runs them until stopped."""
 
@@ -130,7 +136,9 @@ class Daemon:
         self.setpoint = SetpointRelay(self.bus, config.setpoint) if config.setpoint.enabled else None
         self.figure8 = (Figure8Driver(self.bus, config.figure8.params(config.vesc.wheelbase_m))
                         if config.figure8.enabled else None)
-        self.follower = BagFollower(self.bus, config.follower) if config.follower.enabled else None
+        self.follower = (BagFollower(self.bus, config.follower, wheelbase_m=config.vesc.wheelbase_m,
+                                     reverse_speed_cap_mps=reverse_speed_cap(config))
+                         if config.follower.enabled else None)
         self.recorder = Recorder(self.bus, config.recorder) if config.recorder.enabled else None
         self.status = status
         self._tasks: list[asyncio.Task[Any]] = []

@@ -27,7 +27,7 @@ from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stam
 from racecar_hw.base.overrides import merge
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import Config, load_config, shipped_config
-from racecar_hw.daemon import Daemon
+from racecar_hw.daemon import Daemon, reverse_speed_cap
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
@@ -222,7 +222,9 @@ class Loopback:
             params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=topic,
                                     rate_hz=spec.rate_hz, use_timestamps=spec.use_timestamps,
                                     reverse=spec.reverse)
-            await self._until(BagFollower(bus, params).run(), spec.until_s)
+            follower = BagFollower(bus, params, wheelbase_m=self.config.vesc.wheelbase_m,
+                                   reverse_speed_cap_mps=reverse_speed_cap(self.config))
+            await self._until(follower.run(), spec.until_s)
 
     async def _until(self, coro: Any, until_s: float | None) -> None:
         task = asyncio.ensure_future(coro)
