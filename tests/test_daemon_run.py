@@ -110,6 +110,35 @@ def test_latency_summary_splits_time_on_and_off_the_cpu():
     assert got == {"p50": 51.0, "p99": 100.0, "max": 100.0, "count": 100.0,
                    "cpu_p50": 25.0, "cpu_p99": 49.5, "off_cpu_p99": 99.0}
     assert ControlStats().latency_ms() == {}
+    assert "p50=51.000 ms p99=100.000 ms max=100.000 ms over 100 scans" in stats.summary()
+    empty = ControlStats().summary()  # no VESC, no lidar: nothing was timed, and it says so
+    assert "nan" not in empty and "no scan-to-command latency measured" in empty
+
+
+def test_a_missing_vesc_shows_as_connecting_on_the_panel(tmp_path):
+    """racecar-hw run without its VESC: the panel says 'connecting N s' (and the log reminds, see
+    test_links.py) instead of one warning and silence."""
+    import asyncio
+
+    from racecar_hw.daemon import Daemon
+
+    config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
+                                "gamepad.enabled=false", "status.enabled=false",
+                                "safety.mode=off"])
+
+    async def scenario() -> tuple[str | None, str | None]:
+        daemon = Daemon(config)
+        stop = asyncio.Event()
+        task = asyncio.create_task(daemon.run(stop))
+        await asyncio.sleep(1.2)
+        snap = daemon.snapshot()
+        stop.set()
+        await asyncio.wait_for(task, 20)
+        return snap.vesc_link, snap.lidar_link
+
+    vesc_link, lidar_link = asyncio.run(scenario())
+    assert vesc_link is not None and vesc_link.startswith("connecting ")
+    assert lidar_link is None  # no lidar configured: no lidar link shown
 
 
 def test_config_errors_name_the_key(tmp_path):
