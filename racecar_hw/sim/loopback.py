@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from lidar_drivers.registry import family, make_fake
+from racecar_hw.bags.follow import load_commands
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
@@ -31,7 +32,7 @@ from racecar_hw.daemon import Daemon, reverse_speed_cap
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
-from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.car import CLEARANCE_RANGE_M, CarParams
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
@@ -82,6 +83,8 @@ class Loopback:
         self.interventions_at: list[tuple[float, float]] = []
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
+        #: why the run ended: "duration", or what interrupted it (request_stop)
+        self.stop_reason = "duration"
         #: world time (s) when the car was ready to drive: the scenario's time zero
         self.ready_at_s: float | None = None
         self._mux_offset_s = 0.0
@@ -107,10 +110,20 @@ class Loopback:
                          wheelbase=v.wheelbase_m, length=fp.length_m, width=fp.width_m,
                          rear_overhang=fp.rear_overhang_m)
 
-    def _start_devices(self) -> Config:
+    def _check(self, config: Config) -> None:
+        """Refuse, before anything starts, what would fail later: a driver on an input the mux does
+        not have, a follow driver whose bag or topic is missing (each a one-line error)."""
+        inputs = [inp.name for inp in config.mux.inputs]
+        for i, spec in enumerate(self.scenario.drivers):
+            if spec.input not in inputs:
+                raise ConfigError(f"scenario.drivers.{i}.input",
+                                  f"{spec.input!r} is not a mux input; inputs: {', '.join(inputs)}")
+            if spec.type == "follow":
+                load_commands(spec.bag, spec.topic, config.vesc.wheelbase_m)
+
+    def _start_devices(self, config: Config) -> Config:
         sc = self.scenario
         model = sc.lidar.model
-        config = self._build_config()
         laser = self._laser_pose(config)
         vesc = self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
         self.world = World(self.map, self._car_params(config), sc.start,
@@ -243,7 +256,7 @@ class Loopback:
             if inp.name == name:
                 return inp.topic
         names = ", ".join(i.name for i in self.config.mux.inputs)
-        raise ValueError(f"scenario driver input {name!r} is not a mux input; inputs: {names}")
+        raise ConfigError("scenario", f"driver input {name!r} is not a mux input; inputs: {names}")
 
     async def _faults(self) -> None:
         for fault in sorted(self.scenario.faults, key=lambda f: f.at_s):
@@ -295,15 +308,23 @@ class Loopback:
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
         try:
-            self.config = self._start_devices()
+            config = self._build_config()
+            self._check(config)
+            self.config = self._start_devices(config)
             assert self.world is not None
             created_ns = monotonic_ns()
             self.daemon = Daemon(self.config, status=self.status)
+            world = self.world
+            self.daemon.extra_status = lambda: {
+                "sim_time_s": world.sim_time, "sim_pose": tuple(world.pose),
+                "clearance_m": world.clearance()}
             # world time at which the mux started counting (its switch times are relative to it)
             self._mux_offset_s = self.world.sim_time - (monotonic_ns() - created_ns) / NS_PER_S
             if self.setup is not None:
                 self.setup(self)
             stop = self._stop = asyncio.Event()
+            if self.stop_reason != "duration":  # asked to stop while the devices were starting
+                stop.set()
             for spec in self.scenario.drivers:
                 self.daemon.add_task(self._drive(spec))
             self.daemon.add_task(self._faults())
@@ -321,8 +342,11 @@ class Loopback:
             self.devices.stop()
             self._tmp.cleanup()
 
-    def request_stop(self) -> None:
-        """End the run now (from the event loop), as if the duration had passed."""
+    def request_stop(self, reason: str = "request") -> None:
+        """End the run now (from the event loop), as if the duration had passed; the report says
+        it was ``interrupted`` and why (``stop_reason``: SIGINT, SIGTERM, ...)."""
+        if self.stop_reason == "duration":
+            self.stop_reason = reason
         if self._stop is not None:
             self._stop.set()
 
@@ -347,10 +371,13 @@ class Loopback:
             "scenario": self.scenario.name,
             "description": self.scenario.description,
             "sim_time_s": round(sim_time, 3),
+            "interrupted": self.stop_reason != "duration",
+            "stop_reason": self.stop_reason,
             "ready_at_s": None if self.ready_at_s is None else round(self.ready_at_s, 3),
             "collided": world.collided,
             "collisions": [[round(c.t, 3), round(c.x, 3), round(c.y, 3)] for c in world.collisions],
             "min_clearance_m": _num(world.min_clearance),
+            "clearance_cap_m": CLEARANCE_RANGE_M,
             "final_clearance_m": _num(world.clearance()),
             "distance_m": _num(world.distance_travelled),
             "final_pose": {"x": _num(pose.x), "y": _num(pose.y), "yaw": _num(pose.yaw)},
