@@ -139,3 +139,29 @@ def test_obstacle_ray_ranges() -> None:
     assert b[2] == pytest.approx(2.0 / math.cos(0.09))
     inside = Box(0.0, 0.0, 1.0, 1.0).ray_ranges(0.0, 0.0, c, s)
     assert np.all(inside == 0.0)
+
+
+def test_the_daemon_and_the_simulated_car_agree_on_straight() -> None:
+    """The servo position the daemon sends for steering 0 steers the simulated car straight: the
+    shipped offset 0.5304 reaches the VESC as 0.530 (thousandths), and a car straight at 0.5304
+    drifted 0.27 m over 20 m."""
+    from racecar_hw.base.messages import AckermannDrive
+    from racecar_hw.config import load_config, shipped_config
+    from racecar_hw.sim.car import CarParams, steering_from_servo
+    from racecar_hw.sim.loopback import Loopback
+    from vesc.ackermann import AckermannConversion
+    from vesc.codec import Role, SetServoPosition, VescCodec, servo_on_wire
+    from vesc.params import VescParams
+
+    for name in ("sim", "car"):
+        config = load_config(shipped_config(name))
+        sent = AckermannConversion.from_params(config.vesc).to_vesc(AckermannDrive()).servo
+        device = VescCodec(Role.DEVICE)  # the fake VESC's end of the serial line
+        device.receive_data(VescCodec(Role.HOST).send(SetServoPosition(sent)))
+        (packet,) = device.events()
+        received = packet.position
+        assert received == servo_on_wire(sent) == 0.530
+        car = Loopback._car_params(None, config)  # type: ignore[arg-type] - uses only the config
+        assert steering_from_servo(received, car) == 0.0
+    assert CarParams().steering_angle_to_servo_offset == servo_on_wire(
+        VescParams().steering_angle_to_servo_offset)

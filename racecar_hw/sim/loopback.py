@@ -38,6 +38,7 @@ from racecar_hw.sim.plot import plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
 from racecar_hw.sim.trajectory import write_csv
 from racecar_hw.sim.world import World
+from vesc.codec import servo_on_wire
 from vesc.fake import FakeVesc
 
 log = logging.getLogger(__name__)
@@ -103,10 +104,13 @@ class Loopback:
         return load_config(self.config_path, self.overrides, extra=extra)
 
     def _car_params(self, config: Config) -> CarParams:
+        """The simulated car: calibrated for the daemon's config, so it drives straight at the
+        servo position that reaches the VESC for steering 0 (the offset in thousandths, as the
+        wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift)."""
         v, fp = config.vesc, config.safety.footprint
         return CarParams(speed_to_erpm_gain=v.speed_to_erpm_gain, speed_to_erpm_offset=v.speed_to_erpm_offset,
                          steering_angle_to_servo_gain=v.steering_angle_to_servo_gain,
-                         steering_angle_to_servo_offset=v.steering_angle_to_servo_offset,
+                         steering_angle_to_servo_offset=servo_on_wire(v.steering_angle_to_servo_offset),
                          wheelbase=v.wheelbase_m, length=fp.length_m, width=fp.width_m,
                          rear_overhang=fp.rear_overhang_m)
 
