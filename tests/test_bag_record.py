@@ -409,3 +409,84 @@ def test_metadata_template_gives_the_yaml_of_a_full_dump(tmp_path: Path, fmt: st
     assert [f["message_count"] for f in info["files"]] == [30, 10]
     assert info["message_count"] == 40 and info["duration"]["nanoseconds"] == 7 * 39
     assert summarize_bag(tmp_path / "meta")[CMD][1] == 5 + 5 + 10
+
+
+# rosbag2 on the humble branch, rosbag2_storage/src/rosbag2_storage/metadata_io.cpp, decodes
+# metadata.yaml as below (convert<BagMetadata>::decode and friends), whatever its version: no
+# upper bound, fields read by version (>= 3 compression, >= 4 offered_qos_profiles *as a string*,
+# >= 5 files); unknown keys are ignored. Version 9 writes offered_qos_profiles as a YAML sequence,
+# on which Humble's as<std::string>() fails ("yaml-cpp: bad conversion"). Each profile in that
+# string is then read by rosbag2_transport/src/rosbag2_transport/qos.cpp (humble): integer
+# policies, {sec, nsec} durations, a bool.
+def _humble_uint(node: object) -> int:
+    assert isinstance(node, int) and not isinstance(node, bool) and node >= 0, node
+    return node
+
+
+def _humble_string(node: object) -> str:
+    assert isinstance(node, str), f"yaml-cpp: bad conversion ({node!r} is not a scalar string)"
+    return node
+
+
+def _humble_qos(text: str) -> None:
+    for profile in yaml.safe_load(text) or []:
+        for key in ("history", "depth", "reliability", "durability", "liveliness"):
+            assert isinstance(profile[key], int) and not isinstance(profile[key], bool), (key, profile)
+        for key in ("deadline", "lifespan", "liveliness_lease_duration"):
+            _humble_uint(profile[key]["sec"])
+            _humble_uint(profile[key]["nsec"])
+        assert isinstance(profile["avoid_ros_namespace_conventions"], bool)
+
+
+def humble_reads(meta_text: str) -> dict[str, Any]:
+    """metadata.yaml as rosbag2 Humble's MetadataIo::read_metadata decodes it (see above)."""
+    node = yaml.safe_load(meta_text)["rosbag2_bagfile_information"]
+    version = node["version"]
+    assert isinstance(version, int)
+    _humble_string(node["storage_identifier"])
+    _humble_uint(node["duration"]["nanoseconds"])
+    _humble_uint(node["starting_time"]["nanoseconds_since_epoch"])
+    _humble_uint(node["message_count"])
+    for topic in node["topics_with_message_count"]:
+        meta = topic["topic_metadata"]
+        for key in ("name", "type", "serialization_format"):
+            _humble_string(meta[key])
+        if version >= 4:
+            _humble_qos(_humble_string(meta["offered_qos_profiles"]))
+        _humble_uint(topic["message_count"])
+    assert all(isinstance(p, str) for p in node["relative_file_paths"])
+    if version >= 3:
+        _humble_string(node["compression_format"])
+        _humble_string(node["compression_mode"])
+    if version >= 5:
+        for f in node["files"]:
+            _humble_string(f["path"])
+            _humble_uint(f["starting_time"]["nanoseconds_since_epoch"])
+            _humble_uint(f["duration"]["nanoseconds"])
+            _humble_uint(f["message_count"])
+    return node
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
+def test_metadata_is_what_rosbag2_humble_reads(tmp_path: Path, fmt: str) -> None:
+    rec = record(tmp_path, n=3, fmt=fmt, split_size_mb=0.005)  # a split: two files of one bag
+    (bag,) = rec.stats.files
+    info = humble_reads((bag / "metadata.yaml").read_text())
+    assert info["version"] == ROS2_METADATA_VERSION == 8
+    assert len(info["relative_file_paths"]) >= 2
+    qos = {t["topic_metadata"]["name"]: yaml.safe_load(t["topic_metadata"]["offered_qos_profiles"])
+           for t in info["topics_with_message_count"]}
+    # /scan with rclcpp's SensorDataQoS (keep last 5, best effort = 2, volatile = 2), /tf_static
+    # latched (transient local = 1), the rest the default profile
+    assert [(p["depth"], p["reliability"], p["durability"]) for p in qos["/scan"]] == [(5, 2, 2)]
+    assert [p["durability"] for p in qos["/tf_static"]] == [1]
+    assert qos[CMD] is None
+    with pytest.raises(AssertionError, match="bad conversion"):  # what Humble says of version 9
+        humble_reads(yaml.safe_dump({"rosbag2_bagfile_information": dict(
+            info, version=9, topics_with_message_count=[{"topic_metadata": dict(
+                name="/scan", type="sensor_msgs/msg/LaserScan", serialization_format="cdr",
+                offered_qos_profiles=qos["/scan"]), "message_count": 1}])}))
+    if fmt == "mcap":  # the storage's own copy of each channel's QoS, read by Humble's MCAP plugin
+        scanned = scan_mcap((bag / info["relative_file_paths"][0]).read_bytes())
+        channels = {topic: cid for cid, (_sid, topic, _enc) in scanned.channels.items()}
+        _humble_qos(scanned.qos[channels["/scan"]])
