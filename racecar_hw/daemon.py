@@ -100,7 +100,6 @@ class ControlStats:
                 "cpu_p50": _percentile(cpu, 50) / 1e6, "cpu_p99": _percentile(cpu, 99) / 1e6,
                 "off_cpu_p99": _percentile(off, 99) / 1e6}
 
-
     def summary(self) -> str:
         """One line for the log at exit; says so when no scan's command was timed (never ``nan``)."""
         head = f"{self.ticks} ticks, {self.missed_ticks} missed, {self.scan_cuts} scan cuts"

@@ -69,3 +69,17 @@ def test_bag_errors_are_one_line(tmp_path, capsys):
     (tmp_path / "notabag").mkdir()
     assert main(["bag", "info", str(tmp_path / "notabag")]) == 1
     assert "holds no .mcap or .db3 file" in capsys.readouterr().err
+
+
+def test_info_says_the_real_tools_bags_are_complete(bag_fixtures, capsys):
+    """Bags recorded by the real rosbag and rosbag2 (no messages, unsorted chunks, LZ4, a sqlite3
+    bag in WAL mode) are complete; bag info never changes them (the fixtures are read-only)."""
+    bags = [*sorted((bag_fixtures / "ros1").glob("*.bag")),
+            *sorted(p for p in (bag_fixtures / "ros2").glob("*/*") if p.is_dir())]
+    assert len(bags) >= 8
+    for bag in bags:
+        if bag.stat().st_size == 0:
+            assert main(["bag", "info", str(bag)]) == 1
+            continue
+        assert main(["bag", "info", str(bag)]) == 0, capsys.readouterr().err
+        assert "complete:  yes" in capsys.readouterr().out, bag

@@ -161,7 +161,7 @@ def test_the_daemon_and_the_simulated_car_agree_on_straight() -> None:
         (packet,) = device.events()
         received = packet.position
         assert received == servo_on_wire(sent) == 0.530
-        car = Loopback._car_params(None, config)  # type: ignore[arg-type] - uses only the config
+        car = Loopback._car_params(config)
         assert steering_from_servo(received, car) == 0.0
     assert CarParams().steering_angle_to_servo_offset == servo_on_wire(
         VescParams().steering_angle_to_servo_offset)

@@ -380,7 +380,7 @@ def check_ros1_index(data: bytes, scan: Ros1Scan) -> str:
     if scan.damaged:
         return (f"damaged bytes at offset {scan.damaged[0]} (a chunk was overwritten, e.g. by a tool "
                 "rewriting the file header in another layout)")
-    if not len(ROS1_MAGIC) < scan.index_pos < len(data):
+    if not len(ROS1_MAGIC) < scan.index_pos <= len(data):  # an empty index ends the file
         return f"the header's index_pos {scan.index_pos} is outside the file ({len(data)} bytes)"
     conns = infos = counted = 0
     pos = scan.index_pos
@@ -469,15 +469,17 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
     meta = _metadata(bagdir)
     if meta is None:
         return "metadata.yaml is missing"
-    hot = [db.name for db in dbs if (db.parent / f"{db.name}-journal").exists()
-           or (db.parent / f"{db.name}-wal").exists()]
+    # A non-empty rollback journal is a transaction that never finished. (A -wal file is not: in
+    # WAL mode it holds committed transactions until a checkpoint, and readers take them.)
+    hot = [db.name for db in dbs if _size(db.parent / f"{db.name}-journal")]
     if hot:
         return f"{', '.join(hot)} has a journal left by an interrupted write"
     if (meta.get("custom_data") or {}).get("racecar_hw") == RECORDING_OPEN:
         return "the recording was not closed (metadata.yaml is from its last flush)"
     said = {f.get("path"): f.get("message_count") for f in meta.get("files") or []}
     for db in dbs:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        # immutable: no lock, no -shm or -wal file created next to a bag that may be read-only
+        con = sqlite3.connect(f"file:{db}?immutable=1", uri=True)
         try:
             (n,) = con.execute("SELECT count(*) FROM messages").fetchone()
         except sqlite3.Error as err:
@@ -487,6 +489,13 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
         if db.name in said and said[db.name] != n:
             return f"metadata.yaml counts {said[db.name]} messages in {db.name}, it holds {n}"
     return ""
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -15,8 +14,6 @@ from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.teleop.arming import ArmingChange
-
-log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

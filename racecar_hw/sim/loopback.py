@@ -103,7 +103,8 @@ class Loopback:
         })
         return load_config(self.config_path, self.overrides, extra=extra)
 
-    def _car_params(self, config: Config) -> CarParams:
+    @staticmethod
+    def _car_params(config: Config) -> CarParams:
         """The simulated car: calibrated for the daemon's config, so it drives straight at the
         servo position that reaches the VESC for steering 0 (the offset in thousandths, as the
         wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift)."""
