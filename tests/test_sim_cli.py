@@ -67,6 +67,14 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
                    "safety, teleop, nav_0, nav_1, nav_2, nav_3\n")
     assert main(["sim", "--no-status", "--out", str(tmp_path), "--follow", str(tmp_path / "nope")]) == 1
     assert capsys.readouterr().err == f"racecar-hw sim: bag not found: {tmp_path / 'nope'}\n"
+    rec = Recorder(Bus(), record_params(tmp_path, name="other"))
+    rec.start()
+    rec.bus.publish(NAV0, AckermannDriveStamped())
+    rec.stop()
+    assert main(["sim", "--no-status", "--out", str(tmp_path), "--follow", str(tmp_path / "other"),
+                 "--follow-topic", "/cmd_vel"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("racecar-hw sim: topic /cmd_vel is not in") and err.count("\n") == 1
     assert not (tmp_path / "report.json").exists()
 
 
@@ -99,3 +107,27 @@ def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, cap
     assert report["scenario"] == "follow" and not report["interrupted"]
     assert report["distance_m"] > 0.3  # the car moved
     assert capsys.readouterr().out.startswith("follow: ran ")
+
+
+def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
+    import asyncio
+
+    from racecar_hw.sim.loopback import Loopback
+    from racecar_hw.sim.scenario import load_scenario
+
+    seen = []
+
+    def setup(loopback: Loopback) -> None:
+        async def look() -> None:
+            await asyncio.sleep(1.0)
+            seen.append(loopback.daemon.snapshot())
+
+        loopback.daemon.add_task(look())
+
+    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup)
+    asyncio.run(loopback.run())
+    (snap,) = seen
+    assert snap.sim_time_s is not None and snap.sim_time_s > 1.0
+    assert snap.sim_pose is not None and snap.sim_pose[0] > 0.5  # driving down the corridor
+    assert snap.clearance_m == pytest.approx(0.6, abs=0.05)
+    assert snap.vesc_link == "up" and snap.lidar_link == "up"
