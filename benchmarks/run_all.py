@@ -15,8 +15,8 @@ from pathlib import Path
 from table import print_rows
 
 HERE = Path(__file__).resolve().parent
-ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "daemon", "live",
-       "zenoh")
+ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "status",
+       "daemon", "live", "zenoh")
 
 
 def main(argv: list[str]) -> int:

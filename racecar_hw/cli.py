@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -23,6 +25,7 @@ COMMANDS: tuple[str, ...] = (
     "daemon",
     "sim",
     "follow",
+    "bag",
     "vesc",
     "lidar",
     "topic",
@@ -59,12 +62,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
+        sys.stdout.flush()  # here, where a closed pipe can be told apart from a failure
+        return code
     except KeyboardInterrupt:
         return 130
     except RacecarError as err:
         print(f"racecar-hw {args.command}: {err}", file=sys.stderr)
         return 1
+    except BrokenPipeError:
+        # the reader went away (racecar-hw vesc-info | head): stop quietly, as a Unix tool does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
 
 
 if __name__ == "__main__":

@@ -238,8 +238,9 @@ def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] 
     data = load_yaml(path if path is not None else shipped_config("car"))
     if extra:
         data = merge(data, extra)
+    defaults = to_dict(Config()) if overrides else None
     for assignment in overrides:
-        apply_override(data, assignment)
+        apply_override(data, assignment, defaults)
     return build_config(data)
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import gc
 import logging
 import math
@@ -46,6 +47,7 @@ from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
@@ -63,6 +65,9 @@ from vesc.driver import VescDriver
 log = logging.getLogger(__name__)
 
 Filter = Callable[[AckermannDrive, str, int], AckermannDrive]
+
+#: How often the link watches are polled (s): panel link states and reminders.
+LINK_POLL_S = 0.5
 
 #: GIL switch interval while the daemon runs (seconds); CPython's default is 0.005.
 SWITCH_INTERVAL_S = 0.0001
@@ -102,11 +107,28 @@ class ControlStats:
                 "cpu_p50": _percentile(cpu, 50) / 1e6, "cpu_p99": _percentile(cpu, 99) / 1e6,
                 "off_cpu_p99": _percentile(off, 99) / 1e6}
 
+    def summary(self) -> str:
+        """One line for the log at exit; says so when no scan's command was timed (never ``nan``)."""
+        head = f"{self.ticks} ticks, {self.missed_ticks} missed, {self.scan_cuts} scan cuts"
+        lat = self.latency_ms()
+        if not lat:
+            return f"{head}; no scan-to-command latency measured (no scan led to a motor command)"
+        return (f"{head}; scan-to-command latency p50={lat['p50']:.3f} ms p99={lat['p99']:.3f} ms "
+                f"max={lat['max']:.3f} ms over {int(lat['count'])} scans; on the CPU "
+                f"p50={lat['cpu_p50']:.3f} ms p99={lat['cpu_p99']:.3f} ms; off it "
+                f"p99={lat['off_cpu_p99']:.3f} ms")
+
 
 def _percentile(values: list[int], q: int) -> int:
     """The ``q``-th percentile of ``values`` (not empty): the nearest rank, no interpolation."""
     ordered = sorted(values)
     return ordered[min(len(ordered) - 1, (q * len(ordered)) // 100)]
+
+
+def reverse_speed_cap(config: Config) -> float | None:
+    """The fastest the safety controller lets the car reverse (m/s); None when it does not cap
+    (``off``, and ``cone``, which only stops the car through the mux)."""
+    return config.safety.reverse_speed_cap_mps if config.safety.mode == "arc" else None
 
 
 class Daemon:
@@ -137,9 +159,22 @@ class Daemon:
         self.setpoint = SetpointRelay(self.bus, config.setpoint) if config.setpoint.enabled else None
         self.figure8 = (Figure8Driver(self.bus, config.figure8.params(config.vesc.wheelbase_m))
                         if config.figure8.enabled else None)
-        self.follower = BagFollower(self.bus, config.follower) if config.follower.enabled else None
+        self.follower = (BagFollower(self.bus, config.follower, wheelbase_m=config.vesc.wheelbase_m,
+                                     reverse_speed_cap_mps=reverse_speed_cap(config))
+                         if config.follower.enabled else None)
         self.recorder = Recorder(self.bus, config.recorder) if config.recorder.enabled else None
         self.status = status
+        #: extra fields for the status panel (the simulator adds its time, pose and clearance)
+        self.extra_status: Callable[[], dict[str, Any]] | None = None
+        self.links: dict[str, LinkWatch] = {}
+        if self.vesc is not None:
+            vesc = self.vesc
+            self.links["vesc"] = LinkWatch("VESC", lambda: vesc.connected,
+                                           detail=lambda: f"port {config.vesc.port}")
+        if self.lidar is not None:
+            lidar = self.lidar
+            self.links["lidar"] = LinkWatch(f"lidar {config.lidar.model}", lambda: lidar.connected,
+                                            detail=lambda: lidar.last_error)
         self._tasks: list[asyncio.Task[Any]] = []
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
@@ -284,7 +319,9 @@ class Daemon:
         state = self.vesc.last_state if self.vesc is not None else None
         odom = self.bus.latest(self.config.safety.odom_topic)
         safety = self.safety.state
-        return StatusSnapshot(
+        vesc_link = self.links.get("vesc")
+        lidar_link = self.links.get("lidar")
+        snap = StatusSnapshot(
             speed_mps=float(odom.twist.twist.linear.x) if odom is not None else None,
             steering_rad=float(out.drive.steering_angle) if out is not None else None,
             mux_source=self.mux.source,
@@ -296,7 +333,19 @@ class Daemon:
             vesc_reconnects=self.vesc.stats.reconnects if self.vesc is not None else 0,
             lidar_reconnects=self.lidar.stats.reconnects if self.lidar is not None else 0,
             armed=self.arming.armed,
+            vesc_link=vesc_link.text() if vesc_link is not None else None,
+            lidar_link=lidar_link.text() if lidar_link is not None else None,
         )
+        if self.extra_status is not None:
+            snap = dataclasses.replace(snap, **self.extra_status())
+        return snap
+
+    async def _watch_links(self) -> None:
+        """Poll the link watches: panel states, and log reminders while a device stays away."""
+        while True:
+            for watch in self.links.values():
+                watch.poll()
+            await asyncio.sleep(LINK_POLL_S)
 
     # --- live interfaces: the Foxglove server and the status page (racecar_hw.net) ---------------
 
@@ -416,6 +465,8 @@ class Daemon:
             self.setpoint.start()
         await self._start_live()
         coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
+        if self.links:
+            coros.append(self._watch_links())
         if self.vesc is not None:
             coros.append(self.vesc.run())
         if self.lidar is not None:
@@ -462,14 +513,7 @@ class Daemon:
     async def shutdown(self) -> None:
         """Brake and centre, stop every component, flush the recorder. Safe to call twice."""
         self.notifier.stopping("racecar-hw stopping")
-        latency = self.stats.latency_ms()
-        log.info("control summary: %d ticks, %d missed, %d scan cuts; scan-to-command latency "
-                 "p50=%.3f ms p99=%.3f ms max=%.3f ms over %d scans; on the CPU p50=%.3f ms "
-                 "p99=%.3f ms; off it p99=%.3f ms", self.stats.ticks,
-                 self.stats.missed_ticks, self.stats.scan_cuts, latency.get("p50", math.nan),
-                 latency.get("p99", math.nan), latency.get("max", math.nan), int(latency.get("count", 0)),
-                 latency.get("cpu_p50", math.nan), latency.get("cpu_p99", math.nan),
-                 latency.get("off_cpu_p99", math.nan))
+        log.info("control summary: %s", self.stats.summary())
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

@@ -96,3 +96,18 @@ def read_real_bag(path: Path) -> list[dict[str, Any]]:
                           capture_output=True, timeout=120)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
+
+
+def rosbag_cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    """Run the real ``rosbag`` command (``rosbag reindex``, ``info``, ``fix``) and return its result."""
+    require_rosbag()
+    return subprocess.run([SYSTEM_PYTHON, "/usr/bin/rosbag", *map(str, args)], text=True,
+                          capture_output=True, timeout=120)
+
+
+def append_with_real_rosbag(path: Path) -> None:
+    """Open the bag in the real rosbag's append mode and close it, writing nothing."""
+    require_rosbag()
+    done = subprocess.run([SYSTEM_PYTHON, "-c", "import rosbag, sys; rosbag.Bag(sys.argv[1], 'a').close()",
+                           str(path)], text=True, capture_output=True, timeout=120)
+    assert done.returncode == 0, done.stderr

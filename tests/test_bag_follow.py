@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from pathlib import Path
 
 import pytest
@@ -21,15 +22,18 @@ from racecar_hw.bags.follow import (
     CommandSync,
     FollowerParams,
     Hole,
+    command_from_message,
+    fit_speed,
     holes,
     load_commands,
     schedule,
     summarize_bag,
 )
+from racecar_hw.bags.record import Recorder, record_params
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.errors import BagError, ConfigError
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, ScanRange, Time
 from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
 
 T0 = 1_700_000_000 * NS_PER_S
@@ -116,16 +120,68 @@ def test_real_ros2_fixtures(bag_fixtures: Path, storage: str) -> None:
 @pytest.mark.parametrize("name", ["example-lz4.bag", "example-bz2.bag"])
 def test_missing_topic_lists_topics_and_types(bag_fixtures: Path, name: str) -> None:
     with pytest.raises(BagError) as err:
-        load_commands(bag_fixtures / "ros1" / name)
+        load_commands(bag_fixtures / "ros1" / name, TELEOP_TOPIC)
     text = str(err.value)
     assert f"topic {TELEOP_TOPIC} is not in" in text
     assert "/turtle1/cmd_vel (geometry_msgs/msg/Twist, 357 msgs)" in text
     assert "/tf_static (tf2_msgs/msg/TFMessage" in text
 
 
+def test_a_public_twist_bag_is_followed_and_its_two_turtles_must_be_chosen_from(
+        bag_fixtures: Path, caplog) -> None:
+    """The turtlesim bag: two geometry_msgs/Twist cmd_vel topics, so no topic is picked alone. The
+    turtle drives straight at +-2 m/s or turns in place, which an Ackermann car cannot."""
+    bag = bag_fixtures / "ros1" / "example-bz2.bag"
+    with pytest.raises(BagError, match=r"2 topics with drive commands: /turtle1/cmd_vel \(357 msgs\), "
+                                       r"/turtle2/cmd_vel \(208 msgs\); choose one with --topic"):
+        load_commands(bag)
+    caplog.set_level(logging.WARNING)
+    got = load_commands(bag, "/turtle1/cmd_vel", wheelbase_m=0.33)
+    assert len(got) == 357
+    assert sorted({(c.drive.speed, c.drive.steering_angle) for c in got}) == [
+        (-2.0, 0.0), (0.0, 0.0), (2.0, 0.0)]
+    assert sum(c.drive.speed == 0.0 for c in got) == 31
+    assert "31 of 357 Twist commands on /turtle1/cmd_vel turn in place" in caplog.text
+
+
+def test_twist_becomes_the_steering_of_its_yaw_rate() -> None:
+    store = ros2_types().store
+    vector3 = store.types["geometry_msgs/msg/Vector3"]
+    twist = store.types["geometry_msgs/msg/Twist"](vector3(2.0, 0.0, 0.0), vector3(0.0, 0.0, 1.0))
+    c = command_from_message("geometry_msgs/msg/Twist", twist, 7, wheelbase_m=0.5)
+    assert (c.t_ns, c.drive.speed) == (7, 2.0)
+    assert c.drive.steering_angle == pytest.approx(math.atan(0.25))  # tan(d) = L * w / v
+    # the bicycle model driven with it turns at the recorded yaw rate
+    assert c.drive.speed * math.tan(c.drive.steering_angle) / 0.5 == pytest.approx(1.0)
+    backwards = store.types["geometry_msgs/msg/Twist"](vector3(-2.0, 0, 0), vector3(0, 0, 1.0))
+    c = command_from_message("geometry_msgs/msg/Twist", backwards, 7, wheelbase_m=0.5)
+    assert c.drive.speed * math.tan(c.drive.steering_angle) / 0.5 == pytest.approx(1.0)
+    header = store.types["std_msgs/msg/Header"](store.types["builtin_interfaces/msg/Time"](1, 0), "b")
+    stamped = store.types["geometry_msgs/msg/TwistStamped"](header, twist)
+    assert command_from_message("geometry_msgs/msg/TwistStamped", stamped, 7, 0.5).drive == \
+        command_from_message("geometry_msgs/msg/Twist", twist, 7, 0.5).drive
+
+
+def test_the_only_drive_topic_is_chosen_and_a_mux_input_over_the_output(tmp_path: Path) -> None:
+    """A recording of the whole bus (racecar-hw sim --record) holds the input that drove, the mux
+    output and other topics: the input is followed."""
+    bag = tmp_path / "rec"
+    rec = Recorder(Bus(), record_params(tmp_path, name="rec"))
+    rec.start()
+    for i in range(3):
+        drive = AckermannDriveStamped(Header(Time(1, 0), "base_link"), AckermannDrive(speed=1.0 + i))
+        rec.bus.publish(NAV0_TOPIC, drive)
+        rec.bus.publish("/vesc/low_level/ackermann_cmd_mux/output", drive)
+        rec.bus.publish("/scan_range", ScanRange())
+    rec.stop()
+    assert [c.drive.speed for c in load_commands(bag)] == [1.0, 2.0, 3.0]
+    one = write_ours(tmp_path / "one", "mcap", figure8(), topic="/drive")
+    assert len(load_commands(one)) == 12
+
+
 def test_wrong_type(bag_fixtures: Path) -> None:
-    with pytest.raises(BagError, match="carries geometry_msgs/msg/Twist, expected one of ackermann"):
-        load_commands(bag_fixtures / "ros1" / "example-bz2.bag", "/turtle1/cmd_vel")
+    with pytest.raises(BagError, match="carries tf2_msgs/msg/TFMessage, expected one of ackermann"):
+        load_commands(bag_fixtures / "ros1" / "example-bz2.bag", "/tf_static")
 
 
 def test_empty_file_and_empty_bag(bag_fixtures: Path, tmp_path: Path) -> None:
@@ -157,7 +213,7 @@ def test_unindexed_ros1_bag_hints_at_recovery(tmp_path: Path) -> None:
     index_field = data.find(b"index_pos=")
     data[index_field + 10:index_field + 18] = bytes(8)
     broken.write_bytes(bytes(data))
-    with pytest.raises(BagError, match="recover_bag"):
+    with pytest.raises(BagError, match=f"try: racecar-hw bag recover {broken}"):
         load_commands(broken)
 
 
@@ -187,6 +243,40 @@ def test_schedule_backwards() -> None:
     assert [s.drive.speed for s in back] == [-4.0, -3.0, -2.0, -1.0]
     assert [s.drive.steering_angle for s in back] == pytest.approx([0.3, 0.2, 0.1, 0.0])
     assert cmds[0].drive.speed == 1.0  # the recorded commands are not modified
+
+
+def test_backwards_over_the_reverse_cap_is_slowed_and_stretched_to_the_same_path() -> None:
+    cmds = cmds_from([0, 100, 200, 300])  # 1, 2, 3, 4 m/s forwards
+    assert fit_speed(cmds, 0.5, reverse=True) == pytest.approx(0.125)  # 4 m/s backwards -> 0.5
+    assert fit_speed(cmds, 0.5, reverse=False) == 1.0  # forwards: nothing reverses
+    assert fit_speed(cmds, 5.0, reverse=True) == 1.0 and fit_speed(cmds, None, reverse=True) == 1.0
+    for timestamps in (True, False):
+        plain = schedule(cmds, use_timestamps=timestamps, rate_hz=10.0, reverse=True)
+        slow = schedule(cmds, use_timestamps=timestamps, rate_hz=10.0, reverse=True, speed_scale=0.125)
+        assert [s.drive.speed for s in slow] == [-0.5, -0.375, -0.25, -0.125]
+        assert [s.offset_ns for s in slow] == [8 * s.offset_ns for s in plain]
+        # distance = speed x time of each step: the same path
+        for a, b, pa, pb in zip(slow, slow[1:], plain, plain[1:], strict=False):
+            assert a.drive.speed * (b.offset_ns - a.offset_ns) == pytest.approx(
+                pa.drive.speed * (pb.offset_ns - pa.offset_ns))
+    with pytest.raises(ValueError):
+        schedule(cmds, speed_scale=0.0)
+
+
+def test_follower_warns_of_the_reverse_cap_and_slows_down(tmp_path: Path, caplog) -> None:
+    bag = write_ours(tmp_path / "r.bag", "ros1", [(T0, 1.0, 0.2), (T0 + 10**7, 1.0, 0.2)])
+    caplog.set_level(logging.WARNING)
+
+    async def main() -> BagFollower:
+        follower = BagFollower(Bus(), FollowerParams(bag=str(bag), reverse=True, rate_hz=100.0),
+                               reverse_speed_cap_mps=0.5)
+        await follower.run()
+        return follower
+
+    follower = asyncio.run(main())
+    assert follower.speed_scale == 0.5
+    assert "reverses at up to 1.00 m/s, over the safety controller's reverse cap of 0.50 m/s" in caplog.text
+    assert "retraced 2.0 times slower" in caplog.text
 
 
 def test_command_sync_loops_and_plays() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,7 +15,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from bag_ros1tools import read_real_bag
+import yaml
+from bag_ros1tools import append_with_real_rosbag, read_real_bag, rosbag_cli
 from conftest import wait_for
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
@@ -22,8 +24,9 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bags.follow import load_commands, summarize_bag
-from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, record_params
-from racecar_hw.bags.recover import recover_bag, scan_mcap
+from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, offered_qos, record_params
+from racecar_hw.bags.recover import inspect_bag, recover_bag, scan_mcap
+from racecar_hw.bags.writers import ROS1_FILE_HEADER_RECORD, ROS2_METADATA_VERSION
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -37,7 +40,7 @@ from racecar_hw.base.messages import (
     Time,
     TransformStamped,
 )
-from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.rosmsg.typestore import ros2_types, types_for
 
 CMD = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 ROOT = Path(__file__).resolve().parents[1]
@@ -150,7 +153,7 @@ def test_disabled_recorder_records_nothing(tmp_path: Path) -> None:
 
 
 def test_existing_bag_is_a_clear_error(tmp_path: Path) -> None:
-    (tmp_path / "run_0").mkdir()
+    (tmp_path / "run").mkdir()
     rec = Recorder(Bus(), record_params(tmp_path, name="run"))
     with pytest.raises(BagError, match="exists already"):
         rec.start()
@@ -191,8 +194,15 @@ def test_split_by_duration(tmp_path: Path) -> None:
         wait_for(lambda i=i: wall_ns() - start >= i * 80_000_000)
         bus.publish(CMD, cmd(i))
     stats = rec.stop()
-    assert len(stats.files) == 3
-    assert [len(read_ours([f])[CMD]) for f in stats.files] == [1, 1, 1]
+    # one rosbag2 bag whose three files are the splits, as ros2 bag record --max-bag-duration makes
+    (bag,) = stats.files
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == ["dur_0.mcap", "dur_1.mcap", "dur_2.mcap"]
+    assert [f["message_count"] for f in info["files"]] == [1, 1, 1]
+    assert info["message_count"] == 3 and info["custom_data"] == {"racecar_hw": "closed"}
+    assert sorted(p.name for p in bag.iterdir()) == ["dur_0.mcap", "dur_1.mcap", "dur_2.mcap",
+                                                     "metadata.yaml"]
+    assert [c.drive.speed for c in load_commands(bag, CMD)] == [0.0, 0.5, 1.0]
 
 
 KILLED_RECORDER = textwrap.dedent("""
@@ -227,23 +237,75 @@ def test_sigkill_keeps_everything_flushed(tmp_path: Path, fmt: str) -> None:
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
-    bag = tmp_path / ("killed_0.bag" if fmt == "ros1" else "killed_0")
+    bag = tmp_path / ("killed_0.bag" if fmt == "ros1" else "killed")
     if fmt == "sqlite3":  # readable as it is
         speeds = [c.drive.speed for c in load_commands(bag, "/cmd")]
         assert speeds[:300] == [float(i) for i in range(300)]
     else:
-        with pytest.raises(BagError, match="recover_bag"):
+        with pytest.raises(BagError, match="racecar-hw bag recover"):
             load_commands(bag, "/cmd")
     if fmt == "mcap":
         scanned = scan_mcap(next(bag.glob("*.mcap")).read_bytes())
         assert not scanned.complete and len(scanned.messages) >= 300
+    assert not inspect_bag(bag).complete
+    if fmt == "ros1":  # the real rosbag reindex repairs our interrupted bag as one of its own
+        shutil.copy(bag, tmp_path / "reindexed.bag")
+        assert rosbag_cli("reindex", tmp_path / "reindexed.bag").returncode == 0
+        info = rosbag_cli("info", "--yaml", tmp_path / "reindexed.bag")
+        assert info.returncode == 0, info.stderr
+        real_count = yaml.safe_load(info.stdout)["messages"]
+        assert real_count >= 300
+        speeds = [c.drive.speed for c in load_commands(tmp_path / "reindexed.bag", "/cmd")]
+        assert speeds == [float(i) for i in range(real_count)]
+        assert inspect_bag(tmp_path / "reindexed.bag").complete
     result = recover_bag(bag)
     assert not result.was_complete and result.messages >= 300
     speeds = [c.drive.speed for c in load_commands(result.path, "/cmd")]
     assert len(speeds) == result.messages
     assert speeds == [float(i) for i in range(len(speeds))]
+    assert inspect_bag(result.path).complete
     if fmt == "ros1":
         assert len(read_real_bag(result.path)) == result.messages
+
+
+def test_real_rosbag_append_mode_and_fix_keep_our_ros1_bag_readable(tmp_path: Path) -> None:
+    rec = record(tmp_path, n=5, fmt="ros1", topics=[CMD, "/tf_static"])
+    (bag,) = rec.stats.files
+    before = bag.read_bytes()
+    append_with_real_rosbag(bag)  # rewrites the file header and the index in place
+    after = bag.read_bytes()
+    assert after[:ROS1_FILE_HEADER_RECORD + 13] == before[:ROS1_FILE_HEADER_RECORD + 13]
+    assert len(read_real_bag(bag)) == 6
+    assert [c.drive.speed for c in load_commands(bag, CMD)] == [0.5 * i for i in range(5)]
+    assert inspect_bag(bag).complete
+    # --force: this machine has no ackermann_msgs or tf2_msgs, so rosbag cannot look for
+    # migration rules, as for any bag of those types (without it: "Bag could not be migrated")
+    fixed = rosbag_cli("fix", "--force", bag, tmp_path / "fixed.bag")
+    assert fixed.returncode == 0, fixed.stderr
+    assert [c.drive.speed for c in load_commands(tmp_path / "fixed.bag", CMD)] == [0.5 * i for i in range(5)]
+
+
+def test_a_header_rewritten_over_the_first_chunk_is_found_and_recovered(tmp_path: Path) -> None:
+    """A bag with rosbags' 4096-byte header, opened in the real rosbag's append mode: its 4104-byte
+    header overwrites the first chunk's length fields and the index no longer matches (the file
+    racecar-hw wrote before its header had rosbag's layout). The index is not trusted; the chunk is
+    found by its fields and every message comes back."""
+    from rosbags.rosbag1 import Writer as PlainWriter1
+
+    types = types_for(1)
+    bag = tmp_path / "old.bag"
+    with PlainWriter1(bag) as writer:
+        conn = writer.add_connection(CMD, AckermannDriveStamped.ROS_TYPE, typestore=types.store)
+        for i in range(5):
+            writer.write(conn, 10**9 + i, types.serialize(cmd(i), i + 1))
+    append_with_real_rosbag(bag)
+    with pytest.raises(BagError):
+        load_commands(bag, CMD)
+    state = inspect_bag(bag)
+    assert not state.complete and "damaged bytes at offset 4117" in state.problem
+    result = recover_bag(bag)
+    assert not result.was_complete and result.messages == 5
+    assert [c.drive.speed for c in load_commands(result.path, CMD)] == [0.5 * i for i in range(5)]
 
 
 def test_recover_leaves_complete_bags_alone(tmp_path: Path) -> None:
@@ -262,9 +324,10 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
         msgs += [("/scan", scan(i)), (CMD, cmd(i)), ("/tf", tf)]
     (tmp_path / "ours").mkdir()
     (tmp_path / "ref").mkdir()
-    ours = BagFile(tmp_path / "ours" / "bag", "mcap", "none", types)
+    ours = BagFile(tmp_path / "ours" / "bag" / "bag", "mcap", "none", types)
     assert ours._mcap is not None  # the lean path is in use with this rosbags
-    ref = Writer2(tmp_path / "ref" / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
+    ref = Writer2(tmp_path / "ref" / "bag", version=ROS2_METADATA_VERSION,
+                  storage_plugin=StoragePlugin.MCAP)
     ref.open()
     conns: dict[str, Connection] = {}
     for i, (topic, msg) in enumerate(msgs):
@@ -272,7 +335,7 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
         ours.write(topic, msg, t_ns)
         if topic not in conns:
             conns[topic] = ref.add_connection(topic, msg.ROS_TYPE, typestore=types.store,
-                                              offered_qos_profiles=[])
+                                              offered_qos_profiles=offered_qos(topic, type(msg)))
         ref.write(conns[topic], t_ns, types.serialize_generic(msg))
         if i == 100:  # a flush closes the pending chunk on both
             ours.flush()
@@ -282,8 +345,12 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
     ref.close()
     mcap = (tmp_path / "ours" / "bag" / "bag.mcap").read_bytes()
     assert mcap == (tmp_path / "ref" / "bag" / "bag.mcap").read_bytes()
-    meta = (tmp_path / "ours" / "bag" / "metadata.yaml").read_text()
-    assert meta == (tmp_path / "ref" / "bag" / "metadata.yaml").read_text()
+    meta = yaml.safe_load((tmp_path / "ours" / "bag" / "metadata.yaml").read_text())
+    ref_meta = yaml.safe_load((tmp_path / "ref" / "bag" / "metadata.yaml").read_text())
+    # rosbags' metadata for one file, but for custom_data (ours says the recording was closed)
+    assert meta["rosbag2_bagfile_information"].pop("custom_data") == {"racecar_hw": "closed"}
+    assert ref_meta["rosbag2_bagfile_information"].pop("custom_data") is None
+    assert meta == ref_meta
     assert scan_mcap(mcap).complete
 
 
@@ -316,20 +383,110 @@ def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monke
 
 @pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
 def test_metadata_template_gives_the_yaml_of_a_full_dump(tmp_path: Path, fmt: str) -> None:
-    import yaml
+    bag = BagFile(tmp_path / "meta" / "meta_0", fmt, "none", ros2_types())
+    meta = bag.meta
+    assert meta is not None
 
-    bag = BagFile(tmp_path / "meta", fmt, "none", ros2_types())
+    def full_dump(current: BagFile | None) -> str:
+        info = meta.info(meta.file_names(current), meta.numbers(current))
+        return yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
 
-    def full_dump() -> str:
-        return yaml.safe_dump({"rosbag2_bagfile_information": bag.metadata_info()}, sort_keys=False)
-
-    assert bag.metadata_text() == full_dump()  # no topics yet
+    assert meta.text(bag) == full_dump(bag)  # no topics yet
     topics = ["/tf_static", CMD, "/scan", "/odd: topic #1", "/ünïcode"]
     for i in range(40):
+        if i == 30:  # a split: the second file of the same bag
+            bag.close(last=False)
+            assert meta.text(None) == full_dump(None)
+            bag = BagFile(tmp_path / "meta" / "meta_1", fmt, "none", ros2_types(), meta)
         topic = topics[i % len(topics)] if i < 25 else CMD
         msg: Message = static_tf() if topic == "/tf_static" else cmd(i)
         bag.write(topic, msg, 10**18 + 7 * i)
-        assert bag.metadata_text() == full_dump()
+        assert meta.text(bag) == full_dump(bag)
     bag.flush()
-    assert (tmp_path / "meta" / "metadata.yaml").read_text() == full_dump()
+    assert (tmp_path / "meta" / "metadata.yaml").read_text() == full_dump(bag)
     bag.close()
+    info = yaml.safe_load((tmp_path / "meta" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert [f["message_count"] for f in info["files"]] == [30, 10]
+    assert info["message_count"] == 40 and info["duration"]["nanoseconds"] == 7 * 39
+    assert summarize_bag(tmp_path / "meta")[CMD][1] == 5 + 5 + 10
+
+
+# rosbag2 on the humble branch, rosbag2_storage/src/rosbag2_storage/metadata_io.cpp, decodes
+# metadata.yaml as below (convert<BagMetadata>::decode and friends), whatever its version: no
+# upper bound, fields read by version (>= 3 compression, >= 4 offered_qos_profiles *as a string*,
+# >= 5 files); unknown keys are ignored. Version 9 writes offered_qos_profiles as a YAML sequence,
+# on which Humble's as<std::string>() fails ("yaml-cpp: bad conversion"). Each profile in that
+# string is then read by rosbag2_transport/src/rosbag2_transport/qos.cpp (humble): integer
+# policies, {sec, nsec} durations, a bool.
+def _humble_uint(node: object) -> int:
+    assert isinstance(node, int) and not isinstance(node, bool) and node >= 0, node
+    return node
+
+
+def _humble_string(node: object) -> str:
+    assert isinstance(node, str), f"yaml-cpp: bad conversion ({node!r} is not a scalar string)"
+    return node
+
+
+def _humble_qos(text: str) -> None:
+    for profile in yaml.safe_load(text) or []:
+        for key in ("history", "depth", "reliability", "durability", "liveliness"):
+            assert isinstance(profile[key], int) and not isinstance(profile[key], bool), (key, profile)
+        for key in ("deadline", "lifespan", "liveliness_lease_duration"):
+            _humble_uint(profile[key]["sec"])
+            _humble_uint(profile[key]["nsec"])
+        assert isinstance(profile["avoid_ros_namespace_conventions"], bool)
+
+
+def humble_reads(meta_text: str) -> dict[str, Any]:
+    """metadata.yaml as rosbag2 Humble's MetadataIo::read_metadata decodes it (see above)."""
+    node = yaml.safe_load(meta_text)["rosbag2_bagfile_information"]
+    version = node["version"]
+    assert isinstance(version, int)
+    _humble_string(node["storage_identifier"])
+    _humble_uint(node["duration"]["nanoseconds"])
+    _humble_uint(node["starting_time"]["nanoseconds_since_epoch"])
+    _humble_uint(node["message_count"])
+    for topic in node["topics_with_message_count"]:
+        meta = topic["topic_metadata"]
+        for key in ("name", "type", "serialization_format"):
+            _humble_string(meta[key])
+        if version >= 4:
+            _humble_qos(_humble_string(meta["offered_qos_profiles"]))
+        _humble_uint(topic["message_count"])
+    assert all(isinstance(p, str) for p in node["relative_file_paths"])
+    if version >= 3:
+        _humble_string(node["compression_format"])
+        _humble_string(node["compression_mode"])
+    if version >= 5:
+        for f in node["files"]:
+            _humble_string(f["path"])
+            _humble_uint(f["starting_time"]["nanoseconds_since_epoch"])
+            _humble_uint(f["duration"]["nanoseconds"])
+            _humble_uint(f["message_count"])
+    return node
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
+def test_metadata_is_what_rosbag2_humble_reads(tmp_path: Path, fmt: str) -> None:
+    rec = record(tmp_path, n=3, fmt=fmt, split_size_mb=0.005)  # a split: two files of one bag
+    (bag,) = rec.stats.files
+    info = humble_reads((bag / "metadata.yaml").read_text())
+    assert info["version"] == ROS2_METADATA_VERSION == 8
+    assert len(info["relative_file_paths"]) >= 2
+    qos = {t["topic_metadata"]["name"]: yaml.safe_load(t["topic_metadata"]["offered_qos_profiles"])
+           for t in info["topics_with_message_count"]}
+    # /scan with rclcpp's SensorDataQoS (keep last 5, best effort = 2, volatile = 2), /tf_static
+    # latched (transient local = 1), the rest the default profile
+    assert [(p["depth"], p["reliability"], p["durability"]) for p in qos["/scan"]] == [(5, 2, 2)]
+    assert [p["durability"] for p in qos["/tf_static"]] == [1]
+    assert qos[CMD] is None
+    with pytest.raises(AssertionError, match="bad conversion"):  # what Humble says of version 9
+        humble_reads(yaml.safe_dump({"rosbag2_bagfile_information": dict(
+            info, version=9, topics_with_message_count=[{"topic_metadata": dict(
+                name="/scan", type="sensor_msgs/msg/LaserScan", serialization_format="cdr",
+                offered_qos_profiles=qos["/scan"]), "message_count": 1}])}))
+    if fmt == "mcap":  # the storage's own copy of each channel's QoS, read by Humble's MCAP plugin
+        scanned = scan_mcap((bag / info["relative_file_paths"][0]).read_bytes())
+        channels = {topic: cid for cid, (_sid, topic, _enc) in scanned.channels.items()}
+        _humble_qos(scanned.qos[channels["/scan"]])

@@ -110,6 +110,35 @@ def test_latency_summary_splits_time_on_and_off_the_cpu():
     assert got == {"p50": 51.0, "p99": 100.0, "max": 100.0, "count": 100.0,
                    "cpu_p50": 25.0, "cpu_p99": 49.5, "off_cpu_p99": 99.0}
     assert ControlStats().latency_ms() == {}
+    assert "p50=51.000 ms p99=100.000 ms max=100.000 ms over 100 scans" in stats.summary()
+    empty = ControlStats().summary()  # no VESC, no lidar: nothing was timed, and it says so
+    assert "nan" not in empty and "no scan-to-command latency measured" in empty
+
+
+def test_a_missing_vesc_shows_as_connecting_on_the_panel(tmp_path):
+    """racecar-hw run without its VESC: the panel says 'connecting N s' (and the log reminds, see
+    test_links.py) instead of one warning and silence."""
+    import asyncio
+
+    from racecar_hw.daemon import Daemon
+
+    config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
+                                "gamepad.enabled=false", "status.enabled=false",
+                                "safety.mode=off"])
+
+    async def scenario() -> tuple[str | None, str | None]:
+        daemon = Daemon(config)
+        stop = asyncio.Event()
+        task = asyncio.create_task(daemon.run(stop))
+        await asyncio.sleep(1.2)
+        snap = daemon.snapshot()
+        stop.set()
+        await asyncio.wait_for(task, 20)
+        return snap.vesc_link, snap.lidar_link
+
+    vesc_link, lidar_link = asyncio.run(scenario())
+    assert vesc_link is not None and vesc_link.startswith("connecting ")
+    assert lidar_link is None  # no lidar configured: no lidar link shown
 
 
 def test_config_errors_name_the_key(tmp_path):
@@ -147,37 +176,63 @@ def test_check_config_prints_the_effective_config():
     assert "safety.margin_m" in bad.stderr and "out of range" in bad.stderr
 
 
-def test_follow_command_drives_the_vesc_and_exits_when_the_bag_ends(fakes, tmp_path):
+def test_follow_command_refuses_a_disarmed_car_then_drives_a_twist_bag_with_arm(fakes, tmp_path):
+    """A cmd_vel bag (geometry_msgs/Twist, as most public bags carry) on the car config, which
+    starts disarmed: refused in one line, then followed with --arm; the topic is found alone."""
+    import math
+
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
-
-    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
-    from racecar_hw.rosmsg.typestore import ros2_types
+    from rosbags.typesys import Stores, get_typestore
 
     vesc, lidar = fakes
-    types = ros2_types()
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    twist, vector3 = store.types["geometry_msgs/msg/Twist"], store.types["geometry_msgs/msg/Vector3"]
     bag = tmp_path / "drive"
-    topic = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
-    with Writer2(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection(topic, AckermannDriveStamped.ROS_TYPE, typestore=types.store)
-        for i in range(30):  # 1.5 s at 20 Hz: 0.5 m/s, steering 0.1 rad
-            t = 1_700_000_000_000_000_000 + i * 50_000_000
-            msg = AckermannDriveStamped(stamp_now("base_link", t), AckermannDrive(0.1, 0.0, 0.5))
-            writer.write(conn, t, types.serialize(msg))
+    with Writer2(bag, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/cmd_vel", "geometry_msgs/msg/Twist", typestore=store)
+        for i in range(30):  # 1.5 s at 20 Hz: 0.5 m/s turning left at 0.2 rad/s
+            msg = twist(vector3(0.5, 0.0, 0.0), vector3(0.0, 0.0, 0.2))
+            writer.write(conn, 1_700_000_000_000_000_000 + i * 50_000_000,
+                         store.serialize_cdr(msg, "geometry_msgs/msg/Twist"))
     host, port = lidar.tcp_address
     cfg = tmp_path / "car.yaml"
     cfg.write_text(yaml.safe_dump({
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
-        "arming": {"start_armed": True}, "gamepad": {"enabled": False}, "status": {"enabled": False},
+        "gamepad": {"enabled": False}, "status": {"enabled": False},
         "zenoh": {"enabled": False},
     }))
-    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--config", str(cfg)],
-                          capture_output=True, text=True, timeout=60)
+    command = [sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--config", str(cfg)]
+    refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 1
+    assert refused.stderr.count("\n") == 1 and "starts disarmed" in refused.stderr
+    assert "--arm" in refused.stderr
+    assert not any(isinstance(c.packet, SetRpm) for c in vesc.commands)  # never connected
+    proc = subprocess.run([*command, "--arm"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     erpms = [c.packet.erpm for c in vesc.commands if isinstance(c.packet, SetRpm)]
     # 0.5 m/s x 4614 ERPM per m/s, reached through the rate limiter; then brake at the end
     assert max(erpms) == pytest.approx(0.5 * 4614, abs=2)
     assert erpms[-1] == 0
     servo = [c.packet.position for c in vesc.commands if isinstance(c.packet, SetServoPosition)]
-    assert min(servo) == pytest.approx(0.5304 - 1.2135 * 0.1, abs=2e-3)
+    steering = math.atan(0.25 * 0.2 / 0.5)  # the yaw rate's steering on a 0.25 m wheelbase
+    assert min(servo) == pytest.approx(0.5304 - 1.2135 * steering, abs=2e-3)
+
+
+def test_follow_fails_in_one_line_for_a_missing_bag_or_topic(tmp_path, capsys):
+    from racecar_hw.cli import main
+
+    assert main(["follow", str(tmp_path / "nope"), "--arm"]) == 1
+    assert capsys.readouterr().err == f"racecar-hw follow: bag not found: {tmp_path / 'nope'}\n"
+    bag = tmp_path / "b.bag"
+    from racecar_hw.bags.record import BagFile
+    from racecar_hw.base.messages import AckermannDriveStamped
+    from racecar_hw.rosmsg.typestore import types_for
+
+    f = BagFile(bag, "ros1", "none", types_for(1))
+    f.write("/a", AckermannDriveStamped(), 1)
+    f.close()
+    assert main(["follow", str(bag), "--arm", "--topic", "/b"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("racecar-hw follow: topic /b is not in") and err.count("\n") == 1

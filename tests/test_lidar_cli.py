@@ -59,9 +59,11 @@ def test_lidar_info_without_a_device_fails_cleanly(tmp_path, capsys):
 
 
 def test_fake_lidar_process_serves_until_ctrl_c(capsys):
+    # started as a background job of a script or CI job is: SIGINT ignored (see test_vesc_cli.py)
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-lidar", "--model",
                              "ust-10lx", "--tcp", "127.0.0.1:0", "--room", "10x4"],
-                            stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         assert proc.stdout is not None
         line = proc.stdout.readline()

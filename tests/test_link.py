@@ -184,3 +184,22 @@ def test_read_within_times_out_and_returns_bytes(tmp_path):
         port.close()
 
     asyncio.run(scenario())
+
+
+@pytest.mark.skipif(not hasattr(asyncio, "timeout"), reason="Python < 3.11: within() is wait_for")
+def test_within_never_swallows_a_cancellation_that_meets_the_result() -> None:
+    """asyncio.wait_for (Python < 3.12) returns the result when the cancellation arrives as it
+    completes: a lidar driver cancelled while connecting streamed on, and the sim's shutdown on
+    an early Ctrl-C never ended."""
+    from racecar_hw.base.link import within
+
+    async def main() -> None:
+        done = asyncio.get_running_loop().create_future()
+        task = asyncio.create_task(within(done, 10.0))
+        await asyncio.sleep(0)  # the task waits
+        done.set_result("connected")
+        task.cancel()  # in the same loop iteration
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(main())

@@ -76,3 +76,12 @@ def test_describe_and_to_dict():
     assert rows["mux.mode"][1] == "brake mode (one of rpm, current)"
     assert rows["mux.inner.priority"][0] == 10
     assert to_dict(Outer())["inputs"] == [{"name": "teleop", "priority": 10}]
+
+
+def test_a_bare_off_is_the_choice_off():
+    """YAML 1.1 reads `mode: off` and `--set safety.mode=off` as false; the choice named off is meant."""
+    from racecar_hw.config import load_config
+
+    assert load_config(None, ["safety.mode=off"]).safety.mode == "off"
+    with pytest.raises(ConfigError, match="expected a string, got False"):
+        load_config(None, ["lidar.model=off"])  # no choice named off there

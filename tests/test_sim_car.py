@@ -29,7 +29,8 @@ P = CarParams()
 
 def test_defaults_match_the_f1tenth_stack() -> None:
     assert (P.speed_to_erpm_gain, P.speed_to_erpm_offset) == (4614.0, 0.0)
-    assert (P.steering_angle_to_servo_gain, P.steering_angle_to_servo_offset) == (-1.2135, 0.5304)
+    # the stack's offset 0.5304 as the VESC receives it (thousandths): see the test on "straight"
+    assert (P.steering_angle_to_servo_gain, P.steering_angle_to_servo_offset) == (-1.2135, 0.530)
     assert (P.wheelbase, P.length, P.width, P.rear_overhang) == (0.25, 0.55, 0.30, 0.10)
     assert P.max_steering_angle == 0.4189
     assert build(CarParams, {"wheelbase": 0.33}).wheelbase == 0.33
@@ -40,11 +41,11 @@ def test_defaults_match_the_f1tenth_stack() -> None:
 def test_conversions() -> None:
     assert speed_from_erpm(4614.0 * 2, P) == pytest.approx(2.0)
     assert speed_from_erpm(-4614.0, P) == pytest.approx(-1.0)
-    assert steering_from_servo(0.5304, P) == 0.0
+    assert steering_from_servo(0.530, P) == 0.0
     # a servo below the centre steers left (the gain is negative)
-    assert steering_from_servo(0.5304 - 1.2135 * 0.2, P) == pytest.approx(0.2)
+    assert steering_from_servo(0.530 - 1.2135 * 0.2, P) == pytest.approx(0.2)
     assert steering_from_servo(0.0, P) == P.max_steering_angle
-    assert steering_from_servo(1.0, P) == pytest.approx((1.0 - 0.5304) / -1.2135)  # within the limit
+    assert steering_from_servo(1.0, P) == pytest.approx((1.0 - 0.530) / -1.2135)  # within the limit
     assert speed_from_erpm(math.nan, P) == 0.0 and steering_from_servo(math.inf, P) == 0.0
 
 
@@ -139,3 +140,29 @@ def test_obstacle_ray_ranges() -> None:
     assert b[2] == pytest.approx(2.0 / math.cos(0.09))
     inside = Box(0.0, 0.0, 1.0, 1.0).ray_ranges(0.0, 0.0, c, s)
     assert np.all(inside == 0.0)
+
+
+def test_the_daemon_and_the_simulated_car_agree_on_straight() -> None:
+    """The servo position the daemon sends for steering 0 steers the simulated car straight: the
+    shipped offset 0.5304 reaches the VESC as 0.530 (thousandths), and a car straight at 0.5304
+    drifted 0.27 m over 20 m."""
+    from racecar_hw.base.messages import AckermannDrive
+    from racecar_hw.config import load_config, shipped_config
+    from racecar_hw.sim.car import CarParams, steering_from_servo
+    from racecar_hw.sim.loopback import Loopback
+    from vesc.ackermann import AckermannConversion
+    from vesc.codec import Role, SetServoPosition, VescCodec, servo_on_wire
+    from vesc.params import VescParams
+
+    for name in ("sim", "car"):
+        config = load_config(shipped_config(name))
+        sent = AckermannConversion.from_params(config.vesc).to_vesc(AckermannDrive()).servo
+        device = VescCodec(Role.DEVICE)  # the fake VESC's end of the serial line
+        device.receive_data(VescCodec(Role.HOST).send(SetServoPosition(sent)))
+        (packet,) = device.events()
+        received = packet.position
+        assert received == servo_on_wire(sent) == 0.530
+        car = Loopback._car_params(config)
+        assert steering_from_servo(received, car) == 0.0
+    assert CarParams().steering_angle_to_servo_offset == servo_on_wire(
+        VescParams().steering_angle_to_servo_offset)

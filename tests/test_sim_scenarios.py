@@ -131,6 +131,10 @@ def test_corridor_at_3_mps_without_intervention(tmp_path):
     assert set(r["safety_interventions_by_reason"]) <= {"stale_scan"}
     assert r["distance_m"] > 14.0
     assert r["max_speed_mps"] == pytest.approx(3.0, abs=0.1)
+    # straight down the centre line (docs/sim.md: (1.5 - 0.30) / 2 = 0.6 m from each wall): the
+    # simulated car and the daemon agree on which servo position is straight
+    assert r["min_clearance_m"] == pytest.approx(0.6, abs=0.02)
+    assert abs(r["final_pose"]["y"]) < 0.02
 
 
 def test_obstacle_appearing_ahead_stops_the_car(tmp_path):

@@ -34,6 +34,52 @@ def test_render_shows_every_field() -> None:
     assert all(len(line) <= 100 for line in text.splitlines())
 
 
+def test_render_shows_link_states_and_the_simulation() -> None:
+    snap = StatusSnapshot(vesc_link="lost since 14:02:31 (35 s)", lidar_link="up", sim_time_s=12.34,
+                          sim_pose=(1.0, 2.0, 0.0), clearance_m=0.456)
+    con, out = console()
+    con.print(render(snap))
+    text = out.getvalue()
+    for expected in ("lost since 14:02:31 (35 s), crc errors 0", "up, reconnects 0", "sim time",
+                     "12.3 s", "clearance", "0.46 m"):
+        assert expected in text, expected
+    con2, out2 = console()
+    con2.print(render(StatusSnapshot()))
+    con2.print(render(StatusSnapshot(battery_v=12.0, scan_rate_hz=40.0, speed_mps=-1.0)))
+    widths = {len(line) for line in out2.getvalue().splitlines()}
+    assert len(widths) == 1, widths  # the box keeps its width as values come and go
+
+
+def test_log_records_go_above_the_live_panel_not_behind_it() -> None:
+    """A log line written straight to the terminal would scroll the panel and leave fragments."""
+    import logging
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    terminal = Tty()
+    handler = logging.StreamHandler(terminal)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    con, out = console(force_terminal=True, color_system=None)
+    panel = StatusPanel(con, refresh_hz=50.0)
+    try:
+        async def scenario() -> None:
+            panel.start()
+            logging.getLogger("racecar_hw.test").warning("VESC still not connected")
+            panel.update(FULL)
+            await async_wait_for(lambda: panel.redraws >= 2)
+            await panel.stop()
+
+        asyncio.run(scenario())
+        logging.getLogger("racecar_hw.test").warning("after the panel")
+    finally:
+        root.removeHandler(handler)
+    assert "VESC still not connected" in out.getvalue()  # through the panel's console
+    assert terminal.getvalue() == "after the panel\n"  # the terminal handler is back afterwards
+
+
 def test_render_unknown_values() -> None:
     con, out = console()
     con.print(render(StatusSnapshot()))
@@ -48,7 +94,9 @@ def test_plain_line() -> None:
     assert line.startswith("speed +1.25 m/s | steer -0.150 rad | mux nav_0 | battery 11.8 V")
     assert "armed ARMED" in line and "sim pose x 1.50 m" in line
     assert "armed disarmed" in plain_line(StatusSnapshot(armed=False))
-    assert "speed nan m/s" in plain_line(StatusSnapshot(speed_mps=math.nan))
+    invalid = plain_line(StatusSnapshot(speed_mps=math.nan, battery_v=math.inf, sim_pose=(math.nan, 0, 0)))
+    assert "nan" not in invalid and "inf" not in invalid  # a summary never says nan
+    assert "speed invalid" in invalid and "battery invalid" in invalid and "sim pose invalid" in invalid
 
 
 def test_plain_lines_when_not_a_terminal() -> None:

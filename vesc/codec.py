@@ -242,6 +242,15 @@ _REPLY_TYPES: tuple[type, ...] = (FwVersion, Values)
 # --- scalar helpers ----------------------------------------------------------------------------
 
 
+#: COMM_SET_SERVO_POS carries the position in thousandths.
+SERVO_SCALE = 1000.0
+
+
+def servo_on_wire(position: float) -> float:
+    """The servo position a VESC receives when ``position`` (0..1) is sent: thousandths, rounded."""
+    return round(position * SERVO_SCALE) / SERVO_SCALE
+
+
 def _scaled(value: float, scale: float, lo: int, hi: int, what: str) -> int:
     """``round(value * scale)`` as an integer within [lo, hi], refusing NaN and infinities."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -454,7 +463,7 @@ def encode_payload(packet: Packet, firmware: tuple[int, int] | None = None) -> b
         return bytes([packet.ID]) + _i32(packet.degrees, 1e6, "position")
     if isinstance(packet, SetServoPosition):
         _check_range(packet.position, 0.0, 1.0, "servo position")
-        return bytes([packet.ID]) + _i16(packet.position, 1000.0, "servo position")
+        return bytes([packet.ID]) + _i16(packet.position, SERVO_SCALE, "servo position")
     if isinstance(packet, FwVersion):
         return encode_fw_version(packet)
     if isinstance(packet, Values):

@@ -553,7 +553,7 @@ async def _ask(link: SerialLink, codec: VescCodec, request: Packet, reply_type: 
         resend = monotonic_ns() + nanoseconds(0.2)
         while (now := monotonic_ns()) < min(resend, deadline):
             try:
-                data = await asyncio.wait_for(link.read(), seconds(min(resend, deadline) - now))
+                data = await link.read_within(seconds(min(resend, deadline) - now))
             except asyncio.TimeoutError:
                 break
             codec.receive_data(data)

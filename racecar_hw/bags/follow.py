@@ -2,8 +2,11 @@
 
 Three pieces, usable alone:
 
-* :func:`load_commands` reads ``ackermann_msgs/AckermannDriveStamped`` (or ``AckermannDrive``) on
-  one topic of a ROS 1 ``.bag`` or a ROS 2 bag (sqlite3 or MCAP), with clear :class:`BagError`\\ s.
+* :func:`load_commands` reads ``ackermann_msgs/AckermannDriveStamped`` (or ``AckermannDrive``), or
+  ``geometry_msgs/Twist`` (or ``TwistStamped``, converted with the wheelbase by
+  :func:`command_from_message`), on one topic of a ROS 1 ``.bag`` or a ROS 2 bag (sqlite3 or
+  MCAP), with clear :class:`BagError`\\ s. Without a topic it picks the bag's only drive topic
+  (:func:`choose_topic`).
 * :func:`schedule` and :class:`CommandSync` turn the commands into timed steps (python-can
   ``MessageSync`` style): a fixed rate or the bag's own timestamps, optionally time-scaled,
   forwards or backwards, once or looping.
@@ -12,7 +15,15 @@ Three pieces, usable alone:
 
 Backwards = reversed order + negated speed + unchanged steering: an Ackermann path's curvature is
 tan(steering)/wheelbase whatever the direction of travel, so the same steering with the opposite
-speed retraces the path. With timestamps, the gaps between commands are replayed reversed.
+speed retraces the path. With timestamps, the gaps between commands are replayed reversed. When
+the recorded speeds exceed what the car may do in reverse (the safety controller's reverse cap),
+every speed is scaled down by the same factor and the timing stretched by its inverse, so the path
+is still retraced, only slower (:func:`fit_speed`).
+
+Twist to Ackermann: ``speed = linear.x``, ``steering = atan(wheelbase * angular.z / linear.x)``
+(the steering whose path has the recorded yaw rate at the recorded speed, as the racecar stacks'
+``cmd_vel_to_ackermann_drive`` computes it). A Twist that turns in place (``angular.z`` with no
+``linear.x``) cannot be driven by an Ackermann car: it becomes a stop, with a warning.
 """
 
 from __future__ import annotations
@@ -20,10 +31,12 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
@@ -39,7 +52,13 @@ log = logging.getLogger(__name__)
 
 TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 NAV0_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/nav_0"
-ACCEPTED_TYPES = ("ackermann_msgs/msg/AckermannDriveStamped", "ackermann_msgs/msg/AckermannDrive")
+ACKERMANN_TYPES = ("ackermann_msgs/msg/AckermannDriveStamped", "ackermann_msgs/msg/AckermannDrive")
+TWIST_TYPES = ("geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped")
+ACCEPTED_TYPES = ACKERMANN_TYPES + TWIST_TYPES
+#: A mux input topic contains this; a bag's inputs are preferred over the mux output (see choose_topic).
+MUX_INPUT_PART = "/ackermann_cmd_mux/input/"
+#: Wheelbase (m) for converting Twist when the caller gives none: the F1TENTH car's.
+DEFAULT_WHEELBASE_M = 0.25
 
 
 @dataclass(frozen=True)
@@ -63,7 +82,8 @@ class FollowerParams:
     """Parameters of the bag follower."""
 
     bag: str = param("", "ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP) to follow")
-    topic: str = param(TELEOP_TOPIC, "topic in the bag holding AckermannDriveStamped or AckermannDrive")
+    topic: str = param("", "topic in the bag holding AckermannDriveStamped, AckermannDrive, Twist or "
+                           "TwistStamped; empty: the bag's only such topic (a mux input preferred)")
     input_topic: str = param(NAV0_TOPIC, "mux input topic the commands are published on")
     rate_hz: float = param(20.0, "fixed publish rate when not using the bag timestamps", unit="Hz",
                            min=0.1, max=1000.0)
@@ -108,13 +128,57 @@ def _open_reader(path: Path) -> AnyReader:
         text = str(err)
         hint = ""
         if "not indexed" in text or "end magic" in text:
-            hint = " (an interrupted recording? try racecar_hw.bags.recover.recover_bag)"
+            hint = f" (an interrupted recording? try: racecar-hw bag recover {path})"
         raise BagError(f"cannot read bag {path}: {text}{hint}") from err
     return reader
 
 
-def load_commands(path: str | Path, topic: str = TELEOP_TOPIC) -> list[Command]:
-    """The Ackermann commands on ``topic`` of the bag at ``path``, in bag-time order.
+def choose_topic(conns: Sequence[Connection], path: Path | str = "the bag") -> str:
+    """The topic to follow when none was given: the only one carrying drive commands.
+
+    With several, the only mux input among them wins (a recording of the whole bus holds the
+    input that drove and the mux output, which already went through the safety controller);
+    otherwise :class:`BagError` lists them.
+    """
+    counts: dict[str, int] = {}
+    for c in conns:
+        if c.msgtype in ACCEPTED_TYPES:
+            counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+    candidates = sorted(t for t, n in counts.items() if n) or sorted(counts)
+    if len(candidates) == 1:
+        return candidates[0]
+    inputs = [t for t in candidates if MUX_INPUT_PART in t]
+    if len(inputs) == 1:
+        return inputs[0]
+    if not candidates:
+        raise BagError(f"{path} has no topic of type {', '.join(ACCEPTED_TYPES)} to follow; "
+                       f"topics found: {_describe(conns)}")
+    raise BagError(f"{path} has {len(candidates)} topics with drive commands: "
+                   f"{', '.join(f'{t} ({counts[t]} msgs)' for t in candidates)}; choose one with --topic")
+
+
+def command_from_message(msgtype: str, msg: Any, t_ns: int,
+                         wheelbase_m: float = DEFAULT_WHEELBASE_M) -> Command:
+    """The one conversion of a bag message (a rosbags object of ``msgtype``) into a :class:`Command`.
+
+    Ackermann messages keep speed and steering; Twist gives speed ``linear.x`` and the steering
+    ``atan(wheelbase * angular.z / linear.x)`` (0 when ``linear.x`` is 0: see the module doc).
+    """
+    if msgtype in TWIST_TYPES:
+        twist = msg.twist if msgtype.endswith("Stamped") else msg
+        speed = float(twist.linear.x)
+        yaw_rate = float(twist.angular.z)
+        steering = math.atan(wheelbase_m * yaw_rate / speed) if speed != 0.0 else 0.0
+        return Command(t_ns, AckermannDrive(steering_angle=steering, speed=speed))
+    types = ros2_types()
+    drive = msg.drive if msgtype.endswith("Stamped") else msg
+    return Command(t_ns, types.from_ros(drive, AckermannDrive))
+
+
+def load_commands(path: str | Path, topic: str | None = None,
+                  wheelbase_m: float = DEFAULT_WHEELBASE_M) -> list[Command]:
+    """The drive commands on ``topic`` (None or "": :func:`choose_topic`) of the bag at ``path``,
+    in bag-time order; Twist is converted with ``wheelbase_m`` (m).
 
     Raises :class:`BagError` for a missing or zero-byte file, an unreadable bag, an empty bag, a
     missing topic or one of another type (listing the topics and types found), and a storage that
@@ -126,6 +190,9 @@ def load_commands(path: str | Path, topic: str = TELEOP_TOPIC) -> list[Command]:
         conns = reader.connections
         if not conns or reader.message_count == 0:
             raise BagError(f"{bag} holds no messages (topics: {_describe(conns)})")
+        if not topic:
+            topic = choose_topic(conns, bag)
+            log.info("%s: following topic %s", bag, topic)
         mine = [c for c in conns if c.topic == topic]
         if not mine:
             raise BagError(f"topic {topic} is not in {bag}; topics found: {_describe(conns)}")
@@ -143,19 +210,26 @@ def load_commands(path: str | Path, topic: str = TELEOP_TOPIC) -> list[Command]:
                            f"{', '.join(ACCEPTED_TYPES)}; topics found: {_describe(conns)}")
         if not raw:
             raise BagError(f"{bag} holds no messages on {topic} (topics: {_describe(conns)})")
-        types = ros2_types()
         out = []
+        turning_in_place = 0
         for conn, t_ns, data in raw:
-            obj = reader.deserialize(data, conn.msgtype)
-            if conn.msgtype.endswith("Stamped"):
-                drive = types.from_ros(obj.drive, AckermannDrive)
-            else:
-                drive = types.from_ros(obj, AckermannDrive)
-            out.append(Command(t_ns, drive))
+            msg = reader.deserialize(data, conn.msgtype)
+            if conn.msgtype in TWIST_TYPES and _turns_in_place(msg, conn.msgtype):
+                turning_in_place += 1
+            out.append(command_from_message(conn.msgtype, msg, t_ns, wheelbase_m))
     finally:
         reader.close()
+    if turning_in_place:
+        log.warning("%s: %d of %d Twist commands on %s turn in place (angular.z without linear.x), "
+                    "which an Ackermann car cannot do: they are followed as stops", bag,
+                    turning_in_place, len(out), topic)
     out.sort(key=lambda c: c.t_ns)
     return out
+
+
+def _turns_in_place(msg: Any, msgtype: str) -> bool:
+    twist = msg.twist if msgtype.endswith("Stamped") else msg
+    return float(twist.linear.x) == 0.0 and float(twist.angular.z) != 0.0
 
 
 def summarize_bag(path: str | Path) -> dict[str, tuple[str, int]]:
@@ -187,26 +261,44 @@ def summarize_bag(path: str | Path) -> dict[str, tuple[str, int]]:
 
 
 def schedule(commands: Sequence[Command], *, rate_hz: float = 20.0, use_timestamps: bool = False,
-             time_scale: float = 1.0, reverse: bool = False) -> list[Step]:
+             time_scale: float = 1.0, reverse: bool = False, speed_scale: float = 1.0) -> list[Step]:
     """Timed steps for ``commands``: offsets from the start of one pass, in ns.
 
     A fixed rate puts step ``i`` at ``i / (rate_hz * time_scale)``; timestamps put it at its
     bag-time distance from the first (or, reversed, from the last) command divided by
-    ``time_scale``. Reversing also negates speed (steering unchanged).
+    ``time_scale``. Reversing also negates speed (steering unchanged). ``speed_scale`` (0..1]
+    multiplies every speed and stretches the timing by its inverse: the same path, slower.
     """
-    if rate_hz <= 0 or time_scale <= 0:
-        raise ValueError("rate_hz and time_scale must be positive")
+    if rate_hz <= 0 or time_scale <= 0 or not 0 < speed_scale <= 1:
+        raise ValueError("rate_hz and time_scale must be positive, speed_scale in (0, 1]")
     cmds = list(reversed(commands)) if reverse else list(commands)
     if not cmds:
         return []
     steps = []
-    period = NS_PER_S / (rate_hz * time_scale)
+    pace = time_scale * speed_scale
+    period = NS_PER_S / (rate_hz * pace)
     t0 = cmds[0].t_ns
+    sign = -1.0 if reverse else 1.0
     for i, cmd in enumerate(cmds):
-        offset = abs(cmd.t_ns - t0) / time_scale if use_timestamps else i * period
-        drive = dataclasses.replace(cmd.drive, speed=-cmd.drive.speed) if reverse else cmd.drive
+        offset = abs(cmd.t_ns - t0) / pace if use_timestamps else i * period
+        drive = cmd.drive
+        if reverse or speed_scale != 1.0:
+            drive = dataclasses.replace(drive, speed=sign * speed_scale * drive.speed)
         steps.append(Step(round(offset), drive))
     return steps
+
+
+def fit_speed(commands: Sequence[Command], limit_mps: float | None, reverse: bool) -> float:
+    """The ``speed_scale`` that keeps every speed of the replay within ``limit_mps`` (m/s).
+
+    ``limit_mps`` applies to reverse driving (the safety controller's reverse cap): forwards
+    commands replayed backwards, and backwards ones replayed forwards. 1.0 when nothing exceeds it.
+    """
+    if limit_mps is None or limit_mps <= 0:
+        return 1.0
+    sign = -1.0 if reverse else 1.0
+    fastest = max((-sign * c.drive.speed for c in commands), default=0.0)  # reverse speeds, > 0
+    return min(1.0, limit_mps / fastest) if fastest > limit_mps else 1.0
 
 
 @dataclass(frozen=True)
@@ -284,28 +376,46 @@ class BagFollower:
     was called. Commands enter the mux as a normal source, so deadman, timeouts and safety apply.
     """
 
-    def __init__(self, bus: Bus, params: FollowerParams, progress: Progress | None = None) -> None:
+    def __init__(self, bus: Bus, params: FollowerParams, progress: Progress | None = None, *,
+                 wheelbase_m: float = DEFAULT_WHEELBASE_M,
+                 reverse_speed_cap_mps: float | None = None) -> None:
         self.bus = bus
         self.params = params
         self.progress = progress
+        self.wheelbase_m = wheelbase_m
+        self.reverse_speed_cap_mps = reverse_speed_cap_mps
         self.done = False
         self.published = 0
         self.late_ns_max = 0
         self._stop = asyncio.Event()
         self.commands: list[Command] = []
+        #: every speed of the replay is multiplied by this (and the timing stretched): see fit_speed
+        self.speed_scale = 1.0
+        self._steps: list[Step] | None = None
 
     def load(self) -> list[Step]:
-        """Read the bag and build the steps (raises BagError)."""
+        """Read the bag and build the steps (raises BagError); done once, also by :meth:`run`."""
+        if self._steps is not None:
+            return self._steps
         p = self.params
-        self.commands = load_commands(p.bag, p.topic)
+        self.commands = load_commands(p.bag, p.topic, self.wheelbase_m)
         if not p.use_timestamps and (found := holes(self.commands)):
             longest = max(found, key=lambda h: h.gap_s)
             log.warning("%s: the recording has %d gap(s) over three times its usual spacing "
                         "(longest %.0f ms, %.1f s in); a fixed-rate replay closes them up and "
                         "shortens the path: set use_timestamps to replay them", p.bag, len(found),
                         longest.gap_s * 1e3, longest.at_s)
-        return schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
-                        time_scale=p.time_scale, reverse=p.reverse)
+        self.speed_scale = fit_speed(self.commands, self.reverse_speed_cap_mps, p.reverse)
+        if self.speed_scale < 1.0:
+            cap = self.reverse_speed_cap_mps
+            log.warning("%s: the replay reverses at up to %.2f m/s, over the safety controller's "
+                        "reverse cap of %.2f m/s: every speed is scaled by %.2f and the timing "
+                        "stretched to match, so the path is retraced %.1f times slower", p.bag,
+                        (cap or 0.0) / self.speed_scale, cap, self.speed_scale, 1 / self.speed_scale)
+        self._steps = schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
+                               time_scale=p.time_scale, reverse=p.reverse,
+                               speed_scale=self.speed_scale)
+        return self._steps
 
     def stop(self) -> None:
         """End the replay at the next deadline."""
@@ -315,7 +425,7 @@ class BagFollower:
         """Replay; returns the number of commands published."""
         p = self.params
         steps = await asyncio.to_thread(self.load)
-        gap = round(NS_PER_S / (p.rate_hz * p.time_scale))
+        gap = round(NS_PER_S / (p.rate_hz * p.time_scale * self.speed_scale))
         sync = CommandSync(steps, loop=p.loop, gap_ns=gap)
         log.info("following %d commands from %s (%s, %s)", len(sync), p.bag,
                  "backwards" if p.reverse else "forwards",

@@ -28,10 +28,14 @@ last flush:
 * ROS 1: the file lacks its index (``index_pos`` 0); :func:`~racecar_hw.bags.recover.recover_bag`
   or the real ``rosbag reindex`` rebuilds it.
 
-Splitting by size or duration closes each split as a complete bag, so only the split being written
-at the moment of the crash needs recovery. Splits are separate bags: ``<name>_<n>/`` directories
-(ROS 2) or ``<name>_<n>.bag`` files (ROS 1). Static transforms (``/tf_static``, latched) are
-written at the start of every split, including those published before recording began.
+Splitting by size or duration closes each split as a complete file, so only the split being
+written at the moment of the crash needs recovery. A ROS 2 recording is one bag directory
+``<name>/`` whose files are the splits (``<name>_0.mcap``, ``<name>_1.mcap``, ... listed in its one
+``metadata.yaml``), as ``ros2 bag record --max-bag-size`` writes them; a ROS 1 recording's splits
+are ``<name>_<n>.bag`` files, as ``rosbag record --split`` writes them. Static transforms
+(``/tf_static``, latched) are written at the start of every split, including those published
+before recording began. ROS 2 topics are offered with the QoS a ROS 2 publisher would use
+(:func:`offered_qos`): ``/tf_static`` transient-local, LaserScan the sensor-data profile.
 """
 
 from __future__ import annotations
@@ -61,9 +65,16 @@ from rosbags.interfaces import (
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.rosbag2.metadata import dump_qos_v9
+from rosbags.rosbag2.metadata import dump_qos_v8
 
 from racecar_hw.bags.mcap_appender import McapAppender
+from racecar_hw.bags.writers import (
+    RECORDING_CLOSED,
+    RECORDING_OPEN,
+    ROS2_METADATA_VERSION,
+    Ros1Writer,
+    Ros2FileWriter,
+)
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -130,8 +141,9 @@ class RecorderParams:
 
 @dataclass
 class RecorderStats:
-    """A snapshot of what the recorder did: counts, payload bytes and the bag files it created.
+    """A snapshot of what the recorder did: counts, payload bytes and the bags it created.
 
+    ``files``: the bag directory (ROS 2: one, whatever the splits) or every ``.bag`` (ROS 1).
     ``flushed`` counts the messages on disk as of the last flush: what survives a crash.
     """
 
@@ -150,10 +162,156 @@ def _static_qos() -> Qos:
                zero, zero, QosLiveliness.AUTOMATIC, zero, False)
 
 
-class BagFile:
-    """One bag being written (one split): connections by topic, flush to disk, close."""
+def _sensor_data_qos() -> Qos:
+    """rclcpp's ``SensorDataQoS()`` (rmw_qos_profile_sensor_data), which lidar drivers publish with."""
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 5, QosReliability.BEST_EFFORT, QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
 
-    def __init__(self, path: Path, fmt: str, compression: str, types: BagTypes) -> None:
+
+def offered_qos(topic: str, cls: type[Message]) -> list[Qos]:
+    """The QoS profiles a ROS 2 publisher of ``topic`` would offer: latched topics transient-local,
+    sensor streams (LaserScan) the sensor-data profile, everything else the default (none listed)."""
+    if topic in LATCHED_TOPICS:
+        return [_static_qos()]
+    if cls.ROS_TYPE == "sensor_msgs/msg/LaserScan":
+        return [_sensor_data_qos()]
+    return []
+
+
+@dataclass
+class _TopicInfo:
+    msgtype: str
+    qos: str
+    digest: str
+    closed_count: int = 0
+
+
+class Ros2BagMetadata:
+    """``metadata.yaml`` of a rosbag2 bag being recorded: every closed file plus the open one.
+
+    A recording's splits are the files of one bag (``<name>_0.mcap``, ``<name>_1.mcap``, ...),
+    as ``ros2 bag record --max-bag-size`` makes them. The text is rendered from a template dumped
+    once per set of topics and files (see :meth:`text`), so a flush only joins numbers into it.
+    """
+
+    def __init__(self, bagdir: Path, storage_identifier: str) -> None:
+        self.bagdir = bagdir
+        self.storage_identifier = storage_identifier
+        self.closed_files: list[tuple[str, int, int, int]] = []  # name, start ns, duration ns, count
+        self.topics: dict[str, _TopicInfo] = {}
+        self.complete = False
+        self._template: tuple[tuple[int, int, bool], list[str], list[int]] | None = None
+
+    def add_topic(self, topic: str, conn: Connection) -> None:
+        """Note a topic the first time any file of the bag writes it."""
+        if topic not in self.topics:
+            qos = dump_qos_v8(conn.ext.offered_qos_profiles)  # type: ignore[union-attr]
+            self.topics[topic] = _TopicInfo(conn.msgtype, qos, conn.digest)
+
+    def file_closed(self, bag: BagFile) -> None:
+        """Fold a finished file's numbers into the bag's."""
+        start = bag.first_ns or 0
+        self.closed_files.append((bag.file_name, start, bag.last_ns - start if bag.count else 0,
+                                  bag.count))
+        for topic, count in bag.topic_counts.items():
+            self.topics[topic].closed_count += count
+
+    def numbers(self, current: BagFile | None) -> list[int]:
+        """Every number of the document, in the order :meth:`info` takes them."""
+        files = list(self.closed_files)
+        if current is not None:
+            start = current.first_ns or 0
+            files.append((current.file_name, start, current.last_ns - start if current.count else 0,
+                          current.count))
+        used = [(s, s + d) for _n, s, d, c in files if c]
+        start = min((s for s, _e in used), default=0)
+        end = max((e for _s, e in used), default=0)
+        counts = [info.closed_count + (current.topic_counts.get(topic, 0) if current else 0)
+                  for topic, info in self.topics.items()]
+        per_file = [v for _n, s, d, c in files for v in (s, d, c)]
+        return [end - start, start, sum(c for *_x, c in files), *counts, *per_file]
+
+    def file_names(self, current: BagFile | None) -> list[str]:
+        return [n for n, *_x in self.closed_files] + ([current.file_name] if current else [])
+
+    def info(self, names: list[str], numbers: list[int]) -> dict[str, Any]:
+        """The ``rosbag2_bagfile_information`` mapping for ``numbers`` (see :meth:`numbers`)."""
+        duration, start, count = numbers[:3]
+        counts = numbers[3:3 + len(self.topics)]
+        per_file = numbers[3 + len(self.topics):]
+        topics = [{"topic_metadata": {"name": topic, "type": info.msgtype,
+                                      "serialization_format": "cdr",
+                                      "offered_qos_profiles": info.qos,
+                                      "type_description_hash": info.digest},
+                   "message_count": n}
+                  for (topic, info), n in zip(self.topics.items(), counts, strict=True)]
+        files = [{"path": name, "starting_time": {"nanoseconds_since_epoch": per_file[3 * i]},
+                  "duration": {"nanoseconds": per_file[3 * i + 1]},
+                  "message_count": per_file[3 * i + 2]}
+                 for i, name in enumerate(names)]
+        return {
+            "version": ROS2_METADATA_VERSION,
+            "storage_identifier": self.storage_identifier,
+            "relative_file_paths": list(names),
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": count,
+            "topics_with_message_count": topics,
+            "compression_format": "",
+            "compression_mode": "",
+            "files": files,
+            "custom_data": {"racecar_hw": RECORDING_CLOSED if self.complete else RECORDING_OPEN},
+            "ros_distro": "rosbags",
+        }
+
+    def text(self, current: BagFile | None) -> str:
+        """``metadata.yaml``: the text ``yaml.safe_dump`` gives for :meth:`info`, from a template.
+
+        The template is the document dumped with unique sentinel integers in place of the counts
+        and times, split around them; a flush only joins the pieces with the current numbers.
+        """
+        numbers = self.numbers(current)
+        names = self.file_names(current)
+        key = (len(self.topics), len(names), self.complete)
+        if self._template is None or self._template[0] != key:
+            sentinels = [_SENTINEL + i for i in range(len(numbers))]
+            text = yaml.dump({"rosbag2_bagfile_information": self.info(names, sentinels)},
+                             Dumper=yaml.SafeDumper, sort_keys=False)
+            pieces = re.split(r"(?<![0-9])(" + str(_SENTINEL)[:-3] + r"[0-9]{3})(?![0-9])", text)
+            slots = [int(v) - _SENTINEL for v in pieces[1::2]]
+            if sorted(set(slots)) != list(range(len(numbers))):
+                # A number went missing from the text: dump every time (never happens with our keys).
+                return yaml.dump({"rosbag2_bagfile_information": self.info(names, numbers)},
+                                 Dumper=yaml.SafeDumper, sort_keys=False)
+            self._template = (key, pieces, slots)
+        _, pieces, slots = self._template
+        values = [str(v) for v in numbers]
+        parts = list(pieces)
+        parts[1::2] = [values[i] for i in slots]
+        return "".join(parts)
+
+    def write(self, current: BagFile | None) -> None:
+        """Write ``metadata.yaml`` atomically (temporary file, fsync, rename)."""
+        text = self.text(current)
+        meta = self.bagdir / "metadata.yaml"
+        tmp = meta.with_suffix(".yaml.tmp")
+        with tmp.open("w", encoding="utf8") as fh:
+            fh.write(text)
+            _sync(fh)
+        tmp.replace(meta)
+
+
+class BagFile:
+    """One file being written (one split): connections by topic, flush to disk, close.
+
+    ROS 1: ``path`` is the ``.bag`` file. ROS 2: ``path`` is the storage file without its
+    extension, inside the bag directory ``path.parent``, whose ``metadata.yaml`` (``meta``,
+    shared by the splits) describes every file of the bag.
+    """
+
+    def __init__(self, path: Path, fmt: str, compression: str, types: BagTypes,
+                 meta: Ros2BagMetadata | None = None) -> None:
         self.path = path
         self.format = fmt
         self.types = types
@@ -162,25 +320,29 @@ class BagFile:
         self.first_ns: int | None = None
         self.last_ns = 0
         self._conns: dict[str, Connection] = {}
-        self._counts: dict[str, int] = {}
+        self.topic_counts: dict[str, int] = {}
         self._seq: dict[str, int] = {}
-        self._meta_template: tuple[int, list[str], list[int]] | None = None
-        self._writer: Writer1 | Writer2
+        self._writer: Ros1Writer | Ros2FileWriter
+        if fmt != "ros1" and meta is None:
+            meta = Ros2BagMetadata(path.parent, fmt)
+        self.meta = meta
         try:
             if fmt == "ros1":
-                w1 = Writer1(path)
+                w1 = Ros1Writer(path)
                 if compression == "bz2":
                     w1.set_compression(Writer1.CompressionFormat.BZ2)
                 self._writer = w1
             else:
                 plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-                self._writer = Writer2(path, version=9, storage_plugin=plugin)
+                self._writer = Ros2FileWriter(path.parent, path.name, storage_plugin=plugin)
             self._writer.open()
         except Exception as err:
             raise BagError(f"cannot create bag {path}: {err}") from err
         self._mcap = McapAppender.attach(self._writer) if isinstance(self._writer, Writer2) else None
-        if fmt != "ros1":
-            self._write_metadata()
+        storage: Any = getattr(self._writer, "storage", None)
+        self.file_name = Path(storage.path).name if storage is not None else path.name
+        if self.meta is not None:
+            self.meta.write(self)
 
     def write(self, topic: str, msg: Message, t_ns: int) -> int:
         """Serialize and append ``msg``; returns the payload size in bytes."""
@@ -193,7 +355,7 @@ class BagFile:
             self._mcap.write(conn.id, t_ns, data)
         else:
             self._writer.write(conn, t_ns, data)
-        self._counts[topic] += 1
+        self.topic_counts[topic] += 1
         self.count += 1
         size = len(data)
         self.bytes += size
@@ -221,11 +383,19 @@ class BagFile:
             _sync(storage.bio)
         else:
             storage.conn.commit()
-        self._write_metadata()
+        assert self.meta is not None
+        self.meta.write(self)
 
-    def close(self) -> None:
-        """Write the index/summary and metadata: the bag is complete."""
+    def close(self, last: bool = True) -> None:
+        """Write the index/summary (and, ROS 2, the bag's metadata): the file is complete.
+
+        ``last``: no further split of this bag follows, so the bag is complete too.
+        """
         self._writer.close()
+        if self.meta is not None:
+            self.meta.file_closed(self)
+            self.meta.complete = last
+            self.meta.write(None)
 
     def abort(self) -> None:
         """Close without finishing (after a write error)."""
@@ -236,105 +406,24 @@ class BagFile:
 
     def _add_connection(self, topic: str, cls: type[Message]) -> Connection:
         typename = cls.ROS_TYPE
-        latched = topic in LATCHED_TOPICS
         w = self._writer
         if isinstance(w, Writer1):
             conn = w.add_connection(topic, typename, typestore=self.types.store,
-                                    callerid="/racecar_hw", latching=1 if latched else None)
+                                    callerid="/racecar_hw",
+                                    latching=1 if topic in LATCHED_TOPICS else None)
         else:
-            qos = [_static_qos()] if latched else []
             conn = w.add_connection(topic, typename, typestore=self.types.store,
-                                    offered_qos_profiles=qos)
+                                    offered_qos_profiles=offered_qos(topic, cls))
+            assert self.meta is not None
+            self.meta.add_topic(topic, conn)
         self._conns[topic] = conn
-        self._counts[topic] = 0
+        self.topic_counts[topic] = 0
         self._seq[topic] = 0
         return conn
-
-    def metadata_info(self, numbers: list[int] | None = None) -> dict[str, Any]:
-        """The ``rosbag2_bagfile_information`` of the data so far, as rosbags writes it at close.
-
-        ``numbers`` replaces the counts and times, in the order of :meth:`_metadata_numbers`.
-        """
-        w = self._writer
-        assert isinstance(w, Writer2)
-        storage: Any = w.storage
-        duration, start, count, *counts = numbers if numbers is not None else self._metadata_numbers()
-        topics = []
-        for (topic, conn), topic_count in zip(self._conns.items(), counts, strict=True):
-            qos = dump_qos_v9(conn.ext.offered_qos_profiles)  # type: ignore[union-attr]
-            topics.append({
-                "topic_metadata": {
-                    "name": topic, "type": conn.msgtype, "serialization_format": "cdr",
-                    "offered_qos_profiles": qos, "type_description_hash": conn.digest,
-                },
-                "message_count": topic_count,
-            })
-        name = Path(storage.path).name
-        return {
-            "version": 9,
-            "storage_identifier": self.format,
-            "relative_file_paths": [name],
-            "duration": {"nanoseconds": duration},
-            "starting_time": {"nanoseconds_since_epoch": start},
-            "message_count": count,
-            "topics_with_message_count": topics,
-            "compression_format": "",
-            "compression_mode": "",
-            "files": [{"path": name, "starting_time": {"nanoseconds_since_epoch": start},
-                       "duration": {"nanoseconds": duration}, "message_count": count}],
-            "custom_data": {"racecar_hw": "in progress: written at flush, rewritten at close"},
-            "ros_distro": "rosbags",
-        }
-
-    def _metadata_numbers(self) -> list[int]:
-        start = self.first_ns or 0
-        duration = self.last_ns - start if self.first_ns is not None else 0
-        return [duration, start, self.count, *(self._counts[t] for t in self._conns)]
-
-    def metadata_text(self) -> str:
-        """``metadata.yaml`` for the data so far: the text ``yaml.safe_dump`` gives for
-        :meth:`metadata_info`, from a template dumped once per set of topics.
-
-        The template is the document dumped with unique sentinel integers in place of the counts
-        and times, split around them; a flush only joins the pieces with the current numbers.
-        """
-        numbers = self._metadata_numbers()
-        if self._meta_template is None or self._meta_template[0] != len(numbers):
-            sentinels = [_SENTINEL + i for i in range(len(numbers))]
-            text = yaml.dump({"rosbag2_bagfile_information": self.metadata_info(sentinels)},
-                             Dumper=_YAML_DUMPER, sort_keys=False)
-            pieces = re.split(r"(?<![0-9])(" + str(_SENTINEL)[:-3] + r"[0-9]{3})(?![0-9])", text)
-            slots = [int(v) - _SENTINEL for v in pieces[1::2]]
-            if sorted(set(slots)) != list(range(len(numbers))):
-                # A number went missing from the text: dump every time (never happens with our keys).
-                return yaml.dump({"rosbag2_bagfile_information": self.metadata_info(numbers)},
-                                 Dumper=_YAML_DUMPER, sort_keys=False)
-            self._meta_template = (len(numbers), pieces, slots)
-        _, pieces, slots = self._meta_template
-        values = [str(v) for v in numbers]
-        parts = list(pieces)
-        parts[1::2] = [values[i] for i in slots]
-        return "".join(parts)
-
-    def _write_metadata(self) -> None:
-        """metadata.yaml as rosbags writes it at close, for the data flushed so far."""
-        w = self._writer
-        assert isinstance(w, Writer2)
-        if w.storage is None:
-            return
-        text = self.metadata_text()
-        meta = self.path / "metadata.yaml"
-        tmp = meta.with_suffix(".yaml.tmp")
-        with tmp.open("w", encoding="utf8") as fh:
-            fh.write(text)
-            _sync(fh)
-        tmp.replace(meta)
 
 
 #: Stand-ins for the numbers of metadata.yaml when its template is dumped (19 digits, unique).
 _SENTINEL = 7_319_000_000_000_000_000
-#: libyaml's emitter when PyYAML has it: the same text as ``yaml.safe_dump``, five times faster.
-_YAML_DUMPER: Any = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
 def _sync(fh: Any) -> None:
@@ -506,7 +595,7 @@ class Recorder:
         if topic in LATCHED_TOPICS:
             self._static[topic] = msg
         if self._should_split(t_ns):
-            self._file.close()
+            self._file.close(last=False)
             self._file = self._open_split()
             for static_topic, static_msg in self._static.items():
                 if static_topic != topic:
@@ -526,11 +615,21 @@ class Recorder:
         return bool(p.split_duration_s) and t_ns - first >= p.split_duration_s * NS_PER_S
 
     def _open_split(self) -> BagFile:
-        suffix = ".bag" if self.params.format == "ros1" else ""
-        path = self._dir / f"{self._base}_{self._split_index}{suffix}"
+        index = self._split_index
+        if self.params.format == "ros1":  # rosbag record --split: name_0.bag, name_1.bag, ...
+            path = self._dir / f"{self._base}_{index}.bag"
+            bag = BagFile(path, "ros1", self.params.compression, self.types)
+            self._files.append(path)
+        else:  # ros2 bag record --max-bag-size: one bag, files name_0.mcap, name_1.mcap, ...
+            bagdir = self._dir / self._base
+            if index == 0 and bagdir.exists():
+                raise BagError(f"cannot create bag {bagdir}: it exists already, not overwriting")
+            bag = BagFile(bagdir / f"{self._base}_{index}", self.params.format,
+                          self.params.compression, self.types,
+                          self._file.meta if self._file is not None else None)
+            if index == 0:
+                self._files.append(bagdir)
         self._split_index += 1
-        bag = BagFile(path, self.params.format, self.params.compression, self.types)
-        self._files.append(path)
         return bag
 
     def _flush(self) -> None:

@@ -1,18 +1,23 @@
-"""Recover bags whose recording was killed (SIGKILL, power loss) before they were closed.
+"""Check bags and recover those whose recording was killed (SIGKILL, power loss) before they were closed.
 
 What a killed :class:`~racecar_hw.bags.record.Recorder` leaves, and what this module does with it:
 
-* MCAP (ROS 2): header and every chunk flushed so far, no summary and no footer. rosbags refuses
-  the file ("File end magic is invalid"). :func:`recover_bag` scans the records up to the last
-  complete one and rewrites schemas, channels and messages into a new, closed bag directory.
+* MCAP (ROS 2): every closed split complete; the last file with its header and every chunk flushed
+  so far, no summary and no footer. rosbags refuses it ("File end magic is invalid").
+  :func:`recover_bag` scans the records of every file up to the last complete one and rewrites
+  schemas, channels (with their QoS) and messages into a new, closed bag directory.
 * ROS 1: the bag header with ``index_pos`` 0, then the chunks flushed so far. rosbags and rosbag
   refuse it ("not indexed"). :func:`recover_bag` scans the chunk records (none, bz2 or lz4) up to
-  the last complete one and rewrites connections and messages into a new, indexed bag.
+  the last complete one and rewrites connections and messages into a new, indexed bag. An index
+  is only trusted when it is consistent with the chunks (:func:`check_ros1_index`): a header
+  pointing at garbage (a file rewritten by a tool with another header layout) is rebuilt too.
 * sqlite3 (ROS 2): every committed transaction. The bag already reads as it is; :func:`recover_bag`
-  rolls back a hot journal (by opening the database normally) and rewrites ``metadata.yaml`` in
+  rolls back a hot journal (by opening each database normally) and rewrites ``metadata.yaml`` in
   place with the real message counts.
 
-The scanners are plain functions over bytes (no I/O), so they can be tested on truncated data.
+:func:`inspect_bag` says which format a bag is in, which files it has, and whether it is complete
+(and if not, why), without changing anything. The scanners are plain functions over bytes (no
+I/O), so they can be tested on truncated and damaged data.
 """
 
 from __future__ import annotations
@@ -21,19 +26,20 @@ import bz2
 import sqlite3
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
-from rosbags.rosbag1 import Writer as Writer1
+from rosbags.interfaces import Qos
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
+from rosbags.rosbag2.metadata import dump_qos_v8, parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from racecar_hw.bags.writers import RECORDING_OPEN, ROS1_MAGIC, ROS2_METADATA_VERSION, Ros1Writer
 from racecar_hw.base.errors import BagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-ROS1_MAGIC = b"#ROSBAG V2.0\n"
 
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
@@ -49,6 +55,20 @@ class RecoveryResult:
     was_complete: bool
 
 
+@dataclass
+class BagState:
+    """A bag's format (``ros1``, ``mcap``, ``sqlite3``), its storage files, and whether it is complete.
+
+    ``problem`` says why it is not (empty when it is).
+    """
+
+    path: Path
+    format: str
+    files: list[Path]
+    complete: bool
+    problem: str = ""
+
+
 # --- MCAP -------------------------------------------------------------------------------------
 
 
@@ -60,6 +80,7 @@ class McapScan:
     channels: dict[int, tuple[int, str, str]]           # id -> (schema id, topic, encoding)
     messages: list[tuple[int, int, bytes]]              # (channel id, log time ns, data)
     complete: bool                                       # a footer was found
+    qos: dict[int, str] = field(default_factory=dict)   # channel id -> offered_qos_profiles
 
 
 def scan_mcap(data: bytes) -> McapScan:
@@ -121,30 +142,51 @@ def _mcap_record(op: int, body: bytes, scan: McapScan) -> None:
         topic, pos = _mcap_string(body, 4)
         encoding, pos = _mcap_string(body, pos)
         scan.channels[cid] = (sid, topic, encoding)
+        (size,) = _U32.unpack_from(body, pos)
+        pos += 4
+        stop = pos + size
+        while pos < stop:
+            key, pos = _mcap_string(body, pos)
+            value, pos = _mcap_string(body, pos)
+            if key == "offered_qos_profiles":
+                scan.qos[cid] = value
     elif op == 0x05:
         cid, _seq, log_time, _pub = struct.unpack_from("<HIQQ", body, 0)
         scan.messages.append((cid, log_time, body[22:]))
 
 
-def _recover_mcap(bagdir: Path, file: Path, out: Path) -> RecoveryResult:
-    scan = scan_mcap(file.read_bytes())
-    if scan.complete:
-        return RecoveryResult(bagdir, len(scan.messages), True)
+def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
+    scans = [scan_mcap(f.read_bytes()) for f in files]
     store = get_typestore(Stores.EMPTY)
-    for name, _enc, text in scan.schemas.values():
-        store.register(get_types_from_msg(text.decode(), name))
-    with Writer2(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {}
-        for cid, (sid, topic, _enc) in scan.channels.items():
-            name, _enc2, text = scan.schemas[sid]
-            conns[cid] = writer.add_connection(topic, name, msgdef=text.decode(),
-                                               rihs01=store.hash_rihs01(name))
+    with Writer2(out, version=ROS2_METADATA_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {}  # (topic, type, qos) -> connection, over every file
         count = 0
-        for cid, t_ns, payload in scan.messages:
-            if cid in conns:
-                writer.write(conns[cid], t_ns, payload)
-                count += 1
+        for scan in scans:
+            for name, _enc, text in scan.schemas.values():
+                if name not in store.types:
+                    store.register(get_types_from_msg(text.decode(), name))
+            mine = {}
+            for cid, (sid, topic, _enc) in scan.channels.items():
+                name, _enc2, text = scan.schemas[sid]
+                qos = scan.qos.get(cid, "")
+                key = (topic, name, qos)
+                if key not in conns:
+                    conns[key] = writer.add_connection(topic, name, msgdef=text.decode(),
+                                                       rihs01=store.hash_rihs01(name),
+                                                       offered_qos_profiles=_qos(qos))
+                mine[cid] = conns[key]
+            for cid, t_ns, payload in scan.messages:
+                if cid in mine:
+                    writer.write(mine[cid], t_ns, payload)
+                    count += 1
     return RecoveryResult(out, count, False)
+
+
+def _qos(text: str) -> list[Qos]:
+    try:
+        return parse_qos(text)
+    except Exception:  # a profile we cannot parse: the message data matters more than its QoS
+        return []
 
 
 # --- ROS 1 ------------------------------------------------------------------------------------
@@ -157,65 +199,214 @@ class Ros1Scan:
     connections: dict[int, dict[str, bytes]]            # id -> connection header fields
     messages: list[tuple[int, int, bytes]]              # (connection id, time ns, data)
     indexed: bool                                        # the bag header points at an index
+    index_pos: int = 0
+    conn_count: int = 0
+    chunk_count: int = 0
+    chunks: list[int] = field(default_factory=list)     # file offsets of the chunk records
+    damaged: list[int] = field(default_factory=list)    # offsets of unreadable records stepped over
 
 
 def scan_ros1(data: bytes) -> Ros1Scan:
-    """Every connection and message in the chunks of ``data`` up to the first truncated record."""
+    """Every connection and message in the chunks of ``data`` up to the first truncated record.
+
+    The file header is read by its own length fields, so both layouts (rosbag's and rosbags')
+    work. Damaged bytes between records (a chunk whose start was overwritten) are stepped over
+    to the next chunk record.
+    """
     if not data.startswith(ROS1_MAGIC):
         raise BagError("not a ROS 1 bag (bad magic)")
     scan = Ros1Scan({}, [], False)
-    for fields, body in _ros1_records(data, len(ROS1_MAGIC)):
+    pos = len(ROS1_MAGIC)
+    end = len(data)
+    while pos + 8 <= end:  # chunks, then (in a closed bag) the index's connection and chunk-info records
+        record = _ros1_record_at(data, pos)
+        if record is None:
+            if _ros1_truncated(data, pos):
+                break
+            found = _ros1_next_chunk(data, pos, end)
+            if found is None:
+                break
+            scan.damaged.append(pos)
+            pos, record = found
+        fields, body, nxt = record
         op = fields.get("op", b"\x00")[0]
         if op == 0x03:
-            scan.indexed = _U64.unpack(fields["index_pos"])[0] != 0
+            scan.index_pos = _U64.unpack(fields["index_pos"])[0]
+            scan.conn_count = _U32.unpack(fields["conn_count"])[0]
+            scan.chunk_count = _U32.unpack(fields["chunk_count"])[0]
+            scan.indexed = scan.index_pos != 0
         elif op == 0x05:
-            compression = fields["compression"].decode()
-            if compression == "bz2":
-                body = bz2.decompress(body)
-            elif compression != "none":  # lz4: the recorder never writes it
-                raise BagError(f"unknown ROS 1 chunk compression {compression!r}")
-            for inner, inner_body in _ros1_records(body, 0):
-                _ros1_record(inner, inner_body, scan)
+            scan.chunks.append(pos)
+            _ros1_chunk(fields, body, scan)
         else:
             _ros1_record(fields, body, scan)
+        pos = nxt
     return scan
 
 
-def _ros1_fields(header: bytes) -> dict[str, bytes]:
+def _ros1_chunk(fields: dict[str, bytes], body: bytes, scan: Ros1Scan) -> None:
+    compression = fields["compression"].decode()
+    if compression == "bz2":
+        body = bz2.decompress(body)
+    elif compression == "lz4":
+        import lz4.frame  # type: ignore[import-untyped]
+
+        body = lz4.frame.decompress(body)
+    elif compression != "none":
+        raise BagError(f"unknown ROS 1 chunk compression {compression!r}")
+    for inner, inner_body in _ros1_records(body, 0):
+        _ros1_record(inner, inner_body, scan)
+
+
+def _ros1_fields(header: bytes) -> dict[str, bytes] | None:
     fields: dict[str, bytes] = {}
     pos = 0
     while pos + 4 <= len(header):
         (n,) = _U32.unpack_from(header, pos)
-        name, _, value = header[pos + 4:pos + 4 + n].partition(b"=")
+        if pos + 4 + n > len(header):
+            return None
+        name, eq, value = header[pos + 4:pos + 4 + n].partition(b"=")
+        if not eq or not name:
+            return None
+        fields[name.decode(errors="replace")] = value
+        pos += 4 + n
+    return fields if pos == len(header) else None
+
+
+def _ros1_truncated(data: bytes, pos: int) -> bool:
+    """Whether the record at ``pos`` runs past the end of ``data`` (an interrupted write)."""
+    (hlen,) = _U32.unpack_from(data, pos)
+    if pos + 8 + hlen > len(data):
+        return hlen < 1 << 20  # plausible length: cut off; else garbage
+    (dlen,) = _U32.unpack_from(data, pos + 4 + hlen)
+    return pos + 8 + hlen + dlen > len(data) and _ros1_fields(data[pos + 4:pos + 4 + hlen]) is not None
+
+
+_Record = tuple[dict[str, bytes], bytes, int]  # header fields, data, offset of the next record
+
+
+def _ros1_record_at(data: bytes, pos: int) -> _Record | None:
+    """The record at ``pos``: its fields, its data and where the next one starts; None if damaged."""
+    end = len(data)
+    (hlen,) = _U32.unpack_from(data, pos)
+    if pos + 8 + hlen > end:
+        return None
+    fields = _ros1_fields(data[pos + 4:pos + 4 + hlen])
+    if not fields or "op" not in fields or len(fields["op"]) != 1:
+        return None
+    (dlen,) = _U32.unpack_from(data, pos + 4 + hlen)
+    start = pos + 8 + hlen
+    if start + dlen > end:
+        return None
+    if fields["op"][0] == 0x05 and not {"compression", "size"} <= set(fields):
+        return None
+    return fields, data[start:start + dlen], start + dlen
+
+
+_CHUNK_OP = _U32.pack(4) + b"op=\x05"
+
+
+def _ros1_next_chunk(data: bytes, pos: int, end: int) -> tuple[int, _Record] | None:
+    """The next chunk record at or after ``pos`` whose header and data parse, or None.
+
+    Rewriting a bag's header with a longer layout overwrites the first chunk's header length;
+    its fields after that are intact, so a chunk record whose op field starts 4 bytes in is
+    read from its fields (op, compression, size: the three a chunk header has).
+    """
+    while (found := data.find(b"op=\x05", pos, end)) >= 0:
+        pos = found + 1
+        start = found - 8  # the record's two length fields may be the damaged bytes before pos
+        if start < len(ROS1_MAGIC):
+            continue
+        record = _ros1_record_at(data, start) if data[found - 4:found + 4] == _CHUNK_OP else None
+        if record is None:
+            record = _ros1_chunk_from_fields(data, found, end)
+        if record is not None:
+            return start, record
+    return None
+
+
+def _ros1_chunk_from_fields(data: bytes, op_at: int, end: int) -> _Record | None:
+    fields: dict[str, bytes] = {"op": b"\x05"}
+    pos = op_at + 4
+    while pos + 4 <= end and not {"compression", "size"} <= set(fields):
+        (n,) = _U32.unpack_from(data, pos)
+        if n > 64 or pos + 4 + n > end:
+            return None
+        name, eq, value = data[pos + 4:pos + 4 + n].partition(b"=")
+        if not eq or name not in (b"compression", b"size"):
+            return None
         fields[name.decode()] = value
         pos += 4 + n
-    return fields
+    if pos + 4 > end or len(fields.get("size", b"")) != 4:
+        return None
+    (dlen,) = _U32.unpack_from(data, pos)
+    if pos + 4 + dlen > end:
+        return None
+    return fields, data[pos + 4:pos + 4 + dlen], pos + 4 + dlen
 
 
 def _ros1_records(data: bytes, pos: int) -> Iterator[tuple[dict[str, bytes], bytes]]:
-    end = len(data)
-    while pos + 4 <= end:
-        (hlen,) = _U32.unpack_from(data, pos)
-        if pos + 8 + hlen > end:
+    while pos + 8 <= len(data):
+        record = _ros1_record_at(data, pos)
+        if record is None:
             return
-        header = data[pos + 4:pos + 4 + hlen]
-        (dlen,) = _U32.unpack_from(data, pos + 4 + hlen)
-        start = pos + 8 + hlen
-        if start + dlen > end:
-            return
-        yield _ros1_fields(header), data[start:start + dlen]
-        pos = start + dlen
+        fields, body, pos = record
+        yield fields, body
 
 
 def _ros1_record(fields: dict[str, bytes], body: bytes, scan: Ros1Scan) -> None:
     op = fields.get("op", b"\x00")[0]
     if op == 0x07:
         (cid,) = _U32.unpack(fields["conn"])
-        scan.connections.setdefault(cid, _ros1_fields(body))
+        conn = _ros1_fields(body)
+        if conn is not None:
+            scan.connections.setdefault(cid, conn)
     elif op == 0x02:
         (cid,) = _U32.unpack(fields["conn"])
         sec, nsec = struct.unpack("<II", fields["time"])
         scan.messages.append((cid, sec * 1_000_000_000 + nsec, body))
+
+
+def check_ros1_index(data: bytes, scan: Ros1Scan) -> str:
+    """Why the index of a scanned bag cannot be trusted; empty when it can.
+
+    Trusted: the header points inside the file at ``conn_count`` connection records and
+    ``chunk_count`` chunk-info records, every chunk info points at a chunk record, and the
+    chunk infos count exactly the messages the chunks hold.
+    """
+    if not scan.indexed:
+        return "not indexed (index_pos 0: the recording was not closed)"
+    if scan.damaged:
+        return (f"damaged bytes at offset {scan.damaged[0]} (a chunk was overwritten, e.g. by a tool "
+                "rewriting the file header in another layout)")
+    if not len(ROS1_MAGIC) < scan.index_pos <= len(data):  # an empty index ends the file
+        return f"the header's index_pos {scan.index_pos} is outside the file ({len(data)} bytes)"
+    conns = infos = counted = 0
+    pos = scan.index_pos
+    while pos + 8 <= len(data):
+        record = _ros1_record_at(data, pos)
+        if record is None:
+            return f"unreadable index record at byte {pos}"
+        fields, body, pos = record
+        op = fields["op"][0]
+        if op == 0x07:
+            conns += 1
+        elif op == 0x06:
+            infos += 1
+            (chunk_pos,) = _U64.unpack(fields["chunk_pos"])
+            if chunk_pos not in scan.chunks:
+                return f"the index names a chunk at byte {chunk_pos}, where there is none"
+            counted += sum(_U32.unpack_from(body, i + 4)[0] for i in range(0, len(body) - 7, 8))
+        else:
+            return f"unexpected record (op {op}) in the index at byte {pos}"
+    if conns != scan.conn_count or infos != scan.chunk_count:
+        return (f"the header counts {scan.conn_count} connections and {scan.chunk_count} chunks, "
+                f"the index holds {conns} and {infos}")
+    if infos != len(scan.chunks) or counted != len(scan.messages):
+        return (f"the index counts {counted} messages in {infos} chunks, the file holds "
+                f"{len(scan.messages)} in {len(scan.chunks)}")
+    return ""
 
 
 def _ros2_name(ros1_type: str) -> str:
@@ -224,10 +415,11 @@ def _ros2_name(ros1_type: str) -> str:
 
 
 def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
-    scan = scan_ros1(file.read_bytes())
-    if scan.indexed:
+    data = file.read_bytes()
+    scan = scan_ros1(data)
+    if not check_ros1_index(data, scan):
         return RecoveryResult(file, len(scan.messages), True)
-    with Writer1(out) as writer:
+    with Ros1Writer(out) as writer:
         conns = {}
         for cid, f in scan.connections.items():
             latching = f.get("latching")
@@ -247,32 +439,90 @@ def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
 # --- sqlite3 ----------------------------------------------------------------------------------
 
 
-def _recover_sqlite3(bagdir: Path, db: Path) -> RecoveryResult:
-    con = sqlite3.connect(db)  # opening read-write rolls back a hot journal
+@dataclass
+class _DbContent:
+    path: Path
+    topics: list[tuple[int, str, str, str, str, str]]  # id, name, type, format, qos, hash
+    counts: dict[int, int]
+    start: int
+    end: int
+
+
+def _read_db(db: Path) -> _DbContent:
     try:
-        topics = con.execute("SELECT id, name, type, serialization_format, offered_qos_profiles,"
-                             " type_description_hash FROM topics ORDER BY id").fetchall()
-        counts = dict(con.execute("SELECT topic_id, count(*) FROM messages GROUP BY topic_id"))
-        lo, hi = con.execute("SELECT min(timestamp), max(timestamp) FROM messages").fetchone()
-    finally:
-        con.close()
+        con = sqlite3.connect(db)  # opening read-write rolls back a hot journal
+        try:
+            columns = {row[1] for row in con.execute("PRAGMA table_info(topics)")}
+            digest = "type_description_hash" if "type_description_hash" in columns else "''"
+            topics = con.execute(f"SELECT id, name, type, serialization_format, offered_qos_profiles,"
+                                 f" {digest} FROM topics ORDER BY id").fetchall()
+            counts = dict(con.execute("SELECT topic_id, count(*) FROM messages GROUP BY topic_id"))
+            lo, hi = con.execute("SELECT min(timestamp), max(timestamp) FROM messages").fetchone()
+        finally:
+            con.close()
+    except sqlite3.Error as err:
+        raise BagError(f"{db} is not a readable sqlite3 bag: {err}") from err
+    return _DbContent(db, topics, counts, lo or 0, hi or 0)
+
+
+def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
+    meta = _metadata(bagdir)
+    if meta is None:
+        return "metadata.yaml is missing"
+    # A non-empty rollback journal is a transaction that never finished. (A -wal file is not: in
+    # WAL mode it holds committed transactions until a checkpoint, and readers take them.)
+    hot = [db.name for db in dbs if _size(db.parent / f"{db.name}-journal")]
+    if hot:
+        return f"{', '.join(hot)} has a journal left by an interrupted write"
+    if (meta.get("custom_data") or {}).get("racecar_hw") == RECORDING_OPEN:
+        return "the recording was not closed (metadata.yaml is from its last flush)"
+    said = {f.get("path"): f.get("message_count") for f in meta.get("files") or []}
+    for db in dbs:
+        # immutable: no lock, no -shm or -wal file created next to a bag that may be read-only
+        con = sqlite3.connect(f"file:{db}?immutable=1", uri=True)
+        try:
+            (n,) = con.execute("SELECT count(*) FROM messages").fetchone()
+        except sqlite3.Error as err:
+            return f"{db.name} is not readable: {err}"
+        finally:
+            con.close()
+        if db.name in said and said[db.name] != n:
+            return f"metadata.yaml counts {said[db.name]} messages in {db.name}, it holds {n}"
+    return ""
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
+    contents = [_read_db(db) for db in dbs]
+    topics: dict[str, dict[str, object]] = {}
+    counts: dict[str, int] = {}
+    for c in contents:
+        for tid, name, typ, fmt, qos, digest in c.topics:
+            topics.setdefault(name, {"name": name, "type": typ, "serialization_format": fmt,
+                                     "offered_qos_profiles": dump_qos_v8(_qos(qos or "")),
+                                     "type_description_hash": digest or ""})
+            counts[name] = counts.get(name, 0) + c.counts.get(tid, 0)
+    used = [c for c in contents if sum(c.counts.values())]
+    start = min((c.start for c in used), default=0)
+    end = max((c.end for c in used), default=0)
     total = sum(counts.values())
-    start = lo or 0
-    duration = (hi - lo) if total else 0
     info = {
-        "version": 9, "storage_identifier": "sqlite3", "relative_file_paths": [db.name],
-        "duration": {"nanoseconds": duration},
+        "version": ROS2_METADATA_VERSION, "storage_identifier": "sqlite3",
+        "relative_file_paths": [c.path.name for c in contents],
+        "duration": {"nanoseconds": end - start},
         "starting_time": {"nanoseconds_since_epoch": start}, "message_count": total,
-        "topics_with_message_count": [
-            {"topic_metadata": {"name": name, "type": typ, "serialization_format": fmt,
-                                "offered_qos_profiles": yaml.safe_load(qos) if qos else [],
-                                "type_description_hash": digest},
-             "message_count": counts.get(tid, 0)}
-            for tid, name, typ, fmt, qos, digest in topics
-        ],
+        "topics_with_message_count": [{"topic_metadata": t, "message_count": counts[name]}
+                                      for name, t in topics.items()],
         "compression_format": "", "compression_mode": "",
-        "files": [{"path": db.name, "starting_time": {"nanoseconds_since_epoch": start},
-                   "duration": {"nanoseconds": duration}, "message_count": total}],
+        "files": [{"path": c.path.name, "starting_time": {"nanoseconds_since_epoch": c.start},
+                   "duration": {"nanoseconds": c.end - c.start},
+                   "message_count": sum(c.counts.values())} for c in contents],
         "custom_data": {"racecar_hw": "recovered"}, "ros_distro": "rosbags",
     }
     meta = bagdir / "metadata.yaml"
@@ -282,7 +532,61 @@ def _recover_sqlite3(bagdir: Path, db: Path) -> RecoveryResult:
     return RecoveryResult(bagdir, total, False)
 
 
-# --- entry point ------------------------------------------------------------------------------
+# --- which bag, which files, complete? --------------------------------------------------------
+
+
+def _metadata(bagdir: Path) -> dict | None:
+    try:
+        data = yaml.safe_load((bagdir / "metadata.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+    return info if isinstance(info, dict) else None
+
+
+def _storage_files(bagdir: Path, suffix: str) -> list[Path]:
+    """The bag's files: in metadata.yaml's order, then any other on disk (written after it)."""
+    meta = _metadata(bagdir) or {}
+    listed = [bagdir / name for name in meta.get("relative_file_paths") or [] if str(name).endswith(suffix)]
+    listed = [p for p in listed if p.exists()]
+    extra = sorted(p for p in bagdir.glob(f"*{suffix}") if p not in listed)
+    return listed + extra
+
+
+def inspect_bag(path: str | Path) -> BagState:
+    """Format, files and completeness of the bag at ``path``; nothing is changed.
+
+    Raises :class:`BagError` for a missing path, an empty file and a directory with no storage.
+    """
+    src = Path(path)
+    if not src.exists():
+        raise BagError(f"bag not found: {src}")
+    if src.is_file():
+        if src.stat().st_size == 0:
+            raise BagError(f"{src} is empty (0 bytes): nothing was flushed before the recording ended")
+        data = src.read_bytes()
+        if data.startswith(MCAP_MAGIC):
+            raise BagError(f"{src} is an MCAP file: give its bag directory ({src.parent})")
+        problem = check_ros1_index(data, scan_ros1(data))
+        return BagState(src, "ros1", [src], not problem, problem)
+    mcaps = _storage_files(src, ".mcap")
+    dbs = _storage_files(src, ".db3")
+    if mcaps:
+        for f in mcaps:
+            if f.stat().st_size == 0:
+                return BagState(src, "mcap", mcaps, False, f"{f.name} is empty (0 bytes)")
+            with f.open("rb") as fh:
+                fh.seek(-len(MCAP_MAGIC), 2)
+                if fh.read() != MCAP_MAGIC:
+                    return BagState(src, "mcap", mcaps, False,
+                                    f"{f.name} has no footer (the recording was not closed)")
+        if _metadata(src) is None:
+            return BagState(src, "mcap", mcaps, False, "metadata.yaml is missing")
+        return BagState(src, "mcap", mcaps, True)
+    if dbs:
+        problem = _sqlite3_problem(src, dbs)
+        return BagState(src, "sqlite3", dbs, not problem, problem)
+    raise BagError(f"{src} holds no .mcap or .db3 file: not a ROS 2 bag")
 
 
 def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResult:
@@ -292,20 +596,23 @@ def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResu
     ROS 2 directory, ``<stem>.recovered.bag`` for ROS 1); sqlite3 bags are fixed in place. A bag
     that was closed normally is left alone (``was_complete``).
     """
-    src = Path(path)
-    if not src.exists():
-        raise BagError(f"bag not found: {src}")
-    if src.is_file():
-        if src.stat().st_size == 0:
-            raise BagError(f"{src} is empty (0 bytes): nothing was flushed before the recording ended")
+    state = inspect_bag(path)
+    src = state.path
+    if out is not None and Path(out).exists():
+        raise BagError(f"{out} exists already, not overwriting")
+    if state.format == "ros1":
         target = Path(out) if out else src.with_name(f"{src.stem}.recovered.bag")
+        if not state.complete and target.exists():
+            raise BagError(f"{target} exists already, not overwriting (give another output)")
         return _recover_ros1(src, target)
-    mcaps = sorted(src.glob("*.mcap"))
-    dbs = sorted(src.glob("*.db3"))
-    if len(mcaps) == 1:
-        if mcaps[0].stat().st_size == 0:
-            raise BagError(f"{mcaps[0]} is empty (0 bytes): nothing was flushed before the end")
-        return _recover_mcap(src, mcaps[0], Path(out) if out else src.with_name(f"{src.name}.recovered"))
-    if len(dbs) == 1:
-        return _recover_sqlite3(src, dbs[0])
-    raise BagError(f"{src} holds no single .mcap or .db3 file to recover")
+    if state.format == "mcap":
+        if state.complete:
+            messages = sum(len(scan_mcap(f.read_bytes()).messages) for f in state.files)
+            return RecoveryResult(src, messages, True)
+        target = Path(out) if out else src.with_name(f"{src.name}.recovered")
+        if target.exists():
+            raise BagError(f"{target} exists already, not overwriting (give another output)")
+        return _recover_mcap(state.files, target)
+    if state.complete:
+        return RecoveryResult(src, sum(sum(_read_db(db).counts.values()) for db in state.files), True)
+    return _recover_sqlite3(src, state.files)

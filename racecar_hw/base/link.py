@@ -19,7 +19,8 @@ import contextlib
 import errno
 import os
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from typing import TypeVar
 
 import serial
 import serial.tools.list_ports
@@ -27,6 +28,7 @@ import serial.tools.list_ports
 from racecar_hw.base.errors import DeviceIOError, DeviceNotFound, DeviceTimeout
 
 _timeout = getattr(asyncio, "timeout", None)  # Python 3.11+
+T = TypeVar("T")
 
 
 class Link(ABC):
@@ -61,12 +63,7 @@ class Link(ABC):
 
     async def read_within(self, timeout_s: float) -> bytes:
         """:meth:`read`, or asyncio.TimeoutError after ``timeout_s`` seconds without a byte."""
-        if _timeout is None:
-            return await asyncio.wait_for(self.read(), timeout_s)
-        # not wait_for: before Python 3.12 it runs every read in a new Task, two extra loop
-        # iterations between the bytes' arrival and the reader
-        async with _timeout(timeout_s):
-            return await self.read()
+        return await within(self.read(), timeout_s)
 
     def set_dtr(self, level: bool) -> None:  # noqa: B027 - optional capability
         """Set the serial DTR line (RPLIDAR A1 motor control). Links without DTR ignore it."""
@@ -77,6 +74,21 @@ class Link(ABC):
 
     async def __aexit__(self, *exc: object) -> None:
         self.close()
+
+
+async def within(aw: Awaitable[T], timeout_s: float) -> T:
+    """``await aw``, or asyncio.TimeoutError after ``timeout_s`` seconds.
+
+    Not ``asyncio.wait_for`` where ``asyncio.timeout`` exists (3.11+): before Python 3.12,
+    wait_for swallows a cancellation that arrives as ``aw`` completes, so a driver cancelled while
+    its connection was being made (a daemon stopped right after it started) went on streaming and
+    its shutdown never ended; it also runs ``aw`` in a new task, two extra loop iterations between
+    the bytes' arrival and the reader.
+    """
+    if _timeout is None:
+        return await asyncio.wait_for(aw, timeout_s)
+    async with _timeout(timeout_s):
+        return await aw
 
 
 class _ReceivingLink(Link):
@@ -328,7 +340,7 @@ class TcpLink(_ReceivingLink):
         assert self._loop is not None
         protocol = _TcpProtocol(self)
         try:
-            transport, _ = await asyncio.wait_for(
+            transport, _ = await within(
                 self._loop.create_connection(lambda: protocol, self.host, self.port),
                 self.connect_timeout_s)
         except asyncio.TimeoutError as err:

@@ -2,11 +2,14 @@
 
 Overrides use dotted keys; a number segment indexes a list (``mux.inputs.1.timeout_s=0.5``).
 Values are parsed as YAML scalars, so ``true``, ``0.5``, ``null`` and ``[1, 2]`` mean what they
-say in the config file.
+say in the config file. A key the file does not have is taken from ``defaults`` (the documented
+defaults, as plain data) before it is changed, so ``mux.inputs.1.timeout_s`` works with a config
+file that leaves ``mux`` out: it changes the second of the default inputs.
 """
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +38,9 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def apply_override(data: dict[str, Any], assignment: str) -> None:
-    """Apply one ``dotted.key=value`` to ``data`` in place."""
+def apply_override(data: dict[str, Any], assignment: str,
+                   defaults: dict[str, Any] | None = None) -> None:
+    """Apply one ``dotted.key=value`` to ``data`` in place; missing sections come from ``defaults``."""
     key, sep, raw = assignment.partition("=")
     key = key.strip()
     if not sep or not key:
@@ -47,8 +51,10 @@ def apply_override(data: dict[str, Any], assignment: str) -> None:
         raise ConfigError(key, f"cannot parse value {raw!r}: {err}") from err
     parts = key.split(".")
     node: Any = data
+    default: Any = defaults
     for i, part in enumerate(parts[:-1]):
-        node = _child(node, part, ".".join(parts[: i + 1]), create=True)
+        default = _default_child(default, part)
+        node = _child(node, part, ".".join(parts[: i + 1]), create=True, default=default)
     last = parts[-1]
     if isinstance(node, list):
         node[_index(node, last, key)] = value
@@ -69,7 +75,15 @@ def merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _child(node: Any, part: str, where: str, create: bool) -> Any:
+def _default_child(default: Any, part: str) -> Any:
+    if isinstance(default, dict):
+        return default.get(part)
+    if isinstance(default, list) and part.isdigit() and int(part) < len(default):
+        return default[int(part)]
+    return None
+
+
+def _child(node: Any, part: str, where: str, create: bool, default: Any = None) -> Any:
     if isinstance(node, list):
         return node[_index(node, part, where)]
     if not isinstance(node, dict):
@@ -77,7 +91,7 @@ def _child(node: Any, part: str, where: str, create: bool) -> Any:
     if part not in node or node[part] is None:
         if not create:
             raise ConfigError(where, "not found")
-        node[part] = {}
+        node[part] = copy.deepcopy(default) if isinstance(default, (dict, list)) else {}
     return node[part]
 
 

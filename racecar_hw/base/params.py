@@ -173,6 +173,9 @@ def _scalar(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
         if math.isnan(out):
             raise ConfigError(key, "NaN is not allowed")
     elif hint is str:
+        choices = meta.get("choices") or ()
+        if isinstance(value, bool) and {True: "on", False: "off"}[value] in choices:
+            value = "on" if value else "off"  # YAML 1.1 reads a bare `off` (`--set safety.mode=off`) as false
         if not isinstance(value, str):
             raise ConfigError(key, f"expected a string, got {_show(value)}")
         out = value

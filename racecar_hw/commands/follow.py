@@ -1,4 +1,4 @@
-"""``racecar-hw follow``: replay a bag's Ackermann commands into a mux input of the running car."""
+"""``racecar-hw follow``: replay a bag's drive commands into a mux input of the running car."""
 
 from __future__ import annotations
 
@@ -13,17 +13,21 @@ from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.teleop.arming import ArmingChange
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("follow", help="drive the car by replaying a bag's Ackermann commands",
+    p = sub.add_parser("follow", help="drive the car by replaying a bag's drive commands",
                        description="Run the daemon with a bag follower: the bag's AckermannDriveStamped "
-                                   "(or AckermannDrive) commands enter a mux input, so the deadman, "
+                                   "or AckermannDrive commands (or Twist / TwistStamped, converted "
+                                   "with the wheelbase) enter a mux input, so the deadman, "
                                    "priorities and the safety controller still apply. Exits when the "
-                                   "bag ends (brake and centre).")
+                                   "bag ends (brake and centre). The car config starts disarmed: "
+                                   "give --arm to follow armed.")
     p.add_argument("bag", help="ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP)")
-    p.add_argument("--topic", default="/vesc/low_level/ackermann_cmd_mux/input/teleop",
-                   help="topic in the bag (default: the teleop input, as in CSE490R lab 0)")
+    p.add_argument("--topic", default=None,
+                   help="topic in the bag (default: its only drive-command topic; with several, "
+                        "its only mux input)")
     timing = p.add_mutually_exclusive_group()
     timing.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="fixed rate (default 20)")
     timing.add_argument("--timestamps", action="store_true", help="replay at the bag's own timing")
@@ -32,32 +36,49 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="backwards: reversed order, negated speed, same steering")
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--input", default="nav_0", help="mux input name to drive (default nav_0)")
+    p.add_argument("--arm", action="store_true",
+                   help="start armed when the config starts disarmed (the car config does); the "
+                        "gamepad's BACK or a ground station still disarms it, which ends the replay")
     add_config_options(p)
     p.set_defaults(func=cmd_follow)
 
 
 def cmd_follow(args: argparse.Namespace) -> int:
-    config = load_config(args.config, args.overrides)
+    overrides = [*args.overrides, *(["arming.start_armed=true"] if args.arm else [])]
+    config = load_config(args.config, overrides)
+    if not config.arming.start_armed:
+        raise ConfigError("arming.start_armed", "the car starts disarmed, so it would stand still "
+                          "while the bag plays; give --arm to follow armed (the gamepad's BACK "
+                          "still disarms it)")
     topics = {inp.name: inp.topic for inp in config.mux.inputs}
     if args.input not in topics:
         raise ConfigError("--input", f"no mux input {args.input!r}; inputs: " + ", ".join(topics))
     config.follower = build(FollowerSection, {
-        "enabled": True, "bag": args.bag, "topic": args.topic, "input_topic": topics[args.input],
+        "enabled": True, "bag": args.bag, "topic": args.topic or "", "input_topic": topics[args.input],
         "rate_hz": args.rate, "use_timestamps": args.timestamps, "time_scale": args.time_scale,
         "reverse": args.reverse, "loop": args.loop}, "follower")
     daemon = Daemon(config)
-    assert daemon.follower is not None
+    follower = daemon.follower
+    assert follower is not None
+    follower.load()  # a missing bag or topic is a one-line error before the car is touched
     with Progress(TextColumn("following"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeRemainingColumn()) as bar:
         task = bar.add_task("bag", total=1.0)
-        daemon.follower.progress = lambda fraction, eta: bar.update(task, completed=fraction)
-        return asyncio.run(_follow(daemon))
+        follower.progress = lambda fraction, eta: bar.update(task, completed=fraction)
+        code = asyncio.run(_follow(daemon, follower))
+    if daemon.arming.changes and not daemon.arming.armed:
+        print(f"racecar-hw follow: stopped at {follower.published} commands: {daemon.arming.reason}")
+    return code
 
 
-async def _follow(daemon: Daemon) -> int:
-    follower: BagFollower | None = daemon.follower
-    assert follower is not None
+async def _follow(daemon: Daemon, follower: BagFollower) -> int:
     stop = asyncio.Event()
+
+    def on_arming(change: ArmingChange) -> None:
+        if not change.armed:  # the operator took the car away: the replay must not resume later
+            follower.stop()
+
+    daemon.arming.on_change(on_arming)
 
     async def stop_when_done() -> None:
         while not follower.done:

@@ -17,7 +17,7 @@ from racecar_hw.base.errors import DeviceError
 from racecar_hw.base.link import parse_host_port
 from racecar_hw.base.messages import LaserScan
 from racecar_hw.runtime.devicethread import DeviceThread
-from racecar_hw.runtime.signals import terminate_as_interrupt
+from racecar_hw.runtime.signals import interrupt_on_stop_signals
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -81,7 +81,7 @@ def _host_port(text: str) -> tuple[str, int]:
 
 
 def fake_lidar(args: argparse.Namespace) -> int:
-    """Serve a fake lidar until Ctrl-C; exits 0."""
+    """Serve a fake lidar until SIGINT (Ctrl-C) or SIGTERM; exits 0."""
     if args.link is None and args.tcp is None:
         print("racecar-hw fake-lidar: give --link PATH and/or --tcp HOST:PORT")
         return 2
@@ -108,7 +108,7 @@ def fake_lidar(args: argparse.Namespace) -> int:
         print(f"fake {args.model} at {', '.join(places)} measuring {world}; Ctrl-C to stop",
               flush=True)
         try:
-            with terminate_as_interrupt():  # SIGTERM cleans up like Ctrl-C: the link is removed
+            with interrupt_on_stop_signals():
                 while not served.done():
                     time.sleep(0.2)
         except KeyboardInterrupt:

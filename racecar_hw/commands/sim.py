@@ -5,13 +5,16 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import signal
 from pathlib import Path
+from typing import Any
 
 from racecar_hw.commands.daemon import add_config_options
+from racecar_hw.runtime.signals import add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
-from racecar_hw.sim.loopback import Loopback, write_report
-from racecar_hw.sim.scenario import load_scenario, scenario_names
+from racecar_hw.sim.loopback import Loopback, SimResult, write_report
+from racecar_hw.sim.scenario import Scenario, load_scenario, scenario_names
 
 DEFAULT_SCENARIO = "figure8"
 
@@ -24,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", "-s", default=DEFAULT_SCENARIO, metavar="NAME|FILE",
                    help=f"a shipped scenario or a scenario file (default {DEFAULT_SCENARIO})")
     p.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
-    p.add_argument("--duration", type=float, metavar="S", help="override the scenario's duration")
+    p.add_argument("--duration", type=_seconds, metavar="S", help="override the scenario's duration")
     p.add_argument("--report", metavar="FILE", help="write the JSON report here "
                                                     "(default: OUT/report.json)")
     p.add_argument("--out", metavar="DIR", help="directory for the trajectory CSV and plot "
@@ -35,8 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--follow", metavar="BAG", help="drive by following this bag (into nav_0) instead "
                                                    "of the scenario's drivers")
     p.add_argument("--reverse", action="store_true", help="with --follow: backwards")
-    p.add_argument("--follow-topic", default="/vesc/low_level/ackermann_cmd_mux/input/teleop",
-                   help="with --follow: the topic in the bag")
+    p.add_argument("--follow-topic", default="",
+                   help="with --follow: the topic in the bag (default: its only drive-command topic; "
+                        "with several, its only mux input)")
     p.add_argument("--keyboard", action="store_true",
                    help="drive through the teleop input with the keyboard (arrows/WASD, space stops)")
     p.add_argument("--no-status", action="store_true", help="no live status panel")
@@ -44,17 +48,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_sim)
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
+
+
+def build_scenario(args: argparse.Namespace) -> Scenario:
+    """The scenario to run: ``--scenario`` with ``--follow``'s driver, then ``--scenario-set``."""
+    scenario_overrides: list[str] = []
+    if args.follow:
+        # first, so that --scenario-set drivers.0.rate_hz=10 (or use_timestamps) applies to it
+        bag = Path(args.follow).resolve()
+        driver = {"type": "follow", "input": "nav_0", "bag": str(bag), "topic": args.follow_topic,
+                  "reverse": args.reverse}
+        scenario_overrides += ["drivers=" + json.dumps([driver]), "name=follow",
+                               "description=" + json.dumps(
+                                   f"Follow {bag.name}{' backwards' if args.reverse else ''} from the "
+                                   f"{args.scenario} scenario's start")]
+    scenario_overrides += args.scenario_overrides
+    return load_scenario(args.scenario, scenario_overrides)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     if args.list:
         for name in scenario_names():
             print(f"{name:18} {load_scenario(name).description}")
         return 0
-    scenario_overrides = list(args.scenario_overrides)
-    if args.follow:
-        driver = {"type": "follow", "input": "nav_0", "bag": str(Path(args.follow).resolve()),
-                  "topic": args.follow_topic, "reverse": args.reverse}
-        scenario_overrides.append("drivers=" + json.dumps([driver]))
-    scenario = load_scenario(args.scenario, scenario_overrides)
+    scenario = build_scenario(args)
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
     status = None if args.no_status else StatusPanel(title=f"racecar-hw sim: {scenario.name}")
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
@@ -62,30 +87,68 @@ def cmd_sim(args: argparse.Namespace) -> int:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration)
-    result = asyncio.run(_run(loopback))
+    run = _run(loopback)
+    try:
+        result = asyncio.run(run)
+    except KeyboardInterrupt:  # before the loop's signal handlers were in place
+        run.close()
+        return 130
+    if result is None:  # a second signal: stopped at once, nothing written
+        return 130
     report = write_report(result, args.report or out / "report.json")
-    print(json.dumps(result.report, indent=2))
+    # after the daemon has closed the status panel: a few lines, the whole report is in the file
+    print(summary(result.report))
     print(f"report: {report}\nplot: {result.plot_png}\ntrajectory: {result.trajectory_csv}")
     return 0
 
 
-async def _run(loopback: Loopback):  # noqa: ANN202
-    """Run the scenario; the first Ctrl-C (or SIGTERM) ends it early with its report, a second aborts."""
+def summary(report: dict[str, Any]) -> str:
+    """The report's headline numbers in three lines."""
+    pose = report["final_pose"]
+
+    def num(value: float | None, fmt: str, unit: str) -> str:
+        return "-" if value is None else f"{value:{fmt}} {unit}"
+
+    stopped = (f"interrupted by {report['stop_reason']} after" if report.get("interrupted")
+               else "ran")
+    reasons = report.get("safety_interventions_by_reason") or {}
+    by = f" ({', '.join(f'{k} {v}' for k, v in reasons.items())})" if reasons else ""
+    yaw = None if pose["yaw"] is None else math.degrees(pose["yaw"])
+    return "\n".join([
+        f"{report['scenario']}: {stopped} {report['sim_time_s']:.1f} s of sim time, drove "
+        f"{num(report['distance_m'], '.2f', 'm')}, "
+        + ("COLLIDED" if report["collided"] else "no collision"),
+        f"min clearance {_clearance(report)}, safety interventions {report['safety_interventions']}{by}",
+        f"final pose x {num(pose['x'], '.2f', 'm')}  y {num(pose['y'], '.2f', 'm')}  "
+        f"yaw {num(yaw, '.0f', 'deg')}",
+    ])
+
+
+def _clearance(report: dict[str, Any]) -> str:
+    value, cap = report["min_clearance_m"], report["clearance_cap_m"]
+    if value is None:
+        return "-"
+    return f"{cap:g} m or more (measured up to {cap:g} m)" if value >= cap else f"{value:.2f} m"
+
+
+async def _run(loopback: Loopback) -> SimResult | None:
+    """Run the scenario; the first SIGINT/SIGTERM ends it as its duration would (brake, write the
+    report for the time driven), a second one stops at once (None)."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
-    signals = [0]
 
-    def on_signal() -> None:
-        signals[0] += 1
-        if signals[0] == 1:
-            loopback.request_stop()
+    def on_signal(sig: int) -> None:
+        if loopback.stop_reason == "duration":
+            loopback.request_stop(signal.Signals(sig).name)
         else:
             task.cancel()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal)
+    remove = add_stop_handlers(loop, on_signal)
     try:
         return await task
+    except asyncio.CancelledError:
+        if task.cancelled():
+            return None
+        raise
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        remove()

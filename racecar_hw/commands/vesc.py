@@ -6,7 +6,7 @@ import argparse
 import asyncio
 import dataclasses
 
-from racecar_hw.runtime.signals import terminate_as_interrupt
+from racecar_hw.runtime.signals import run_until_stop_signal
 from vesc.codec import values_layout
 from vesc.driver import probe
 from vesc.fake import FakeVesc
@@ -41,16 +41,13 @@ def _firmware(text: str) -> tuple[int, int]:
 
 
 def fake_vesc(args: argparse.Namespace) -> int:
-    """Serve a fake VESC at ``args.link`` until Ctrl-C; exits 0."""
+    """Serve a fake VESC at ``args.link`` until SIGINT (Ctrl-C) or SIGTERM; exits 0."""
     fake = FakeVesc(args.link, firmware=args.firmware).open()
     major, minor = args.firmware
     print(f"fake VESC (firmware {major}.{minor:02d}) at {fake.path} -> {fake.port.slave_path}; "
           "Ctrl-C to stop", flush=True)
     try:
-        with terminate_as_interrupt():  # SIGTERM cleans up like Ctrl-C: the link is removed
-            asyncio.run(fake.serve())
-    except KeyboardInterrupt:
-        pass
+        run_until_stop_signal(fake.serve)
     finally:
         fake.port.close()
     return 0

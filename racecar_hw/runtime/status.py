@@ -8,6 +8,11 @@ changed, so a log shows the daemon is alive. Rendering happens in the loop (rich
 auto-refresh thread is turned off); the text goes to the terminal through a
 :class:`~racecar_hw.runtime.console.QueuedStream`, so a terminal that stops reading (Ctrl-S) or a busy
 journald never blocks the loop.
+
+While the live panel is on a terminal, log records that would go to that terminal are printed
+through the panel's console instead (above the panel, which rich then redraws below them): a log
+line written behind the panel's back would scroll the screen and leave fragments of the box. The
+value columns have a fixed minimum width, so the box does not jump as numbers change.
 """
 
 from __future__ import annotations
@@ -38,9 +43,11 @@ class StatusSnapshot:
     """What the car is doing, for the operator. None means "not known yet" or "not fitted".
 
     Speed in m/s (rear axle, negative in reverse), steering in rad (positive left), battery in V,
-    scan rate in Hz, the safety controller's state and the speed it allows (m/s), link counters,
-    whether the car is armed (None: no arming input configured), and the simulator's pose in the map
-    frame (x m, y m, yaw rad) when running on fake hardware.
+    scan rate in Hz, the safety controller's state and the speed it allows (m/s), each device's
+    link state (``up``, ``connecting 3 s``, ``lost since 14:02:31 (35 s)``) and counters, whether
+    the car is armed (None: no arming input configured), and, when running on fake hardware, the
+    simulator's time (s), the car's pose in the map frame (x m, y m, yaw rad) and its clearance to
+    the nearest wall or obstacle (m).
     """
 
     speed_mps: float | None = None
@@ -55,14 +62,26 @@ class StatusSnapshot:
     lidar_reconnects: int = 0
     armed: bool | None = None
     sim_pose: tuple[float, float, float] | None = None
+    vesc_link: str | None = None
+    lidar_link: str | None = None
+    sim_time_s: float | None = None
+    clearance_m: float | None = None
+
+
+#: What a non-finite reading shows: a summary never says ``nan``.
+INVALID = "invalid"
 
 
 def _num(value: float | None, fmt: str, unit: str) -> str:
     if value is None:
         return NONE
     if not math.isfinite(value):
-        return f"{value} {unit}"
+        return INVALID
     return f"{value:{fmt}} {unit}"
+
+
+def _link(link: str | None, counters: str) -> str:
+    return f"{link}, {counters}" if link else counters
 
 
 def _armed(armed: bool | None) -> str:
@@ -80,6 +99,8 @@ def _pose(pose: tuple[float, float, float] | None) -> str:
     if pose is None:
         return NONE
     x, y, yaw = pose
+    if not all(math.isfinite(v) for v in pose):
+        return INVALID
     return f"x {x:.2f} m  y {y:.2f} m  yaw {math.degrees(yaw):.0f} deg"
 
 
@@ -92,12 +113,16 @@ def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
         ("battery", _num(s.battery_v, ".1f", "V")),
         ("scan", _num(s.scan_rate_hz, ".1f", "Hz")),
         ("safety", _safety(s)),
-        ("vesc", f"crc errors {s.vesc_crc_errors}, reconnects {s.vesc_reconnects}"),
-        ("lidar", f"reconnects {s.lidar_reconnects}"),
+        ("vesc", _link(s.vesc_link, f"crc errors {s.vesc_crc_errors}, reconnects {s.vesc_reconnects}")),
+        ("lidar", _link(s.lidar_link, f"reconnects {s.lidar_reconnects}")),
         ("armed", _armed(s.armed)),
     ]
+    if s.sim_time_s is not None:
+        fields.append(("sim time", _num(s.sim_time_s, ".1f", "s")))
     if s.sim_pose is not None:
         fields.append(("sim pose", _pose(s.sim_pose)))
+    if s.clearance_m is not None:
+        fields.append(("clearance", _num(s.clearance_m, ".2f", "m")))
     return fields
 
 
@@ -111,6 +136,9 @@ def _style(label: str, s: StatusSnapshot) -> str:
         return {True: "bold green", False: "bold red", None: "dim"}[s.armed]
     if label == "safety" and s.safety_state and s.safety_state.lower() not in ("ok", "clear", "free"):
         return "bold yellow"
+    link = s.vesc_link if label == "vesc" else s.lidar_link if label == "lidar" else None
+    if link is not None and link != "up":
+        return "bold red" if link.startswith("lost") else "yellow"
     if label == "vesc" and (s.vesc_crc_errors or s.vesc_reconnects):
         return "yellow"
     if label == "lidar" and s.lidar_reconnects:
@@ -118,13 +146,17 @@ def _style(label: str, s: StatusSnapshot) -> str:
     return ""
 
 
+#: Minimum column widths of the panel (characters), so it keeps its size as values change.
+LABEL_WIDTH, VALUE_WIDTH = 9, 30
+
+
 def render(s: StatusSnapshot, title: str = "racecar-hw") -> RenderableType:
     """The snapshot as a rich panel of two label/value columns."""
     grid = Table.grid(padding=(0, 2))
-    grid.add_column(style="bold cyan", no_wrap=True)
-    grid.add_column(no_wrap=True)
-    grid.add_column(style="bold cyan", no_wrap=True)
-    grid.add_column(no_wrap=True)
+    grid.add_column(style="bold cyan", no_wrap=True, min_width=LABEL_WIDTH)
+    grid.add_column(no_wrap=True, min_width=VALUE_WIDTH)
+    grid.add_column(style="bold cyan", no_wrap=True, min_width=LABEL_WIDTH)
+    grid.add_column(no_wrap=True, min_width=VALUE_WIDTH)
     cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)]
     for i in range(0, len(cells), 2):
         row: list[RenderableType] = [cells[i][0], cells[i][1]]
@@ -158,6 +190,8 @@ class StatusPanel:
         self.render_errors = 0
         self._live: Live | None = None
         self._task: asyncio.Task[None] | None = None
+        self._log_handler: _PanelLogHandler | None = None
+        self._muted: list[logging.Handler] = []
 
     @property
     def interactive(self) -> bool:
@@ -180,6 +214,7 @@ class StatusPanel:
             self._live = Live(self.renderable(), console=self.console, auto_refresh=False,
                               redirect_stdout=False, redirect_stderr=False)
             self._live.start(refresh=True)
+            self._route_logs()
         self._task = asyncio.get_running_loop().create_task(self._run(), name="status-panel")
 
     async def stop(self) -> None:
@@ -193,8 +228,31 @@ class StatusPanel:
         if live is not None:
             live.update(self.renderable(), refresh=True)
             live.stop()
+        self._restore_logs()
         if self._queued is not None:
             self._queued.close()  # the last panel goes out before whatever the caller prints next
+
+    def _route_logs(self) -> None:
+        """Send log records bound for a terminal through the panel's console (see the module doc)."""
+        root = logging.getLogger()
+        self._muted = [h for h in root.handlers if type(h) is logging.StreamHandler and _is_tty(h.stream)]
+        if not self._muted:
+            return
+        handler = self._log_handler = _PanelLogHandler(self.console)
+        handler.setLevel(min(h.level for h in self._muted))
+        handler.setFormatter(self._muted[0].formatter)
+        for h in self._muted:
+            root.removeHandler(h)
+        root.addHandler(handler)
+
+    def _restore_logs(self) -> None:
+        root = logging.getLogger()
+        if self._log_handler is not None:
+            root.removeHandler(self._log_handler)
+            self._log_handler = None
+        for h in self._muted:
+            root.addHandler(h)
+        self._muted = []
 
     def draw(self) -> None:
         """Redraw once now (the timer calls this); never raises."""
@@ -222,3 +280,25 @@ class StatusPanel:
             if deadline < now:  # fell behind (loop busy): skip the missed redraws
                 deadline = now + period
             await asyncio.sleep(deadline - now)
+
+
+def _is_tty(stream: object) -> bool:
+    isatty = getattr(stream, "isatty", None)
+    try:
+        return bool(isatty is not None and isatty())
+    except (OSError, ValueError):
+        return False
+
+
+class _PanelLogHandler(logging.Handler):
+    """Prints log records through the live panel's console, above the panel."""
+
+    def __init__(self, console: Console) -> None:
+        super().__init__()
+        self.console = console
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.console.print(Text(self.format(record)), highlight=False, soft_wrap=True)
+        except Exception:
+            self.handleError(record)

@@ -50,7 +50,9 @@ class CarParams:
     speed_to_erpm_offset: float = param(0.0, "motor ERPM at standstill", unit="ERPM")
     steering_angle_to_servo_gain: float = param(-1.2135, "servo position per radian of steering",
                                                 unit="1/rad")
-    steering_angle_to_servo_offset: float = param(0.5304, "servo position that steers straight ahead",
+    steering_angle_to_servo_offset: float = param(0.530, "servo position that steers straight ahead "
+                                                         "(F1TENTH's 0.5304 as the VESC receives it, in "
+                                                         "thousandths)",
                                                   min=0.0, max=1.0)
     wheelbase: float = param(0.25, "rear axle to front axle", unit="m", min=0.05, max=2.0)
     length: float = param(0.55, "footprint length, bumper to bumper", unit="m", min=0.05, max=3.0)

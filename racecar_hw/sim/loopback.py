@@ -21,23 +21,25 @@ from pathlib import Path
 from typing import Any
 
 from lidar_drivers.registry import family, make_fake
+from racecar_hw.bags.follow import load_commands
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.overrides import merge
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import Config, load_config, shipped_config
-from racecar_hw.daemon import Daemon
+from racecar_hw.daemon import Daemon, reverse_speed_cap
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
-from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.car import CLEARANCE_RANGE_M, CarParams
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, map_to_odom, publish_truth
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import ControlSample, Mark, plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
 from racecar_hw.sim.trajectory import write_csv
 from racecar_hw.sim.world import World
+from vesc.codec import servo_on_wire
 from vesc.fake import FakeVesc
 
 log = logging.getLogger(__name__)
@@ -92,6 +94,8 @@ class Loopback:
         self.control_samples: list[ControlSample] = []
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
+        #: why the run ended: "duration", or what interrupted it (request_stop)
+        self.stop_reason = "duration"
         #: world time (s) when the car was ready to drive: the scenario's time zero
         self.ready_at_s: float | None = None
         self._mux_offset_s = 0.0
@@ -109,18 +113,32 @@ class Loopback:
         })
         return load_config(self.config_path, self.overrides, extra=extra)
 
-    def _car_params(self, config: Config) -> CarParams:
+    @staticmethod
+    def _car_params(config: Config) -> CarParams:
+        """The simulated car: calibrated for the daemon's config, so it drives straight at the
+        servo position that reaches the VESC for steering 0 (the offset in thousandths, as the
+        wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift)."""
         v, fp = config.vesc, config.safety.footprint
         return CarParams(speed_to_erpm_gain=v.speed_to_erpm_gain, speed_to_erpm_offset=v.speed_to_erpm_offset,
                          steering_angle_to_servo_gain=v.steering_angle_to_servo_gain,
-                         steering_angle_to_servo_offset=v.steering_angle_to_servo_offset,
+                         steering_angle_to_servo_offset=servo_on_wire(v.steering_angle_to_servo_offset),
                          wheelbase=v.wheelbase_m, length=fp.length_m, width=fp.width_m,
                          rear_overhang=fp.rear_overhang_m)
 
-    def _start_devices(self) -> Config:
+    def _check(self, config: Config) -> None:
+        """Refuse, before anything starts, what would fail later: a driver on an input the mux does
+        not have, a follow driver whose bag or topic is missing (each a one-line error)."""
+        inputs = [inp.name for inp in config.mux.inputs]
+        for i, spec in enumerate(self.scenario.drivers):
+            if spec.input not in inputs:
+                raise ConfigError(f"scenario.drivers.{i}.input",
+                                  f"{spec.input!r} is not a mux input; inputs: {', '.join(inputs)}")
+            if spec.type == "follow":
+                load_commands(spec.bag, spec.topic, config.vesc.wheelbase_m)
+
+    def _start_devices(self, config: Config) -> Config:
         sc = self.scenario
         model = sc.lidar.model
-        config = self._build_config()
         if all(t.child_frame_id != "odom" for t in config.static_transforms):
             config.static_transforms.append(map_to_odom(sc.start))  # odometry drawn in the map
         laser = self._laser_pose(config)
@@ -234,7 +252,9 @@ class Loopback:
             params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=topic,
                                     rate_hz=spec.rate_hz, use_timestamps=spec.use_timestamps,
                                     reverse=spec.reverse)
-            await self._until(BagFollower(bus, params).run(), spec.until_s)
+            follower = BagFollower(bus, params, wheelbase_m=self.config.vesc.wheelbase_m,
+                                   reverse_speed_cap_mps=reverse_speed_cap(self.config))
+            await self._until(follower.run(), spec.until_s)
 
     async def _until(self, coro: Any, until_s: float | None) -> None:
         task = asyncio.ensure_future(coro)
@@ -253,7 +273,7 @@ class Loopback:
             if inp.name == name:
                 return inp.topic
         names = ", ".join(i.name for i in self.config.mux.inputs)
-        raise ValueError(f"scenario driver input {name!r} is not a mux input; inputs: {names}")
+        raise ConfigError("scenario", f"driver input {name!r} is not a mux input; inputs: {names}")
 
     async def _faults(self) -> None:
         for fault in sorted(self.scenario.faults, key=lambda f: f.at_s):
@@ -325,15 +345,23 @@ class Loopback:
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
         try:
-            self.config = self._start_devices()
+            config = self._build_config()
+            self._check(config)
+            self.config = self._start_devices(config)
             assert self.world is not None
             created_ns = monotonic_ns()
             self.daemon = Daemon(self.config, status=self.status)
+            world = self.world
+            self.daemon.extra_status = lambda: {
+                "sim_time_s": world.sim_time, "sim_pose": tuple(world.pose),
+                "clearance_m": world.clearance()}
             # world time at which the mux started counting (its switch times are relative to it)
             self._mux_offset_s = self.world.sim_time - (monotonic_ns() - created_ns) / NS_PER_S
             if self.setup is not None:
                 self.setup(self)
             stop = self._stop = asyncio.Event()
+            if self.stop_reason != "duration":  # asked to stop while the devices were starting
+                stop.set()
             for spec in self.scenario.drivers:
                 self.daemon.add_task(self._drive(spec))
             self.daemon.add_task(self._faults())
@@ -355,8 +383,11 @@ class Loopback:
             self.devices.stop()
             self._tmp.cleanup()
 
-    def request_stop(self) -> None:
-        """End the run now (from the event loop), as if the duration had passed."""
+    def request_stop(self, reason: str = "request") -> None:
+        """End the run now (from the event loop), as if the duration had passed; the report says
+        it was ``interrupted`` and why (``stop_reason``: SIGINT, SIGTERM, ...)."""
+        if self.stop_reason == "duration":
+            self.stop_reason = reason
         if self._stop is not None:
             self._stop.set()
 
@@ -381,10 +412,13 @@ class Loopback:
             "scenario": self.scenario.name,
             "description": self.scenario.description,
             "sim_time_s": round(sim_time, 3),
+            "interrupted": self.stop_reason != "duration",
+            "stop_reason": self.stop_reason,
             "ready_at_s": None if self.ready_at_s is None else round(self.ready_at_s, 3),
             "collided": world.collided,
             "collisions": [[round(c.t, 3), round(c.x, 3), round(c.y, 3)] for c in world.collisions],
             "min_clearance_m": _num(world.min_clearance),
+            "clearance_cap_m": CLEARANCE_RANGE_M,
             "final_clearance_m": _num(world.clearance()),
             "distance_m": _num(world.distance_travelled),
             "final_pose": {"x": _num(pose.x), "y": _num(pose.y), "yaw": _num(pose.yaw)},

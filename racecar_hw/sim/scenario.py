@@ -56,7 +56,8 @@ class DriverSpec:
     figure8s: int = param(1, "figure8: how many", min=0)
     rate_hz: float = param(20.0, "command rate", unit="Hz", min=1.0, max=200.0)
     bag: str = param("", "follow: the bag to follow")
-    topic: str = param("/vesc/low_level/ackermann_cmd_mux/input/teleop", "follow: topic in the bag")
+    topic: str = param("", "follow: topic in the bag; empty: its only drive-command topic (with "
+                           "several, its only mux input)")
     reverse: bool = param(False, "follow: backwards")
     use_timestamps: bool = param(False, "follow: the bag's own timing")
 

@@ -1,0 +1,131 @@
+"""What is in a bag (``racecar-hw bag info``): topics, types, counts, time range, and whether it is complete.
+
+A complete bag is summarized from its index (ROS 1) or summary and metadata (ROS 2) through
+rosbags, without reading every message. An incomplete one (an interrupted recording) is summarized
+from what :mod:`racecar_hw.bags.recover` finds in its files: the messages a recovery would keep.
+"""
+
+from __future__ import annotations
+
+import datetime
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rosbags.highlevel import AnyReader
+
+from racecar_hw.bags.recover import BagState, inspect_bag, scan_mcap, scan_ros1
+from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.errors import BagError
+from racecar_hw.rosmsg.typestore import ros2_types
+
+FORMAT_NAMES = {"ros1": "ROS 1 (rosbag v2.0)", "mcap": "ROS 2 (mcap)", "sqlite3": "ROS 2 (sqlite3)"}
+
+
+@dataclass(frozen=True)
+class TopicSummary:
+    """One topic: its ROS 2 type name and how many messages the bag holds on it."""
+
+    topic: str
+    msgtype: str
+    count: int
+
+
+@dataclass
+class BagInfo:
+    """A bag's summary. Times are bag times in ns since the epoch (None: no messages)."""
+
+    state: BagState
+    topics: list[TopicSummary] = field(default_factory=list)
+    start_ns: int | None = None
+    end_ns: int | None = None
+
+    @property
+    def messages(self) -> int:
+        """Messages on every topic."""
+        return sum(t.count for t in self.topics)
+
+    @property
+    def duration_s(self) -> float:
+        """Seconds from the first message to the last (0 without messages)."""
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) / NS_PER_S
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    """Summarize the bag at ``path`` (a ROS 1 file or a ROS 2 directory); raises :class:`BagError`."""
+    state = inspect_bag(path)
+    if state.complete or state.format == "sqlite3":  # sqlite3 reads as it is, complete or not
+        return _from_reader(state)
+    times: dict[str, list[int]] = {}
+    types: dict[str, str] = {}
+    if state.format == "ros1":
+        scan = scan_ros1(state.path.read_bytes())
+        for cid, t_ns, _data in scan.messages:
+            conn = scan.connections.get(cid)
+            if conn is not None:
+                topic = conn["topic"].decode()
+                pkg, _, name = conn["type"].decode().partition("/")
+                types[topic] = f"{pkg}/msg/{name}"
+                times.setdefault(topic, []).append(t_ns)
+    else:
+        for file in state.files:
+            mcap = scan_mcap(file.read_bytes())
+            for cid, t_ns, _data in mcap.messages:
+                if cid in mcap.channels:
+                    sid, topic, _enc = mcap.channels[cid]
+                    types[topic] = mcap.schemas[sid][0] if sid in mcap.schemas else "?"
+                    times.setdefault(topic, []).append(t_ns)
+    every = [t for ts in times.values() for t in ts]
+    return BagInfo(state, [TopicSummary(t, types[t], len(ts)) for t, ts in sorted(times.items())],
+                   min(every, default=None), max(every, default=None))
+
+
+def _from_reader(state: BagState) -> BagInfo:
+    target = state.path
+    try:
+        with AnyReader([target], default_typestore=ros2_types().store) as reader:
+            counts: dict[str, int] = {}
+            types: dict[str, str] = {}
+            for conn in reader.connections:
+                counts[conn.topic] = counts.get(conn.topic, 0) + conn.msgcount
+                types.setdefault(conn.topic, conn.msgtype)
+            has_messages = reader.message_count > 0
+            start = reader.start_time if has_messages else None
+            end = reader.end_time - 1 if has_messages else None  # rosbags: one past the last
+    except Exception as err:
+        raise BagError(f"cannot read bag {target}: {err}") from err
+    topics = [TopicSummary(t, types[t], n) for t, n in sorted(counts.items())]
+    return BagInfo(state, topics, start, end)
+
+
+def _when(t_ns: int | None) -> str:
+    if t_ns is None:
+        return "-"
+    utc = datetime.datetime.fromtimestamp(t_ns / NS_PER_S, tz=datetime.timezone.utc)
+    return f"{utc:%Y-%m-%d %H:%M:%S.%f} UTC ({t_ns // NS_PER_S}.{t_ns % NS_PER_S:09d})"
+
+
+def format_info(info: BagInfo) -> str:
+    """The summary as ``racecar-hw bag info`` prints it."""
+    s = info.state
+    files = f", {len(s.files)} files" if len(s.files) > 1 else ""
+    if s.complete:
+        complete = "yes"
+    else:
+        complete = f"no: {s.problem}\n{'':11}recover with: racecar-hw bag recover {s.path}"
+        if s.format == "sqlite3":
+            complete += " (rewrites metadata.yaml in place)"
+    lines = [f"{'path:':<11}{s.path}",
+             f"{'format:':<11}{FORMAT_NAMES[s.format]}{files}",
+             f"{'complete:':<11}{complete}",
+             f"{'messages:':<11}{info.messages}" + ("" if s.complete else " (readable ones)"),
+             f"{'duration:':<11}{info.duration_s:.3f} s",
+             f"{'start:':<11}{_when(info.start_ns)}",
+             f"{'end:':<11}{_when(info.end_ns)}",
+             "topics:" if info.topics else "topics:    none"]
+    width = max((len(t.topic) for t in info.topics), default=0)
+    type_width = max((len(t.msgtype) for t in info.topics), default=0)
+    for t in info.topics:
+        lines.append(f"  {t.topic:<{width}}  {t.msgtype:<{type_width}}  {t.count:>8} msgs")
+    return "\n".join(lines)

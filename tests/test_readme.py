@@ -1,0 +1,91 @@
+"""The README works as written: two commands at the top, every --set example through check-config,
+every command it names."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from racecar_hw.cli import build_parser, main
+from racecar_hw.sim.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def code_blocks(text: str) -> list[tuple[str, str]]:
+    """(language, body) of every fenced block."""
+    return re.findall(r"^```(\w*)\n(.*?)^```", text, flags=re.M | re.S)
+
+
+def test_the_top_has_exactly_two_commands_demo_and_tests() -> None:
+    top = README.split("\n## ", 1)[0]
+    blocks = code_blocks(top)
+    assert [lang for lang, _ in blocks] == ["sh", "sh"]
+    assert blocks[0][1].strip().endswith(".venv/bin/racecar-hw sim")
+    assert blocks[1][1].strip().endswith(".venv/bin/python -m pytest")
+
+
+def set_examples() -> list[str]:
+    return sorted(set(re.findall(r"--set ([a-z_]+\.[\w.]+=\S+?)(?=[`\s)])", README)))
+
+
+def test_the_readme_has_set_examples() -> None:
+    assert "mux.inputs.1.timeout_s=0.5" in set_examples()
+    assert len(set_examples()) >= 4
+
+
+@pytest.mark.parametrize("config", ["config/car.yaml", "config/sim.yaml"])
+@pytest.mark.parametrize("assignment", set_examples())
+def test_every_set_example_passes_check_config(config, assignment, capsys) -> None:
+    """Each --set of the README through check-config with both shipped configs; the one the README
+    shows failing fails with the message it shows."""
+    shown = re.search(r"\$ racecar-hw check-config --set " + re.escape(assignment) + r"\n(.*)\n", README)
+    code = main(["check-config", str(ROOT / config), "--set", assignment])
+    err = capsys.readouterr().err
+    if shown is None:
+        assert code == 0, err
+        return
+    assert code == 1
+    expected = shown[1].split("...")[0]  # the README abbreviates the list of keys
+    assert err.startswith(expected), (err, expected)
+
+
+def test_every_command_line_in_the_configuration_section_works(capsys) -> None:
+    """check-config lines run as written; a run line is checked with the same config and --sets."""
+    lines = [line.split("#")[0].strip() for lang, body in code_blocks(README) if lang == "sh"
+             for line in body.splitlines() if line.startswith("racecar-hw ")]
+    checked = 0
+    for line in lines:
+        argv = shlex.split(line)[1:]
+        if argv[0] == "run":
+            config = argv[argv.index("--config") + 1]
+            sets = [a for i, a in enumerate(argv) if i and argv[i - 1] == "--set"]
+            argv = ["check-config", config, *[x for s in sets for x in ("--set", s)]]
+        if argv[0] != "check-config":
+            continue
+        argv = [str(ROOT / a) if a.startswith("config/") else a for a in argv]
+        assert main(argv) == 0, (line, capsys.readouterr().err)
+        checked += 1
+    assert checked >= 3
+
+
+def test_scenario_set_examples_load() -> None:
+    for scenario, assignment in [("wall", "drivers.0.speed_mps=4")]:
+        assert f"--scenario-set {assignment}" in README
+        assert load_scenario(scenario, [assignment]).drivers[0].speed_mps == 4
+
+
+def test_every_command_in_the_table_exists(capsys) -> None:
+    table = README.split("## Command line", 1)[1].split("\n## ", 1)[0]
+    commands = re.findall(r"^\| `racecar-hw ([\w-]+(?: (?:info|recover))?)", table, flags=re.M)
+    assert {"run", "sim", "follow", "bag info", "bag recover", "check-config"} <= set(commands)
+    parser = build_parser()
+    for command in commands:
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args([*command.split(), "--help"])
+        assert exc.value.code == 0, command
+    capsys.readouterr()

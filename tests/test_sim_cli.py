@@ -1,0 +1,133 @@
+"""``racecar-hw sim`` as a user runs it: stopped by a signal, bad arguments, following a bag."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from racecar_hw.bags.record import Recorder, record_params
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+from racecar_hw.cli import build_parser, main
+from racecar_hw.commands.sim import build_scenario
+from racecar_hw.sim.trajectory import read_csv
+
+NAV0 = "/vesc/high_level/ackermann_cmd_mux/input/nav_0"
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
+    """Ctrl-C (or systemd's SIGTERM) ends a long run as its duration would: brake, then the report
+    (marked interrupted), the trajectory and the plot for the time driven; exit 0."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--duration", "120", "--no-status",
+         "--out", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # as a background job of a script inherits it: SIGINT ignored
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:  # the daemon runs (its INFO line); the figure-8 starts driving
+            if "racecar-hw running" in line:
+                break
+        proc.send_signal(stop)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "never awaited" not in err
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["interrupted"] is True and report["stop_reason"] == stop.name
+    assert report["sim_time_s"] < 60
+    assert read_csv(report["trajectory_csv"])
+    assert Path(report["plot_png"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert f"figure8: interrupted by {stop.name} after" in out
+    assert "{" not in out  # a short summary after the panel, not the whole JSON
+
+
+@pytest.mark.parametrize("value", ["-5", "0", "nan", "inf", "soon"])
+def test_duration_must_be_positive_and_finite(value, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["sim", "--duration", value])
+    assert exc.value.code == 2
+    assert f"'{value}' is not a positive number of seconds" in capsys.readouterr().err
+
+
+def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tmp_path, capsys):
+    assert main(["sim", "--no-status", "--out", str(tmp_path), "--scenario-set",
+                 "drivers.0.input=nav_9"]) == 1
+    err = capsys.readouterr().err
+    assert err == ("racecar-hw sim: scenario.drivers.0.input: 'nav_9' is not a mux input; inputs: "
+                   "safety, teleop, nav_0, nav_1, nav_2, nav_3\n")
+    assert main(["sim", "--no-status", "--out", str(tmp_path), "--follow", str(tmp_path / "nope")]) == 1
+    assert capsys.readouterr().err == f"racecar-hw sim: bag not found: {tmp_path / 'nope'}\n"
+    rec = Recorder(Bus(), record_params(tmp_path, name="other"))
+    rec.start()
+    rec.bus.publish(NAV0, AckermannDriveStamped())
+    rec.stop()
+    assert main(["sim", "--no-status", "--out", str(tmp_path), "--follow", str(tmp_path / "other"),
+                 "--follow-topic", "/cmd_vel"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("racecar-hw sim: topic /cmd_vel is not in") and err.count("\n") == 1
+    assert not (tmp_path / "report.json").exists()
+
+
+def test_follow_options_come_first_and_scenario_sets_apply_to_them(tmp_path):
+    args = build_parser().parse_args(["sim", "--follow", str(tmp_path / "b"), "--scenario-set",
+                                      "drivers.0.rate_hz=10", "--scenario-set",
+                                      "drivers.0.use_timestamps=true"])
+    scenario = build_scenario(args)
+    (driver,) = scenario.drivers
+    assert driver.type == "follow" and driver.rate_hz == 10 and driver.use_timestamps
+    assert driver.topic == ""  # the bag's own drive topic, found when it is read
+    assert scenario.name == "follow" and "Follow b from the figure8 scenario's start" in scenario.description
+
+
+def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, capsys):
+    """What ``sim --record`` writes (the input that drove, the mux output, other topics) is
+    followed without --follow-topic, and the report is labelled follow."""
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="drive"))
+    rec.start()
+    for i in range(20):  # 1 s at 20 Hz: 0.8 m/s straight ahead
+        drive = AckermannDriveStamped(Header(Time(1, 0), "base_link"), AckermannDrive(speed=0.8))
+        bus.publish(NAV0, drive)
+        bus.publish("/vesc/low_level/ackermann_cmd_mux/output", drive)
+        bus.publish("/odom_placeholder", Header(Time(i, 0), "odom"))
+    rec.stop()
+    assert main(["sim", "--follow", str(tmp_path / "drive"), "--duration", "2", "--no-status",
+                 "--out", str(tmp_path / "out")]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["scenario"] == "follow" and not report["interrupted"]
+    assert report["distance_m"] > 0.3  # the car moved
+    assert capsys.readouterr().out.startswith("follow: ran ")
+
+
+def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
+    import asyncio
+
+    from racecar_hw.sim.loopback import Loopback
+    from racecar_hw.sim.scenario import load_scenario
+
+    seen = []
+
+    def setup(loopback: Loopback) -> None:
+        async def look() -> None:
+            await asyncio.sleep(1.0)
+            seen.append(loopback.daemon.snapshot())
+
+        loopback.daemon.add_task(look())
+
+    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup)
+    asyncio.run(loopback.run())
+    (snap,) = seen
+    assert snap.sim_time_s is not None and snap.sim_time_s > 1.0
+    assert snap.sim_pose is not None and snap.sim_pose[0] > 0.5  # driving down the corridor
+    assert snap.clearance_m == pytest.approx(0.6, abs=0.05)
+    assert snap.vesc_link == "up" and snap.lidar_link == "up"
