@@ -9,7 +9,8 @@ It drives counter-clockwise (the outer wall on the right), the classic F1TENTH w
 beams on the right give the wall's distance and angle, projected ``lookahead_m`` ahead; a PD
 controller steers to keep ``distance_m`` from it; the speed drops with the free distance straight
 ahead and with the steering. Only /scan steers; /odom counts the laps: one lap is a full turn of
-heading and the car back past its start line (x = 0 in the odom frame, where it started).
+heading and the car a metre past its start line (x = 1 m in the odom frame, which starts where the
+car did), so odometry drift cannot end a lap short of the start.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
                 if last_yaw is not None:
                     turned += math.remainder(odom.yaw - last_yaw, 2 * math.pi)
                 last_yaw = odom.yaw
-                if args.laps and turned >= 2 * math.pi * args.laps - 0.3 and odom.x > 0.3:
+                if args.laps and turned >= 2 * math.pi * args.laps - 0.3 and odom.x > 1.0:
                     print(f"{args.laps:g} lap(s) in {time.monotonic() - started:.1f} s", flush=True)
                     return 0
                 if args.timeout and time.monotonic() - started > args.timeout:
