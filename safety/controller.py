@@ -68,7 +68,8 @@ class Obstacle:
 
 @dataclass(frozen=True)
 class Intervention:
-    """One intervention's start: when (monotonic ns), why, and what the controller saw.
+    """One intervention: when it started and ended (monotonic ns; ``end_ns`` None while it lasts),
+    why, and what the controller saw at its start.
 
     ``obstacle`` is in base_link at the scan received at ``scan_ns`` (None when no point limits the
     path, e.g. a stale scan); speeds in m/s.
@@ -81,6 +82,7 @@ class Intervention:
     measured_speed: float
     obstacle: Obstacle | None
     scan_ns: int | None
+    end_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -226,9 +228,10 @@ class SafetyController:
         #: the latest intervention starts, oldest first
         self.events: deque[Intervention] = deque(maxlen=MAX_EVENTS)
         m = params.memory
-        self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m,
-                                      m.fov_margin_rad)
+        self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m)
                        if m.enabled and params.mode == "arc" else None)
+        self._memory_period_ns = round(m.update_period_s * NS_PER_S)
+        self._remembered_ns: int | None = None  # when the memory last took a scan in
 
     # --- scans --------------------------------------------------------------------------------
 
@@ -273,17 +276,18 @@ class SafetyController:
         memory = self.memory
         if memory is not None and pose is not None:
             remembered = memory.points()
-            if remembered.shape[1]:
-                # odom -> base_link at this scan, applied to homogeneous points in one product
+            if remembered.size:
+                # odom -> base_link at this scan: (z - p) e^(-i yaw), in complex numbers
                 px, py, yaw = pose
-                c, s = math.cos(yaw), math.sin(yaw)
-                local = np.array([[c, s, -c * px - s * py], [-s, c, s * px - c * py]]) @ remembered
-                x = np.concatenate((x, local[0]))
-                y = np.concatenate((y, local[1]))
+                turn = complex(math.cos(yaw), -math.sin(yaw))
+                local = remembered * turn - complex(px, py) * turn
+                x = np.concatenate((x, local.real))
+                y = np.concatenate((y, local.imag))
         self._scan = _CachedScan(x, y, now_ns, usable / n if n else 0.0, sweep, live, scan, pose)
 
     def remember(self) -> None:
-        """Fold the cached scan into the obstacle memory (once; nothing when the memory is off).
+        """Fold the cached scan into the obstacle memory (once; nothing when the memory is off, or
+        when it took a scan in less than ``memory.update_period_s`` ago).
 
         Off the scan-to-command path: the daemon calls it after the scan's motor command is
         written. Without a pose (no fresh odometry) the memory cannot place anything and forgets
@@ -298,7 +302,12 @@ class SafetyController:
         if cached.pose is None:
             if memory.window() is not None:
                 memory.clear()
+            self._remembered_ns = None
             return
+        last = self._remembered_ns
+        if last is not None and 0 <= cached.received_ns - last < self._memory_period_ns:
+            return
+        self._remembered_ns = cached.received_ns
         scan = cached.scan
         fp = self._body
         memory.update(cached.pose, self._to_base, scan.ranges, float(scan.angle_min),
@@ -347,6 +356,8 @@ class SafetyController:
             measured_speed_mps = 0.0
         mode = self.params.mode
         if mode == "off" or source in self._exempt:
+            if self._hyst.intervening:
+                self._ended(now_ns)
             self._hyst.reset()
             reason = "off" if mode == "off" else "exempt"
             self.state = SafetyState(math.inf, math.nan, None, reason, False)
@@ -356,8 +367,11 @@ class SafetyController:
         magnitude = abs(speed)
         along = measured_speed_mps * math.copysign(1.0, speed) if speed != 0.0 else 0.0
         needs_cut = magnitude > allowed or along > allowed + self.params.measured_tolerance_mps
+        was_intervening = self._hyst.intervening
         cap, started = self._hyst.step(needs_cut, allowed, max(magnitude, along), now_ns)
         intervening = self._hyst.intervening
+        if was_intervening and not intervening:
+            self._ended(now_ns)
         if not intervening and reason in ("obstacle", "reverse_cap"):
             reason = "clear"
         self.state = SafetyState(allowed, free, obstacle, reason, intervening)
@@ -375,6 +389,11 @@ class SafetyController:
         if magnitude > cap:
             drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
         return drive, self.state
+
+    def _ended(self, now_ns: int) -> None:
+        """The current intervention ended at ``now_ns``."""
+        if self.events and self.events[-1].end_ns is None:
+            self.events[-1] = dataclasses.replace(self.events[-1], end_ns=now_ns)
 
     def _assess(self, steering: float, reverse: bool,
                 now_ns: int) -> tuple[float, float, Obstacle | None, str]:
@@ -398,9 +417,6 @@ class SafetyController:
             hit = self._hit  # the same scan and path as the last command: a control tick between scans
         else:
             hit = free_distance(scan.x, scan.y, steering, self.footprint, p.max_path_m, reverse)
-            if hit.index >= scan.live and self.memory is not None:
-                # a remembered point is its cell's centre: the return was up to half a diagonal nearer
-                hit = PathHit(max(hit.distance_m - self.memory.cell_radius_m, 0.0), hit.index)
             self._hit_scan, self._hit_key, self._hit = scan, key, hit
         # a lidar slower than configured (its scan_time) is taken at its word, never a faster one
         sweep = max(p.scan_period_s, scan.sweep_s)

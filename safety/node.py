@@ -226,7 +226,7 @@ class SafetyNode:
             "obstacle_source": obstacle.source if obstacle else "",
             "memory": ("off" if memory is None
                        else "on" if self.controller.memory_active else "no_odometry"),
-            "memory_unseen_points": str(memory.points().shape[1]) if memory is not None else "0",
+            "memory_points": str(memory.points().size) if memory is not None else "0",
             "source": self._source,
             "commanded_speed": f"{self._commanded:.3f}",
             "output_speed": f"{self._output:.3f}",

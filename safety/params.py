@@ -87,9 +87,9 @@ class MemoryParams:
     see_through_m: float = param(0.1, "forget a remembered return once the lidar sees this far "
                                       "beyond it (range noise and the cell size stay below this)",
                                  unit="m", min=0.0, max=2.0)
-    fov_margin_rad: float = param(0.05, "a remembered return this close to the edge of the lidar's "
-                                        "field of view still counts as unseen (the car turns "
-                                        "between scans)", unit="rad", min=0.0, max=1.0)
+    update_period_s: float = param(0.05, "take a scan into the memory at most this often (the update "
+                                         "costs CPU; the live scan is used every time)", unit="s",
+                                   min=0.0, max=1.0)
 
 
 @dataclass

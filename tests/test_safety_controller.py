@@ -189,23 +189,23 @@ def test_reversing_towards_a_wall_seen_before_the_turn_stops_before_it() -> None
     now = drive_along(c, [end] * 2, U_TURN_WALL, now)
     out, state = c.limit(drive(-0.5), "nav", 0.0, now)
     # behind the car: the wall 1.465 m from base_link, the rear bumper 0.10 m behind base_link; a
-    # remembered point counts half a cell diagonal nearer than its cell's centre
+    # remembered point is its cell's centre, within half a cell diagonal of the return
     free = 1.2 + LASER_X - 0.10
     assert state.obstacle is not None and state.obstacle.source == "memory"
-    assert state.free_distance == pytest.approx(free - 0.035, abs=0.04)
+    assert state.free_distance == pytest.approx(free, abs=0.036)
     assert state.reason == "clear" and out.speed == -0.5  # far enough: the crawl cap, not reached
-    # backing up until the wall is 0.3 m behind the bumper: now the memory limits
-    now = drive_along(c, straight(end, -(free - 0.3), speed=0.5), U_TURN_WALL, now)
+    # backing up until the wall is 0.26 m behind the bumper: now the memory limits
+    now = drive_along(c, straight(end, -(free - 0.26), speed=0.5), U_TURN_WALL, now)
     out, state = c.limit(drive(-0.5), "nav", -0.5, now)
     assert state.obstacle is not None and state.obstacle.source == "memory"
-    assert state.free_distance == pytest.approx(0.3 - 0.035, abs=0.04)
+    assert state.free_distance == pytest.approx(0.26, abs=0.036)
     assert state.reason == "obstacle" and state.intervening
     assert -0.5 < out.speed <= 0.0
     assert out.speed == pytest.approx(-closed_form(state.free_distance), abs=1e-3)
     # the same drive with the memory off: reverse is only capped, the wall unknown
     blind = controller(memory={"enabled": False})
     drive_along(blind, left_arc((0.0, 0.0, 0.0), 0.6, math.pi) + [end] * 2
-                + straight(end, -(free - 0.3), speed=0.5), U_TURN_WALL)
+                + straight(end, -(free - 0.26), speed=0.5), U_TURN_WALL)
     out, state = blind.limit(drive(-0.5), "nav", -0.5, now)
     assert out.speed == -0.5 and state.reason == "clear" and math.isnan(state.free_distance)
 
@@ -256,9 +256,19 @@ def test_the_memory_is_updated_only_when_asked_or_before_the_next_scan() -> None
     c.remember()
     c.remember()  # once per scan
     assert c.memory.updates == 1
-    c.on_scan(scan_at(pose, U_TURN_WALL), 50 * MS, pose)
-    c.on_scan(scan_at(pose, U_TURN_WALL), 75 * MS, pose)  # nobody called remember(): folded in now
+    c.on_scan(scan_at(pose, U_TURN_WALL), 100 * MS, pose)
+    c.on_scan(scan_at(pose, U_TURN_WALL), 175 * MS, pose)  # nobody called remember(): folded in now
     assert c.memory.updates == 2
+
+
+def test_the_memory_takes_a_scan_in_at_most_once_per_update_period() -> None:
+    c = controller()  # update_period_s 0.05: every other scan of a 40 Hz lidar
+    assert c.memory is not None
+    drive_along(c, [(0.0, 0.0, 0.0)] * 8, U_TURN_WALL)
+    assert c.memory.updates == 4
+    every = controller(memory={"update_period_s": 0.0})
+    drive_along(every, [(0.0, 0.0, 0.0)] * 8, U_TURN_WALL)
+    assert every.memory is not None and every.memory.updates == 8
 
 
 def test_interventions_are_recorded_with_their_obstacle() -> None:

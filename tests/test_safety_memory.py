@@ -42,14 +42,11 @@ def drive(memory: ObstacleMemory, poses: list[tuple[float, float, float]], world
     return now
 
 
-def near(memory: ObstacleMemory, x: float, y: float, within: float = 0.1,
-         unseen_only: bool = False) -> int:
-    """How many remembered cells (or only the unseen ones) lie within ``within`` m of (x, y)."""
-    if unseen_only:
-        px, py = memory.points()[0], memory.points()[1]
-    else:
-        px, py, _ = memory.cells()
-    return int(np.count_nonzero(np.hypot(px - x, py - y) <= within))
+def near(memory: ObstacleMemory, x: float, y: float, within: float = 0.1) -> int:
+    """How many remembered points lie within ``within`` m of (x, y)."""
+    points = memory.points()
+    assert points.size == len(memory)  # every remembered cell, as the controller sweeps them
+    return int(np.count_nonzero(np.abs(points - complex(x, y)) <= within))
 
 
 def to_base(pose: tuple[float, float, float], x: np.ndarray,
@@ -69,8 +66,8 @@ def test_a_post_driven_past_stays_where_it_is_in_odom_and_behind_the_car_in_base
     poses = straight((0.0, 0.0, 0.0), 4.0)
     drive(memory, poses, world)
     # 2 m past it the post is behind the car, in the lidar's blind sector (bearing about 165 deg)
-    assert near(memory, *POST, unseen_only=True) > 0
-    bx, by = to_base(poses[-1], memory.points()[0], memory.points()[1])
+    assert near(memory, *POST) > 0
+    bx, by = to_base(poses[-1], memory.points().real, memory.points().imag)
     close = np.hypot(bx - (POST[0] - 4.0), by - POST[1]) <= 0.1
     assert close.any()
     # every remembered cell of the post lies on it, within half a cell diagonal plus the post size
@@ -89,8 +86,8 @@ def test_reversing_back_towards_the_post_keeps_it_in_odom():
     drive(memory, back, world, now)
     assert back[-1][0] == pytest.approx(2.5)
     # the post is now 0.5 m behind base_link, 0.6 m to the left: still blind, still remembered
-    assert near(memory, *POST, unseen_only=True) > 0
-    bx, by = to_base(back[-1], memory.points()[0], memory.points()[1])
+    assert near(memory, *POST) > 0
+    bx, by = to_base(back[-1], memory.points().real, memory.points().imag)
     on_post = np.hypot(bx + 0.5, by - 0.6) <= 0.1
     assert on_post.any()
 
@@ -105,7 +102,7 @@ def test_turning_moves_the_remembered_wall_round_the_car():
     end = turn[-1]
     assert end[0] == pytest.approx(0.0, abs=1e-6) and end[1] == pytest.approx(1.2)
     assert abs(abs(end[2]) - math.pi) < 1e-6
-    bx, by = to_base(end, memory.points()[0], memory.points()[1])
+    bx, by = to_base(end, memory.points().real, memory.points().imag)
     behind = (np.abs(by) <= 0.3) & (bx < 0)
     assert behind.any()
     # the wall's x in odom is 1.465 m: behind the car it is 1.465 m back from base_link
@@ -123,17 +120,17 @@ def test_what_the_lidar_sees_through_now_is_forgotten():
     assert near(memory, 4.0, 0.6) > 0
 
 
-def test_what_is_hidden_or_blind_is_kept_until_it_ages_out():
+def test_what_is_hidden_or_out_of_view_is_kept_until_it_ages_out():
     memory = ObstacleMemory(max_age_s=2.0)
     now = drive(memory, [(0.0, 0.0, 0.0)] * 3, square(*POST))
-    # a wall between the car and the post hides it: not seen through, kept, counted as unseen
+    # a wall between the car and the post hides it: not seen through, kept
     screen: list[Segment] = [((1.0, 0.2), (1.0, 1.0))]
     now = drive(memory, [(0.0, 0.0, 0.0)] * 3, screen, now)
-    assert near(memory, *POST, unseen_only=True) > 0
+    assert near(memory, *POST) > 0
     # turned away (the post in the blind sector) and the post gone: nothing can clear it but age
     behind = (0.0, 0.0, math.pi + math.atan2(POST[1], POST[0]))
     now = drive(memory, [behind] * 40, [], now)  # 1 s
-    assert near(memory, *POST, unseen_only=True) > 0
+    assert near(memory, *POST) > 0
     drive(memory, [behind] * 45, [], now)  # another 1.1 s: last seen over 2 s ago
     assert near(memory, *POST) == 0 and len(memory) == 0
 
@@ -205,7 +202,7 @@ def test_memory_stays_bounded_over_a_long_run():
     x_min, _, x_max, _ = memory.window()
     xs, _, _ = memory.cells()
     assert xs.min() >= x_min and xs.max() <= x_max
-    assert memory.points().shape[1] <= len(memory)
+    assert memory.points().size == len(memory)
 
 
 @settings(max_examples=200, deadline=None)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from racecar_hw.sim.obstacles import Box, Circle, Obstacle
+from racecar_hw.sim.obstacles import Box, Circle, Obstacle, Polygon
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.world import Collision, World
 
@@ -46,7 +46,8 @@ def plot_run(path: str | Path, occ_map: OccupancyMap,
              width_px: int = 800, title: str | None = None) -> tuple[int, int]:
     """Write the picture to ``path`` (PNG). ``trajectory`` rows start with (t, x, y, yaw, ...);
     ``collisions`` are (x, y) points or :class:`~racecar_hw.sim.world.Collision`; ``obstacles`` are
-    discs (x, y, radius), :class:`Circle` or :class:`Box`. Returns the image size (width, height)."""
+    discs (x, y, radius), :class:`Circle`, :class:`Box` or :class:`Polygon`. Returns the image size
+    (width, height)."""
     width, height = image_size(occ_map, width_px)
     map_h = height - LEGEND_PX
     scale = width / occ_map.width  # pixels per cell
@@ -67,7 +68,7 @@ def plot_run(path: str | Path, occ_map: OccupancyMap,
 
     unit = max(4.0, width / 110)  # marker size in pixels
     for obstacle in obstacles:
-        if isinstance(obstacle, Box):
+        if isinstance(obstacle, (Box, Polygon)):
             draw.polygon([px(x, y) for x, y in obstacle.corners()], fill=OBSTACLE_RGB)
             continue
         ox, oy, r = ((obstacle.x, obstacle.y, obstacle.radius) if isinstance(obstacle, Circle)
