@@ -93,7 +93,7 @@ def _remembering(driver: HokuyoDriver, dev: SensorParams) -> SafetyController:
     return safety
 
 
-def run(passes: int = 400) -> list[dict]:
+def run(passes: int = 1000) -> list[dict]:
     """Rows: p50 and p99 of the whole pass, hot and after an idle gap, memory off and on, p50 per
     stage, and the memory update after the write."""
     logging.getLogger("safety").setLevel(logging.ERROR)

@@ -214,7 +214,8 @@ class SafetyController:
         self._hit_key: tuple[float, bool, float] | None = None
         self._hit = PathHit(math.nan, -1)
         self._dirs_key: tuple[float, float, int] | None = None
-        self._dirs: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
+        self._dirs = np.zeros(0, dtype=np.complex128)
+        self._origin = complex(self._to_base[0, 2], self._to_base[1, 2])  # the laser in base_link
         self._hyst = _Hysteresis(params.release_margin_mps, round(params.release_hold_s * NS_PER_S))
         self._exempt = set(params.exempt_sources)
         if params.exempt_teleop:
@@ -228,7 +229,7 @@ class SafetyController:
         #: the latest intervention starts, oldest first
         self.events: deque[Intervention] = deque(maxlen=MAX_EVENTS)
         m = params.memory
-        self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m)
+        self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m, m.reach_m)
                        if m.enabled and params.mode == "arc" else None)
         self._memory_period_ns = round(m.update_period_s * NS_PER_S)
         self._remembered_ns: int | None = None  # when the memory last took a scan in
@@ -262,28 +263,24 @@ class SafetyController:
         # index arrays rather than boolean masks: the gathers the path sweep uses too; nonzero()
         # rather than np.flatnonzero, a chain of Python calls that costs more than the work here
         points = (at_least_min & (r <= far)).nonzero()[0]
-        bx, by = self._directions(scan, n)
-        rp = r[points]
-        x = self._to_base[0, 2] + rp * bx[points]
-        y = self._to_base[1, 2] + rp * by[points]
+        # base_link points as complex numbers x + iy: two numpy operations instead of six
+        z = self._origin + r[points] * self._directions(scan, n)[points]
         if self.params.ignore_inside_footprint:
             body = self._body
-            outside = ((x < -body.rear_m) | (x > body.front_m)
-                       | (np.abs(y) > body.half_width_m)).nonzero()[0]
-            x, y = x[outside], y[outside]
+            x, y = z.real, z.imag
+            z = z[((x < -body.rear_m) | (x > body.front_m) | (np.abs(y) > body.half_width_m)).nonzero()[0]]
         sweep = float(scan.scan_time) if 0.0 < scan.scan_time <= 1.0 else 0.0
-        live = len(x)
+        live = len(z)
         memory = self.memory
         if memory is not None and pose is not None:
             remembered = memory.points()
             if remembered.size:
-                # odom -> base_link at this scan: (z - p) e^(-i yaw), in complex numbers
+                # odom -> base_link at this scan: (p_odom - car) e^(-i yaw)
                 px, py, yaw = pose
                 turn = complex(math.cos(yaw), -math.sin(yaw))
-                local = remembered * turn - complex(px, py) * turn
-                x = np.concatenate((x, local.real))
-                y = np.concatenate((y, local.imag))
-        self._scan = _CachedScan(x, y, now_ns, usable / n if n else 0.0, sweep, live, scan, pose)
+                z = np.concatenate((z, remembered * turn - complex(px, py) * turn))
+        self._scan = _CachedScan(z.real, z.imag, now_ns, usable / n if n else 0.0, sweep, live, scan,
+                                 pose)
 
     def remember(self) -> None:
         """Fold the cached scan into the obstacle memory (once; nothing when the memory is off, or
@@ -320,15 +317,15 @@ class SafetyController:
         """Whether the memory is on and the cached scan came with a pose to place it."""
         return self.memory is not None and self._scan is not None and self._scan.pose is not None
 
-    def _directions(self, scan: LaserScan, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Unit beam directions in base_link, cached for the scan geometry."""
+    def _directions(self, scan: LaserScan, n: int) -> np.ndarray:
+        """Unit beam directions in base_link as complex numbers, cached for the scan geometry."""
         key = (float(scan.angle_min), float(scan.angle_increment), n)
         if key != self._dirs_key:
             with np.errstate(invalid="ignore"):
                 angles = key[0] + key[1] * np.arange(n, dtype=np.float64)
                 c, s = np.cos(angles), np.sin(angles)
             t = self._to_base
-            self._dirs = (t[0, 0] * c + t[0, 1] * s, t[1, 0] * c + t[1, 1] * s)
+            self._dirs = (t[0, 0] * c + t[0, 1] * s) + 1j * (t[1, 0] * c + t[1, 1] * s)
             self._dirs_key = key
         return self._dirs
 

@@ -22,10 +22,11 @@ One :meth:`update` per scan (or every few scans), with the car's odom pose at th
    Cells inside the car's own footprint are forgotten too: the car stands there.
 4. The scan's returns are written in, stamped with the update's time.
 
-:meth:`points` then gives every remembered cell's centre. The safety controller sweeps them with
-the live scan: where the lidar sees, they repeat what it sees (within a cell); where it does not
-(behind, beside the rear wheels, a point that left the field of view between two updates), they
-are all there is.
+:meth:`points` then gives the centre of every remembered cell within ``reach_m`` of the car. The
+safety controller sweeps them with the live scan: where the lidar sees, they repeat what it sees
+(within a cell); where it does not (behind, beside the rear wheels, a point that left the field of
+view between two updates), they are all there is. Farther ones only matter to a path longer than
+that, which the lidar sees ahead, or to reversing faster than the crawl the controller allows.
 
 Pure numpy, no clock, no bus: times are the caller's monotonic nanoseconds, poses the caller's
 odometry. Metres, radians; x forward, y left (REP-103).
@@ -61,13 +62,14 @@ class ObstacleMemory:
     """A rolling grid of recently seen lidar returns in the odom frame. See the module docs."""
 
     def __init__(self, size_m: float = 10.0, resolution_m: float = 0.05, max_age_s: float = 10.0,
-                 see_through_m: float = 0.1) -> None:
+                 see_through_m: float = 0.1, reach_m: float = 3.0) -> None:
         if not (resolution_m > 0.0 and size_m >= 4 * resolution_m):
             raise ValueError(f"memory grid of {size_m} m at {resolution_m} m cells is not a grid")
         self.resolution_m = float(resolution_m)
         self.cells_per_side = 2 * int(math.ceil(size_m / resolution_m / 2.0))
         self.max_age_ns = int(round(max_age_s * 1e9))
         self.see_through_m = float(see_through_m)
+        self.reach_m = float(reach_m)
         n = self.cells_per_side
         self._seen = np.zeros((n, n), dtype=np.int64)  # row: y cell, column: x cell
         self._origin: tuple[int, int] | None = None  # global (x, y) cell index of [0, 0]
@@ -88,7 +90,8 @@ class ObstacleMemory:
         return int(self._seen.nbytes + self._points.nbytes)
 
     def points(self) -> np.ndarray:
-        """Every remembered cell after the last update: its odom centre as a complex number x + iy.
+        """The remembered cells within ``reach_m`` of the car at the last update: their odom
+        centres as complex numbers x + iy.
 
         Complex, because a planar rigid transform is then two numpy operations,
         ``points * exp(-i yaw) - p * exp(-i yaw)``, the cheapest way on the scan-to-command path.
@@ -151,7 +154,8 @@ class ObstacleMemory:
         row, column = np.divmod(occupied, self.cells_per_side)
         _, _, x0, _, _, y0 = self._cells_to_odom()
         res = self.resolution_m
-        self._points = (column * res + x0) + 1j * (row * res + y0)
+        points = (column * res + x0) + 1j * (row * res + y0)
+        self._points = points[np.abs(points - complex(px, py)) <= self.reach_m]
         self.updates += 1
 
     def _forget(self, pose: tuple[float, float, float], laser_to_base: np.ndarray, ranges: np.ndarray,

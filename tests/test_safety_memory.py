@@ -43,10 +43,9 @@ def drive(memory: ObstacleMemory, poses: list[tuple[float, float, float]], world
 
 
 def near(memory: ObstacleMemory, x: float, y: float, within: float = 0.1) -> int:
-    """How many remembered points lie within ``within`` m of (x, y)."""
-    points = memory.points()
-    assert points.size == len(memory)  # every remembered cell, as the controller sweeps them
-    return int(np.count_nonzero(np.abs(points - complex(x, y)) <= within))
+    """How many remembered cells lie within ``within`` m of (x, y)."""
+    cx, cy, _ = memory.cells()
+    return int(np.count_nonzero(np.hypot(cx - x, cy - y) <= within))
 
 
 def to_base(pose: tuple[float, float, float], x: np.ndarray,
@@ -202,7 +201,33 @@ def test_memory_stays_bounded_over_a_long_run():
     x_min, _, x_max, _ = memory.window()
     xs, _, _ = memory.cells()
     assert xs.min() >= x_min and xs.max() <= x_max
-    assert memory.points().size == len(memory)
+
+
+def test_the_swept_points_are_the_cells_within_reach_of_the_car():
+    corridor: list[Segment] = [((-5.0, 0.75), (30.0, 0.75)), ((-5.0, -0.75), (30.0, -0.75))]
+    memory = ObstacleMemory(reach_m=2.0)
+    poses = straight((0.0, 0.0, 0.0), 3.0, speed=3.0)
+    drive(memory, poses, corridor + square(*POST))
+    x, y, _ = memory.cells()
+    px, py, _ = poses[-1]
+    within = np.hypot(x - px, y - py) <= 2.0
+    assert 0 < within.sum() < len(memory)
+    got = np.sort_complex(np.round(memory.points(), 6))
+    assert np.array_equal(got, np.sort_complex(np.round(x[within] + 1j * y[within], 6)))
+
+
+def test_returns_land_in_the_cells_that_hold_them():
+    memory = ObstacleMemory(resolution_m=0.05)
+    pose = (1.0, -2.0, 0.7)
+    bx, by = np.array([0.5, 1.234, -2.0]), np.array([0.3, -0.77, 1.5])
+    never = np.full(1081, np.inf)
+    memory.update(pose, TO_BASE, never, -2.35, 0.004363, 0.06, 30.0, bx, by, 1)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    ox, oy = pose[0] + c * bx - s * by, pose[1] + s * bx + c * by
+    x, y, seen = memory.cells()
+    assert len(x) == 3 and set(seen) == {1}
+    for px, py in zip(ox, oy, strict=True):  # each return is in the 5 cm cell around some centre
+        assert np.any((np.abs(x - px) <= 0.025 + 1e-9) & (np.abs(y - py) <= 0.025 + 1e-9))
 
 
 @settings(max_examples=200, deadline=None)
