@@ -15,7 +15,8 @@ from pathlib import Path
 from table import print_rows
 
 HERE = Path(__file__).resolve().parent
-ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "daemon")
+ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "daemon",
+       "safety_scenarios")
 
 
 def main(argv: list[str]) -> int:

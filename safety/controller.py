@@ -14,9 +14,9 @@ where ``latency`` is the configured reaction delay (with the scan's own ``scan_t
 longer than ``scan_period_s``) plus the age of the cached scan.
 
 With the obstacle memory (``params.memory``, :mod:`safety.memory`) the swept points are the live
-scan's and the remembered ones the scan cannot see, placed with the odom pose given with the scan;
-reverse is then swept too, still capped at ``reverse_speed_cap_mps``. The memory update is
-:meth:`SafetyController.remember`, called after the motor command is written.
+scan's and the remembered ones within ``memory.reach_m`` of the car, placed with the odom pose
+given with the scan; reverse is then swept too, still capped at ``reverse_speed_cap_mps``. The
+memory update is :meth:`SafetyController.remember`, called after the motor command is written.
 """
 
 from __future__ import annotations
@@ -246,8 +246,9 @@ class SafetyController:
         reach of the path.
 
         ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none. With
-        it and the memory on, the remembered points the last scan could not see join the scan's.
-        A scan not yet folded into the memory (no :meth:`remember` since) is folded in first.
+        it and the memory on, the remembered points join the scan's (after them: ``live`` tells
+        which are which). A scan not yet folded into the memory (no :meth:`remember` since) is
+        folded in first.
         """
         previous = self._scan
         if previous is not None and not previous.remembered:
