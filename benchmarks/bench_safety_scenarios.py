@@ -32,14 +32,28 @@ SCENARIOS = ("wall", "obstacle", "corridor", "lidar-dropout", "reverse-wall", "c
 
 
 def outcome(name: str, memory: bool) -> dict[str, Any]:
-    """One run's numbers, from its report."""
+    """One run's numbers, from its report and trajectory."""
     scenario = load_scenario(name, [f"config.safety.memory.enabled={str(memory).lower()}"])
-    report = asyncio.run(Loopback(scenario).run()).report
+    loopback = Loopback(scenario)
+    report = asyncio.run(loopback.run()).report
+    assert loopback.world is not None
+    samples = loopback.world.samples
     stops = [i for i in report["interventions"] if i["stopped_at_s"] is not None]
     first = stops[0] if stops else None
+    # the speed that mattered: at the first intervention, else just before contact, else the top
+    if report["interventions"]:
+        speed = abs(report["interventions"][0]["speed_mps"] or 0.0)
+    elif report["collisions"]:
+        speed = abs(_speed_before(samples, report["collisions"][0][0]))
+    else:
+        speed = report["max_speed_mps"] or 0.0
+    slowest = None
+    if report["interventions"] and not stops:
+        start = report["interventions"][0]["t_s"]
+        end = report["interventions"][0]["ended_at_s"] or samples[-1].t
+        slowest = min(abs(x.speed) for x in samples if start <= x.t <= end)
     return {
-        "scenario": name, "memory": memory,
-        "speed_mps": report["max_speed_mps"] or 0.0,
+        "scenario": name, "memory": memory, "speed_mps": speed, "slowest_mps": slowest,
         "interventions": report["safety_interventions_by_reason"],
         "stopping_distance_m": first["stopping_distance_m"] if first else None,
         "distance_left_m": first["distance_left_m"] if first else None,
@@ -57,7 +71,7 @@ def result_text(o: dict[str, Any]) -> str:
     if o["stopping_distance_m"] is not None:
         return f"stopped for {o['stopped_for']}"
     if o["interventions"]:
-        return "slowed, drove on"
+        return f"slowed to {o['slowest_mps']:.1f} m/s, drove on"
     return "no intervention"
 
 
@@ -76,6 +90,12 @@ def run(names: tuple[str, ...] = SCENARIOS) -> list[dict]:
         rows.append({"name": f"{label}: result", "value": "collision" if o["collided"] else "no contact",
                      "unit": "", "target": None})
     return rows
+
+
+def _speed_before(samples: list, t: float) -> float:
+    """The car's speed (m/s) at the last sample before sim time ``t``."""
+    before = [x.speed for x in samples if x.t < t]
+    return before[-1] if before else 0.0
 
 
 def _outcomes(names: tuple[str, ...]) -> list[dict[str, Any]]:

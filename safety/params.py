@@ -90,8 +90,8 @@ class MemoryParams:
     reach_m: float = param(3.0, "sweep remembered returns within this distance of the car (farther "
                                 "ones matter only to paths the lidar sees, or to reversing faster "
                                 "than reverse_speed_cap_mps)", unit="m", min=0.5, max=50.0)
-    update_period_s: float = param(0.05, "take a scan into the memory at most this often (the update "
-                                         "costs CPU; the live scan is used every time)", unit="s",
+    update_period_s: float = param(0.1, "take a scan into the memory at most this often (the update "
+                                        "costs CPU; the live scan is used every time)", unit="s",
                                    min=0.0, max=1.0)
 
 
