@@ -497,3 +497,33 @@ def test_property_output_never_exceeds_input(ranges: list[float], angle_min: flo
     assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
     assert out.steering_angle == steering
     assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)
+
+
+coordinate = st.floats(-50.0, 50.0, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(scans=st.lists(st.tuples(st.lists(range_values, min_size=0, max_size=200),
+                                st.tuples(coordinate, coordinate, st.floats(-7.0, 7.0))),
+                      min_size=1, max_size=6),
+       angle_min=st.floats(-4.0, 0.0), span=st.floats(0.0, 6.3), speed=finite,
+       steering=st.floats(-1.6, 1.6))
+def test_property_with_the_memory_output_never_exceeds_input(scans: list, angle_min: float,
+                                                             span: float, speed: float,
+                                                             steering: float) -> None:
+    # any scans at any poses (jumps, turns, empty and broken scans) folded into the memory
+    c = controller(memory={"update_period_s": 0.0})
+    now = 1000 * MS
+    for ranges, pose in scans:
+        n = len(ranges)
+        scan = LaserScan(angle_min=angle_min, angle_max=angle_min + span,
+                         angle_increment=span / max(n - 1, 1), range_min=0.05, range_max=30.0,
+                         ranges=np.array(ranges, dtype=np.float32))
+        now += 25 * MS
+        c.on_scan(scan, now, pose)
+        out, state = c.limit(drive(speed, steering), "nav", 0.0, now)
+        c.remember()
+        assert math.isfinite(out.speed) and abs(out.speed) <= abs(speed)
+        assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
+        assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)
+    assert c.memory is not None and len(c.memory) <= c.memory.cells_per_side ** 2

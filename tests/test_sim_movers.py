@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from test_sim_world import drive, make_world
 
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
 from racecar_hw.sim.movers import Mover
 from racecar_hw.sim.obstacles import Box, Circle, Polygon, place
+from racecar_hw.sim.plot import plot_world
 from racecar_hw.sim.scenario import ObstacleSpec, Scenario, load_scenario, scenario_names
 
 
@@ -114,3 +117,17 @@ def test_shipped_scenarios_with_obstacles_load() -> None:
         (spec,) = scenario.obstacles
         mover = spec.mover()
         assert mover.at(0.0) is not None and mover.name
+
+
+def test_the_plot_draws_every_shape(tmp_path: Path) -> None:
+    world, _ = make_world()
+    world.add_mover(Mover(Polygon.convex([(0, 0), (1, 0), (0.5, 0.8)]), (3.0, 1.0), yaw=0.4))
+    world.add_mover(Mover(Box(0, 0, 0.6, 0.4), (2.0, -1.0), yaw=0.3))
+    world.add_mover(Mover(Circle(0, 0, 0.2), (4.0, 0.0)))
+    assert len(world.obstacles) == 3
+    path = tmp_path / "shapes.png"
+    plot_world(path, world)
+    with Image.open(path) as img:
+        pixels = np.asarray(img.convert("RGB"))
+    grey = np.all(pixels == (120, 120, 120), axis=-1)  # the obstacle colour
+    assert grey.sum() > 3 * 50  # three filled shapes, each many pixels
