@@ -21,9 +21,16 @@ The last row is the share of the machine's busy CPU time that the hypervisor gav
 tenants during the run (``steal`` in /proc/stat): on a shared virtual machine it is what makes the
 p99 vary from run to run.
 
-Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder]``; ``run()`` returns the rows for
-run_all.py. ``BENCH_VERBOSE=1`` also prints round-trip percentiles, the CPU share of each daemon
-thread and of the benchmark's own fakes; ``BENCH_PROFILE=PATH`` runs the daemon under cProfile.
+The fake lidar sees the shipped room map (racecar_hw.sim's world) from where the fake VESC's
+motor and servo have driven the car. The daemon runs twice, with the safety controller's obstacle
+memory off and then on (the default), so that what the memory adds to the CPU share and to the
+scan-to-command latency is measured in one run; ``--memory on|off`` runs only one. ``run()`` (for
+run_all.py and the other daemon benchmarks) runs once with the shipped default unless asked.
+
+Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder] [--memory on|off]``; ``run()``
+returns the rows for run_all.py. ``BENCH_VERBOSE=1`` also prints round-trip percentiles, the CPU
+share of each daemon thread and of the benchmark's own fakes; ``BENCH_PROFILE=PATH`` runs the
+daemon under cProfile.
 """
 
 from __future__ import annotations
@@ -42,9 +49,10 @@ import numpy as np
 import yaml
 from table import print_rows
 
-from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.runtime.devicethread import DeviceThread
+from racecar_hw.sim.occupancy import load_shipped_map
+from racecar_hw.sim.world import World
 from vesc.codec import SetCurrent, SetCurrentBrake, SetRpm
 from vesc.fake import FakeVesc
 
@@ -90,7 +98,8 @@ def _peak_rss_mb(pid: int) -> float:
 def run(seconds: float = 20.0, recorder: bool = True, zenoh_port: int | None = None,
         helpers: list[list[str]] | None = None, on_results: object = None, *,
         config_extra: dict | None = None,
-        attach: Callable[[Path], AbstractContextManager[object]] | None = None) -> list[dict]:
+        attach: Callable[[Path], AbstractContextManager[object]] | None = None,
+        memory: tuple[bool, ...] | None = None) -> list[dict]:
     """The rows for one run. ``zenoh_port``: the Zenoh bridge on, listening there (None: off).
 
     ``helpers``: commands started once the daemon runs and stopped after the measurement (Zenoh
@@ -98,17 +107,38 @@ def run(seconds: float = 20.0, recorder: bool = True, zenoh_port: int | None = N
     fake lidar's frame send times and the fake VESC's commands, and returns extra rows.
     ``config_extra`` sections are merged into the daemon's config, and ``attach(log_path)`` (once the
     daemon runs) returns a context kept open while measuring: clients of the live interfaces, for
-    bench_live.py.
+    bench_live.py. ``memory``: one run per obstacle-memory setting, in that order, each row's name
+    ending in the setting (None: one run with the shipped default, the memory on).
     """
+    if memory is None:
+        return _run_once(seconds, recorder, zenoh_port, helpers, on_results, config_extra, attach, None)
+    rows = []
+    for enabled in memory:
+        label = "memory on" if enabled else "memory off"
+        for row in _run_once(seconds, recorder, zenoh_port, helpers, on_results, config_extra, attach,
+                             enabled):
+            rows.append({**row, "name": f"{row['name']}, {label}"})
+    return rows
+
+
+def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: list[list[str]] | None,
+              on_results: object, config_extra: dict | None,
+              attach: Callable[[Path], AbstractContextManager[object]] | None,
+              memory: bool | None) -> list[dict]:
     # Each fake in its own thread, and a short GIL switch interval, so that the fake VESC reads a
     # command when it arrives rather than after the fake lidar has encoded its next frame.
     sys.setswitchinterval(0.0002)
     with (tempfile.TemporaryDirectory() as tmp, DeviceThread("bench-vesc") as vesc_thread,
-          DeviceThread("bench-lidar") as lidar_thread):
+          DeviceThread("bench-lidar") as lidar_thread, DeviceThread("bench-world") as world_thread):
         vesc = FakeVesc(f"{tmp}/vesc")
-        lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
+        # the car drives its figure-8 in the shipped room, and the lidar sees the room from where
+        # the car is (the obstacle memory's load depends on a world that stays put)
+        world = World(load_shipped_map("room"), erpm_source=lambda: vesc.erpm,
+                      servo_source=lambda: vesc.servo, seed=1, on_collision=vesc.stall)
+        lidar = FakeHokuyo("ust-10lx", world.range_source(max_range=10.0), tcp=("127.0.0.1", 0))
         vesc_thread.spawn(vesc.serve())
         lidar_thread.spawn(lidar.serve())
+        world_thread.spawn(world.run(200.0))
         if not lidar.ready.wait(10):
             raise RuntimeError("fake lidar did not start")
         host, port = lidar.tcp_address
@@ -116,7 +146,7 @@ def run(seconds: float = 20.0, recorder: bool = True, zenoh_port: int | None = N
             "vesc": {"port": f"{tmp}/vesc", "poll_rate_hz": 50.0},
             "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
             "mux": {"rate_hz": 50.0},
-            "safety": {"mode": "arc"},
+            "safety": {"mode": "arc", **({} if memory is None else {"memory": {"enabled": memory}})},
             "recorder": {"enabled": recorder, "path": f"{tmp}/bags", "format": "mcap"},
             "figure8": {"enabled": True, "speed_mps": 0.5, "steering_angle_rad": 0.25, "figure8s": 0},
             "arming": {"start_armed": True},
@@ -234,8 +264,12 @@ def _summary(log: str) -> dict[str, float]:
 
 
 def main() -> None:
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
-    rows = run(seconds, recorder="--no-recorder" not in sys.argv)
+    args = sys.argv[1:]
+    seconds = float(args[0]) if args and not args[0].startswith("-") else 20.0
+    memory: tuple[bool, ...] = (False, True)
+    if "--memory" in args:
+        memory = (args[args.index("--memory") + 1] == "on",)
+    rows = run(seconds, recorder="--no-recorder" not in args, memory=memory)
     print_rows(rows)
 
 

@@ -11,7 +11,8 @@ The control path, at the mux rate (default 50 Hz)::
 and, on every scan, at once: the last output is re-checked by the safety controller against the
 new scan and goes to the VESC without waiting for the next tick, so a scan's verdict reaches the
 motor within a millisecond or two. A cut is also published on the output topic and clamps the
-limiter so later ticks cannot raise it again. The scan path sends nothing while the control loop
+limiter so later ticks cannot raise it again. The safety controller's obstacle memory takes in
+the scan after that, off the scan-to-command path. The scan path sends nothing while the control loop
 is stalled, so a dead loop still lets the VESC driver's command timeout brake the car. The
 watchdog is pinged from the control tick, so a stalled control loop gets the daemon restarted.
 """
@@ -145,7 +146,7 @@ class Daemon:
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
                                           if config.lidar.enabled else None)
         self.mux = CommandMux(self.bus, config.mux)
-        self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base())
+        self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True)
         self.arming = Arming.from_params(config.arming)
         self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
                         if config.gamepad.enabled else None)
@@ -237,7 +238,8 @@ class Daemon:
     def _on_scan(self, scan: LaserScan) -> None:
         """Re-check the current command against the new scan and send it at once.
 
-        The motor command goes first; bookkeeping and the safety state come after it.
+        The motor command goes first; bookkeeping, the safety state and the obstacle memory's
+        update come after it.
         """
         now = monotonic_ns()
         last = self.mux.last_output
@@ -257,6 +259,7 @@ class Daemon:
         times.append(now)
         if len(times) >= 2:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
+        self.safety.remember()  # before waking the recorder's writer, which would contend for the GIL
         if self.recorder is not None:
             self.recorder.control_idle()
         if self.foxglove is not None:

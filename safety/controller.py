@@ -12,6 +12,11 @@ Allowed speed, for a free path length ``d`` along the commanded arc::
 
 where ``latency`` is the configured reaction delay (with the scan's own ``scan_time`` when it is
 longer than ``scan_period_s``) plus the age of the cached scan.
+
+With the obstacle memory (``params.memory``, :mod:`safety.memory`) the swept points are the live
+scan's and the remembered ones within ``memory.reach_m`` of the car, placed with the odom pose
+given with the scan; reverse is then swept too, still capped at ``reverse_speed_cap_mps``. The
+memory update is :meth:`SafetyController.remember`, called after the motor command is written.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,6 +33,7 @@ import numpy as np
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.messages import AckermannDrive, LaserScan
 from safety.arc import PathHit, SweptFootprint, free_distance, stopping_speed
+from safety.memory import ObstacleMemory
 from safety.params import SafetyParams
 
 log = logging.getLogger(__name__)
@@ -35,17 +42,47 @@ log = logging.getLogger(__name__)
 REASONS = ("clear", "obstacle", "stale_scan", "no_scan", "bad_scan", "reverse_cap", "exempt", "off",
            "fault")
 
+#: Where the point that limits the path came from: the live scan or the obstacle memory.
+SOURCES = ("scan", "memory")
+
+#: Interventions kept in :attr:`SafetyController.events` (the oldest are dropped).
+MAX_EVENTS = 1000
+
 #: A laser->base_link transform: a 4x4 homogeneous matrix, or planar (x, y, yaw) in metres/radians.
 LaserTransform = np.ndarray | Sequence[float]
+
+#: A planar pose of base_link in odom: x (m), y (m), yaw (rad).
+Pose = tuple[float, float, float]
 
 
 @dataclass(frozen=True)
 class Obstacle:
-    """The point that limits the path: base_link coordinates and path length to it, metres."""
+    """The point that limits the path: base_link coordinates (at the cached scan) and path length
+    to it, metres; ``source`` is one of :data:`SOURCES`."""
 
     x: float
     y: float
     distance: float
+    source: str = "scan"
+
+
+@dataclass(frozen=True)
+class Intervention:
+    """One intervention: when it started and ended (monotonic ns; ``end_ns`` None while it lasts),
+    why, and what the controller saw at its start.
+
+    ``obstacle`` is in base_link at the scan received at ``scan_ns`` (None when no point limits the
+    path, e.g. a stale scan); speeds in m/s.
+    """
+
+    t_ns: int
+    reason: str
+    allowed_speed: float
+    commanded_speed: float
+    measured_speed: float
+    obstacle: Obstacle | None
+    scan_ns: int | None
+    end_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -88,13 +125,21 @@ def planar_transform(laser_to_base: LaserTransform) -> np.ndarray:
 
 @dataclass
 class _CachedScan:
-    """One scan, already reduced to its usable returns as base_link points."""
+    """One scan, already reduced to its usable returns as base_link points.
+
+    ``x[:live]``, ``y[:live]`` are the scan's own returns, the rest remembered points; ``pose`` is
+    base_link in odom at the scan (None without odometry); ``remembered``: folded into the memory.
+    """
 
     x: np.ndarray
     y: np.ndarray
     received_ns: int
     usable_fraction: float
     sweep_s: float
+    live: int = 0
+    scan: LaserScan | None = None
+    pose: Pose | None = None
+    remembered: bool = False
 
 
 class _Hysteresis:
@@ -169,7 +214,8 @@ class SafetyController:
         self._hit_key: tuple[float, bool, float] | None = None
         self._hit = PathHit(math.nan, -1)
         self._dirs_key: tuple[float, float, int] | None = None
-        self._dirs: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
+        self._dirs = np.zeros(0, dtype=np.complex128)
+        self._origin = complex(self._to_base[0, 2], self._to_base[1, 2])  # the laser in base_link
         self._hyst = _Hysteresis(params.release_margin_mps, round(params.release_hold_s * NS_PER_S))
         self._exempt = set(params.exempt_sources)
         if params.exempt_teleop:
@@ -180,10 +226,17 @@ class SafetyController:
         self.rejected_commands = 0
         self._rejecting = False
         self.state = SafetyState(0.0, math.nan, None, "no_scan", False)
+        #: the latest intervention starts, oldest first
+        self.events: deque[Intervention] = deque(maxlen=MAX_EVENTS)
+        m = params.memory
+        self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m, m.reach_m)
+                       if m.enabled and params.mode == "arc" else None)
+        self._memory_period_ns = round(m.update_period_s * NS_PER_S)
+        self._remembered_ns: int | None = None  # when the memory last took a scan in
 
     # --- scans --------------------------------------------------------------------------------
 
-    def on_scan(self, scan: LaserScan, now_ns: int) -> None:
+    def on_scan(self, scan: LaserScan, now_ns: int, pose: Pose | None = None) -> None:
         """Cache ``scan`` (received at ``now_ns``) as base_link points of its usable returns.
 
         A beam is usable when its range is at least ``range_min``: ``inf`` (no return) and
@@ -191,7 +244,15 @@ class SafetyController:
         readings below ``range_min`` (dust, a blocked window) are not usable. Points come from
         usable finite readings within ``range_max`` (when the scan has a sensible one) and within
         reach of the path.
+
+        ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none. With
+        it and the memory on, the remembered points join the scan's (after them: ``live`` tells
+        which are which). A scan not yet folded into the memory (no :meth:`remember` since) is
+        folded in first.
         """
+        previous = self._scan
+        if previous is not None and not previous.remembered:
+            self.remember()
         r = np.asarray(scan.ranges, dtype=np.float64)
         n = r.size
         # NaN compares false and -inf is below range_min: neither is usable.
@@ -203,27 +264,69 @@ class SafetyController:
         # index arrays rather than boolean masks: the gathers the path sweep uses too; nonzero()
         # rather than np.flatnonzero, a chain of Python calls that costs more than the work here
         points = (at_least_min & (r <= far)).nonzero()[0]
-        bx, by = self._directions(scan, n)
-        rp = r[points]
-        x = self._to_base[0, 2] + rp * bx[points]
-        y = self._to_base[1, 2] + rp * by[points]
+        # base_link points as complex numbers x + iy: two numpy operations instead of six
+        z = self._origin + r[points] * self._directions(scan, n)[points]
         if self.params.ignore_inside_footprint:
             body = self._body
-            outside = ((x < -body.rear_m) | (x > body.front_m)
-                       | (np.abs(y) > body.half_width_m)).nonzero()[0]
-            x, y = x[outside], y[outside]
+            x, y = z.real, z.imag
+            z = z[((x < -body.rear_m) | (x > body.front_m) | (np.abs(y) > body.half_width_m)).nonzero()[0]]
         sweep = float(scan.scan_time) if 0.0 < scan.scan_time <= 1.0 else 0.0
-        self._scan = _CachedScan(x, y, now_ns, usable / n if n else 0.0, sweep)
+        live = len(z)
+        memory = self.memory
+        if memory is not None and pose is not None:
+            remembered = memory.points()
+            if remembered.size:
+                # odom -> base_link at this scan: (p_odom - car) e^(-i yaw)
+                px, py, yaw = pose
+                turn = complex(math.cos(yaw), -math.sin(yaw))
+                z = np.concatenate((z, remembered * turn - complex(px, py) * turn))
+        self._scan = _CachedScan(z.real, z.imag, now_ns, usable / n if n else 0.0, sweep, live, scan,
+                                 pose)
 
-    def _directions(self, scan: LaserScan, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Unit beam directions in base_link, cached for the scan geometry."""
+    def remember(self) -> None:
+        """Fold the cached scan into the obstacle memory (once; nothing when the memory is off, or
+        when it took a scan in less than ``memory.update_period_s`` ago).
+
+        Off the scan-to-command path: the daemon calls it after the scan's motor command is
+        written. Without a pose (no fresh odometry) the memory cannot place anything and forgets
+        everything.
+        """
+        cached, memory = self._scan, self.memory
+        if cached is None or cached.remembered:
+            return
+        cached.remembered = True
+        if memory is None or cached.scan is None:
+            return
+        if cached.pose is None:
+            if memory.window() is not None:
+                memory.clear()
+            self._remembered_ns = None
+            return
+        last = self._remembered_ns
+        if last is not None and 0 <= cached.received_ns - last < self._memory_period_ns:
+            return
+        self._remembered_ns = cached.received_ns
+        scan = cached.scan
+        fp = self._body
+        memory.update(cached.pose, self._to_base, scan.ranges, float(scan.angle_min),
+                      float(scan.angle_increment), float(scan.range_min), float(scan.range_max),
+                      cached.x[:cached.live], cached.y[:cached.live], cached.received_ns,
+                      footprint=(fp.front_m, fp.rear_m, fp.half_width_m))
+
+    @property
+    def memory_active(self) -> bool:
+        """Whether the memory is on and the cached scan came with a pose to place it."""
+        return self.memory is not None and self._scan is not None and self._scan.pose is not None
+
+    def _directions(self, scan: LaserScan, n: int) -> np.ndarray:
+        """Unit beam directions in base_link as complex numbers, cached for the scan geometry."""
         key = (float(scan.angle_min), float(scan.angle_increment), n)
         if key != self._dirs_key:
             with np.errstate(invalid="ignore"):
                 angles = key[0] + key[1] * np.arange(n, dtype=np.float64)
                 c, s = np.cos(angles), np.sin(angles)
             t = self._to_base
-            self._dirs = (t[0, 0] * c + t[0, 1] * s, t[1, 0] * c + t[1, 1] * s)
+            self._dirs = (t[0, 0] * c + t[0, 1] * s) + 1j * (t[1, 0] * c + t[1, 1] * s)
             self._dirs_key = key
         return self._dirs
 
@@ -251,6 +354,8 @@ class SafetyController:
             measured_speed_mps = 0.0
         mode = self.params.mode
         if mode == "off" or source in self._exempt:
+            if self._hyst.intervening:
+                self._ended(now_ns)
             self._hyst.reset()
             reason = "off" if mode == "off" else "exempt"
             self.state = SafetyState(math.inf, math.nan, None, reason, False)
@@ -260,22 +365,33 @@ class SafetyController:
         magnitude = abs(speed)
         along = measured_speed_mps * math.copysign(1.0, speed) if speed != 0.0 else 0.0
         needs_cut = magnitude > allowed or along > allowed + self.params.measured_tolerance_mps
+        was_intervening = self._hyst.intervening
         cap, started = self._hyst.step(needs_cut, allowed, max(magnitude, along), now_ns)
         intervening = self._hyst.intervening
+        if was_intervening and not intervening:
+            self._ended(now_ns)
         if not intervening and reason in ("obstacle", "reverse_cap"):
             reason = "clear"
         self.state = SafetyState(allowed, free, obstacle, reason, intervening)
         if started:
             self.interventions += 1
             self.interventions_by_reason[reason] = self.interventions_by_reason.get(reason, 0) + 1
-            where = (f"obstacle at ({obstacle.x:.2f}, {obstacle.y:.2f}) m, {obstacle.distance:.2f} m "
-                     "along the path" if obstacle else "no obstacle")
+            scan_ns = self._scan.received_ns if self._scan is not None else None
+            self.events.append(Intervention(now_ns, reason, allowed, speed, measured_speed_mps,
+                                            obstacle, scan_ns))
+            where = (f"obstacle ({obstacle.source}) at ({obstacle.x:.2f}, {obstacle.y:.2f}) m, "
+                     f"{obstacle.distance:.2f} m along the path" if obstacle else "no obstacle")
             log.warning("safety: intervening (%s) on %s: commanded %.2f m/s, measured %.2f m/s, "
                         "allowed %.2f m/s, %s", reason, source, speed, measured_speed_mps, allowed,
                         where)
         if magnitude > cap:
             drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
         return drive, self.state
+
+    def _ended(self, now_ns: int) -> None:
+        """The current intervention ended at ``now_ns``."""
+        if self.events and self.events[-1].end_ns is None:
+            self.events[-1] = dataclasses.replace(self.events[-1], end_ns=now_ns)
 
     def _assess(self, steering: float, reverse: bool,
                 now_ns: int) -> tuple[float, float, Obstacle | None, str]:
@@ -292,7 +408,7 @@ class SafetyController:
         if p.mode == "cone":
             # The cone node stops the car through the mux; here only a blind lidar stops it.
             return math.inf, math.nan, None, "clear"
-        if reverse and not p.reverse_uses_scan:
+        if reverse and not (p.reverse_uses_scan or (self.memory is not None and scan.pose is not None)):
             return p.reverse_speed_cap_mps, math.nan, None, "reverse_cap"
         key = (steering, reverse, p.max_path_m)
         if scan is self._hit_scan and key == self._hit_key:
@@ -306,7 +422,8 @@ class SafetyController:
         allowed = stopping_speed(hit.distance_m - p.margin_m, latency, p.max_decel_mps2)
         obstacle = None
         if hit.index >= 0:
-            obstacle = Obstacle(float(scan.x[hit.index]), float(scan.y[hit.index]), hit.distance_m)
+            obstacle = Obstacle(float(scan.x[hit.index]), float(scan.y[hit.index]), hit.distance_m,
+                                "scan" if hit.index < scan.live else "memory")
         if reverse and p.reverse_speed_cap_mps < allowed:
             return p.reverse_speed_cap_mps, hit.distance_m, obstacle, "reverse_cap"
         return allowed, hit.distance_m, obstacle, "obstacle"

@@ -58,7 +58,9 @@ class SafetyNode:
     """
 
     def __init__(self, bus: Bus, params: SafetyParams, laser_to_base: LaserTransform | None = None,
-                 clock: Callable[[], int] = monotonic_ns) -> None:
+                 clock: Callable[[], int] = monotonic_ns, defer_memory: bool = False) -> None:
+        """``defer_memory``: leave the memory update of each scan to :meth:`remember` (the daemon
+        calls it after the scan's motor command is written); otherwise it follows each scan."""
         self.bus = bus
         self.params = params
         self.clock = clock
@@ -67,7 +69,10 @@ class SafetyNode:
                      else None)
         self.fault: str | None = None
         self.faults = 0
+        self.defer_memory = defer_memory
         self._odom: tuple[float, int] | None = None
+        # the odometry pose: x, y, yaw, speed, yaw rate and when it came (monotonic ns)
+        self._odom_pose: tuple[float, float, float, float, float, int] | None = None
         self._last_command_ns: int | None = None
         self._last_publish_ns: int | None = None
         self._published_key: tuple[str, bool] | None = None
@@ -93,10 +98,43 @@ class SafetyNode:
         return self.controller.interventions
 
     def _on_scan(self, scan: LaserScan) -> None:
-        self.controller.on_scan(scan, self.clock())
+        now = self.clock()
+        self.controller.on_scan(scan, now, self.pose_at(now))
+        if not self.defer_memory:
+            self.controller.remember()
+
+    def remember(self) -> None:
+        """Fold the latest scan into the obstacle memory; never raises (a failure latches a fault)."""
+        if self.fault is not None:
+            return
+        try:
+            self.controller.remember()
+        except Exception as err:
+            self.fault = f"{type(err).__name__}: {err}"
+            self.faults += 1
+            log.exception("safety: obstacle memory failed; braking every command until reset")
 
     def _on_odom(self, odom: Odometry) -> None:
-        self._odom = (float(odom.twist.twist.linear.x), self.clock())
+        now = self.clock()
+        twist = odom.twist.twist
+        self._odom = (float(twist.linear.x), now)
+        pose = odom.pose.pose
+        self._odom_pose = (float(pose.position.x), float(pose.position.y), pose.orientation.yaw(),
+                           float(twist.linear.x), float(twist.angular.z), now)
+
+    def pose_at(self, now_ns: int) -> tuple[float, float, float] | None:
+        """base_link in odom at ``now_ns``: the latest odometry pose carried forward by its twist
+        (at most ``odom_timeout_s``); None without odometry that fresh or finite."""
+        if self._odom_pose is None:
+            return None
+        x, y, yaw, v, w, at = self._odom_pose
+        dt = (now_ns - at) / NS_PER_S
+        if dt > self.params.odom_timeout_s:
+            return None
+        dt = max(dt, 0.0)
+        heading = yaw + 0.5 * w * dt
+        pose = (x + v * dt * math.cos(heading), y + v * dt * math.sin(heading), yaw + w * dt)
+        return pose if all(math.isfinite(p) for p in pose) else None
 
     def measured_speed(self, now_ns: int) -> float:
         """The odometry speed (m/s), or 0 when there is none fresher than ``odom_timeout_s``."""
@@ -175,6 +213,7 @@ class SafetyNode:
         """The current state as one DiagnosticStatus named ``safety``."""
         s = self.state
         obstacle = s.obstacle
+        memory = self.controller.memory
         values = {
             "mode": self.params.mode,
             "reason": s.reason,
@@ -184,6 +223,10 @@ class SafetyNode:
             "obstacle_x": f"{obstacle.x:.3f}" if obstacle else "",
             "obstacle_y": f"{obstacle.y:.3f}" if obstacle else "",
             "obstacle_distance": f"{obstacle.distance:.3f}" if obstacle else "",
+            "obstacle_source": obstacle.source if obstacle else "",
+            "memory": ("off" if memory is None
+                       else "on" if self.controller.memory_active else "no_odometry"),
+            "memory_points": str(memory.points().size) if memory is not None else "0",
             "source": self._source,
             "commanded_speed": f"{self._commanded:.3f}",
             "output_speed": f"{self._output:.3f}",

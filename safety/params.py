@@ -71,6 +71,31 @@ class ConeParams:
 
 
 @dataclass
+class MemoryParams:
+    """The obstacle memory: recent lidar returns kept in the odom frame, for where the lidar is blind.
+
+    See ``docs/safety.md`` ("Obstacle memory") for the model, its assumptions and its limits.
+    """
+
+    enabled: bool = param(True, "remember what the lidar saw and check the reverse path (and the "
+                                "sides it cannot see) against it; needs odometry on odom_topic")
+    size_m: float = param(10.0, "side of the square window remembered around the car", unit="m",
+                          min=1.0, max=50.0)
+    resolution_m: float = param(0.05, "cell size of the remembered grid", unit="m", min=0.01, max=0.5)
+    max_age_s: float = param(10.0, "forget a return not seen again for this long (odometry drifts)",
+                             unit="s", min=0.1, max=600.0)
+    see_through_m: float = param(0.1, "forget a remembered return once the lidar sees this far "
+                                      "beyond it (range noise and the cell size stay below this)",
+                                 unit="m", min=0.0, max=2.0)
+    reach_m: float = param(3.0, "sweep remembered returns within this distance of the car (farther "
+                                "ones matter only to paths the lidar sees, or to reversing faster "
+                                "than reverse_speed_cap_mps)", unit="m", min=0.5, max=50.0)
+    update_period_s: float = param(0.1, "take a scan into the memory at most this often (the update "
+                                        "costs CPU; the live scan is used every time)", unit="s",
+                                   min=0.0, max=1.0)
+
+
+@dataclass
 class SafetyParams:
     """The safety-stop controller: the largest speed from which the car surely stops in time."""
 
@@ -103,9 +128,11 @@ class SafetyParams:
     ignore_inside_footprint: bool = param(False, "ignore returns inside the footprint (the lidar "
                                                  "seeing its own car); otherwise they block at 0 m")
     reverse_speed_cap_mps: float = param(0.5, "largest reverse speed (the forward lidar cannot see "
-                                              "behind)", unit="m/s", min=0.0, max=20.0)
+                                              "behind; the memory only lowers it)", unit="m/s",
+                                         min=0.0, max=20.0)
     reverse_uses_scan: bool = param(False, "also sweep the path behind the car in reverse (a 360 deg "
                                            "lidar that sees behind)")
+    memory: MemoryParams = param(MemoryParams(), "the obstacle memory (mode arc)")
     exempt_teleop: bool = param(False, "let teleop commands through unlimited")
     teleop_source: str = param("teleop", "mux source name of the joystick")
     exempt_sources: list[str] = param([], "mux source names let through unlimited")
@@ -116,11 +143,12 @@ class SafetyParams:
     measured_tolerance_mps: float = param(0.1, "odometry noise allowed before a measured speed above "
                                                "the allowed one counts as an intervention",
                                           unit="m/s", min=0.0, max=5.0)
-    odom_timeout_s: float = param(0.5, "measured speed older than this is ignored", unit="s",
+    odom_timeout_s: float = param(0.5, "odometry older than this is ignored (speed and memory)", unit="s",
                                   min=0.01, max=10.0)
     cone: ConeParams = param(ConeParams(), "mode cone only")
     scan_topic: str = param("/scan", "sensor_msgs/LaserScan input")
-    odom_topic: str = param("/odom", "nav_msgs/Odometry input (measured speed twist.linear.x)")
+    odom_topic: str = param("/odom", "nav_msgs/Odometry input: the measured speed (twist.linear.x) "
+                                     "and the pose the obstacle memory follows")
     state_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray output")
     state_rate_hz: float = param(2.0, "state republish rate when nothing changes", unit="Hz",
                                  min=0.1, max=100.0)

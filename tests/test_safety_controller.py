@@ -8,22 +8,19 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scans import LASER_X, Segment, left_arc, scan_at, square, straight, ust10lx_scan
 
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.messages import AckermannDrive, Header, LaserScan, Time
+from racecar_hw.base.messages import AckermannDrive, LaserScan
 from racecar_hw.base.params import build
 from safety.controller import SafetyController, planar_transform
 from safety.params import SafetyParams
 
 MS = 1_000_000
-LASER_X = 0.265  # the default laser position in base_link
 FRONT = 0.45  # default base_link -> front bumper
 LATENCY = 0.025 + 0.01 + 0.02
 DECEL = 4.0
 MARGIN = 0.25
-
-Segment = tuple[tuple[float, float], tuple[float, float]]
-
 
 def closed_form(free: float) -> float:
     """The largest v with v * latency + v^2 / (2 a) <= free - margin, solved with numpy's roots."""
@@ -34,50 +31,12 @@ def closed_form(free: float) -> float:
     return float(max(roots.real))
 
 
-def ust10lx_scan(segments: list[Segment], laser: tuple[float, float] = (LASER_X, 0.0),
-                 n: int = 1081, fov_deg: float = 270.0, range_max: float = 30.0,
-                 stamp_ns: int = 0) -> LaserScan:
-    """A scan (laser frame, heading as base_link) of wall segments given in base_link metres."""
-    half = math.radians(fov_deg) / 2.0
-    angle_min, angle_max = -half, half
-    inc = (angle_max - angle_min) / (n - 1)
-    angles = angle_min + inc * np.arange(n)
-    ranges = raycast(laser, angles, segments, range_max)
-    return LaserScan(header=Header(Time.from_ns(stamp_ns), "laser"), angle_min=angle_min,
-                     angle_max=angle_max, angle_increment=inc, scan_time=0.025,
-                     time_increment=0.025 / 1440, range_min=0.06, range_max=range_max,
-                     ranges=ranges.astype(np.float32))
-
-
-def raycast(origin: tuple[float, float], angles: np.ndarray, segments: list[Segment],
-            range_max: float) -> np.ndarray:
-    """Distance from ``origin`` along each angle to the nearest segment; inf past range_max."""
-    ox, oy = origin
-    dx, dy = np.cos(angles), np.sin(angles)
-    best = np.full(angles.shape, np.inf)
-    for (ax, ay), (bx, by) in segments:
-        ex, ey = bx - ax, by - ay
-        den = dx * ey - dy * ex
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((ax - ox) * ey - (ay - oy) * ex) / den
-            u = ((ax - ox) * dy - (ay - oy) * dx) / den
-        ok = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
-        best = np.where(ok & (t < best), t, best)
-    return np.where(best <= range_max, best, np.inf)
-
-
 def wall_ahead(x: float) -> list[Segment]:
     return [((x, -5.0), (x, 5.0))]
 
 
 def corridor(half_width: float = 0.75) -> list[Segment]:
     return [((-2.0, half_width), (30.0, half_width)), ((-2.0, -half_width), (30.0, -half_width))]
-
-
-def box(cx: float, cy: float, half: float = 0.05) -> list[Segment]:
-    a, b = (cx - half, cy - half), (cx + half, cy - half)
-    c, d = (cx + half, cy + half), (cx - half, cy + half)
-    return [(a, b), (b, c), (c, d), (d, a)]
 
 
 def controller(**overrides: object) -> SafetyController:
@@ -144,13 +103,13 @@ def test_corridor_walls_beside_the_path_do_not_intervene() -> None:
 
 def test_obstacle_inside_the_turn_only_when_steering_toward_it() -> None:
     c = controller()
-    c.on_scan(ust10lx_scan(corridor(2.0) + box(1.0, 0.45)), now_ns=0)
+    c.on_scan(ust10lx_scan(corridor(2.0) + square(1.0, 0.45)), now_ns=0)
     out, state = c.limit(drive(2.0, 0.3), "nav", 0.0, now_ns=0)
     assert state.intervening and out.speed < 2.0
     assert state.obstacle is not None and state.obstacle.y > 0.3
     for steering in (0.0, -0.3):
         c = controller()
-        c.on_scan(ust10lx_scan(corridor(2.0) + box(1.0, 0.45)), now_ns=0)
+        c.on_scan(ust10lx_scan(corridor(2.0) + square(1.0, 0.45)), now_ns=0)
         out, state = c.limit(drive(2.0, steering), "nav", 0.0, now_ns=0)
         assert out.speed == 2.0 and not state.intervening
 
@@ -206,6 +165,124 @@ def test_reverse_with_a_360_lidar_sees_the_wall_behind() -> None:
     assert state.free_distance == pytest.approx(free, abs=1e-4)
     assert out.speed == pytest.approx(-closed_form(free), abs=1e-4)
     assert state.reason == "obstacle"
+
+
+def drive_along(c: SafetyController, poses: list, world: list[Segment], t0_ns: int = 0) -> int:
+    """Scans of ``world`` (odom) from each pose at 40 Hz, each folded into the memory as the daemon
+    does after the motor write; returns the time of the last scan."""
+    now = t0_ns
+    for pose in poses:
+        now += 25 * MS
+        c.on_scan(scan_at(pose, world, stamp_ns=now), now, pose)
+        c.remember()
+    return now
+
+
+# a wall 1.2 m ahead of the laser at the start; a U-turn on a 0.6 m circle puts it behind the car
+U_TURN_WALL: list[Segment] = [((1.2 + LASER_X, -5.0), (1.2 + LASER_X, 5.0))]
+
+
+def test_reversing_towards_a_wall_seen_before_the_turn_stops_before_it() -> None:
+    c = controller()
+    now = drive_along(c, left_arc((0.0, 0.0, 0.0), 0.6, math.pi), U_TURN_WALL)
+    end = (0.0, 1.2, math.pi)
+    now = drive_along(c, [end] * 2, U_TURN_WALL, now)
+    out, state = c.limit(drive(-0.5), "nav", 0.0, now)
+    # behind the car: the wall 1.465 m from base_link, the rear bumper 0.10 m behind base_link; a
+    # remembered point is its cell's centre, within half a cell diagonal of the return
+    free = 1.2 + LASER_X - 0.10
+    assert state.obstacle is not None and state.obstacle.source == "memory"
+    assert state.free_distance == pytest.approx(free, abs=0.036)
+    assert state.reason == "clear" and out.speed == -0.5  # far enough: the crawl cap, not reached
+    # backing up until the wall is 0.26 m behind the bumper: now the memory limits
+    now = drive_along(c, straight(end, -(free - 0.26), speed=0.5), U_TURN_WALL, now)
+    out, state = c.limit(drive(-0.5), "nav", -0.5, now)
+    assert state.obstacle is not None and state.obstacle.source == "memory"
+    assert state.free_distance == pytest.approx(0.26, abs=0.036)
+    assert state.reason == "obstacle" and state.intervening
+    assert -0.5 < out.speed <= 0.0
+    assert out.speed == pytest.approx(-closed_form(state.free_distance), abs=1e-3)
+    # the same drive with the memory off: reverse is only capped, the wall unknown
+    blind = controller(memory={"enabled": False})
+    drive_along(blind, left_arc((0.0, 0.0, 0.0), 0.6, math.pi) + [end] * 2
+                + straight(end, -(free - 0.26), speed=0.5), U_TURN_WALL)
+    out, state = blind.limit(drive(-0.5), "nav", -0.5, now)
+    assert out.speed == -0.5 and state.reason == "clear" and math.isnan(state.free_distance)
+
+
+def test_without_odometry_the_memory_stays_out_and_reverse_is_capped_as_before() -> None:
+    c = controller()
+    drive_along(c, left_arc((0.0, 0.0, 0.0), 0.6, math.pi), U_TURN_WALL)
+    assert c.memory is not None and len(c.memory) > 0 and c.memory_active
+    scan = scan_at((0.0, 1.2, math.pi), U_TURN_WALL)
+    c.on_scan(scan, 10_000 * MS, None)  # odometry lost
+    out, state = c.limit(drive(-2.0), "nav", 0.0, 10_000 * MS)
+    assert not c.memory_active
+    assert out.speed == -0.5 and state.reason == "reverse_cap" and math.isnan(state.free_distance)
+    c.remember()
+    assert len(c.memory) == 0  # it cannot place anything without a pose: forgotten
+
+
+def test_reverse_with_nothing_remembered_behind_is_capped_to_the_crawl() -> None:
+    c = controller()
+    now = drive_along(c, [(0.0, 0.0, 0.0)] * 3, corridor())
+    out, state = c.limit(drive(-2.0), "nav", 0.0, now)
+    assert c.memory_active
+    assert out.speed == -0.5 and state.reason == "reverse_cap" and state.obstacle is None
+
+
+def test_a_remembered_post_in_the_blind_sector_limits_a_tight_forward_turn() -> None:
+    # a post behind and left of the car, on the circle a full-lock left turn drives: the live scan
+    # cannot see it (bearing from the laser about 146 degrees), the memory saw it on the way in
+    post = square(-0.6, 0.59, 0.05)
+    c = controller()
+    now = drive_along(c, straight((-1.6, 0.0, 0.0), 1.6, speed=1.0), post)
+    steering = math.atan(0.25 / 0.6)  # a 0.6 m turn radius
+    out, state = c.limit(drive(5.0, steering), "nav", 0.0, now)
+    assert state.obstacle is not None and state.obstacle.source == "memory"
+    assert state.free_distance < 4.0  # three quarters of the 3.8 m circle, less the body
+    sighted = controller(memory={"enabled": False})
+    now = drive_along(sighted, straight((-1.6, 0.0, 0.0), 1.6, speed=1.0), post)
+    _, blind = sighted.limit(drive(5.0, steering), "nav", 0.0, now)
+    assert blind.free_distance == 10.0 and out.speed < 5.0
+
+
+def test_the_memory_is_updated_only_when_asked_or_before_the_next_scan() -> None:
+    c = controller()
+    assert c.memory is not None
+    pose = (0.0, 0.0, 0.0)
+    c.on_scan(scan_at(pose, U_TURN_WALL), 25 * MS, pose)
+    assert c.memory.updates == 0  # the scan's command is decided first
+    c.remember()
+    c.remember()  # once per scan
+    assert c.memory.updates == 1
+    c.on_scan(scan_at(pose, U_TURN_WALL), 200 * MS, pose)
+    c.on_scan(scan_at(pose, U_TURN_WALL), 225 * MS, pose)  # nobody called remember(): folded in now
+    assert c.memory.updates == 2
+
+
+def test_the_memory_takes_a_scan_in_at_most_once_per_update_period() -> None:
+    c = controller()  # update_period_s 0.1: every fourth scan of a 40 Hz lidar
+    assert c.memory is not None
+    drive_along(c, [(0.0, 0.0, 0.0)] * 8, U_TURN_WALL)
+    assert c.memory.updates == 2
+    half = controller(memory={"update_period_s": 0.05})
+    drive_along(half, [(0.0, 0.0, 0.0)] * 8, U_TURN_WALL)
+    assert half.memory is not None and half.memory.updates == 4
+    every = controller(memory={"update_period_s": 0.0})
+    drive_along(every, [(0.0, 0.0, 0.0)] * 8, U_TURN_WALL)
+    assert every.memory is not None and every.memory.updates == 8
+
+
+def test_interventions_are_recorded_with_their_obstacle() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(1.0)), now_ns=5 * MS)
+    c.limit(drive(3.0), "nav", 0.0, now_ns=6 * MS)
+    (event,) = c.events
+    assert event.t_ns == 6 * MS and event.scan_ns == 5 * MS and event.reason == "obstacle"
+    assert event.commanded_speed == 3.0 and event.allowed_speed < 3.0
+    assert event.obstacle is not None and event.obstacle.source == "scan"
+    assert event.obstacle.x == pytest.approx(1.0, abs=1e-5)
 
 
 def test_teleop_exempt_only_when_configured() -> None:
@@ -373,7 +450,7 @@ def test_laser_transform_forms_agree_and_upside_down_lidar_mirrors() -> None:
     # upside down (roll pi): the laser's +angles point to base_link's right
     flipped = np.diag([1.0, -1.0, -1.0, 1.0])
     flipped[0, 3] = LASER_X
-    scan = ust10lx_scan(box(1.0, -0.45))  # the scan is cast as if upright, so the box ends up left
+    scan = ust10lx_scan(square(1.0, -0.45))  # the scan is cast as if upright, so the box ends up left
     verdicts = {}
     for steering in (0.3, -0.3):
         c = SafetyController(SafetyParams(), flipped)
@@ -420,3 +497,33 @@ def test_property_output_never_exceeds_input(ranges: list[float], angle_min: flo
     assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
     assert out.steering_angle == steering
     assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)
+
+
+coordinate = st.floats(-50.0, 50.0, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(scans=st.lists(st.tuples(st.lists(range_values, min_size=0, max_size=200),
+                                st.tuples(coordinate, coordinate, st.floats(-7.0, 7.0))),
+                      min_size=1, max_size=6),
+       angle_min=st.floats(-4.0, 0.0), span=st.floats(0.0, 6.3), speed=finite,
+       steering=st.floats(-1.6, 1.6))
+def test_property_with_the_memory_output_never_exceeds_input(scans: list, angle_min: float,
+                                                             span: float, speed: float,
+                                                             steering: float) -> None:
+    # any scans at any poses (jumps, turns, empty and broken scans) folded into the memory
+    c = controller(memory={"update_period_s": 0.0})
+    now = 1000 * MS
+    for ranges, pose in scans:
+        n = len(ranges)
+        scan = LaserScan(angle_min=angle_min, angle_max=angle_min + span,
+                         angle_increment=span / max(n - 1, 1), range_min=0.05, range_max=30.0,
+                         ranges=np.array(ranges, dtype=np.float32))
+        now += 25 * MS
+        c.on_scan(scan, now, pose)
+        out, state = c.limit(drive(speed, steering), "nav", 0.0, now)
+        c.remember()
+        assert math.isfinite(out.speed) and abs(out.speed) <= abs(speed)
+        assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
+        assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)
+    assert c.memory is not None and len(c.memory) <= c.memory.cells_per_side ** 2

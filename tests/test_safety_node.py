@@ -18,6 +18,7 @@ from racecar_hw.base.messages import (
     Header,
     LaserScan,
     Odometry,
+    Quaternion,
     Time,
 )
 from racecar_hw.base.params import build
@@ -175,6 +176,58 @@ def test_stale_odometry_is_ignored() -> None:
     bus.publish("/odom", odom(4.0))
     assert node.measured_speed(clock.now) == 4.0
     assert node.measured_speed(clock.now + 600 * MS) == 0.0
+
+
+def odom_at(x: float, y: float, yaw: float, speed: float = 0.0, yaw_rate: float = 0.0) -> Odometry:
+    msg = odom(speed)
+    msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+    msg.pose.pose.orientation = Quaternion.from_yaw(yaw)
+    msg.twist.twist.angular.z = yaw_rate
+    return msg
+
+
+def test_the_pose_at_a_scan_is_the_odometry_carried_forward_by_its_twist() -> None:
+    bus, clock = Bus(), ManualClock()
+    node = SafetyNode(bus, SafetyParams(), clock=clock)
+    assert node.pose_at(clock.now) is None
+    bus.publish("/odom", odom_at(1.0, 2.0, 0.5, speed=2.0))
+    assert node.pose_at(clock.now) == pytest.approx((1.0, 2.0, 0.5))
+    x, y, yaw = node.pose_at(clock.now + 20 * MS)
+    assert (x, y, yaw) == pytest.approx((1.0 + 0.04 * math.cos(0.5), 2.0 + 0.04 * math.sin(0.5), 0.5))
+    bus.publish("/odom", odom_at(0.0, 0.0, 0.0, speed=1.0, yaw_rate=1.0))
+    _, _, yaw = node.pose_at(clock.now + 100 * MS)
+    assert yaw == pytest.approx(0.1)
+    assert node.pose_at(clock.now + 600 * MS) is None  # older than odom_timeout_s
+
+
+def test_the_node_remembers_each_scan_at_once_or_when_the_daemon_says() -> None:
+    for deferred in (False, True):
+        bus, clock = Bus(), ManualClock()
+        node = SafetyNode(bus, SafetyParams(), clock=clock, defer_memory=deferred)
+        published = states(bus)
+        bus.publish("/odom", odom_at(0.0, 0.0, 0.0))
+        bus.publish("/scan", blocked_ahead(1.0))
+        memory = node.controller.memory
+        assert memory is not None
+        assert memory.updates == (0 if deferred else 1)
+        node.remember()
+        assert memory.updates == 1 and len(memory) > 0
+        node.filter(AckermannDrive(speed=0.5), "nav")
+        last = values(published[-1])
+        assert last["memory"] == "on" and last["obstacle_source"] in ("", "scan")
+        clock.now += 600 * MS  # odometry gone stale
+        bus.publish("/scan", blocked_ahead(1.0))
+        node.remember()
+        node.tick()
+        assert values(published[-1])["memory"] == "no_odometry" and len(memory) == 0
+
+
+def test_the_memory_can_be_switched_off() -> None:
+    bus = Bus()
+    node = SafetyNode(bus, build(SafetyParams, {"memory": {"enabled": False}}))
+    published = states(bus)
+    node.tick()
+    assert node.controller.memory is None and values(published[-1])["memory"] == "off"
 
 
 def cone_bus(**cone: object) -> tuple[Bus, ConeSafety, list[AckermannDriveStamped]]:

@@ -30,7 +30,7 @@ def run(name: str, tmp_path, *overrides: str, duration_s: float | None = None) -
     # machine's hold-ups (stale_scan, missed ticks) from a wrong outcome
     r = result.report
     print(name, json.dumps({k: r.get(k) for k in ("final_pose", "distance_m", "collided",
-                                                   "safety_interventions_by_reason",
+                                                   "safety_interventions_by_reason", "interventions",
                                                    "mux_switches", "control", "vesc", "lidar")}))
     return result
 
@@ -48,7 +48,8 @@ def fault_time(report: dict, action: str) -> float:
 
 def test_every_shipped_scenario_is_covered():
     assert set(scenario_names()) == {"figure8", "wall", "corridor", "teleop-override", "lidar-dropout",
-                                     "vesc-replug", "obstacle"}
+                                     "vesc-replug", "obstacle", "reverse-wall", "crossing-person",
+                                     "sliding-box"}
 
 
 def test_figure8_returns_to_the_start(tmp_path):
@@ -144,6 +145,81 @@ def test_obstacle_appearing_ahead_stops_the_car(tmp_path):
     assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
     assert r["safety_interventions"] >= 1
     assert r["final_clearance_m"] > 0.0
+
+
+def obstacle_stops(report: dict) -> list[dict]:
+    """The report's interventions for an obstacle (not a late scan on a loaded machine)."""
+    return [i for i in report["interventions"] if i["reason"] == "obstacle"]
+
+
+def test_reversing_into_a_wall_seen_before_a_u_turn_stops_with_the_memory(tmp_path):
+    r = run("reverse-wall", tmp_path).report
+    assert r["safety_memory"] is True
+    assert not r["collided"], r["collisions"]
+    assert r["final_pose"]["yaw"] == pytest.approx(0.0, abs=0.15)  # the U-turn was made
+    stops = obstacle_stops(r)
+    assert stops, r["interventions"]
+    stop = stops[-1]
+    # the wall is behind the car, outside the lidar's view: the memory stopped it
+    assert stop["source"] == "memory" and stop["object"] == "map"
+    assert stop["speed_mps"] == pytest.approx(-0.5, abs=0.05)
+    assert stop["stopped_at_s"] is not None and 0.05 < stop["distance_left_m"] < 0.5
+    assert r["final_pose"]["x"] > -3.95 + 0.10  # the rear bumper short of the wall's face
+
+
+def test_reversing_into_the_same_wall_without_the_memory_collides(tmp_path):
+    r = run("reverse-wall", tmp_path, "config.safety.memory.enabled=false").report
+    assert r["safety_memory"] is False
+    assert r["collided"]  # capped at 0.5 m/s, as before the memory: the cap does not see the wall
+    assert obstacle_stops(r) == []
+    assert r["final_pose"]["yaw"] == pytest.approx(0.0, abs=0.15)
+
+
+def test_a_person_crossing_at_1_5_mps_is_not_hit_at_2_mps(tmp_path):
+    r = run("crossing-person", tmp_path).report
+    assert not r["collided"], r["collisions"]
+    assert r["max_speed_mps"] == pytest.approx(2.0, abs=0.05)
+    # the car braked for the person (seen by the live scan) and drove on once they had passed
+    person = [i for i in obstacle_stops(r) if i["object"] == "person"]
+    assert person and person[0]["source"] == "scan"
+    assert r["min_clearance_m"] > 0.1
+    assert r["distance_m"] > 4.0
+
+
+def test_a_box_sliding_into_the_path_is_not_hit_at_2_mps(tmp_path):
+    r = run("sliding-box", tmp_path).report
+    assert not r["collided"], r["collisions"]
+    assert r["max_speed_mps"] == pytest.approx(2.0, abs=0.05)
+    box = [i for i in obstacle_stops(r) if i["object"] == "box"]
+    assert box and box[0]["source"] == "scan"
+    assert box[-1]["stopped_at_s"] is not None and box[-1]["distance_left_m"] > 0.1
+    assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+
+
+def test_the_memory_update_comes_after_the_scans_motor_command(tmp_path):
+    after_write: list[bool] = []
+
+    def setup(loopback: Loopback) -> None:
+        daemon = loopback.daemon
+        assert daemon is not None and daemon.vesc is not None and daemon.lidar is not None
+        memory = daemon.safety.controller.memory
+        assert memory is not None
+        vesc, lidar, update = daemon.vesc, daemon.lidar, memory.update
+
+        def checked(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            after_write.append(vesc.last_motor_write_ns >= lidar.frame_arrival_ns)
+            return update(*args, **kwargs)
+
+        memory.update = checked  # type: ignore[method-assign]
+
+    # the memory takes every scan in here (by default every other one)
+    scenario = load_scenario("wall", ["config.safety.memory.update_period_s=0"])
+    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=1.5, setup=setup)
+    asyncio.run(loopback.run())
+    assert loopback.daemon is not None
+    timed = len(loopback.daemon.stats.scan_to_command_ns)  # scans whose command the scan path wrote
+    assert timed > 10 and len(after_write) >= timed
+    assert after_write.count(True) >= timed
 
 
 def test_teleop_overrides_navigation_then_hands_back(tmp_path):

@@ -32,13 +32,14 @@ from racecar_hw.daemon import Daemon, reverse_speed_cap
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
-from racecar_hw.sim.car import CLEARANCE_RANGE_M, CarParams
+from racecar_hw.sim.car import CLEARANCE_RANGE_M, CarParams, footprint
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, map_to_odom, publish_truth
+from racecar_hw.sim.obstacles import point_polygon_distance
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import ControlSample, Mark, plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
-from racecar_hw.sim.trajectory import write_csv
-from racecar_hw.sim.world import World
+from racecar_hw.sim.trajectory import TrajectorySample, stop_time, stopping_distance, write_csv
+from racecar_hw.sim.world import World, compose
 from vesc.codec import servo_on_wire
 from vesc.fake import FakeVesc
 
@@ -282,6 +283,14 @@ class Loopback:
             log.info("sim fault at %.2f s: %s", self.sim_time(), fault.action)
             self._apply(fault)
 
+    async def _place_obstacles(self) -> None:
+        """Put the scenario's obstacles in the world, on scenario time (which starts when ready)."""
+        assert self.world is not None
+        await self._wait_ready()
+        assert self.ready_at_s is not None
+        for k, spec in enumerate(self.scenario.obstacles):
+            self.world.add_mover(spec.mover(self.ready_at_s, f"obstacle {k + 1}"))
+
     def _apply(self, fault: FaultSpec) -> None:
         assert self.vesc is not None and self.world is not None and self.daemon is not None
         action = fault.action
@@ -365,6 +374,7 @@ class Loopback:
             for spec in self.scenario.drivers:
                 self.daemon.add_task(self._drive(spec))
             self.daemon.add_task(self._faults())
+            self.daemon.add_task(self._place_obstacles())
             self.daemon.add_task(self._watch_interventions())
             self.daemon.live_topics.extend(SIM_TOPICS)
             self.daemon.add_task(publish_truth(self.daemon.bus, self.world, self.map))
@@ -443,6 +453,8 @@ class Loopback:
             },
             "control": {"ticks": daemon.stats.ticks, "missed_ticks": daemon.stats.missed_ticks,
                         "scan_cuts": daemon.stats.scan_cuts},
+            "interventions": self._interventions(),
+            "safety_memory": daemon.config.safety.memory.enabled,
             "trajectory_csv": None,
             "plot_png": None,
         }
@@ -462,6 +474,58 @@ class Loopback:
         return result
 
 
+    def _interventions(self) -> list[dict[str, Any]]:
+        """Each intervention: when (world time), why, what caused it and where the car stopped.
+
+        ``source``: the live scan or the obstacle memory (None without an obstacle, e.g. a stale
+        scan). ``obstacle``: the limiting point in the map frame; ``object``: what the world has
+        there (``map``, a scenario obstacle's name, or None: nothing, a remembered point of
+        something that has gone). ``ended_at_s``: when the controller let go (None: at the end of
+        the run). ``stopped_at_s``: when the car came to a standstill before that (None: it only
+        slowed down); ``stopping_distance_m``: path driven until then; ``distance_left_m``: the gap
+        between the car's footprint and that object at standstill, or when the intervention ended
+        if the car only slowed (for the map or nothing: the gap to the point).
+        """
+        assert self.world is not None and self.daemon is not None
+        world = self.world
+        samples = world.samples
+        out = []
+        for event in self.daemon.safety.controller.events:
+            t = world.sim_time_at(event.t_ns)
+            end = world.sim_time_at(event.end_ns) if event.end_ns is not None else None
+            entry: dict[str, Any] = {
+                "t_s": round(t, 3), "reason": event.reason, "source": None, "obstacle": None,
+                "object": None, "speed_mps": _num(_speed_at(samples, t)),
+                "allowed_mps": _num(event.allowed_speed),
+                "ended_at_s": None if end is None else round(end, 3), "stopped_at_s": None,
+                "stopping_distance_m": None, "distance_left_m": None,
+            }
+            point = None
+            if event.obstacle is not None and event.scan_ns is not None:
+                o = event.obstacle
+                scan_t = world.sim_time_at(event.scan_ns)
+                point = compose(world.pose_at(event.scan_ns), (o.x, o.y, 0.0))
+                entry["source"] = o.source
+                entry["obstacle"] = {"x": _num(point.x), "y": _num(point.y)}
+                entry["object"] = world.what_is_at(point.x, point.y, scan_t)
+            stopped = stop_time(samples, t)
+            if stopped is not None and (end is None or stopped <= end):
+                entry["stopped_at_s"] = round(stopped, 3)
+                entry["stopping_distance_m"] = _num(stopping_distance(samples, t) or 0.0)
+            else:
+                stopped = None
+            when = stopped if stopped is not None else end
+            if point is not None and when is not None:
+                at = next((s for s in samples if s.t >= when), samples[-1])
+                corners = footprint((at.x, at.y, at.yaw), world.params)
+                gap = next((shape.distance_to(corners) for label, shape in world.obstacles_at(when)
+                            if label == entry["object"]),
+                           point_polygon_distance(point.x, point.y, corners))
+                entry["distance_left_m"] = _num(gap)
+            out.append(entry)
+        return out
+
+
 def write_report(result: SimResult, path: str | Path) -> Path:
     """Write the JSON report to ``path``."""
     p = Path(path)
@@ -469,6 +533,11 @@ def write_report(result: SimResult, path: str | Path) -> Path:
     p.write_text(json.dumps(result.report, indent=2) + "\n")
     result.report_path = p
     return p
+
+
+def _speed_at(samples: list[TrajectorySample], t: float) -> float:
+    """The car's speed (m/s) at the first sample at or after sim time ``t`` (0 past the end)."""
+    return next((s.speed for s in samples if s.t >= t), 0.0)
 
 
 def _script_at(steps: list[tuple[float, float, float]], t: float) -> tuple[float, float]:

@@ -1,13 +1,16 @@
-"""Dynamic obstacles a scenario places in the world: circles and oriented boxes, in the map frame.
+"""Dynamic obstacles a scenario places in the world: circles, oriented boxes and convex polygons,
+in the map frame.
 
 Each obstacle answers two questions: how far a lidar beam travels before hitting it
 (:meth:`ray_ranges`) and how far it is from the car's footprint polygon (:meth:`distance_to`).
-Metres and radians, map frame (REP-103).
+:func:`place` moves a shape given around the origin to a pose. Metres and radians, map frame
+(REP-103).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,7 +81,70 @@ class Box:
         return polygon_distance(self.corners(), polygon)
 
 
-Obstacle = Circle | Box
+@dataclass(frozen=True)
+class Polygon:
+    """A convex polygon: its corners (x, y) in metres, counter-clockwise. Build with :meth:`convex`."""
+
+    points: tuple[tuple[float, float], ...]
+
+    @classmethod
+    def convex(cls, points: Sequence[Sequence[float]]) -> Polygon:
+        """The polygon through ``points`` (either winding); ValueError unless they make a convex one.
+
+        A concave outline is several convex polygons side by side.
+        """
+        corners = [(float(x), float(y)) for x, y in points]
+        if len(corners) < 3:
+            raise ValueError(f"a polygon needs at least 3 corners, got {len(corners)}")
+        a = np.asarray(corners)
+        b = np.roll(a, -1, axis=0)
+        edges = b - a
+        after = np.roll(edges, -1, axis=0)
+        turns = edges[:, 0] * after[:, 1] - edges[:, 1] * after[:, 0]  # + at a left turn
+        area = 0.5 * float(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]))  # shoelace, + if CCW
+        if not np.all(np.isfinite(a)) or abs(area) < 1e-9:
+            raise ValueError(f"polygon {corners} has no area")
+        if not (np.all(turns >= -1e-12) or np.all(turns <= 1e-12)):
+            raise ValueError(f"polygon {corners} is not convex (split it into convex ones)")
+        return cls(tuple(corners) if area > 0 else tuple(reversed(corners)))
+
+    def corners(self) -> np.ndarray:
+        """The corners, counter-clockwise, shape (N, 2)."""
+        return np.asarray(self.points, dtype=np.float64)
+
+    def ray_ranges(self, x0: float, y0: float, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Distance along unit directions (c, s) from (x0, y0) to the polygon; inf on a miss, 0 inside."""
+        corners = self.corners()
+        if point_polygon_distance(x0, y0, corners) == 0.0:
+            return np.zeros(np.shape(c))
+        best = np.full(np.shape(c), np.inf)
+        for (ax, ay), (bx, by) in zip(corners, np.roll(corners, -1, axis=0), strict=True):
+            ex, ey = bx - ax, by - ay
+            den = c * ey - s * ex
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = ((ax - x0) * ey - (ay - y0) * ex) / den
+                u = ((ax - x0) * s - (ay - y0) * c) / den
+            hit = (np.abs(den) > 1e-12) & (t >= 0) & (u >= 0) & (u <= 1)
+            best = np.where(hit & (t < best), t, best)
+        return best
+
+    def distance_to(self, polygon: np.ndarray) -> float:
+        """Gap (m) between this polygon and a convex polygon (N x 2 corners, CCW); 0 when they overlap."""
+        return polygon_distance(self.corners(), polygon)
+
+
+Obstacle = Circle | Box | Polygon
+
+
+def place(shape: Obstacle, x: float, y: float, yaw: float = 0.0) -> Obstacle:
+    """``shape``, given around the origin, turned by ``yaw`` and moved to (``x``, ``y``)."""
+    if isinstance(shape, Circle):
+        return Circle(shape.x + x, shape.y + y, shape.radius)
+    c, s = math.cos(yaw), math.sin(yaw)
+    if isinstance(shape, Box):
+        return Box(x + c * shape.x - s * shape.y, y + s * shape.x + c * shape.y, shape.length,
+                   shape.width, shape.yaw + yaw)
+    return Polygon(tuple((x + c * px - s * py, y + s * px + c * py) for px, py in shape.points))
 
 
 def rectangle(x: float, y: float, yaw: float, x_min: float, x_max: float, y_min: float,

@@ -27,10 +27,10 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle as CirclePatch
-from matplotlib.patches import Polygon
+from matplotlib.patches import Polygon as PolygonPatch
 from matplotlib.transforms import Affine2D
 
-from racecar_hw.sim.obstacles import Box, Circle, Obstacle
+from racecar_hw.sim.obstacles import Box, Circle, Obstacle, Polygon
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.world import World
 
@@ -135,7 +135,7 @@ def run_figure(occ_map: OccupancyMap, trajectory: Sequence[Sequence[float]],
     """The figure of a run, ``width_px`` pixels wide.
 
     ``trajectory`` rows start with (t, x, y, yaw, speed) in sim time, map-frame metres and m/s;
-    ``obstacles`` are discs (x, y, radius), :class:`Circle` or :class:`Box`; ``series`` are
+    ``obstacles`` are discs (x, y, radius), :class:`Circle`, :class:`Box` or :class:`Polygon`; ``series`` are
     :class:`ControlSample` rows; ``switches`` are the mux's (t, source) switches in sim time. Without
     ``series`` and ``switches`` only the map panel is drawn.
     """
@@ -200,8 +200,8 @@ def _draw_map(fig: Figure, ax: Any, occ_map: OccupancyMap, traj: np.ndarray, int
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     for obstacle in obstacles:
-        if isinstance(obstacle, Box):
-            ax.add_patch(Polygon(obstacle.corners(), closed=True, color=OBSTACLE_COLOUR, zorder=1))
+        if isinstance(obstacle, (Box, Polygon)):
+            ax.add_patch(PolygonPatch(obstacle.corners(), closed=True, color=OBSTACLE_COLOUR, zorder=1))
             continue
         x, y, r = ((obstacle.x, obstacle.y, obstacle.radius) if isinstance(obstacle, Circle) else obstacle)
         ax.add_patch(CirclePatch((x, y), r, color=OBSTACLE_COLOUR, zorder=1))

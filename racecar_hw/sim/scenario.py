@@ -11,6 +11,11 @@ A scenario is YAML (shipped ones in ``config/scenarios/``; any path works too)::
       - {type: constant, input: nav_0, speed_mps: 2.0, steering_rad: 0.0}
     faults:                    # applied at at_s seconds of scenario time
       - {at_s: 3.0, action: lidar_unplug}
+    obstacles:                 # besides the map; see docs/sim.md "Scenario obstacles"
+      - {name: person, shape: disc, radius_m: 0.2, at: [3.5, 2.0], velocity_mps: [0.0, -1.5]}
+      - {shape: box, size_m: [0.6, 0.4], yaw_rad: 0.3, at: [4.0, 2.5], waypoints: [[4.0, 0.0]],
+         speed_mps: 1.0, appear_s: 0.5}
+      - {shape: polygon, points: [[0, 0], [1, 0], [0.5, 0.8]], at: [6.0, -2.0], disappear_s: 4}
     config: {safety: {margin_m: 0.3}}   # merged into the daemon's sim config
 
 Scenario time starts when the car is ready to drive (the VESC answered and the first scan is in),
@@ -23,6 +28,10 @@ each held until the next), ``figure8`` (``speed_mps``, ``steering_rad``, ``figur
 Fault actions: ``lidar_unplug``, ``lidar_replug``, ``vesc_unplug``, ``vesc_replug``,
 ``obstacle_ahead`` (``distance_m`` ahead of the car's front, ``radius_m``), ``clear_obstacles``,
 ``vesc_garbage`` (``bytes``), ``estop``, ``estop_release``.
+Obstacle shapes: ``disc`` (``radius_m``), ``box`` (``size_m``: length along ``yaw_rad``, width),
+``polygon`` (convex ``points`` around ``at``, turned by ``yaw_rad``). Each appears at ``at`` at
+``appear_s``, moves at ``velocity_mps`` or through ``waypoints`` at ``speed_mps`` (stopping at the
+last), and is gone from ``disappear_s`` (none: never); positions in the map frame.
 """
 
 from __future__ import annotations
@@ -35,8 +44,11 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import apply_override, load_yaml
 from racecar_hw.base.params import build, param
 from racecar_hw.base.resources import config_dir
+from racecar_hw.sim.movers import Mover
+from racecar_hw.sim.obstacles import Box, Circle, Obstacle, Polygon
 
 DRIVER_TYPES = ("constant", "script", "figure8", "setpoint", "follow")
+OBSTACLE_SHAPES = ("disc", "box", "polygon")
 FAULT_ACTIONS = ("lidar_unplug", "lidar_replug", "vesc_unplug", "vesc_replug", "obstacle_ahead",
                  "clear_obstacles", "vesc_garbage", "estop", "estop_release")
 
@@ -75,6 +87,52 @@ class FaultSpec:
 
 
 @dataclass
+class ObstacleSpec:
+    """An obstacle besides the map: its shape, where and when it appears, how it moves, when it goes.
+
+    Positions are in the map frame, times in scenario time.
+    """
+
+    name: str = param("", "what the report calls it; none: obstacle N")
+    shape: str = param("disc", "its outline", choices=OBSTACLE_SHAPES)
+    radius_m: float = param(0.2, "disc: radius (a person: 0.2)", unit="m", min=0.01, max=50.0)
+    size_m: tuple[float, float] = param((0.5, 0.5), "box: length (along yaw_rad) and width", unit="m")
+    points: list[tuple[float, float]] = param([], "polygon: its convex corners, around its position",
+                                              unit="m")
+    at: tuple[float, float] = param((0.0, 0.0), "where it appears: the disc's or box's centre, the "
+                                                 "origin of the polygon's points", unit="m")
+    yaw_rad: float = param(0.0, "box, polygon: heading, counter-clockwise", unit="rad")
+    appear_s: float = param(0.0, "appears at this scenario time", unit="s", min=0.0)
+    disappear_s: float | None = param(None, "gone from this scenario time; none: stays", unit="s")
+    velocity_mps: tuple[float, float] = param((0.0, 0.0), "moves at this constant velocity (x, y) "
+                                                          "from when it appears", unit="m/s")
+    waypoints: list[tuple[float, float]] = param([], "or moves through these points in turn at "
+                                                     "speed_mps, stopping at the last", unit="m")
+    speed_mps: float = param(1.0, "speed along the waypoints", unit="m/s", min=0.01, max=50.0)
+
+    def __post_init__(self) -> None:
+        self.mover()  # refuses a shape or a schedule that makes no obstacle
+
+    def outline(self) -> Obstacle:
+        """The shape around the origin, heading 0 (ValueError when it makes no shape)."""
+        if self.shape == "disc":
+            return Circle(0.0, 0.0, self.radius_m)
+        if self.shape == "box":
+            length, width = self.size_m
+            if not (length > 0 and width > 0):
+                raise ValueError(f"box size_m must be > 0, got {list(self.size_m)}")
+            return Box(0.0, 0.0, length, width)
+        return Polygon.convex(self.points)
+
+    def mover(self, offset_s: float = 0.0, name: str = "") -> Mover:
+        """The world's obstacle, its times shifted by ``offset_s`` (scenario -> world time)."""
+        return Mover(self.outline(), tuple(self.at), self.yaw_rad, self.appear_s + offset_s,
+                     None if self.disappear_s is None else self.disappear_s + offset_s,
+                     tuple(self.velocity_mps), tuple(tuple(w) for w in self.waypoints),
+                     self.speed_mps, self.name or name)
+
+
+@dataclass
 class LidarSpec:
     """Which fake lidar the scenario uses, and how the daemon reaches it."""
 
@@ -106,6 +164,8 @@ class Scenario:
     world: WorldSpec = param(WorldSpec(), "the world simulation")
     drivers: list[DriverSpec] = param([], "who drives")
     faults: list[FaultSpec] = param([], "what breaks, when")
+    obstacles: list[ObstacleSpec] = param([], "obstacles besides the map: shapes that appear, move "
+                                              "and disappear")
     config: dict[str, Any] = param({}, "overrides merged into the daemon's sim config")
     name: str = param("", "scenario name (default: the file name)")
 

@@ -11,6 +11,10 @@ Time: the world's clock is the monotonic clock in integer nanoseconds (``time_ns
 (or since :meth:`World.reset`). :meth:`World.step` with an explicit ``dt`` advances the clock by
 ``dt`` instead, for tests and faster-than-real-time use; do not mix the two on one world.
 
+Obstacles are fixed (:meth:`World.add_obstacle`) or movers (:class:`~racecar_hw.sim.movers.Mover`,
+:meth:`World.add_mover`), which appear, move and disappear on sim time: collisions use where they
+are at each step, lidars where they are at the scan's stamp.
+
 Threads: :meth:`World.run` runs in the device thread; fake lidars call their range source from
 theirs; scenarios read properties and add obstacles from anywhere. Every public member is
 thread-safe; the ERPM/servo callables and ``on_collision`` are called from the stepping thread.
@@ -39,7 +43,8 @@ from racecar_hw.sim.car import (
     steering_from_servo,
     wrap_angle,
 )
-from racecar_hw.sim.obstacles import Box, Circle, Obstacle
+from racecar_hw.sim.movers import Mover
+from racecar_hw.sim.obstacles import Box, Circle, Obstacle, rectangle
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.raycast import RayCaster
 from racecar_hw.sim.trajectory import TrajectoryReport, TrajectorySample, report
@@ -90,7 +95,7 @@ class World:
         self._raycaster = RayCaster(occ_map)
         self._collider = Collider(occ_map, self.params)
         self._lock = threading.Lock()
-        self._obstacles: dict[int, Obstacle] = {}
+        self._obstacles: dict[int, Obstacle | Mover] = {}
         self._next_obstacle = 1
         self._start_pose = Pose2D(*(float(v) for v in start_pose))
         self._time_ns = monotonic_ns()
@@ -98,8 +103,13 @@ class World:
 
     # --- state ---------------------------------------------------------------------------------
 
+    def _shapes_locked(self, t: float) -> tuple[Obstacle, ...]:
+        """The obstacles present at sim time ``t``, where they are then."""
+        return tuple(shape for entry in self._obstacles.values()
+                     if (shape := _shape_at(entry, t)) is not None)
+
     def _reset_locked(self, pose: Pose2D) -> None:
-        obstacles = tuple(self._obstacles.values())
+        obstacles = self._shapes_locked(0.0)
         if self._collider.collides(pose, obstacles):
             raise ConfigError("start_pose", f"the car's footprint at {tuple(pose)} overlaps a wall or "
                                             "an obstacle")
@@ -177,6 +187,11 @@ class World:
         with self._lock:
             return (self._time_ns - self._t0_ns) / NS_PER_S
 
+    def sim_time_at(self, stamp_ns: int) -> float:
+        """Sim time (s) at monotonic ``stamp_ns``."""
+        with self._lock:
+            return (stamp_ns - self._t0_ns) / NS_PER_S
+
     @property
     def trajectory(self) -> list[tuple[float, float, float, float, float]]:
         """(t, x, y, yaw, speed) after every step."""
@@ -200,7 +215,7 @@ class World:
         """Gap (m) between the footprint at ``pose`` (default: now) and the nearest wall or obstacle."""
         with self._lock:
             pose = self._pose if pose is None else pose
-            obstacles = tuple(self._obstacles.values())
+            obstacles = self._shapes_locked((self._time_ns - self._t0_ns) / NS_PER_S)
         return self._collider.clearance(pose, obstacles)
 
     # --- obstacles -----------------------------------------------------------------------------
@@ -227,6 +242,15 @@ class World:
             self._obstacles[ident] = obstacle
         return ident
 
+    def add_mover(self, mover: Mover) -> int:
+        """Add an obstacle that appears, moves and disappears on sim time (see
+        :class:`~racecar_hw.sim.movers.Mover`). Returns an id for :meth:`remove_obstacle`."""
+        with self._lock:
+            ident = self._next_obstacle
+            self._next_obstacle += 1
+            self._obstacles[ident] = mover
+        return ident
+
     def add_obstacle_ahead(self, distance: float, radius: float = 0.2, lateral: float = 0.0) -> int:
         """A disc whose near edge is ``distance`` m ahead of the front bumper, ``lateral`` m to the left."""
         p = self.params
@@ -246,9 +270,43 @@ class World:
 
     @property
     def obstacles(self) -> dict[int, Obstacle]:
-        """The current obstacles by id."""
+        """The obstacles present now, by id, where they are now."""
         with self._lock:
-            return dict(self._obstacles)
+            t = (self._time_ns - self._t0_ns) / NS_PER_S
+            entries = list(self._obstacles.items())
+        return {ident: shape for ident, entry in entries
+                if (shape := _shape_at(entry, t)) is not None}
+
+    def obstacles_at(self, t: float) -> list[tuple[str, Obstacle]]:
+        """(name, shape) of every obstacle present at sim time ``t`` (s), where it is then; an
+        obstacle without a name is called ``obstacle <id>``."""
+        with self._lock:
+            entries = list(self._obstacles.items())
+        out = []
+        for ident, entry in entries:
+            shape = _shape_at(entry, t)
+            if shape is not None:
+                name = entry.name if isinstance(entry, Mover) and entry.name else f"obstacle {ident}"
+                out.append((name, shape))
+        return out
+
+    def what_is_at(self, x: float, y: float, t: float | None = None, within: float = 0.15) -> str | None:
+        """What occupies map point (``x``, ``y``) at sim time ``t`` (default now), within ``within``
+        metres: the nearest obstacle's name, ``"map"`` for an occupied map cell, or None."""
+        if t is None:
+            t = self.sim_time
+        best, name = within, None
+        probe = rectangle(x, y, 0.0, -1e-3, 1e-3, -1e-3, 1e-3)
+        for label, shape in self.obstacles_at(t):
+            gap = shape.distance_to(probe)
+            if gap <= best:
+                best, name = gap, label
+        if name is not None:
+            return name
+        res = self.map.resolution
+        dx, dy = np.meshgrid(np.arange(-within, within + res, res), np.arange(-within, within + res, res))
+        disc = np.hypot(dx, dy) <= within + res / 2
+        return "map" if bool(np.any(self.map.is_occupied(x + dx[disc], y + dy[disc]))) else None
 
     # --- stepping ------------------------------------------------------------------------------
 
@@ -262,7 +320,7 @@ class World:
         steering = steering_from_servo(float(self._servo_source()), p)
         with self._lock:
             pose, collided, generation = self._pose, self._collided, self._generation
-            obstacles = tuple(self._obstacles.values())
+            obstacles = self._shapes_locked((self._time_ns + dt_ns - self._t0_ns) / NS_PER_S)
         dt = dt_ns / NS_PER_S
         travelled = 0.0
         hit = False
@@ -360,15 +418,18 @@ class World:
                               laser_pose_in_base or self.laser_pose_in_base, rng)
 
     def true_ranges(self, angles: np.ndarray, max_range: float = 30.0,
-                    laser_pose: tuple[float, float, float] | None = None) -> np.ndarray:
+                    laser_pose: tuple[float, float, float] | None = None,
+                    t: float | None = None) -> np.ndarray:
         """Noise-free ranges (m) along ``angles`` from ``laser_pose`` in the map frame (default: the
-        laser on the car now), walls and obstacles; ``inf`` beyond ``max_range``."""
+        laser on the car now), walls and the obstacles where they are at sim time ``t`` (default:
+        now); ``inf`` beyond ``max_range``."""
         if laser_pose is None:
             laser_pose = compose(self.pose, self.laser_pose_in_base)
         x, y, yaw = laser_pose
         angles = np.asarray(angles, dtype=np.float64)
         ranges = self._raycaster.cast(x, y, yaw, angles, max_range)
-        obstacles = tuple(self.obstacles.values())
+        with self._lock:
+            obstacles = self._shapes_locked((self._time_ns - self._t0_ns) / NS_PER_S if t is None else t)
         if obstacles:
             theta = angles + yaw
             c, s = np.cos(theta), np.sin(theta)
@@ -393,7 +454,7 @@ class SimRangeSource:
     def ranges(self, angles: np.ndarray, stamp_ns: int) -> np.ndarray:
         """Measured ranges (m) along ``angles`` (rad, CCW, laser frame) at ``stamp_ns`` (monotonic)."""
         laser = compose(self.world.pose_at(stamp_ns), self.laser_pose_in_base)
-        ranges = self.world.true_ranges(angles, self.max_range, laser)
+        ranges = self.world.true_ranges(angles, self.max_range, laser, self.world.sim_time_at(stamp_ns))
         if self.noise_std_m > 0:
             with self._rng_lock:
                 noise = self._rng.normal(0.0, self.noise_std_m, size=ranges.shape)
@@ -401,3 +462,8 @@ class SimRangeSource:
             ranges[finite] = np.maximum(ranges[finite] + noise[finite], 0.0)
             ranges[ranges > self.max_range] = np.inf
         return ranges
+
+
+def _shape_at(entry: Obstacle | Mover, t: float) -> Obstacle | None:
+    """A fixed obstacle, or a mover where it is at sim time ``t`` (None while it is absent)."""
+    return entry.at(t) if isinstance(entry, Mover) else entry

@@ -1,0 +1,254 @@
+"""The obstacle memory alone: scans of a known world fed with odometry poses, no simulator.
+
+The world is wall segments in the odom frame; a UST-10LX (270 degrees) sits 0.265 m ahead of
+base_link. Each test drives the car along a path of poses at 40 Hz and looks at what the memory
+holds, in odom, against the true geometry.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scans import LASER_X, Segment, base_points, left_arc, scan_at, square, straight
+
+from safety.controller import planar_transform
+from safety.memory import ObstacleMemory, _window_min
+
+MS = 1_000_000
+PERIOD_NS = 25 * MS  # 40 Hz
+TO_BASE = planar_transform((LASER_X, 0.0, 0.0))
+BODY = (0.45, 0.10, 0.15)  # front, rear, half width of the default car
+
+
+def feed(memory: ObstacleMemory, pose: tuple[float, float, float], world: list[Segment],
+         now_ns: int) -> None:
+    scan = scan_at(pose, world)
+    x, y = base_points(scan)
+    memory.update(pose, TO_BASE, scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min,
+                  scan.range_max, x, y, now_ns, footprint=BODY)
+
+
+def drive(memory: ObstacleMemory, poses: list[tuple[float, float, float]], world: list[Segment],
+          t0_ns: int = 0) -> int:
+    """Feed one scan per pose, 25 ms apart; returns the time after the last."""
+    now = t0_ns
+    for pose in poses:
+        feed(memory, pose, world, now)
+        now += PERIOD_NS
+    return now
+
+
+def near(memory: ObstacleMemory, x: float, y: float, within: float = 0.1) -> int:
+    """How many remembered cells lie within ``within`` m of (x, y)."""
+    cx, cy, _ = memory.cells()
+    return int(np.count_nonzero(np.hypot(cx - x, cy - y) <= within))
+
+
+def to_base(pose: tuple[float, float, float], x: np.ndarray,
+            y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Odom points in base_link at ``pose``."""
+    px, py, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * (x - px) + s * (y - py), -s * (x - px) + c * (y - py)
+
+
+POST = (2.0, 0.6)  # a 10 cm post ahead and to the left
+
+
+def test_a_post_driven_past_stays_where_it_is_in_odom_and_behind_the_car_in_base_link():
+    world = square(*POST)
+    memory = ObstacleMemory()
+    poses = straight((0.0, 0.0, 0.0), 4.0)
+    drive(memory, poses, world)
+    # 2 m past it the post is behind the car, in the lidar's blind sector (bearing about 165 deg)
+    assert near(memory, *POST) > 0
+    bx, by = to_base(poses[-1], memory.points().real, memory.points().imag)
+    close = np.hypot(bx - (POST[0] - 4.0), by - POST[1]) <= 0.1
+    assert close.any()
+    # every remembered cell of the post lies on it, within half a cell diagonal plus the post size
+    x, y, _ = memory.cells()
+    mine = np.hypot(x - POST[0], y - POST[1]) < 0.5
+    assert np.all(np.abs(x[mine] - POST[0]) <= 0.05 + 0.036)
+    assert np.all(np.abs(y[mine] - POST[1]) <= 0.05 + 0.036)
+
+
+def test_reversing_back_towards_the_post_keeps_it_in_odom():
+    world = square(*POST)
+    memory = ObstacleMemory()
+    forward = straight((0.0, 0.0, 0.0), 4.0)
+    now = drive(memory, forward, world)
+    back = straight(forward[-1], -1.5, speed=0.5)
+    drive(memory, back, world, now)
+    assert back[-1][0] == pytest.approx(2.5)
+    # the post is now 0.5 m behind base_link, 0.6 m to the left: still blind, still remembered
+    assert near(memory, *POST) > 0
+    bx, by = to_base(back[-1], memory.points().real, memory.points().imag)
+    on_post = np.hypot(bx + 0.5, by - 0.6) <= 0.1
+    assert on_post.any()
+
+
+def test_turning_moves_the_remembered_wall_round_the_car():
+    # a wall 1.2 m ahead; the car turns left through 180 degrees on a 0.6 m circle; the wall ends
+    # up behind the car, where the lidar cannot see it
+    wall: list[Segment] = [((1.2 + LASER_X, -5.0), (1.2 + LASER_X, 5.0))]
+    memory = ObstacleMemory()
+    turn = left_arc((0.0, 0.0, 0.0), 0.6, math.pi)
+    drive(memory, turn, wall)
+    end = turn[-1]
+    assert end[0] == pytest.approx(0.0, abs=1e-6) and end[1] == pytest.approx(1.2)
+    assert abs(abs(end[2]) - math.pi) < 1e-6
+    bx, by = to_base(end, memory.points().real, memory.points().imag)
+    behind = (np.abs(by) <= 0.3) & (bx < 0)
+    assert behind.any()
+    # the wall's x in odom is 1.465 m: behind the car it is 1.465 m back from base_link
+    assert np.median(-bx[behind]) == pytest.approx(1.2 + LASER_X, abs=0.05)
+
+
+def test_what_the_lidar_sees_through_now_is_forgotten():
+    memory = ObstacleMemory()
+    now = drive(memory, [(0.0, 0.0, 0.0)] * 3, square(*POST))
+    assert near(memory, *POST) > 0
+    # the post is taken away: the next scan sees the wall behind where it stood
+    far_wall: list[Segment] = [((4.0, -5.0), (4.0, 5.0))]
+    feed(memory, (0.0, 0.0, 0.0), far_wall, now)
+    assert near(memory, *POST) == 0
+    assert near(memory, 4.0, 0.6) > 0
+
+
+def test_what_is_hidden_or_out_of_view_is_kept_until_it_ages_out():
+    memory = ObstacleMemory(max_age_s=2.0)
+    now = drive(memory, [(0.0, 0.0, 0.0)] * 3, square(*POST))
+    # a wall between the car and the post hides it: not seen through, kept
+    screen: list[Segment] = [((1.0, 0.2), (1.0, 1.0))]
+    now = drive(memory, [(0.0, 0.0, 0.0)] * 3, screen, now)
+    assert near(memory, *POST) > 0
+    # turned away (the post in the blind sector) and the post gone: nothing can clear it but age
+    behind = (0.0, 0.0, math.pi + math.atan2(POST[1], POST[0]))
+    now = drive(memory, [behind] * 40, [], now)  # 1 s
+    assert near(memory, *POST) > 0
+    drive(memory, [behind] * 45, [], now)  # another 1.1 s: last seen over 2 s ago
+    assert near(memory, *POST) == 0 and len(memory) == 0
+
+
+def test_a_wall_seen_at_grazing_angles_is_not_cleared_by_its_own_cells():
+    # driving 4 m down a 1.5 m corridor: the walls behind the car stay remembered without gaps,
+    # although beams meet them at a few degrees and cell centres sit off the wall's surface
+    corridor: list[Segment] = [((-3.0, 0.75), (30.0, 0.75)), ((-3.0, -0.75), (30.0, -0.75))]
+    memory = ObstacleMemory()
+    drive(memory, straight((0.0, 0.0, 0.0), 4.0, speed=3.0), corridor)
+    x, y, _ = memory.cells()
+    for side in (0.75, -0.75):
+        on_wall = x[np.abs(y - side) < 0.06]
+        columns = set(np.floor(on_wall / 0.05).astype(int))
+        # every 5 cm column from 0.3 m behind the start (the edge of the lidar's view there) to the car
+        expected = set(range(int(-0.3 / 0.05), int(4.0 / 0.05)))
+        assert expected <= columns, sorted(expected - columns)[:10]
+
+
+def test_the_cars_own_footprint_holds_nothing():
+    memory = ObstacleMemory()
+    now = drive(memory, [(0.0, 0.0, 0.0)] * 2, square(1.0, 0.0, 0.05))
+    assert near(memory, 1.0, 0.0, 0.1) > 0
+    # odometry says the car now stands where the post was (it moved, or odometry drifted)
+    poses = straight((0.0, 0.0, 0.0), 0.8, speed=1.0)
+    drive(memory, poses, [], now)
+    assert near(memory, 1.0, 0.0, 0.1) == 0
+
+
+def test_an_odometry_jump_forgets_everything():
+    memory = ObstacleMemory()
+    now = drive(memory, [(0.0, 0.0, 0.0)] * 2, square(*POST))
+    assert len(memory) > 0
+    feed(memory, (5.0, 0.0, 0.0), [], now)  # 5 m in 25 ms: a reset, not motion
+    assert len(memory) == 0 and memory.resets == 1
+
+
+def test_the_window_follows_the_car_and_forgets_what_it_leaves():
+    memory = ObstacleMemory(size_m=10.0)
+    now = drive(memory, [(0.0, 0.0, 0.0)], square(*POST))
+    assert near(memory, *POST) > 0
+    drive(memory, straight((0.0, 0.0, 0.0), 9.0, speed=3.0), [], now)
+    x_min, y_min, x_max, y_max = memory.window()
+    assert x_min <= 9.0 <= x_max and y_min <= 0.0 <= y_max
+    assert x_min > POST[0]  # 7 m behind: out of the window, forgotten
+    assert near(memory, *POST) == 0
+
+
+def test_memory_stays_bounded_over_a_long_run():
+    # a kilometre of driving down an endless corridor lined with posts, 10 minutes of scans at
+    # 40 Hz would take long; 1 km at 10 m per second of scans shows the same bound
+    posts = [seg for k in range(0, 1000, 3) for seg in square(float(k), 1.2 * (-1) ** k)]
+    walls: list[Segment] = [((-5.0, 2.0), (1005.0, 2.0)), ((-5.0, -2.0), (1005.0, -2.0))]
+    memory = ObstacleMemory(size_m=10.0, resolution_m=0.05, max_age_s=10.0)
+    now, x = 0, 0.0
+    counts, sizes = [], []
+    while x < 1000.0:
+        near_car = [((max(a[0], x - 12), a[1]), (min(b[0], x + 12), b[1])) for a, b in posts + walls
+                    if min(a[0], b[0]) < x + 12 and max(a[0], b[0]) > x - 12]
+        feed(memory, (x, 0.0, 0.0), near_car, now)
+        now += PERIOD_NS
+        x += 0.5  # 20 m/s: the bound does not depend on the speed, the test's time does
+        counts.append(len(memory))
+        sizes.append(memory.nbytes)
+    # what it holds is what lies within the 10 m window, the same after 1 km as after 100 m
+    assert max(counts[-200:]) <= max(counts[:200]) * 1.2
+    assert max(sizes[-200:]) <= max(sizes[:200]) * 1.2
+    assert max(counts) < 2 * 3 * (10.0 / 0.05) + 8 * 40  # two walls, a cell or three thick; posts
+    x_min, _, x_max, _ = memory.window()
+    xs, _, _ = memory.cells()
+    assert xs.min() >= x_min and xs.max() <= x_max
+
+
+def test_the_swept_points_are_the_cells_within_reach_of_the_car():
+    corridor: list[Segment] = [((-5.0, 0.75), (30.0, 0.75)), ((-5.0, -0.75), (30.0, -0.75))]
+    memory = ObstacleMemory(reach_m=2.0)
+    poses = straight((0.0, 0.0, 0.0), 3.0, speed=3.0)
+    drive(memory, poses, corridor + square(*POST))
+    x, y, _ = memory.cells()
+    px, py, _ = poses[-1]
+    within = np.hypot(x - px, y - py) <= 2.0
+    assert 0 < within.sum() < len(memory)
+    got = np.sort_complex(np.round(memory.points(), 6))
+    assert np.array_equal(got, np.sort_complex(np.round(x[within] + 1j * y[within], 6)))
+
+
+def test_returns_land_in_the_cells_that_hold_them():
+    memory = ObstacleMemory(resolution_m=0.05)
+    pose = (1.0, -2.0, 0.7)
+    bx, by = np.array([0.5, 1.234, -2.0]), np.array([0.3, -0.77, 1.5])
+    never = np.full(1081, np.inf)
+    memory.update(pose, TO_BASE, never, -2.35, 0.004363, 0.06, 30.0, bx, by, 1)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    ox, oy = pose[0] + c * bx - s * by, pose[1] + s * bx + c * by
+    x, y, seen = memory.cells()
+    assert len(x) == 3 and set(seen) == {1}
+    for px, py in zip(ox, oy, strict=True):  # each return is in the 5 cm cell around some centre
+        assert np.any((np.abs(x - px) <= 0.025 + 1e-9) & (np.abs(y - py) <= 0.025 + 1e-9))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0.0, 100.0), min_size=1, max_size=300), st.data())
+def test_window_min_is_the_minimum_of_each_window(values, data):
+    a = np.asarray(values)
+    k = data.draw(st.integers(1, 50))
+    lo = np.asarray(data.draw(st.lists(st.integers(0, len(a) - 1), min_size=k, max_size=k)))
+    width = np.asarray(data.draw(st.lists(st.integers(0, 62), min_size=k, max_size=k)))
+    hi = np.minimum(lo + width, len(a) - 1)
+    expected = np.array([a[i:j + 1].min() for i, j in zip(lo, hi, strict=True)])
+    assert np.array_equal(_window_min(a, lo, hi), expected)
+
+
+def test_a_scan_with_no_usable_geometry_clears_nothing():
+    memory = ObstacleMemory()
+    now = drive(memory, [(0.0, 0.0, 0.0)], square(*POST))
+    before = len(memory)
+    nan = np.full(1081, np.nan, dtype=np.float32)
+    memory.update((0.0, 0.0, 0.0), TO_BASE, nan, -2.35, 0.0, 0.06, 30.0, np.zeros(0), np.zeros(0), now)
+    assert len(memory) == before
+    memory.update((0.0, 0.0, 0.0), TO_BASE, nan, -2.35, 0.00436, 0.06, 30.0, np.zeros(0), np.zeros(0),
+                  now + PERIOD_NS)
+    assert len(memory) == before  # NaN beams tell nothing: nothing is seen through
