@@ -458,7 +458,13 @@ class Daemon:
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
         if self.zenoh is not None:
-            await loop.run_in_executor(None, self.zenoh.open, loop)
+            try:
+                await loop.run_in_executor(None, self.zenoh.open, loop)
+            except BaseException:
+                for coro in self._extra:  # never started: no "coroutine was never awaited"
+                    coro.close()
+                self._extra = []
+                raise
         self._publish_static_transforms()
         if self.recorder is not None:
             self.recorder.start()

@@ -15,7 +15,9 @@ class SimProcess:
     """Runs ``racecar-hw -v sim ARGS``; every stderr line is kept with the time it was read."""
 
     def __init__(self, args: Sequence[str], timeout_s: float = 60.0) -> None:
-        command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--no-status", *args]
+        # the Zenoh bridge (on by default, on a fixed port) is not what these tests are about
+        command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--no-status",
+                   "--set", "zenoh.enabled=false", *args]
         self.proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         self._cond = threading.Condition()

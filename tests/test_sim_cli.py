@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import NO_ZENOH
 
 from racecar_hw.bags.record import Recorder, record_params
 from racecar_hw.base.bus import Bus
@@ -26,7 +27,8 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
     (marked interrupted), the trajectory and the plot for the time driven; exit 0."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--duration", "120", "--no-status",
-         "--out", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+         "--set", NO_ZENOH, "--out", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         # as a background job of a script inherits it: SIGINT ignored
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
@@ -64,7 +66,7 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
                  "drivers.0.input=nav_9"]) == 1
     err = capsys.readouterr().err
     assert err == ("racecar-hw sim: scenario.drivers.0.input: 'nav_9' is not a mux input; inputs: "
-                   "safety, teleop, nav_0, nav_1, nav_2, nav_3\n")
+                   "safety, teleop, nav_0, nav_1, nav_2, nav_3, foxglove, cmd_vel\n")
     assert main(["sim", "--no-status", "--out", str(tmp_path), "--follow", str(tmp_path / "nope")]) == 1
     assert capsys.readouterr().err == f"racecar-hw sim: bag not found: {tmp_path / 'nope'}\n"
     rec = Recorder(Bus(), record_params(tmp_path, name="other"))
@@ -102,7 +104,7 @@ def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, cap
         bus.publish("/odom_placeholder", Header(Time(i, 0), "odom"))
     rec.stop()
     assert main(["sim", "--follow", str(tmp_path / "drive"), "--duration", "2", "--no-status",
-                 "--out", str(tmp_path / "out")]) == 0
+                 "--set", NO_ZENOH, "--out", str(tmp_path / "out")]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["scenario"] == "follow" and not report["interrupted"]
     assert report["distance_m"] > 0.3  # the car moved
@@ -124,7 +126,7 @@ def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
 
         loopback.daemon.add_task(look())
 
-    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup)
+    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup, overrides=[NO_ZENOH])
     asyncio.run(loopback.run())
     (snap,) = seen
     assert snap.sim_time_s is not None and snap.sim_time_s > 1.0
