@@ -146,7 +146,8 @@ class Daemon:
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
                                           if config.lidar.enabled else None)
         self.mux = CommandMux(self.bus, config.mux)
-        self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True)
+        self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True,
+                                 steering_limit_rad=config.vesc.steering_max_rad)
         self.arming = Arming.from_params(config.arming)
         self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
                         if config.gamepad.enabled else None)

@@ -192,11 +192,15 @@ class SafetyController:
     """Limits Ackermann commands by the free distance along the commanded path.
 
     ``laser_to_base`` is the pose of the laser in base_link (4x4, or (x, y, yaw)); None takes it
-    from ``params.laser``. Times are integer nanoseconds on one monotonic clock of the caller's.
+    from ``params.laser``. ``steering_limit_rad`` is the largest steering angle the car can drive
+    (the VESC driver's ``steering_max_rad``): a command beyond it is swept at the limit, the arc the
+    car will actually follow. Times are integer nanoseconds on one monotonic clock of the caller's.
     """
 
-    def __init__(self, params: SafetyParams, laser_to_base: LaserTransform | None = None) -> None:
+    def __init__(self, params: SafetyParams, laser_to_base: LaserTransform | None = None,
+                 steering_limit_rad: float = math.inf) -> None:
         self.params = params
+        self.steering_limit_rad = steering_limit_rad
         if laser_to_base is None:
             laser_to_base = (params.laser.x_m, params.laser.y_m, params.laser.yaw_rad)
         self._to_base = planar_transform(laser_to_base)
@@ -361,7 +365,8 @@ class SafetyController:
             self.state = SafetyState(math.inf, math.nan, None, reason, False)
             return drive, self.state
 
-        allowed, free, obstacle, reason = self._assess(steering, speed < 0.0, now_ns)
+        driven = min(max(steering, -self.steering_limit_rad), self.steering_limit_rad)
+        allowed, free, obstacle, reason = self._assess(driven, speed < 0.0, now_ns)
         magnitude = abs(speed)
         along = measured_speed_mps * math.copysign(1.0, speed) if speed != 0.0 else 0.0
         needs_cut = magnitude > allowed or along > allowed + self.params.measured_tolerance_mps

@@ -58,13 +58,15 @@ class SafetyNode:
     """
 
     def __init__(self, bus: Bus, params: SafetyParams, laser_to_base: LaserTransform | None = None,
-                 clock: Callable[[], int] = monotonic_ns, defer_memory: bool = False) -> None:
+                 clock: Callable[[], int] = monotonic_ns, defer_memory: bool = False,
+                 steering_limit_rad: float = math.inf) -> None:
         """``defer_memory``: leave the memory update of each scan to :meth:`remember` (the daemon
-        calls it after the scan's motor command is written); otherwise it follows each scan."""
+        calls it after the scan's motor command is written); otherwise it follows each scan.
+        ``steering_limit_rad``: the steering the car can drive (see :class:`SafetyController`)."""
         self.bus = bus
         self.params = params
         self.clock = clock
-        self.controller = SafetyController(params, laser_to_base)
+        self.controller = SafetyController(params, laser_to_base, steering_limit_rad)
         self.cone = (ConeSafety(bus, params.cone, params.scan_topic) if params.mode == "cone"
                      else None)
         self.fault: str | None = None

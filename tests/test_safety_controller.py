@@ -527,3 +527,22 @@ def test_property_with_the_memory_output_never_exceeds_input(scans: list, angle_
         assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
         assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)
     assert c.memory is not None and len(c.memory) <= c.memory.cells_per_side ** 2
+
+
+def test_a_command_beyond_the_steering_limit_is_swept_along_the_arc_the_car_drives() -> None:
+    """The VESC clamps steering to its steering_max_rad: a 0.6 rad command drives the 0.26 rad arc,
+    and that arc (not the sharper one commanded) is what must be free."""
+    # a post on the 0.26 rad arc (radius 0.94 m, 60 degrees round), outside the 0.6 rad one's sweep
+    post = [((0.81, 0.42), (0.81, 0.52))]
+    scan = ust10lx_scan(post)
+    free_run = controller()
+    free_run.on_scan(scan, now_ns=0)
+    _, unlimited = free_run.limit(drive(3.0, 0.6), "nav", 0.0, now_ns=0)
+    limited = SafetyController(build(SafetyParams, {}, "safety"), steering_limit_rad=0.26)
+    limited.on_scan(scan, now_ns=0)
+    out, state = limited.limit(drive(3.0, 0.6), "nav", 0.0, now_ns=0)
+    _, driven = limited.limit(drive(3.0, 0.26), "nav", 0.0, now_ns=0)
+    assert state.free_distance == pytest.approx(driven.free_distance)
+    assert state.free_distance < unlimited.free_distance
+    assert out.speed < 3.0 and state.intervening
+    assert out.steering_angle == 0.6  # the command itself is left to the VESC's clamp
