@@ -40,7 +40,6 @@ class PtyPort:
         master, slave = os.openpty()
         tty.setraw(slave)
         os.set_blocking(master, False)
-        self.master_fd, self._slave_fd = master, slave
         self.slave_path = os.ttyname(slave)
         if self.link:
             tmp = f"{self.link}.{os.getpid()}.tmp"
@@ -48,6 +47,8 @@ class PtyPort:
                 os.unlink(tmp)
             os.symlink(self.slave_path, tmp)
             os.replace(tmp, self.link)
+        # plugged only once the link is there: a client thread that waits for ``plugged`` opens it
+        self._slave_fd, self.master_fd = slave, master
         return self
 
     def read(self) -> bytes:
