@@ -236,6 +236,7 @@ class SafetyController:
         self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m, m.reach_m)
                        if m.enabled and params.mode == "arc" else None)
         self._memory_period_ns = round(m.update_period_s * NS_PER_S)
+        self._memory_cell_m = m.resolution_m * math.sqrt(2.0)
         self._remembered_ns: int | None = None  # when the memory last took a scan in
 
     # --- scans --------------------------------------------------------------------------------
@@ -427,8 +428,17 @@ class SafetyController:
         allowed = stopping_speed(hit.distance_m - p.margin_m, latency, p.max_decel_mps2)
         obstacle = None
         if hit.index >= 0:
-            obstacle = Obstacle(float(scan.x[hit.index]), float(scan.y[hit.index]), hit.distance_m,
-                                "scan" if hit.index < scan.live else "memory")
+            index = hit.index
+            if index >= scan.live > 0:
+                # A remembered cell can sit up to a cell's diagonal nearer than the live return it
+                # came from: when the scan sees the same obstacle that close behind, the live scan
+                # names it (the distance stays the nearer, remembered one).
+                live = free_distance(scan.x[:scan.live], scan.y[:scan.live], steering, self.footprint,
+                                     p.max_path_m, reverse)
+                if live.index >= 0 and live.distance_m <= hit.distance_m + self._memory_cell_m:
+                    index = live.index
+            obstacle = Obstacle(float(scan.x[index]), float(scan.y[index]), hit.distance_m,
+                                "scan" if index < scan.live else "memory")
         if reverse and p.reverse_speed_cap_mps < allowed:
             return p.reverse_speed_cap_mps, hit.distance_m, obstacle, "reverse_cap"
         return allowed, hit.distance_m, obstacle, "obstacle"

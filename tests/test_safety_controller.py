@@ -546,3 +546,16 @@ def test_a_command_beyond_the_steering_limit_is_swept_along_the_arc_the_car_driv
     assert state.free_distance < unlimited.free_distance
     assert out.speed < 3.0 and state.intervening
     assert out.steering_angle == 0.6  # the command itself is left to the VESC's clamp
+
+
+def test_a_wall_in_view_and_in_the_memory_is_named_by_the_live_scan() -> None:
+    """The remembered copy of a wall the lidar sees now may lie up to a cell's diagonal nearer (its
+    cell's centre): the distance is the nearer one, the obstacle the live return."""
+    for dx in (0.0, 0.015, 0.03, 0.07, 0.12):  # where the wall is across the grid's cells
+        ahead = [((1.0 + LASER_X + dx, -5.0), (1.0 + LASER_X + dx, 5.0))]
+        c = controller()
+        now = drive_along(c, straight((0.0, 0.0, 0.0), 0.2, speed=0.5), ahead)
+        out, state = c.limit(drive(3.0), "nav", 0.5, now)
+        assert state.obstacle is not None and state.obstacle.source == "scan", dx
+        assert state.reason == "obstacle" and out.speed < 3.0
+        assert state.free_distance <= state.obstacle.x - FRONT + 1e-9
