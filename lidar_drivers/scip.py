@@ -7,7 +7,9 @@ Host side: :meth:`Command.encode` (and subclasses) turns a request into bytes;
 receive_data`) and hands back typed replies (:meth:`~ResponseDecoder.next_event`). Bad bytes from
 the device never raise: a response with a wrong checksum becomes a :class:`ChecksumMismatch` event,
 bytes that are not a response a :class:`MalformedResponse` event, and the decoder resynchronises on
-the next empty line (every SCIP reply ends with ``LF LF``; CR LF and lone CR count as LF).
+the next empty line (every SCIP reply ends with ``LF LF``; CR LF and lone CR count as LF) and on
+the next echo and status line: a reply cut short, or missing only its final line feed, costs
+itself and never the reply after it.
 
 Device side: :class:`CommandDecoder` turns the host's bytes into :class:`Command` objects (or
 :class:`UnknownCommand` / :class:`InvalidCommand`), and the ``encode_*`` functions build replies.
@@ -583,6 +585,25 @@ _ECHO_RE = re.compile(
 
 _ECHO_FIRST = frozenset(b"VPIBQRST%GM")
 _STATUS_RE = re.compile(rb"[0-9A-Z]{2}[\x30-\x6f]")
+#: The status line of a reply to a command this codec does not know: two printable characters.
+_GENERIC_STATUS_RE = re.compile(rb"[\x21-\x7e]{2}[\x30-\x6f]")
+#: Where a reply starts: an echo line, then a status line ending the block or followed by a line.
+_HEAD_RE = re.compile(_ECHO_RE.pattern + rb"\n[0-9A-Z]{2}[\x30-\x6f](?=\n|\Z)")
+
+
+def _reply_heads(block: bytes) -> list[int]:
+    """Where replies start in ``block``: an echo this codec knows, then a status line whose
+    checksum holds."""
+    heads = []
+    pos = 0
+    while (m := _HEAD_RE.search(block, pos)) is not None:
+        head = m.group(0)
+        if checksum(head[-3:-1]) == head[-1] and _parse_echo(head[:-4]) is not None:
+            heads.append(m.start())
+            pos = m.end()
+        else:
+            pos = m.start() + 1  # a false head may overlap the real one
+    return heads
 
 
 @functools.lru_cache(maxsize=256)
@@ -660,25 +681,36 @@ class ResponseDecoder:
     def _parse_block(self, block: bytes) -> None:
         if not block.lstrip(b"\n"):
             return  # stray empty lines between replies
-        # the echo is normally at offset 0; after garbage, search for the first position where
-        # an echo line starts and the lines after it form a reply
-        for pos in range(len(block)):
-            if block[pos] not in _ECHO_FIRST:
-                continue
-            event = self._reply(block[pos:] if pos else block)
+        if block[0] in _ECHO_FIRST:  # the usual case: one whole reply
+            event = self._reply(block)
+            if event is not None and not isinstance(event, ChecksumMismatch):
+                self._events.append(event)
+                return
+        # Garbage, or a damaged reply: cut short, or without its final line feed, so that it ran
+        # into the next reply. Every reply starts with an echo line and a status line whose
+        # checksum holds; cut the block at each such head, so one damaged reply costs one reply.
+        heads = _reply_heads(block)
+        if not heads:
+            generic = self._generic(block)
+            if generic is not None:
+                self._events.append(generic)
+            else:
+                self._drop(block, "not a SCIP reply")
+            return
+        if heads[0]:
+            self._drop(block[:heads[0]], "garbage before a reply")
+        for i, start in enumerate(heads):
+            last = i + 1 == len(heads)
+            sub = block[start:len(block) if last else heads[i + 1]]
+            if not last and sub.endswith(b"\n"):
+                sub = sub[:-1]  # the line feed that ended the damaged reply's last line
+            event = self._reply(sub)
             if event is None:
-                continue
-            if pos:
-                self._drop(block[:pos], "garbage before a reply")
-            if isinstance(event, ChecksumMismatch):
-                self.checksum_errors += 1
-            self._events.append(event)
-            return
-        generic = self._generic(block)
-        if generic is not None:
-            self._events.append(generic)
-            return
-        self._drop(block, "not a SCIP reply")
+                self._drop(sub, "a damaged reply (cut short, or run into the next one)")
+            else:
+                if isinstance(event, ChecksumMismatch):
+                    self.checksum_errors += 1
+                self._events.append(event)
 
     @staticmethod
     def _generic(block: bytes) -> StatusReply | None:
@@ -686,7 +718,7 @@ class ResponseDecoder:
         lines = block.split(b"\n")
         if len(lines) != 2 or not re.fullmatch(rb"[\x21-\x7e][\x20-\x7e]*", lines[0]):
             return None
-        if len(lines[1]) != 3 or checksum(lines[1][:2]) != lines[1][2]:
+        if not _GENERIC_STATUS_RE.fullmatch(lines[1]) or checksum(lines[1][:2]) != lines[1][2]:
             return None
         echo = lines[0].decode("ascii")
         name, _, tag = echo.partition(";")
