@@ -17,8 +17,9 @@ packet comes out as :class:`RawPacket`. Encoding refuses NaN, infinities and val
 cannot carry with :class:`~racecar_hw.base.errors.LocalProtocolError`.
 
 GET_VALUES replies change layout with the firmware (see :func:`values_layout`); the codec picks
-the layout from :attr:`VescCodec.firmware`, which the host codec sets itself when it decodes a
-FW_VERSION reply.
+the layout from :attr:`VescCodec.firmware`. The codec never changes it on its own: a FW_VERSION
+frame can be line noise (an all-zero payload has CRC 0x0000 and reads as version 0.0), so only the
+driver's handshake decides which reply to believe (:func:`known_firmware`) and sets it.
 """
 
 from __future__ import annotations
@@ -279,6 +280,17 @@ class Layout(enum.Enum):
     V3_48 = 65  #: 3.48 - 3.59: + three MOSFET temperatures
     V3_60 = 73  #: 3.60 - 5.02: + avg_vd, avg_vq
     V5_03 = 74  #: 5.03 and later: + status byte
+
+
+#: Firmware major versions with a known GET_VALUES layout: 2.x (the pre-3.07 layout) up to 7.x (the
+#: master branch when this was written; reference vesc.md section 4).
+KNOWN_MAJORS = range(2, 8)
+
+
+def known_firmware(version: tuple[int, int]) -> bool:
+    """Whether ``version`` is one whose telemetry layout this codec knows (2.0 to 7.99)."""
+    major, minor = version
+    return major in KNOWN_MAJORS and 0 <= minor <= 99
 
 
 def values_layout(firmware: tuple[int, int] | None) -> Layout:
@@ -553,8 +565,9 @@ class CodecStats:
 class VescCodec:
     """One end of a VESC link: :meth:`receive_data` then :meth:`next_event`; :meth:`send` encodes.
 
-    ``firmware`` selects the GET_VALUES layout; a HOST codec sets it from every FW_VERSION reply it
-    decodes. ``max_payload`` bounds accepted lengths (the firmware's 512 by default).
+    ``firmware`` selects the GET_VALUES layout; the caller sets it (the driver, from the FW_VERSION
+    reply to its handshake request). ``max_payload`` bounds accepted lengths (the firmware's 512 by
+    default).
     """
 
     role: Role
@@ -662,7 +675,4 @@ class VescCodec:
     def _decode(self, payload: bytes) -> Packet:
         if self.role is Role.DEVICE:
             return decode_request(payload)
-        reply = decode_reply(payload, self.firmware)
-        if isinstance(reply, FwVersion):
-            self.firmware = reply.version
-        return reply
+        return decode_reply(payload, self.firmware)
