@@ -4,6 +4,9 @@ Three pieces, usable alone:
 
 * :func:`load_commands` reads ``ackermann_msgs/AckermannDriveStamped`` (or ``AckermannDrive``) on
   one topic of a ROS 1 ``.bag`` or a ROS 2 bag (sqlite3 or MCAP), with clear :class:`BagError`\\ s.
+  A damaged bag gives a BagError and nothing else, its declared sizes are checked before anything
+  is allocated, and every command is checked (finite, within the car's limits) before it is used:
+  see :mod:`racecar_hw.bags.validate`.
 * :func:`schedule` and :class:`CommandSync` turn the commands into timed steps (python-can
   ``MessageSync`` style): a fixed rate or the bag's own timestamps, optionally time-scaled,
   forwards or backwards, once or looping.
@@ -28,6 +31,14 @@ from pathlib import Path
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 
+from racecar_hw.bags.validate import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    CommandLimits,
+    check_commands,
+    check_storage,
+    describe,
+    guarded,
+)
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -75,6 +86,9 @@ class FollowerParams:
     loop: bool = param(False, "start again after the last command")
     frame_id: str = param("base_link", "frame_id of the re-stamped commands")
     stop_at_end: bool = param(True, "publish one zero-speed, centred command when the replay ends")
+    max_message_bytes: int = param(DEFAULT_MAX_MESSAGE_BYTES, "largest message, or chunk of messages, "
+                                   "read from the bag; a bag declaring a larger one is refused before "
+                                   "it is read", unit="B", min=1024, max=2**40)
 
     def __post_init__(self) -> None:
         if not self.input_topic.startswith("/"):
@@ -91,7 +105,7 @@ def _describe(conns: Sequence[Connection]) -> str:
     return ", ".join(f"{t} ({ty}, {n} msgs)" for (t, ty), n in sorted(seen.items())) or "none"
 
 
-def _open_reader(path: Path) -> AnyReader:
+def _open_reader(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> AnyReader:
     if not path.exists():
         raise BagError(f"bag not found: {path}")
     if path.is_file() and path.stat().st_size == 0:
@@ -101,6 +115,7 @@ def _open_reader(path: Path) -> AnyReader:
         files = [p for p in path.iterdir() if p.suffix in (".mcap", ".db3")]
         if files and all(p.stat().st_size == 0 for p in files):
             raise BagError(f"{path}: its storage file is empty (0 bytes)")
+    check_storage(path, max_bytes)
     reader = AnyReader([path], default_typestore=ros2_types().store)
     try:
         reader.open()
@@ -109,19 +124,22 @@ def _open_reader(path: Path) -> AnyReader:
         hint = ""
         if "not indexed" in text or "end magic" in text:
             hint = " (an interrupted recording? try racecar_hw.bags.recover.recover_bag)"
-        raise BagError(f"cannot read bag {path}: {text}{hint}") from err
+        raise BagError(f"cannot read bag {path}: {describe(err)}{hint}") from err
     return reader
 
 
-def load_commands(path: str | Path, topic: str = TELEOP_TOPIC) -> list[Command]:
+@guarded
+def load_commands(path: str | Path, topic: str = TELEOP_TOPIC, *, limits: CommandLimits | None = None,
+                  max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> list[Command]:
     """The Ackermann commands on ``topic`` of the bag at ``path``, in bag-time order.
 
-    Raises :class:`BagError` for a missing or zero-byte file, an unreadable bag, an empty bag, a
-    missing topic or one of another type (listing the topics and types found), and a storage that
-    yields nothing although its metadata counts messages.
+    Raises :class:`BagError` (and nothing else) for a missing or zero-byte file, an unreadable or
+    damaged bag, one declaring a record over ``max_message_bytes``, an empty bag, a missing topic or
+    one of another type (listing the topics and types found), a storage that yields nothing although
+    its metadata counts messages, and a command that is not finite or beyond ``limits``.
     """
     bag = Path(path)
-    reader = _open_reader(bag)
+    reader = _open_reader(bag, max_message_bytes)
     try:
         conns = reader.connections
         if not conns or reader.message_count == 0:
@@ -155,9 +173,11 @@ def load_commands(path: str | Path, topic: str = TELEOP_TOPIC) -> list[Command]:
     finally:
         reader.close()
     out.sort(key=lambda c: c.t_ns)
+    check_commands(out, limits or CommandLimits(), bag, topic)
     return out
 
 
+@guarded
 def summarize_bag(path: str | Path) -> dict[str, tuple[str, int]]:
     """Every topic of the bag with its type and the number of messages actually read.
 
@@ -284,28 +304,38 @@ class BagFollower:
     was called. Commands enter the mux as a normal source, so deadman, timeouts and safety apply.
     """
 
-    def __init__(self, bus: Bus, params: FollowerParams, progress: Progress | None = None) -> None:
+    def __init__(self, bus: Bus, params: FollowerParams, progress: Progress | None = None, *,
+                 limits: CommandLimits | None = None) -> None:
         self.bus = bus
         self.params = params
         self.progress = progress
+        #: what a command may ask for (the car's configured limits); a bag beyond them is refused
+        self.limits = limits or CommandLimits()
         self.done = False
         self.published = 0
         self.late_ns_max = 0
         self._stop = asyncio.Event()
         self.commands: list[Command] = []
+        self._steps: list[Step] | None = None
 
     def load(self) -> list[Step]:
-        """Read the bag and build the steps (raises BagError)."""
+        """Read and check the bag and build the steps (raises BagError); done once, also by :meth:`run`,
+        so a caller can load first and refuse a bad bag before the car is touched."""
+        if self._steps is not None:
+            return self._steps
         p = self.params
-        self.commands = load_commands(p.bag, p.topic)
+        self.commands = load_commands(p.bag, p.topic, limits=self.limits,
+                                      max_message_bytes=p.max_message_bytes)
+        check_commands(self.commands, self.limits, p.bag, p.topic)  # whatever loaded them
         if not p.use_timestamps and (found := holes(self.commands)):
             longest = max(found, key=lambda h: h.gap_s)
             log.warning("%s: the recording has %d gap(s) over three times its usual spacing "
                         "(longest %.0f ms, %.1f s in); a fixed-rate replay closes them up and "
                         "shortens the path: set use_timestamps to replay them", p.bag, len(found),
                         longest.gap_s * 1e3, longest.at_s)
-        return schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
-                        time_scale=p.time_scale, reverse=p.reverse)
+        self._steps = schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
+                               time_scale=p.time_scale, reverse=p.reverse)
+        return self._steps
 
     def stop(self) -> None:
         """End the replay at the next deadline."""

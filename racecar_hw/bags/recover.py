@@ -30,6 +30,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from racecar_hw.bags.validate import guarded
 from racecar_hw.base.errors import BagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -285,8 +286,10 @@ def _recover_sqlite3(bagdir: Path, db: Path) -> RecoveryResult:
 # --- entry point ------------------------------------------------------------------------------
 
 
+@guarded
 def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResult:
-    """Make the bag at ``path`` readable after an interrupted recording.
+    """Make the bag at ``path`` readable after an interrupted recording; a bag too damaged for that
+    gives a :class:`BagError` naming it and the cause, and nothing else.
 
     MCAP and ROS 1 bags are rewritten to ``out`` (default: ``<name>.recovered`` next to it for a
     ROS 2 directory, ``<stem>.recovered.bag`` for ROS 1); sqlite3 bags are fixed in place. A bag

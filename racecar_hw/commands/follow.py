@@ -47,6 +47,7 @@ def cmd_follow(args: argparse.Namespace) -> int:
         "reverse": args.reverse, "loop": args.loop}, "follower")
     daemon = Daemon(config)
     assert daemon.follower is not None
+    daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
     with Progress(TextColumn("following"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeRemainingColumn()) as bar:
         task = bar.add_task("bag", total=1.0)

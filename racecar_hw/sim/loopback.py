@@ -21,13 +21,15 @@ from pathlib import Path
 from typing import Any
 
 from lidar_drivers.registry import family, make_fake
+from racecar_hw.bags.follow import BagFollower, FollowerParams
+from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.overrides import merge
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import Config, load_config, shipped_config
-from racecar_hw.daemon import Daemon
+from racecar_hw.daemon import Daemon, command_limits
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
@@ -85,6 +87,7 @@ class Loopback:
         #: world time (s) when the car was ready to drive: the scenario's time zero
         self.ready_at_s: float | None = None
         self._mux_offset_s = 0.0
+        self._followers: dict[int, BagFollower] = {}  # follow drivers' followers, loaded before the run
 
     # --- building -------------------------------------------------------------------------------
 
@@ -217,12 +220,21 @@ class Loopback:
                                    rate_hz=spec.rate_hz, topic=topic)
             await self._until(Figure8Driver(bus, params).run(), spec.until_s)
         elif spec.type == "follow":
-            from racecar_hw.bags.follow import BagFollower, FollowerParams
+            await self._until(self._follower(spec, bus).run(), spec.until_s)
 
-            params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=topic,
+    def _follower(self, spec: DriverSpec, bus: Bus) -> BagFollower:
+        """The bag follower of a ``follow`` driver, loaded once (raises BagError for a bad bag)."""
+        assert self.config is not None
+        follower = self._followers.get(id(spec))
+        if follower is None:
+            params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=self._input_topic(spec.input),
                                     rate_hz=spec.rate_hz, use_timestamps=spec.use_timestamps,
                                     reverse=spec.reverse)
-            await self._until(BagFollower(bus, params).run(), spec.until_s)
+            follower = BagFollower(bus, params, limits=command_limits(self.config))
+            self._followers[id(spec)] = follower
+        follower.bus = bus
+        follower.load()
+        return follower
 
     async def _until(self, coro: Any, until_s: float | None) -> None:
         task = asyncio.ensure_future(coro)
@@ -293,6 +305,11 @@ class Loopback:
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
         try:
+            # bags first: a damaged one is refused before any device or the daemon starts
+            self.config = self._build_config()
+            for spec in self.scenario.drivers:
+                if spec.type == "follow":
+                    await asyncio.to_thread(self._follower, spec, Bus())
             self.config = self._start_devices()
             assert self.world is not None
             created_ns = monotonic_ns()

@@ -76,10 +76,10 @@ class MavlinkRx:
                 continue
             kind, total = frame
             if kind == "ok":
-                msg = self._accept(data[i:i + total])
+                msg, used = self._accept(data[i:i + total])
                 if msg is not None:
                     out.append(msg)
-                i += total  # a well-formed frame, accepted or refused, is consumed whole
+                i += used
             else:  # unknown id: its CRC cannot be checked, so it may be garbage posing as a frame
                 i += 1
                 nxt = _next_marker(data, i)
@@ -121,43 +121,50 @@ class MavlinkRx:
             return None
         return ("ok", total)
 
-    def _accept(self, frame: bytes) -> Any | None:
+    def _accept(self, frame: bytes) -> tuple[Any | None, int]:
+        """(the message or None, bytes consumed). The CRC proves the frame up to its signature
+        block; only a good signature proves the block too. A frame whose signature fails is
+        consumed up to its CRC, since its "signature" may be the start of the next frame."""
         signed = frame[0] == MARKER_V2 and bool(frame[2] & IFLAG_SIGNED)
-        if self.secret_key is not None:
+        if self.secret_key is not None:  # signing on: every frame signed, every signature checked
             if not signed:
                 self.counters["unsigned_refused"] += 1
-                return None
-            if not self._signature_ok(frame):
-                return None
+                return None, len(frame)
+            verdict = self._signature(frame)
+            if verdict != "ok":
+                return None, len(frame) - (SIGNATURE_LEN if verdict == "forged" else 0)
         try:
             msg = self._mav.decode(bytearray(frame))
         except mavlink.MAVError:
             self.counters["bad_data"] += 1
-            return None
+            return None, len(frame)
         msg._signed = signed and self.secret_key is not None
         self.counters["frames"] += 1
-        return msg
+        if signed and self.secret_key is None:  # a signature we cannot check proves nothing
+            return msg, len(frame) - SIGNATURE_LEN
+        return msg, len(frame)
 
-    def _signature_ok(self, frame: bytes) -> bool:
-        """Signature first, then the stream's timestamp (and only then is it recorded)."""
+    def _signature(self, frame: bytes) -> str:
+        """"ok", "forged" (the signature fails) or "old" (a good signature, a stale timestamp):
+        the signature first, then the stream's timestamp, and only then is it recorded."""
         assert self.secret_key is not None
         expected = hashlib.sha256(self.secret_key + frame[:-6]).digest()[:6]
         if not hmac.compare_digest(expected, frame[-6:]):
             self.counters["bad_signature"] += 1
-            return False
+            return "forged"
         link_id = frame[-SIGNATURE_LEN]
         stamp = int.from_bytes(frame[-12:-6], "little")
         stream = (link_id, frame[5], frame[6])
         last = self.streams.get(stream)
         if (stamp <= last) if last is not None else (stamp + NEW_STREAM_LAG < self.timestamp):
             self.counters["old_timestamp"] += 1
-            return False
+            return "old"
         self.streams[stream] = stamp
         self.streams.move_to_end(stream)
         if len(self.streams) > MAX_STREAMS:
             self.streams.popitem(last=False)
         self.timestamp = max(self.timestamp, stamp)
-        return True
+        return "ok"
 
 
 def _next_marker(data: bytes, start: int) -> int:
