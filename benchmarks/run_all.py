@@ -15,7 +15,9 @@ from pathlib import Path
 from table import print_rows
 
 HERE = Path(__file__).resolve().parent
-ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "daemon")
+ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "daemon", "fuzz")
+#: Benchmarks whose module is not bench_<name>.py.
+MODULES = {"fuzz": "fuzz"}
 
 
 def main(argv: list[str]) -> int:
@@ -27,7 +29,7 @@ def main(argv: list[str]) -> int:
         return 2
     rows: list[tuple[str, dict]] = []
     for name in names:
-        module = importlib.import_module(f"bench_{name}")
+        module = importlib.import_module(MODULES.get(name, f"bench_{name}"))
         started = time.perf_counter()
         for row in module.run():
             rows.append((name, row))
