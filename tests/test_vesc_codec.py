@@ -192,9 +192,16 @@ def test_the_layout_is_the_callers_choice_never_a_decoded_fw_version():
     h.receive_data(dev.send(SAMPLE))
     (values,) = h.events()
     assert isinstance(values, Values) and values.controller_id == 7 and values.erpm == -23250
-    # line noise: an all-zero payload has CRC 0 and reads as FW_VERSION 0.0; the layout stays
-    h.receive_data(b"\x02\x03\x00\x00\x00\x00\x00\x03")
-    assert h.events() == [FwVersion(0, 0)] and h.firmware == (3, 40)
+    # line noise: an all-zero payload has CRC 0 and would read as FW_VERSION 0.0; it is dropped
+    h.receive_data(b"\x02\x03\x00\x00\x00\x00\x00\x03" + dev.send(FwVersion(0, 1)))
+    assert h.events() == [FwVersion(0, 1)] and h.firmware == (3, 40)
+    assert h.stats.zero_payloads == 1
+
+
+def test_a_device_decodes_the_one_zero_byte_fw_version_request():
+    d = device()
+    d.receive_data(b"\x02\x01\x00\x00\x00\x03")
+    assert d.events() == [FwVersionRequest()] and d.stats.zero_payloads == 0
 
 
 @pytest.mark.parametrize(("version", "known"), [

@@ -276,9 +276,12 @@ def test_a_fw_version_frame_mid_session_changes_nothing(tmp_path, device_thread)
             driving = asyncio.create_task(drive_for(driver, 30.0, 1.0))
             await async_wait_for(lambda: driver.last_state is not None
                                  and driver.last_state.state.speed == 4614, timeout=5)
-            fake.inject_reply(RawPacket(bytes(3)))
+            crc_errors = driver.stats.crc_errors
+            fake.inject_reply(RawPacket(bytes(3)))  # noise: dropped by the codec (its CRC is 0)
             fake.inject_reply(FwVersion(2, 18))
-            await async_wait_for(lambda: driver.stats.ignored_fw_versions == 2)
+            fake.inject_reply(FwVersion(0, 1))
+            await async_wait_for(lambda: driver.stats.ignored_fw_versions == 2
+                                 and driver.stats.crc_errors == crc_errors + 1)
             before = rec.count(TOPIC_CORE)
             await async_wait_for(lambda: rec.count(TOPIC_CORE) >= before + 10)
             driving.cancel()
@@ -313,12 +316,13 @@ def test_impossible_telemetry_is_dropped_and_counted(tmp_path, device_thread):
 
 def test_a_fw_version_nobody_asked_for_is_not_a_handshake():
     driver = VescDriver(Bus(), VescParams(port="/nonexistent"))
-    driver._on_bytes(frame(bytes(3)))  # noqa: SLF001 - line noise before any request went out
-    driver._on_bytes(frame(encode_fw_version(FwVersion(6, 2))))  # noqa: SLF001
-    assert driver.firmware is None and driver.stats.ignored_fw_versions == 2
+    driver._on_bytes(frame(bytes(3)))  # noqa: SLF001 - line noise: the codec drops it
+    assert driver.stats.crc_errors == 1 and driver.stats.ignored_fw_versions == 0
+    driver._on_bytes(frame(encode_fw_version(FwVersion(6, 2))))  # noqa: SLF001 - before any request
+    assert driver.firmware is None and driver.stats.ignored_fw_versions == 1
     driver._fw_asked = True  # noqa: SLF001 - as after the handshake's request
-    driver._on_bytes(frame(bytes(3)))  # noqa: SLF001 - 0.0 is no firmware anyone runs
-    assert driver.firmware is None and driver.stats.ignored_fw_versions == 3
+    driver._on_bytes(frame(encode_fw_version(FwVersion(0, 1))))  # noqa: SLF001 - no such firmware
+    assert driver.firmware is None and driver.stats.ignored_fw_versions == 2
     driver._on_bytes(frame(encode_fw_version(FwVersion(6, 2))))  # noqa: SLF001
     assert driver.firmware == (6, 2)
 

@@ -12,7 +12,8 @@ byte 0 is the command id. All multi-byte fields are big-endian and signed unless
 :class:`VescCodec` is used from either side of the wire. The host (our driver) sends requests and
 commands and decodes replies; the device (the fake VESC) decodes requests and commands and sends
 replies. The decoder never raises on input: a bad start byte, length, CRC or end byte drops ONE
-byte and retries (as the firmware does), counted in :class:`CodecStats`; an unknown or malformed
+byte and retries (as the firmware does), counted in :class:`CodecStats`; so does a reply whose
+payload is all zeros (its CRC is 0x0000, so zeros on the line pass it); an unknown or malformed
 packet comes out as :class:`RawPacket`. Encoding refuses NaN, infinities and values the wire
 cannot carry with :class:`~racecar_hw.base.errors.LocalProtocolError`.
 
@@ -550,7 +551,8 @@ class CodecStats:
     ``frames``: good frames; ``crc_errors``: frames whose CRC did not match; ``resyncs``: times
     the decoder lost sync (a run of dropped bytes counts once); ``dropped_bytes``: bytes skipped;
     ``raw_packets``: frames decoded as :class:`RawPacket` (unknown id or malformed);
-    ``bytes_in``: bytes fed in.
+    ``zero_payloads``: frames from the device whose payload is all zeros (noise that passes the
+    CRC, dropped); ``bytes_in``: bytes fed in.
     """
 
     frames: int = 0
@@ -558,6 +560,7 @@ class CodecStats:
     resyncs: int = 0
     dropped_bytes: int = 0
     raw_packets: int = 0
+    zero_payloads: int = 0
     bytes_in: int = 0
 
 
@@ -630,6 +633,12 @@ class VescCodec:
             crc = (buf[body + length] << 8) | buf[body + length + 1]
             if crc != binascii.crc_hqx(payload, 0):
                 self.stats.crc_errors += 1
+                self._drop()
+                continue
+            if self.role is Role.HOST and not any(payload):
+                # CRC 0x0000 over zeros: line noise, and no VESC reply is all zeros (it would be
+                # FW_VERSION 0.0). A host's FW_VERSION request is one zero byte, hence HOST only.
+                self.stats.zero_payloads += 1
                 self._drop()
                 continue
             self._pos = pos + total

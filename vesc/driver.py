@@ -520,7 +520,7 @@ class VescDriver:
     def _sync_codec_stats(self) -> None:
         s = self._codec.stats
         self.stats.frames_rx = s.frames
-        self.stats.crc_errors = s.crc_errors
+        self.stats.crc_errors = s.crc_errors + s.zero_payloads
         self.stats.resyncs = s.resyncs
         self.stats.dropped_bytes = s.dropped_bytes
         self.stats.raw_packets = s.raw_packets
