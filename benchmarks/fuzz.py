@@ -76,6 +76,10 @@ def main(argv: list[str]) -> int:
     found = results(args.frames, args.bag_frames, args.names or None, args.seed, progress=True)
     print(format_table([r.row() for r in found]))
     for r in found:
+        if r.invented_kinds:
+            kinds = ", ".join(f"{kind} {n}" for kind, n in r.invented_kinds.most_common())
+            print(f"invented, {r.parser}: {kinds}")
+    for r in found:
         if r.escaped:
             print(f"\n{r.parser}: {dict(r.escaped)}\n{r.examples[0]}")
     if found and not any(r.escaped for r in found):

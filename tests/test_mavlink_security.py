@@ -373,6 +373,16 @@ def test_garbage_and_unknown_message_ids_around_frames_in_one_datagram():
     assert link.counters["unknown_ids"] >= 1 and link.counters["bad_data"] == 1
 
 
+def test_mavlink_1_frames_are_refused():
+    link = MavlinkGcs(Bus(), MavlinkParams(), Arming())
+    p = Packer()
+    p.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0, force_mavlink1=True)
+    v1 = p.out.pop()
+    assert v1[0] == 0xFE
+    link.handle_datagram(v1 + p.heartbeat(), ("127.0.0.1", 14550))
+    assert link.counters["mavlink1_refused"] == 1 and link.counters["rx"] == 1 and link.gcs_alive
+
+
 def test_ten_thousand_random_datagrams_make_no_station_and_no_lost_heartbeat_event():
     rng = random.Random(16)
     clock = [0]

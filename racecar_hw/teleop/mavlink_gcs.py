@@ -376,9 +376,9 @@ class MavlinkGcs:
             self.mav.signing.sign_outgoing = True
         self.mode = MODES[params.start_mode]
         self.counters: dict[str, int] = dict.fromkeys((
-            "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "unsigned_refused",
-            "bad_signature", "old_timestamp", "commands", "acks", "manual_inputs", "inputs_ignored",
-            "gcs_timeouts", "teleop_published", "statustexts", "send_errors"), 0)
+            "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "mavlink1_refused",
+            "unsigned_refused", "bad_signature", "old_timestamp", "commands", "acks", "manual_inputs",
+            "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts", "send_errors"), 0)
         self.gcs_system_id = params.gcs_system_id
         self.gcs_heartbeat_ns: int | None = None
         self.gcs_alive = False
@@ -632,7 +632,8 @@ class MavlinkGcs:
         rx.timestamp = max(rx.timestamp, self.mav.signing.timestamp, signing_timestamp(self._wall_clock()))
         messages = rx.decode(data)
         self.mav.signing.timestamp = max(self.mav.signing.timestamp, rx.timestamp)
-        for key in ("bad_data", "unknown_ids", "unsigned_refused", "bad_signature", "old_timestamp"):
+        for key in ("bad_data", "unknown_ids", "mavlink1_refused", "unsigned_refused", "bad_signature",
+                    "old_timestamp"):
             self.counters[key] += rx.counters[key] - before[key]
         now = self._clock()
         for msg in messages:
