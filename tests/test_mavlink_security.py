@@ -14,7 +14,7 @@ import os
 import random
 import socket
 import sys
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -136,10 +136,11 @@ def run(coro_fn: Callable[[], Any]) -> None:
     asyncio.run(coro_fn())
 
 
-# --- signing: the lockout attacks fail ---------------------------------------------------------
+Scenario = Callable[[MavlinkGcs, Station, Arming, bytes], Awaitable[None]]
 
 
-def test_forged_far_future_packets_on_every_link_id_do_not_lock_out_the_signed_station(tmp_path: Path):
+def run_signed(tmp_path: Path, scenario: Scenario) -> None:
+    """``scenario(link, station, arming, key)`` against a link with signing on, started disarmed."""
     key = write_signing_key(tmp_path / "key")
 
     async def main() -> None:
@@ -147,6 +148,20 @@ def test_forged_far_future_packets_on_every_link_id_do_not_lock_out_the_signed_s
         gs = Station(key)
         link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0,
                                            signing_key_file=str(tmp_path / "key")), arming)
+        try:
+            await scenario(link, gs, arming, key)
+        finally:
+            link.close()
+            gs.close()
+
+    asyncio.run(main())
+
+
+# --- signing: the lockout attacks fail ---------------------------------------------------------
+
+
+def test_forged_far_future_packets_on_every_link_id_do_not_lock_out_the_signed_station(tmp_path: Path):
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
         attacker = Station()
         far_future = 2**48 - 10_000
         for link_id in range(256):  # the ground station's ids, every link id, a forged signature
@@ -154,27 +169,19 @@ def test_forged_far_future_packets_on_every_link_id_do_not_lock_out_the_signed_s
             attacker.send(link, forged.heartbeat(), forged.arm())
             if link_id % 16 == 15:  # in bursts the socket buffer holds
                 await async_wait_for(lambda n=2 * link_id + 2: link.counters["bad_signature"] == n)
+        attacker.close()
         assert not link.rx.streams and not arming.armed and not link.gcs_alive
         station = Packer(key=key)
         gs.send(link, station.heartbeat(), station.arm())
         ack = await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM))
         assert ack.result == mav.MAV_RESULT_ACCEPTED and arming.armed and link.gcs_alive
         assert ack.get_signed()  # our reply is signed with the shared key
-        link.close()
-        gs.close()
-        attacker.close()
 
-    run(main)
+    run_signed(tmp_path, scenario)
 
 
 def test_one_corrupted_timestamp_byte_or_a_replay_changes_nothing(tmp_path: Path):
-    key = write_signing_key(tmp_path / "key")
-
-    async def main() -> None:
-        arming = Arming(start_armed=False)
-        gs = Station(key)
-        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0,
-                                           signing_key_file=str(tmp_path / "key")), arming)
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
         station = Packer(key=key)
         genuine = bytearray(station.heartbeat())
         genuine[-7] = 0xFF  # the timestamp's top byte, as a noisy link could flip it
@@ -189,20 +196,12 @@ def test_one_corrupted_timestamp_byte_or_a_replay_changes_nothing(tmp_path: Path
         gs.send(link, station.arm())
         await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
         assert arming.armed
-        link.close()
-        gs.close()
 
-    run(main)
+    run_signed(tmp_path, scenario)
 
 
 def test_unsigned_packets_from_another_port_are_refused_and_never_redirect_telemetry(tmp_path: Path):
-    key = write_signing_key(tmp_path / "key")
-
-    async def main() -> None:
-        arming = Arming(start_armed=False)
-        gs = Station(key)
-        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0,
-                                           signing_key_file=str(tmp_path / "key")), arming)
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
         stranger = Station()
         unsigned = Packer()
         stranger.send(link, unsigned.heartbeat(), unsigned.arm(), unsigned.manual(800))
@@ -210,11 +209,9 @@ def test_unsigned_packets_from_another_port_are_refused_and_never_redirect_telem
         link.send_heartbeat()
         await gs.wait("HEARTBEAT")
         assert not stranger.find("HEARTBEAT") and not arming.armed
-        link.close()
-        gs.close()
         stranger.close()
 
-    run(main)
+    run_signed(tmp_path, scenario)
 
 
 # --- who may drive -----------------------------------------------------------------------------
