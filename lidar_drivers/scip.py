@@ -591,19 +591,26 @@ _GENERIC_STATUS_RE = re.compile(rb"[\x21-\x7e]{2}[\x30-\x6f]")
 _HEAD_RE = re.compile(_ECHO_RE.pattern + rb"\n[0-9A-Z]{2}[\x30-\x6f](?=\n|\Z)")
 
 
+#: How many of the following heads a damaged block's reply may span (bounds the work per block).
+HEAD_TRIES = 3
+
+
 def _reply_heads(block: bytes) -> list[int]:
-    """Where replies start in ``block``: an echo this codec knows, then a status line whose
-    checksum holds."""
+    """Where replies may start in ``block``: an echo this codec knows, then a status line whose
+    checksum holds. Heads may overlap (``MD...;TM1`` and ``TM1``)."""
     heads = []
     pos = 0
     while (m := _HEAD_RE.search(block, pos)) is not None:
         head = m.group(0)
         if checksum(head[-3:-1]) == head[-1] and _parse_echo(head[:-4]) is not None:
             heads.append(m.start())
-            pos = m.end()
-        else:
-            pos = m.start() + 1  # a false head may overlap the real one
+        pos = m.start() + 1
     return heads
+
+
+def _without_final_lf(sub: bytes, cut: bool) -> bytes:
+    """``sub`` without the line feed that ended its last line, when another reply followed it."""
+    return sub[:-1] if cut and sub.endswith(b"\n") else sub
 
 
 @functools.lru_cache(maxsize=256)
@@ -699,18 +706,22 @@ class ResponseDecoder:
             return
         if heads[0]:
             self._drop(block[:heads[0]], "garbage before a reply")
-        for i, start in enumerate(heads):
-            last = i + 1 == len(heads)
-            sub = block[start:len(block) if last else heads[i + 1]]
-            if not last and sub.endswith(b"\n"):
-                sub = sub[:-1]  # the line feed that ended the damaged reply's last line
-            event = self._reply(sub)
-            if event is None:
-                self._drop(sub, "a damaged reply (cut short, or run into the next one)")
+        ends = [*heads[1:], len(block)]
+        i = 0
+        while i < len(heads):
+            # a head may sit inside a reply (a tag can hold "QT\n00P"-like text, and garbage
+            # glued to an echo can read as its tag): try the next few heads as this reply's end
+            for j in range(i, min(i + HEAD_TRIES, len(heads))):
+                event = self._reply(_without_final_lf(block[heads[i]:ends[j]], ends[j] < len(block)))
+                if event is not None and (j == i or not isinstance(event, ChecksumMismatch)):
+                    if isinstance(event, ChecksumMismatch):
+                        self.checksum_errors += 1
+                    self._events.append(event)
+                    i = j + 1
+                    break
             else:
-                if isinstance(event, ChecksumMismatch):
-                    self.checksum_errors += 1
-                self._events.append(event)
+                self._drop(block[heads[i]:ends[i]], "a damaged reply (cut short, or run into the next one)")
+                i += 1
 
     @staticmethod
     def _generic(block: bytes) -> StatusReply | None:
