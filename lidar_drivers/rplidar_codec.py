@@ -555,40 +555,48 @@ class RplidarClient:
         if len(caps) < 2:
             return
         m = decode_capsules(caps)
-        keep = self._capsule_steps_ok(caps)
-        if not keep.all():
-            self.stats.bad_capsule_steps += int(np.count_nonzero(~keep))
-            if not keep.any():
+        dropped = self._capsule_pairs_dropped(caps)
+        if dropped is not None:
+            self.stats.bad_capsule_steps += len(dropped)
+            if len(dropped) == len(caps) - 1:
                 return
+            keep = np.ones(len(caps) - 1, dtype=bool)
+            keep[dropped] = False
             mask = np.repeat(keep, SAMPLES_PER_CAPSULE)
             m = Measurements(start=m.start[mask], quality=m.quality[mask], angle_deg=m.angle_deg[mask],
                              distance_mm=m.distance_mm[mask], express=True, held_back=m.held_back)
         self.stats.samples += len(m)
         self._events.append(m)
 
-    def _capsule_steps_ok(self, caps: np.ndarray) -> np.ndarray:
-        """Per consecutive pair of ``caps``: whether its start-angle step is plausible.
+    def _capsule_pairs_dropped(self, caps: np.ndarray) -> list[int] | None:
+        """The consecutive pairs of ``caps`` whose start-angle step is implausible (None: none).
 
         Capsule n's samples are spread from its start angle to capsule n+1's, so a duplicated or
         reordered capsule puts them at wrong angles. A pair is kept when its step lies in
         :attr:`capsule_step_deg` and within :data:`CAPSULE_STEP_TOLERANCE` of the last kept step.
+        (Plain Python: for the 25-30 capsules of a revolution it is faster than numpy's calls.)
         """
-        start_q6 = (caps[:, 2].astype(np.int32) | (caps[:, 3].astype(np.int32) << 8)) & 0x7FFF
-        steps = np.diff(start_q6) % FULL_TURN_Q6
+        starts = ((caps[:, 2].astype(np.int32) | (caps[:, 3].astype(np.int32) << 8)) & 0x7FFF).tolist()
         lo, hi = (round(d * 64) for d in self.capsule_step_deg)
-        keep = np.zeros(len(steps), dtype=bool)
         ref, misses = self._step_ref_q6, self._step_misses
-        for i, step in enumerate(steps.tolist()):
-            if not lo <= step <= hi:
+        dropped: list[int] | None = None
+        prev = starts[0]
+        for i, start in enumerate(starts[1:]):
+            step = (start - prev) % FULL_TURN_Q6
+            prev = start
+            in_range = lo <= step <= hi
+            if in_range and (ref is None or abs(step - ref) <= CAPSULE_STEP_TOLERANCE * ref):
+                ref, misses = step, 0
                 continue
-            if ref is None or abs(step - ref) <= CAPSULE_STEP_TOLERANCE * ref:
-                keep[i], ref, misses = True, step, 0
-            else:
+            if dropped is None:
+                dropped = []
+            dropped.append(i)
+            if in_range:
                 misses += 1
                 if misses >= CAPSULE_RELOCK:
                     ref, misses = None, 0
         self._step_ref_q6, self._step_misses = ref, misses
-        return keep
+        return dropped
 
 
 def _nodes_valid(arr: np.ndarray) -> np.ndarray:
