@@ -226,6 +226,17 @@ def test_follow_refuses_each_real_bad_bag(bag_fixtures, fake_vesc, capsys):
     _follow_refuses(_fixture_bags(bag_fixtures), fake_vesc, capsys)
 
 
+def test_run_with_a_follower_configured_refuses_a_damaged_bag(tmp_path, fake_vesc, capsys):
+    path = _damaged(tmp_path)["nan speed"]
+    code = cli_main(["run", "--no-status", "--set", "follower.enabled=true", "--set", f"follower.bag={path}",
+                     "--set", f"follower.topic={TOPIC}", "--set", f"vesc.port={fake_vesc.path}",
+                     "--set", "gamepad.enabled=false"])
+    _, err = capsys.readouterr()
+    assert code == 1 and "speed nan" in err
+    _one_line_naming(err, path)
+    assert fake_vesc.frames_rx == 0
+
+
 def test_follow_as_a_process_exits_1_with_one_line(tmp_path):
     path = _damaged(tmp_path)["mcap cut in half"]
     proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "follow", str(path), "--set",
