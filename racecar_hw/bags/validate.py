@@ -39,6 +39,9 @@ DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 ROS1_MAGIC = b"#ROSBAG V2.0\n"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 LZ4_FRAME_MAGIC = b"\x04\x22\x4d\x18"
+#: MCAP records rosbags reads into memory whole (header, schema, channel, message, chunk, chunk
+#: index, statistics); it seeks past the others (attachments, metadata, indexes it does not use).
+MCAP_READ_WHOLE = frozenset((0x01, 0x03, 0x04, 0x05, 0x06, 0x08, 0x0B))
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 
@@ -128,13 +131,14 @@ class _Storage:
                            f"racecar_hw.bags.recover)")
         return data
 
-    def declared(self, what: str, pos: int, n: int, end: int | None = None) -> None:
-        """``n`` bytes declared at ``pos`` must fit the file (up to ``end``) and the limit."""
+    def declared(self, what: str, pos: int, n: int, end: int | None = None, limited: bool = True) -> None:
+        """``n`` bytes declared at ``pos`` must fit the file (up to ``end``) and, when the reader
+        will hold them in memory (``limited``), the limit."""
         left = (self.size if end is None else end) - pos
         if n > left:
             raise BagError(f"{self.path}: {what} at byte {pos} declares {n} bytes, but only {left} "
                            "follow (a damaged or truncated file)")
-        if n > self.limit:
+        if limited and n > self.limit:
             raise BagError(f"{self.path}: {what} at byte {pos} declares {n} bytes, over the "
                            f"limit of {self.limit} (max_message_bytes); refused before reading it")
 
@@ -232,7 +236,7 @@ def _check_mcap(s: _Storage) -> None:
         op = s.read(pos, 1)[0]
         (length,) = _U64.unpack(s.read(pos + 1, 8))
         starts.add(pos)
-        s.declared(f"record 0x{op:02x}", pos + 9, length, end)
+        s.declared(f"record 0x{op:02x}", pos + 9, length, end, limited=op in MCAP_READ_WHOLE)
         if op == 0x02:  # footer: the summary it points at must start at a record
             if length >= 8:
                 (summary,) = _U64.unpack(s.read(pos + 9, 8))
