@@ -75,8 +75,6 @@ class Target:
     decode: Callable[[list[bytes]], list[Hashable]]
     allowed: tuple[type[BaseException], ...] = ()
     datagrams: bool = False
-    #: a repeated frame is refused (signed MAVLink: replay protection)
-    replay_protected: bool = False
     #: a frame is decoded together with the frame after it (express capsules)
     needs_successor: bool = False
     #: frames are lines: garbage glued to the front of a line makes the line another one
@@ -235,9 +233,7 @@ def _deliverable(target: Target, batch: Batch, pieces: list[_Piece], must: set[i
             elif nxt.frame != p.frame + 1:
                 continue  # its successor was damaged (a copy of itself makes no successor either)
         out.add(p.frame)
-    if target.replay_protected:
-        return out  # the first copy of a duplicate counts; the second is refused, as it must be
-    return out
+    return out  # a duplicate counts once: with replay protection its second copy is refused
 
 
 # --- VESC -------------------------------------------------------------------------------------
@@ -579,7 +575,7 @@ def mavlink_inbound(signed: bool) -> Target:
         return [bytes(msg.get_msgbuf()) for c in chunks for msg in rx.decode(c)]
 
     name = "MAVLink inbound, signed" if signed else "MAVLink inbound"
-    return Target(name, batch, decode, datagrams=True, replay_protected=signed)
+    return Target(name, batch, decode, datagrams=True)
 
 
 def wire_targets() -> list[Target]:
