@@ -16,7 +16,9 @@ from table import print_rows
 
 HERE = Path(__file__).resolve().parent
 ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "bags", "status",
-       "daemon", "live", "zenoh", "safety_scenarios")
+       "daemon", "live", "zenoh", "safety_scenarios", "fuzz")
+#: Benchmarks whose module is not bench_<name>.py.
+MODULES = {"fuzz": "fuzz"}
 
 
 def main(argv: list[str]) -> int:
@@ -28,7 +30,7 @@ def main(argv: list[str]) -> int:
         return 2
     rows: list[tuple[str, dict]] = []
     for name in names:
-        module = importlib.import_module(f"bench_{name}")
+        module = importlib.import_module(MODULES.get(name, f"bench_{name}"))
         started = time.perf_counter()
         for row in module.run():
             rows.append((name, row))

@@ -24,8 +24,9 @@ Angles are the device's own: degrees, clockwise seen from above, [0, 360). Dista
 Measurements come out in batches of numpy arrays (:class:`Measurements`), in time order.
 
 Nothing from the device raises: garbage is skipped up to the next plausible frame and counted in
-:class:`CodecStats`. Only a caller asking for something the protocol cannot say raises
-:class:`~racecar_hw.base.errors.LocalProtocolError`.
+:class:`CodecStats`; an express capsule pair whose start-angle step is implausible (a duplicated
+or reordered capsule) is dropped, as its samples would land at wrong angles. Only a caller asking
+for something the protocol cannot say raises :class:`~racecar_hw.base.errors.LocalProtocolError`.
 """
 
 from __future__ import annotations
@@ -54,6 +55,17 @@ NODE_RESYNC_RUN = 4
 #: Largest angle step (device degrees) between neighbouring nodes while re-locking.
 NODE_RESYNC_MAX_STEP_DEG = 20.0
 FULL_TURN_Q6 = 360 * 64
+#: Start-angle step between consecutive express capsules (degrees) any model can produce: 32
+#: samples of 100-500 µs at 2-25 revolutions per second. A GET_SAMPLERATE answer narrows it.
+CAPSULE_STEP_DEG = (2.0, 150.0)
+#: Scan rates (Hz) the narrowed range allows around the device's express sample period.
+CAPSULE_SCAN_HZ = (2.0, 25.0)
+#: A capsule step may differ from the last accepted one by this fraction (the motor speed drifts
+#: slowly; a duplicated or skipped capsule changes the step by 100 %).
+CAPSULE_STEP_TOLERANCE = 0.25
+#: After this many in-range steps in a row that all disagree with the last accepted one, the
+#: motor speed really changed: the next in-range step is taken as the new reference.
+CAPSULE_RELOCK = 8
 #: An express capsule as a packed numpy record (little-endian, 84 bytes).
 CAPSULE_DTYPE = np.dtype([
     ("sync_cs_lo", "u1"), ("sync_cs_hi", "u1"), ("start", "<u2"),
@@ -402,6 +414,7 @@ class CodecStats:
     bad_descriptors: int = 0
     bad_nodes: int = 0
     checksum_errors: int = 0
+    bad_capsule_steps: int = 0
     samples: int = 0
 
 
@@ -426,8 +439,12 @@ class RplidarClient:
     None when more bytes are needed.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, capsule_step_deg: tuple[float, float] = CAPSULE_STEP_DEG) -> None:
         self.stats = CodecStats()
+        #: Express capsule start-angle steps (degrees) accepted; set from a GET_SAMPLERATE answer.
+        self.capsule_step_deg = capsule_step_deg
+        self._step_ref_q6: int | None = None
+        self._step_misses = 0
         self._buf = bytearray()
         self._state = _State.HUNT
         self._expect: int | None = None
@@ -467,8 +484,13 @@ class RplidarClient:
 
     def _enter_hunt(self) -> None:
         self._state = _State.HUNT
+        self._forget_capsules()
+
+    def _forget_capsules(self) -> None:
         self._prev_capsule = None
         self._prev_frame = None
+        self._step_ref_q6 = None
+        self._step_misses = 0
 
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
         """Feed bytes from the device; decode as far as possible."""
@@ -498,7 +520,11 @@ class RplidarClient:
                 del self._buf[: self._size]
                 self._state = _State.HUNT
                 self._expect = None
-                self._events.append(_single_event(self._type, payload))
+                event = _single_event(self._type, payload)
+                if isinstance(event, SampleRate) and event.express_us > 0:
+                    turn = SAMPLES_PER_CAPSULE * event.express_us * 1e-6 * 360.0
+                    self.capsule_step_deg = (turn * CAPSULE_SCAN_HZ[0], turn * CAPSULE_SCAN_HZ[1])
+                self._events.append(event)
             elif self._state == _State.NODES:
                 self._decode_nodes()
                 return
@@ -529,10 +555,12 @@ class RplidarClient:
                     self._state, self._node_locked = _State.NODES, True
                     self._events.append(ScanStarted(express=False, answer_type=kind))
                 elif kind == AnswerType.EXPRESS:
-                    self._state, self._prev_capsule = _State.CAPSULES, None
+                    self._state = _State.CAPSULES
+                    self._forget_capsules()
                     self._events.append(ScanStarted(express=True, answer_type=kind))
                 elif kind in _FRAME_DECODERS:
-                    self._state, self._prev_frame = _State.FRAMES, None
+                    self._state = _State.FRAMES
+                    self._forget_capsules()
                     self._events.append(ScanStarted(express=True, answer_type=kind))
                 else:
                     self._state = _State.PAYLOAD
@@ -619,7 +647,7 @@ class RplidarClient:
             if good < n:
                 self._flush_capsules(batches)
                 batches = []
-                self._prev_capsule = None
+                self._forget_capsules()
                 self.stats.checksum_errors += 1
                 self.stats.resyncs += 1
                 self._resync_capsules()
@@ -652,8 +680,48 @@ class RplidarClient:
         if len(caps) < 2:
             return
         m = decode_capsules(caps)
+        dropped = self._capsule_pairs_dropped(caps)
+        if dropped is not None:
+            self.stats.bad_capsule_steps += len(dropped)
+            if len(dropped) == len(caps) - 1:
+                return
+            keep = np.ones(len(caps) - 1, dtype=bool)
+            keep[dropped] = False
+            mask = np.repeat(keep, SAMPLES_PER_CAPSULE)
+            m = Measurements(start=m.start[mask], quality=m.quality[mask], angle_deg=m.angle_deg[mask],
+                             distance_mm=m.distance_mm[mask], express=True, held_back=m.held_back)
         self.stats.samples += len(m)
         self._events.append(m)
+
+    def _capsule_pairs_dropped(self, caps: np.ndarray) -> list[int] | None:
+        """The consecutive pairs of ``caps`` whose start-angle step is implausible (None: none).
+
+        Capsule n's samples are spread from its start angle to capsule n+1's, so a duplicated or
+        reordered capsule puts them at wrong angles. A pair is kept when its step lies in
+        :attr:`capsule_step_deg` and within :data:`CAPSULE_STEP_TOLERANCE` of the last kept step.
+        (Plain Python: for the 25-30 capsules of a revolution it is faster than numpy's calls.)
+        """
+        starts = ((caps[:, 2].astype(np.int32) | (caps[:, 3].astype(np.int32) << 8)) & 0x7FFF).tolist()
+        lo, hi = (round(d * 64) for d in self.capsule_step_deg)
+        ref, misses = self._step_ref_q6, self._step_misses
+        dropped: list[int] | None = None
+        prev = starts[0]
+        for i, start in enumerate(starts[1:]):
+            step = (start - prev) % FULL_TURN_Q6
+            prev = start
+            in_range = lo <= step <= hi
+            if in_range and (ref is None or abs(step - ref) <= CAPSULE_STEP_TOLERANCE * ref):
+                ref, misses = step, 0
+                continue
+            if dropped is None:
+                dropped = []
+            dropped.append(i)
+            if in_range:
+                misses += 1
+                if misses >= CAPSULE_RELOCK:
+                    ref, misses = None, 0
+        self._step_ref_q6, self._step_misses = ref, misses
+        return dropped
 
 
     # ultra and dense capsules

@@ -7,7 +7,9 @@ Host side: :meth:`Command.encode` (and subclasses) turns a request into bytes;
 receive_data`) and hands back typed replies (:meth:`~ResponseDecoder.next_event`). Bad bytes from
 the device never raise: a response with a wrong checksum becomes a :class:`ChecksumMismatch` event,
 bytes that are not a response a :class:`MalformedResponse` event, and the decoder resynchronises on
-the next empty line (every SCIP reply ends with ``LF LF``; CR LF and lone CR count as LF).
+the next empty line (every SCIP reply ends with ``LF LF``; CR LF and lone CR count as LF) and on
+the next echo and status line: a reply cut short, or missing only its final line feed, costs
+itself and never the reply after it.
 
 Device side: :class:`CommandDecoder` turns the host's bytes into :class:`Command` objects (or
 :class:`UnknownCommand` / :class:`InvalidCommand`), and the ``encode_*`` functions build replies.
@@ -583,6 +585,32 @@ _ECHO_RE = re.compile(
 
 _ECHO_FIRST = frozenset(b"VPIBQRST%GM")
 _STATUS_RE = re.compile(rb"[0-9A-Z]{2}[\x30-\x6f]")
+#: The status line of a reply to a command this codec does not know: two printable characters.
+_GENERIC_STATUS_RE = re.compile(rb"[\x21-\x7e]{2}[\x30-\x6f]")
+#: Where a reply starts: an echo line, then a status line ending the block or followed by a line.
+_HEAD_RE = re.compile(_ECHO_RE.pattern + rb"\n[0-9A-Z]{2}[\x30-\x6f](?=\n|\Z)")
+
+
+#: How many of the following heads a damaged block's reply may span (bounds the work per block).
+HEAD_TRIES = 3
+
+
+def _reply_heads(block: bytes) -> list[int]:
+    """Where replies may start in ``block``: an echo this codec knows, then a status line whose
+    checksum holds. Heads may overlap (``MD...;TM1`` and ``TM1``)."""
+    heads = []
+    pos = 0
+    while (m := _HEAD_RE.search(block, pos)) is not None:
+        head = m.group(0)
+        if checksum(head[-3:-1]) == head[-1] and _parse_echo(head[:-4]) is not None:
+            heads.append(m.start())
+        pos = m.start() + 1
+    return heads
+
+
+def _without_final_lf(sub: bytes, cut: bool) -> bytes:
+    """``sub`` without the line feed that ended its last line, when another reply followed it."""
+    return sub[:-1] if cut and sub.endswith(b"\n") else sub
 
 
 @functools.lru_cache(maxsize=256)
@@ -660,25 +688,40 @@ class ResponseDecoder:
     def _parse_block(self, block: bytes) -> None:
         if not block.lstrip(b"\n"):
             return  # stray empty lines between replies
-        # the echo is normally at offset 0; after garbage, search for the first position where
-        # an echo line starts and the lines after it form a reply
-        for pos in range(len(block)):
-            if block[pos] not in _ECHO_FIRST:
-                continue
-            event = self._reply(block[pos:] if pos else block)
-            if event is None:
-                continue
-            if pos:
-                self._drop(block[:pos], "garbage before a reply")
-            if isinstance(event, ChecksumMismatch):
-                self.checksum_errors += 1
-            self._events.append(event)
+        if block[0] in _ECHO_FIRST:  # the usual case: one whole reply
+            event = self._reply(block)
+            if event is not None and not isinstance(event, ChecksumMismatch):
+                self._events.append(event)
+                return
+        # Garbage, or a damaged reply: cut short, or without its final line feed, so that it ran
+        # into the next reply. Every reply starts with an echo line and a status line whose
+        # checksum holds; cut the block at each such head, so one damaged reply costs one reply.
+        heads = _reply_heads(block)
+        if not heads:
+            generic = self._generic(block)
+            if generic is not None:
+                self._events.append(generic)
+            else:
+                self._drop(block, "not a SCIP reply")
             return
-        generic = self._generic(block)
-        if generic is not None:
-            self._events.append(generic)
-            return
-        self._drop(block, "not a SCIP reply")
+        if heads[0]:
+            self._drop(block[:heads[0]], "garbage before a reply")
+        ends = [*heads[1:], len(block)]
+        i = 0
+        while i < len(heads):
+            # a head may sit inside a reply (a tag can hold "QT\n00P"-like text, and garbage
+            # glued to an echo can read as its tag): try the next few heads as this reply's end
+            for j in range(i, min(i + HEAD_TRIES, len(heads))):
+                event = self._reply(_without_final_lf(block[heads[i]:ends[j]], ends[j] < len(block)))
+                if event is not None and (j == i or not isinstance(event, ChecksumMismatch)):
+                    if isinstance(event, ChecksumMismatch):
+                        self.checksum_errors += 1
+                    self._events.append(event)
+                    i = j + 1
+                    break
+            else:
+                self._drop(block[heads[i]:ends[i]], "a damaged reply (cut short, or run into the next one)")
+                i += 1
 
     @staticmethod
     def _generic(block: bytes) -> StatusReply | None:
@@ -686,7 +729,7 @@ class ResponseDecoder:
         lines = block.split(b"\n")
         if len(lines) != 2 or not re.fullmatch(rb"[\x21-\x7e][\x20-\x7e]*", lines[0]):
             return None
-        if len(lines[1]) != 3 or checksum(lines[1][:2]) != lines[1][2]:
+        if not _GENERIC_STATUS_RE.fullmatch(lines[1]) or checksum(lines[1][:2]) != lines[1][2]:
             return None
         echo = lines[0].decode("ascii")
         name, _, tag = echo.partition(";")

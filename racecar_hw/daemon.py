@@ -36,6 +36,7 @@ from lidar_drivers.registry import make_driver
 from mux.node import CommandMux
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.bags.record import Recorder
+from racecar_hw.bags.validate import CommandLimits
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
@@ -132,6 +133,11 @@ def reverse_speed_cap(config: Config) -> float | None:
     return config.safety.reverse_speed_cap_mps if config.safety.mode == "arc" else None
 
 
+def command_limits(config: Config) -> CommandLimits:
+    """What a followed bag may ask of this car: the VESC's configured speed and steering limits."""
+    return CommandLimits(config.vesc.speed_max_mps, config.vesc.steering_max_rad)
+
+
 class Daemon:
     """Builds the configured components on ``bus`` and runs them until stopped."""
 
@@ -162,7 +168,8 @@ class Daemon:
         self.figure8 = (Figure8Driver(self.bus, config.figure8.params(config.vesc.wheelbase_m))
                         if config.figure8.enabled else None)
         self.follower = (BagFollower(self.bus, config.follower, wheelbase_m=config.vesc.wheelbase_m,
-                                     reverse_speed_cap_mps=reverse_speed_cap(config))
+                                     reverse_speed_cap_mps=reverse_speed_cap(config),
+                                     limits=command_limits(config))
                          if config.follower.enabled else None)
         self.recorder = Recorder(self.bus, config.recorder) if config.recorder.enabled else None
         self.status = status

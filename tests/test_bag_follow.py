@@ -387,3 +387,25 @@ def test_follower_loops_until_stopped(tmp_path: Path) -> None:
 def test_follower_reports_bag_errors(tmp_path: Path) -> None:
     with pytest.raises(BagError, match="bag not found"):
         run_follower(tmp_path / "missing.bag")
+
+
+def test_a_twist_sharper_than_the_car_can_steer_is_clamped_not_refused(tmp_path: Path) -> None:
+    """A Twist names a yaw rate, not a steering angle: one the car cannot follow is driven at the
+    steering limit (as /cmd_vel is), where an Ackermann command beyond the limit refuses the bag."""
+    from racecar_hw.bags.validate import CommandLimits
+
+    store = ros2_types().store
+    Twist, Vector3 = store.types["geometry_msgs/msg/Twist"], store.types["geometry_msgs/msg/Vector3"]
+    path = tmp_path / "cmd_vel"
+    with Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP) as w2:
+        conn = w2.add_connection("/cmd_vel", "geometry_msgs/msg/Twist", typestore=store)
+        for i, yaw_rate in enumerate((2.0, -2.0, 0.1)):
+            twist = Twist(Vector3(0.5, 0.0, 0.0), Vector3(0.0, 0.0, yaw_rate))
+            w2.write(conn, (i + 1) * NS_PER_S // 10, store.serialize_cdr(twist, "geometry_msgs/msg/Twist"))
+    limits = CommandLimits(max_speed_mps=5.0, max_steering_rad=0.26)
+    got = load_commands(path, wheelbase_m=0.33, limits=limits)
+    assert [c.drive.steering_angle for c in got] == pytest.approx([0.26, -0.26, math.atan(0.33 * 0.1 / 0.5)])
+    assert all(c.drive.speed == pytest.approx(0.5) for c in got)
+    sharp = write_ours(tmp_path / "sharp", "mcap", [(NS_PER_S, 0.5, 0.9)])
+    with pytest.raises(BagError, match="steering"):
+        load_commands(sharp, TELEOP_TOPIC, limits=limits)

@@ -119,7 +119,8 @@ def test_loopback_session_heartbeat_arm_drive_disarm_timeout_params_modes() -> N
         task = asyncio.create_task(link.run())
         beats = asyncio.create_task(gs.beat())
         hb = await gs.wait("HEARTBEAT")
-        assert hb.type == mav.MAV_TYPE_GROUND_ROVER and hb.autopilot == mav.MAV_AUTOPILOT_GENERIC
+        assert hb.type == mav.MAV_TYPE_GROUND_ROVER and hb.autopilot == mav.MAV_AUTOPILOT_ARDUPILOTMEGA
+        assert mavutil.mode_string_v10(hb) == "MANUAL"  # as MAVProxy names it
         assert not hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED and hb.custom_mode == 0  # MANUAL
         assert gs.find("SYS_STATUS")
         assert link.port != 0
@@ -182,7 +183,8 @@ def test_loopback_session_heartbeat_arm_drive_disarm_timeout_params_modes() -> N
         gs.conn.mav.command_long_send(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 1, 99, 0, 0, 0, 0, 0)
         await async_wait_for(lambda: len(gs.find("COMMAND_ACK", ack_of(mav.MAV_CMD_DO_SET_MODE))) == 2)
         assert gs.find("COMMAND_ACK", ack_of(mav.MAV_CMD_DO_SET_MODE))[-1].result == mav.MAV_RESULT_DENIED
-        gs.conn.mav.command_long_send(1, 1, mav.MAV_CMD_REQUEST_MESSAGE, 0, 0, 0, 0, 0, 0, 0, 0)
+        gs.conn.mav.command_long_send(1, 1, mav.MAV_CMD_REQUEST_MESSAGE, 0,
+                                      mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 0, 0, 0, 0, 0, 0)
         ack = await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_REQUEST_MESSAGE))
         assert ack.result == mav.MAV_RESULT_UNSUPPORTED
         assert link.counters["acks"] == link.counters["commands"] == 6

@@ -279,3 +279,56 @@ def test_standard_nodes_after_garbage_are_recovered(garbage, at, piece, offset):
     stream = encode_scan_descriptor(False) + data[:at * 5] + garbage + data[at * 5:]
     _, d, _ = samples(feed(client, stream, [piece]))
     np.testing.assert_array_equal(d[-100:], dist[-100:])
+
+
+def _express(data: bytes) -> tuple[RplidarClient, np.ndarray, np.ndarray]:
+    client = RplidarClient()
+    client.send(Request.express_scan())
+    a, d, _ = samples(feed(client, encode_scan_descriptor(True) + data, [84 * 3]))
+    return client, a, d
+
+
+def _true_angles_kept(a: np.ndarray, d: np.ndarray, angle: np.ndarray, dist: np.ndarray) -> bool:
+    """Every emitted sample sits at the angle its (unique) distance was measured at."""
+    where = {float(v): i for i, v in enumerate(dist)}
+    truth = np.array([angle[where[float(v)]] for v in d])
+    return bool(len(d)) and float(np.abs((a - truth + 180) % 360 - 180).max()) < 2 / 64
+
+
+def test_a_duplicated_capsule_costs_one_pair_and_no_sample_lands_at_a_wrong_angle():
+    data, angle, dist = _capsule_stream(20)
+    caps = [data[i * 84:(i + 1) * 84] for i in range(20)]
+    client, a, d = _express(b"".join(caps[:10] + [caps[9]] + caps[10:]))
+    assert client.stats.bad_capsule_steps == 1
+    np.testing.assert_array_equal(d, dist[:19 * 32])  # capsule 9's samples once, from its copy
+    assert _true_angles_kept(a, d, angle, dist)
+
+
+def test_reordered_capsules_are_dropped_with_their_pairs():
+    data, angle, dist = _capsule_stream(20)
+    caps = [data[i * 84:(i + 1) * 84] for i in range(20)]
+    client, a, d = _express(b"".join(caps[:10] + [caps[11], caps[10]] + caps[12:]))
+    # (9, 11) and (10, 12) step twice as far as the others, (11, 10) backwards
+    assert client.stats.bad_capsule_steps == 3
+    np.testing.assert_array_equal(d, np.concatenate([dist[:9 * 32], dist[12 * 32:19 * 32]]))
+    assert _true_angles_kept(a, d, angle, dist)
+
+
+def test_capsule_steps_follow_a_drifting_motor_and_relock_after_a_real_speed_change():
+    steps = np.concatenate([np.linspace(20.0, 30.0, 60), np.full(40, 45.0)])  # +0.7 % a capsule, then +50 %
+    starts = np.concatenate([[0.0], np.cumsum(steps)]) % 360.0
+    dist = 300.0 + np.arange(len(starts) * 32) % 9000
+    client, _, d = _express(encode_capsules(starts, dist, first=True))
+    # the jump costs the relock window, then the new speed is taken
+    assert client.stats.bad_capsule_steps == 8
+    assert len(d) == (len(starts) - 1 - 8) * 32
+
+
+def test_the_sample_rate_answer_narrows_the_capsule_step_range():
+    client = RplidarClient()
+    assert client.capsule_step_deg == (2.0, 150.0)
+    client.send(Request.simple(Command.GET_SAMPLERATE))
+    client.receive_data(encode_samplerate(SampleRate(500, 250)))
+    assert client.events() == [SampleRate(500, 250)]
+    lo, hi = client.capsule_step_deg  # 32 samples of 250 µs at 2-25 Hz
+    assert (lo, hi) == pytest.approx((5.76, 72.0))

@@ -397,3 +397,40 @@ def test_sensor_params_from_any_fields_is_a_record_or_a_named_error(fields):
         assert "PP reply" in str(err)
     else:
         assert pp.fields()["DMIN"] == int(fields["DMIN"])
+
+
+def test_a_status_line_with_non_ascii_bytes_and_a_valid_checksum_is_an_event():
+    """The generic (unknown command) path once decoded such a status as ASCII and raised."""
+    status = bytes([0xB0, 0x41])
+    events = decode_all(b"XX\n" + status + bytes([checksum(status)]) + b"\n\n")
+    assert [type(e) for e in events] == [MalformedResponse]
+
+
+REPLIES = [md_frame(list(range(100, 400)), tag="a"), encode_time("TM1", 123456), encode_reply("QT", "00"),
+           encode_state("%ST", "004"), encode_info("VV", {"VEND": "Hokuyo", "PROD": "UST-10LX"}),
+           md_frame([7] * 40, remaining=3)]
+
+
+@given(st.sampled_from(REPLIES), st.sampled_from(REPLIES), st.floats(0.0, 1.0), st.integers(1, 97))
+@settings(max_examples=400, deadline=None)
+def test_a_damaged_reply_costs_itself_and_never_the_next_one(damaged, good, where, chunk):
+    """Cut anywhere (down to missing only its final line feed), a reply runs into the next one;
+    the decoder finds the next reply's echo and status and decodes it."""
+    cut = damaged[:int(where * (len(damaged) - 1))]  # never the whole reply
+    stream = cut + good
+    d = ResponseDecoder()
+    events = []
+    for i in range(0, len(stream), chunk):
+        d.receive_data(stream[i:i + chunk])
+        events.extend(d)
+    expected = decode_all(good)[0]
+    decoded = [e for e in events if not isinstance(e, (MalformedResponse, ChecksumMismatch))]
+    assert decoded[-1:] == [expected] or (isinstance(expected, ScanReply) and decoded
+                                          and decoded[-1].distances.tolist() == expected.distances.tolist())
+    assert len(decoded) <= 2  # at most the damaged one, when only its final line feed was missing
+
+
+def test_a_reply_missing_only_its_final_line_feed_is_still_decoded():
+    first, second = md_frame(list(range(50)), tag="1"), md_frame(list(range(60)), tag="2")
+    events = decode_all(first[:-1] + second)
+    assert [e.tag for e in events] == ["1", "2"] and all(isinstance(e, ScanReply) for e in events)

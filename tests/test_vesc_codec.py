@@ -31,6 +31,7 @@ from vesc.codec import (
     decode_values,
     encode_values,
     frame,
+    known_firmware,
     values_layout,
 )
 
@@ -181,14 +182,33 @@ def test_values_ignore_trailing_bytes_and_refuse_short():
     assert isinstance(short, RawPacket) and "54" in short.reason
 
 
-def test_host_picks_layout_from_fw_version_reply():
+def test_the_layout_is_the_callers_choice_never_a_decoded_fw_version():
     dev = device((3, 40))
     h = host()
-    h.receive_data(dev.send(FwVersion(3, 40, "410", bytes(range(12)))) + dev.send(SAMPLE))
-    fw, values = h.events()
-    assert fw == FwVersion(3, 40, "410", bytes(range(12)))
-    assert h.firmware == (3, 40)
+    h.receive_data(dev.send(FwVersion(3, 40, "410", bytes(range(12)))))
+    assert h.events() == [FwVersion(3, 40, "410", bytes(range(12)))]
+    assert h.firmware is None  # the driver's handshake decides whether to believe it
+    h.firmware = (3, 40)
+    h.receive_data(dev.send(SAMPLE))
+    (values,) = h.events()
     assert isinstance(values, Values) and values.controller_id == 7 and values.erpm == -23250
+    # line noise: an all-zero payload has CRC 0 and would read as FW_VERSION 0.0; it is dropped
+    h.receive_data(b"\x02\x03\x00\x00\x00\x00\x00\x03" + dev.send(FwVersion(0, 1)))
+    assert h.events() == [FwVersion(0, 1)] and h.firmware == (3, 40)
+    assert h.stats.zero_payloads == 1
+
+
+def test_a_device_decodes_the_one_zero_byte_fw_version_request():
+    d = device()
+    d.receive_data(b"\x02\x01\x00\x00\x00\x03")
+    assert d.events() == [FwVersionRequest()] and d.stats.zero_payloads == 0
+
+
+@pytest.mark.parametrize(("version", "known"), [
+    ((0, 0), False), ((1, 99), False), ((2, 18), True), ((3, 40), True), ((6, 5), True), ((7, 0), True),
+    ((8, 0), False), ((6, 100), False), ((255, 255), False)])
+def test_known_firmware(version, known):
+    assert known_firmware(version) is known
 
 
 @pytest.mark.parametrize("reply", [
@@ -200,7 +220,6 @@ def test_fw_version_round_trip(reply):
     h = host()
     h.receive_data(device().send(reply))
     assert h.events() == [reply]
-    assert h.firmware == reply.version
 
 
 def test_long_frames_and_three_byte_lengths():

@@ -16,10 +16,15 @@ from racecar_hw.base.messages import AckermannDrive, Float64, Odometry, TFMessag
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
     Alive,
+    FwVersion,
     FwVersionRequest,
+    RawPacket,
     SetCurrentBrake,
     SetRpm,
     SetServoPosition,
+    Values,
+    encode_fw_version,
+    frame,
 )
 from vesc.driver import TOPIC_CORE, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF, VescDriver
 from vesc.fake import CommandRecord, FakeVesc
@@ -256,6 +261,70 @@ def test_resync_after_garbage_bad_crc_and_split_replies(tmp_path, device_thread)
             assert driver.stats.dropped_bytes >= 300
 
     asyncio.run(scenario())
+
+
+def test_a_fw_version_frame_mid_session_changes_nothing(tmp_path, device_thread):
+    """Line noise (FW_VERSION 0.0, an all-zero payload with CRC 0) and a real-looking 2.18 reply,
+    both unasked mid-session, leave the 6.2 layout: telemetry keeps decoding true speeds."""
+    fake = start_fake(device_thread, tmp_path / "vesc", (6, 2))
+
+    async def scenario() -> None:
+        bus = Bus()
+        rec = Recorder(bus, TOPIC_CORE)
+        async with VescDriver(bus, VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            driving = asyncio.create_task(drive_for(driver, 30.0, 1.0))
+            await async_wait_for(lambda: driver.last_state is not None
+                                 and driver.last_state.state.speed == 4614, timeout=5)
+            crc_errors = driver.stats.crc_errors
+            fake.inject_reply(RawPacket(bytes(3)))  # noise: dropped by the codec (its CRC is 0)
+            fake.inject_reply(FwVersion(2, 18))
+            fake.inject_reply(FwVersion(0, 1))
+            await async_wait_for(lambda: driver.stats.ignored_fw_versions == 2
+                                 and driver.stats.crc_errors == crc_errors + 1)
+            before = rec.count(TOPIC_CORE)
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= before + 10)
+            driving.cancel()
+            assert driver.firmware == (6, 2)
+            speeds = [msg.state.speed for _, msg in rec.got[TOPIC_CORE][before:]]
+            assert all(abs(v) <= 4614 for v in speeds), speeds  # ERPM of 1 m/s, never ~7,500 m/s
+            assert driver.stats.reconnects == 0 and driver.stats.implausible_telemetry == 0
+
+    asyncio.run(scenario())
+
+
+def test_impossible_telemetry_is_dropped_and_counted(tmp_path, device_thread):
+    fake = start_fake(device_thread, tmp_path / "vesc", (6, 2))
+
+    async def scenario() -> None:
+        bus = Bus()
+        rec = Recorder(bus, TOPIC_CORE, TOPIC_ODOM)
+        async with VescDriver(bus, VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= 3)
+            for bad in (Values(erpm=10**7, v_in=16.0), Values(erpm=0, v_in=480.0), Values(v_in=-3.0),
+                        Values(duty=7.5, v_in=16.0)):
+                fake.inject_reply(bad)
+            await async_wait_for(lambda: driver.stats.implausible_telemetry == 4)
+            before = rec.count(TOPIC_CORE)
+            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= before + 5)  # polls go on
+            assert all(m.state.speed == 0 and 16 < m.state.voltage_input < 17 and m.state.duty_cycle == 0
+                       for _, m in rec.got[TOPIC_CORE])  # the car stands; nothing impossible got out
+            assert all(m.twist.twist.linear.x == 0 for _, m in rec.got[TOPIC_ODOM])
+
+    asyncio.run(scenario())
+
+
+def test_a_fw_version_nobody_asked_for_is_not_a_handshake():
+    driver = VescDriver(Bus(), VescParams(port="/nonexistent"))
+    driver._on_bytes(frame(bytes(3)))  # noqa: SLF001 - line noise: the codec drops it
+    assert driver.stats.crc_errors == 1 and driver.stats.ignored_fw_versions == 0
+    driver._on_bytes(frame(encode_fw_version(FwVersion(6, 2))))  # noqa: SLF001 - before any request
+    assert driver.firmware is None and driver.stats.ignored_fw_versions == 1
+    driver._fw_asked = True  # noqa: SLF001 - as after the handshake's request
+    driver._on_bytes(frame(encode_fw_version(FwVersion(0, 1))))  # noqa: SLF001 - no such firmware
+    assert driver.firmware is None and driver.stats.ignored_fw_versions == 2
+    driver._on_bytes(frame(encode_fw_version(FwVersion(6, 2))))  # noqa: SLF001
+    assert driver.firmware == (6, 2)
 
 
 def test_reconnects_within_1s_of_replug_brake_and_centre_first(tmp_path, device_thread):

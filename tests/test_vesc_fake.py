@@ -42,6 +42,8 @@ class Client:
         while time.monotonic() < deadline:
             self.codec.receive_data(self.ser.read(4096))
             for event in self.codec.events():
+                if isinstance(event, FwVersion):
+                    self.codec.firmware = event.version  # the layout, as the driver's handshake sets it
                 if isinstance(event, reply_type):
                     return event
         raise AssertionError(f"no {reply_type.__name__} reply")

@@ -12,13 +12,15 @@ byte 0 is the command id. All multi-byte fields are big-endian and signed unless
 :class:`VescCodec` is used from either side of the wire. The host (our driver) sends requests and
 commands and decodes replies; the device (the fake VESC) decodes requests and commands and sends
 replies. The decoder never raises on input: a bad start byte, length, CRC or end byte drops ONE
-byte and retries (as the firmware does), counted in :class:`CodecStats`; an unknown or malformed
+byte and retries (as the firmware does), counted in :class:`CodecStats`; so does a reply whose
+payload is all zeros (its CRC is 0x0000, so zeros on the line pass it); an unknown or malformed
 packet comes out as :class:`RawPacket`. Encoding refuses NaN, infinities and values the wire
 cannot carry with :class:`~racecar_hw.base.errors.LocalProtocolError`.
 
 GET_VALUES replies change layout with the firmware (see :func:`values_layout`); the codec picks
-the layout from :attr:`VescCodec.firmware`, which the host codec sets itself when it decodes a
-FW_VERSION reply.
+the layout from :attr:`VescCodec.firmware`. The codec never changes it on its own: a FW_VERSION
+frame can be line noise (an all-zero payload has CRC 0x0000 and reads as version 0.0), so only the
+driver's handshake decides which reply to believe (:func:`known_firmware`) and sets it.
 """
 
 from __future__ import annotations
@@ -290,6 +292,17 @@ class Layout(enum.Enum):
     V5_03 = 74  #: 5.03 and later: + status byte
 
 
+#: Firmware major versions with a known GET_VALUES layout: 2.x (the pre-3.07 layout) up to 7.x (the
+#: master branch when this was written; reference vesc.md section 4).
+KNOWN_MAJORS = range(2, 8)
+
+
+def known_firmware(version: tuple[int, int]) -> bool:
+    """Whether ``version`` is one whose telemetry layout this codec knows (2.0 to 7.99)."""
+    major, minor = version
+    return major in KNOWN_MAJORS and 0 <= minor <= 99
+
+
 def values_layout(firmware: tuple[int, int] | None) -> Layout:
     """The GET_VALUES layout a firmware version sends; None (not known yet) means the newest."""
     if firmware is None:
@@ -547,7 +560,8 @@ class CodecStats:
     ``frames``: good frames; ``crc_errors``: frames whose CRC did not match; ``resyncs``: times
     the decoder lost sync (a run of dropped bytes counts once); ``dropped_bytes``: bytes skipped;
     ``raw_packets``: frames decoded as :class:`RawPacket` (unknown id or malformed);
-    ``bytes_in``: bytes fed in.
+    ``zero_payloads``: frames from the device whose payload is all zeros (noise that passes the
+    CRC, dropped); ``bytes_in``: bytes fed in.
     """
 
     frames: int = 0
@@ -555,6 +569,7 @@ class CodecStats:
     resyncs: int = 0
     dropped_bytes: int = 0
     raw_packets: int = 0
+    zero_payloads: int = 0
     bytes_in: int = 0
 
 
@@ -562,8 +577,9 @@ class CodecStats:
 class VescCodec:
     """One end of a VESC link: :meth:`receive_data` then :meth:`next_event`; :meth:`send` encodes.
 
-    ``firmware`` selects the GET_VALUES layout; a HOST codec sets it from every FW_VERSION reply it
-    decodes. ``max_payload`` bounds accepted lengths (the firmware's 512 by default).
+    ``firmware`` selects the GET_VALUES layout; the caller sets it (the driver, from the FW_VERSION
+    reply to its handshake request). ``max_payload`` bounds accepted lengths (the firmware's 512 by
+    default).
     """
 
     role: Role
@@ -628,6 +644,12 @@ class VescCodec:
                 self.stats.crc_errors += 1
                 self._drop()
                 continue
+            if self.role is Role.HOST and not any(payload):
+                # CRC 0x0000 over zeros: line noise, and no VESC reply is all zeros (it would be
+                # FW_VERSION 0.0). A host's FW_VERSION request is one zero byte, hence HOST only.
+                self.stats.zero_payloads += 1
+                self._drop()
+                continue
             self._pos = pos + total
             self._in_sync = True
             self.stats.frames += 1
@@ -671,7 +693,4 @@ class VescCodec:
     def _decode(self, payload: bytes) -> Packet:
         if self.role is Role.DEVICE:
             return decode_request(payload)
-        reply = decode_reply(payload, self.firmware)
-        if isinstance(reply, FwVersion):
-            self.firmware = reply.version
-        return reply
+        return decode_reply(payload, self.firmware)

@@ -22,6 +22,14 @@ tick) the driver sends brake (SET_RPM 0, or SET_CURRENT_BRAKE in ``brake_mode`` 
 servo centre, then repeats both on every poll tick until a fresh command arrives. A NaN or infinite
 command brakes at once. The first frames after every (re)connect are brake and centre.
 
+Hostile or noisy input: a FW_VERSION frame is believed only as the answer to our own request
+during the handshake, and only for a firmware whose layout the codec knows
+(:func:`~vesc.codec.known_firmware`); any other (line noise decodes as "0.0", a stray frame
+mid-session) is ignored and counted, so the telemetry layout never changes without a new handshake.
+Telemetry with physically impossible values (ERPM beyond :data:`IMPLAUSIBLE_ERPM_FACTOR` times
+the ERPM at ``speed_max_mps``, input voltage outside 0-100 V, duty cycle beyond +-1) is dropped
+and counted, never published.
+
 An unplug (DeviceIOError/DeviceNotFound) closes the port and reopens it with exponential backoff
 from ``reconnect_backoff_min_s`` to ``reconnect_backoff_max_s``. No exception leaves :meth:`run`
 except CancelledError; :meth:`shutdown` brakes, centres, closes and is safe twice.
@@ -66,6 +74,7 @@ from vesc.codec import (
     SetServoPosition,
     Values,
     VescCodec,
+    known_firmware,
 )
 from vesc.odometry import OdometryIntegrator
 from vesc.params import VescParams
@@ -75,6 +84,13 @@ R = TypeVar("R")
 
 #: Encoded frames remembered by :meth:`VescDriver._encode` (host commands: no firmware dependence).
 _MAX_CACHED_FRAMES = 256
+#: Telemetry whose |ERPM| exceeds this many times the ERPM at ``speed_max_mps`` is impossible for
+#: the car (a motor that fast would have left the track): it is dropped, not published.
+IMPLAUSIBLE_ERPM_FACTOR = 4.0
+#: Input voltages (V) a VESC can report; outside them the reply is garbage (VESC 6: 8-60 V).
+PLAUSIBLE_V_IN = (0.0, 100.0)
+#: Largest |duty cycle| a reply can carry (the firmware clamps to 0.95).
+PLAUSIBLE_DUTY = 1.0
 
 TOPIC_CORE = "/vesc/sensors/core"
 TOPIC_SERVO = "/vesc/sensors/servo_position_command"
@@ -87,7 +103,9 @@ class VescLinkStats:
     """Link statistics, cumulative over reconnects.
 
     ``failsafes``: times the no-command failsafe engaged; ``refused_commands``: NaN/inf drive
-    commands; ``write_errors``: writes that found the port gone.
+    commands; ``write_errors``: writes that found the port gone; ``ignored_fw_versions``: FW_VERSION
+    frames not taken (unasked, mid-session, or an unknown version); ``implausible_telemetry``:
+    GET_VALUES replies dropped for physically impossible values.
     """
 
     frames_tx: int = 0
@@ -100,6 +118,8 @@ class VescLinkStats:
     failsafes: int = 0
     refused_commands: int = 0
     write_errors: int = 0
+    ignored_fw_versions: int = 0
+    implausible_telemetry: int = 0
 
 
 def values_to_state(v: Values) -> VescState:
@@ -128,6 +148,10 @@ class VescDriver:
         self._link: SerialLink | None = None
         self._firmware: tuple[int, int] | None = None
         self._fw_reply: FwVersion | None = None
+        self._fw_asked = False  # a FW_VERSION request went out on this connection
+        params = self.params
+        self._max_erpm = IMPLAUSIBLE_ERPM_FACTOR * (params.speed_max_mps * params.speed_to_erpm_gain
+                                                    + abs(params.speed_to_erpm_offset))
         self._last_state: VescStateStamped | None = None
         self._servo_sent = self.conversion.servo_centre
         self._moving = False
@@ -331,6 +355,7 @@ class VescDriver:
         self._codec.reset()
         self._codec.firmware = None
         self._firmware = None
+        self._fw_asked = False
         self.brake_and_centre()
         ticker = asyncio.create_task(self._tick_loop(link), name="vesc-poll")
         # replies are decoded in the link's reader callback, without waking this task
@@ -355,6 +380,7 @@ class VescDriver:
                 if self._firmware is None:
                     now = monotonic_ns()
                     self._write(FwVersionRequest())
+                    self._fw_asked = True
                     if not self._fresh(now):
                         self.brake_and_centre()
                     await asyncio.sleep(self.params.handshake_interval_s)
@@ -494,7 +520,7 @@ class VescDriver:
     def _sync_codec_stats(self) -> None:
         s = self._codec.stats
         self.stats.frames_rx = s.frames
-        self.stats.crc_errors = s.crc_errors
+        self.stats.crc_errors = s.crc_errors + s.zero_payloads
         self.stats.resyncs = s.resyncs
         self.stats.dropped_bytes = s.dropped_bytes
         self.stats.raw_packets = s.raw_packets
@@ -503,11 +529,7 @@ class VescDriver:
         if isinstance(packet, Values):
             self._on_values(packet)
         elif isinstance(packet, FwVersion):
-            if self._firmware is None:
-                log.info("VESC firmware %d.%02d, hardware %s", packet.major, packet.minor,
-                         packet.hw_name or "?")
-            self._firmware = packet.version
-            self._fw_reply = packet
+            self._on_fw_version(packet)
         elif isinstance(packet, RawPacket):
             if packet.command_id == 21:  # COMM_PRINT
                 log.info("VESC says: %s", packet.payload[1:].decode("utf-8", "replace").rstrip())
@@ -515,9 +537,34 @@ class VescDriver:
                 log.debug("VESC packet not decoded (%s): id %d, %d bytes", packet.reason,
                           packet.command_id, len(packet.payload))
 
+    def _on_fw_version(self, packet: FwVersion) -> None:
+        """Take the handshake's answer; ignore (and count) every other FW_VERSION frame."""
+        if self._firmware is not None or not self._fw_asked or not known_firmware(packet.version):
+            self.stats.ignored_fw_versions += 1
+            why = ("mid-session" if self._firmware is not None else "unasked" if not self._fw_asked
+                   else "not a firmware version this driver knows")
+            (log.warning if self.stats.ignored_fw_versions == 1 else log.debug)(
+                "VESC FW_VERSION %d.%02d ignored (%s)", packet.major, packet.minor, why)
+            return
+        log.info("VESC firmware %d.%02d, hardware %s", packet.major, packet.minor, packet.hw_name or "?")
+        self._firmware = packet.version
+        self._codec.firmware = packet.version
+        self._fw_reply = packet
+
+    def _plausible(self, values: Values) -> bool:
+        lo, hi = PLAUSIBLE_V_IN
+        return (abs(values.erpm) <= self._max_erpm and lo <= values.v_in <= hi
+                and abs(values.duty) <= PLAUSIBLE_DUTY)
+
     def _on_values(self, values: Values) -> None:
         if self._firmware is None:
             return  # a reply to a poll of the previous connection; its layout is unknown
+        if not self._plausible(values):
+            self.stats.implausible_telemetry += 1
+            (log.warning if self.stats.implausible_telemetry == 1 else log.debug)(
+                "VESC telemetry dropped: impossible values (ERPM %d, %.1f V, duty %.3f)",
+                values.erpm, values.v_in, values.duty)
+            return
         mono, stamp = monotonic_ns(), wall_ns()
         msg = VescStateStamped(Header(Time.from_ns(stamp), ""), values_to_state(values))
         self._last_state = msg
@@ -539,6 +586,7 @@ async def probe(port: str, baudrate: int = 115200, timeout_s: float = 2.0) -> tu
     codec = VescCodec(Role.HOST)
     try:
         fw = await _ask(link, codec, FwVersionRequest(), FwVersion, timeout_s)
+        codec.firmware = fw.version
         values = await _ask(link, codec, GetValuesRequest(), Values, timeout_s)
         return fw, values
     finally:

@@ -22,8 +22,8 @@ Model (integrated every ``tick_s``):
   driven motor draws ``stall_current_a``.
 
 Read-only properties (``erpm``, ``servo``, ``commands``, counters) are safe from any thread; so are
-the fault injections (``inject_garbage``, ``corrupt_next_crc``, ``split_replies``, ``unplug``,
-``replug``), which run in the device loop.
+the fault injections (``inject_garbage``, ``inject_reply``, ``corrupt_next_crc``, ``split_replies``,
+``unplug``, ``replug``), which run in the device loop.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ from vesc.codec import (
     FwVersionRequest,
     GetValuesRequest,
     Packet,
+    RawPacket,
     Role,
     SetCurrent,
     SetCurrentBrake,
@@ -230,6 +231,13 @@ class FakeVesc:
     def inject_garbage(self, n: int) -> None:
         """Send ``n`` random bytes to the client between replies."""
         data = bytes(self._rng.randrange(256) for _ in range(n))
+        self._in_loop(lambda: self._enqueue(data, False))
+
+    def inject_reply(self, packet: FwVersion | Values | RawPacket) -> None:
+        """Send ``packet`` unasked, between replies: a stray FW_VERSION mid-session, impossible
+        telemetry, or any payload (a :class:`~vesc.codec.RawPacket`; ``RawPacket(bytes(3))`` is
+        the all-zero frame that line noise passes the CRC with, read as FW_VERSION 0.0)."""
+        data = self._codec.send(packet)
         self._in_loop(lambda: self._enqueue(data, False))
 
     def corrupt_next_crc(self) -> None:

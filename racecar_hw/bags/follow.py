@@ -6,7 +6,9 @@ Three pieces, usable alone:
   ``geometry_msgs/Twist`` (or ``TwistStamped``, converted with the wheelbase by
   :func:`command_from_message`), on one topic of a ROS 1 ``.bag`` or a ROS 2 bag (sqlite3 or
   MCAP), with clear :class:`BagError`\\ s. Without a topic it picks the bag's only drive topic
-  (:func:`choose_topic`).
+  (:func:`choose_topic`). A damaged bag gives a BagError and nothing else, its declared sizes are
+  checked before anything is allocated, and every command is checked (finite, within the car's
+  limits) before it is used: see :mod:`racecar_hw.bags.validate`.
 * :func:`schedule` and :class:`CommandSync` turn the commands into timed steps (python-can
   ``MessageSync`` style): a fixed rate or the bag's own timestamps, optionally time-scaled,
   forwards or backwards, once or looping.
@@ -41,6 +43,14 @@ from typing import Any
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 
+from racecar_hw.bags.validate import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    CommandLimits,
+    check_commands,
+    check_storage,
+    describe,
+    guarded,
+)
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -95,6 +105,9 @@ class FollowerParams:
     loop: bool = param(False, "start again after the last command")
     frame_id: str = param("base_link", "frame_id of the re-stamped commands")
     stop_at_end: bool = param(True, "publish one zero-speed, centred command when the replay ends")
+    max_message_bytes: int = param(DEFAULT_MAX_MESSAGE_BYTES, "largest message, or chunk of messages, "
+                                   "read from the bag; a bag declaring a larger one is refused before "
+                                   "it is read", unit="B", min=1024, max=2**40)
 
     def __post_init__(self) -> None:
         if not self.input_topic.startswith("/"):
@@ -111,7 +124,7 @@ def _describe(conns: Sequence[Connection]) -> str:
     return ", ".join(f"{t} ({ty}, {n} msgs)" for (t, ty), n in sorted(seen.items())) or "none"
 
 
-def _open_reader(path: Path) -> AnyReader:
+def _open_reader(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> AnyReader:
     if not path.exists():
         raise BagError(f"bag not found: {path}")
     if path.is_file() and path.stat().st_size == 0:
@@ -121,6 +134,7 @@ def _open_reader(path: Path) -> AnyReader:
         files = [p for p in path.iterdir() if p.suffix in (".mcap", ".db3")]
         if files and all(p.stat().st_size == 0 for p in files):
             raise BagError(f"{path}: its storage file is empty (0 bytes)")
+    check_storage(path, max_bytes)
     reader = AnyReader([path], default_typestore=ros2_types().store)
     try:
         reader.open()
@@ -129,7 +143,7 @@ def _open_reader(path: Path) -> AnyReader:
         hint = ""
         if "not indexed" in text or "end magic" in text:
             hint = f" (an interrupted recording? try: racecar-hw bag recover {path})"
-        raise BagError(f"cannot read bag {path}: {text}{hint}") from err
+        raise BagError(f"cannot read bag {path}: {describe(err)}{hint}") from err
     return reader
 
 
@@ -175,17 +189,22 @@ def command_from_message(msgtype: str, msg: Any, t_ns: int,
     return Command(t_ns, types.from_ros(drive, AckermannDrive))
 
 
+@guarded
 def load_commands(path: str | Path, topic: str | None = None,
-                  wheelbase_m: float = DEFAULT_WHEELBASE_M) -> list[Command]:
+                  wheelbase_m: float = DEFAULT_WHEELBASE_M, *, limits: CommandLimits | None = None,
+                  max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> list[Command]:
     """The drive commands on ``topic`` (None or "": :func:`choose_topic`) of the bag at ``path``,
-    in bag-time order; Twist is converted with ``wheelbase_m`` (m).
+    in bag-time order; Twist is converted with ``wheelbase_m`` (m), its steering clamped to
+    ``limits`` (as the VESC driver would clamp it: a Twist cannot name a steering angle).
 
-    Raises :class:`BagError` for a missing or zero-byte file, an unreadable bag, an empty bag, a
-    missing topic or one of another type (listing the topics and types found), and a storage that
-    yields nothing although its metadata counts messages.
+    Raises :class:`BagError` (and nothing else) for a missing or zero-byte file, an unreadable or
+    damaged bag, one declaring a record over ``max_message_bytes``, an empty bag, a missing topic or
+    one of another type (listing the topics and types found), a storage that yields nothing although
+    its metadata counts messages, and a command that is not finite or beyond ``limits``.
     """
+    limits = limits or CommandLimits()
     bag = Path(path)
-    reader = _open_reader(bag)
+    reader = _open_reader(bag, max_message_bytes)
     try:
         conns = reader.connections
         if not conns or reader.message_count == 0:
@@ -216,7 +235,10 @@ def load_commands(path: str | Path, topic: str | None = None,
             msg = reader.deserialize(data, conn.msgtype)
             if conn.msgtype in TWIST_TYPES and _turns_in_place(msg, conn.msgtype):
                 turning_in_place += 1
-            out.append(command_from_message(conn.msgtype, msg, t_ns, wheelbase_m))
+            command = command_from_message(conn.msgtype, msg, t_ns, wheelbase_m)
+            if conn.msgtype in TWIST_TYPES:
+                command = _clamp_steering(command, limits.max_steering_rad)
+            out.append(command)
     finally:
         reader.close()
     if turning_in_place:
@@ -224,6 +246,7 @@ def load_commands(path: str | Path, topic: str | None = None,
                     "which an Ackermann car cannot do: they are followed as stops", bag,
                     turning_in_place, len(out), topic)
     out.sort(key=lambda c: c.t_ns)
+    check_commands(out, limits, bag, topic)
     return out
 
 
@@ -232,6 +255,15 @@ def _turns_in_place(msg: Any, msgtype: str) -> bool:
     return float(twist.linear.x) == 0.0 and float(twist.angular.z) != 0.0
 
 
+def _clamp_steering(command: Command, limit_rad: float) -> Command:
+    steering = command.drive.steering_angle
+    if not abs(steering) > limit_rad:  # within the limit, or NaN (left to check_commands)
+        return command
+    drive = dataclasses.replace(command.drive, steering_angle=math.copysign(limit_rad, steering))
+    return dataclasses.replace(command, drive=drive)
+
+
+@guarded
 def summarize_bag(path: str | Path) -> dict[str, tuple[str, int]]:
     """Every topic of the bag with its type and the number of messages actually read.
 
@@ -378,12 +410,15 @@ class BagFollower:
 
     def __init__(self, bus: Bus, params: FollowerParams, progress: Progress | None = None, *,
                  wheelbase_m: float = DEFAULT_WHEELBASE_M,
-                 reverse_speed_cap_mps: float | None = None) -> None:
+                 reverse_speed_cap_mps: float | None = None,
+                 limits: CommandLimits | None = None) -> None:
         self.bus = bus
         self.params = params
         self.progress = progress
         self.wheelbase_m = wheelbase_m
         self.reverse_speed_cap_mps = reverse_speed_cap_mps
+        #: what a command may ask for (the car's configured limits); a bag beyond them is refused
+        self.limits = limits or CommandLimits()
         self.done = False
         self.published = 0
         self.late_ns_max = 0
@@ -394,11 +429,13 @@ class BagFollower:
         self._steps: list[Step] | None = None
 
     def load(self) -> list[Step]:
-        """Read the bag and build the steps (raises BagError); done once, also by :meth:`run`."""
+        """Read and check the bag and build the steps (raises BagError); done once, also by :meth:`run`,
+        so a caller can load first and refuse a bad bag before the car is touched."""
         if self._steps is not None:
             return self._steps
         p = self.params
-        self.commands = load_commands(p.bag, p.topic, self.wheelbase_m)
+        self.commands = load_commands(p.bag, p.topic, self.wheelbase_m, limits=self.limits,
+                                      max_message_bytes=p.max_message_bytes)
         if not p.use_timestamps and (found := holes(self.commands)):
             longest = max(found, key=lambda h: h.gap_s)
             log.warning("%s: the recording has %d gap(s) over three times its usual spacing "

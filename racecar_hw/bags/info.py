@@ -14,6 +14,7 @@ from pathlib import Path
 from rosbags.highlevel import AnyReader
 
 from racecar_hw.bags.recover import BagState, inspect_bag, scan_mcap, scan_ros1
+from racecar_hw.bags.validate import guarded
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -52,6 +53,7 @@ class BagInfo:
         return (self.end_ns - self.start_ns) / NS_PER_S
 
 
+@guarded
 def bag_info(path: str | Path) -> BagInfo:
     """Summarize the bag at ``path`` (a ROS 1 file or a ROS 2 directory); raises :class:`BagError`."""
     state = inspect_bag(path)

@@ -36,6 +36,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.metadata import dump_qos_v8, parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from racecar_hw.bags.validate import guarded
 from racecar_hw.bags.writers import RECORDING_OPEN, ROS1_MAGIC, ROS2_METADATA_VERSION, Ros1Writer
 from racecar_hw.base.errors import BagError
 
@@ -553,6 +554,7 @@ def _storage_files(bagdir: Path, suffix: str) -> list[Path]:
     return listed + extra
 
 
+@guarded
 def inspect_bag(path: str | Path) -> BagState:
     """Format, files and completeness of the bag at ``path``; nothing is changed.
 
@@ -589,8 +591,10 @@ def inspect_bag(path: str | Path) -> BagState:
     raise BagError(f"{src} holds no .mcap or .db3 file: not a ROS 2 bag")
 
 
+@guarded
 def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResult:
-    """Make the bag at ``path`` readable after an interrupted recording.
+    """Make the bag at ``path`` readable after an interrupted recording; a bag too damaged for that
+    gives a :class:`BagError` naming it and the cause, and nothing else.
 
     MCAP and ROS 1 bags are rewritten to ``out`` (default: ``<name>.recovered`` next to it for a
     ROS 2 directory, ``<stem>.recovered.bag`` for ROS 1); sqlite3 bags are fixed in place. A bag

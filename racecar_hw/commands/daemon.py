@@ -55,7 +55,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
     status = (StatusPanel(refresh_hz=config.status.refresh_hz)
               if config.status.enabled and not args.no_status else None)
-    return asyncio.run(run_daemon(Daemon(config, status=status)))
+    daemon = Daemon(config, status=status)
+    if daemon.follower is not None:
+        daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
+    return asyncio.run(run_daemon(daemon))
 
 
 async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None) -> int:

@@ -46,10 +46,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_follow(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *(["arming.start_armed=true"] if args.arm else [])]
     config = load_config(args.config, overrides)
-    if not config.arming.start_armed:
-        raise ConfigError("arming.start_armed", "the car starts disarmed, so it would stand still "
-                          "while the bag plays; give --arm to follow armed (the gamepad's BACK "
-                          "still disarms it)")
     topics = {inp.name: inp.topic for inp in config.mux.inputs}
     if args.input not in topics:
         raise ConfigError("--input", f"no mux input {args.input!r}; inputs: " + ", ".join(topics))
@@ -60,7 +56,11 @@ def cmd_follow(args: argparse.Namespace) -> int:
     daemon = Daemon(config)
     follower = daemon.follower
     assert follower is not None
-    follower.load()  # a missing bag or topic is a one-line error before the car is touched
+    follower.load()  # a missing, damaged or out-of-limits bag is a one-line error before the car is touched
+    if not config.arming.start_armed:
+        raise ConfigError("arming.start_armed", "the car starts disarmed, so it would stand still "
+                          "while the bag plays; give --arm to follow armed (the gamepad's BACK "
+                          "still disarms it)")
     with Progress(TextColumn("following"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeRemainingColumn()) as bar:
         task = bar.add_task("bag", total=1.0)

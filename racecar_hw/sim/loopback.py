@@ -21,14 +21,15 @@ from pathlib import Path
 from typing import Any
 
 from lidar_drivers.registry import family, make_fake
-from racecar_hw.bags.follow import load_commands
+from racecar_hw.bags.follow import BagFollower, FollowerParams
+from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.overrides import merge
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import Config, load_config, shipped_config
-from racecar_hw.daemon import Daemon, reverse_speed_cap
+from racecar_hw.daemon import Daemon, command_limits, reverse_speed_cap
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
@@ -100,6 +101,7 @@ class Loopback:
         #: world time (s) when the car was ready to drive: the scenario's time zero
         self.ready_at_s: float | None = None
         self._mux_offset_s = 0.0
+        self._followers: dict[int, BagFollower] = {}  # follow drivers' followers, loaded before the run
 
     # --- building -------------------------------------------------------------------------------
 
@@ -127,15 +129,13 @@ class Loopback:
                          rear_overhang=fp.rear_overhang_m)
 
     def _check(self, config: Config) -> None:
-        """Refuse, before anything starts, what would fail later: a driver on an input the mux does
-        not have, a follow driver whose bag or topic is missing (each a one-line error)."""
+        """Refuse, before anything starts, a driver on an input the mux does not have (a one-line
+        error); follow drivers' bags are loaded next, by :meth:`_follower`."""
         inputs = [inp.name for inp in config.mux.inputs]
         for i, spec in enumerate(self.scenario.drivers):
             if spec.input not in inputs:
                 raise ConfigError(f"scenario.drivers.{i}.input",
                                   f"{spec.input!r} is not a mux input; inputs: {', '.join(inputs)}")
-            if spec.type == "follow":
-                load_commands(spec.bag, spec.topic, config.vesc.wheelbase_m)
 
     def _start_devices(self, config: Config) -> Config:
         sc = self.scenario
@@ -248,14 +248,23 @@ class Loopback:
                                    rate_hz=spec.rate_hz, topic=topic)
             await self._until(Figure8Driver(bus, params).run(), spec.until_s)
         elif spec.type == "follow":
-            from racecar_hw.bags.follow import BagFollower, FollowerParams
+            await self._until(self._follower(spec, bus).run(), spec.until_s)
 
-            params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=topic,
+    def _follower(self, spec: DriverSpec, bus: Bus) -> BagFollower:
+        """The bag follower of a ``follow`` driver, loaded once (raises BagError for a bad bag)."""
+        assert self.config is not None
+        follower = self._followers.get(id(spec))
+        if follower is None:
+            params = FollowerParams(bag=spec.bag, topic=spec.topic, input_topic=self._input_topic(spec.input),
                                     rate_hz=spec.rate_hz, use_timestamps=spec.use_timestamps,
                                     reverse=spec.reverse)
             follower = BagFollower(bus, params, wheelbase_m=self.config.vesc.wheelbase_m,
-                                   reverse_speed_cap_mps=reverse_speed_cap(self.config))
-            await self._until(follower.run(), spec.until_s)
+                                   reverse_speed_cap_mps=reverse_speed_cap(self.config),
+                                   limits=command_limits(self.config))
+            self._followers[id(spec)] = follower
+        follower.bus = bus
+        follower.load()
+        return follower
 
     async def _until(self, coro: Any, until_s: float | None) -> None:
         task = asyncio.ensure_future(coro)
@@ -354,8 +363,12 @@ class Loopback:
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
         try:
-            config = self._build_config()
+            self.config = config = self._build_config()
             self._check(config)
+            # bags first: a missing or damaged one is refused before any device or the daemon starts
+            for spec in self.scenario.drivers:
+                if spec.type == "follow":
+                    await asyncio.to_thread(self._follower, spec, Bus())
             self.config = self._start_devices(config)
             assert self.world is not None
             created_ns = monotonic_ns()

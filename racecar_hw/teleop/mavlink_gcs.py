@@ -1,32 +1,41 @@
 """A MAVLink 2 ground-station link over UDP: telemetry out, teleop, arming and modes in.
 
-The car speaks as an ArduPilot-Rover-like vehicle (MAV_TYPE_GROUND_ROVER, MAV_AUTOPILOT_GENERIC,
-custom modes numbered as ArduPilot Rover numbers them: MANUAL 0, HOLD 4, GUIDED 15) to one ground
-station at ``gcs_address`` (QGroundControl, MAVProxy, a pymavlink script). One UDP socket, bound
-to ``bind_address:bind_port``, sends and receives; replies go to the address the ground station
-last sent an accepted message from (its configured address until then).
+The car speaks as an ArduPilot Rover (MAV_TYPE_GROUND_ROVER, MAV_AUTOPILOT_ARDUPILOTMEGA, custom
+modes numbered as ArduPilot Rover numbers them: MANUAL 0, HOLD 4, GUIDED 15) to one ground station
+at ``gcs_address`` (QGroundControl, MAVProxy, a pymavlink script). QGroundControl names custom modes
+only through its ArduPilot plugin, which it picks for MAV_AUTOPILOT_ARDUPILOTMEGA (with GENERIC it
+shows "Custom:0x0"); MAVProxy and pymavlink name them from the vehicle type whatever the autopilot
+(except PX4). See docs/teleop.md. One UDP socket, bound to ``bind_address:bind_port``, sends and
+receives; telemetry goes to ``gcs_address``, or, when its port is 0, to the port the first
+authenticated message of the ground station came from. It never follows other senders.
 
-Out: HEARTBEAT (1 Hz; armed flag from :class:`~racecar_hw.teleop.arming.Arming`), SYS_STATUS and
-BATTERY_STATUS (1 Hz, from ``/vesc/sensors/core``), ATTITUDE and LOCAL_POSITION_NED (from
-``/odom``, REP-103 ENU/FLU converted to NED/FRD) and OBSTACLE_DISTANCE (72 bins of 5 degrees in
-cm, from ``/scan``) at ``telemetry_rate_hz``, STATUSTEXT for events (arming, modes, safety state
-changes on ``/safety/state``, ground-station link lost and regained), COMMAND_ACK for every
-command addressed to us, PARAM_VALUE for parameter requests (a small read-only list).
+Out: HEARTBEAT (1 Hz; armed flag from :class:`~racecar_hw.teleop.arming.Arming`), SYS_STATUS (with
+sensor bits for the lidar and the motor controller) and BATTERY_STATUS (1 Hz, from
+``/vesc/sensors/core``), ATTITUDE, LOCAL_POSITION_NED and VFR_HUD (from ``/odom``, REP-103 ENU/FLU
+converted to NED/FRD) and OBSTACLE_DISTANCE (72 bins of 5 degrees in cm, from ``/scan``) at
+``telemetry_rate_hz``, STATUSTEXT for events (arming, modes, safety state changes on
+``/safety/state``, ground-station link lost and regained), COMMAND_ACK for every COMMAND_LONG,
+COMMAND_INT and SET_MODE addressed to us, AUTOPILOT_VERSION on request, PARAM_VALUE for parameter
+requests (a small read-only list).
 
-In: MANUAL_CONTROL (ArduPilot Rover: ``y`` steering, +1000 = full right; ``z`` throttle,
--1000..1000 with 0 = stop; ``x`` instead of ``z`` when ``throttle_axis: x``) and
-RC_CHANNELS_OVERRIDE (ch1 steering, ch3 throttle, PWM µs; 0 releases a channel, 65535 leaves it
-unchanged) drive the mux's teleop input at ``rate_hz`` while the input is fresh, the mode is MANUAL
-and the ground station's heartbeats are fresh. COMMAND_LONG / COMMAND_INT ARM_DISARM (400) and
+In (only from the ground station's system id ``gcs_system_id``, ArduPilot's ``SYSID_MYGCS``):
+MANUAL_CONTROL (ArduPilot Rover: ``y`` steering, +1000 = full right; ``z`` throttle, -1000..1000
+with 0 = stop; ``x`` instead of ``z`` when ``throttle_axis: x``) and RC_CHANNELS_OVERRIDE (ch1
+steering, ch3 throttle, PWM µs; 0 releases a channel, 65535 leaves a live value unchanged; a value
+expires ``rc_override_time_s`` after it was sent, ArduPilot's ``RC_OVERRIDE_TIME``) drive the mux's
+teleop input at ``rate_hz`` while the input is fresh, the mode is MANUAL and the ground station's
+heartbeats are fresh. COMMAND_LONG / COMMAND_INT ARM_DISARM (400) and
 DO_SET_MODE (176), and SET_MODE, change the arming and mode. HOLD stops the car through
 :meth:`MavlinkGcs.filter` (a mux filter). When the ground station's heartbeats stop for more
 than ``heartbeat_timeout_s``, its teleop input is dropped (one zero command, then silence) and a
 STATUSTEXT says so.
 
 Security: a ground station outside loopback needs MAVLink 2 signing (``signing_key_file``;
-:class:`~racecar_hw.base.errors.ConfigError` otherwise). With signing on, every unsigned or badly
-signed message is refused and counted. Datagrams from any other host than the ground station's
-are dropped and counted whatever the signing.
+:class:`~racecar_hw.base.errors.ConfigError` otherwise). Datagrams are decoded by
+:class:`~racecar_hw.teleop.mavlink_rx.MavlinkRx`: one datagram at a time, signatures verified
+before any timestamp is recorded; with signing on, every unsigned or badly signed message is
+refused and counted. Datagrams from any other host than the ground station's are dropped and
+counted whatever the signing, and messages from other system ids are ignored and counted.
 """
 
 from __future__ import annotations
@@ -45,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from racecar_hw import __version__
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
@@ -62,12 +72,24 @@ from racecar_hw.base.params import param
 from racecar_hw.runtime.status import StatusSnapshot
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.teleop.arming import Arming, ArmingChange
+from racecar_hw.teleop.mavlink_rx import MavlinkRx
 
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported anywhere: the MAVLink 2 dialects
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 log = logging.getLogger(__name__)
 
+#: The HEARTBEAT autopilot: QGroundControl picks its ArduPilot Rover plugin, which names ArduPilot
+#: Rover's custom modes, only for ARDUPILOTMEGA (src/FirmwarePlugin/APM/APMFirmwarePluginFactory.cc);
+#: MAVProxy names them from the vehicle type for any autopilot but PX4 (pymavlink's
+#: mavutil.mode_string_v10 and mode_mapping_rover).
+AUTOPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+#: AUTOPILOT_VERSION capabilities: only what this link does.
+CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST)
+#: SYS_STATUS reports the lidar healthy while scans are this fresh, the VESC while its telemetry is.
+SCAN_FRESH_NS = NS_PER_S
+VESC_FRESH_NS = NS_PER_S // 2
 #: ArduPilot Rover's custom mode numbers.
 MODES: dict[str, int] = {"MANUAL": 0, "HOLD": 4, "GUIDED": 15}
 MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
@@ -100,15 +122,25 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+_NEEDS_SIGNING = ("the ground station {} is not on loopback: MAVLink 2 signing is required; set "
+                  "signing_key_file to a key file")
+
+
 @dataclass
 class MavlinkParams:
     """The ground-station link: addresses, identity, signing, timeouts and teleop scales."""
 
     enabled: bool = param(False, "run the MAVLink ground-station link")
-    gcs_address: str = param("127.0.0.1:14550", "ground station host:port telemetry is sent to; "
-                                                "any non-loopback host requires signing")
-    bind_address: str = param("auto", "local address to bind; auto = 127.0.0.1 for a loopback "
-                                      "ground station, 0.0.0.0 otherwise")
+    gcs_address: str = param("127.0.0.1:14550", "ground station host:port telemetry is sent to "
+                                                "([::1]:14550 for IPv6); port 0 = the port its first "
+                                                "authenticated message came from; any non-loopback "
+                                                "host requires signing")
+    gcs_system_id: int = param(255, "the ground station's system id (ArduPilot's SYSID_MYGCS): only "
+                                    "its messages are heard; it alone may arm, set modes and drive",
+                               min=1, max=255)
+    bind_address: str = param("auto", "local address to bind; auto = the loopback address of the "
+                                      "ground station's family (127.0.0.1 or ::1) for a loopback "
+                                      "ground station, all addresses (0.0.0.0 or ::) otherwise")
     bind_port: int = param(14555, "local UDP port (0 = ephemeral, for tests)", min=0, max=65535)
     system_id: int = param(1, "our MAVLink system id", min=1, max=255)
     component_id: int = param(1, "our MAVLink component id (1 = autopilot)", min=1, max=255)
@@ -120,6 +152,10 @@ class MavlinkParams:
                                        min=0.2, max=60.0)
     input_timeout_s: float = param(1.0, "a MANUAL_CONTROL / RC override stops driving this long "
                                         "after it arrived", unit="s", min=0.05, max=10.0)
+    rc_override_time_s: float = param(3.0, "an RC override channel value expires this long after the "
+                                           "message that set it (ArduPilot's RC_OVERRIDE_TIME); "
+                                           "65535 keeps a live value but never revives an expired "
+                                           "one", unit="s", min=0.1, max=60.0)
     max_speed_mps: float = param(2.0, "speed at full throttle", unit="m/s", min=0.0, max=20.0)
     max_steering_rad: float = param(0.34, "steering at full deflection (+ left)", unit="rad",
                                     min=0.0, max=1.0)
@@ -139,9 +175,11 @@ class MavlinkParams:
     safety_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray")
 
     def __post_init__(self) -> None:
-        parse_address(self.gcs_address, "mavlink.gcs_address")
+        host, _ = parse_address(self.gcs_address, "mavlink.gcs_address")
         if not self.rc_min_us < self.rc_trim_us < self.rc_max_us:
             raise ConfigError("mavlink.rc_trim_us", "must lie strictly between rc_min_us and rc_max_us")
+        if self.enabled and not self.signing_key_file and not is_loopback(host):
+            raise ConfigError("mavlink.signing_key_file", _NEEDS_SIGNING.format(self.gcs_address))
 
     @property
     def gcs(self) -> tuple[str, int]:
@@ -150,10 +188,14 @@ class MavlinkParams:
 
     @property
     def bind(self) -> tuple[str, int]:
-        """The local (host, port) to bind."""
+        """The local (host, port) to bind: IPv6 when the ground station's address is IPv6."""
         host = self.bind_address
         if host == "auto":
-            host = "127.0.0.1" if is_loopback(self.gcs[0]) else "0.0.0.0"
+            v6 = ":" in self.gcs[0]
+            if is_loopback(self.gcs[0]):
+                host = "::1" if v6 else "127.0.0.1"
+            else:
+                host = "::" if v6 else "0.0.0.0"
         return host, self.bind_port
 
 
@@ -323,37 +365,38 @@ class MavlinkGcs:
         if params.signing_key_file:
             self.secret_key = load_signing_key(params.signing_key_file)
         elif not is_loopback(self._gcs_host):
-            raise ConfigError("mavlink.signing_key_file",
-                              f"the ground station {params.gcs_address} is not on loopback: MAVLink 2 "
-                              "signing is required; set signing_key_file to a key file")
+            raise ConfigError("mavlink.signing_key_file", _NEEDS_SIGNING.format(params.gcs_address))
+        # pymavlink only packs and signs what we send; received datagrams go through self.rx
         self.mav = mavlink.MAVLink(self, params.system_id, params.component_id)
-        self.mav.robust_parsing = True
+        self.rx = MavlinkRx(self.secret_key, signing_timestamp(wall_clock()))
         if self.secret_key is not None:
             self.mav.signing.secret_key = self.secret_key
             self.mav.signing.link_id = params.signing_link_id
-            self.mav.signing.timestamp = signing_timestamp(wall_clock())
+            self.mav.signing.timestamp = self.rx.timestamp
             self.mav.signing.sign_outgoing = True
-            self.mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: False
         self.mode = MODES[params.start_mode]
         self.counters: dict[str, int] = dict.fromkeys((
-            "rx", "tx", "foreign", "bad_data", "unsigned_refused", "bad_signature", "commands", "acks",
-            "manual_inputs", "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts",
-            "send_errors"), 0)
-        self.gcs_system_id: int | None = None
+            "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "mavlink1_refused",
+            "unsigned_refused", "bad_signature", "old_timestamp", "commands", "acks", "manual_inputs",
+            "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts", "send_errors"), 0)
+        self.gcs_system_id = params.gcs_system_id
         self.gcs_heartbeat_ns: int | None = None
         self.gcs_alive = False
         self.manual: ManualInput | None = None
-        self._rc: dict[int, int | None] = {1: None, 3: None}
+        self._rc: dict[int, tuple[int, int] | None] = {1: None, 3: None}  # channel: (µs, set at ns)
         self._publishing = False
-        self._dest: tuple[str, int] = (self._gcs_host, self._gcs_port)
+        #: where telemetry goes: the configured address; with port 0, the first authenticated sender
+        self._dest: tuple[str, int] | None = (self._gcs_host, self._gcs_port) if self._gcs_port else None
         self._transport: asyncio.DatagramTransport | None = None
         self._start_ns = clock()
         self._last_slow_ns: int | None = None
         self._last_fast_ns: int | None = None
         self._safety_key: tuple[int, str] | None = None
         self._vesc: VescStateStamped | None = None
+        self._vesc_ns: int | None = None
         self._odom: Odometry | None = None
         self._scan: LaserScan | None = None
+        self._scan_ns: int | None = None
         self.parameters = [
             ReadOnlyParam("SYSID_THISMAV", params.system_id, mavlink.MAV_PARAM_TYPE_INT32),
             ReadOnlyParam("FS_GCS_TIMEOUT", params.heartbeat_timeout_s, mavlink.MAV_PARAM_TYPE_REAL32),
@@ -401,7 +444,7 @@ class MavlinkGcs:
 
     def write(self, buf: bytes) -> None:
         """pymavlink's file interface: send one packed message to the ground station."""
-        if self._transport is None:
+        if self._transport is None or self._dest is None:
             return
         self._transport.sendto(bytes(buf), self._dest)
         self.counters["tx"] += 1
@@ -452,8 +495,25 @@ class MavlinkGcs:
         elif self.mode == MODES["GUIDED"]:
             base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
         state = mavlink.MAV_STATE_ACTIVE if self.arming.armed else mavlink.MAV_STATE_STANDBY
-        self.mav.heartbeat_send(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_GENERIC, base,
-                                self.mode, state)
+        self.mav.heartbeat_send(mavlink.MAV_TYPE_GROUND_ROVER, AUTOPILOT, base, self.mode, state)
+
+    def send_autopilot_version(self) -> None:
+        """AUTOPILOT_VERSION: what we support (MAVLink 2, COMMAND_INT, C-cast parameter values) and
+        racecar-hw's own version as the flight software version (no custom version, vendor or uid)."""
+        self.mav.autopilot_version_send(CAPABILITIES, _software_version(__version__), 0, 0, 0,
+                                        [0] * 8, [0] * 8, [0] * 8, 0, 0, 0)
+
+    def _sensor_bits(self, now: int) -> tuple[int, int]:
+        """SYS_STATUS (present and enabled, healthy): lidar as PROXIMITY, the VESC as MOTOR_OUTPUTS
+        and BATTERY; healthy while their messages are fresh."""
+        lidar = mavlink.MAV_SYS_STATUS_SENSOR_PROXIMITY
+        motor = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+        healthy = 0
+        if self._scan_ns is not None and now - self._scan_ns <= SCAN_FRESH_NS:
+            healthy |= lidar
+        if self._vesc_ns is not None and now - self._vesc_ns <= VESC_FRESH_NS:
+            healthy |= motor
+        return lidar | motor, healthy
 
     def send_power(self, now: int) -> None:
         """SYS_STATUS always; BATTERY_STATUS once the VESC has reported."""
@@ -468,7 +528,8 @@ class MavlinkGcs:
         errors = (0, 0, 0)
         if snapshot is not None:
             errors = (snapshot.vesc_crc_errors, snapshot.vesc_reconnects, snapshot.lidar_reconnects)
-        self.mav.sys_status_send(0, 0, 0, 0, voltage_mv, current_ca, -1, 0, 0,
+        present, healthy = self._sensor_bits(now)
+        self.mav.sys_status_send(present, present, healthy, 0, voltage_mv, current_ca, -1, 0, 0,
                                  *(min(e, UINT16_MAX) for e in errors), 0)
         if vesc is not None:
             cells = [voltage_mv] + [UINT16_MAX] * 9
@@ -477,14 +538,30 @@ class MavlinkGcs:
                 current_ca, _clamp_int(vesc.charge_drawn * 1000.0, -1, 2**31 - 1),
                 _clamp_int(vesc.energy_drawn * 36.0, -1, 2**31 - 1), -1)
 
+    def send_vfr_hud(self) -> None:
+        """VFR_HUD: ground speed (m/s, also shown as airspeed: a car has none) and heading (degrees
+        from north, NED) from odometry; throttle = |VESC duty cycle| in percent; altitude 0."""
+        speed, heading = 0.0, 0
+        if self._odom is not None:
+            _, velocity, (_, _, yaw), _ = odom_to_ned(self._odom)
+            if all(math.isfinite(v) for v in (*velocity, yaw)):
+                speed = math.hypot(velocity[0], velocity[1])
+                heading = round(math.degrees(yaw)) % 360
+        throttle = 0
+        if self._vesc is not None:
+            throttle = _clamp_int(abs(self._vesc.state.duty_cycle) * 100.0, 0, 100)
+        self.mav.vfr_hud_send(speed, speed, heading, throttle, 0.0, 0.0)
+
     def send_telemetry(self, now: int) -> None:
-        """ATTITUDE and LOCAL_POSITION_NED (from odometry) and OBSTACLE_DISTANCE (from the scan)."""
+        """ATTITUDE, LOCAL_POSITION_NED and VFR_HUD (from odometry) and OBSTACLE_DISTANCE (from the
+        scan)."""
         boot_ms = self._time_boot_ms(now)
         if self._odom is not None:
             position, velocity, attitude, rates = odom_to_ned(self._odom)
             if all(math.isfinite(v) for v in (*position, *velocity, *attitude, *rates)):
                 self.mav.attitude_send(boot_ms, *attitude, *rates)
                 self.mav.local_position_ned_send(boot_ms, *position, *velocity)
+            self.send_vfr_hud()
         if self._scan is not None:
             distances, min_cm, max_cm = obstacle_bins(self._scan)
             self.mav.obstacle_distance_send(
@@ -542,30 +619,32 @@ class MavlinkGcs:
 
     # --- incoming ----------------------------------------------------------------------------
 
-    def handle_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
-        """One UDP datagram from ``addr``: parse and act on every message in it."""
-        if addr[0] != self._gcs_host and not (is_loopback(addr[0]) and is_loopback(self._gcs_host)):
+    def handle_datagram(self, data: bytes, addr: tuple[Any, ...]) -> None:
+        """One UDP datagram from ``addr``: decode it alone and act on every verified message of
+        the ground station in it. Never raises."""
+        host = addr[0]
+        if host != self._gcs_host and not (is_loopback(host) and is_loopback(self._gcs_host)):
             self.counters["foreign"] += 1
             return
-        signing = self.mav.signing
-        rejected, badsig = signing.reject_count, signing.badsig_count
-        try:
-            messages = self.mav.parse_buffer(data) or []
-        except mavlink.MAVError:
-            messages = []
-            self.counters["bad_data"] += 1
-        self.counters["bad_signature"] += signing.badsig_count - badsig
-        self.counters["unsigned_refused"] += ((signing.reject_count - rejected)
-                                             - (signing.badsig_count - badsig))
+        rx = self.rx
+        before = dict(rx.counters)
+        # our signing time follows the wall clock and every accepted timestamp, and never goes back
+        rx.timestamp = max(rx.timestamp, self.mav.signing.timestamp, signing_timestamp(self._wall_clock()))
+        messages = rx.decode(data)
+        self.mav.signing.timestamp = max(self.mav.signing.timestamp, rx.timestamp)
+        for key in ("bad_data", "unknown_ids", "mavlink1_refused", "unsigned_refused", "bad_signature",
+                    "old_timestamp"):
+            self.counters[key] += rx.counters[key] - before[key]
         now = self._clock()
         for msg in messages:
-            kind = msg.get_type()
-            if kind == "BAD_DATA":
-                if "signature" not in str(getattr(msg, "reason", "")):
-                    self.counters["bad_data"] += 1
+            if msg.get_srcSystem() != self.gcs_system_id:
+                self.counters["other_sender"] += 1  # another system: heard, never obeyed
                 continue
             self.counters["rx"] += 1
-            self._dest = (addr[0], addr[1])
+            if self._dest is None:  # gcs_address port 0: the first authenticated station
+                self._dest = (host, addr[1])
+                log.info("MAVLink telemetry to %s port %d", host, addr[1])
+            kind = msg.get_type()
             try:
                 self._dispatch(kind, msg, now)
             except Exception:
@@ -580,7 +659,6 @@ class MavlinkGcs:
         if kind == "HEARTBEAT":
             if msg.type == mavlink.MAV_TYPE_GCS:
                 self.gcs_heartbeat_ns = now
-                self.gcs_system_id = msg.get_srcSystem()
                 if not self.gcs_alive:
                     self.gcs_alive = True
                     self.statustext("GCS connected")
@@ -593,8 +671,13 @@ class MavlinkGcs:
         elif kind in ("COMMAND_LONG", "COMMAND_INT"):
             if self._for_us(msg.target_system, msg.target_component):
                 self.counters["commands"] += 1
-                result = self._command(msg.command, msg.param1, msg.param2, msg)
+                try:
+                    result = self._command(msg, now)
+                except Exception:
+                    log.exception("MAVLink command %s failed", msg.command)
+                    result = mavlink.MAV_RESULT_FAILED
                 self._ack(msg.command, result, msg)
+                self._send_requested(msg, result)
         elif kind == "SET_MODE":
             if self._for_us(msg.target_system):
                 self.counters["commands"] += 1
@@ -642,19 +725,31 @@ class MavlinkGcs:
         self.manual = ManualInput(_axis(throttle) * self.params.max_speed_mps,
                                   -_axis(msg.y) * self.params.max_steering_rad, now, "manual_control")
 
+    def _rc_value(self, channel: int, now: int) -> int | None:
+        """The live override of ``channel`` (µs), or None when released or expired."""
+        held = self._rc[channel]
+        if held is None:
+            return None
+        if now - held[1] > round(self.params.rc_override_time_s * NS_PER_S):
+            self._rc[channel] = None  # expired: 65535 cannot bring it back
+            return None
+        return held[0]
+
     def _take_rc_override(self, msg: Any, now: int) -> None:
         for channel, raw in ((1, msg.chan1_raw), (3, msg.chan3_raw)):
             if raw == UINT16_MAX:
-                continue  # "ignore this field"
-            self._rc[channel] = None if raw == 0 else raw
-        if self._rc[1] is None and self._rc[3] is None:
+                self._rc_value(channel, now)  # "unchanged": a live value stays as it was set
+                continue
+            self._rc[channel] = None if raw == 0 else (raw, now)
+        steering, throttle = self._rc_value(1, now), self._rc_value(3, now)
+        if steering is None and throttle is None:
             if self.manual is not None and self.manual.kind == "rc_override":
-                self.manual = None  # both channels released: stop driving now
+                self.manual = None  # both channels released or expired: stop driving now
             return
         if not self._accept_input():
             return
-        self.manual = ManualInput(self._pwm(self._rc[3]) * self.params.max_speed_mps,
-                                  -self._pwm(self._rc[1]) * self.params.max_steering_rad, now, "rc_override")
+        self.manual = ManualInput(self._pwm(throttle) * self.params.max_speed_mps,
+                                  -self._pwm(steering) * self.params.max_steering_rad, now, "rc_override")
 
     def _pwm(self, raw: int | None) -> float:
         """-1..1 from a PWM width (µs); None (released) is 0."""
@@ -665,11 +760,20 @@ class MavlinkGcs:
             return min(1.0, (raw - p.rc_trim_us) / (p.rc_max_us - p.rc_trim_us))
         return max(-1.0, (raw - p.rc_trim_us) / (p.rc_trim_us - p.rc_min_us))
 
-    def _command(self, command: int, param1: float, param2: float, msg: Any) -> int:
+    def _input_fresh(self, manual: ManualInput | None, now: int) -> bool:
+        return (manual is not None
+                and now - manual.received_ns <= round(self.params.input_timeout_s * NS_PER_S))
+
+    def _command(self, msg: Any, now: int) -> int:
+        """The result of a COMMAND_LONG / COMMAND_INT (every one is acknowledged)."""
+        command, param1, param2 = msg.command, msg.param1, msg.param2
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            if not (math.isfinite(param1) and math.isfinite(param2)):
+                return mavlink.MAV_RESULT_DENIED
             if param1 == 1.0:
                 manual = self.manual
-                if manual is not None and manual.speed != 0.0 and param2 != FORCE_ARM_MAGIC:
+                if (self._input_fresh(manual, now) and manual is not None and manual.speed != 0.0
+                        and param2 != FORCE_ARM_MAGIC):
                     self.statustext("Arm refused: GCS throttle not centred", mavlink.MAV_SEVERITY_WARNING)
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
                 self.arming.arm("gcs", "armed by the ground station")
@@ -679,8 +783,37 @@ class MavlinkGcs:
                 return mavlink.MAV_RESULT_ACCEPTED
             return mavlink.MAV_RESULT_DENIED
         if command == mavlink.MAV_CMD_DO_SET_MODE:
+            if not math.isfinite(param2):
+                return mavlink.MAV_RESULT_DENIED
             return self._set_mode(round(param2))
+        if command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            return mavlink.MAV_RESULT_ACCEPTED if param1 == 1.0 else mavlink.MAV_RESULT_DENIED
+        if command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            if not math.isfinite(param1):
+                return mavlink.MAV_RESULT_DENIED
+            return (mavlink.MAV_RESULT_ACCEPTED if round(param1) in self._requestable
+                    else mavlink.MAV_RESULT_UNSUPPORTED)
         return mavlink.MAV_RESULT_UNSUPPORTED
+
+    @property
+    def _requestable(self) -> dict[int, Callable[[], None]]:
+        """Messages MAV_CMD_REQUEST_MESSAGE can ask for, by message id."""
+        now = self._clock()
+        return {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self.send_heartbeat,
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.send_autopilot_version,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: lambda: self.send_power(now),
+            mavlink.MAVLINK_MSG_ID_VFR_HUD: self.send_vfr_hud,
+        }
+
+    def _send_requested(self, msg: Any, result: int) -> None:
+        """After an accepted request's ACK: the message it asked for."""
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            return
+        if msg.command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            self.send_autopilot_version()
+        elif msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            self._requestable[round(msg.param1)]()
 
     def _set_mode(self, custom_mode: int) -> int:
         if custom_mode not in MODE_NAMES:
@@ -695,12 +828,14 @@ class MavlinkGcs:
 
     def _on_vesc(self, msg: VescStateStamped) -> None:
         self._vesc = msg
+        self._vesc_ns = self._clock()
 
     def _on_odom(self, msg: Odometry) -> None:
         self._odom = msg
 
     def _on_scan(self, msg: LaserScan) -> None:
         self._scan = msg
+        self._scan_ns = self._clock()
 
     def _on_safety(self, msg: DiagnosticArray) -> None:
         """A STATUSTEXT when the safety controller's level or reason changes (not for a first OK)."""
@@ -727,6 +862,14 @@ def _axis(value: int) -> float:
     if value == INT16_MAX:
         return 0.0
     return max(-1.0, min(1.0, value / 1000.0))
+
+
+def _software_version(text: str) -> int:
+    """``major.minor.patch`` as AUTOPILOT_VERSION encodes it (ArduPilot's layout: one byte each,
+    then the release type; we say FIRMWARE_VERSION_TYPE_DEV)."""
+    parts = [int(p) if p.isdigit() else 0 for p in text.split(".")[:3]] + [0, 0, 0]
+    major, minor, patch = (min(255, v) for v in parts[:3])
+    return (major << 24) | (minor << 16) | (patch << 8) | mavlink.FIRMWARE_VERSION_TYPE_DEV
 
 
 def _clamp_int(value: float, lo: int, hi: int) -> int:

@@ -1,0 +1,357 @@
+"""Reading damaged bags safely: one error type, bounded memory, and commands that make sense.
+
+A damaged or hostile bag must not crash the follower or the recovery tool, exhaust memory, or put
+absurd values into the control path. Three pieces, used by every bag reader here:
+
+* :func:`guarded` / :func:`reading`: whatever a reader raises (rosbags' ``ReaderError``, an
+  ``AssertionError`` or ``KeyError`` from a malformed index, ``struct.error``, sqlite errors, a
+  decompressor's error, ``MemoryError``) leaves as one :class:`~racecar_hw.base.errors.BagError`
+  naming the file and the cause.
+* :func:`check_storage`: before a reader allocates anything, the sizes the file declares (records,
+  chunks and their uncompressed sizes, the offsets its index points at) are checked against the
+  file and against ``max_message_bytes``. It follows what rosbags reads: a ROS 1 bag's header,
+  index and chunk records; every record of an MCAP file; the largest message of a sqlite3 bag.
+* :func:`check_commands`: every loaded drive command must be finite and within the car's
+  configured speed and steering limits, or the bag is refused naming the first bad message's index
+  and time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import sqlite3
+import struct
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any, Protocol, TypeVar
+
+from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.errors import BagError
+from racecar_hw.base.messages import AckermannDrive
+
+#: The largest record (a message, or a chunk of messages) read from a bag, in bytes. A drive
+#: command is under 100 bytes; a chunk of a recording with camera images can reach a few MB.
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+LZ4_FRAME_MAGIC = b"\x04\x22\x4d\x18"
+#: MCAP records rosbags reads into memory whole (header, schema, channel, message, chunk, chunk
+#: index, statistics); it seeks past the others (attachments, metadata, indexes it does not use).
+MCAP_READ_WHOLE = frozenset((0x01, 0x03, 0x04, 0x05, 0x06, 0x08, 0x0B))
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+# --- one error type ---------------------------------------------------------------------------
+
+
+#: The longest cause quoted from a reader's exception (some quote a whole message definition).
+MAX_CAUSE_CHARS = 160
+
+
+def describe(err: BaseException) -> str:
+    """A reader's exception as a one-line cause a user can act on."""
+    if isinstance(err, MemoryError):
+        return "it declares more data than fits in memory (damaged?)"
+    text = " ".join(str(err).split()) or "no details"
+    if len(text) > MAX_CAUSE_CHARS:
+        text = text[:MAX_CAUSE_CHARS - 3] + "..."
+    if isinstance(err, sqlite3.Error):
+        return f"its sqlite3 storage is damaged ({text})"
+    name = type(err).__name__
+    return text if name.endswith(("ReaderError", "BagError")) else f"damaged data ({name}: {text})"
+
+
+@contextlib.contextmanager
+def reading(path: str | Path) -> Iterator[None]:
+    """Turn anything but :class:`BagError` raised inside into a BagError naming ``path``."""
+    try:
+        yield
+    except BagError:
+        raise
+    except (Exception, MemoryError, RecursionError) as err:
+        raise BagError(f"cannot read bag {path}: {describe(err)}") from err
+
+
+def guarded(fn: F) -> F:
+    """Decorate a bag reader whose first argument is the bag's path: only BagError escapes."""
+
+    @functools.wraps(fn)
+    def wrapper(path: str | Path, *args: Any, **kwargs: Any) -> Any:
+        with reading(path):
+            return fn(path, *args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
+# --- bounded memory ---------------------------------------------------------------------------
+
+
+def check_storage(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+    """Refuse (BagError) a bag whose declared sizes exceed the file or ``max_bytes``.
+
+    ``path`` is a ROS 1 ``.bag`` file, an MCAP file, or a ROS 2 bag directory (each ``.mcap`` and
+    ``.db3`` in it is checked). Files of other kinds are left to the reader, which refuses them.
+    """
+    files = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3")) if path.is_dir() else [path]
+    for file in files:
+        if file.suffix == ".db3":
+            _check_sqlite3(file, max_bytes)
+            continue
+        with file.open("rb") as f:
+            magic = f.read(len(ROS1_MAGIC))
+            size = file.stat().st_size
+            if magic.startswith(MCAP_MAGIC):
+                _check_mcap(_Storage(file, f, size, max_bytes))
+            elif magic == ROS1_MAGIC:
+                _check_ros1(_Storage(file, f, size, max_bytes))
+
+
+@dataclass
+class _Storage:
+    """An open bag file, its size, and the limit."""
+
+    path: Path
+    f: IO[bytes]
+    size: int
+    limit: int
+
+    def read(self, pos: int, n: int) -> bytes:
+        self.f.seek(pos)
+        data = self.f.read(n)
+        if len(data) != n:
+            raise BagError(f"{self.path}: the file ends at byte {self.size}, inside a record at byte "
+                           f"{pos} (truncated? an interrupted recording can be recovered with "
+                           f"racecar_hw.bags.recover)")
+        return data
+
+    def declared(self, what: str, pos: int, n: int, end: int | None = None, limited: bool = True) -> None:
+        """``n`` bytes declared at ``pos`` must fit the file (up to ``end``) and, when the reader
+        will hold them in memory (``limited``), the limit."""
+        left = (self.size if end is None else end) - pos
+        if n > left:
+            raise BagError(f"{self.path}: {what} at byte {pos} declares {n} bytes, but only {left} "
+                           "follow (a damaged or truncated file)")
+        if limited and n > self.limit:
+            raise BagError(f"{self.path}: {what} at byte {pos} declares {n} bytes, over the "
+                           f"limit of {self.limit} (max_message_bytes); refused before reading it")
+
+
+def _lz4_content_size(data: bytes) -> int | None:
+    """The content size an LZ4 frame header declares (None when it declares none)."""
+    if len(data) < 6 or data[:4] != LZ4_FRAME_MAGIC or not data[4] & 0x08:
+        return None
+    return _U64.unpack_from(data, 6)[0] if len(data) >= 14 else None
+
+
+# ROS 1: what rosbags reads - the bag header, the index at index_pos (connections, chunk infos),
+# then each chunk and the index data records behind it.
+
+
+def _ros1_record(s: _Storage, pos: int) -> tuple[dict[str, bytes], int, int]:
+    """(header fields, data position, data length) of the record at ``pos``."""
+    (hlen,) = _U32.unpack(s.read(pos, 4))
+    s.declared("a record header", pos + 4, hlen)
+    header = s.read(pos + 4, hlen)
+    fields: dict[str, bytes] = {}
+    i = 0
+    while i < hlen:
+        if i + 4 > hlen:
+            raise BagError(f"{s.path}: a damaged record header at byte {pos}")
+        (flen,) = _U32.unpack_from(header, i)
+        name, sep, value = header[i + 4:i + 4 + flen].partition(b"=")
+        if i + 4 + flen > hlen or not sep:
+            raise BagError(f"{s.path}: a damaged record header at byte {pos}")
+        fields[name.decode("ascii", "replace")] = value
+        i += 4 + flen
+    data_pos = pos + 4 + hlen + 4
+    (dlen,) = _U32.unpack(s.read(pos + 4 + hlen, 4))
+    s.declared("a record's data", data_pos, dlen)
+    return fields, data_pos, dlen
+
+
+def _field_int(s: _Storage, fields: dict[str, bytes], name: str, fmt: struct.Struct) -> int:
+    value = fields.get(name)
+    if value is None or len(value) != fmt.size:
+        raise BagError(f"{s.path}: a record lacks its {name!r} field (a damaged file)")
+    return int(fmt.unpack(value)[0])
+
+
+def _check_ros1(s: _Storage) -> None:
+    fields, data_pos, dlen = _ros1_record(s, len(ROS1_MAGIC))
+    index_pos = _field_int(s, fields, "index_pos", _U64)
+    conn_count = _field_int(s, fields, "conn_count", _U32)
+    chunk_count = _field_int(s, fields, "chunk_count", _U32)
+    if not index_pos or not chunk_count:
+        return  # rosbags refuses an unindexed bag, and an empty one reads nothing more
+    pos = index_pos
+    for _ in range(conn_count):
+        _, data_pos, dlen = _ros1_record(s, pos)
+        pos = data_pos + dlen
+    for _ in range(chunk_count):
+        fields, data_pos, dlen = _ros1_record(s, pos)
+        count = _field_int(s, fields, "count", _U32)
+        if count * 8 > dlen:
+            raise BagError(f"{s.path}: a chunk info at byte {pos} lists more connections than it holds")
+        _check_ros1_chunk(s, _field_int(s, fields, "chunk_pos", _U64), count)
+        pos = data_pos + dlen
+
+
+def _check_ros1_chunk(s: _Storage, pos: int, index_records: int) -> None:
+    fields, data_pos, dlen = _ros1_record(s, pos)
+    if fields.get("op") != b"\x05":
+        raise BagError(f"{s.path}: the index points at byte {pos}, which holds no chunk")
+    uncompressed = _field_int(s, fields, "size", _U32)
+    if uncompressed > s.limit:
+        raise BagError(f"{s.path}: the chunk at byte {pos} declares {uncompressed} bytes uncompressed, "
+                       f"over the limit of {s.limit} (max_message_bytes); refused before reading it")
+    if fields.get("compression") == b"lz4":
+        content = _lz4_content_size(s.read(data_pos, min(dlen, 14)))
+        if content is not None and content > s.limit:
+            raise BagError(f"{s.path}: the chunk at byte {pos} decompresses to {content} bytes, over "
+                           f"the limit of {s.limit} (max_message_bytes)")
+    pos = data_pos + dlen
+    for _ in range(index_records):
+        _, data_pos, dlen = _ros1_record(s, pos)
+        pos = data_pos + dlen
+
+
+# MCAP: every record from the header to the footer; the chunk indexes must point at chunks.
+
+
+def _check_mcap(s: _Storage) -> None:
+    pos = len(MCAP_MAGIC)
+    end = s.size - len(MCAP_MAGIC)
+    if end < pos or s.read(end, len(MCAP_MAGIC)) != MCAP_MAGIC:
+        return  # not closed (an interrupted recording): the reader refuses it and says so
+    starts: set[int] = set()
+    chunks: dict[int, int] = {}  # chunk record offset -> record length
+    while pos < end:
+        op = s.read(pos, 1)[0]
+        (length,) = _U64.unpack(s.read(pos + 1, 8))
+        starts.add(pos)
+        s.declared(f"record 0x{op:02x}", pos + 9, length, end, limited=op in MCAP_READ_WHOLE)
+        if op == 0x02:  # footer: the summary it points at must start at a record
+            if length >= 8:
+                (summary,) = _U64.unpack(s.read(pos + 9, 8))
+                if summary and summary not in starts:
+                    raise BagError(f"{s.path}: the footer points at byte {summary}, which starts no record")
+            return
+        if op == 0x06:
+            _check_mcap_chunk(s, pos, length)
+            chunks[pos] = length
+        elif op == 0x08:
+            _check_mcap_chunk_index(s, pos, length, chunks)
+        pos += 9 + length
+    raise BagError(f"{s.path}: no footer record (truncated? an interrupted recording can be recovered "
+                   "with racecar_hw.bags.recover)")
+
+
+def _mcap_sizes(s: _Storage, at: int, end: int) -> tuple[str, int]:
+    """(compression, the u64 after it) of a chunk or chunk index record."""
+    (n,) = _U32.unpack(s.read(at, 4))
+    s.declared("a compression name", at + 4, n, end)
+    name = s.read(at + 4, n).decode("ascii", "replace")
+    (value,) = _U64.unpack(s.read(at + 4 + n, 8))
+    return name, value
+
+
+def _check_mcap_chunk(s: _Storage, pos: int, length: int) -> None:
+    body = pos + 9
+    end = body + length
+    (uncompressed,) = _U64.unpack(s.read(body + 16, 8))
+    compression, compressed = _mcap_sizes(s, body + 28, end)
+    data = body + 28 + 4 + len(compression.encode()) + 8
+    s.declared("a chunk's data", data, compressed, end)
+    if uncompressed > s.limit:
+        raise BagError(f"{s.path}: the chunk at byte {pos} declares {uncompressed} bytes uncompressed, "
+                       f"over the limit of {s.limit} (max_message_bytes); refused before reading it")
+    if compression == "lz4":
+        content = _lz4_content_size(s.read(data, min(compressed, 14)))
+        if content is not None and content > s.limit:
+            raise BagError(f"{s.path}: the chunk at byte {pos} decompresses to {content} bytes, over "
+                           f"the limit of {s.limit} (max_message_bytes)")
+
+
+def _check_mcap_chunk_index(s: _Storage, pos: int, length: int, chunks: dict[int, int]) -> None:
+    body = pos + 9
+    end = body + length
+    start, chunk_length = _U64.unpack(s.read(body + 16, 8))[0], _U64.unpack(s.read(body + 24, 8))[0]
+    if chunks.get(start) != chunk_length - 9:
+        raise BagError(f"{s.path}: a chunk index at byte {pos} points at byte {start}, which holds no "
+                       "chunk of that length")
+    (offsets_len,) = _U32.unpack(s.read(body + 32, 4))
+    s.declared("a chunk index's offsets", body + 36, offsets_len, end)
+    compression, compressed = _mcap_sizes(s, body + 36 + offsets_len + 8, end)
+    (uncompressed,) = _U64.unpack(s.read(body + 36 + offsets_len + 8 + 4 + len(compression.encode()) + 8, 8))
+    if compressed > chunk_length or uncompressed > s.limit:
+        raise BagError(f"{s.path}: a chunk index at byte {pos} declares {compressed} compressed, "
+                       f"{uncompressed} uncompressed bytes: a damaged index, or over the limit of "
+                       f"{s.limit} (max_message_bytes)")
+
+
+def _check_sqlite3(db: Path, max_bytes: int) -> None:
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    except sqlite3.Error as err:
+        raise BagError(f"cannot read bag {db}: {describe(err)}") from err
+    try:
+        (largest,) = con.execute("SELECT MAX(LENGTH(data)) FROM messages").fetchone()
+    except sqlite3.Error as err:
+        raise BagError(f"cannot read bag {db}: {describe(err)}") from err
+    finally:
+        con.close()
+    if largest is not None and largest > max_bytes:
+        raise BagError(f"{db}: a message of {largest} bytes, over the limit of {max_bytes} "
+                       "(max_message_bytes); refused before reading it")
+
+
+# --- commands that make sense -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CommandLimits:
+    """What a loaded command may ask for: |speed| (m/s) and |steering| (rad); inf = no limit."""
+
+    max_speed_mps: float = math.inf
+    max_steering_rad: float = math.inf
+
+
+class _Timed(Protocol):
+    t_ns: int
+    drive: AckermannDrive
+
+
+#: Relative slack on the limits: a float32 bag value of the limit itself may round just above it.
+_SLACK = 1e-6
+
+
+def check_commands(commands: Sequence[_Timed], limits: CommandLimits, path: str | Path, topic: str) -> None:
+    """Refuse (BagError) the bag at the first command that is not finite or beyond ``limits``,
+    naming its index on ``topic`` and its time (seconds after the first command, and bag time)."""
+    t0 = commands[0].t_ns if commands else 0
+    for i, cmd in enumerate(commands):
+        d = cmd.drive
+        fields = {"speed": d.speed, "steering_angle": d.steering_angle, "acceleration": d.acceleration,
+                  "jerk": d.jerk, "steering_angle_velocity": d.steering_angle_velocity}
+        problem = next((f"{name} {value}" for name, value in fields.items() if not math.isfinite(value)),
+                       None)
+        if problem is None and abs(d.speed) > limits.max_speed_mps * (1 + _SLACK):
+            problem = f"speed {d.speed:g} m/s, beyond the car's limit of {limits.max_speed_mps:g} m/s"
+        if problem is None and abs(d.steering_angle) > limits.max_steering_rad * (1 + _SLACK):
+            problem = (f"steering {d.steering_angle:g} rad, beyond the car's limit of "
+                       f"{limits.max_steering_rad:g} rad")
+        if problem is not None:
+            raise BagError(f"{path}: message {i} on {topic} ({(cmd.t_ns - t0) / NS_PER_S:.3f} s into "
+                           f"the recording, bag time {cmd.t_ns / NS_PER_S:.3f} s) asks for {problem}; "
+                           "the bag is refused")
+
+
+__all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits", "check_commands", "check_storage", "describe",
+           "guarded", "reading"]

@@ -1,0 +1,486 @@
+"""Hostile and broken MAVLink input, with real pymavlink-built packets (signed and unsigned).
+
+The link runs on a real UDP socket on loopback; attackers and the ground station are pymavlink
+encoders whose bytes go out of plain UDP sockets, and the ground station reads our replies with
+pymavlink. Time-dependent rules (RC override expiry, stale input) run on a test clock through
+:meth:`MavlinkGcs.handle_datagram`, the same entry the socket uses.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import random
+import socket
+import sys
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import async_wait_for
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil  # noqa: E402
+
+from racecar_hw.base.bus import Bus  # noqa: E402
+from racecar_hw.base.clock import NS_PER_S, wall_ns  # noqa: E402
+from racecar_hw.base.messages import LaserScan, Odometry, VescState, VescStateStamped  # noqa: E402
+from racecar_hw.cli import main as cli_main  # noqa: E402
+from racecar_hw.teleop.arming import Arming  # noqa: E402
+from racecar_hw.teleop.mavlink_gcs import (  # noqa: E402
+    MavlinkGcs,
+    MavlinkParams,
+    signing_timestamp,
+    write_signing_key,
+)
+
+mav = mavutil.mavlink
+TELEOP = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
+GCS = 255
+
+
+class Packer:
+    """pymavlink as a ground station's (or an attacker's) encoder: messages to datagram bytes."""
+
+    def __init__(self, system: int = GCS, component: int = 190, key: bytes | None = None,
+                 link_id: int = 0, timestamp: int | None = None) -> None:
+        self.out: list[bytes] = []
+        self.mav = mav.MAVLink(self, system, component)
+        if key is not None:
+            self.mav.signing.secret_key = key
+            self.mav.signing.link_id = link_id
+            self.mav.signing.timestamp = signing_timestamp(wall_ns()) if timestamp is None else timestamp
+            self.mav.signing.sign_outgoing = True
+
+    def write(self, data: bytes) -> None:
+        self.out.append(bytes(data))
+
+    def heartbeat(self) -> bytes:
+        self.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        return self.out.pop()
+
+    def arm(self, on: bool = True, param2: float = 0.0) -> bytes:
+        self.mav.command_long_send(1, 1, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1.0 if on else 0.0, param2,
+                                   0, 0, 0, 0, 0)
+        return self.out.pop()
+
+    def command(self, command: int, *params: float, kind: str = "long") -> bytes:
+        p = list(params) + [0.0] * (7 - len(params))
+        if kind == "long":
+            self.mav.command_long_send(1, 1, command, 0, *p)
+        else:
+            self.mav.command_int_send(1, 1, 0, command, 0, 0, *p[:4], 0, 0, p[6])
+        return self.out.pop()
+
+    def manual(self, z: int, y: int = 0) -> bytes:
+        self.mav.manual_control_send(1, 0, y, z, 0, 0)
+        return self.out.pop()
+
+    def rc(self, ch1: int, ch3: int) -> bytes:
+        self.mav.rc_channels_override_send(1, 1, ch1, 65535, ch3, 65535, 65535, 65535, 65535, 65535)
+        return self.out.pop()
+
+
+class Station:
+    """The ground station's socket: sends datagrams, receives our telemetry with pymavlink."""
+
+    def __init__(self, key: bytes | None = None, family: int = socket.AF_INET) -> None:
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        self.sock.bind(("::1" if family == socket.AF_INET6 else "127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.parser = mav.MAVLink(None)
+        if key is not None:
+            self.parser.signing.secret_key = key
+        self.got: list[Any] = []
+
+    @property
+    def address(self) -> str:
+        host, port = self.sock.getsockname()[:2]
+        return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+    def send(self, link: MavlinkGcs, *datagrams: bytes) -> None:
+        host = "::1" if self.sock.family == socket.AF_INET6 else "127.0.0.1"
+        for d in datagrams:
+            self.sock.sendto(d, (host, link.port))
+
+    def find(self, kind: str, pred: Callable[[Any], bool] = lambda m: True) -> list[Any]:
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except BlockingIOError:
+                break
+            self.got.extend(m for m in (self.parser.parse_buffer(data) or []) if m.get_type() != "BAD_DATA")
+        return [m for m in self.got if m.get_type() == kind and pred(m)]
+
+    async def wait(self, kind: str, pred: Callable[[Any], bool] = lambda m: True) -> Any:
+        await async_wait_for(lambda: self.find(kind, pred))
+        return self.find(kind, pred)[-1]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def ack_of(command: int, result: int | None = None) -> Callable[[Any], bool]:
+    return lambda m: m.command == command and (result is None or m.result == result)
+
+
+async def started(params: MavlinkParams, arming: Arming, bus: Bus | None = None) -> MavlinkGcs:
+    link = MavlinkGcs(bus or Bus(), params, arming)
+    await link.start()
+    return link
+
+
+def run(coro_fn: Callable[[], Any]) -> None:
+    asyncio.run(coro_fn())
+
+
+Scenario = Callable[[MavlinkGcs, Station, Arming, bytes], Awaitable[None]]
+
+
+def run_signed(tmp_path: Path, scenario: Scenario) -> None:
+    """``scenario(link, station, arming, key)`` against a link with signing on, started disarmed."""
+    key = write_signing_key(tmp_path / "key")
+
+    async def main() -> None:
+        arming = Arming(start_armed=False)
+        gs = Station(key)
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0,
+                                           signing_key_file=str(tmp_path / "key")), arming)
+        try:
+            await scenario(link, gs, arming, key)
+        finally:
+            link.close()
+            gs.close()
+
+    asyncio.run(main())
+
+
+# --- signing: the lockout attacks fail ---------------------------------------------------------
+
+
+def test_forged_far_future_packets_on_every_link_id_do_not_lock_out_the_signed_station(tmp_path: Path):
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
+        attacker = Station()
+        far_future = 2**48 - 10_000
+        for link_id in range(256):  # the ground station's ids, every link id, a forged signature
+            forged = Packer(key=os.urandom(32), link_id=link_id, timestamp=far_future)
+            attacker.send(link, forged.heartbeat(), forged.arm())
+            if link_id % 16 == 15:  # in bursts the socket buffer holds
+                await async_wait_for(lambda n=2 * link_id + 2: link.counters["bad_signature"] == n)
+        attacker.close()
+        assert not link.rx.streams and not arming.armed and not link.gcs_alive
+        station = Packer(key=key)
+        gs.send(link, station.heartbeat(), station.arm())
+        ack = await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM))
+        assert ack.result == mav.MAV_RESULT_ACCEPTED and arming.armed and link.gcs_alive
+        assert ack.get_signed()  # our reply is signed with the shared key
+
+    run_signed(tmp_path, scenario)
+
+
+def test_one_corrupted_timestamp_byte_or_a_replay_changes_nothing(tmp_path: Path):
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
+        station = Packer(key=key)
+        genuine = bytearray(station.heartbeat())
+        genuine[-7] = 0xFF  # the timestamp's top byte, as a noisy link could flip it
+        gs.send(link, bytes(genuine))
+        await async_wait_for(lambda: link.counters["bad_signature"] == 1)
+        assert not link.rx.streams  # nothing recorded from a frame whose signature failed
+        beat = station.heartbeat()
+        gs.send(link, beat)
+        await async_wait_for(lambda: link.gcs_alive)
+        gs.send(link, beat)  # a replay of the same signed frame
+        await async_wait_for(lambda: link.counters["old_timestamp"] == 1)
+        gs.send(link, station.arm())
+        await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
+        assert arming.armed
+
+    run_signed(tmp_path, scenario)
+
+
+def test_unsigned_packets_from_another_port_are_refused_and_never_redirect_telemetry(tmp_path: Path):
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
+        stranger = Station()
+        unsigned = Packer()
+        stranger.send(link, unsigned.heartbeat(), unsigned.arm(), unsigned.manual(800))
+        await async_wait_for(lambda: link.counters["unsigned_refused"] == 3)
+        link.send_heartbeat()
+        await gs.wait("HEARTBEAT")
+        assert not stranger.find("HEARTBEAT") and not arming.armed
+        stranger.close()
+
+    run_signed(tmp_path, scenario)
+
+
+# --- who may drive -----------------------------------------------------------------------------
+
+
+def test_a_strangers_system_id_cannot_arm_drive_set_modes_or_redirect_telemetry():
+    async def main() -> None:
+        bus = Bus()
+        drives: list[float] = []
+        bus.subscribe(TELEOP, lambda m: drives.append(m.drive.speed))
+        arming = Arming(start_armed=False)
+        gs = Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0,
+                                           rate_hz=50.0), arming, bus)
+        task = asyncio.create_task(link.run())
+        stranger = Station()
+        other = Packer(system=77)
+        for _ in range(3):
+            stranger.send(link, other.heartbeat(), other.arm(), other.manual(900), other.rc(1500, 1900),
+                          other.command(mav.MAV_CMD_DO_SET_MODE, 1, 4))
+        await async_wait_for(lambda: link.counters["other_sender"] == 15)
+        await gs.wait("HEARTBEAT")
+        assert not link.gcs_alive and not arming.armed and link.mode_name == "MANUAL"
+        assert link.counters["acks"] == 0 and link.manual is None and not drives
+        assert not stranger.find("HEARTBEAT") and not stranger.find("COMMAND_ACK")
+        # the ground station's own system id is obeyed
+        station = Packer()
+        gs.send(link, station.heartbeat(), station.arm())
+        await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        gs.close()
+        stranger.close()
+
+    run(main)
+
+
+def test_with_port_0_telemetry_latches_onto_the_first_authenticated_station():
+    async def main() -> None:
+        arming = Arming(start_armed=False)
+        first, second, stranger = Station(), Station(), Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address="127.0.0.1:0", bind_port=0), arming)
+        link.send_heartbeat()  # nowhere to go yet
+        assert link.counters["tx"] == 0
+        stranger.send(link, Packer(system=77).heartbeat())
+        await async_wait_for(lambda: link.counters["other_sender"] == 1)
+        first.send(link, Packer().heartbeat())
+        await async_wait_for(lambda: link.gcs_alive)
+        second.send(link, Packer().heartbeat())  # the same system id from elsewhere: heard ...
+        await async_wait_for(lambda: link.counters["rx"] == 2)
+        link.send_heartbeat()
+        await first.wait("HEARTBEAT")  # ... but telemetry stays with the first
+        assert not second.find("HEARTBEAT") and not stranger.find("HEARTBEAT")
+        link.close()
+        for s in (first, second, stranger):
+            s.close()
+
+    run(main)
+
+
+# --- commands are always answered --------------------------------------------------------------
+
+
+def test_every_command_is_acknowledged_even_with_nan_or_inf_parameters():
+    async def main() -> None:
+        arming = Arming(start_armed=False)
+        gs = Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), arming)
+        p = Packer()
+        nan, inf = math.nan, math.inf
+        cases = [
+            (mav.MAV_CMD_COMPONENT_ARM_DISARM, (nan,), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, inf), "int", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_DO_SET_MODE, (1.0, nan), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_DO_SET_MODE, (1.0, -inf), "int", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_REQUEST_MESSAGE, (nan,), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_NAV_WAYPOINT, (nan,) * 7, "long", mav.MAV_RESULT_UNSUPPORTED),
+        ]
+        gs.send(link, p.heartbeat(), *(p.command(c, *params, kind=kind) for c, params, kind, _ in cases))
+        await async_wait_for(lambda: len(gs.find("COMMAND_ACK")) == len(cases))
+        acks = gs.find("COMMAND_ACK")
+        assert [(a.command, a.result) for a in acks] == [(c, r) for c, _, _, r in cases]
+        assert not arming.armed and link.mode_name == "MANUAL"
+        link.close()
+        gs.close()
+
+    run(main)
+
+
+def test_autopilot_version_vfr_hud_and_sensor_bits_for_ground_stations():
+    async def main() -> None:
+        bus = Bus()
+        gs = Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), Arming(), bus)
+        p = Packer()
+        gs.send(link, p.command(mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1),
+                p.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION, kind="int"))
+        await async_wait_for(lambda: len(gs.find("AUTOPILOT_VERSION")) == 2)
+        version = gs.find("AUTOPILOT_VERSION")[0]
+        assert version.capabilities & mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+        assert version.capabilities & mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+        assert not version.capabilities & mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT  # no missions here
+        assert version.flight_sw_version >> 8 == 0x000100  # racecar-hw 0.1.0
+        assert [a.result for a in gs.find("COMMAND_ACK")] == [mav.MAV_RESULT_ACCEPTED] * 2
+        # SYS_STATUS: lidar (proximity) and VESC (motor outputs, battery) present; healthy when fresh
+        link.send_power(link._clock())  # noqa: SLF001 - the link's own clock
+        status = await gs.wait("SYS_STATUS")
+        lidar, motor = mav.MAV_SYS_STATUS_SENSOR_PROXIMITY, mav.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+        assert status.onboard_control_sensors_present & (lidar | motor) == lidar | motor
+        assert not status.onboard_control_sensors_health & (lidar | motor)
+        odom = Odometry()
+        odom.twist.twist.linear.x = 1.5  # facing odom +x = east
+        bus.publish("/odom", odom)
+        bus.publish("/vesc/sensors/core",
+                    VescStateStamped(state=VescState(voltage_input=12.0, duty_cycle=-0.25)))
+        bus.publish("/scan", LaserScan(angle_increment=0.1, range_max=10.0))
+        link.send_power(link._clock())  # noqa: SLF001
+        link.send_vfr_hud()
+        status = await gs.wait("SYS_STATUS", lambda m: m.onboard_control_sensors_health)
+        assert status.onboard_control_sensors_health & (lidar | motor) == lidar | motor
+        hud = await gs.wait("VFR_HUD")
+        assert hud.groundspeed == pytest.approx(1.5) and hud.heading == 90 and hud.throttle == 25
+        link.close()
+        gs.close()
+
+    run(main)
+
+
+# --- datagrams are units -----------------------------------------------------------------------
+
+
+def test_a_truncated_datagram_never_swallows_the_next_command():
+    async def main() -> None:
+        arming = Arming(start_armed=False)
+        gs = Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), arming)
+        p = Packer()
+        for i in range(20):
+            gs.send(link, b"\xfd\x30", p.arm(on=i % 2 == 0))
+        await async_wait_for(lambda: len(gs.find("COMMAND_ACK")) == 20)
+        assert link.counters["bad_data"] == 20 and link.counters["commands"] == 20
+        link.close()
+        gs.close()
+
+    run(main)
+
+
+def test_garbage_and_unknown_message_ids_around_frames_in_one_datagram():
+    link = MavlinkGcs(Bus(), MavlinkParams(), Arming())
+    p = Packer()
+    unknown = bytearray(p.heartbeat())
+    unknown[7:10] = (0x39, 0x30, 0x00)  # message id 12345: no such message (its CRC cannot match)
+    link.handle_datagram(b"\x00\xfe\x09" + bytes(unknown) + b"\xfdjunk" + p.heartbeat() + b"\xfd\x05",
+                         ("127.0.0.1", 14550))
+    assert link.gcs_alive and link.counters["rx"] == 1  # only the heartbeat counts as traffic
+    assert link.counters["unknown_ids"] >= 1 and link.counters["bad_data"] == 1
+
+
+def test_mavlink_1_frames_are_refused():
+    link = MavlinkGcs(Bus(), MavlinkParams(), Arming())
+    p = Packer()
+    p.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0, force_mavlink1=True)
+    v1 = p.out.pop()
+    assert v1[0] == 0xFE
+    link.handle_datagram(v1 + p.heartbeat(), ("127.0.0.1", 14550))
+    assert link.counters["mavlink1_refused"] == 1 and link.counters["rx"] == 1 and link.gcs_alive
+
+
+def test_ten_thousand_random_datagrams_make_no_station_and_no_lost_heartbeat_event():
+    rng = random.Random(16)
+    clock = [0]
+    link = MavlinkGcs(Bus(), MavlinkParams(), Arming(), clock=lambda: clock[0])
+    for i in range(10_000):
+        data = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 80)))
+        if i % 3 == 0:
+            data = b"\xfd" + data  # start like a MAVLink 2 frame
+        link.handle_datagram(data, ("127.0.0.1", 14550))
+        clock[0] += NS_PER_S // 100
+        link.tick()
+    assert link.counters["rx"] == 0 and not link.gcs_alive and link.counters["gcs_timeouts"] == 0
+
+
+# --- time: overrides expire, stale input does not block arming ---------------------------------
+
+
+class Clocked:
+    """A link on a test clock (ns); ``at(t)`` sends datagrams at ``t`` seconds and ticks."""
+
+    def __init__(self, **params: Any) -> None:
+        self.now = 0
+        self.bus = Bus()
+        self.arming = Arming(start_armed=True)
+        self.drives: list[tuple[float, float]] = []
+        self.bus.subscribe(TELEOP, lambda m: self.drives.append((m.drive.speed, m.drive.steering_angle)))
+        self.link = MavlinkGcs(self.bus, MavlinkParams(**params), self.arming, clock=lambda: self.now)
+        self.p = Packer()
+
+    def at(self, t_s: float, *datagrams: bytes) -> tuple[float, float] | None:
+        self.now = round(t_s * NS_PER_S)
+        for d in datagrams:
+            self.link.handle_datagram(d, ("127.0.0.1", 14550))
+        count = len(self.drives)
+        self.link.tick()
+        return self.drives[-1] if len(self.drives) > count else None
+
+
+def test_an_rc_override_value_expires_after_3_s_and_65535_never_revives_it():
+    c = Clocked()
+    p = c.p
+    assert c.at(0.0, p.heartbeat(), p.rc(1500, 1750)) == pytest.approx((1.0, 0.0))
+    t = 0.0
+    while t < 2.9:  # steering changes, throttle "unchanged"
+        t = round(t + 0.5, 1)
+        assert c.at(min(t, 2.9), p.heartbeat(), p.rc(1600, 65535)) == pytest.approx((1.0, -0.068))
+    assert c.at(3.1, p.heartbeat(), p.rc(1600, 65535)) == pytest.approx((0.0, -0.068))  # expired
+    assert c.at(3.5, p.heartbeat(), p.rc(1600, 65535)) == pytest.approx((0.0, -0.068))  # not revived
+    assert c.at(3.6, p.heartbeat(), p.rc(1600, 1375)) == pytest.approx((-0.5, -0.068))  # a new value
+    # both channels unchanged after both expired: driving stops at once
+    assert c.at(7.0, p.heartbeat(), p.rc(65535, 65535)) == (0.0, 0.0)
+    assert c.link.manual is None
+
+
+def test_arming_is_not_refused_for_a_throttle_older_than_the_input_timeout():
+    c = Clocked()
+    c.arming.disarm("test")
+    p = c.p
+    c.at(0.0, p.heartbeat(), p.manual(600))
+    c.at(0.1, p.heartbeat(), p.arm())
+    assert not c.arming.armed  # a fresh throttle above zero: refused
+    c.at(1.5, p.heartbeat(), p.arm())  # the throttle is 1.5 s old (input_timeout_s 1.0)
+    assert c.arming.armed
+
+
+# --- addresses and configuration ---------------------------------------------------------------
+
+
+def test_an_ipv6_loopback_ground_station_binds_ipv6():
+    if not socket.has_ipv6:
+        pytest.skip("no IPv6 on this machine")
+    try:
+        gs = Station(family=socket.AF_INET6)
+    except OSError as err:
+        pytest.skip(f"no IPv6 loopback here: {err}")
+
+    async def main() -> None:
+        params = MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0)
+        assert params.bind == ("::1", 0)
+        assert MavlinkParams(gcs_address="[2001:db8::1]:14550", signing_key_file="k").bind == ("::", 14555)
+        link = await started(params, Arming(start_armed=False))
+        gs.send(link, Packer().heartbeat())
+        await async_wait_for(lambda: link.gcs_alive)
+        link.send_heartbeat()
+        await gs.wait("HEARTBEAT")
+        link.close()
+        gs.close()
+
+    run(main)
+
+
+def test_check_config_refuses_a_remote_ground_station_without_a_signing_key(capsys, tmp_path: Path):
+    args = ["check-config", "--set", "mavlink.enabled=true",
+            "--set", "mavlink.gcs_address=192.168.1.20:14550"]
+    assert cli_main(args) == 1
+    err = capsys.readouterr().err
+    assert "mavlink.signing_key_file" in err and "192.168.1.20" in err and "Traceback" not in err
+    write_signing_key(tmp_path / "key")
+    assert cli_main([*args, "--set", f"mavlink.signing_key_file={tmp_path / 'key'}"]) == 0
+    assert cli_main(["check-config", "--set", "mavlink.gcs_address=192.168.1.20:14550"]) == 0  # disabled
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__]))
