@@ -693,16 +693,18 @@ class RplidarClient:
         self.stats.samples += len(m)
         self._events.append(m)
 
-    def _capsule_pairs_dropped(self, caps: np.ndarray) -> list[int] | None:
+    def _capsule_pairs_dropped(self, caps: np.ndarray,
+                               step_deg: tuple[float, float] | None = None) -> list[int] | None:
         """The consecutive pairs of ``caps`` whose start-angle step is implausible (None: none).
 
         Capsule n's samples are spread from its start angle to capsule n+1's, so a duplicated or
         reordered capsule puts them at wrong angles. A pair is kept when its step lies in
-        :attr:`capsule_step_deg` and within :data:`CAPSULE_STEP_TOLERANCE` of the last kept step.
+        ``step_deg`` (default :attr:`capsule_step_deg`) and within :data:`CAPSULE_STEP_TOLERANCE` of
+        the last kept step. Every capsule format has its start angle in bytes 2-3.
         (Plain Python: for the 25-30 capsules of a revolution it is faster than numpy's calls.)
         """
         starts = ((caps[:, 2].astype(np.int32) | (caps[:, 3].astype(np.int32) << 8)) & 0x7FFF).tolist()
-        lo, hi = (round(d * 64) for d in self.capsule_step_deg)
+        lo, hi = (round(d * 64) for d in (step_deg or self.capsule_step_deg))
         ref, misses = self._step_ref_q6, self._step_misses
         dropped: list[int] | None = None
         prev = starts[0]
@@ -762,6 +764,17 @@ class RplidarClient:
         if len(frames) < 2:
             return
         angle, dist, start = _FRAME_DECODERS[self._type](frames)
+        # the express range: an ultra or dense capsule holds more samples, but at the scan rates
+        # the listed models run its step stays well inside it
+        dropped = self._capsule_pairs_dropped(frames, CAPSULE_STEP_DEG)
+        if dropped is not None:
+            self.stats.bad_capsule_steps += len(dropped)
+            if len(dropped) == len(frames) - 1:
+                return
+            keep = np.ones(len(frames) - 1, dtype=bool)
+            keep[dropped] = False
+            mask = np.repeat(keep, len(angle) // (len(frames) - 1))
+            angle, dist, start = angle[mask], dist[mask], start[mask]
         self.stats.samples += len(angle)
         self._events.append(Measurements(
             start=start, quality=(dist > 0).astype(np.uint8) * np.uint8(0x2F), angle_deg=angle,

@@ -203,6 +203,27 @@ def test_dense_capsules_round_trip():
     assert per_rev in starts and set(starts) <= {0, per_rev}  # the stream itself starts at 0
 
 
+def test_a_duplicated_or_reordered_dense_capsule_costs_its_pairs_not_wrong_angles():
+    """The express capsules' start-angle step check holds for dense (and ultra) capsules too."""
+    per_rev = 920
+    k = np.arange(30 * 40)
+    theta = (k % per_rev) * 360.0 / per_rev
+    dist = 100.0 + (k * 13) % 39000  # unique per sample: each tells where it was measured
+    data = caps.encode_dense(theta[::40], dist)
+    frames = [data[i * caps.DENSE_LEN:(i + 1) * caps.DENSE_LEN] for i in range(30)]
+    for stream, dropped in ((frames[:10] + [frames[9]] + frames[10:], 1),
+                            (frames[:10] + [frames[11], frames[10]] + frames[12:], 3)):
+        client = RplidarClient()
+        client.send(Request.express_scan(1), AnswerType.DENSE_CAPSULED)
+        angle, got = samples(feed(client, encode_scan_descriptor(True, AnswerType.DENSE_CAPSULED)
+                                  + b"".join(stream), 84 * 3))
+        assert client.stats.bad_capsule_steps == dropped
+        where = {float(v): i for i, v in enumerate(dist)}
+        truth = np.array([theta[where[float(v)]] for v in got])
+        assert len(got) >= (29 - dropped) * 40
+        assert np.abs((angle - truth + 180.0) % 360.0 - 180.0).max() < 1 / 32
+
+
 @settings(max_examples=150, deadline=None)
 @given(noise=st.binary(max_size=600), piece=st.integers(1, 200),
        kind=st.sampled_from([AnswerType.ULTRA_CAPSULED, AnswerType.DENSE_CAPSULED]))
