@@ -62,7 +62,7 @@ from racecar_hw.teleop.gamepad import GamepadTeleop
 from racecar_hw.teleop.keyboard import KeyboardTeleop
 from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
-from vesc.driver import VescDriver
+from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +224,8 @@ class Daemon:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
-        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input)
+        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
+                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF})
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -267,6 +268,8 @@ class Daemon:
         times.append(now)
         if len(times) >= 2:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
+        if self.zenoh is not None:
+            self.zenoh.control_idle()
         self.safety.remember()  # before waking the recorder's writer, which would contend for the GIL
         if self.recorder is not None:
             self.recorder.control_idle()

@@ -8,6 +8,8 @@ oldest job is dropped and counted: a slow or stalled client loses old data, neve
 The thread is not woken per job: it runs what is queued every :data:`BATCH_S`, at once when
 :data:`WAKE_AT` jobs wait, or when the control path says it is idle (:meth:`Outbox.control_idle`,
 called by the daemon once a scan's command is out), so its work lands in the gap before the next scan.
+A job queued with ``urgent=True`` wakes it at once: for a message queued in that gap whose
+latency matters (the scan itself, queued after its motor command, for remote navigation code).
 """
 
 from __future__ import annotations
@@ -35,11 +37,13 @@ Job = tuple[Callable[..., None], tuple[Any, ...]]
 class Outbox:
     """Jobs for one sender thread; :meth:`put` from any thread, never blocks."""
 
-    def __init__(self, name: str, size: int = 1000) -> None:
+    def __init__(self, name: str, size: int = 1000, nice: int = SENDER_NICE) -> None:
+        """``nice``: the sender thread's niceness relative to the daemon (0: the same priority)."""
         if size < 1:
             raise ValueError(f"size must be at least 1, got {size}")
         self.name = name
         self.size = size
+        self.nice = nice
         self._queue: collections.deque[Job] = collections.deque(maxlen=size)
         self._wake = threading.Event()
         self._stopping = False
@@ -70,13 +74,16 @@ class Outbox:
         if thread.is_alive():
             log.warning("%s: sender thread still busy after %.1f s; left behind", self.name, timeout_s)
 
-    def put(self, fn: Callable[..., None], *args: Any) -> None:
-        """Queue ``fn(*args)`` for the sender thread; when full, the oldest job is dropped."""
+    def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False) -> None:
+        """Queue ``fn(*args)`` for the sender thread; when full, the oldest job is dropped.
+
+        ``urgent``: wake the thread now rather than at the next batch.
+        """
         queue = self._queue
         if len(queue) == self.size:
             self.dropped += 1
         queue.append((fn, args))
-        if len(queue) >= WAKE_AT and not self._wake.is_set():
+        if (urgent or len(queue) >= WAKE_AT) and not self._wake.is_set():
             self._wake.set()
 
     def __len__(self) -> int:
@@ -88,11 +95,12 @@ class Outbox:
             self._wake.set()
 
     def _run(self) -> None:
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
-                           os.getpriority(os.PRIO_PROCESS, 0) + SENDER_NICE)
-        except (AttributeError, OSError):
-            pass
+        if self.nice:
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
+                               os.getpriority(os.PRIO_PROCESS, 0) + self.nice)
+            except (AttributeError, OSError):
+                pass
         queue = self._queue
         while True:
             self._drain_due = time.monotonic() + BATCH_S

@@ -2,13 +2,17 @@
 
 A thin I/O shell around the codec, with one Zenoh session:
 
-* **Out** (``/scan``, ``/odom``, ...). The bus callback only appends ``(row, message, wall ns)``
-  to a bounded queue (the oldest entry goes when it is full, counted) and wakes the publisher
-  thread, which serializes with the recorder's serializers and puts the CDR bytes with the 33-byte
-  attachment. A row nobody subscribes to (Zenoh's matching status, kept up to date by a listener)
-  is not even queued: no serialization while nobody listens. Latched rows (``/tf_static``: ROS 2
-  TRANSIENT_LOCAL) use Zenoh's advanced publisher with a cache of ``depth`` samples, so a
-  subscriber that starts later still gets them; they are always queued.
+* **Out** (``/scan``, ``/odom``, ...). The bus callback only queues ``(row, message, wall ns)`` in
+  an :class:`~racecar_hw.net.outbox.Outbox` (bounded, the oldest entry goes when it is full,
+  counted), whose sender thread serializes with the recorder's serializers and puts the CDR
+  bytes with the 33-byte attachment. Like the Foxglove server's, it runs in batches in the gap
+  after a scan's motor command (:meth:`ZenohBridge.control_idle`), so its GIL time does not land
+  on the next scan's way to the motor; the messages remote navigation code waits for (the scan,
+  queued in that gap, odometry and ``/tf``) wake it at once. A row nobody subscribes to (Zenoh's matching
+  status, kept up to date by a listener) is not even queued: no serialization while nobody
+  listens. Latched rows (``/tf_static``: ROS 2 TRANSIENT_LOCAL) use Zenoh's advanced publisher
+  with a cache of ``depth`` samples, so a subscriber that starts later still gets them; they are
+  always queued.
 * **In** (mux inputs, locks, e-stop, ``/cmd_vel``). Zenoh calls back in its own threads; there the
   sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
   decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
@@ -23,7 +27,6 @@ slow subscriber) holds up only the publisher thread.
 from __future__ import annotations
 
 import asyncio
-import collections
 import dataclasses
 import logging
 import math
@@ -39,6 +42,7 @@ from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
+from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -54,7 +58,6 @@ class BridgeStats:
     """Counters of the bridge (read from any thread; written under the bridge's lock)."""
 
     published: int = 0       #: samples put
-    dropped_queue: int = 0   #: outgoing messages dropped because the queue was full
     skipped: int = 0         #: outgoing messages not queued: nobody subscribed
     publish_errors: int = 0  #: serialization or put failures
     received: int = 0        #: incoming samples handed to the bus
@@ -81,11 +84,14 @@ class ZenohBridge:
     """The bus's network rows on Zenoh. Build, ``open()`` (blocking, from any thread), ``close()``.
 
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
-    the bus (the daemon uses it to send a fresh remote command to the VESC at once).
+    the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
+    ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
+    ``/tf``: remote navigation code waits for them); the rest go out in batches.
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
-                 on_input: Callable[[str], None] | None = None) -> None:
+                 on_input: Callable[[str], None] | None = None,
+                 urgent: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -96,10 +102,10 @@ class ZenohBridge:
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
-        self._queue: collections.deque[tuple[_Out, Message, int]] = collections.deque()
-        self._wake = threading.Event()
-        self._stopping = False
-        self._thread: threading.Thread | None = None
+        self.urgent = frozenset(urgent)
+        # not niced: remote navigation code waits for the scan it sends (the Foxglove sender is)
+        self.outbox = Outbox("zenoh-publisher", params.queue_size, nice=0)
+        self._types = ros2_types()
         self._outs: list[_Out] = []
         self._subscribers: list[Any] = []
         self._tokens: list[Any] = []
@@ -155,8 +161,7 @@ class ZenohBridge:
                 self._declare_out(row, zenoh)
             else:
                 self._declare_in(row, zenoh)
-        self._thread = threading.Thread(target=self._run, name="zenoh-publisher", daemon=True)
-        self._thread.start()
+        self.outbox.start()
         for out in self._outs:
             self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
             latest = self.bus.latest(out.row.bus)
@@ -209,11 +214,7 @@ class ZenohBridge:
         for sub in self._bus_subs:
             sub.close()
         self._bus_subs.clear()
-        self._stopping = True
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(5.0)
-            self._thread = None
+        self.outbox.stop(5.0)
         session, self.session = self.session, None
         if session is None:
             return
@@ -233,48 +234,45 @@ class ZenohBridge:
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
                  "%d received, %d without attachment, %d malformed, %d non-finite", s.published,
-                 s.dropped_queue, s.skipped, s.received, s.no_attachment, s.malformed, s.non_finite)
+                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.non_finite)
 
     # --- out: bus thread, then the publisher thread -------------------------------------------
 
+    @property
+    def dropped(self) -> int:
+        """Outgoing messages dropped because the queue was full (the oldest go first)."""
+        return self.outbox.dropped
+
+    def control_idle(self) -> None:
+        """The control path is idle until its next event (a scan's command is out): send now."""
+        self.outbox.control_idle()
+
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
-        queue, wake, limit, stats = self._queue, self._wake, self.params.queue_size, self.stats
+        put, publish, stats = self.outbox.put, self._publish, self.stats
+        urgent = out.row.bus in self.urgent
 
         def enqueue(msg: Message) -> None:
             if not out.matching:
                 stats.skipped += 1
                 return
-            if len(queue) >= limit:
-                queue.popleft()
-                stats.dropped_queue += 1
-            queue.append((out, msg, wall_ns()))
-            wake.set()
+            put(publish, out, msg, wall_ns(), urgent=urgent)
 
         return enqueue
 
-    def _run(self) -> None:
-        queue, wake = self._queue, self._wake
-        types = ros2_types()
-        while not self._stopping:
-            wake.wait()
-            wake.clear()
-            while queue:
-                try:
-                    out, msg, stamp = queue.popleft()
-                except IndexError:
-                    break
-                try:
-                    payload = out.serialize(msg, 0) if out.serialize is not None else types.serialize(msg)
-                    out.sequence += 1
-                    out.publisher.put(payload, attachment=rmw.encode_attachment(out.sequence, stamp, out.gid))
-                    self.stats.published += 1
-                except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
-                    if out.serialize is not None:
-                        out.serialize = None  # the generic serializer gives the real error next time
-                    self.stats.publish_errors += 1
-                    if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
-                        log.warning("zenoh: could not publish %s (%d so far): %r", out.row.ros,
-                                    self.stats.publish_errors, err)
+    def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
+        """In the publisher thread: serialize ``msg`` and put it with rmw_zenoh's attachment."""
+        try:
+            payload = out.serialize(msg, 0) if out.serialize is not None else self._types.serialize(msg)
+            out.sequence += 1
+            out.publisher.put(payload, attachment=rmw.encode_attachment(out.sequence, stamp, out.gid))
+            self.stats.published += 1
+        except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
+            if out.serialize is not None:
+                out.serialize = None  # the generic serializer gives the real error next time
+            self.stats.publish_errors += 1
+            if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
+                log.warning("zenoh: could not publish %s (%d so far): %r", out.row.ros,
+                            self.stats.publish_errors, err)
 
     # --- in: Zenoh's threads, then the event loop ---------------------------------------------
 
