@@ -12,10 +12,11 @@ figure-8 source, safety, recorder), one after the other in this one invocation:
     VESC reads the servo position that answers it. Scans whose answer came after the next scan
     was sent (the client skipped one) are not counted.
 
-The settings of (a) run interleaved, ``ROUNDS`` times (default 2), and each row is the median over
-the rounds: on a shared host a noisy spell then hits every setting alike. The p99 of the daemon's
-own CPU time in the scan path is shown too: unlike the wall-clock p99 it hardly moves with the
-other tenants of the machine.
+The settings of (a) run interleaved, ``ROUNDS`` times (default 2), each setting leading a round
+in turn, and each row is the median over the rounds: on a shared host a noisy spell then hits every
+setting alike, and no setting always runs right after another (use a multiple of 3 rounds). The
+p99 of the daemon's own CPU time in the scan path is shown too: unlike the wall-clock p99 it hardly
+moves with the other tenants of the machine.
 
 ``python benchmarks/bench_zenoh.py [SECONDS [ROUNDS]]``; ``run()`` returns the rows for run_all.py.
 """
@@ -133,9 +134,10 @@ def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
                "on, no subscriber": lambda: run_daemon(seconds, zenoh_port=_free_port()),
                "on, 3 subscribers": lambda: _three(seconds)}
     results: dict[str, list[list[dict]]] = {label: [] for label in configs}
-    for _ in range(rounds):  # interleaved, so a noisy spell on a shared host hits every setting
-        for label, measure in configs.items():
-            results[label].append(measure())
+    labels = list(configs)
+    for n in range(rounds):  # interleaved, so a noisy spell on a shared host hits every setting
+        for label in labels[n % 3:] + labels[:n % 3]:  # each setting leads a round in turn
+            results[label].append(configs[label]())
     port = _free_port()
     trip = run_daemon(seconds, zenoh_port=port, helpers=[[py, "-c", CLIENT, str(port), "--drives"]],
                       on_results=_round_trip)
