@@ -12,7 +12,7 @@ figure-8 source, safety, recorder), one after the other in this one invocation:
     VESC reads the servo position that answers it. Scans whose answer came after the next scan
     was sent (the client skipped one) are not counted.
 
-The settings of (a) run interleaved, ``ROUNDS`` times (default 2), each setting leading a round
+The settings of (a) run interleaved, ``ROUNDS`` times (default 3), each setting leading a round
 in turn, and each row is the median over the rounds: on a shared host a noisy spell then hits every
 setting alike, and no setting always runs right after another (use a multiple of 3 rounds). The
 p99 of the daemon's own CPU time in the scan path is shown too: unlike the wall-clock p99 it hardly
@@ -128,7 +128,7 @@ def _pick(rows: list[dict], name: str) -> float:
     return next(r["value"] for r in rows if r["name"] == name)
 
 
-def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
+def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     py = sys.executable
     configs = {"off": lambda: run_daemon(seconds),
                "on, no subscriber": lambda: run_daemon(seconds, zenoh_port=_free_port()),
@@ -178,7 +178,7 @@ def _three(seconds: float) -> list[dict]:
 
 def main() -> None:
     seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
-    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 2
+    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
     print_rows(run(seconds, rounds))
 
 
