@@ -592,9 +592,11 @@ TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 BAG_FORMATS = ("ros1", "mcap", "sqlite3")
 
 
-def write_bag(path: Path, fmt: str, commands: Sequence[tuple[int, float, float]]) -> Path:
-    """An AckermannDriveStamped bag of ``commands`` (t_ns, speed m/s, steering rad), written with
-    rosbags; ROS 1 with bz2 chunks of a few messages, so a file holds several chunks."""
+def write_bag(path: Path, fmt: str, commands: Sequence[tuple[int, float, float]], topic: str = TOPIC,
+              stamped: bool = True, chunked: bool = True) -> Path:
+    """An Ackermann bag of ``commands`` (t_ns, speed m/s, steering rad) on ``topic``, written with
+    rosbags: AckermannDriveStamped, or AckermannDrive if not ``stamped``. ``chunked``: ROS 1 with
+    bz2 chunks of a few messages, so a file holds several chunks."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
@@ -602,23 +604,26 @@ def write_bag(path: Path, fmt: str, commands: Sequence[tuple[int, float, float]]
     from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
     from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
 
-    def msg(speed: float, steer: float) -> AckermannDriveStamped:
-        return AckermannDriveStamped(Header(Time(1, 0), "base_link"), AckermannDrive(steer, 0.0, speed))
+    def msg(speed: float, steer: float) -> AckermannDrive | AckermannDriveStamped:
+        drive = AckermannDrive(steering_angle=steer, speed=speed)
+        return AckermannDriveStamped(Header(Time(1, 0), "base_link"), drive) if stamped else drive
 
+    ros_type = msg(0.0, 0.0).ROS_TYPE
     if fmt == "ros1":
         types = ros1_types()
         w1 = Writer1(path)
-        w1.set_compression(Writer1.CompressionFormat.BZ2)
-        w1.chunk_threshold = 512
+        if chunked:
+            w1.set_compression(Writer1.CompressionFormat.BZ2)
+            w1.chunk_threshold = 512
         with w1:
-            conn = w1.add_connection(TOPIC, AckermannDriveStamped.ROS_TYPE, typestore=types.store)
+            conn = w1.add_connection(topic, ros_type, typestore=types.store)
             for t, speed, steer in commands:
                 w1.write(conn, t, types.serialize(msg(speed, steer)))
         return path
     types = ros2_types()
     plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
     with Writer2(path, version=9, storage_plugin=plugin) as w2:
-        conn = w2.add_connection(TOPIC, AckermannDriveStamped.ROS_TYPE, typestore=types.store)
+        conn = w2.add_connection(topic, ros_type, typestore=types.store)
         for t, speed, steer in commands:
             w2.write(conn, t, types.serialize(msg(speed, steer)))
     return path

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from bag_ros1tools import write_real_bag
-from rosbags.rosbag1 import Writer as Writer1
+from fuzzing import write_bag
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
@@ -34,7 +34,7 @@ from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, ScanRange, Time
-from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
+from racecar_hw.rosmsg.typestore import ros2_types
 
 T0 = 1_700_000_000 * NS_PER_S
 
@@ -46,26 +46,8 @@ def figure8(n: int = 12, dt_ns: int = 50_000_000) -> list[tuple[int, float, floa
 
 def write_ours(path: Path, fmt: str, commands: list[tuple[int, float, float]],
                topic: str = TELEOP_TOPIC, stamped: bool = True) -> Path:
-    """An Ackermann bag written with rosbags (the recorder's own path is tested elsewhere)."""
-    def msg(speed: float, steer: float) -> AckermannDrive | AckermannDriveStamped:
-        drive = AckermannDrive(steering_angle=steer, speed=speed)
-        return AckermannDriveStamped(Header(Time(1, 0), "base_link"), drive) if stamped else drive
-
-    sample = msg(0.0, 0.0)
-    if fmt == "ros1":
-        types = ros1_types()
-        with Writer1(path) as w1:
-            conn = w1.add_connection(topic, sample.ROS_TYPE, typestore=types.store)
-            for t, speed, steer in commands:
-                w1.write(conn, t, types.serialize(msg(speed, steer)))
-        return path
-    types = ros2_types()
-    plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-    with Writer2(path, version=9, storage_plugin=plugin) as w2:
-        conn = w2.add_connection(topic, sample.ROS_TYPE, typestore=types.store)
-        for t, speed, steer in commands:
-            w2.write(conn, t, types.serialize(msg(speed, steer)))
-    return path
+    """An Ackermann bag written with rosbags, unchunked (the recorder's own path is tested elsewhere)."""
+    return write_bag(path, fmt, commands, topic, stamped, chunked=False)
 
 
 # --- reading ----------------------------------------------------------------------------------
