@@ -638,7 +638,7 @@ class RplidarClient:
         while len(buf) >= CAPSULE_LEN:
             n = len(buf) // CAPSULE_LEN
             arr = np.frombuffer(buf, dtype=np.uint8, count=n * CAPSULE_LEN).reshape(n, CAPSULE_LEN)
-            ok = _capsules_valid(arr)
+            ok = caps.capsules_valid(arr)
             good = n if bool(ok.all()) else int(np.argmin(ok))
             if good:
                 batches.append(arr[:good].copy())
@@ -789,14 +789,6 @@ def _nodes_valid(arr: np.ndarray) -> np.ndarray:
     b0 = arr[:, 0]
     angle_q6 = (arr[:, 1].astype(np.int32) | (arr[:, 2].astype(np.int32) << 8)) >> 1
     return ((((b0 >> 1) ^ b0) & 1) == 1) & ((arr[:, 1] & 1) == 1) & (angle_q6 < FULL_TURN_Q6)
-
-
-def _capsules_valid(arr: np.ndarray) -> np.ndarray:
-    cs = np.bitwise_xor.reduce(arr[:, 2:], axis=1)
-    sync = ((arr[:, 0] & 0xF0) == 0xA0) & ((arr[:, 1] & 0xF0) == 0x50)
-    declared = (arr[:, 0] & 0x0F) | ((arr[:, 1] & 0x0F) << 4)
-    start_q6 = (arr[:, 2].astype(np.int32) | (arr[:, 3].astype(np.int32) << 8)) & 0x7FFF
-    return sync & (declared == cs) & (start_q6 < FULL_TURN_Q6)
 
 
 def decode_capsules(caps: np.ndarray) -> Measurements:
