@@ -7,23 +7,10 @@ through the user's browser), and on an open loopback bind a ``Host`` check (DNS 
 
 from __future__ import annotations
 
-import ipaddress
 import secrets
 from urllib.parse import urlsplit
 
-#: Host names that always mean this machine.
-LOCAL_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost")
-
-
-def is_loopback(host: str) -> bool:
-    """Whether binding ``host`` keeps a server on this machine: a loopback address or ``localhost``."""
-    name = host.strip().strip("[]").lower()
-    if name in LOCAL_NAMES:
-        return True
-    try:
-        return ipaddress.ip_address(name).is_loopback
-    except ValueError:
-        return False  # a host name or 0.0.0.0 / :: (every interface)
+from racecar_hw.base.loopback import is_loopback
 
 
 def new_token() -> str:

@@ -42,9 +42,9 @@ from foxglove.messages import Log, LogLevel, Timestamp
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Message, Twist, stamp_now
 from racecar_hw.base.params import param
-from racecar_hw.net.auth import is_loopback
 from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.scene import scene_update

@@ -38,9 +38,10 @@ from aiohttp import WSMsgType, web
 
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
+from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import LaserScan
 from racecar_hw.base.params import param
-from racecar_hw.net.auth import bearer, is_loopback, local_host_header, new_token, same_origin, token_ok
+from racecar_hw.net.auth import bearer, local_host_header, new_token, same_origin, token_ok
 from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.scene import band_polygon, body_corners, swept_band
 

@@ -13,13 +13,13 @@ TRANSIENT_LOCAL needs, a 60 s query timeout); peer and client modes mirror its s
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import os
 from dataclasses import dataclass, field
 from typing import Any
 
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
 
 MODES = ("peer", "router", "client")
@@ -111,7 +111,7 @@ class ZenohParams:
                               "listen_private_key go together")
         for i, endpoint in enumerate(self.listen):
             proto, host, _ = parse_endpoint(endpoint, f"{key}.listen[{i}]")
-            if is_loopback(host, proto):
+            if proto == "unixsock-stream" or is_loopback(host):
                 continue
             if a.dictionary_file:
                 continue
@@ -148,16 +148,6 @@ def parse_endpoint(endpoint: str, key: str) -> tuple[str, str, int | None]:
     if not sep or not port.isdigit() or not host or int(port) > 65535:
         raise ConfigError(key, f"{endpoint!r}: expected host:port")
     return proto, host.strip("[]"), int(port)
-
-
-def is_loopback(host: str, proto: str = "tcp") -> bool:
-    """Whether ``host`` only reaches this machine (127.0.0.0/8, ::1, localhost, a unix socket)."""
-    if proto == "unixsock-stream" or host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def session_config(mode: str, listen: list[str], connect: list[str], *, multicast: bool = False,

@@ -43,7 +43,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import ipaddress
 import logging
 import math
 import os
@@ -58,6 +57,7 @@ from racecar_hw import __version__
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
@@ -110,16 +110,6 @@ def parse_address(text: str, key: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise ConfigError(key, f"{text!r} is not host:port")
     return host.strip("[]"), int(port)
-
-
-def is_loopback(host: str) -> bool:
-    """True for a loopback IP literal or ``localhost``; host names are never trusted as loopback."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 _NEEDS_SIGNING = ("the ground station {} is not on loopback: MAVLink 2 signing is required; set "
