@@ -77,7 +77,6 @@ class _Out:
         self.sequence = 0
         self.matching = latched
         self.listener: Any = None
-        self.serialize = ros2_types().fast_serializer(row.msgtype)
 
 
 class ZenohBridge:
@@ -262,13 +261,11 @@ class ZenohBridge:
     def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
         """In the publisher thread: serialize ``msg`` and put it with rmw_zenoh's attachment."""
         try:
-            payload = out.serialize(msg, 0) if out.serialize is not None else self._types.serialize(msg)
+            payload = self._types.serialize(msg)
             out.sequence += 1
             out.publisher.put(payload, attachment=rmw.encode_attachment(out.sequence, stamp, out.gid))
             self.stats.published += 1
         except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
-            if out.serialize is not None:
-                out.serialize = None  # the generic serializer gives the real error next time
             self.stats.publish_errors += 1
             if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
                 log.warning("zenoh: could not publish %s (%d so far): %r", out.row.ros,
