@@ -8,10 +8,11 @@ WebSocket as a browser does and takes its pushes (10 Hz, scan and band included)
 thread of this process, so their own CPU time is not the daemon's.
 
 A third configuration has both on with no client (the shipped default: they listen, but send nothing).
-The configurations alternate (off, on with clients, on idle, off, ...) ``ROUNDS`` times and each row is
-the median over the rounds, so a burst of load from elsewhere on a shared machine does not land on one
-side only. The p99 of a run is dominated by the time the loop thread spends off the CPU when the
-machine is shared; the daemon's CPU time in the scan path (its p99) is the part the live view can add.
+The configurations run interleaved ``ROUNDS`` times (default 3), each leading a round in turn
+(:mod:`rounds`), and each row is the median over the rounds, so a burst of load from elsewhere on a
+shared machine does not land on one side only. The p99 of a run is dominated by the time the loop
+thread spends off the CPU when the machine is shared; the daemon's CPU time in the scan path (its
+p99) is the part the live view can add.
 
 Run ``python benchmarks/bench_live.py [SECONDS] [ROUNDS]``; ``run()`` returns the rows for run_all.py.
 """
@@ -30,6 +31,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import bench_daemon
+from rounds import interleaved
 from table import print_rows
 
 ADDED_P99_TARGET = 0.05  # ms
@@ -120,10 +122,7 @@ class Clients:
         self._thread.join(10)
 
 
-def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
-    off: list[dict[str, float]] = []
-    on: list[dict[str, float]] = []
-    idle: list[dict[str, float]] = []
+def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     clients: list[Clients] = []
 
     @contextlib.contextmanager
@@ -132,10 +131,10 @@ def run(seconds: float = 20.0, rounds: int = 2) -> list[dict]:
             clients.append(c)
             yield c
 
-    for _ in range(rounds):
-        off.append(_numbers(bench_daemon.run(seconds, config_extra=OFF)))
-        on.append(_numbers(bench_daemon.run(seconds, config_extra=ON, attach=attach)))
-        idle.append(_numbers(bench_daemon.run(seconds, config_extra=ON)))
+    runs = interleaved({"off": lambda: _numbers(bench_daemon.run(seconds, config_extra=OFF)),
+                        "on": lambda: _numbers(bench_daemon.run(seconds, config_extra=ON, attach=attach)),
+                        "idle": lambda: _numbers(bench_daemon.run(seconds, config_extra=ON))}, rounds)
+    off, on, idle = runs["off"], runs["on"], runs["idle"]
 
     def median(runs: list[dict[str, float]], key: str) -> float:
         return statistics.median(r[key] for r in runs)
@@ -180,7 +179,7 @@ def _numbers(rows: list[dict]) -> dict[str, float]:
 
 def main() -> None:
     seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
-    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 2
+    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
     print_rows(run(seconds, rounds))
 
 

@@ -13,8 +13,7 @@ figure-8 source, safety, recorder), one after the other in this one invocation:
     was sent (the client skipped one) are not counted.
 
 The settings of (a) run interleaved, ``ROUNDS`` times (default 3), each setting leading a round
-in turn, and each row is the median over the rounds: on a shared host a noisy spell then hits every
-setting alike, and no setting always runs right after another (use a multiple of 3 rounds). The
+in turn (:mod:`rounds`), and each row is the median over the rounds. The
 p99 of the daemon's own CPU time in the scan path is shown too: unlike the wall-clock p99 it hardly
 moves with the other tenants of the machine.
 
@@ -29,6 +28,7 @@ import time
 
 import numpy as np
 from bench_daemon import run as run_daemon
+from rounds import interleaved
 from table import print_rows
 
 from vesc.codec import SetServoPosition
@@ -133,11 +133,7 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     configs = {"off": lambda: run_daemon(seconds),
                "on, no subscriber": lambda: run_daemon(seconds, zenoh_port=_free_port()),
                "on, 3 subscribers": lambda: _three(seconds)}
-    results: dict[str, list[list[dict]]] = {label: [] for label in configs}
-    labels = list(configs)
-    for n in range(rounds):  # interleaved, so a noisy spell on a shared host hits every setting
-        for label in labels[n % 3:] + labels[:n % 3]:  # each setting leads a round in turn
-            results[label].append(configs[label]())
+    results = interleaved(configs, rounds)
     port = _free_port()
     trip = run_daemon(seconds, zenoh_port=port, helpers=[[py, "-c", CLIENT, str(port), "--drives"]],
                       on_results=_round_trip)
