@@ -33,7 +33,7 @@ import numpy as np
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.messages import AckermannDrive, LaserScan
 from safety.arc import PathHit, SweptFootprint, free_distance, stopping_speed
-from safety.memory import ObstacleMemory
+from safety.memory import ObstacleMemory, plausible_increment
 from safety.params import SafetyParams
 
 log = logging.getLogger(__name__)
@@ -248,23 +248,30 @@ class SafetyController:
         readings past ``range_max`` count as usable beams without a point; NaN (a fault) and
         readings below ``range_min`` (dust, a blocked window) are not usable. Points come from
         usable finite readings within ``range_max`` (when the scan has a sensible one) and within
-        reach of the path.
+        reach of the path. A scan whose beams have no plausible directions (a non-finite angle;
+        two or more beams less than :data:`~safety.memory.MIN_ANGLE_INCREMENT_RAD` or more than a
+        turn apart) has no usable beam and no point: it is a ``bad_scan``.
 
-        ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none. With
-        it and the memory on, the remembered points join the scan's (after them: ``live`` tells
-        which are which). A scan not yet folded into the memory (no :meth:`remember` since) is
-        folded in first.
+        ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none (a
+        non-finite pose counts as none). With it and the memory on, the remembered points join the
+        scan's (after them: ``live`` tells which are which). A scan not yet folded into the memory
+        (no :meth:`remember` since) is folded in first.
         """
         previous = self._scan
         if previous is not None and not previous.remembered:
             self.remember()
         r = np.asarray(scan.ranges, dtype=np.float64)
         n = r.size
-        # NaN compares false and -inf is below range_min: neither is usable.
-        at_least_min = r >= scan.range_min
+        if (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)
+                and (n < 2 or plausible_increment(scan.angle_increment))):
+            # NaN compares false and -inf is below range_min: neither is usable.
+            at_least_min = r >= scan.range_min
+        else:  # beams without sensible directions (all along one ray, or none): refuse the scan
+            at_least_min = np.zeros(n, dtype=bool)
         usable = int(np.count_nonzero(at_least_min))
-        if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)):
-            usable = 0  # beams without directions: refuse the scan
+        if pose is not None and not (math.isfinite(pose[0]) and math.isfinite(pose[1])
+                                     and math.isfinite(pose[2])):
+            pose = None
         far = min(scan.range_max, self._reach) if scan.range_max > scan.range_min else self._reach
         # index arrays rather than boolean masks: the gathers the path sweep uses too; nonzero()
         # rather than np.flatnonzero, a chain of Python calls that costs more than the work here

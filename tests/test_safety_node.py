@@ -222,6 +222,28 @@ def test_the_node_remembers_each_scan_at_once_or_when_the_daemon_says() -> None:
         assert values(published[-1])["memory"] == "no_odometry" and len(memory) == 0
 
 
+def test_a_scan_with_beams_a_subnormal_angle_apart_brakes_without_a_fault() -> None:
+    # it once made the memory raise IndexError: a latched fault, or with the memory following
+    # each scan an exception out of the bus callback
+    for deferred in (False, True):
+        bus, clock = Bus(), ManualClock()
+        node = SafetyNode(bus, SafetyParams(), clock=clock, defer_memory=deferred)
+        bus.publish("/odom", odom_at(0.0, 0.0, 0.0))
+        bus.publish("/scan", blocked_ahead(1.0))
+        node.remember()
+        memory = node.controller.memory
+        assert memory is not None and len(memory) > 0
+        remembered = len(memory)
+        broken = open_scan()
+        broken.angle_increment = 1e-300
+        clock.now += 100 * MS  # past the memory's update period: it takes this scan in
+        bus.publish("/scan", broken)
+        node.remember()
+        assert memory.updates == 2 and len(memory) == remembered
+        assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 0.0
+        assert node.state.reason == "bad_scan" and node.fault is None and node.faults == 0
+
+
 def test_the_memory_can_be_switched_off() -> None:
     bus = Bus()
     node = SafetyNode(bus, build(SafetyParams, {"memory": {"enabled": False}}))
