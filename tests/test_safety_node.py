@@ -170,6 +170,21 @@ def test_node_latches_a_fault_and_brakes() -> None:
     assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 1.0
 
 
+def test_a_scan_the_controller_cannot_take_in_latches_a_fault_too() -> None:
+    for deferred in (False, True):
+        bus, clock = Bus(), ManualClock()
+        node = SafetyNode(bus, SafetyParams(), clock=clock, defer_memory=deferred)
+        bus.publish("/odom", odom_at(0.0, 0.0, 0.0))
+        bus.publish("/scan", open_scan())
+        assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 1.0
+        garbled = open_scan()
+        garbled.ranges = np.array(["far"] * 1081)  # a publisher in the same process got it wrong
+        bus.publish("/scan", garbled)
+        assert node.fault is not None and node.fault.startswith("ValueError") and node.faults == 1
+        assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 0.0
+        assert node.state.reason == "fault"
+
+
 def test_stale_odometry_is_ignored() -> None:
     bus, clock = Bus(), ManualClock()
     node = SafetyNode(bus, SafetyParams(), clock=clock)
