@@ -17,6 +17,7 @@ the rows for run_all.py.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import sys
 from typing import Any
@@ -49,8 +50,11 @@ def outcome(name: str, memory: bool) -> dict[str, Any]:
         speed = report["max_speed_mps"] or 0.0
     slowest = None
     if report["interventions"] and not stops:
-        start = report["interventions"][0]["t_s"]
-        end = report["interventions"][0]["ended_at_s"] or samples[-1].t
+        # the first intervention, with the entry that continues it when it became an obstacle stop
+        first_run = report["interventions"][:1] + list(
+            itertools.takewhile(lambda i: i["continues"], report["interventions"][1:]))
+        start = first_run[0]["t_s"]
+        end = first_run[-1]["ended_at_s"] or samples[-1].t
         slowest = min(abs(x.speed) for x in samples if start <= x.t <= end)
     return {
         "scenario": name, "memory": memory, "speed_mps": speed, "slowest_mps": slowest,

@@ -45,7 +45,7 @@ REASONS = ("clear", "obstacle", "stale_scan", "no_scan", "bad_scan", "reverse_ca
 #: Where the point that limits the path came from: the live scan or the obstacle memory.
 SOURCES = ("scan", "memory")
 
-#: Interventions kept in :attr:`SafetyController.events` (the oldest are dropped).
+#: Intervention entries kept in :attr:`SafetyController.events` (the oldest are dropped).
 MAX_EVENTS = 1000
 
 #: A laser->base_link transform: a 4x4 homogeneous matrix, or planar (x, y, yaw) in metres/radians.
@@ -73,6 +73,10 @@ class Intervention:
 
     ``obstacle`` is in base_link at the scan received at ``scan_ns`` (None when no point limits the
     path, e.g. a stale scan); speeds in m/s.
+
+    ``continues``: not a new intervention but the one before it, which started for something else
+    (a late scan, the reverse cap), becoming a stop for an obstacle at ``t_ns``: what it stops for
+    is only known from then. The entry before it ends at that ``t_ns``.
     """
 
     t_ns: int
@@ -83,6 +87,7 @@ class Intervention:
     obstacle: Obstacle | None
     scan_ns: int | None
     end_ns: int | None = None
+    continues: bool = False
 
 
 @dataclass(frozen=True)
@@ -230,8 +235,10 @@ class SafetyController:
         self.rejected_commands = 0
         self._rejecting = False
         self.state = SafetyState(0.0, math.nan, None, "no_scan", False)
-        #: the latest intervention starts, oldest first
+        #: the latest interventions, oldest first: an entry when one starts, and one more when one
+        #: that started for another reason becomes a stop for an obstacle (``continues``)
         self.events: deque[Intervention] = deque(maxlen=MAX_EVENTS)
+        self._obstacle_noted = False  # the current intervention has an entry with its obstacle
         m = params.memory
         self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m, m.reach_m)
                        if m.enabled and params.mode == "arc" else None)
@@ -389,17 +396,33 @@ class SafetyController:
         if started:
             self.interventions += 1
             self.interventions_by_reason[reason] = self.interventions_by_reason.get(reason, 0) + 1
-            scan_ns = self._scan.received_ns if self._scan is not None else None
-            self.events.append(Intervention(now_ns, reason, allowed, speed, measured_speed_mps,
-                                            obstacle, scan_ns))
-            where = (f"obstacle ({obstacle.source}) at ({obstacle.x:.2f}, {obstacle.y:.2f}) m, "
-                     f"{obstacle.distance:.2f} m along the path" if obstacle else "no obstacle")
-            log.warning("safety: intervening (%s) on %s: commanded %.2f m/s, measured %.2f m/s, "
-                        "allowed %.2f m/s, %s", reason, source, speed, measured_speed_mps, allowed,
-                        where)
+            self._obstacle_noted = reason == "obstacle" and obstacle is not None
+            self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
+                                      self._scan.received_ns if self._scan is not None else None),
+                         source)
+        elif (intervening and needs_cut and reason == "obstacle" and obstacle is not None
+              and not self._obstacle_noted):
+            # started for a late scan or the reverse cap, and now an obstacle cuts the command: once
+            # per intervention, however often the reason flips back and forth after this
+            self._obstacle_noted = True
+            self._ended(now_ns)
+            self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
+                                      self._scan.received_ns if self._scan is not None else None,
+                                      continues=True), source)
         if magnitude > cap:
             drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
         return drive, self.state
+
+    def _record(self, event: Intervention, source: str) -> None:
+        """Keep ``event`` and log it: one line per intervention start or change to an obstacle."""
+        self.events.append(event)
+        o = event.obstacle
+        where = (f"obstacle ({o.source}) at ({o.x:.2f}, {o.y:.2f}) m, {o.distance:.2f} m along the path"
+                 if o else "no obstacle")
+        what = ("still intervening, now for an obstacle" if event.continues
+                else f"intervening ({event.reason})")
+        log.warning("safety: %s on %s: commanded %.2f m/s, measured %.2f m/s, allowed %.2f m/s, %s",
+                    what, source, event.commanded_speed, event.measured_speed, event.allowed_speed, where)
 
     def _ended(self, now_ns: int) -> None:
         """The current intervention ended at ``now_ns``."""

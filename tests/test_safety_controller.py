@@ -286,6 +286,50 @@ def test_interventions_are_recorded_with_their_obstacle() -> None:
     assert event.obstacle.x == pytest.approx(1.0, abs=1e-5)
 
 
+def test_an_intervention_for_a_late_scan_that_becomes_an_obstacle_stop_gets_a_second_entry() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(9.0)), now_ns=0)
+    c.limit(drive(2.0), "nav", 2.0, now_ns=200 * MS)  # the scan is 0.2 s old: stale_scan
+    # a fresh scan with the path free far enough for 2 m/s: held by the hysteresis, no obstacle stop
+    c.on_scan(ust10lx_scan(wall_ahead(9.0)), now_ns=205 * MS)
+    _, state = c.limit(drive(2.0), "nav", 2.0, now_ns=206 * MS)
+    assert state.intervening and len(c.events) == 1
+    # a wall 1 m ahead now cuts the command: from here on it is a stop for the wall
+    c.on_scan(ust10lx_scan(wall_ahead(1.0)), now_ns=210 * MS)
+    _, state = c.limit(drive(2.0), "nav", 2.0, now_ns=211 * MS)
+    assert state.reason == "obstacle" and state.intervening
+    # the reason flipping back and forth on a loaded machine adds nothing more
+    c.limit(drive(2.0), "nav", 1.5, now_ns=400 * MS)  # stale again
+    c.on_scan(ust10lx_scan(wall_ahead(1.0)), now_ns=405 * MS)
+    c.limit(drive(2.0), "nav", 1.0, now_ns=406 * MS)
+    start, stop = c.events
+    assert start.reason == "stale_scan" and start.obstacle is None and not start.continues
+    assert start.t_ns == 200 * MS and start.end_ns == 211 * MS
+    assert stop.continues and stop.reason == "obstacle" and stop.t_ns == 211 * MS
+    assert stop.end_ns is None and stop.scan_ns == 210 * MS and stop.allowed_speed < 2.0
+    assert stop.obstacle is not None and stop.obstacle.source == "scan"
+    assert stop.obstacle.x == pytest.approx(1.0, abs=1e-5)
+    # still one intervention, counted by what started it
+    assert c.interventions == 1 and c.interventions_by_reason == {"stale_scan": 1}
+    # when it ends, the entry that continues it ends
+    c.on_scan(ust10lx_scan(wall_ahead(9.0)), now_ns=500 * MS)
+    c.limit(drive(2.0), "nav", 0.0, now_ns=500 * MS)
+    c.on_scan(ust10lx_scan(wall_ahead(9.0)), now_ns=900 * MS)
+    _, state = c.limit(drive(2.0), "nav", 0.0, now_ns=900 * MS)
+    assert not state.intervening and c.events[-1].end_ns == 900 * MS and len(c.events) == 2
+
+
+def test_an_intervention_that_starts_for_an_obstacle_has_one_entry() -> None:
+    c = controller()
+    c.on_scan(ust10lx_scan(wall_ahead(1.0)), now_ns=0)
+    c.limit(drive(2.0), "nav", 0.0, now_ns=1 * MS)
+    c.limit(drive(2.0), "nav", 0.0, now_ns=200 * MS)  # stale
+    c.on_scan(ust10lx_scan(wall_ahead(0.9)), now_ns=205 * MS)
+    c.limit(drive(2.0), "nav", 0.0, now_ns=206 * MS)  # an obstacle again
+    (event,) = c.events
+    assert event.reason == "obstacle" and not event.continues and event.end_ns is None
+
+
 def test_teleop_exempt_only_when_configured() -> None:
     scan = ust10lx_scan(wall_ahead(1.0))
     strict = controller()
