@@ -79,6 +79,8 @@ def result_text(o: dict[str, Any]) -> str:
     if o["stopping_distance_m"] is not None:
         return f"stopped for {o['stopped_for']}"
     if o["interventions"]:
+        if o["slowest_mps"] >= o["speed_mps"] - 0.05:  # over before the car's speed changed
+            return f"did not slow ({o['slowest_mps']:.1f} m/s), drove on"
         return f"slowed to {o['slowest_mps']:.1f} m/s, drove on"
     return "no intervention"
 
