@@ -1,11 +1,13 @@
-"""Every shipped safety scenario, with the obstacle memory on and off: how the car stopped.
+"""Every shipped scenario, with the obstacle memory on and off: how the car stopped.
 
-Each scenario runs on the fake-hardware loopback in real time (the real daemon, fake VESC and
-lidar, the world simulation), once with the memory on (the default) and once with
-``safety.memory.enabled: false``. From the report: the speed driven, the interventions by reason,
-for the first intervention that brought the car to a standstill the stopping distance (from the
-intervention to standstill) and the distance left to what it stopped for, the smallest clearance
-of the run, and whether the car touched anything.
+The safety scenarios first; then those that only drive (figure8, teleop-override, vesc-replug), in
+open floor where any stop for an obstacle would be a false one. Each scenario runs on the
+fake-hardware loopback in real time (the real daemon, fake VESC and lidar, the world simulation),
+once with the memory on (the default) and once with ``safety.memory.enabled: false``. From the
+report: the speed driven, the interventions by reason, for the first report entry that brought the
+car to a standstill the stopping distance (from the entry's start to standstill) and the distance
+left to what it stopped for, the smallest clearance of the run, and whether the car touched
+anything.
 
 Nothing here is timed: the numbers are outcomes, for the table in docs/safety.md, measured rather
 than asserted (the tests assert the outcomes that matter). ``--markdown`` prints that table.
@@ -17,6 +19,7 @@ the rows for run_all.py.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import sys
 from typing import Any
@@ -24,11 +27,13 @@ from typing import Any
 from table import print_rows
 
 from racecar_hw.sim.loopback import Loopback
-from racecar_hw.sim.scenario import load_scenario
+from racecar_hw.sim.scenario import load_scenario, scenario_names
 
-#: The shipped scenarios that exercise the safety controller.
-SCENARIOS = ("wall", "obstacle", "corridor", "lidar-dropout", "reverse-wall", "crossing-person",
-             "sliding-box")
+#: The shipped scenarios that exercise the safety controller, then those that only drive.
+_ORDER = ("wall", "obstacle", "corridor", "lidar-dropout", "reverse-wall", "crossing-person",
+          "sliding-box", "figure8", "teleop-override", "vesc-replug")
+#: Every shipped scenario, in that order (any newer one last).
+SCENARIOS = _ORDER + tuple(n for n in scenario_names() if n not in _ORDER)
 
 
 def outcome(name: str, memory: bool) -> dict[str, Any]:
@@ -49,8 +54,11 @@ def outcome(name: str, memory: bool) -> dict[str, Any]:
         speed = report["max_speed_mps"] or 0.0
     slowest = None
     if report["interventions"] and not stops:
-        start = report["interventions"][0]["t_s"]
-        end = report["interventions"][0]["ended_at_s"] or samples[-1].t
+        # the first intervention, with the entry that continues it when it became an obstacle stop
+        first_run = report["interventions"][:1] + list(
+            itertools.takewhile(lambda i: i["continues"], report["interventions"][1:]))
+        start = first_run[0]["t_s"]
+        end = first_run[-1]["ended_at_s"] or samples[-1].t
         slowest = min(abs(x.speed) for x in samples if start <= x.t <= end)
     return {
         "scenario": name, "memory": memory, "speed_mps": speed, "slowest_mps": slowest,
@@ -71,6 +79,8 @@ def result_text(o: dict[str, Any]) -> str:
     if o["stopping_distance_m"] is not None:
         return f"stopped for {o['stopped_for']}"
     if o["interventions"]:
+        if o["slowest_mps"] >= o["speed_mps"] - 0.05:  # over before the car's speed changed
+            return f"did not slow ({o['slowest_mps']:.1f} m/s), drove on"
         return f"slowed to {o['slowest_mps']:.1f} m/s, drove on"
     return "no intervention"
 

@@ -33,7 +33,7 @@ import numpy as np
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.messages import AckermannDrive, LaserScan
 from safety.arc import PathHit, SweptFootprint, free_distance, stopping_speed
-from safety.memory import ObstacleMemory
+from safety.memory import ObstacleMemory, plausible_increment
 from safety.params import SafetyParams
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ REASONS = ("clear", "obstacle", "stale_scan", "no_scan", "bad_scan", "reverse_ca
 #: Where the point that limits the path came from: the live scan or the obstacle memory.
 SOURCES = ("scan", "memory")
 
-#: Interventions kept in :attr:`SafetyController.events` (the oldest are dropped).
+#: Intervention entries kept in :attr:`SafetyController.events` (the oldest are dropped).
 MAX_EVENTS = 1000
 
 #: A laser->base_link transform: a 4x4 homogeneous matrix, or planar (x, y, yaw) in metres/radians.
@@ -73,6 +73,10 @@ class Intervention:
 
     ``obstacle`` is in base_link at the scan received at ``scan_ns`` (None when no point limits the
     path, e.g. a stale scan); speeds in m/s.
+
+    ``continues``: not a new intervention but the one before it, which started for something else
+    (a late scan, the reverse cap), becoming a stop for an obstacle at ``t_ns``: what it stops for
+    is only known from then. The entry before it ends at that ``t_ns``.
     """
 
     t_ns: int
@@ -83,6 +87,7 @@ class Intervention:
     obstacle: Obstacle | None
     scan_ns: int | None
     end_ns: int | None = None
+    continues: bool = False
 
 
 @dataclass(frozen=True)
@@ -230,8 +235,10 @@ class SafetyController:
         self.rejected_commands = 0
         self._rejecting = False
         self.state = SafetyState(0.0, math.nan, None, "no_scan", False)
-        #: the latest intervention starts, oldest first
+        #: the latest interventions, oldest first: an entry when one starts, and one more when one
+        #: that started for another reason becomes a stop for an obstacle (``continues``)
         self.events: deque[Intervention] = deque(maxlen=MAX_EVENTS)
+        self._obstacle_noted = False  # the current intervention has an entry with its obstacle
         m = params.memory
         self.memory = (ObstacleMemory(m.size_m, m.resolution_m, m.max_age_s, m.see_through_m, m.reach_m)
                        if m.enabled and params.mode == "arc" else None)
@@ -248,23 +255,30 @@ class SafetyController:
         readings past ``range_max`` count as usable beams without a point; NaN (a fault) and
         readings below ``range_min`` (dust, a blocked window) are not usable. Points come from
         usable finite readings within ``range_max`` (when the scan has a sensible one) and within
-        reach of the path.
+        reach of the path. A scan whose beams have no plausible directions (a non-finite angle;
+        two or more beams less than :data:`~safety.memory.MIN_ANGLE_INCREMENT_RAD` or more than a
+        turn apart) has no usable beam and no point: it is a ``bad_scan``.
 
-        ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none. With
-        it and the memory on, the remembered points join the scan's (after them: ``live`` tells
-        which are which). A scan not yet folded into the memory (no :meth:`remember` since) is
-        folded in first.
+        ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none (a
+        non-finite pose counts as none). With it and the memory on, the remembered points join the
+        scan's (after them: ``live`` tells which are which). A scan not yet folded into the memory
+        (no :meth:`remember` since) is folded in first.
         """
         previous = self._scan
         if previous is not None and not previous.remembered:
             self.remember()
         r = np.asarray(scan.ranges, dtype=np.float64)
         n = r.size
-        # NaN compares false and -inf is below range_min: neither is usable.
-        at_least_min = r >= scan.range_min
+        if (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)
+                and (n < 2 or plausible_increment(scan.angle_increment))):
+            # NaN compares false and -inf is below range_min: neither is usable.
+            at_least_min = r >= scan.range_min
+        else:  # beams without sensible directions (all along one ray, or none): refuse the scan
+            at_least_min = np.zeros(n, dtype=bool)
         usable = int(np.count_nonzero(at_least_min))
-        if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)):
-            usable = 0  # beams without directions: refuse the scan
+        if pose is not None and not (math.isfinite(pose[0]) and math.isfinite(pose[1])
+                                     and math.isfinite(pose[2])):
+            pose = None
         far = min(scan.range_max, self._reach) if scan.range_max > scan.range_min else self._reach
         # index arrays rather than boolean masks: the gathers the path sweep uses too; nonzero()
         # rather than np.flatnonzero, a chain of Python calls that costs more than the work here
@@ -382,17 +396,33 @@ class SafetyController:
         if started:
             self.interventions += 1
             self.interventions_by_reason[reason] = self.interventions_by_reason.get(reason, 0) + 1
-            scan_ns = self._scan.received_ns if self._scan is not None else None
-            self.events.append(Intervention(now_ns, reason, allowed, speed, measured_speed_mps,
-                                            obstacle, scan_ns))
-            where = (f"obstacle ({obstacle.source}) at ({obstacle.x:.2f}, {obstacle.y:.2f}) m, "
-                     f"{obstacle.distance:.2f} m along the path" if obstacle else "no obstacle")
-            log.warning("safety: intervening (%s) on %s: commanded %.2f m/s, measured %.2f m/s, "
-                        "allowed %.2f m/s, %s", reason, source, speed, measured_speed_mps, allowed,
-                        where)
+            self._obstacle_noted = reason == "obstacle" and obstacle is not None
+            self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
+                                      self._scan.received_ns if self._scan is not None else None),
+                         source)
+        elif (intervening and needs_cut and reason == "obstacle" and obstacle is not None
+              and not self._obstacle_noted):
+            # started for a late scan or the reverse cap, and now an obstacle cuts the command: once
+            # per intervention, however often the reason flips back and forth after this
+            self._obstacle_noted = True
+            self._ended(now_ns)
+            self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
+                                      self._scan.received_ns if self._scan is not None else None,
+                                      continues=True), source)
         if magnitude > cap:
             drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
         return drive, self.state
+
+    def _record(self, event: Intervention, source: str) -> None:
+        """Keep ``event`` and log it: one line per intervention start or change to an obstacle."""
+        self.events.append(event)
+        o = event.obstacle
+        where = (f"obstacle ({o.source}) at ({o.x:.2f}, {o.y:.2f}) m, {o.distance:.2f} m along the path"
+                 if o else "no obstacle")
+        what = ("still intervening, now for an obstacle" if event.continues
+                else f"intervening ({event.reason})")
+        log.warning("safety: %s on %s: commanded %.2f m/s, measured %.2f m/s, allowed %.2f m/s, %s",
+                    what, source, event.commanded_speed, event.measured_speed, event.allowed_speed, where)
 
     def _ended(self, now_ns: int) -> None:
         """The current intervention ended at ``now_ns``."""

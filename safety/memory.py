@@ -48,6 +48,11 @@ MAX_HALF_WINDOW = 31
 
 _TWO_PI = 2.0 * math.pi
 
+#: The finest beam spacing a scan can have, radians. 2D lidars space their beams about 1e-3 rad
+#: apart or more (a UST-10LX: 4.4e-3); a finer ``angle_increment`` is a broken message, whose beam
+#: indices (bearing / increment) need not even fit an integer.
+MIN_ANGLE_INCREMENT_RAD = 1e-6
+
 #: A planar affine transform (a, b, tx, c, d, ty): x' = a x + b y + tx, y' = c x + d y + ty.
 Affine = tuple[float, float, float, float, float, float]
 
@@ -56,6 +61,12 @@ Affine = tuple[float, float, float, float, float, float]
 _LEVELS = (2 * MAX_HALF_WINDOW + 1).bit_length()
 _LEVEL_OF = np.array([max(n.bit_length() - 1, 0) for n in range(2 * MAX_HALF_WINDOW + 2)], dtype=np.intp)
 _RUN = 1 << np.arange(_LEVELS, dtype=np.intp)
+
+
+def plausible_increment(angle_increment: float) -> bool:
+    """Whether beams ``angle_increment`` apart (radians, either direction) can come from a lidar:
+    at least :data:`MIN_ANGLE_INCREMENT_RAD` and at most a full turn (False for NaN and inf)."""
+    return MIN_ANGLE_INCREMENT_RAD <= abs(angle_increment) <= _TWO_PI
 
 
 class ObstacleMemory:
@@ -189,11 +200,12 @@ class ObstacleMemory:
         """For cells at range ``r`` and ``bearing`` (laser frame): whether the scan sees through them.
 
         A cell is seen through when it is inside the field of view and the lidar's range limits,
-        and every beam across its width reaches ``see_through_m`` beyond it.
+        and every beam across its width reaches ``see_through_m`` beyond it. A scan whose beams
+        have no plausible directions (a non-finite angle, an increment below
+        :data:`MIN_ANGLE_INCREMENT_RAD` or above a turn) sees through nothing.
         """
         count = len(ranges)
-        if count == 0 or not (math.isfinite(angle_min) and math.isfinite(angle_increment)) \
-                or angle_increment == 0.0:
+        if count == 0 or not (math.isfinite(angle_min) and plausible_increment(angle_increment)):
             return np.zeros(r.shape, dtype=bool)
         step = abs(angle_increment)
         # the angle from the first beam, in the scan's direction, in [0, 2 pi): bearing is in
@@ -212,10 +224,13 @@ class ObstacleMemory:
         with np.errstate(invalid="ignore"):
             free = np.where(free >= range_min, free, 0.0)
             free[free > far] = math.inf
-        centre = np.minimum((index + 0.5).astype(np.intp), count - 1)  # any beam for those out of view
+        # clamped as floats, then cast: a float beyond the integers casts to garbage
+        centre = np.minimum(index + 0.5, count - 1).astype(np.intp)  # any beam for those out of view
         # beams either side across the cell: its half width over the range, an upper bound of the
-        # angle it spans (atan(w) <= w)
-        half = np.minimum((0.75 * self.resolution_m / step / r).astype(np.intp) + 1, MAX_HALF_WINDOW)
+        # angle it spans (atan(w) <= w); a cell centred on the laser (r = 0) spans them all
+        with np.errstate(divide="ignore"):
+            across = 0.75 * self.resolution_m / (step * r)
+        half = np.minimum(across, MAX_HALF_WINDOW - 1).astype(np.intp) + 1
         nearest = _window_min(free, np.maximum(centre - half, 0), np.minimum(centre + half, count - 1))
         return visible & (nearest > r + tol)
 

@@ -101,9 +101,13 @@ class SafetyNode:
 
     def _on_scan(self, scan: LaserScan) -> None:
         now = self.clock()
-        self.controller.on_scan(scan, now, self.pose_at(now))
+        try:
+            self.controller.on_scan(scan, now, self.pose_at(now))
+        except Exception as err:
+            self._latch(err, "taking a scan in")
+            return
         if not self.defer_memory:
-            self.controller.remember()
+            self.remember()
 
     def remember(self) -> None:
         """Fold the latest scan into the obstacle memory; never raises (a failure latches a fault)."""
@@ -112,9 +116,13 @@ class SafetyNode:
         try:
             self.controller.remember()
         except Exception as err:
-            self.fault = f"{type(err).__name__}: {err}"
-            self.faults += 1
-            log.exception("safety: obstacle memory failed; braking every command until reset")
+            self._latch(err, "the obstacle memory")
+
+    def _latch(self, err: Exception, what: str) -> None:
+        """Latch a fault for ``err``, raised by the controller in ``what``: brake until reset."""
+        self.fault = f"{type(err).__name__}: {err}"
+        self.faults += 1
+        log.exception("safety: %s failed; braking every command until reset", what)
 
     def _on_odom(self, odom: Odometry) -> None:
         now = self.clock()
@@ -175,9 +183,7 @@ class SafetyNode:
                 out, _ = self.controller.limit(drive, source, self.measured_speed(now), now)
                 return out
             except Exception as err:
-                self.fault = f"{type(err).__name__}: {err}"
-                self.faults += 1
-                log.exception("safety: controller failed; braking every command until reset")
+                self._latch(err, "limiting a command")
         return dataclasses.replace(drive, speed=0.0, steering_angle=_finite_or_zero(drive.steering_angle))
 
     def reset_fault(self) -> None:

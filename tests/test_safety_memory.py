@@ -8,6 +8,7 @@ holds, in odom, against the true geometry.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from hypothesis import strategies as st
 from scans import LASER_X, Segment, base_points, left_arc, scan_at, square, straight
 
 from safety.controller import planar_transform
-from safety.memory import ObstacleMemory, _window_min
+from safety.memory import MIN_ANGLE_INCREMENT_RAD, ObstacleMemory, _window_min
 
 MS = 1_000_000
 PERIOD_NS = 25 * MS  # 40 Hz
@@ -252,3 +253,52 @@ def test_a_scan_with_no_usable_geometry_clears_nothing():
     memory.update((0.0, 0.0, 0.0), TO_BASE, nan, -2.35, 0.00436, 0.06, 30.0, np.zeros(0), np.zeros(0),
                   now + PERIOD_NS)
     assert len(memory) == before  # NaN beams tell nothing: nothing is seen through
+
+
+# a cell 2 m out on the first beam and one centred on the laser (r = 0, bearing 0): r, bearing
+ON_FIRST_BEAM = (np.array([2.0, 0.0]), np.array([0.0, 0.0]))
+
+
+def seen_through(memory: ObstacleMemory, increment: float, range_min: float) -> np.ndarray:
+    """The two cells judged against ten beams from bearing 0 that all reach 5 m, warnings raised."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return memory._seen_through(*ON_FIRST_BEAM, np.full(10, 5.0), 0.0, increment, range_min, 30.0)
+
+
+@pytest.mark.parametrize("increment", [5e-324, 1e-323, -1e-300, 1e-20, 0.5 * MIN_ANGLE_INCREMENT_RAD,
+                                       7.0, -math.inf, math.nan])
+def test_a_scan_without_plausible_beam_spacing_sees_through_nothing(increment):
+    # A subnormal increment (1e-323, as a property test drew) made bearing / increment overflow and
+    # a cell's window of beams negative: an IndexError that latched the daemon's safety fault.
+    memory = ObstacleMemory()
+    assert not seen_through(memory, increment, 0.0).any()
+
+
+def test_cells_on_the_first_beam_and_on_the_laser_are_judged_at_the_finest_plausible_spacing():
+    memory = ObstacleMemory()
+    # both cells are in view and every beam reaches 4.9 m beyond them: seen through
+    assert seen_through(memory, MIN_ANGLE_INCREMENT_RAD, 0.0).tolist() == [True, True]
+    assert seen_through(memory, -MIN_ANGLE_INCREMENT_RAD, 0.0).tolist() == [True, True]
+    # r = 0 is below a real range_min: out of the lidar's range, kept (and no division by zero)
+    assert seen_through(memory, 0.00436, 0.06).tolist() == [True, False]
+
+
+def test_a_remembered_post_survives_scans_without_plausible_beam_spacing():
+    memory = ObstacleMemory()
+    now = drive(memory, [(0.0, 0.0, 0.0)], square(*POST))
+    before = len(memory)
+    beyond = np.full(1081, 5.0, dtype=np.float32)  # every beam past the post, were it spread out
+    # the post's bearing from the laser: the first beam of the broken scans points at it
+    first = math.atan2(POST[1], POST[0] - LASER_X)
+    for increment in (1e-323, 1e-300, 0.0):
+        now += PERIOD_NS
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            memory.update((0.0, 0.0, 0.0), TO_BASE, beyond, first, increment, 0.06, 30.0, np.zeros(0),
+                          np.zeros(0), now)
+        assert len(memory) == before
+    # the same ranges over the UST-10LX's real 270 degrees: the lidar sees through where it stood
+    memory.update((0.0, 0.0, 0.0), TO_BASE, beyond, -2.35, 0.00436, 0.06, 30.0, np.zeros(0),
+                  np.zeros(0), now + PERIOD_NS)
+    assert near(memory, *POST) == 0

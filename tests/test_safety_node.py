@@ -170,6 +170,21 @@ def test_node_latches_a_fault_and_brakes() -> None:
     assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 1.0
 
 
+def test_a_scan_the_controller_cannot_take_in_latches_a_fault_too() -> None:
+    for deferred in (False, True):
+        bus, clock = Bus(), ManualClock()
+        node = SafetyNode(bus, SafetyParams(), clock=clock, defer_memory=deferred)
+        bus.publish("/odom", odom_at(0.0, 0.0, 0.0))
+        bus.publish("/scan", open_scan())
+        assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 1.0
+        garbled = open_scan()
+        garbled.ranges = np.array(["far"] * 1081)  # a publisher in the same process got it wrong
+        bus.publish("/scan", garbled)
+        assert node.fault is not None and node.fault.startswith("ValueError") and node.faults == 1
+        assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 0.0
+        assert node.state.reason == "fault"
+
+
 def test_stale_odometry_is_ignored() -> None:
     bus, clock = Bus(), ManualClock()
     node = SafetyNode(bus, SafetyParams(), clock=clock)
@@ -220,6 +235,28 @@ def test_the_node_remembers_each_scan_at_once_or_when_the_daemon_says() -> None:
         node.remember()
         node.tick()
         assert values(published[-1])["memory"] == "no_odometry" and len(memory) == 0
+
+
+def test_a_scan_with_beams_a_subnormal_angle_apart_brakes_without_a_fault() -> None:
+    # it once made the memory raise IndexError: a latched fault, or with the memory following
+    # each scan an exception out of the bus callback
+    for deferred in (False, True):
+        bus, clock = Bus(), ManualClock()
+        node = SafetyNode(bus, SafetyParams(), clock=clock, defer_memory=deferred)
+        bus.publish("/odom", odom_at(0.0, 0.0, 0.0))
+        bus.publish("/scan", blocked_ahead(1.0))
+        node.remember()
+        memory = node.controller.memory
+        assert memory is not None and len(memory) > 0
+        remembered = len(memory)
+        broken = open_scan()
+        broken.angle_increment = 1e-300
+        clock.now += 100 * MS  # past the memory's update period: it takes this scan in
+        bus.publish("/scan", broken)
+        node.remember()
+        assert memory.updates == 2 and len(memory) == remembered
+        assert node.filter(AckermannDrive(speed=1.0), "nav").speed == 0.0
+        assert node.state.reason == "bad_scan" and node.fault is None and node.faults == 0
 
 
 def test_the_memory_can_be_switched_off() -> None:

@@ -29,6 +29,7 @@ from racecar_hw.sim.trajectory import (
     distance_travelled,
     read_csv,
     report,
+    rest_time,
     stop_time,
     stopping_distance,
     write_csv,
@@ -76,6 +77,20 @@ def test_report_numbers() -> None:
     assert stopping_distance(run[:120], 1.0) is None
     assert distance_travelled(run) == pytest.approx(rep.distance_m)
     assert report([]).distance_m == 0.0
+
+
+def test_the_car_comes_to_rest_where_it_stands_still_after_moving() -> None:
+    run = braking_run()  # at rest from 1.5 s
+    assert rest_time(run, 1.0) == stop_time(run, 1.0) == pytest.approx(1.5, abs=0.02)
+    assert rest_time(run, 1.0, 1.3) is None  # still braking at 1.3 s
+    assert rest_time(run, 1.6, 1.8) == pytest.approx(1.6)  # stood still throughout
+    # standing at 1.6 s, then creeping 0.3 m at 0.3 m/s from 2.0 s to 3.0 s: it came to rest at 3 s
+    creep = run + [TrajectorySample(2.0 + k * 0.01, run[-1].x + 0.003 * min(k, 100), 0.0, 0.0,
+                                    0.3 if k < 100 else 0.0, 0.0) for k in range(200)]
+    assert stop_time(creep, 1.6) == pytest.approx(1.6)  # the first standstill: before it crept
+    assert rest_time(creep, 1.6) == pytest.approx(3.0)
+    assert stopping_distance(creep, 1.6, rest_time(creep, 1.6)) == pytest.approx(0.3, abs=0.01)
+    assert rest_time(creep, 1.6, 2.5) is None and rest_time([], 0.0) is None
 
 
 def test_report_circle_and_clearance() -> None:

@@ -148,7 +148,8 @@ def test_obstacle_appearing_ahead_stops_the_car(tmp_path):
 
 
 def obstacle_stops(report: dict) -> list[dict]:
-    """The report's interventions for an obstacle (not a late scan on a loaded machine)."""
+    """The report's entries for an obstacle: interventions that started for one, and those that
+    became one after starting for a late scan on a loaded machine (``continues``)."""
     return [i for i in report["interventions"] if i["reason"] == "obstacle"]
 
 
@@ -160,11 +161,42 @@ def test_reversing_into_a_wall_seen_before_a_u_turn_stops_with_the_memory(tmp_pa
     stops = obstacle_stops(r)
     assert stops, r["interventions"]
     stop = stops[-1]
-    # the wall is behind the car, outside the lidar's view: the memory stopped it
-    assert stop["source"] == "memory" and stop["object"] == "map"
-    assert stop["speed_mps"] == pytest.approx(-0.5, abs=0.05)
+    # the wall is behind the car, outside the lidar's view: the memory stopped it. On a loaded
+    # machine the intervention may start as a stale_scan: this is then the entry that continues it.
+    assert stop["source"] == "memory"
+    # What the memory holds is placed by odometry, which drifts a few % of the distance driven
+    # (docs/safety.md), more on a loaded machine that misses control ticks: the remembered point
+    # is the wall's face (x = -3.95 m; "map" when within 0.15 m of it) to within that drift. One
+    # loaded run placed it 0.16 m in front of the face after the 4 m driven.
+    assert stop["object"] == "map" or abs(stop["obstacle"]["x"] + 3.95) < 0.3, stop
     assert stop["stopped_at_s"] is not None and 0.05 < stop["distance_left_m"] < 0.5
+    # it reversed at the cap (the script asks for -0.5 m/s until the end of the run, which the cap
+    # alone would let it drive into the wall, as the run without the memory shows), up to the stop
+    samples = read_csv(r["trajectory_csv"])
+    reversing = [s.speed for s in samples if s.t <= stop["stopped_at_s"] and s.speed < 0.0]
+    assert min(reversing) == pytest.approx(-0.5, abs=0.05)
     assert r["final_pose"]["x"] > -3.95 + 0.10  # the rear bumper short of the wall's face
+
+
+def test_a_stop_that_starts_for_a_late_scan_and_ends_for_a_wall_reports_the_wall(tmp_path):
+    # the car waits 0.65 m from the far wall (face at x = 7.95 m) with the lidar unplugged; asked
+    # for 2 m/s it is held for stale_scan; once scans are back the wall cuts the command, and the
+    # report's entry that continues the intervention says what it stopped for and how far from it
+    r = run("wall", tmp_path, "start=[6.85, 0.0, 0.0]", "duration_s=5.0",
+            "drivers=[{type: script, input: nav_0, steps: [[0.0, 0.0, 0.0], [1.0, 2.0, 0.0]]}]",
+            "faults=[{at_s: 0.2, action: lidar_unplug}, {at_s: 1.5, action: lidar_replug}]").report
+    assert not r["collided"], r["collisions"]
+    assert r["safety_interventions_by_reason"] == {"stale_scan": 1}  # one intervention throughout
+    start, stop = r["interventions"]
+    assert start["reason"] == "stale_scan" and not start["continues"] and start["source"] is None
+    assert 1.0 <= start["t_s"] - r["ready_at_s"] < 1.5 and start["stopping_distance_m"] == 0.0
+    assert stop["continues"] and stop["reason"] == "obstacle" and stop["t_s"] == start["ended_at_s"]
+    assert stop["t_s"] - r["ready_at_s"] >= 1.5 and stop["ended_at_s"] is None
+    assert stop["source"] == "scan" and stop["object"] == "map" and 0.0 < stop["allowed_mps"] < 2.0
+    # it crept up to the wall at what the controller allowed, and stopped short of it there
+    assert stop["stopped_at_s"] > stop["t_s"] and stop["stopping_distance_m"] > 0.1
+    assert 0.1 < stop["distance_left_m"] < 0.5
+    assert r["final_pose"]["x"] + 0.45 == pytest.approx(7.95 - stop["distance_left_m"], abs=0.05)
 
 
 def test_reversing_into_the_same_wall_without_the_memory_collides(tmp_path):

@@ -39,7 +39,7 @@ from racecar_hw.sim.obstacles import point_polygon_distance
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import ControlSample, Mark, plot_run
 from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
-from racecar_hw.sim.trajectory import TrajectorySample, stop_time, stopping_distance, write_csv
+from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
 from racecar_hw.sim.world import World, compose
 from vesc.codec import servo_on_wire
 from vesc.fake import FakeVesc
@@ -490,11 +490,16 @@ class Loopback:
     def _interventions(self) -> list[dict[str, Any]]:
         """Each intervention: when (world time), why, what caused it and where the car stopped.
 
+        An intervention that started for something else (a late scan, the reverse cap) and then
+        became a stop for an obstacle has a second entry from that moment, with ``continues`` true
+        (the first then ends there): what the car stopped for, and how far from it, are in that one.
+
         ``source``: the live scan or the obstacle memory (None without an obstacle, e.g. a stale
         scan). ``obstacle``: the limiting point in the map frame; ``object``: what the world has
         there (``map``, a scenario obstacle's name, or None: nothing, a remembered point of
         something that has gone). ``ended_at_s``: when the controller let go (None: at the end of
-        the run). ``stopped_at_s``: when the car came to a standstill before that (None: it only
+        the run). ``stopped_at_s``: when the car came to rest before that (:func:`rest_time`: a car
+        that stood at the start and then drove stopped where it came to rest again; None: it only
         slowed down); ``stopping_distance_m``: path driven until then; ``distance_left_m``: the gap
         between the car's footprint and that object at standstill, or when the intervention ended
         if the car only slowed (for the map or nothing: the gap to the point).
@@ -507,8 +512,8 @@ class Loopback:
             t = world.sim_time_at(event.t_ns)
             end = world.sim_time_at(event.end_ns) if event.end_ns is not None else None
             entry: dict[str, Any] = {
-                "t_s": round(t, 3), "reason": event.reason, "source": None, "obstacle": None,
-                "object": None, "speed_mps": _num(_speed_at(samples, t)),
+                "t_s": round(t, 3), "reason": event.reason, "continues": event.continues,
+                "source": None, "obstacle": None, "object": None, "speed_mps": _num(_speed_at(samples, t)),
                 "allowed_mps": _num(event.allowed_speed),
                 "ended_at_s": None if end is None else round(end, 3), "stopped_at_s": None,
                 "stopping_distance_m": None, "distance_left_m": None,
@@ -521,12 +526,10 @@ class Loopback:
                 entry["source"] = o.source
                 entry["obstacle"] = {"x": _num(point.x), "y": _num(point.y)}
                 entry["object"] = world.what_is_at(point.x, point.y, scan_t)
-            stopped = stop_time(samples, t)
-            if stopped is not None and (end is None or stopped <= end):
+            stopped = rest_time(samples, t, end)
+            if stopped is not None:
                 entry["stopped_at_s"] = round(stopped, 3)
-                entry["stopping_distance_m"] = _num(stopping_distance(samples, t) or 0.0)
-            else:
-                stopped = None
+                entry["stopping_distance_m"] = _num(stopping_distance(samples, t, stopped) or 0.0)
             when = stopped if stopped is not None else end
             if point is not None and when is not None:
                 at = next((s for s in samples if s.t >= when), samples[-1])

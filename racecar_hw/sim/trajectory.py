@@ -120,10 +120,33 @@ def stop_time(samples: Sequence[TrajectorySample], after_t: float) -> float | No
     return None
 
 
-def stopping_distance(samples: Sequence[TrajectorySample], after_t: float) -> float | None:
-    """Path length (m) driven from ``after_t`` (e.g. a stop command) until the car stood still;
-    ``None`` if it never stopped."""
-    t_stop = stop_time(samples, after_t)
+def rest_time(samples: Sequence[TrajectorySample], t0: float, t1: float | None = None) -> float | None:
+    """Sim time at which the car came to rest between ``t0`` and ``t1`` (None: the last sample):
+    the first standstill after it moved in that span, or its first sample when the car stood still
+    throughout; None when it was moving at ``t1``.
+
+    Unlike :func:`stop_time`, a car standing at ``t0`` that then drives has not stopped yet."""
+    moved = False
+    first = None
+    for s in samples:
+        if s.t < t0:
+            continue
+        if t1 is not None and s.t > t1:
+            break
+        if first is None:
+            first = s.t
+        if abs(s.speed) >= STOPPED_SPEED:
+            moved = True
+        elif moved:
+            return s.t
+    return None if moved else first
+
+
+def stopping_distance(samples: Sequence[TrajectorySample], after_t: float,
+                      stopped_t: float | None = None) -> float | None:
+    """Path length (m) driven from ``after_t`` (e.g. a stop command) until the car stood still
+    (at ``stopped_t`` when given, else at :func:`stop_time`); ``None`` if it never stopped."""
+    t_stop = stop_time(samples, after_t) if stopped_t is None else stopped_t
     if t_stop is None:
         return None
     pts = [(s.x, s.y) for s in samples if after_t <= s.t <= t_stop]
