@@ -110,6 +110,12 @@ def uses_dtr_motor_control(model_id: int) -> bool:
     return (model_id >> 4) == 1
 
 
+def has_self_driven_motor(model_id: int) -> bool:
+    """C series: the unit runs its motor itself. The SDK still treats it like an A2 (PWM if the
+    accessory board flag says so, else DTR cleared), which the C1 ignores."""
+    return (model_id >> 4) == 4
+
+
 def uses_rpm_motor_control(model_id: int) -> bool:
     """S series and newer: the motor speed is set in rpm (SET_MOTOR_RPM)."""
     return (model_id >> 4) >= 6

@@ -221,6 +221,23 @@ def test_a1_dtr_refused_by_the_pty_is_not_fatal(device_thread, tmp_path, caplog)
     assert sum("cannot set DTR" in r.getMessage() for r in caplog.records) == 1
 
 
+def test_c1_motor_runs_by_itself_and_dtr_is_no_warning(device_thread, tmp_path, caplog):
+    """As the SDK: the C1 is asked its accessory board flag (no PWM) and DTR is cleared; the C1
+    ignores DTR, so a port without modem lines is normal and not warned about."""
+    caplog.set_level(logging.DEBUG, logger="lidar_drivers.rplidar_driver")
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        assert driver.info["motor"] == "self-driven"
+        cmds = [r.command for r in fake.requests]
+        assert Command.GET_ACC_BOARD_FLAG in cmds
+        assert Command.SET_MOTOR_PWM not in cmds and Command.SET_MOTOR_RPM not in cmds
+
+    run_driver(device_thread, tmp_path, "c1", scenario)
+    dtr = [r for r in caplog.records if "cannot set DTR" in r.getMessage()]
+    assert dtr and all(r.levelno == logging.DEBUG for r in dtr)
+
+
 def test_default_baud_rates_and_config_errors():
     bus = Bus()
     expected = {"a1": 115200, "a2m8": 115200, "a2m7": 256000, "a2m12": 256000, "a3": 256000,
