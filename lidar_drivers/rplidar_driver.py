@@ -80,6 +80,8 @@ STARTUP_TIMEOUT_S = 3.0
 BITS_PER_BYTE = 10  # 8N1
 #: The SDK's sample period for an A-series unit older than firmware 1.17 (no GET_SAMPLERATE).
 LEGACY_SAMPLE_US = 476
+#: The maximum distance the SDK gives a legacy mode (a unit without GET_LIDAR_CONF cannot say).
+LEGACY_MAX_DISTANCE_M = 16.0
 #: The speed the SDK sets when a device does not say which it wants.
 DEFAULT_RPM = 600
 
@@ -190,7 +192,8 @@ class RplidarDriver(LidarDriver):
         return True
 
     async def _legacy_modes(self, info: DeviceInfo) -> None:
-        """Standard and (firmware 1.17+) Express, timed by GET_SAMPLERATE as the SDK times them."""
+        """Standard and (firmware 1.17+) Express, timed by GET_SAMPLERATE as the SDK times them
+        (and, as there, 16 m each: the device cannot say)."""
         express = info.major >= 4 or (info.firmware_major, info.firmware_minor) >= (1, 17)
         rate = SampleRate(LEGACY_SAMPLE_US, LEGACY_SAMPLE_US)
         if express:
@@ -201,11 +204,11 @@ class RplidarDriver(LidarDriver):
                          self.spec.name)
                 rate = SampleRate(self.spec.standard_us, self.spec.express_us)
         self.sample_rate = rate
-        modes = [ScanMode(0, "Standard", rate.standard_us or LEGACY_SAMPLE_US, self.spec.range_max,
-                          AnswerType.SCAN)]
+        modes = [ScanMode(0, "Standard", rate.standard_us or LEGACY_SAMPLE_US,
+                          LEGACY_MAX_DISTANCE_M, AnswerType.SCAN)]
         if express:
             modes.append(ScanMode(1, "Express", rate.express_us or LEGACY_SAMPLE_US,
-                                  self.spec.range_max, AnswerType.EXPRESS))
+                                  LEGACY_MAX_DISTANCE_M, AnswerType.EXPRESS))
         self.scan_modes = modes
         self._typical = modes[-1].id
 
