@@ -14,11 +14,15 @@ EXPRESS_SCAN with the mode's id for the rest. An older device has two modes, Sta
 Express (EXPRESS_SCAN mode 0, legacy capsules), timed by GET_SAMPLERATE; Express is its typical
 mode (Standard only below firmware 1.17, which had no express scan).
 
-Motor: A1 (model id series 1) runs while DTR is *cleared*; a port without modem lines (a pty,
-some adapters) refuses DTR, which is logged once and otherwise ignored. A2/A3 get
-SET_MOTOR_PWM(``params.motor_pwm``) when GET_ACC_BOARD_FLAG reports the accessory board. The S
-series gets SET_MOTOR_RPM with the speed it asks for (GET_LIDAR_CONF DESIRED_ROT_FREQ). C1 spins
-by itself. Closing a session sends STOP and stops the motor (PWM 0, DTR asserted).
+Motor, as Slamtec's SDK drives it: A1 (model id series 1) runs while DTR is *cleared*; a port
+without modem lines (a pty, some adapters) refuses DTR, which is logged once as a warning and
+otherwise ignored. A2/A3 get SET_MOTOR_PWM(``params.motor_pwm``) when GET_ACC_BOARD_FLAG reports
+the accessory board (without it, DTR as the A1). The S series gets SET_MOTOR_RPM with the speed
+it asks for (GET_LIDAR_CONF DESIRED_ROT_FREQ). The C1 runs its motor itself (``motor:
+self-driven``): the SDK asks its accessory board flag and, finding no PWM, clears DTR as for an
+A1, which the C1 ignores; the driver does the same, and a port that refuses DTR is normal there
+(logged at debug level only). Closing a session sends STOP and stops the motor (PWM 0, DTR
+asserted).
 
 Scan conventions (counter-clockwise fixed grid, negative ``time_increment``): see
 :mod:`lidar_drivers.rplidar_scan`. Stamps are wall-clock ns: the arrival time of the bytes minus
@@ -76,6 +80,8 @@ STARTUP_TIMEOUT_S = 3.0
 BITS_PER_BYTE = 10  # 8N1
 #: The SDK's sample period for an A-series unit older than firmware 1.17 (no GET_SAMPLERATE).
 LEGACY_SAMPLE_US = 476
+#: The maximum distance the SDK gives a legacy mode (a unit without GET_LIDAR_CONF cannot say).
+LEGACY_MAX_DISTANCE_M = 16.0
 #: The speed the SDK sets when a device does not say which it wants.
 DEFAULT_RPM = 600
 
@@ -186,7 +192,8 @@ class RplidarDriver(LidarDriver):
         return True
 
     async def _legacy_modes(self, info: DeviceInfo) -> None:
-        """Standard and (firmware 1.17+) Express, timed by GET_SAMPLERATE as the SDK times them."""
+        """Standard and (firmware 1.17+) Express, timed by GET_SAMPLERATE as the SDK times them
+        (and, as there, 16 m each: the device cannot say)."""
         express = info.major >= 4 or (info.firmware_major, info.firmware_minor) >= (1, 17)
         rate = SampleRate(LEGACY_SAMPLE_US, LEGACY_SAMPLE_US)
         if express:
@@ -197,11 +204,11 @@ class RplidarDriver(LidarDriver):
                          self.spec.name)
                 rate = SampleRate(self.spec.standard_us, self.spec.express_us)
         self.sample_rate = rate
-        modes = [ScanMode(0, "Standard", rate.standard_us or LEGACY_SAMPLE_US, self.spec.range_max,
-                          AnswerType.SCAN)]
+        modes = [ScanMode(0, "Standard", rate.standard_us or LEGACY_SAMPLE_US,
+                          LEGACY_MAX_DISTANCE_M, AnswerType.SCAN)]
         if express:
             modes.append(ScanMode(1, "Express", rate.express_us or LEGACY_SAMPLE_US,
-                                  self.spec.range_max, AnswerType.EXPRESS))
+                                  LEGACY_MAX_DISTANCE_M, AnswerType.EXPRESS))
         self.scan_modes = modes
         self._typical = modes[-1].id
 
@@ -250,20 +257,28 @@ class RplidarDriver(LidarDriver):
                 self._send(Request.set_motor_pwm(self.params.motor_pwm))
                 self.motor = f"pwm {self.params.motor_pwm}"
                 return
-        if rplidar_models.uses_dtr_motor_control(info.model_id) or \
-                rplidar_models.uses_pwm_motor_control(info.model_id):
+        model_id = info.model_id
+        if rplidar_models.uses_dtr_motor_control(model_id) or (
+                rplidar_models.uses_pwm_motor_control(model_id)
+                and not rplidar_models.has_self_driven_motor(model_id)):
             self.motor = "dtr"
-            self._set_dtr(self._link, False)  # cleared DTR = motor runs
         else:
             self.motor = "self-driven"
+        # Like the SDK without PWM or rpm control: cleared DTR = motor runs (the C1 ignores it).
+        self._set_dtr(self._link, False)
 
     def _set_dtr(self, link: Link | None, level: bool) -> None:
+        """Set DTR; a port that refuses (a pty, an adapter without modem lines) only matters
+        when DTR drives the motor: then it is logged once as a warning, else at debug level."""
         if link is None:
             return
         try:
             link.set_dtr(level)
         except DeviceIOError as err:
-            if not self._dtr_refused_logged:
+            if self.motor != "dtr":
+                log.debug("rplidar %s: cannot set DTR (%s); the motor does not use it",
+                          self.params.port, err)
+            elif not self._dtr_refused_logged:
                 self._dtr_refused_logged = True
                 log.warning("rplidar %s: cannot set DTR (%s); the motor is left as it is "
                             "(normal for a pty or an adapter without modem lines)", self.params.port, err)
@@ -403,6 +418,6 @@ class RplidarDriver(LidarDriver):
                 link.write(Request.simple(Command.STOP).encode())
                 if self.motor.startswith("pwm"):
                     link.write(Request.set_motor_pwm(0).encode())
-            if self.motor == "dtr":
-                self._set_dtr(link, True)  # asserted DTR stops the A1 motor
+            if self.motor in ("dtr", "self-driven"):
+                self._set_dtr(link, True)  # asserted DTR stops the A1 motor (the SDK's stop)
         link.close()

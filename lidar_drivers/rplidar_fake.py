@@ -1,14 +1,16 @@
 """A fake Slamtec RPLIDAR on a pty, speaking the real serial protocol.
 
 Clients open ``link`` like ``/dev/ttyUSB0``. The fake answers GET_INFO, GET_HEALTH,
-GET_SAMPLERATE, GET_ACC_BOARD_FLAG, GET_LIDAR_CONF (the model's scan modes from
-:mod:`lidar_drivers.rplidar_models`, its typical mode and desired motor speed), SET_MOTOR_PWM,
+GET_SAMPLERATE, GET_ACC_BOARD_FLAG, GET_LIDAR_CONF (the scan modes its model lists at its
+firmware, from :mod:`lidar_drivers.rplidar_models`, its typical mode, desired motor speed and,
+where the model has it, the motor's speed range MIN_ROT_FREQ / MAX_ROT_FREQ), SET_MOTOR_PWM,
 SET_MOTOR_RPM, STOP, RESET (a text banner first, as the real A series prints after a reset) and
 streams SCAN/FORCE_SCAN nodes, or EXPRESS_SCAN in any scan mode it lists (legacy express, ultra or
 dense capsules), at 10 revolutions per second (S series: the rpm it was given / 60), paced by
 absolute deadlines so no drift accumulates.
 
-Firmware: a fake told to report firmware older than 1.24 (A series) behaves like such a unit:
+Firmware: the fake lists the scan-mode table of the firmware it reports (the A1 has an older,
+three-mode one). Told to report firmware older than 1.24 (A series) it behaves like such a unit:
 GET_LIDAR_CONF gets no answer, and EXPRESS_SCAN streams legacy express capsules whatever working
 mode it names. C and S series units always have the configuration commands (as the SDK assumes).
 
@@ -95,10 +97,12 @@ class FakeRplidar:
 
     def __init__(self, model: str, range_source: RangeSource, link: str | None = None,
                  seed: int = 0, firmware: tuple[int, int] | None = None) -> None:
-        self.spec = rplidar_models.model(model)
+        base = rplidar_models.model(model)
+        #: the model as a unit with this firmware reports it (its scan-mode table)
+        self.spec = base.for_firmware(firmware or base.firmware)
         self.range_source = range_source
         self.port = PtyPort(link)
-        major, minor = firmware or self.spec.firmware
+        major, minor = self.spec.firmware
         self.info = DeviceInfo(self.spec.model_id, major, minor, self.spec.hardware,
                                bytes(range(0x10, 0x20)))
         #: whether GET_LIDAR_CONF is answered (as the SDK decides it from model and firmware)
@@ -257,8 +261,9 @@ class FakeRplidar:
         return mode
 
     def _answer_conf(self, req: Request) -> None:
-        """GET_LIDAR_CONF: the scan mode table and the desired motor speed; unknown keys, modes
-        and old firmware get no answer."""
+        """GET_LIDAR_CONF: the scan mode table, the desired motor speed and (models that have
+        them) the motor's speed range in rpm; unknown keys, modes and old firmware get no
+        answer."""
         parsed = parse_conf_request(req)
         if not self.conf_commands or parsed is None:
             return
@@ -271,6 +276,8 @@ class FakeRplidar:
             value = struct.pack("<H", spec.typical)
         elif key == ConfKey.DESIRED_ROT_FREQ:
             value = struct.pack("<HH", spec.desired_rpm, spec.desired_pwm)
+        elif key in (ConfKey.MIN_ROT_FREQ, ConfKey.MAX_ROT_FREQ) and spec.rot_freq_range:
+            value = struct.pack("<H", spec.rot_freq_range[key == ConfKey.MAX_ROT_FREQ])
         elif mode_id is not None and (mode := spec.mode(mode_id)) is not None:
             if key == ConfKey.SCAN_MODE_US_PER_SAMPLE:
                 value = struct.pack("<I", round(mode.us_per_sample * 256))

@@ -32,6 +32,14 @@ def test_bad_arguments_exit_2(capsys):
     assert main(["fake-lidar", "--model", "ust-10lx"]) == 2
 
 
+@pytest.mark.parametrize("model", ["urg-04lx", "utm-30lx"])
+def test_a_usb_hokuyo_is_not_served_over_tcp(model, capsys):
+    """The URG-04LX and UTM-30LX have no Ethernet port, so the fake does not pretend they do."""
+    assert main(["fake-lidar", "--model", model, "--tcp", "127.0.0.1:0"]) == 2
+    out = capsys.readouterr().out
+    assert f"the {model} is a USB lidar with no Ethernet port; serve it on a pty with --link PATH" in out
+
+
 @pytest.mark.parametrize("transport", ["tcp", "pty"])
 def test_lidar_info_against_the_fake(device_thread, tmp_path, capsys, transport):
     fake = FakeHokuyo("urg-04lx" if transport == "pty" else "ust-10lx", RoomRangeSource(8, 6),

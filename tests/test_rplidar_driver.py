@@ -6,6 +6,7 @@ import asyncio
 import logging
 import math
 from collections.abc import Awaitable, Callable
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,12 +14,22 @@ from conftest import async_wait_for, wait_for
 
 from lidar_drivers.base import RoomRangeSource, beam_count
 from lidar_drivers.params import LidarParams
-from lidar_drivers.rplidar_codec import AnswerType, Command
+from lidar_drivers.rplidar_codec import (
+    AnswerType,
+    Command,
+    ConfKey,
+    LidarConf,
+    Request,
+    RplidarClient,
+    SampleRate,
+    ScanMode,
+)
 from lidar_drivers.rplidar_driver import RplidarDriver
 from lidar_drivers.rplidar_fake import FakeRplidar
 from lidar_drivers.rplidar_models import MODELS
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.link import SerialLink
 from racecar_hw.base.messages import LaserScan
 
 ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned: no symmetry
@@ -26,10 +37,14 @@ ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned
 
 def run_driver(device_thread, tmp_path, model: str,
                scenario: Callable[[RplidarDriver, FakeRplidar, list[LaserScan]], Awaitable[None]],
-               firmware: tuple[int, int] | None = None, **params: object) -> None:
+               firmware: tuple[int, int] | None = None,
+               device: Callable[[FakeRplidar], None] | None = None, **params: object) -> None:
     """Run ``scenario`` against a driver streaming from a fake; what the scenario does before its
-    first ``await`` happens before the driver's first step (set faults there)."""
+    first ``await`` happens before the driver's first step (set faults there). ``device`` changes
+    the fake before it serves (a device that behaves unlike its model)."""
     fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"), firmware=firmware)
+    if device is not None:
+        device(fake)
     device_thread.spawn(fake.serve())
     wait_for(lambda: fake.port.plugged)
 
@@ -103,7 +118,9 @@ def check_mode_scans(driver: RplidarDriver, fake: FakeRplidar, scans: list[Laser
     assert driver.info["model"] == MODELS[model].name
     assert driver.info["firmware"] == fake.info.firmware
     assert driver.info["scan_mode"] == mode
-    assert driver.scan_mode == fake.mode
+    used = driver.scan_mode
+    assert used is not None and (used.id, used.name, used.us_per_sample, used.answer_type) == (
+        fake.mode.id, fake.mode.name, fake.mode.us_per_sample, fake.mode.answer_type)
     assert driver.geometry is not None and driver.geometry.beams == len(scans[-1].ranges)
     samples_per_rev = fake.samples_per_rev(fake.mode)
     assert 0.9 * samples_per_rev < len(scans[-1].ranges) < samples_per_rev
@@ -111,17 +128,24 @@ def check_mode_scans(driver: RplidarDriver, fake: FakeRplidar, scans: list[Laser
     assert fake.scans_sent >= len(scans)
 
 
-@pytest.mark.parametrize(("model", "mode"), [(model, m.name) for model, spec in MODELS.items()
-                                              for m in spec.modes])
-def test_every_scan_mode_of_every_model(device_thread, tmp_path, model, mode):
-    """Current firmware: the driver reads the mode table and starts the mode named in the config."""
+#: Every model at its own firmware, and the A1 at firmware 1.24 and 1.27 (its older tables).
+FIRMWARE_TABLES = [(model, None) for model in MODELS] + [("a1", (1, 24)), ("a1", (1, 27))]
+
+
+@pytest.mark.parametrize(("model", "firmware", "mode"), [
+    (model, firmware, m.name) for model, firmware in FIRMWARE_TABLES
+    for m in MODELS[model].for_firmware(firmware or MODELS[model].firmware).modes])
+def test_every_scan_mode_of_every_model(device_thread, tmp_path, model, firmware, mode):
+    """Firmware with the configuration commands: the driver reads the mode table and starts the
+    mode named in the config."""
     async def scenario(driver, fake, scans):
         await async_wait_for(lambda: len(scans) >= 2, 15)
         check_mode_scans(driver, fake, scans, model, mode)
-        assert [m.name for m in driver.scan_modes] == [m.name for m in MODELS[model].modes]
+        assert [m.name for m in driver.scan_modes] == [m.name for m in fake.spec.modes]
+        assert driver.scan_modes == list(fake.spec.modes)  # ids, periods, ranges, answer types
         assert Command.GET_LIDAR_CONF in [r.command for r in fake.requests]
 
-    run_driver(device_thread, tmp_path, model, scenario, scan_mode=mode.lower())
+    run_driver(device_thread, tmp_path, model, scenario, firmware=firmware, scan_mode=mode.lower())
 
 
 @pytest.mark.parametrize(("model", "mode"), [(model, name) for model in ("a1", "a2m8", "a2m7", "a2m12", "a3")
@@ -139,11 +163,12 @@ def test_firmware_without_configuration_commands(device_thread, tmp_path, model,
 
 
 @pytest.mark.parametrize(("model", "firmware", "typical"), [
-    ("a1", None, "Boost"), ("a3", None, "Sensitivity"), ("s1", None, "DenseBoost"),
-    ("c1", (1, 20), "DenseBoost"), ("a2m8", (1, 20), "Express")])
+    ("a1", None, "Sensitivity"), ("a1", (1, 27), "Standard"), ("a3", None, "Sensitivity"),
+    ("s1", None, "DenseBoost"), ("c1", (1, 20), "DenseBoost"), ("a2m8", (1, 20), "Express")])
 def test_default_is_the_typical_mode(device_thread, tmp_path, model, firmware, typical):
-    """C/S series have the configuration commands whatever the firmware number; an old A-series
-    firmware's typical mode is Express, as the SDK has it."""
+    """An A1 names Sensitivity with firmware 1.29 and Standard with 1.27, as public records of
+    real units show; C/S series have the configuration commands whatever the firmware number; an
+    old A-series firmware's typical mode is Express, as the SDK has it."""
     async def scenario(driver, fake, scans):
         await async_wait_for(lambda: len(scans) >= 2, 15)
         check_mode_scans(driver, fake, scans, model, typical)
@@ -152,14 +177,86 @@ def test_default_is_the_typical_mode(device_thread, tmp_path, model, firmware, t
     run_driver(device_thread, tmp_path, model, scenario, firmware=firmware)
 
 
+def test_the_scan_modes_are_logged_once_at_connect(device_thread, tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="lidar_drivers.rplidar_driver")
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 1, 15)
+        fake.unplug()
+        await async_wait_for(lambda: driver.stats.device_errors >= 1, 15)
+        fake.replug()
+        n = len(scans)
+        await async_wait_for(lambda: len(scans) > n, 15)
+
+    run_driver(device_thread, tmp_path, "a1", scenario)
+    lines = [r.getMessage() for r in caplog.records if "scan modes:" in r.getMessage()]
+    assert lines == [  # once: the reconnect found the same table
+        f"rplidar {tmp_path / 'rplidar'}: scan modes: "
+        "Standard (id 0): 2.3 k samples/s, 12 m, standard nodes (0x81); "
+        "Express (id 1): 4.0 k samples/s, 12 m, express capsules (0x82); "
+        "Boost (id 2): 7.9 k samples/s, 12 m, ultra capsules (0x84); "
+        "Sensitivity (id 3): 7.9 k samples/s, 12 m, ultra capsules (0x84); "
+        "Stability (id 4): 5.0 k samples/s, 12 m, ultra capsules (0x84); typical: Sensitivity"]
+
+
 def test_a_mode_the_device_lacks_is_refused_naming_its_modes(device_thread, tmp_path):
+    """An A1 with firmware 1.24 has no Sensitivity mode (the users' logs in robopeak/rplidar_ros
+    #68 and Slamtec/sllidar_ros2 #42, where the launch file asked for it)."""
     async def scenario(driver, fake, scans):
         await async_wait_for(lambda: driver.last_error is not None, 15)
         assert "'Sensitivity' is not a scan mode of this A1M8" in driver.last_error
-        assert "Standard (id 0)" in driver.last_error and "Boost (id 2)" in driver.last_error
+        assert "Standard (id 0): 2.0 k samples/s, 12 m" in driver.last_error
+        assert "Boost (id 2): 8.0 k samples/s, 12 m, ultra capsules (0x84)" in driver.last_error
+        assert "Stability" not in driver.last_error
         assert not scans and fake.scanning is None
+        assert Command.EXPRESS_SCAN not in [r.command for r in fake.requests]
 
-    run_driver(device_thread, tmp_path, "a1", scenario, scan_mode="Sensitivity")
+    run_driver(device_thread, tmp_path, "a1", scenario, firmware=(1, 24), scan_mode="Sensitivity")
+
+
+@pytest.mark.parametrize("answer_type", [AnswerType.HQ, AnswerType.ULTRA_DENSE_CAPSULED])
+def test_a_mode_in_a_format_we_do_not_decode_is_refused(device_thread, tmp_path, answer_type):
+    """A device listing a mode whose answer type racecar-hw does not decode (HQ 0x83, ultra-dense
+    0x86): choosing it fails the session with a clear error; the scan is never started."""
+    extra = ScanMode(5, "Future", 50.0, 25.0, answer_type)
+
+    def device(fake: FakeRplidar) -> None:
+        fake.spec = replace(fake.spec, modes=fake.spec.modes + (extra,))
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: driver.last_error is not None, 15)
+        assert (f"scan mode Future sends {extra.answer_name} (0x{answer_type:02x}), which "
+                "racecar-hw does not decode; set lidar.scan_mode to another of: ") in driver.last_error
+        assert "Sensitivity (id 3)" in driver.last_error
+        assert not scans and not driver.connected
+        cmds = [r.command for r in fake.requests]
+        assert Command.SCAN not in cmds and Command.EXPRESS_SCAN not in cmds
+
+    run_driver(device_thread, tmp_path, "a3", scenario, device=device, scan_mode="future")
+
+
+def test_no_conf_answer_falls_back_to_the_legacy_commands(device_thread, tmp_path, caplog):
+    """A unit that should have GET_LIDAR_CONF (firmware 1.29) but does not answer it: after the
+    request times out the driver logs it and uses GET_SAMPLERATE and legacy express capsules."""
+    caplog.set_level(logging.WARNING, logger="lidar_drivers.rplidar_driver")
+
+    def device(fake: FakeRplidar) -> None:
+        fake.conf_commands = False
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        check_mode_scans(driver, fake, scans, "a1", "Express")
+        cmds = [r.command for r in fake.requests]
+        assert cmds.count(Command.GET_LIDAR_CONF) == 1  # the mode count, unanswered
+        assert cmds.index(Command.GET_LIDAR_CONF) < cmds.index(Command.GET_SAMPLERATE)
+        scan_requests = [r for r in fake.requests if r.command == Command.EXPRESS_SCAN]
+        assert [r.payload[0] for r in scan_requests] == [0]  # legacy working mode
+        assert [m.name for m in driver.scan_modes] == ["Standard", "Express"]
+        assert driver.sample_rate == SampleRate(435, 250)
+        assert driver.info["firmware"] == "1.29"
+
+    run_driver(device_thread, tmp_path, "a1", scenario, device=device)
+    assert sum("no GET_LIDAR_CONF answer" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_front_left_is_positive_angle(device_thread, tmp_path):
@@ -209,6 +306,52 @@ def test_s_series_motor_gets_the_speed_it_asks_for(device_thread, tmp_path):
     run_driver(device_thread, tmp_path, "s1", scenario)
 
 
+async def _raw_answers(link: SerialLink, requests: list[Request], size: int) -> bytes:
+    """Send ``requests`` and return the first ``size`` bytes the device answers."""
+    for request in requests:
+        link.write(request.encode())
+    data = b""
+    while len(data) < size:
+        data += await link.read_within(10.0)
+    return data
+
+
+@pytest.mark.parametrize("model", ["s1", "a1", "a3", "c1"])
+def test_motor_speed_range_as_the_sdks_get_motor_info_asks_it(device_thread, tmp_path, model):
+    """GET_LIDAR_CONF MIN_ROT_FREQ / MAX_ROT_FREQ (0x04 / 0x05, u16 rpm), the SDK's getMotorInfo:
+    the S1 answers them; models without a public record of them answer nothing, as unknown keys
+    (the next request's answer comes first)."""
+    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"))
+    device_thread.spawn(fake.serve())
+    wait_for(lambda: fake.port.plugged)
+    info = Request.simple(Command.GET_INFO)
+
+    async def main() -> None:
+        link = SerialLink(fake.link, fake.spec.baudrate)
+        await link.open()
+        try:
+            if fake.spec.rot_freq_range is None:
+                data = await _raw_answers(link, [Request.get_lidar_conf(ConfKey.MIN_ROT_FREQ),
+                                                 Request.get_lidar_conf(ConfKey.MAX_ROT_FREQ), info],
+                                          7 + 20)
+                assert data[:7] == bytes.fromhex("a55a1400000004")  # GET_INFO's, nothing before
+                return
+            client = RplidarClient()
+            got = []
+            for key in (ConfKey.MIN_ROT_FREQ, ConfKey.MAX_ROT_FREQ):
+                link.write(client.send(Request.get_lidar_conf(key)))
+                while (ev := client.next_event()) is None:
+                    client.receive_data(await link.read_within(10.0))
+                assert isinstance(ev, LidarConf) and ev.key == key
+                got.append(ev.number(2))
+            assert tuple(got) == fake.spec.rot_freq_range == (300, 900)
+            assert got[0] <= fake.spec.desired_rpm <= got[1]
+        finally:
+            link.close()
+
+    asyncio.run(main())
+
+
 def test_a1_dtr_refused_by_the_pty_is_not_fatal(device_thread, tmp_path, caplog):
     caplog.set_level(logging.WARNING)
 
@@ -219,6 +362,23 @@ def test_a1_dtr_refused_by_the_pty_is_not_fatal(device_thread, tmp_path, caplog)
 
     run_driver(device_thread, tmp_path, "a1", scenario)
     assert sum("cannot set DTR" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_c1_motor_runs_by_itself_and_dtr_is_no_warning(device_thread, tmp_path, caplog):
+    """As the SDK: the C1 is asked its accessory board flag (no PWM) and DTR is cleared; the C1
+    ignores DTR, so a port without modem lines is normal and not warned about."""
+    caplog.set_level(logging.DEBUG, logger="lidar_drivers.rplidar_driver")
+
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        assert driver.info["motor"] == "self-driven"
+        cmds = [r.command for r in fake.requests]
+        assert Command.GET_ACC_BOARD_FLAG in cmds
+        assert Command.SET_MOTOR_PWM not in cmds and Command.SET_MOTOR_RPM not in cmds
+
+    run_driver(device_thread, tmp_path, "c1", scenario)
+    dtr = [r for r in caplog.records if "cannot set DTR" in r.getMessage()]
+    assert dtr and all(r.levelno == logging.DEBUG for r in dtr)
 
 
 def test_default_baud_rates_and_config_errors():

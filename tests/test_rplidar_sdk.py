@@ -4,7 +4,9 @@ The SDK decides from the model and firmware whether the device has the configura
 asks GET_LIDAR_CONF for the typical scan mode and its answer type, sets the motor speed, starts
 that mode and decodes its measurement format. With firmware 1.20 an A-series unit has no
 configuration commands: the SDK falls back to GET_SAMPLERATE and legacy express capsules. C- and
-S-series units always have them, whatever their firmware number.
+S-series units always have them, whatever their firmware number. An A1 lists three modes with
+firmware 1.24 and four with 1.27 (typical Standard: the SDK sends SCAN), five with 1.29 (typical
+Sensitivity).
 """
 
 from __future__ import annotations
@@ -25,8 +27,15 @@ ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)
 REVOLUTIONS = 4
 
 
-@pytest.mark.parametrize("firmware", [None, (1, 20)], ids=["current-firmware", "firmware-1.20"])
-@pytest.mark.parametrize("model", RPLIDAR_MODELS)
+#: Every model at its own firmware and at 1.20; the A1 also at 1.24 and 1.27 (its older tables;
+#: 1.27's typical mode is Standard, which the SDK starts with SCAN).
+CASES = [pytest.param(model, firmware, id=f"{model}-{name}") for model in RPLIDAR_MODELS
+         for firmware, name in ((None, "current-firmware"), ((1, 20), "firmware-1.20"))]
+CASES[1:1] = [pytest.param("a1", (1, 24), id="a1-firmware-1.24"),
+              pytest.param("a1", (1, 27), id="a1-firmware-1.27")]
+
+
+@pytest.mark.parametrize(("model", "firmware"), CASES)
 def test_the_sdk_scans_the_fake_in_its_default_mode(model, firmware, device_thread, tmp_path):
     fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"), firmware=firmware)
     device_thread.spawn(fake.serve())
@@ -42,6 +51,10 @@ def test_the_sdk_scans_the_fake_in_its_default_mode(model, firmware, device_thre
     assert report["health"] == {"status": 0, "error_code": 0}
     assert report["started"], report["stderr"]
 
+    # the SDK asks A2-C units their accessory board flag (PWM or, without it, DTR)
+    flag_asked = any(r.command == Command.GET_ACC_BOARD_FLAG for r in fake.requests)
+    assert flag_asked == (2 <= fake.spec.model_id >> 4 <= 5)
+
     # the mode the SDK chose, as the device saw it
     conf_asked = any(r.command == Command.GET_LIDAR_CONF for r in fake.requests)
     if fake.conf_commands:
@@ -51,9 +64,11 @@ def test_the_sdk_scans_the_fake_in_its_default_mode(model, firmware, device_thre
         mode = fake.spec.mode(1)  # legacy express capsules at the GET_SAMPLERATE rate
         assert any(r.command == Command.GET_SAMPLERATE for r in fake.requests)
     assert mode is not None
+    scan_requests = [r for r in fake.requests if r.command == Command.EXPRESS_SCAN]
     if mode.answer_type != AnswerType.SCAN:
-        scan_requests = [r for r in fake.requests if r.command == Command.EXPRESS_SCAN]
         assert scan_requests and scan_requests[-1].payload[0] == (mode.id if fake.conf_commands else 0)
+    else:  # a standard-node typical mode: the SDK starts it with SCAN
+        assert not scan_requests and any(r.command == Command.SCAN for r in fake.requests)
     per_rev = mode.samples_per_s / fake.scan_hz
 
     scans = report["scans"]

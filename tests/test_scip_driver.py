@@ -161,6 +161,33 @@ def test_unplug_and_replug_reconnects(device_thread, tmp_path):
     drive(params_for(fake), scenario)
 
 
+@pytest.mark.parametrize("fault", ["unplug", "hardware-fault"])
+def test_last_error_clears_once_a_new_session_streams(device_thread, tmp_path, fault):
+    """The error that ended a session stands until a reconnected session publishes a scan; a
+    healthy device then shows no error (the daemon's status reports it)."""
+    fake = start_fake(device_thread, "urg-04lx" if fault == "unplug" else "ust-10lx", tmp_path,
+                      tcp=fault != "unplug")
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        await more_scans(scans, 2)
+        assert driver.last_error is None
+        if fault == "unplug":
+            fake.unplug()
+            await async_wait_for(lambda: not driver.connected and driver.last_error, 15)
+            error = driver.last_error
+            fake.replug()
+        else:
+            fake.fail_next_frame("55")
+            await async_wait_for(lambda: "hardware fault" in (driver.last_error or ""), 15)
+            error = driver.last_error
+        await async_wait_for(lambda: driver.stats.reconnects >= 1, 15)
+        published = driver.stats.scans
+        await async_wait_for(lambda: driver.stats.scans > published and driver.connected, 15)
+        assert driver.last_error is None, error
+
+    drive(params_for(fake), scenario)
+
+
 def test_dropped_tcp_connection_reconnects(device_thread, tmp_path):
     fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
 

@@ -122,6 +122,20 @@ def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     assert r["final_clearance_m"] <= 1.0
 
 
+def test_a_usb_hokuyo_is_reached_on_a_pty_even_with_transport_tcp(tmp_path):
+    """The URG-04LX has no Ethernet port: the scenario's default transport (tcp) does not make
+    the fake listen on one; the daemon opens its pty as it would /dev/ttyACM0."""
+    scenario = load_scenario("wall", ["lidar.model=urg-04lx"])
+    assert scenario.lidar.transport == "tcp"
+    loopback = Loopback(scenario, out_dir=tmp_path,
+                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", NO_ZENOH])
+    r = asyncio.run(loopback.run()).report
+    assert loopback.lidar.tcp is None and loopback.lidar.tcp_address is None
+    assert r["lidar"]["model"] == "urg-04lx" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # 10 Hz scans
+    assert not r["collided"], r["collisions"]
+    assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+
+
 def test_corridor_at_3_mps_without_intervention(tmp_path):
     result = run("corridor", tmp_path)
     r = result.report

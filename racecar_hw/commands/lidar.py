@@ -10,7 +10,7 @@ import threading
 import time
 
 from lidar_drivers.base import LidarDriver, RandomRangeSource, RangeSource, RoomRangeSource, summarize
-from lidar_drivers.params import MODELS, LidarParams
+from lidar_drivers.params import HOKUYO_MODELS, HOKUYO_USB_MODELS, MODELS, LidarParams
 from lidar_drivers.registry import family, make_driver, make_fake, model_for_reported, model_name
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import DeviceError
@@ -25,12 +25,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     fake = subparsers.add_parser(
         "fake-lidar", help="run a fake lidar (Hokuyo on a pty or TCP, RPLIDAR on a pty)",
         description="Serve a fake lidar speaking the model's real protocol until Ctrl-C: "
-                    "a Hokuyo (SCIP 2.0) on a pty at --link and/or a TCP port at --tcp, or an "
-                    "RPLIDAR on a pty at --link. It measures a rectangular room or random ranges.")
+                    "a Hokuyo (SCIP 2.0) on a pty at --link and/or (Ethernet models) a TCP port "
+                    "at --tcp, or an RPLIDAR on a pty at --link. It measures a rectangular room "
+                    "or random ranges.")
     fake.add_argument("--model", required=True, choices=MODELS, type=str.lower, help="lidar model")
     fake.add_argument("--link", metavar="PATH", help="symlink to the pty to create, e.g. /tmp/lidar")
     fake.add_argument("--tcp", metavar="HOST:PORT", type=_host_port,
-                      help="listen for SCIP clients here (Hokuyo only; port 0 = any free port)")
+                      help="listen for SCIP clients here (Ethernet Hokuyo models only: "
+                           f"{', '.join(m for m in HOKUYO_MODELS if m not in HOKUYO_USB_MODELS)}; "
+                           "port 0 = any free port)")
     fake.add_argument("--firmware", type=_firmware, metavar="X.Y",
                       help="RPLIDAR: the firmware version to report (default: the model's own); "
                            "an A-series unit below 1.24 has no GET_LIDAR_CONF scan modes")
@@ -88,6 +91,10 @@ def fake_lidar(args: argparse.Namespace) -> int:
     source: RangeSource = RandomRangeSource() if args.random else RoomRangeSource(*args.room)
     if args.firmware is not None and family(args.model) != "rplidar":
         print("racecar-hw fake-lidar: --firmware is for RPLIDAR models")
+        return 2
+    if args.tcp is not None and args.model in HOKUYO_USB_MODELS:
+        print(f"racecar-hw fake-lidar: the {args.model} is a USB lidar with no Ethernet port; "
+              "serve it on a pty with --link PATH")
         return 2
     fake = make_fake(args.model, source, link=args.link, tcp=args.tcp, firmware=args.firmware)
     with DeviceThread("fake-lidar") as thread:

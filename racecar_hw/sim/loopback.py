@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lidar_drivers.params import HOKUYO_USB_MODELS
 from lidar_drivers.registry import family, make_fake
 from racecar_hw.bags.follow import BagFollower, FollowerParams
 from racecar_hw.base.bus import Bus
@@ -149,7 +150,9 @@ class Loopback:
                            laser_pose_in_base=laser, noise_std_m=sc.world.noise_std_m,
                            seed=sc.world.seed, on_collision=vesc.stall)
         source = self.world.range_source(max_range=LIDAR_MAX_RANGE_M.get(model, 12.0))
-        use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo"
+        # TCP only where the real device has it: an Ethernet Hokuyo (USB models and RPLIDARs: pty)
+        use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo" \
+            and model not in HOKUYO_USB_MODELS
         if use_tcp:
             self.lidar = make_fake(model, source, tcp=("127.0.0.1", 0))
         else:

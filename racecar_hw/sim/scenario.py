@@ -137,7 +137,8 @@ class LidarSpec:
     """Which fake lidar the scenario uses, and how the daemon reaches it."""
 
     model: str = param("ust-10lx", "fake lidar model")
-    transport: str = param("tcp", "tcp (Ethernet Hokuyo) or pty (serial models)", choices=("tcp", "pty"))
+    transport: str = param("tcp", "tcp (Ethernet Hokuyo) or pty; USB Hokuyo and RPLIDAR models "
+                                  "always use a pty, as the real ones", choices=("tcp", "pty"))
 
 
 @dataclass
