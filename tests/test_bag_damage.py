@@ -13,6 +13,7 @@ import sqlite3
 import struct
 import subprocess
 import sys
+import time
 import tracemalloc
 from pathlib import Path
 
@@ -401,6 +402,12 @@ def _damaged(tmp_path: Path) -> dict[str, Path]:
     return out
 
 
+#: What the refusal of each of _damaged's bags says after naming it.
+DAMAGE_CAUSES = {"ros1 cut short": "truncated", "ros1 index byte flipped": "damaged data",
+                 "mcap cut in half": "File end magic is invalid", "sqlite3 header overwritten":
+                 "sqlite3 storage is damaged", "nan speed": "asks for speed nan"}
+
+
 def test_damaged_bags_give_one_bag_error_from_the_follower_and_the_recovery(tmp_path):
     for what, path in _damaged(tmp_path).items():
         with pytest.raises(BagError) as info:
@@ -409,8 +416,9 @@ def test_damaged_bags_give_one_bag_error_from_the_follower_and_the_recovery(tmp_
         assert "\n" not in text and (str(path) in text or str(storage(path)) in text), (what, text)
         try:
             recover_bag(path, tmp_path / f"recovered-{len(what)}")
-        except BagError as err:  # a recovery may fail, but only with BagError
-            assert "\n" not in str(err)
+        except BagError as err:  # a recovery may fail, but only with BagError, in one line naming it
+            text = str(err)
+            assert "\n" not in text and (str(path) in text or str(storage(path)) in text), (what, text)
 
 
 def test_a_broken_sqlite_storage_from_recovery_is_a_bag_error(tmp_path):
@@ -487,15 +495,55 @@ def test_follow_as_a_process_exits_1_with_one_line(tmp_path):
     assert proc.stderr.startswith("racecar-hw follow: ")
 
 
-def test_sim_follow_refuses_a_damaged_bag_before_the_simulation_starts(tmp_path, capsys, request):
-    bags = [_damaged(tmp_path)["ros1 cut short"], _damaged(tmp_path / "nan")["nan speed"]]
-    try:
-        bags.append(request.getfixturevalue("bag_fixtures") / "ros1" / "empty-file.bag")
-    except pytest.skip.Exception:
-        pass
-    for path in bags:
-        code = cli_main(["sim", "--follow", str(path), "--no-status", "--out", str(tmp_path / "out")])
-        out, err = capsys.readouterr()
-        assert code == 1 and not out, (path, out, err)
-        _one_line_naming(err, path)
-    assert not (tmp_path / "out").exists()  # no run, so no report
+#: What the refusal of each real bad bag in ../shared/fixtures/bags says, by its path there and the
+#: --follow-topic given ("" = none: the follower picks the bag's drive topic).
+FIXTURE_CAUSES = {
+    ("ros1/empty-file.bag", ""): "is empty (0 bytes)",
+    ("ros1/example-bz2.bag", ""): "has 2 topics with drive commands",
+    ("ros1/example-lz4.bag", ""): "has 2 topics with drive commands",
+    ("ros1/example-unsorted-chunks.bag", ""): "has no topic of type ackermann_msgs",
+    ("ros1/no-messages.bag", ""): "holds no messages",
+    ("ros2/mcap/cdr_test", ""): "has no topic of type ackermann_msgs",
+    ("ros2/sqlite3/cdr_test", ""): "has no topic of type ackermann_msgs",
+    ("ros2/mcap/talker", ""): "has no topic of type ackermann_msgs",
+    ("ros2/sqlite3/talker", ""): "has no topic of type ackermann_msgs",
+    # the talker's trap: metadata.yaml's QoS differs from the storage's, so rosbags yields nothing
+    ("ros2/mcap/talker", "/topic"): "the metadata says 10 messages on /topic, but reading yielded 0",
+    ("ros2/sqlite3/talker", "/topic"): "the metadata says 10 messages on /topic, but reading yielded 0",
+}
+#: A generous bound for one refusal, start to exit: it takes about 1-2 s on a loaded 2-core machine.
+SIM_REFUSAL_BOUND_S = 30.0
+
+
+def _sim_follow_refuses(path: Path, cause: str, tmp_path: Path, topic: str = "") -> float:
+    """Run ``racecar-hw sim --follow path`` as a process; it must exit 1 with one line on stderr naming
+    the bag and ``cause``, no traceback, no stdout, and start nothing: no daemon (so no VESC driver
+    and nothing sent to the motor), no recording, no report. Returns its run time (s)."""
+    out, record = tmp_path / "out", tmp_path / "record"
+    args = [sys.executable, "-m", "racecar_hw.cli", "sim", "--follow", str(path), "--no-status",
+            "--out", str(out), "--record", str(record), *(["--follow-topic", topic] if topic else [])]
+    started = time.monotonic()
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=SIM_REFUSAL_BOUND_S)
+    took = time.monotonic() - started
+    assert proc.returncode == 1 and proc.stdout == "", (path, proc.returncode, proc.stdout, proc.stderr)
+    _one_line_naming(proc.stderr, path)
+    assert proc.stderr.startswith("racecar-hw sim: ") and cause in proc.stderr, (cause, proc.stderr)
+    assert not out.exists() and not record.exists(), path  # the simulation never started
+    return took
+
+
+def test_sim_follow_as_a_process_refuses_each_damaged_bag_before_anything_starts(tmp_path):
+    (tmp_path / "bags").mkdir()
+    bags = _damaged(tmp_path / "bags")
+    assert set(bags) == set(DAMAGE_CAUSES)
+    took = {what: _sim_follow_refuses(path, DAMAGE_CAUSES[what], tmp_path) for what, path in bags.items()}
+    assert max(took.values()) < SIM_REFUSAL_BOUND_S, took
+
+
+def test_sim_follow_as_a_process_refuses_each_real_bad_bag(bag_fixtures, tmp_path):
+    """Every fixture the follow tests refuse, both talker bags among them, with and without their topic."""
+    found = {str(p.relative_to(bag_fixtures)) for p in _fixture_bags(bag_fixtures)}
+    assert found == {name for name, _ in FIXTURE_CAUSES}, found
+    took = {(name, topic): _sim_follow_refuses(bag_fixtures / name, cause, tmp_path, topic)
+            for (name, topic), cause in FIXTURE_CAUSES.items()}
+    assert max(took.values()) < SIM_REFUSAL_BOUND_S, took
