@@ -6,7 +6,7 @@ absurd values into the control path. Three pieces, used by every bag reader here
 * :func:`guarded` / :func:`reading`: whatever a reader raises (rosbags' ``ReaderError``, an
   ``AssertionError`` or ``KeyError`` from a malformed index, ``struct.error``, sqlite errors, a
   decompressor's error, ``MemoryError``) leaves as one :class:`~racecar_hw.base.errors.BagError`
-  naming the file and the cause.
+  naming the file and the cause; a BagError that does not name the file gets it in front.
 * :func:`check_storage`: before a reader allocates anything, the sizes the file declares (records,
   chunks and their uncompressed sizes, the offsets its index points at) are checked against the
   file and against ``max_message_bytes``, and every compressed chunk is decompressed once in
