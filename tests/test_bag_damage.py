@@ -8,10 +8,12 @@ made here from valid Ackermann bags.
 from __future__ import annotations
 
 import math
+import random
 import sqlite3
 import struct
 import subprocess
 import sys
+import time
 import tracemalloc
 from pathlib import Path
 
@@ -20,7 +22,7 @@ from fuzzing import TOPIC, write_bag
 
 from racecar_hw.bags.follow import BagFollower, FollowerParams, load_commands
 from racecar_hw.bags.recover import recover_bag
-from racecar_hw.bags.validate import CommandLimits, check_storage
+from racecar_hw.bags.validate import INFLATE_STEP, CommandLimits, check_storage, inflate, inflated_size
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import BagError
 from racecar_hw.cli import main as cli_main
@@ -132,6 +134,246 @@ def test_a_message_over_max_message_bytes_is_refused(tmp_path):
     assert len(load_commands(ros1, TOPIC, max_message_bytes=2**20)) == 40
 
 
+# --- decompression bombs: chunks that lie about their uncompressed size ------------------------
+
+#: What each bomb's big chunk really decompresses to (it declares LIED_SIZE), and the follower's limit.
+BOMB_BYTES = 32 * 2**20
+LIED_SIZE = 4096
+BOMB_LIMIT = 2**20
+DRIVE = "ackermann_msgs/msg/AckermannDriveStamped"
+
+
+def _blob(cdr: bool) -> bytes:
+    """A std_msgs/String of BOMB_BYTES zeros, serialized for ROS 1 or as CDR."""
+    ros1 = struct.pack("<I", BOMB_BYTES) + bytes(BOMB_BYTES)
+    return b"\x00\x01\x00\x00" + ros1 if cdr else ros1
+
+
+def _drive_messages(types, n: int = 5) -> list[tuple[int, bytes]]:
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+
+    return [(t, types.serialize(AckermannDriveStamped(Header(Time(1, 0), "base_link"),
+                                                      AckermannDrive(steering_angle=steer, speed=speed))))
+            for t, speed, steer in commands(n)]
+
+
+def _lz4_frame_undeclared(data: bytearray, at: int, length: int) -> None:
+    """Make the LZ4 frame of ``length`` bytes at ``at`` declare no content size, as a bomb would (a
+    reader then learns the size only by decompressing), keeping its length: the 8 bytes saved become
+    an empty skippable frame after it, which lz4 readers ignore."""
+    import xxhash
+
+    frame = bytes(data[at:at + length])
+    flags, block = frame[4], frame[5]
+    assert flags & 0x08  # lz4.frame.compress declares the content size by default
+    flags &= ~0x08
+    check = (xxhash.xxh32(bytes((flags, block))).intdigest() >> 8) & 0xFF
+    skippable = struct.pack("<II", 0x184D2A50, 0)
+    data[at:at + length] = frame[:4] + bytes((flags, block, check)) + frame[15:] + skippable
+
+
+def _ros1_bag(path: Path, compression: str, blob: bool) -> Path:
+    """Five drive commands (and, with ``blob``, a 32 MiB string of zeros) in one ROS 1 chunk."""
+    from rosbags.rosbag1 import Writer as Writer1
+
+    from racecar_hw.rosmsg.typestore import ros1_types
+
+    types = ros1_types()
+    writer = Writer1(path)
+    writer.set_compression(Writer1.CompressionFormat[compression.upper()])
+    writer.chunk_threshold = 1 << 30  # everything in one chunk
+    with writer:
+        drive = writer.add_connection(TOPIC, DRIVE, typestore=types.store)
+        for t, raw in _drive_messages(types):
+            writer.write(drive, t, raw)
+        if blob:
+            writer.write(writer.add_connection("/blob", "std_msgs/msg/String", typestore=types.store),
+                         T0 + 10**9, _blob(cdr=False))
+    return path
+
+
+def _ros1_bomb(path: Path, compression: str) -> Path:
+    """A ROS 1 bag whose one chunk (five drive commands and 32 MiB of zeros, compressed to a few
+    hundred bytes with bz2, a few hundred kB with lz4) declares LIED_SIZE bytes uncompressed."""
+    _ros1_bag(path, compression, blob=True)
+    data = bytearray(path.read_bytes())
+    pos, lied = 13, 0
+    while pos < len(data):
+        (hlen,) = struct.unpack_from("<I", data, pos)
+        header = bytes(data[pos + 4:pos + 4 + hlen])
+        (dlen,) = struct.unpack_from("<I", data, pos + 4 + hlen)
+        if b"op=\x05" in header:
+            size_at = pos + 4 + header.index(b"size=") + 5
+            struct.pack_into("<I", data, size_at, LIED_SIZE)
+            if compression == "lz4":
+                _lz4_frame_undeclared(data, pos + 8 + hlen, dlen)
+            lied += 1
+        pos += 8 + hlen + dlen
+    assert lied == 1
+    path.write_bytes(data)
+    return path
+
+
+def _mcap_lie(file: Path) -> None:
+    """Make every chunk of the MCAP ``file`` holding more than BOMB_LIMIT bytes declare LIED_SIZE,
+    in the chunk record and in its chunk index (an LZ4 frame then declares no size at all)."""
+    data = bytearray(file.read_bytes())
+    pos, lied = 8, 0
+    while data[pos] != 0x02:  # up to the footer
+        op, (length,) = data[pos], struct.unpack_from("<Q", data, pos + 1)
+        body = pos + 9
+        if op == 0x06 and struct.unpack_from("<Q", data, body + 16)[0] > BOMB_LIMIT:
+            struct.pack_into("<Q", data, body + 16, LIED_SIZE)
+            (n,) = struct.unpack_from("<I", data, body + 28)
+            if bytes(data[body + 32:body + 32 + n]) == b"lz4":
+                (compressed,) = struct.unpack_from("<Q", data, body + 32 + n)
+                _lz4_frame_undeclared(data, body + 32 + n + 8, compressed)
+            lied += 1
+        elif op == 0x08:
+            (offsets,) = struct.unpack_from("<I", data, body + 32)
+            at = body + 36 + offsets + 8
+            (n,) = struct.unpack_from("<I", data, at)
+            size_at = at + 4 + n + 8
+            if struct.unpack_from("<Q", data, size_at)[0] > BOMB_LIMIT:
+                struct.pack_into("<Q", data, size_at, LIED_SIZE)
+                lied += 1
+        pos = body + length
+    assert lied == 2, lied  # the chunk and its index
+    file.write_bytes(data)
+
+
+def _mcap_zstd_bag(path: Path, n: int, blob: bool) -> Path:
+    """A ROS 2 MCAP bag written by rosbags with zstd chunks: ``n`` drive commands and, with ``blob``,
+    32 MiB of zeros."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    from racecar_hw.rosmsg.typestore import ros2_types
+
+    types = ros2_types()
+    writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        drive = writer.add_connection(TOPIC, DRIVE, typestore=types.store)
+        for t, raw in _drive_messages(types, n):
+            writer.write(drive, t, raw)
+        if blob:
+            writer.write(writer.add_connection("/blob", "std_msgs/msg/String", typestore=types.store),
+                         T0 + 10**9, _blob(cdr=True))
+    return path
+
+
+def _mcap_zstd_bomb(path: Path) -> Path:
+    """The zstd MCAP bag with the blob, its big chunk lying (see _mcap_lie)."""
+    _mcap_lie(storage(_mcap_zstd_bag(path, 5, blob=True)))
+    return path
+
+
+def _mcap_lz4_bomb(bagdir: Path) -> Path:
+    """A bare MCAP file (ROS 2 profile, no metadata.yaml: rosbags reads it as it is, the recovery
+    as an unfinished bag directory) written by the mcap library with LZ4 chunks; its big chunk lies."""
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    from racecar_hw.rosmsg.typestore import ros2_types
+
+    types = ros2_types()
+    bagdir.mkdir()
+    path = bagdir / "lz4.mcap"
+    with path.open("wb") as f:
+        writer = McapWriter(f, compression=CompressionType.LZ4)
+        writer.start(profile="ros2", library="test")
+        channels = {}
+        for topic, msgtype in ((TOPIC, DRIVE), ("/blob", "std_msgs/msg/String")):
+            text = types.store.generate_msgdef(msgtype, ros_version=2)[0]
+            schema = writer.register_schema(msgtype, "ros2msg", text.encode())
+            channels[topic] = writer.register_channel(topic, "cdr", schema)
+        for t, raw in _drive_messages(types):
+            writer.add_message(channels[TOPIC], t, raw, t)
+        writer.add_message(channels["/blob"], T0 + 10**9, _blob(cdr=True), T0 + 10**9)
+        writer.finish()
+    _mcap_lie(path)
+    return bagdir
+
+
+BOMBS = {"ros1 bz2": lambda d: _ros1_bomb(d / "bz2.bag", "bz2"),
+         "ros1 lz4": lambda d: _ros1_bomb(d / "lz4.bag", "lz4"),
+         "mcap zstd": lambda d: _mcap_zstd_bomb(d / "zstd"),
+         "mcap lz4": lambda d: _mcap_lz4_bomb(d / "lz4")}
+
+
+@pytest.mark.parametrize("compression", ["bz2", "zstd", "lz4"])
+def test_inflate_gives_what_the_readers_give_from_any_split_of_the_input(compression):
+    """Two concatenated streams (bz2 and zstd readers take both, lz4 readers the first frame only),
+    fed in pieces of random sizes: the same bytes as the one-shot decompressor, and BagError one
+    byte under the size."""
+    import bz2
+
+    import lz4.frame
+    from rosbags.rosbag2.storage_mcap import zstd
+
+    rng = random.Random(compression)
+    first, second = rng.randbytes(300_000) * 3, bytes(2_500_000)
+    pack, unpack = {"bz2": (bz2.compress, bz2.decompress), "zstd": (zstd.compress, zstd.decompress),
+                    "lz4": (lz4.frame.compress, lz4.frame.decompress)}[compression]
+    data = pack(first) + pack(second)
+    expected = unpack(data)
+    assert len(expected) == len(first) + (0 if compression == "lz4" else len(second))
+    for _ in range(5):
+        cuts = sorted(rng.sample(range(1, len(data)), rng.randint(1, 20)))
+        pieces = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)]
+        out = list(inflate(pieces, compression, len(expected), "x"))
+        assert b"".join(out) == expected and max(map(len, out)) <= INFLATE_STEP
+        with pytest.raises(BagError, match=f"x decompresses to more than {len(expected) - 1} bytes"):
+            inflated_size(pieces, compression, len(expected) - 1, "x")
+    assert inflated_size([data], "none", 0, "x") == 0  # nothing to decompress
+
+
+def _peak_bytes(fn) -> int:
+    """The largest traced allocation total while ``fn()`` runs (it must raise BagError)."""
+    tracemalloc.start()
+    try:
+        with pytest.raises(BagError) as info:
+            fn()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    fn.error = str(info.value)  # type: ignore[attr-defined]
+    return peak
+
+
+@pytest.mark.parametrize("kind", list(BOMBS))
+def test_a_chunk_lying_about_its_uncompressed_size_is_refused_in_bounded_memory(tmp_path, kind):
+    """32 MiB of zeros in a chunk declaring 4 kB: the follower and the recovery stop decompressing
+    as soon as the output passes what the chunk declares, and say so, naming the file."""
+    path = BOMBS[kind](tmp_path)
+    assert storage(path).stat().st_size < 200_000
+    bare = path.is_dir() and not (path / "metadata.yaml").exists()
+
+    def follow() -> None:
+        load_commands(storage(path) if bare else path, TOPIC, limits=LIMITS, max_message_bytes=BOMB_LIMIT)
+
+    def recover() -> None:
+        recover_bag(path, tmp_path / "recovered")
+
+    for what in (follow, recover):
+        peak = _peak_bytes(what)
+        text = what.error  # type: ignore[attr-defined]
+        assert peak < 8 * 2**20, (what.__name__, peak, text)  # the bomb is 32 MiB
+        assert f"decompresses to more than {LIED_SIZE} bytes" in text and "decompression bomb" in text, text
+        assert str(path) in text and "\n" not in text, text
+    assert not (tmp_path / "recovered").exists()
+
+
+def test_honest_zstd_and_lz4_chunks_load(tmp_path):
+    """The same writers without the lie: every chunk is decompressed once more by the check, and loads."""
+    zstd = _mcap_zstd_bag(tmp_path / "zstd", 40, blob=False)
+    assert [c.drive.speed for c in load_commands(zstd, TOPIC, limits=LIMITS)] == pytest.approx(
+        [speed for _, speed, _ in commands(40)])
+    lz4 = _ros1_bag(tmp_path / "lz4.bag", "lz4", blob=False)
+    assert len(load_commands(lz4, TOPIC, limits=LIMITS)) == 5
+
+
 # --- one error type ----------------------------------------------------------------------------
 
 
@@ -160,6 +402,12 @@ def _damaged(tmp_path: Path) -> dict[str, Path]:
     return out
 
 
+#: What the refusal of each of _damaged's bags says after naming it.
+DAMAGE_CAUSES = {"ros1 cut short": "truncated", "ros1 index byte flipped": "damaged data",
+                 "mcap cut in half": "File end magic is invalid", "sqlite3 header overwritten":
+                 "sqlite3 storage is damaged", "nan speed": "asks for speed nan"}
+
+
 def test_damaged_bags_give_one_bag_error_from_the_follower_and_the_recovery(tmp_path):
     for what, path in _damaged(tmp_path).items():
         with pytest.raises(BagError) as info:
@@ -168,8 +416,9 @@ def test_damaged_bags_give_one_bag_error_from_the_follower_and_the_recovery(tmp_
         assert "\n" not in text and (str(path) in text or str(storage(path)) in text), (what, text)
         try:
             recover_bag(path, tmp_path / f"recovered-{len(what)}")
-        except BagError as err:  # a recovery may fail, but only with BagError
-            assert "\n" not in str(err)
+        except BagError as err:  # a recovery may fail, but only with BagError, in one line naming it
+            text = str(err)
+            assert "\n" not in text and (str(path) in text or str(storage(path)) in text), (what, text)
 
 
 def test_a_broken_sqlite_storage_from_recovery_is_a_bag_error(tmp_path):
@@ -246,15 +495,55 @@ def test_follow_as_a_process_exits_1_with_one_line(tmp_path):
     assert proc.stderr.startswith("racecar-hw follow: ")
 
 
-def test_sim_follow_refuses_a_damaged_bag_before_the_simulation_starts(tmp_path, capsys, request):
-    bags = [_damaged(tmp_path)["ros1 cut short"], _damaged(tmp_path / "nan")["nan speed"]]
-    try:
-        bags.append(request.getfixturevalue("bag_fixtures") / "ros1" / "empty-file.bag")
-    except pytest.skip.Exception:
-        pass
-    for path in bags:
-        code = cli_main(["sim", "--follow", str(path), "--no-status", "--out", str(tmp_path / "out")])
-        out, err = capsys.readouterr()
-        assert code == 1 and not out, (path, out, err)
-        _one_line_naming(err, path)
-    assert not (tmp_path / "out").exists()  # no run, so no report
+#: What the refusal of each real bad bag in ../shared/fixtures/bags says, by its path there and the
+#: --follow-topic given ("" = none: the follower picks the bag's drive topic).
+FIXTURE_CAUSES = {
+    ("ros1/empty-file.bag", ""): "is empty (0 bytes)",
+    ("ros1/example-bz2.bag", ""): "has 2 topics with drive commands",
+    ("ros1/example-lz4.bag", ""): "has 2 topics with drive commands",
+    ("ros1/example-unsorted-chunks.bag", ""): "has no topic of type ackermann_msgs",
+    ("ros1/no-messages.bag", ""): "holds no messages",
+    ("ros2/mcap/cdr_test", ""): "has no topic of type ackermann_msgs",
+    ("ros2/sqlite3/cdr_test", ""): "has no topic of type ackermann_msgs",
+    ("ros2/mcap/talker", ""): "has no topic of type ackermann_msgs",
+    ("ros2/sqlite3/talker", ""): "has no topic of type ackermann_msgs",
+    # the talker's trap: metadata.yaml's QoS differs from the storage's, so rosbags yields nothing
+    ("ros2/mcap/talker", "/topic"): "the metadata says 10 messages on /topic, but reading yielded 0",
+    ("ros2/sqlite3/talker", "/topic"): "the metadata says 10 messages on /topic, but reading yielded 0",
+}
+#: A generous bound for one refusal, start to exit: it takes about 1-2 s on a loaded 2-core machine.
+SIM_REFUSAL_BOUND_S = 30.0
+
+
+def _sim_follow_refuses(path: Path, cause: str, tmp_path: Path, topic: str = "") -> float:
+    """Run ``racecar-hw sim --follow path`` as a process; it must exit 1 with one line on stderr naming
+    the bag and ``cause``, no traceback, no stdout, and start nothing: no daemon (so no VESC driver
+    and nothing sent to the motor), no recording, no report. Returns its run time (s)."""
+    out, record = tmp_path / "out", tmp_path / "record"
+    args = [sys.executable, "-m", "racecar_hw.cli", "sim", "--follow", str(path), "--no-status",
+            "--out", str(out), "--record", str(record), *(["--follow-topic", topic] if topic else [])]
+    started = time.monotonic()
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=SIM_REFUSAL_BOUND_S)
+    took = time.monotonic() - started
+    assert proc.returncode == 1 and proc.stdout == "", (path, proc.returncode, proc.stdout, proc.stderr)
+    _one_line_naming(proc.stderr, path)
+    assert proc.stderr.startswith("racecar-hw sim: ") and cause in proc.stderr, (cause, proc.stderr)
+    assert not out.exists() and not record.exists(), path  # the simulation never started
+    return took
+
+
+def test_sim_follow_as_a_process_refuses_each_damaged_bag_before_anything_starts(tmp_path):
+    (tmp_path / "bags").mkdir()
+    bags = _damaged(tmp_path / "bags")
+    assert set(bags) == set(DAMAGE_CAUSES)
+    took = {what: _sim_follow_refuses(path, DAMAGE_CAUSES[what], tmp_path) for what, path in bags.items()}
+    assert max(took.values()) < SIM_REFUSAL_BOUND_S, took
+
+
+def test_sim_follow_as_a_process_refuses_each_real_bad_bag(bag_fixtures, tmp_path):
+    """Every fixture the follow tests refuse, both talker bags among them, with and without their topic."""
+    found = {str(p.relative_to(bag_fixtures)) for p in _fixture_bags(bag_fixtures)}
+    assert found == {name for name, _ in FIXTURE_CAUSES}, found
+    took = {(name, topic): _sim_follow_refuses(bag_fixtures / name, cause, tmp_path, topic)
+            for (name, topic), cause in FIXTURE_CAUSES.items()}
+    assert max(took.values()) < SIM_REFUSAL_BOUND_S, took

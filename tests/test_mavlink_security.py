@@ -26,6 +26,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from racecar_hw.base.bus import Bus  # noqa: E402
 from racecar_hw.base.clock import NS_PER_S, wall_ns  # noqa: E402
+from racecar_hw.base.errors import ConfigError  # noqa: E402
 from racecar_hw.base.messages import LaserScan, Odometry, VescState, VescStateStamped  # noqa: E402
 from racecar_hw.cli import main as cli_main  # noqa: E402
 from racecar_hw.teleop.arming import Arming  # noqa: E402
@@ -35,6 +36,7 @@ from racecar_hw.teleop.mavlink_gcs import (  # noqa: E402
     signing_timestamp,
     write_signing_key,
 )
+from racecar_hw.teleop.mavlink_rx import NEW_STREAM_LAG, MavlinkRx  # noqa: E402
 
 mav = mavutil.mavlink
 TELEOP = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
@@ -200,6 +202,46 @@ def test_one_corrupted_timestamp_byte_or_a_replay_changes_nothing(tmp_path: Path
     run_signed(tmp_path, scenario)
 
 
+def test_a_new_stream_may_lag_our_time_by_one_minute_and_not_more():
+    """The signing spec's rule for a stream (link id, system, component) not seen before: accepted
+    when its timestamp is at most one minute behind ours, which follows the largest accepted one."""
+    key, now = bytes(range(32)), 10**12
+    rx = MavlinkRx(key, now)
+    ahead = Packer(key=key, link_id=0, timestamp=now + 100)
+    assert len(rx.decode(ahead.heartbeat())) == 1 and rx.timestamp == now + 100
+    at_limit = Packer(key=key, link_id=1, timestamp=now + 100 - NEW_STREAM_LAG)
+    too_old = Packer(key=key, link_id=2, timestamp=now + 100 - NEW_STREAM_LAG - 1)
+    assert len(rx.decode(at_limit.heartbeat())) == 1
+    assert rx.decode(too_old.heartbeat()) == [] and rx.counters["old_timestamp"] == 1
+    assert (2, GCS, 190) not in rx.streams  # a refused frame records nothing
+    # the same station, once its clock is back within the minute, is heard
+    caught_up = Packer(key=key, link_id=2, timestamp=now + 100 - NEW_STREAM_LAG + 6_000_000)
+    assert len(rx.decode(caught_up.heartbeat())) == 1
+
+
+def test_signing_streams_are_independent():
+    """Each stream has its own last timestamp: one station far ahead neither blocks another stream
+    still within the lag, nor lets that stream's own replays through; the same link id from another
+    system or component is another stream."""
+    key, now = bytes(range(32)), 10**12
+    rx = MavlinkRx(key, now)
+    fast = Packer(key=key, link_id=0, timestamp=now + 20 * 100_000)  # 20 s ahead
+    slow = Packer(key=key, link_id=1, timestamp=now - 30 * 100_000)  # 30 s behind
+    other_component = Packer(component=191, key=key, link_id=0, timestamp=now + 5)
+    other_system = Packer(system=254, key=key, link_id=0, timestamp=now + 5)
+    assert len(rx.decode(fast.heartbeat())) == 1
+    beat = slow.heartbeat()
+    assert len(rx.decode(beat)) == 1  # 50 s behind ours now: a new stream within the minute
+    for _ in range(3):  # its own stream keeps increasing from where it is, below the fast one
+        assert len(rx.decode(slow.heartbeat())) == 1
+    assert rx.decode(beat) == [] and rx.counters["old_timestamp"] == 1  # its replay is not
+    assert len(rx.decode(other_component.heartbeat())) == 1  # below link 0 of component 190
+    assert len(rx.decode(other_system.heartbeat())) == 1
+    assert set(rx.streams) == {(0, GCS, 190), (1, GCS, 190), (0, GCS, 191), (0, 254, 190)}
+    assert rx.streams[(1, GCS, 190)] == now - 30 * 100_000 + 3
+    assert len(rx.decode(fast.heartbeat())) == 1 and rx.timestamp == now + 20 * 100_000 + 1
+
+
 def test_unsigned_packets_from_another_port_are_refused_and_never_redirect_telemetry(tmp_path: Path):
     async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
         stranger = Station()
@@ -282,6 +324,7 @@ def test_every_command_is_acknowledged_even_with_nan_or_inf_parameters():
         link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), arming)
         p = Packer()
         nan, inf = math.nan, math.inf
+        hold = (1.0, 4.0)  # DO_SET_MODE: custom mode enabled, HOLD
         cases = [
             (mav.MAV_CMD_COMPONENT_ARM_DISARM, (nan,), "long", mav.MAV_RESULT_DENIED),
             (mav.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, inf), "int", mav.MAV_RESULT_DENIED),
@@ -289,12 +332,28 @@ def test_every_command_is_acknowledged_even_with_nan_or_inf_parameters():
             (mav.MAV_CMD_DO_SET_MODE, (1.0, -inf), "int", mav.MAV_RESULT_DENIED),
             (mav.MAV_CMD_REQUEST_MESSAGE, (nan,), "long", mav.MAV_RESULT_DENIED),
             (mav.MAV_CMD_NAV_WAYPOINT, (nan,) * 7, "long", mav.MAV_RESULT_UNSUPPORTED),
+            # a valid command with NaN or inf in a parameter it does not use: still refused
+            (mav.MAV_CMD_DO_SET_MODE, (nan, 4.0), "long", mav.MAV_RESULT_DENIED),  # base mode
+            (mav.MAV_CMD_DO_SET_MODE, (inf, 4.0), "int", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_DO_SET_MODE, (*hold, nan), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_DO_SET_MODE, (*hold, 0, 0, 0, 0, -inf), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_DO_SET_MODE, (*hold, 0, 0, 0, 0, nan), "int", mav.MAV_RESULT_DENIED),  # z
+            (mav.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, nan), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, inf), "int", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, (1.0, nan), "long", mav.MAV_RESULT_DENIED),
+            (mav.MAV_CMD_REQUEST_MESSAGE, (mav.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, inf), "long",
+             mav.MAV_RESULT_DENIED),
         ]
         gs.send(link, p.heartbeat(), *(p.command(c, *params, kind=kind) for c, params, kind, _ in cases))
         await async_wait_for(lambda: len(gs.find("COMMAND_ACK")) == len(cases))
         acks = gs.find("COMMAND_ACK")
         assert [(a.command, a.result) for a in acks] == [(c, r) for c, _, _, r in cases]
         assert not arming.armed and link.mode_name == "MANUAL"
+        assert not gs.find("AUTOPILOT_VERSION") and not gs.find("HEARTBEAT", lambda m: m.custom_mode == 4)
+        # the same commands with finite parameters are obeyed
+        gs.send(link, p.command(mav.MAV_CMD_DO_SET_MODE, 1.0, 4.0), p.arm())
+        await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
+        assert arming.armed and link.mode_name == "HOLD"
         link.close()
         gs.close()
 
@@ -434,6 +493,40 @@ def test_an_rc_override_value_expires_after_3_s_and_65535_never_revives_it():
     assert c.link.manual is None
 
 
+def test_an_rc_override_expires_on_time_even_with_a_longer_input_timeout():
+    """input_timeout_s 10 s, rc_override_time_s 3 s (both allowed): the override stops driving at
+    3 s by the ticks alone, with heartbeats but no further RC message."""
+    c = Clocked(input_timeout_s=10.0, rc_override_time_s=3.0)
+    p = c.p
+    assert c.at(0.0, p.heartbeat(), p.rc(1500, 1750)) == pytest.approx((1.0, 0.0))
+    for t in (0.5, 1.0, 2.0, 2.95):
+        assert c.at(t, p.heartbeat()) == pytest.approx((1.0, 0.0))
+    assert c.at(3.05, p.heartbeat()) == (0.0, 0.0)  # expired: one stop
+    assert c.link.manual is None
+    for t in (3.5, 4.0, 6.0, 9.0):
+        assert c.at(t, p.heartbeat()) is None  # then silence
+    # one channel expiring alone: the other keeps its value, the expired one rests
+    assert c.at(10.0, p.heartbeat(), p.rc(1750, 1750)) == pytest.approx((1.0, -0.17))
+    assert c.at(12.0, p.heartbeat(), p.rc(65535, 1625)) == pytest.approx((0.5, -0.17))
+    assert c.at(13.5, p.heartbeat()) == pytest.approx((0.5, 0.0))  # steering set at 10.0: expired
+    assert c.at(15.05, p.heartbeat()) == (0.0, 0.0)  # throttle set at 12.0: expired too
+
+
+def test_an_expired_rc_throttle_does_not_block_arming_within_the_input_timeout():
+    c = Clocked(input_timeout_s=10.0, rc_override_time_s=3.0)
+    c.arming.disarm("test")
+    p = c.p
+    c.link.handle_datagram(p.heartbeat(), ("127.0.0.1", 14550))
+    c.link.handle_datagram(p.rc(1500, 1800), ("127.0.0.1", 14550))
+    c.now = NS_PER_S
+    c.link.handle_datagram(p.arm(), ("127.0.0.1", 14550))
+    assert not c.arming.armed  # a live throttle: refused
+    c.now = 4 * NS_PER_S  # no tick in between: the arm command itself sees the expiry
+    c.link.handle_datagram(p.heartbeat(), ("127.0.0.1", 14550))
+    c.link.handle_datagram(p.arm(), ("127.0.0.1", 14550))
+    assert c.arming.armed
+
+
 def test_arming_is_not_refused_for_a_throttle_older_than_the_input_timeout():
     c = Clocked()
     c.arming.disarm("test")
@@ -448,7 +541,17 @@ def test_arming_is_not_refused_for_a_throttle_older_than_the_input_timeout():
 # --- addresses and configuration ---------------------------------------------------------------
 
 
-def test_an_ipv6_loopback_ground_station_binds_ipv6():
+def test_an_ipv6_ground_station_address_binds_ipv6():
+    """Config only, no socket: an IPv6 loopback station binds ::1, a remote one ::."""
+    assert MavlinkParams(enabled=True, gcs_address="[::1]:14550", bind_port=0).bind == ("::1", 0)
+    assert MavlinkParams(gcs_address="[::1]:14550").gcs == ("::1", 14550)
+    remote = MavlinkParams(gcs_address="[2001:DB8::1]:14550", signing_key_file="k")
+    assert remote.bind == ("::", 14555)
+    assert remote.gcs == ("2001:db8::1", 14550)  # as the socket names a datagram's source
+    assert MavlinkParams(gcs_address="192.0.2.7:14550", signing_key_file="k").bind == ("0.0.0.0", 14555)
+
+
+def test_an_ipv6_loopback_ground_station_talks_over_ipv6():
     if not socket.has_ipv6:
         pytest.skip("no IPv6 on this machine")
     try:
@@ -458,8 +561,6 @@ def test_an_ipv6_loopback_ground_station_binds_ipv6():
 
     async def main() -> None:
         params = MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0)
-        assert params.bind == ("::1", 0)
-        assert MavlinkParams(gcs_address="[2001:db8::1]:14550", signing_key_file="k").bind == ("::", 14555)
         link = await started(params, Arming(start_armed=False))
         gs.send(link, Packer().heartbeat())
         await async_wait_for(lambda: link.gcs_alive)
@@ -469,6 +570,36 @@ def test_an_ipv6_loopback_ground_station_binds_ipv6():
         gs.close()
 
     run(main)
+
+
+def test_a_host_name_for_the_ground_station_is_refused_naming_the_key(capsys, tmp_path: Path):
+    """A name would make every datagram foreign (they are matched by source address): refused in
+    the config, by check-config and at start, with the key named; loopback names still work."""
+    key = tmp_path / "key"
+    write_signing_key(key)
+    with pytest.raises(ConfigError) as info:
+        MavlinkParams(enabled=True, gcs_address="gcs.lan:14550", signing_key_file=str(key))
+    assert info.value.key == "mavlink.gcs_address" and "gcs.lan" in str(info.value)
+    args = ["check-config", "--set", "mavlink.enabled=true", "--set", "mavlink.gcs_address=gcs.lan:14550",
+            "--set", f"mavlink.signing_key_file={key}"]
+    assert cli_main(args) == 1
+    err = capsys.readouterr().err
+    assert "mavlink.gcs_address" in err and "gcs.lan" in err and "IP address" in err
+    assert "Traceback" not in err
+    for name in ("localhost", "localhost.localdomain", "ip6-localhost"):
+        link = MavlinkGcs(Bus(), MavlinkParams(enabled=True, gcs_address=f"{name}:14550"), Arming())
+        link.handle_datagram(Packer().heartbeat(), ("127.0.0.1", 14550))
+        assert link.gcs_alive and link.counters["foreign"] == 0, name
+
+
+def test_a_remote_ipv6_station_written_in_capitals_is_heard(tmp_path: Path):
+    key = write_signing_key(tmp_path / "key")
+    link = MavlinkGcs(Bus(), MavlinkParams(enabled=True, gcs_address="[2001:DB8::7]:14550",
+                                           signing_key_file=str(tmp_path / "key")), Arming())
+    link.handle_datagram(Packer(key=key).heartbeat(), ("2001:db8::7", 14550, 0, 0))
+    assert link.gcs_alive and link.counters["foreign"] == 0
+    link.handle_datagram(Packer(key=key).heartbeat(), ("2001:db8::8", 14550, 0, 0))
+    assert link.counters["foreign"] == 1
 
 
 def test_check_config_refuses_a_remote_ground_station_without_a_signing_key(capsys, tmp_path: Path):

@@ -11,6 +11,7 @@ import pytest
 from conftest import wait_for
 
 from racecar_hw.cli import main
+from vesc.codec import GetValuesRequest
 from vesc.fake import FakeVesc
 
 
@@ -30,6 +31,23 @@ def test_vesc_info_against_the_fake(tmp_path, device_thread, capsys):
     assert "firmware: 5.02" in out
     assert "layout V3_60, 73 bytes" in out
     assert "v_in                 16.8" in out
+
+
+@pytest.mark.parametrize("firmware", [(9, 1), (1, 5), (6, 100)])
+def test_vesc_info_reports_an_unknown_firmware_as_unknown_and_decodes_no_telemetry(
+        tmp_path, device_thread, capsys, firmware):
+    """A firmware outside the layouts the codec knows (2.0 to 7.99): no GET_VALUES is asked, no field
+    printed, and the exit status says the driver will not drive it."""
+    fake = FakeVesc(str(tmp_path / "vesc"), firmware=firmware).open()
+    device_thread.spawn(fake.serve())
+    assert main(["vesc-info", "--port", fake.path]) == 1
+    out, err = capsys.readouterr()
+    version = f"{firmware[0]}.{firmware[1]:02d}"
+    assert f"firmware: {version} (unknown)" in out and "hardware: " in out
+    assert "telemetry" not in out and "v_in" not in out
+    assert f"firmware {version} is not one racecar-hw knows (it knows 2.x to 7.x)" in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not any(isinstance(r.packet, GetValuesRequest) for r in fake.commands)
 
 
 def test_vesc_info_without_a_device(tmp_path, capsys):

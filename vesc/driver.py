@@ -576,9 +576,13 @@ class VescDriver:
             self.bus.publish(TOPIC_TF, TFMessage([self.odometry.transform(stamp)]))
 
 
-async def probe(port: str, baudrate: int = 115200, timeout_s: float = 2.0) -> tuple[FwVersion, Values]:
+async def probe(port: str, baudrate: int = 115200,
+                timeout_s: float = 2.0) -> tuple[FwVersion, Values | None]:
     """Ask the VESC at ``port`` for its firmware version and one telemetry sample.
 
+    The sample is None when the firmware is not one whose telemetry layout the codec knows
+    (:func:`~vesc.codec.known_firmware`): it is not asked for, rather than decoded in a layout that
+    may be wrong. (The driver ignores such a FW_VERSION reply, so it would not drive this VESC.)
     Raises DeviceNotFound, DeviceIOError, or DeviceTimeout when no reply comes within ``timeout_s``.
     """
     link = SerialLink(port, baudrate)
@@ -586,6 +590,8 @@ async def probe(port: str, baudrate: int = 115200, timeout_s: float = 2.0) -> tu
     codec = VescCodec(Role.HOST)
     try:
         fw = await _ask(link, codec, FwVersionRequest(), FwVersion, timeout_s)
+        if not known_firmware(fw.version):
+            return fw, None
         codec.firmware = fw.version
         values = await _ask(link, codec, GetValuesRequest(), Values, timeout_s)
         return fw, values

@@ -22,7 +22,6 @@ I/O), so they can be tested on truncated and damaged data.
 
 from __future__ import annotations
 
-import bz2
 import sqlite3
 import struct
 from collections.abc import Iterator
@@ -36,7 +35,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.metadata import dump_qos_v8, parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from racecar_hw.bags.validate import guarded
+from racecar_hw.bags.validate import DEFAULT_MAX_MESSAGE_BYTES, guarded, inflate
 from racecar_hw.bags.writers import RECORDING_OPEN, ROS1_MAGIC, ROS2_METADATA_VERSION, Ros1Writer
 from racecar_hw.base.errors import BagError
 
@@ -121,14 +120,21 @@ def _mcap_chunk(body: bytes, scan: McapScan) -> None:
     compression, pos = _mcap_string(body, pos)
     (size,) = _U64.unpack_from(body, pos)
     records = body[pos + 8:pos + 8 + size]
-    if compression == "lz4":
-        import lz4.frame  # type: ignore[import-untyped]
-
-        records = lz4.frame.decompress(records)
+    if compression in ("lz4", "zstd"):
+        (declared,) = _U64.unpack_from(body, 16)
+        records = _decompress(records, compression, declared)
     elif compression:
         raise BagError(f"MCAP chunk compression {compression!r} is not supported by the recovery")
     for op, rec in _mcap_records(records, 0):
         _mcap_record(op, rec, scan)
+
+
+def _decompress(data: bytes, compression: str, declared: int) -> bytes:
+    """A chunk's records, decompressed in bounded steps: no more than the ``declared`` size, nor
+    than the largest chunk the follower reads (DEFAULT_MAX_MESSAGE_BYTES), else BagError."""
+    bound = min(declared, DEFAULT_MAX_MESSAGE_BYTES)
+    what = f"a {compression} chunk declaring {declared} bytes uncompressed"
+    return b"".join(inflate([data], compression, bound, what))
 
 
 def _mcap_record(op: int, body: bytes, scan: McapScan) -> None:
@@ -247,12 +253,10 @@ def scan_ros1(data: bytes) -> Ros1Scan:
 
 def _ros1_chunk(fields: dict[str, bytes], body: bytes, scan: Ros1Scan) -> None:
     compression = fields["compression"].decode()
-    if compression == "bz2":
-        body = bz2.decompress(body)
-    elif compression == "lz4":
-        import lz4.frame  # type: ignore[import-untyped]
-
-        body = lz4.frame.decompress(body)
+    if compression in ("bz2", "lz4"):
+        size = fields["size"]
+        declared = _U32.unpack(size)[0] if len(size) == 4 else DEFAULT_MAX_MESSAGE_BYTES
+        body = _decompress(body, compression, declared)
     elif compression != "none":
         raise BagError(f"unknown ROS 1 chunk compression {compression!r}")
     for inner, inner_body in _ros1_records(body, 0):

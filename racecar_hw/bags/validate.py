@@ -6,11 +6,14 @@ absurd values into the control path. Three pieces, used by every bag reader here
 * :func:`guarded` / :func:`reading`: whatever a reader raises (rosbags' ``ReaderError``, an
   ``AssertionError`` or ``KeyError`` from a malformed index, ``struct.error``, sqlite errors, a
   decompressor's error, ``MemoryError``) leaves as one :class:`~racecar_hw.base.errors.BagError`
-  naming the file and the cause.
+  naming the file and the cause; a BagError that does not name the file gets it in front.
 * :func:`check_storage`: before a reader allocates anything, the sizes the file declares (records,
   chunks and their uncompressed sizes, the offsets its index points at) are checked against the
-  file and against ``max_message_bytes``. It follows what rosbags reads: a ROS 1 bag's header,
-  index and chunk records; every record of an MCAP file; the largest message of a sqlite3 bag.
+  file and against ``max_message_bytes``, and every compressed chunk is decompressed once in
+  pieces, its output counted and thrown away (:func:`inflate`), so a chunk that lies about its
+  uncompressed size is refused before a reader decompresses it whole. It follows what rosbags
+  reads: a ROS 1 bag's header, index and chunk records; every record of an MCAP file; the largest
+  message of a sqlite3 bag.
 * :func:`check_commands`: every loaded drive command must be finite and within the car's
   configured speed and steering limits, or the bag is refused naming the first bad message's index
   and time.
@@ -18,12 +21,13 @@ absurd values into the control path. Three pieces, used by every bag reader here
 
 from __future__ import annotations
 
+import bz2
 import contextlib
 import functools
 import math
 import sqlite3
 import struct
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Protocol, TypeVar
@@ -44,6 +48,9 @@ LZ4_FRAME_MAGIC = b"\x04\x22\x4d\x18"
 MCAP_READ_WHOLE = frozenset((0x01, 0x03, 0x04, 0x05, 0x06, 0x08, 0x0B))
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
+#: Bytes of compressed input read, and of output taken from a decompressor, at a time: what bounding
+#: a chunk's decompression holds in memory (plus the decompressor's own state, a few MB for bz2).
+INFLATE_STEP = 1 << 20
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -73,8 +80,10 @@ def reading(path: str | Path) -> Iterator[None]:
     """Turn anything but :class:`BagError` raised inside into a BagError naming ``path``."""
     try:
         yield
-    except BagError:
-        raise
+    except BagError as err:
+        if str(path) in str(err):
+            raise
+        raise BagError(f"{path}: {err}") from err  # a scanner's error, said without the file
     except (Exception, MemoryError, RecursionError) as err:
         raise BagError(f"cannot read bag {path}: {describe(err)}") from err
 
@@ -142,12 +151,83 @@ class _Storage:
             raise BagError(f"{self.path}: {what} at byte {pos} declares {n} bytes, over the "
                            f"limit of {self.limit} (max_message_bytes); refused before reading it")
 
+    def pieces(self, pos: int, n: int) -> Iterator[bytes]:
+        """The ``n`` bytes at ``pos`` (already checked to be in the file), :data:`INFLATE_STEP` at a time."""
+        for at in range(pos, pos + n, INFLATE_STEP):
+            yield self.read(at, min(INFLATE_STEP, pos + n - at))
+
+    def inflates_within(self, pos: int, compression: str, data_pos: int, n: int, declared: int) -> None:
+        """The chunk at ``pos`` (``n`` bytes of ``compression`` data at ``data_pos``) decompresses to
+        no more than the ``declared`` bytes (at most the limit, checked before)."""
+        what = (f"{self.path}: the {compression} chunk at byte {pos} declares {declared} bytes "
+                "uncompressed, but it")
+        inflated_size(self.pieces(data_pos, n), compression, declared, what)
+
 
 def _lz4_content_size(data: bytes) -> int | None:
     """The content size an LZ4 frame header declares (None when it declares none)."""
     if len(data) < 6 or data[:4] != LZ4_FRAME_MAGIC or not data[4] & 0x08:
         return None
     return _U64.unpack_from(data, 6)[0] if len(data) >= 14 else None
+
+
+def _decompressor(compression: str) -> Callable[[], Any] | None:
+    """A new streaming decompressor for a chunk's ``compression`` (None: nothing to decompress,
+    or a compression the readers refuse themselves)."""
+    if compression == "bz2":
+        return bz2.BZ2Decompressor
+    if compression == "lz4":
+        import lz4.frame  # type: ignore[import-untyped]
+
+        return lz4.frame.LZ4FrameDecompressor  # type: ignore[no-any-return]
+    if compression == "zstd":
+        try:
+            from compression import zstd  # type: ignore[import-not-found]
+        except ImportError:  # before Python 3.14: the backport rosbags uses too
+            from backports import zstd  # type: ignore[import-not-found,no-redef]
+        return zstd.ZstdDecompressor  # type: ignore[no-any-return]
+    return None
+
+
+def inflate(pieces: Iterable[bytes], compression: str, bound: int, what: str) -> Iterator[bytes]:
+    """The decompressed output of a chunk's data, given in ``pieces``, at most :data:`INFLATE_STEP`
+    bytes at a time; nothing for an uncompressed chunk (``none`` or empty) or an unknown compression.
+
+    As the readers decompress: bz2 and zstd every concatenated stream, lz4 its first frame (the
+    rest is ignored). Raises :class:`BagError` ("``what`` decompresses to more than ``bound``
+    bytes") as soon as the output passes ``bound``, so memory stays bounded whatever the data
+    claims. A stream that ends early just ends: the reader reports that itself.
+    """
+    make = _decompressor(compression)
+    if make is None:
+        return
+    d = make()
+    total = 0
+    for piece in pieces:
+        data = piece
+        while True:
+            if d.eof:
+                if compression == "lz4":
+                    return
+                data = d.unused_data + data
+                if not data:
+                    break
+                d = make()
+            elif not data and d.needs_input:
+                break
+            out = d.decompress(data, INFLATE_STEP)
+            data = b""
+            total += len(out)
+            if total > bound:
+                raise BagError(f"{what} decompresses to more than {bound} bytes (a damaged chunk or a "
+                               "decompression bomb); refused before decompressing the rest")
+            if out:
+                yield out
+
+
+def inflated_size(pieces: Iterable[bytes], compression: str, bound: int, what: str) -> int:
+    """How many bytes :func:`inflate` gives (BagError past ``bound``); the output is thrown away."""
+    return sum(len(out) for out in inflate(pieces, compression, bound, what))
 
 
 # ROS 1: what rosbags reads - the bag header, the index at index_pos (connections, chunk infos),
@@ -211,11 +291,13 @@ def _check_ros1_chunk(s: _Storage, pos: int, index_records: int) -> None:
     if uncompressed > s.limit:
         raise BagError(f"{s.path}: the chunk at byte {pos} declares {uncompressed} bytes uncompressed, "
                        f"over the limit of {s.limit} (max_message_bytes); refused before reading it")
-    if fields.get("compression") == b"lz4":
+    compression = fields.get("compression", b"").decode("ascii", "replace")
+    if compression == "lz4":
         content = _lz4_content_size(s.read(data_pos, min(dlen, 14)))
         if content is not None and content > s.limit:
             raise BagError(f"{s.path}: the chunk at byte {pos} decompresses to {content} bytes, over "
                            f"the limit of {s.limit} (max_message_bytes)")
+    s.inflates_within(pos, compression, data_pos, dlen, uncompressed)
     pos = data_pos + dlen
     for _ in range(index_records):
         _, data_pos, dlen = _ros1_record(s, pos)
@@ -231,7 +313,7 @@ def _check_mcap(s: _Storage) -> None:
     if end < pos or s.read(end, len(MCAP_MAGIC)) != MCAP_MAGIC:
         return  # not closed (an interrupted recording): the reader refuses it and says so
     starts: set[int] = set()
-    chunks: dict[int, int] = {}  # chunk record offset -> record length
+    chunks: dict[int, _McapChunk] = {}  # by the chunk record's offset
     while pos < end:
         op = s.read(pos, 1)[0]
         (length,) = _U64.unpack(s.read(pos + 1, 8))
@@ -244,8 +326,7 @@ def _check_mcap(s: _Storage) -> None:
                     raise BagError(f"{s.path}: the footer points at byte {summary}, which starts no record")
             return
         if op == 0x06:
-            _check_mcap_chunk(s, pos, length)
-            chunks[pos] = length
+            chunks[pos] = _check_mcap_chunk(s, pos, length)
         elif op == 0x08:
             _check_mcap_chunk_index(s, pos, length, chunks)
         pos += 9 + length
@@ -262,7 +343,18 @@ def _mcap_sizes(s: _Storage, at: int, end: int) -> tuple[str, int]:
     return name, value
 
 
-def _check_mcap_chunk(s: _Storage, pos: int, length: int) -> None:
+@dataclass(frozen=True)
+class _McapChunk:
+    """What a chunk record says of itself; its chunk index must say the same (rosbags takes the
+    compression and sizes from the index)."""
+
+    length: int
+    compression: str
+    compressed: int
+    uncompressed: int
+
+
+def _check_mcap_chunk(s: _Storage, pos: int, length: int) -> _McapChunk:
     body = pos + 9
     end = body + length
     (uncompressed,) = _U64.unpack(s.read(body + 16, 8))
@@ -277,13 +369,16 @@ def _check_mcap_chunk(s: _Storage, pos: int, length: int) -> None:
         if content is not None and content > s.limit:
             raise BagError(f"{s.path}: the chunk at byte {pos} decompresses to {content} bytes, over "
                            f"the limit of {s.limit} (max_message_bytes)")
+    s.inflates_within(pos, compression, data, compressed, uncompressed)
+    return _McapChunk(length, compression, compressed, uncompressed)
 
 
-def _check_mcap_chunk_index(s: _Storage, pos: int, length: int, chunks: dict[int, int]) -> None:
+def _check_mcap_chunk_index(s: _Storage, pos: int, length: int, chunks: dict[int, _McapChunk]) -> None:
     body = pos + 9
     end = body + length
     start, chunk_length = _U64.unpack(s.read(body + 16, 8))[0], _U64.unpack(s.read(body + 24, 8))[0]
-    if chunks.get(start) != chunk_length - 9:
+    chunk = chunks.get(start)
+    if chunk is None or chunk.length != chunk_length - 9:
         raise BagError(f"{s.path}: a chunk index at byte {pos} points at byte {start}, which holds no "
                        "chunk of that length")
     (offsets_len,) = _U32.unpack(s.read(body + 32, 4))
@@ -294,6 +389,11 @@ def _check_mcap_chunk_index(s: _Storage, pos: int, length: int, chunks: dict[int
         raise BagError(f"{s.path}: a chunk index at byte {pos} declares {compressed} compressed, "
                        f"{uncompressed} uncompressed bytes: a damaged index, or over the limit of "
                        f"{s.limit} (max_message_bytes)")
+    if (compression, compressed, uncompressed) != (chunk.compression, chunk.compressed, chunk.uncompressed):
+        raise BagError(f"{s.path}: a chunk index at byte {pos} says {compression or 'no'} compression, "
+                       f"{compressed} compressed, {uncompressed} uncompressed bytes; its chunk at byte "
+                       f"{start} says {chunk.compression or 'no'}, {chunk.compressed}, "
+                       f"{chunk.uncompressed} (a damaged index)")
 
 
 def _check_sqlite3(db: Path, max_bytes: int) -> None:
@@ -354,4 +454,4 @@ def check_commands(commands: Sequence[_Timed], limits: CommandLimits, path: str 
 
 
 __all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits", "check_commands", "check_storage", "describe",
-           "guarded", "reading"]
+           "guarded", "inflate", "inflated_size", "reading"]

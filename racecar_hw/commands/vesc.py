@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import sys
 
 from racecar_hw.runtime.signals import run_until_stop_signal
-from vesc.codec import values_layout
+from vesc.codec import KNOWN_MAJORS, values_layout
 from vesc.driver import probe
 from vesc.fake import FakeVesc
 
@@ -54,12 +55,22 @@ def fake_vesc(args: argparse.Namespace) -> int:
 
 
 def vesc_info(args: argparse.Namespace) -> int:
-    """Print the firmware version and one decoded GET_VALUES reply of the VESC at ``args.port``."""
+    """Print the firmware version and one decoded GET_VALUES reply of the VESC at ``args.port``.
+
+    A firmware whose telemetry layout is not known is reported as unknown, without telemetry, and
+    the exit status is 1: the driver would not drive that VESC.
+    """
     fw, values = asyncio.run(probe(args.port, args.baudrate, args.timeout))
-    print(f"firmware: {fw.major}.{fw.minor:02d}")
+    known = values is not None
+    print(f"firmware: {fw.major}.{fw.minor:02d}" + ("" if known else " (unknown)"))
     print(f"hardware: {fw.hw_name if fw.hw_name is not None else '(not reported)'}")
     if fw.uuid is not None:
         print(f"uuid:     {fw.uuid.hex()}")
+    if values is None:
+        print(f"racecar-hw vesc-info: firmware {fw.major}.{fw.minor:02d} is not one racecar-hw knows "
+              f"(it knows {KNOWN_MAJORS.start}.x to {KNOWN_MAJORS.stop - 1}.x): its telemetry layout is "
+              "unknown, so none was decoded, and the driver will not drive this VESC", file=sys.stderr)
+        return 1
     layout = values_layout(fw.version)
     print(f"telemetry (GET_VALUES layout {layout.name}, {layout.value} bytes):")
     for f in dataclasses.fields(values):

@@ -42,7 +42,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import hashlib
+import ipaddress
 import logging
 import math
 import os
@@ -93,6 +95,12 @@ VESC_FRESH_NS = NS_PER_S // 2
 #: ArduPilot Rover's custom mode numbers.
 MODES: dict[str, int] = {"MANUAL": 0, "HOLD": 4, "GUIDED": 15}
 MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
+#: The commands this link acts on; any other is acknowledged UNSUPPORTED.
+ACTED_ON = frozenset((mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_SET_MODE,
+                      mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, mavlink.MAV_CMD_REQUEST_MESSAGE))
+#: The float parameters of each command message (COMMAND_INT's x and y are integers).
+_FLOAT_PARAMS = {"COMMAND_LONG": tuple(f"param{i}" for i in range(1, 8)),
+                 "COMMAND_INT": ("param1", "param2", "param3", "param4", "z")}
 #: COMMAND_ACK ``command`` for a SET_MODE message (its message id, as ArduPilot answers).
 SET_MODE_ACK = mavlink.MAVLINK_MSG_ID_SET_MODE
 FORCE_ARM_MAGIC = 21196
@@ -112,6 +120,24 @@ def parse_address(text: str, key: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
+def station_host(host: str, key: str) -> str:
+    """The ground station's host as datagrams from it name their source: an IP address in its
+    canonical form (``2001:DB8::1`` is ``2001:db8::1``), or a loopback name kept as given.
+
+    Any other host name is refused (ConfigError naming ``key``): datagrams are matched by source
+    address, so an unresolved name would make every datagram foreign, and a name resolved once at
+    start would silently go stale when the laptop's DHCP address changes (or fail at a track
+    without DNS).
+    """
+    if is_loopback(host):
+        return host
+    try:
+        return str(ipaddress.ip_address(host))
+    except ValueError:
+        raise ConfigError(key, f"{host!r} is a host name: give the ground station's IP address "
+                               "(datagrams are matched by their source address, not by name)") from None
+
+
 _NEEDS_SIGNING = ("the ground station {} is not on loopback: MAVLink 2 signing is required; set "
                   "signing_key_file to a key file")
 
@@ -121,10 +147,10 @@ class MavlinkParams:
     """The ground-station link: addresses, identity, signing, timeouts and teleop scales."""
 
     enabled: bool = param(False, "run the MAVLink ground-station link")
-    gcs_address: str = param("127.0.0.1:14550", "ground station host:port telemetry is sent to "
-                                                "([::1]:14550 for IPv6); port 0 = the port its first "
-                                                "authenticated message came from; any non-loopback "
-                                                "host requires signing")
+    gcs_address: str = param("127.0.0.1:14550", "ground station IP:port telemetry is sent to "
+                                                "([::1]:14550 for IPv6; no host names but localhost); "
+                                                "port 0 = the port its first authenticated message "
+                                                "came from; any non-loopback host requires signing")
     gcs_system_id: int = param(255, "the ground station's system id (ArduPilot's SYSID_MYGCS): only "
                                     "its messages are heard; it alone may arm, set modes and drive",
                                min=1, max=255)
@@ -166,6 +192,7 @@ class MavlinkParams:
 
     def __post_init__(self) -> None:
         host, _ = parse_address(self.gcs_address, "mavlink.gcs_address")
+        station_host(host, "mavlink.gcs_address")
         if not self.rc_min_us < self.rc_trim_us < self.rc_max_us:
             raise ConfigError("mavlink.rc_trim_us", "must lie strictly between rc_min_us and rc_max_us")
         if self.enabled and not self.signing_key_file and not is_loopback(host):
@@ -173,8 +200,9 @@ class MavlinkParams:
 
     @property
     def gcs(self) -> tuple[str, int]:
-        """The ground station's (host, port)."""
-        return parse_address(self.gcs_address, "mavlink.gcs_address")
+        """The ground station's (host, port); the host as :func:`station_host` gives it."""
+        host, port = parse_address(self.gcs_address, "mavlink.gcs_address")
+        return station_host(host, "mavlink.gcs_address"), port
 
     @property
     def bind(self) -> tuple[str, int]:
@@ -591,12 +619,27 @@ class MavlinkGcs:
             self.send_telemetry(now)
 
     def _teleop_command(self, now: int) -> AckermannDrive | None:
-        manual = self.manual
+        manual = self._live_input(now)
         if manual is None or not self.gcs_alive or self.mode != MODES["MANUAL"]:
             return None
         if now - manual.received_ns > round(self.params.input_timeout_s * NS_PER_S):
             return None
         return AckermannDrive(steering_angle=manual.steering, speed=manual.speed)
+
+    def _live_input(self, now: int) -> ManualInput | None:
+        """The latest teleop input with RC override expiry applied at ``now`` (on every tick and
+        command, not only when a new RC message comes): an expired channel is at rest, and with both
+        channels released or expired the override ends."""
+        manual = self.manual
+        if manual is None or manual.kind != "rc_override":
+            return manual
+        steering, throttle = self._rc_value(1, now), self._rc_value(3, now)
+        if steering is None and throttle is None:
+            self.manual = None
+        else:
+            self.manual = dataclasses.replace(manual, speed=self._pwm(throttle) * self.params.max_speed_mps,
+                                              steering=-self._pwm(steering) * self.params.max_steering_rad)
+        return self.manual
 
     def _publish_drive(self, drive: AckermannDrive) -> None:
         msg = AckermannDriveStamped(stamp_now("base_link", self._wall_clock()), drive)
@@ -755,13 +798,18 @@ class MavlinkGcs:
                 and now - manual.received_ns <= round(self.params.input_timeout_s * NS_PER_S))
 
     def _command(self, msg: Any, now: int) -> int:
-        """The result of a COMMAND_LONG / COMMAND_INT (every one is acknowledged)."""
+        """The result of a COMMAND_LONG / COMMAND_INT (every one is acknowledged). A command we act
+        on is DENIED, and changes nothing, when any of its float parameters, used or not, is NaN or
+        infinite (none of them has NaN as its default in MAVLink's common.xml)."""
         command, param1, param2 = msg.command, msg.param1, msg.param2
+        if command not in ACTED_ON:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        if not all(math.isfinite(getattr(msg, name)) for name in _FLOAT_PARAMS[msg.get_type()]):
+            self.statustext(f"Command {command} denied: NaN/inf parameter", mavlink.MAV_SEVERITY_WARNING)
+            return mavlink.MAV_RESULT_DENIED
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            if not (math.isfinite(param1) and math.isfinite(param2)):
-                return mavlink.MAV_RESULT_DENIED
             if param1 == 1.0:
-                manual = self.manual
+                manual = self._live_input(now)
                 if (self._input_fresh(manual, now) and manual is not None and manual.speed != 0.0
                         and param2 != FORCE_ARM_MAGIC):
                     self.statustext("Arm refused: GCS throttle not centred", mavlink.MAV_SEVERITY_WARNING)
@@ -773,17 +821,12 @@ class MavlinkGcs:
                 return mavlink.MAV_RESULT_ACCEPTED
             return mavlink.MAV_RESULT_DENIED
         if command == mavlink.MAV_CMD_DO_SET_MODE:
-            if not math.isfinite(param2):
-                return mavlink.MAV_RESULT_DENIED
             return self._set_mode(round(param2))
         if command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             return mavlink.MAV_RESULT_ACCEPTED if param1 == 1.0 else mavlink.MAV_RESULT_DENIED
-        if command == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            if not math.isfinite(param1):
-                return mavlink.MAV_RESULT_DENIED
-            return (mavlink.MAV_RESULT_ACCEPTED if round(param1) in self._requestable
-                    else mavlink.MAV_RESULT_UNSUPPORTED)
-        return mavlink.MAV_RESULT_UNSUPPORTED
+        # MAV_CMD_REQUEST_MESSAGE
+        return (mavlink.MAV_RESULT_ACCEPTED if round(param1) in self._requestable
+                else mavlink.MAV_RESULT_UNSUPPORTED)
 
     @property
     def _requestable(self) -> dict[int, Callable[[], None]]:
