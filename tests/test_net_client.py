@@ -38,6 +38,7 @@ def test_the_wall_follower_example_drives_a_lap_of_the_track(tmp_path):
     port = free_port()
     sim = start_sim(tmp_path, port, scenario_sets=("map=track", "drivers=[]"), duration=240.0)
     try:
+        _wait_listening(port)  # the example connects once (client mode) and gives up after 3 s
         example = subprocess.run([sys.executable, str(ROOT / "examples" / "wall_follower.py"),
                                   "--connect", endpoint(port), "--laps", "1", "--timeout", "180"],
                                  capture_output=True, text=True, timeout=240, cwd=ROOT)
