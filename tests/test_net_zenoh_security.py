@@ -6,17 +6,22 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import zenoh
+from conftest import async_wait_for
 from zenoh_util import ROOT, endpoint, free_port
 
 from mux.params import MuxParams
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import LaserScan, stamp_now
 from racecar_hw.config import load_config
+from racecar_hw.net import rmw
 from racecar_hw.net.topics import topic_table
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.net.zenoh_config import (
@@ -155,6 +160,85 @@ def test_missing_or_non_pem_tls_files_are_refused_naming_the_key(tmp_path, name,
 def test_a_tls_listen_needs_a_certificate_even_on_loopback():
     err = _refused('zenoh.listen=["tls/127.0.0.1:7447"]')
     assert err.key == "zenoh.tls.listen_certificate" and "zenoh.listen[0]" in str(err)
+
+
+@pytest.fixture
+def pki(tmp_path):
+    """A CA, a server certificate for 127.0.0.1 signed by it, a client certificate signed by it, and
+    a client certificate signed by another CA (EC P-256 keys, made with the openssl command)."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("the openssl command is not installed: no test certificates can be made")
+
+    def run(*args: str) -> None:
+        subprocess.run([openssl, *args], check=True, capture_output=True, cwd=tmp_path, timeout=60)
+
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    # v3 certificates (webpki refuses v1 ones), each for its purpose
+    (tmp_path / "server.ext").write_text("basicConstraints=CA:FALSE\nextendedKeyUsage=serverAuth\n"
+                                         "subjectAltName=IP:127.0.0.1,DNS:localhost\n")
+    (tmp_path / "client.ext").write_text("basicConstraints=CA:FALSE\nextendedKeyUsage=clientAuth\n")
+    for ca in ("ca", "other_ca"):
+        run("req", "-x509", *ec, "-keyout", f"{ca}.key", "-out", f"{ca}.pem", "-days", "2",
+            "-subj", f"/CN={ca}")
+    for name, ca, ext in (("server", "ca", "server.ext"), ("client", "ca", "client.ext"),
+                          ("intruder", "other_ca", "client.ext")):
+        run("req", *ec, "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}")
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key",
+            "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", ext)
+    return tmp_path
+
+
+def _tls_client(port: int, pki, name: str | None) -> zenoh.Config:
+    """A client session config for the daemon's tls/ endpoint, with ``name``'s certificate (None: none)."""
+    tls = ZenohTlsParams(root_ca_certificate=str(pki / "ca.pem"), enable_mtls=name is not None)
+    config = session_config("client", [], [f"tls/127.0.0.1:{port}"], tls=tls)
+    if name is not None:
+        config.insert_json5("transport/link/tls/connect_certificate", json.dumps(str(pki / f"{name}.pem")))
+        config.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(pki / f"{name}.key")))
+    return config
+
+
+def test_with_mutual_tls_only_a_session_with_a_certificate_from_the_ca_gets_in(pki):
+    port = free_port()
+    config = load_config(None, [f'zenoh.listen=["tls/127.0.0.1:{port}"]', "zenoh.tls.enable_mtls=true",
+                                f"zenoh.tls.listen_certificate={pki / 'server.pem'}",
+                                f"zenoh.tls.listen_private_key={pki / 'server.key'}",
+                                f"zenoh.tls.root_ca_certificate={pki / 'ca.pem'}"])
+    scan = LaserScan(stamp_now("laser", 5), -1.0, 1.0, 0.5, 0.0, 0.025, 0.02, 10.0,
+                     np.ones(5, np.float32), np.zeros(0, np.float32))
+    key = rmw.topic_key(0, "/scan", LaserScan.ROS_TYPE, rmw.type_hash(LaserScan.ROS_TYPE))
+
+    async def run() -> tuple[list, list[str]]:
+        bus = Bus()
+        bridge = ZenohBridge(bus, config.zenoh, topic_table(MuxParams(), SafetyParams()))
+        loop = asyncio.get_running_loop()
+        bus.bind_loop(loop)
+        await loop.run_in_executor(None, bridge.open, loop)
+        refused = []
+        try:
+            for name in (None, "intruder"):  # no certificate; one from another CA
+                try:
+                    await loop.run_in_executor(None, zenoh.open, _tls_client(port, pki, name))
+                except zenoh.ZError:
+                    refused.append(str(name))
+            client = await loop.run_in_executor(None, zenoh.open, _tls_client(port, pki, "client"))
+            try:
+                samples: list = []
+                client.declare_subscriber(key, samples.append)
+                out = next(o for o in bridge._outs if o.row.bus == "/scan")
+                await async_wait_for(lambda: out.matching, timeout=20)
+                bus.publish("/scan", scan)
+                await async_wait_for(lambda: samples, timeout=20)
+            finally:
+                client.close()
+            return samples, refused
+        finally:
+            bridge.close()
+
+    samples, refused = asyncio.run(run())
+    assert refused == ["None", "intruder"]
+    assert rmw.Attachment.decode(samples[0].attachment.to_bytes()).sequence_number == 1
 
 
 # --- Zenoh's own errors at open, when a file changed after the config was loaded ----------------

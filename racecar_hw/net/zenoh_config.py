@@ -173,8 +173,8 @@ def parse_endpoint(endpoint: str, key: str) -> tuple[str, str, int | None]:
 
 #: rmw_zenoh's settings (rmw_zenoh_cpp/config/DEFAULT_RMW_ZENOH_{ROUTER,SESSION}_CONFIG.json5, as of
 #: rmw_zenoh PRs #509 and #820) that matter here, set even where they equal Zenoh 1.10's defaults so
-#: another Zenoh release cannot change them. The router and session files agree on all of them but
-#: ``peers_failover_brokering``: false for the router; only routers read it.
+#: another Zenoh release cannot change them; the router and session files agree on all of them.
+#: Their ``routing/router/peers_failover_brokering`` is left out: Zenoh 1.10 ignores it (and warns).
 RMW_ZENOH_SETTINGS: dict[str, Any] = {
     "scouting/gossip/enabled": True,
     "scouting/gossip/multihop": False,
@@ -184,7 +184,6 @@ RMW_ZENOH_SETTINGS: dict[str, Any] = {
     "timestamping/enabled": {"router": True, "peer": True, "client": True},
     # ms; only the advanced subscribers' history queries use it (10 min, PR #820)
     "queries_default_timeout": 600000,
-    "routing/router/peers_failover_brokering": False,
     # many ROS nodes starting at once on a loaded computer: handshakes and leases get time (PR #509)
     "transport/unicast/open_timeout": 60000,
     "transport/unicast/accept_timeout": 60000,
