@@ -37,8 +37,8 @@ _ENCRYPTED = ("tls", "quic")
 class ZenohAuthParams:
     """Zenoh user/password authentication."""
 
-    dictionary_file: str = param("", "file of user:password lines; a session that connects to this "
-                                     "daemon must present one of them")
+    dictionary_file: str = param("", "file of user:password lines (at least one; read when the config "
+                                     "loads); a session that connects to this daemon must present one")
     user: str = param("", "user name this daemon presents when it connects out (client/peer connect)")
     password: str = param("", "password this daemon presents with user")
 
@@ -49,7 +49,8 @@ class ZenohTlsParams:
 
     listen_certificate: str = param("", "PEM certificate this daemon presents on tls/ and quic/ listens")
     listen_private_key: str = param("", "PEM private key of listen_certificate")
-    root_ca_certificate: str = param("", "PEM CA certificate that signed the peers' certificates")
+    root_ca_certificate: str = param("", "PEM CA certificate that signed the peers' certificates "
+                                         "(needed by enable_mtls)")
     enable_mtls: bool = param(False, "require connecting sessions to present a certificate signed by "
                                      "root_ca_certificate (mutual TLS)")
 
