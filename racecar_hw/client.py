@@ -27,7 +27,7 @@ import math
 import os
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -35,7 +35,7 @@ import numpy as np
 
 from mux.params import MuxParams
 from racecar_hw.base.clock import NS_PER_S
-from racecar_hw.base.errors import RacecarError
+from racecar_hw.base.errors import ConfigError, RacecarError
 from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
@@ -49,8 +49,18 @@ from racecar_hw.base.messages import (
     stamp_now,
 )
 from racecar_hw.net import rmw
-from racecar_hw.net.topics import CMD_VEL_INPUT, DEFAULT, SENSOR_DATA, Qos, profile_names
-from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, ZenohAuthParams, session_config
+from racecar_hw.net.topics import (
+    CMD_VEL_INPUT,
+    DEFAULT,
+    SENSOR_DATA,
+    Direction,
+    Qos,
+    Topic,
+    named,
+    topic_table,
+)
+from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, PROFILES, ZenohAuthParams, session_config
+from racecar_hw.net.zenoh_security import check_credentials, zenoh_error_text
 from racecar_hw.rosmsg.typestore import ros2_types
 from safety.params import SafetyParams
 
@@ -125,6 +135,26 @@ def _safety(msg: DiagnosticArray) -> SafetyState:
                        values.get("intervening") == "true", allowed, values, msg)
 
 
+def _names(mux: MuxParams, safety: SafetyParams, profile: str,
+           remap: Mapping[str, str] | None) -> dict[str, str]:
+    """bus topic -> ROS name as the daemon names them, with the same checks as its config."""
+    rows = topic_table(mux, safety, cmd_vel_topic="/cmd_vel")
+    if all(row.bus != CMD_VEL_BUS_TOPIC for row in rows):  # the daemon adds this input when /cmd_vel is on
+        rows.append(Topic(CMD_VEL_BUS_TOPIC, AckermannDriveStamped, Direction.IN, DEFAULT))
+    try:
+        if profile not in PROFILES:
+            raise ConfigError("profile", f"unknown topic profile {profile!r}; profiles: "
+                                         + ", ".join(PROFILES))
+        for bus, ros in (remap or {}).items():
+            try:
+                rmw.check_topic_name(ros)
+            except rmw.WireError as err:
+                raise ConfigError(f"remap.{bus}", str(err)) from None
+        return {row.bus: row.ros for row in named(rows, mux, profile, remap, key="")}
+    except ConfigError as err:
+        raise ClientError(str(err).lstrip(".")) from None
+
+
 class _Stream(Generic[T]):
     """One subscribed topic: the newest decoded value, callbacks, and a one-slot mailbox per reader."""
 
@@ -158,14 +188,16 @@ class Car:
 
     ``connect``: Zenoh endpoints of the daemon (or of a router it is connected to); ``mode``:
     ``client`` (through what it connects to) or ``peer``; ``namespace`` and ``domain_id`` as the
-    daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile``: the
-    daemon's topic profile; ``input``: the mux input :meth:`drive` commands by default;
+    daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile`` and
+    ``remap``: the daemon's ``zenoh.profile`` and ``zenoh.remap`` (bus topic -> ROS name), so the
+    client finds topics the daemon renamed; ``input``: the mux input :meth:`drive` commands by default;
     ``user``/``password`` when the daemon requires them; ``session``: an open Zenoh session to share
     (another :class:`Car`'s, to reach several cars through one session; it is not closed here).
     """
 
     def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
                  domain_id: int | None = None, mode: str = "client", profile: str = "racecar",
+                 remap: Mapping[str, str] | None = None,
                  input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
                  node_name: str = "", mux: MuxParams | None = None,
                  safety: SafetyParams | None = None, session: Any = None) -> None:
@@ -176,19 +208,26 @@ class Car:
         env = os.environ.get("ROS_DOMAIN_ID", "").strip()
         self.domain_id = domain_id if domain_id is not None else (int(env) if env.isdigit() else 0)
         self.mux = mux if mux is not None else MuxParams()
-        self._names = profile_names(profile, self.mux)
+        safety = safety if safety is not None else SafetyParams()
+        self._names = _names(self.mux, safety, profile, remap)
         self._inputs = {i.name: i.topic for i in self.mux.inputs}
         self._inputs.setdefault(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC)
         self.input = input
         self.input_topic(input)  # refuse an unknown input now
-        safety = safety if safety is not None else SafetyParams()
+        try:
+            check_credentials(user, password, "user", "password")
+        except ConfigError as err:
+            raise ClientError(str(err)) from None
         auth = ZenohAuthParams(user=user, password=password)
         self._own_session = session is None
         try:
             self.session = session if session is not None else zenoh.open(
                 session_config(mode, [], self.endpoints, auth=auth))
         except zenoh.ZError as err:
-            raise ClientError(f"cannot connect to {', '.join(self.endpoints)} ({mode} mode): {err}") from None
+            hint = "is the daemon running, and are user and password right?" if user else (
+                "is the daemon running, and does it want a user and password?")
+            raise ClientError(f"cannot connect to {', '.join(self.endpoints)} ({mode} mode): {hint} "
+                              f"(Zenoh: {zenoh_error_text(err)})") from None
         self.zid = str(self.session.zid())
         self._node = node_name or f"racecar_client_{os.getpid()}"
         self._next_entity = 1

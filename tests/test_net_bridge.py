@@ -147,15 +147,20 @@ def test_the_graph_shows_the_node_and_every_topic():
     assert len({e.gid() for e in entities}) == len(entities)
 
 
-def test_a_port_in_use_is_refused_at_start_naming_the_key():
+def test_a_port_in_use_is_refused_at_start_in_one_line_naming_the_listen_and_the_fix():
     async def run() -> None:
         port = free_port()
-        first = await _bridge(Bus(), port)
+        first = await _bridge(Bus(), port)  # stands in for rmw_zenohd holding the port
         try:
-            with pytest.raises(ConfigError, match="zenoh.listen"):
+            with pytest.raises(ConfigError) as err:
                 await _bridge(Bus(), port)
         finally:
             first.close()
+        assert err.value.key == "zenoh.listen[0]"
+        text = str(err.value)
+        assert "\n" not in text and ".rs:" not in text, text
+        assert f"{endpoint(port)} is already in use" in text and "rmw_zenohd" in text
+        assert f'zenoh.connect: ["{endpoint(port)}"]' in text and "zenoh.enabled: false" in text
 
     asyncio.run(run())
 
@@ -173,10 +178,15 @@ def test_a_listen_beyond_loopback_without_authentication_is_refused(listen):
 
 def test_a_listen_beyond_loopback_with_authentication_is_accepted(tmp_path):
     users = tmp_path / "users.txt"
+    users.write_text("laptop:a-long-random-password\n")
     load_config(None, ['zenoh.listen=["tcp/0.0.0.0:7447"]', f"zenoh.auth.dictionary_file={users}"])
-    load_config(None, ['zenoh.listen=["tls/0.0.0.0:7447"]', "zenoh.tls.listen_certificate=c.pem",
-                       "zenoh.tls.listen_private_key=k.pem", "zenoh.tls.root_ca_certificate=ca.pem",
-                       "zenoh.tls.enable_mtls=true"])
+    pem = {}
+    for name, kind in (("c.pem", "CERTIFICATE"), ("k.pem", "PRIVATE KEY"), ("ca.pem", "CERTIFICATE")):
+        pem[name] = tmp_path / name
+        pem[name].write_text(f"-----BEGIN {kind}-----\nMAo=\n-----END {kind}-----\n")
+    load_config(None, ['zenoh.listen=["tls/0.0.0.0:7447"]', f"zenoh.tls.listen_certificate={pem['c.pem']}",
+                       f"zenoh.tls.listen_private_key={pem['k.pem']}",
+                       f"zenoh.tls.root_ca_certificate={pem['ca.pem']}", "zenoh.tls.enable_mtls=true"])
     load_config(None, ['zenoh.listen=["tcp/127.0.0.1:7447", "tcp/[::1]:7448", "tcp/localhost:7449"]'])
 
 

@@ -1,6 +1,7 @@
 """racecar_hw.client against ``racecar-hw sim`` in processes of their own: the wall-follower example
 drives a lap of the track; two cars with namespaces behind one of them acting as the Zenoh router,
-driven independently through one client session; user/password keeps out a session without it."""
+driven independently through one client session; user/password keeps out a session without it;
+safety states, callbacks, the daemon's remaps, and the stop sent when a ``with`` block ends."""
 
 from __future__ import annotations
 
@@ -13,10 +14,12 @@ import sys
 import time
 
 import pytest
+from conftest import wait_for
 from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
 
 from racecar_hw.client import AsyncCar, Car, ClientError
 from racecar_hw.sim.trajectory import read_csv
+from safety.controller import REASONS
 
 
 def _wait_listening(port: int, timeout: float = 30.0) -> None:
@@ -35,6 +38,7 @@ def test_the_wall_follower_example_drives_a_lap_of_the_track(tmp_path):
     port = free_port()
     sim = start_sim(tmp_path, port, scenario_sets=("map=track", "drivers=[]"), duration=240.0)
     try:
+        _wait_listening(port)  # the example connects once (client mode) and gives up after 3 s
         example = subprocess.run([sys.executable, str(ROOT / "examples" / "wall_follower.py"),
                                   "--connect", endpoint(port), "--laps", "1", "--timeout", "180"],
                                  capture_output=True, text=True, timeout=240, cwd=ROOT)
@@ -144,3 +148,56 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
     assert n == 30 and 0.05 < speed < 0.4
     assert "nav_0" in switches(report)
     assert math.isclose(report["final_speed_mps"], 0.0, abs_tol=0.02)
+
+
+def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_once(tmp_path):
+    """The daemon uses F1TENTH names with /odom renamed, and its nav_0 input times out only after
+    30 s: a car that stops after the ``with`` block, with nav_0 still the mux's source commanding
+    zero and no safety intervention, was stopped by the client's stop command, not by a timeout."""
+    port = free_port()
+    remap = {"/odom": "/wheel/odom"}
+    sim = start_sim(tmp_path, port, "mux.inputs.2.timeout_s=30", "zenoh.profile=f1tenth",
+                    "zenoh.remap={/odom: /wheel/odom}", duration=120.0)
+    try:
+        _wait_listening(port)
+        with Car(endpoint(port), profile="f1tenth", remap=remap) as watcher:
+            scans: list = []
+            odoms: list = []
+            states: list = []
+            watcher.on_scan(scans.append)
+            watcher.on_odom(odoms.append)
+            watcher.on_safety(states.append)
+            state = next(watcher.safety_states(timeout=30))
+            assert state.reason in REASONS and isinstance(state.intervening, bool)
+            assert math.isfinite(state.allowed_speed) and state.allowed_speed >= 0.0
+            assert state.values["mode"] and state.msg.status[0].name == "safety"
+            wait_for(lambda: len(scans) >= 3 and len(odoms) >= 3 and len(states) >= 2, timeout=30)
+            assert all(s.ranges.size == 1081 for s in scans[:3])
+            assert all(isinstance(o.speed, float) for o in odoms[:3])
+            with Car(endpoint(port), profile="f1tenth") as unmapped, pytest.raises(ClientError):
+                unmapped.next_odom(timeout=2.0)  # the daemon's odometry is not on /odom
+
+            with Car(endpoint(port), profile="f1tenth", remap=remap) as driver:
+                deadline = time.monotonic() + 30
+                while watcher.odom is None or watcher.odom.speed < 0.4:
+                    assert time.monotonic() < deadline, "the car never reached 0.4 m/s"
+                    driver.drive(0.5, 0.0)  # /drive: nav_0 under the f1tenth profile
+                    time.sleep(0.05)
+
+            def stopped_by_nav_0() -> bool:
+                values = watcher.safety.values  # the mux's command, before the safety limit
+                assert values["interventions"] == "0", values  # not stopped by the wall ahead
+                return (values["source"] == "nav_0" and float(values["commanded_speed"]) == 0.0
+                        and abs(watcher.odom.speed) < 0.02)
+
+            # without the stop, nav_0 would hold 0.5 m/s for 30 s, until the safety controller
+            # stopped the car at the wall ahead (and counted an intervention)
+            wait_for(stopped_by_nav_0, timeout=20)
+        sim.proc.send_signal(signal.SIGINT)
+        report = sim.report()
+    finally:
+        sim.kill()
+    assert report["max_speed_mps"] >= 0.4
+    # nav_0 stayed the active source to the end: its zero command stopped the car, no timeout did
+    assert switches(report)[-1] == "nav_0", report["mux_switches"]
+    assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)

@@ -22,10 +22,11 @@ import numpy as np
 import yaml
 
 from racecar_hw.base import messages
-from racecar_hw.base.errors import RacecarError
+from racecar_hw.base.errors import ConfigError, RacecarError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
 from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, ZenohAuthParams, session_config
+from racecar_hw.net.zenoh_security import check_credentials, zenoh_error_text
 from racecar_hw.rosmsg.typestore import MESSAGE_CLASSES, ros2_types
 
 NODE = "racecar_hw_topic"
@@ -71,11 +72,18 @@ def cmd_topic(args: argparse.Namespace) -> int:
     from racecar_hw.net.zenoh_config import ZenohParams  # noqa: PLC0415
 
     domain = args.domain_id if args.domain_id is not None else ZenohParams().resolved_domain_id()
+    try:
+        check_credentials(args.user, args.password, "--user", "--password")
+    except ConfigError as err:
+        raise TopicError(str(err)) from None
     auth = ZenohAuthParams(user=args.user, password=args.password)
     try:
         session = zenoh.open(session_config(args.mode, [], [args.connect], auth=auth))
     except zenoh.ZError as err:
-        raise TopicError(f"cannot connect to {args.connect}: {err}") from None
+        hint = "is the daemon running, and are --user and --password right?" if args.user else (
+            "is the daemon running, and does it want --user and --password?")
+        raise TopicError(f"cannot connect to {args.connect}: {hint} "
+                         f"(Zenoh: {zenoh_error_text(err)})") from None
     try:
         handler = {"list": _list, "echo": _echo, "hz": _hz, "pub": _pub}[args.topic_command]
         return handler(session, domain, args)

@@ -39,12 +39,12 @@ import numpy as np
 
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import wall_ns
-from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
 from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
+from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
@@ -138,8 +138,10 @@ class ZenohBridge:
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
         """Open the session, declare every row and token, start the publisher thread.
 
-        Raises :class:`ConfigError` naming ``zenoh.listen`` or ``zenoh.connect`` when Zenoh cannot
-        listen or reach the endpoints (a port already in use, a client with no router).
+        Raises a one-line :class:`ConfigError` naming the key to fix when Zenoh cannot start: the
+        ``zenoh.listen`` entry whose port is already in use (rmw_zenohd, say), ``zenoh.connect``
+        for a client that reached no router, ``zenoh.auth`` or ``zenoh.tls`` keys when Zenoh
+        refuses those (:func:`~racecar_hw.net.zenoh_security.open_error`).
         """
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when the bridge runs
         import zenoh.ext  # noqa: PLC0415
@@ -149,9 +151,7 @@ class ZenohBridge:
         try:
             self.session = zenoh.open(config_for(p))
         except zenoh.ZError as err:
-            key = "zenoh.connect" if p.mode == "client" else "zenoh.listen"
-            raise ConfigError(key, f"Zenoh could not start ({p.mode} mode, listen {p.listen}, "
-                                   f"connect {p.connect}): {err}") from None
+            raise open_error(err, p.mode, p.listen, p.connect, has_auth=bool(p.auth.user)) from None
         self.zid = str(self.session.zid())
         liveliness = self.session.liveliness()
         self._tokens.append(liveliness.declare_token(self._entity(rmw.NODE).token()))

@@ -2,13 +2,15 @@
 
 Safe by default: the daemon listens on loopback only (``tcp/127.0.0.1:7447``) with multicast
 scouting off, so nothing on the LAN reaches it or is reached by it. Listening on any other address
-needs authentication: Zenoh's TLS (a ``tls/`` or ``quic/`` endpoint with ``tls.listen_certificate``
-and ``tls.listen_private_key``) or user/password (``auth.dictionary_file``); otherwise the daemon
-refuses to start, naming the key (the same rule as MAVLink signing).
+needs authentication: user/password (``auth.dictionary_file``) or mutual TLS (a ``tls/`` or
+``quic/`` endpoint with ``tls.listen_certificate``, ``listen_private_key``, ``root_ca_certificate``
+and ``enable_mtls``); otherwise the daemon refuses to start, naming the key (the same rule as
+MAVLink signing). The files are read when the config loads (:mod:`racecar_hw.net.zenoh_security`):
+a dictionary with no ``user:password`` line would make Zenoh drop authentication without a word.
 
-Router mode mirrors rmw_zenoh's ``DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5`` (multicast scouting off,
-gossip on and one hop, peers not brokered, timestamping on for the publication caches that
-TRANSIENT_LOCAL needs, a 60 s query timeout); peer and client modes mirror its session config.
+Every mode takes rmw_zenoh's settings from ``DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5`` and
+``DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5`` where they matter here (:data:`RMW_ZENOH_SETTINGS`;
+docs/interop.md lists what differs and why).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from typing import Any
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
+from racecar_hw.net.zenoh_security import check_credentials, check_pem, dictionary_users
 
 MODES = ("peer", "router", "client")
 PROFILES = ("racecar", "f1tenth")
@@ -34,8 +37,8 @@ _ENCRYPTED = ("tls", "quic")
 class ZenohAuthParams:
     """Zenoh user/password authentication."""
 
-    dictionary_file: str = param("", "file of user:password lines; a session that connects to this "
-                                     "daemon must present one of them")
+    dictionary_file: str = param("", "file of user:password lines (at least one; read when the config "
+                                     "loads); a session that connects to this daemon must present one")
     user: str = param("", "user name this daemon presents when it connects out (client/peer connect)")
     password: str = param("", "password this daemon presents with user")
 
@@ -46,7 +49,8 @@ class ZenohTlsParams:
 
     listen_certificate: str = param("", "PEM certificate this daemon presents on tls/ and quic/ listens")
     listen_private_key: str = param("", "PEM private key of listen_certificate")
-    root_ca_certificate: str = param("", "PEM CA certificate that signed the peers' certificates")
+    root_ca_certificate: str = param("", "PEM CA certificate that signed the peers' certificates "
+                                         "(needed by enable_mtls)")
     enable_mtls: bool = param(False, "require connecting sessions to present a certificate signed by "
                                      "root_ca_certificate (mutual TLS)")
 
@@ -103,25 +107,43 @@ class ZenohParams:
             except rmw.WireError as err:
                 raise ConfigError(f"{key}.remap.{bus}", str(err)) from None
         a, t = self.auth, self.tls
-        if bool(a.user) != bool(a.password):
-            raise ConfigError(f"{key}.auth.password" if a.user else f"{key}.auth.user",
-                              "user and password go together")
-        if bool(t.listen_certificate) != bool(t.listen_private_key):
-            raise ConfigError(f"{key}.tls.listen_private_key", "listen_certificate and "
-                              "listen_private_key go together")
+        check_credentials(a.user, a.password, f"{key}.auth.user", f"{key}.auth.password")
+        if a.dictionary_file:
+            dictionary_users(a.dictionary_file, f"{key}.auth.dictionary_file")
         for i, endpoint in enumerate(self.listen):
             proto, host, _ = parse_endpoint(endpoint, f"{key}.listen[{i}]")
             if proto == "unixsock-stream" or is_loopback(host):
                 continue
             if a.dictionary_file:
                 continue
-            if proto in _ENCRYPTED and t.listen_certificate and (t.enable_mtls or a.dictionary_file):
+            if proto in _ENCRYPTED and t.enable_mtls:
                 continue
             raise ConfigError(f"{key}.listen[{i}]", f"{endpoint} listens beyond this machine without "
                               "authentication: anyone on the network could read the car and drive it. "
                               f"Set {key}.auth.dictionary_file (user/password), or use a tls/ endpoint "
                               f"with {key}.tls.listen_certificate, listen_private_key, "
                               "root_ca_certificate and enable_mtls: true; or listen on 127.0.0.1")
+        self._validate_tls(key)
+
+    def _validate_tls(self, key: str) -> None:
+        """Refuse TLS settings Zenoh would refuse at start, or that would not protect what they say."""
+        t = self.tls
+        if bool(t.listen_certificate) != bool(t.listen_private_key):
+            raise ConfigError(f"{key}.tls.listen_private_key" if t.listen_certificate
+                              else f"{key}.tls.listen_certificate",
+                              "listen_certificate and listen_private_key go together")
+        if t.enable_mtls and not t.root_ca_certificate:
+            raise ConfigError(f"{key}.tls.root_ca_certificate", "enable_mtls needs the CA certificate "
+                              "that signed the certificates of the sessions allowed in")
+        for i, endpoint in enumerate(self.listen):
+            if endpoint.split("/", 1)[0] in _ENCRYPTED and not t.listen_certificate:
+                raise ConfigError(f"{key}.tls.listen_certificate", f"{endpoint} ({key}.listen[{i}]) needs "
+                                  "a certificate and its private key (tls.listen_certificate, "
+                                  "listen_private_key)")
+        for name, kind in (("listen_certificate", "CERTIFICATE"), ("listen_private_key", "PRIVATE KEY"),
+                           ("root_ca_certificate", "CERTIFICATE")):
+            if getattr(t, name):
+                check_pem(getattr(t, name), f"{key}.tls.{name}", kind)
 
     def resolved_domain_id(self) -> int:
         """``domain_id``, else ``ROS_DOMAIN_ID`` from the environment, else 0."""
@@ -150,9 +172,33 @@ def parse_endpoint(endpoint: str, key: str) -> tuple[str, str, int | None]:
     return proto, host.strip("[]"), int(port)
 
 
+#: rmw_zenoh's settings (rmw_zenoh_cpp/config/DEFAULT_RMW_ZENOH_{ROUTER,SESSION}_CONFIG.json5, as of
+#: rmw_zenoh PRs #509 and #820) that matter here, set even where they equal Zenoh 1.10's defaults so
+#: another Zenoh release cannot change them; the router and session files agree on all of them.
+#: Their ``routing/router/peers_failover_brokering`` is left out: Zenoh 1.10 ignores it (and warns).
+RMW_ZENOH_SETTINGS: dict[str, Any] = {
+    "scouting/gossip/enabled": True,
+    "scouting/gossip/multihop": False,
+    "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
+    "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
+    # the publication caches behind TRANSIENT_LOCAL need timestamps
+    "timestamping/enabled": {"router": True, "peer": True, "client": True},
+    # ms; only the advanced subscribers' history queries use it (10 min, PR #820)
+    "queries_default_timeout": 600000,
+    # many ROS nodes starting at once on a loaded computer: handshakes and leases get time (PR #509)
+    "transport/unicast/open_timeout": 60000,
+    "transport/unicast/accept_timeout": 60000,
+    "transport/unicast/accept_pending": 10000,
+    "transport/unicast/max_sessions": 10000,
+    "transport/link/tx/lease": 60000,
+    "transport/link/tx/keep_alive": 2,
+}
+
+
 def session_config(mode: str, listen: list[str], connect: list[str], *, multicast: bool = False,
                    auth: ZenohAuthParams | None = None, tls: ZenohTlsParams | None = None) -> Any:
-    """A ``zenoh.Config`` for a session: rmw_zenoh's router or session defaults, these endpoints."""
+    """A ``zenoh.Config`` for a session: rmw_zenoh's settings (:data:`RMW_ZENOH_SETTINGS`), these
+    endpoints, and the credentials given."""
     import zenoh  # noqa: PLC0415 - the Rust extension loads only when a session is opened
 
     values: dict[str, Any] = {
@@ -160,13 +206,7 @@ def session_config(mode: str, listen: list[str], connect: list[str], *, multicas
         "listen/endpoints": listen,
         "connect/endpoints": connect,
         "scouting/multicast/enabled": multicast,
-        "scouting/gossip/enabled": True,
-        "scouting/gossip/multihop": False,
-        "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
-        "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
-        "timestamping/enabled": {"router": True, "peer": True, "client": True},
-        "queries_default_timeout": 60000,
-        "routing/router/peers_failover_brokering": False,
+        **RMW_ZENOH_SETTINGS,
         # a listen that fails (port in use) ends the open with an error instead of retrying
         "listen/exit_on_failure": True,
     }
