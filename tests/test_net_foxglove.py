@@ -229,8 +229,13 @@ def test_teleop_twist_drives_and_the_estop_service_stops_until_release(sim):
                     assert time.monotonic() < deadline, f"odometry speed stayed at {speed}"
 
             assert await speed_reaches(lambda v: v > 0.4) > 0.4
+            log_from = len(sim.lines)
             response = await client.call("/racecar/estop", 1)
             assert response[4] == 1 and b"e-stop latched" in response
+            # on the VESC wire the first motor command after the request is the brake, not a ramp
+            await asyncio.to_thread(
+                sim.wait_for, r"sim: e-stop from foxglove client \d+ .* fake VESC: brake SET_RPM 0 at "
+                r"wall .*, the first motor command written after the request$", start=log_from)
             await speed_reaches(lambda v: abs(v) < 0.02)
             # it stays stopped while the Twist keeps coming
             until = time.monotonic() + 1.5
