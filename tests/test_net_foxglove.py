@@ -2,20 +2,24 @@
 
 ``racecar-hw sim`` runs in a subprocess with the Foxglove server on a free port. The client reads the
 advertised channels and decodes messages with a rosbags typestore built only from the schemas the
-server advertised (a missing dependency in a schema fails there), publishes Twist messages as the
-Teleop panel does, and calls the e-stop services.
+server advertised (a missing dependency in a schema fails there), and the protobuf scene with Google's
+protobuf runtime from its advertised FileDescriptorSet; it publishes Twist messages as the Teleop
+panel does, calls the e-stop and arming services, and tries to set parameters.
 """
 
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import math
+import re
 import struct
 import time
 from typing import Any
 
 import pytest
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from live_sim import running_sim
@@ -30,7 +34,9 @@ from racecar_hw.net.foxglove_server import (
     trigger_response,
     twist_to_drive,
 )
+from racecar_hw.net.scene import COLOURS
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.sim.scenario import load_scenario
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 TELEOP = "/foxglove/cmd_vel"
@@ -125,6 +131,17 @@ class Client:
     def decode(self, topic: str, payload: bytes) -> Any:
         return self.store.deserialize_cdr(payload, self.channels[topic]["schemaName"])
 
+    def decode_protobuf(self, topic: str, payload: bytes) -> Any:
+        """Decode with Google's protobuf runtime from the advertised schema (a FileDescriptorSet) alone."""
+        ch = self.channels[topic]
+        assert ch["encoding"] == "protobuf" and ch["schemaEncoding"] == "protobuf"
+        files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"]))
+        pool = descriptor_pool.DescriptorPool()
+        for proto in files.file:  # the SDK lists each file after its dependencies
+            pool.Add(proto)
+        message = message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
+        return message.FromString(payload)
+
     async def call(self, service: str, call_id: int, timeout_s: float = 10.0) -> bytes:
         svc = self.services[service]
         encoding = b"cdr"
@@ -201,34 +218,62 @@ def test_channels_have_complete_ros2_schemas_and_scans_decode_with_rosbags(sim):
     asyncio.run(main())
 
 
+class Teleop:
+    """The Teleop panel: advertises the Twist topic and sends one at 10 Hz while the button is held."""
+
+    def __init__(self, client: Client, linear: float = 0.6, angular: float = 0.3) -> None:
+        self.client = client
+        self.twist = ros2_types().serialize(Twist(Vector3(linear, 0.0, 0.0), Vector3(0.0, 0.0, angular)))
+        self.held = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        await self.client.ws.send(json.dumps({"op": "advertise", "channels": [{
+            "id": 7, "topic": TELEOP, "encoding": "cdr", "schemaName": "geometry_msgs/msg/Twist",
+            "schema": ros2_types().msgdef("geometry_msgs/msg/Twist"), "schemaEncoding": "ros2msg"}]}))
+        self.held.set()
+        self._task = asyncio.ensure_future(self._send())
+
+    async def _send(self) -> None:
+        while self.held.is_set():
+            await self.client.ws.send(struct.pack("<BI", 0x01, 7) + self.twist)
+            await asyncio.sleep(0.1)
+
+    async def let_go(self) -> None:
+        self.held.clear()
+        if self._task is not None:
+            await self._task
+
+
+async def _odometry(client: Client) -> int:
+    client.ros_type("/odom")
+    return await client.subscribe("/odom")
+
+
+async def _speed_reaches(client: Client, odom: int, test: Any, timeout_s: float = 20.0) -> float:
+    """The first odometry speed (m/s) after now that passes ``test``; fails after the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        speed = _speed(client, await client.next_message(odom, time.monotonic()))
+        if test(speed):
+            return speed
+        assert time.monotonic() < deadline, f"odometry speed stayed at {speed}"
+
+
+async def _stays_still(client: Client, odom: int, seconds: float) -> None:
+    until = time.monotonic() + seconds
+    while time.monotonic() < until:
+        assert abs(_speed(client, await client.next_message(odom, time.monotonic()))) < 0.05
+
+
 def test_teleop_twist_drives_and_the_estop_service_stops_until_release(sim):
     async def main() -> None:
         client = await _client(sim.port("foxglove"))
         try:
-            client.ros_type("/odom")
-            odom = await client.subscribe("/odom")
-            await client.ws.send(json.dumps({"op": "advertise", "channels": [{
-                "id": 7, "topic": TELEOP, "encoding": "cdr", "schemaName": "geometry_msgs/msg/Twist",
-                "schema": ros2_types().msgdef("geometry_msgs/msg/Twist"), "schemaEncoding": "ros2msg"}]}))
-            twist = ros2_types().serialize(Twist(Vector3(0.6, 0.0, 0.0), Vector3(0.0, 0.0, 0.3)))
-            stop_sending = asyncio.Event()
-
-            async def teleop() -> None:  # the Teleop panel: 10 Hz while the button is held
-                while not stop_sending.is_set():
-                    await client.ws.send(struct.pack("<BI", 0x01, 7) + twist)
-                    await asyncio.sleep(0.1)
-
-            sender = asyncio.ensure_future(teleop())
-
-            async def speed_reaches(test: Any, timeout_s: float = 20.0) -> float:
-                deadline = time.monotonic() + timeout_s
-                while True:
-                    speed = _speed(client, await client.next_message(odom, time.monotonic()))
-                    if test(speed):
-                        return speed
-                    assert time.monotonic() < deadline, f"odometry speed stayed at {speed}"
-
-            assert await speed_reaches(lambda v: v > 0.4) > 0.4
+            odom = await _odometry(client)
+            teleop = Teleop(client)
+            await teleop.start()
+            assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
             log_from = len(sim.lines)
             response = await client.call("/racecar/estop", 1)
             assert response[4] == 1 and b"e-stop latched" in response
@@ -236,18 +281,71 @@ def test_teleop_twist_drives_and_the_estop_service_stops_until_release(sim):
             await asyncio.to_thread(
                 sim.wait_for, r"sim: e-stop from foxglove client \d+ .* fake VESC: brake SET_RPM 0 at "
                 r"wall .*, the first motor command written after the request$", start=log_from)
-            await speed_reaches(lambda v: abs(v) < 0.02)
-            # it stays stopped while the Twist keeps coming
-            until = time.monotonic() + 1.5
-            while time.monotonic() < until:
-                assert abs(_speed(client, await client.next_message(odom, time.monotonic()))) < 0.05
+            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02)
+            await _stays_still(client, odom, 1.5)  # while the Twist keeps coming
             response = await client.call("/racecar/release", 2)
             assert response[4] == 1
-            assert await speed_reaches(lambda v: v > 0.4) > 0.4
+            assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
             # the tab closes: the teleop input times out and the car stops
-            stop_sending.set()
-            await sender
-            await speed_reaches(lambda v: abs(v) < 0.02, timeout_s=10.0)
+            await teleop.let_go()
+            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02, timeout_s=10.0)
+        finally:
+            await client.close()
+
+    asyncio.run(main())
+
+
+def test_the_disarm_service_stops_every_source_until_armed_again(sim):
+    async def main() -> None:
+        client = await _client(sim.port("foxglove"))
+        try:
+            odom = await _odometry(client)
+            scene = await client.subscribe("/safety/scene")
+            teleop = Teleop(client)
+            await teleop.start()
+            assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
+            response = await client.call("/racecar/disarm", 21)
+            assert response[4] == 1 and b"disarmed" in response
+            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02)
+            await _stays_still(client, odom, 1.5)  # the Twist keeps coming: disarmed stops it
+            label = client.decode_protobuf(
+                "/safety/scene", await client.next_message(scene, time.monotonic())).entities[0].texts[0].text
+            assert label.endswith("(disarmed)"), label
+            assert (await client.call("/racecar/arm", 22))[4] == 1
+            assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
+            await teleop.let_go()
+            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02, timeout_s=10.0)
+        finally:
+            await client.close()
+
+    asyncio.run(main())
+
+
+def test_parameters_cannot_be_set(sim):
+    async def main() -> None:
+        client = await _client(sim.port("foxglove"))
+        try:
+            async def values(request: dict[str, Any]) -> dict[str, Any]:
+                await client.ws.send(json.dumps(request))
+                deadline = time.monotonic() + 10
+                while True:
+                    reply = next((m for m in client.json if m.get("op") == "parameterValues"
+                                  and m.get("id") == request["id"]), None)
+                    if reply is not None:
+                        return {p["name"]: p["value"] for p in reply["parameters"]}
+                    assert time.monotonic() < deadline, f"no answer to {request['op']}"
+                    await asyncio.sleep(0.02)
+
+            log_from = len(sim.lines)
+            answer = await values({"op": "setParameters", "id": "set", "parameters": [
+                {"name": "mux.rate_hz", "value": 5.0}, {"name": "web.token", "value": "mine"},
+                {"name": "foxglove.teleop_max_speed_mps", "value": 9.0}]})
+            # the answer is the current value, unchanged; a later read says the same
+            assert answer == {"mux.rate_hz": 50.0, "foxglove.teleop_max_speed_mps": 1.0, "web.token": ""}
+            again = await values({"op": "getParameters", "id": "get", "parameterNames": list(answer)})
+            assert again == answer
+            await asyncio.to_thread(sim.wait_for, r"foxglove: client \d+ tried to set parameters; they are "
+                                    r"read-only", start=log_from)
         finally:
             await client.close()
 
@@ -262,7 +360,7 @@ def test_the_safety_scene_the_speeds_and_the_log_reach_a_subscriber(sim):
             scene = await client.subscribe("/safety/scene")
             speeds = await client.subscribe("/safety/speeds")
             logs = await client.subscribe("/log")
-            assert len(await client.next_message(scene)) > 100  # protobuf: entities with triangles
+            await _check_scene(client, scene)
             numbers = json.loads(await client.next_message(speeds))
             assert set(numbers) >= {"commanded", "output", "allowed", "measured", "steering", "state"}
             assert numbers["state"] in ("clear", "limiting", "stopped")
@@ -276,6 +374,83 @@ def test_the_safety_scene_the_speeds_and_the_log_reach_a_subscriber(sim):
             await client.close()
 
     asyncio.run(main())
+
+
+async def _check_scene(client: Client, scene: int) -> None:
+    """A scene update, decoded from its advertised protobuf schema: the band, the body and the label."""
+    deadline = time.monotonic() + 20
+    while True:  # the first ones may come before the first scan ("stopped: no_scan")
+        update = client.decode_protobuf("/safety/scene", await client.next_message(scene, time.monotonic()))
+        safety = update.entities[0]
+        label = safety.texts[0].text
+        if "no_scan" not in label:
+            break
+        assert time.monotonic() < deadline, label
+    assert [e.id for e in update.entities] == ["safety", "obstacle"]
+    assert {e.frame_id for e in update.entities} == {"base_link"}
+    assert abs(safety.timestamp.seconds + safety.timestamp.nanos / 1e9 - time.time()) < 10.0
+    # the label: the safety state, its reason, the allowed speed; the band coloured by that state
+    match = re.fullmatch(r"(clear|limiting|stopped): (\w+), (allowed \d+\.\d\d m/s|no limit)( \(.*\))?",
+                         label)
+    assert match, label
+    (band,) = safety.triangles
+    assert len(band.points) % 3 == 0 and len(band.points) >= 6
+    rgba = (band.color.r, band.color.g, band.color.b, band.color.a)
+    assert rgba == pytest.approx(COLOURS[match.group(1)])
+    # the body: a closed loop of four corners around base_link (the centre of the rear axle)
+    body, outer, inner = safety.lines
+    assert body.type == 1 and outer.type == inner.type == 0  # LINE_LOOP, LINE_STRIP
+    xs, ys = [p.x for p in body.points], [p.y for p in body.points]
+    assert len(xs) == 4 and min(xs) < 0.0 < max(xs) and min(ys) == pytest.approx(-max(ys)) and max(ys) > 0.0
+    # both edges of the band start at the front bumper (the car stands or drives forwards here)
+    assert outer.points[0].x == pytest.approx(max(xs)) and inner.points[0].x == pytest.approx(max(xs))
+
+
+def test_the_true_pose_is_in_the_map_frame_on_free_ground_where_odometry_puts_the_car(sim):
+    async def main() -> None:
+        client = await _client(sim.port("foxglove"))
+        try:
+            for topic in ("/sim/pose", "/odom", "/tf_static", "/map"):
+                client.ros_type(topic)
+            grid = client.decode("/map", await client.next_message(await client.subscribe("/map")))
+            tf_static = await client.subscribe("/tf_static")
+            static = client.decode("/tf_static", await client.next_message(tf_static))
+            map_odom = next(t.transform for t in static.transforms
+                            if (t.header.frame_id, t.child_frame_id) == ("map", "odom"))
+            # map -> odom is the scenario's start pose: odometry starts at zero where the car starts
+            start = load_scenario("figure8").start
+            assert (map_odom.translation.x, map_odom.translation.y, _yaw(map_odom.rotation)) == \
+                pytest.approx(start, abs=1e-9)
+            odom, true = await client.subscribe("/odom"), await client.subscribe("/sim/pose")
+            now = time.monotonic()
+            odometry = client.decode("/odom", await client.next_message(odom, now))
+            pose = client.decode("/sim/pose", await client.next_message(true, now))
+            assert pose.header.frame_id == "map" and odometry.header.frame_id == "odom"
+            # odometry carried into map by the static transform lands where the world has the car
+            # (within the fake odometry's drift after the other tests' driving)
+            yaw0 = _yaw(map_odom.rotation)
+            ox, oy = odometry.pose.pose.position.x, odometry.pose.pose.position.y
+            in_map = (map_odom.translation.x + ox * math.cos(yaw0) - oy * math.sin(yaw0),
+                      map_odom.translation.y + ox * math.sin(yaw0) + oy * math.cos(yaw0))
+            x, y = pose.pose.position.x, pose.pose.position.y
+            assert math.hypot(x - in_map[0], y - in_map[1]) < 0.3
+            heading = _yaw(pose.pose.orientation) - (yaw0 + _yaw(odometry.pose.pose.orientation))
+            assert abs(math.remainder(heading, math.tau)) < 0.2
+            # and on a free cell of the map the simulator publishes
+            info = grid.info
+            assert _yaw(info.origin.orientation) == pytest.approx(0.0)
+            col = int((x - info.origin.position.x) / info.resolution)
+            row = int((y - info.origin.position.y) / info.resolution)
+            assert 0 <= col < info.width and 0 <= row < info.height
+            assert grid.data[row * info.width + col] == 0
+        finally:
+            await client.close()
+
+    asyncio.run(main())
+
+
+def _yaw(q: Any) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
 def test_twist_to_ackermann_uses_the_wheelbase_and_the_limits():
