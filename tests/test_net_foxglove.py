@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import http.server
 import json
 import math
 import re
+import ssl
 import struct
+import threading
 import time
 from typing import Any
 
@@ -22,11 +25,13 @@ import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from live_sim import running_sim
+from live_sim import chromium, running_sim
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidMessage, InvalidStatus
 
 from racecar_hw.base.messages import AckermannDrive, Twist, Vector3
+from racecar_hw.net.auth import browser_origin_allowed
 from racecar_hw.net.foxglove_server import (
     FoxgloveParams,
     decode_twist,
@@ -451,6 +456,155 @@ def test_the_true_pose_is_in_the_map_frame_on_free_ground_where_odometry_puts_th
 
 def _yaw(q: Any) -> float:
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+CHROME_UA = ("Mozilla/5.0 (X11; Linux x86_64) AppleWebKit/537.36 (KHTML, like Gecko) Chrome/156.0.0.0 "
+             "Safari/537.36")
+ELECTRON_UA = ("Mozilla/5.0 (X11; Linux x86_64) AppleWebKit/537.36 (KHTML, like Gecko) Lichtblick/1.22.0 "
+               "Chrome/134.0.6998.44 Electron/35.0.1 Safari/537.36")
+
+
+async def _handshake(port: int, origin: str | None = None, user_agent: str | None = None) -> int:
+    """The HTTP status a WebSocket upgrade gets (101 when the server's hello followed)."""
+    try:
+        ws = await connect(f"ws://127.0.0.1:{port}/", subprotocols=[SUBPROTOCOL], origin=origin,
+                           user_agent_header=user_agent, max_size=None)
+    except InvalidStatus as err:
+        return err.response.status_code
+    try:
+        assert json.loads(await asyncio.wait_for(ws.recv(), 10))["op"] == "serverInfo"
+    finally:
+        await ws.close()
+    return 101
+
+
+def test_an_open_loopback_port_lets_viewers_in_but_not_pages_of_other_sites(sim):
+    port = sim.port("foxglove")
+
+    async def main() -> None:
+        # not a browser; Foxglove's web app; a page served by this machine; a desktop app's own files
+        assert await _handshake(port) == 101
+        assert await _handshake(port, "https://app.foxglove.dev", CHROME_UA) == 101
+        assert await _handshake(port, "http://localhost:5173", CHROME_UA) == 101
+        assert await _handshake(port, "http://127.0.0.1:8080", CHROME_UA) == 101
+        assert await _handshake(port, "null", ELECTRON_UA) == 101
+        assert await _handshake(port, "file://", ELECTRON_UA) == 101
+        # a page of another site, one that resolved its own name to 127.0.0.1 (DNS rebinding), and a
+        # sandboxed frame of any site (Origin: null, with the browser's own User-Agent)
+        log_from = len(sim.lines)
+        assert await _handshake(port, "https://evil.example", CHROME_UA) == 403
+        assert await _handshake(port, "http://evil.example:8765", CHROME_UA) == 403
+        assert await _handshake(port, "null", CHROME_UA) == 403
+        assert await _handshake(port, "chrome-extension://abcdef", CHROME_UA) == 403
+        await asyncio.to_thread(sim.wait_for, r"foxglove: refused a browser page from 'https://evil.example'",
+                                start=log_from)
+
+    asyncio.run(main())
+
+
+def test_the_sdk_server_behind_the_relay_talks_only_tls_with_a_certificate_nobody_trusts(sim):
+    sim.port("foxglove")
+    inner = int(sim.wait_for(r"foxglove: the SDK's server on wss://127\.0\.0\.1:(\d+), behind the "
+                             r"relay").group(1))
+
+    async def main() -> None:
+        with pytest.raises((InvalidMessage, ConnectionError, EOFError)):  # plain ws: no HTTP answer
+            await connect(f"ws://127.0.0.1:{inner}/", subprotocols=[SUBPROTOCOL], open_timeout=10)
+        with pytest.raises(ssl.SSLCertVerificationError):  # wss, trusting what a browser trusts
+            await connect(f"wss://127.0.0.1:{inner}/", subprotocols=[SUBPROTOCOL], open_timeout=10)
+
+    asyncio.run(main())
+
+
+_ATTACK_PAGE = """<!doctype html><title>another site</title><body><script>
+window.result = {};
+function probe(name, url) {
+  const ws = new WebSocket(url, "foxglove.sdk.v1");
+  ws.onopen = () => { window.result[name] = "open"; ws.close(); };
+  ws.onerror = () => { window.result[name] = "refused"; };
+}
+probe("relay", "ws://127.0.0.1:RELAY/");
+probe("sdk-ws", "ws://127.0.0.1:INNER/");
+probe("sdk-wss", "wss://127.0.0.1:INNER/");
+window.addEventListener("message", (e) => { window.result.sandboxed = e.data; });
+const frame = document.createElement("iframe");
+frame.sandbox = "allow-scripts";
+frame.srcdoc = "<script>const ws = new WebSocket('ws://127.0.0.1:RELAY/', 'foxglove.sdk.v1');" +
+  "ws.onopen = () => parent.postMessage('open', '*');" +
+  "ws.onerror = () => parent.postMessage('refused', '*');" +
+  "<" + "/script>";
+document.body.appendChild(frame);
+</script>"""
+
+
+def test_a_page_of_another_site_in_a_real_browser_cannot_reach_the_car(sim):
+    """Headless Chromium opens a page of ``evil.example`` (resolved to this machine): the page, its
+    sandboxed frame and a try at the SDK's own port all fail; the same page served by this machine
+    connects."""
+    port = sim.port("foxglove")
+    inner = int(sim.wait_for(r"foxglove: the SDK's server on wss://127\.0\.0\.1:(\d+), behind the "
+                             r"relay").group(1))
+    page = _ATTACK_PAGE.replace("RELAY", str(port)).replace("INNER", str(inner)).encode()
+
+    class Page(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 - the http.server name
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.end_headers()
+            self.wfile.write(page)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Page)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    driver = chromium("--host-resolver-rules=MAP evil.example 127.0.0.1")
+    try:
+        def results(url: str) -> dict[str, str]:
+            driver.get(url)
+            deadline = time.monotonic() + 20
+            while True:
+                got = driver.execute_script("return window.result")
+                if len(got) == 4:
+                    return got
+                assert time.monotonic() < deadline, got
+                time.sleep(0.05)
+
+        log_from = len(sim.lines)
+        evil = f"http://evil.example:{server.server_port}"
+        assert results(evil + "/") == {"relay": "refused", "sandboxed": "refused", "sdk-ws": "refused",
+                                       "sdk-wss": "refused"}
+        # the relay saw both and said no (the browser did not block them on its own)
+        sim.wait_for(rf"foxglove: refused a browser page from '{re.escape(evil)}'", start=log_from)
+        sim.wait_for(r"foxglove: refused a browser page from 'null'", start=log_from)
+        # the same page served by this machine may connect (its sandboxed frame still may not)
+        own = results(f"http://127.0.0.1:{server.server_port}/")
+        assert own["relay"] == "open" and own["sandboxed"] == "refused" and own["sdk-ws"] == "refused"
+    finally:
+        driver.quit()
+        server.shutdown()
+
+
+def test_browser_origins_the_relay_admits():
+    allowed = FoxgloveParams().allowed_origins
+    assert browser_origin_allowed(None, None, allowed)
+    assert browser_origin_allowed("https://APP.foxglove.dev/", CHROME_UA, allowed)
+    assert browser_origin_allowed("http://[::1]:3000", CHROME_UA, allowed)
+    assert browser_origin_allowed("null", ELECTRON_UA, allowed)
+    for origin in ("https://evil.example", "http://127.0.0.1.evil.example", "http://localhost.evil.example",
+                   "https://app.foxglove.dev.evil.example", "null", "file://", "moz-extension://abc"):
+        assert not browser_origin_allowed(origin, CHROME_UA, allowed), origin
+    assert not browser_origin_allowed("null", None, allowed)
+    # listed origins, normalised; "null" may be listed on purpose
+    mine = FoxgloveParams(allowed_origins=["https://Lichtblick.example.org/", "null"]).allowed_origins
+    assert mine == ["https://lichtblick.example.org", "null"]
+    assert browser_origin_allowed("https://lichtblick.example.org", CHROME_UA, tuple(mine))
+    assert browser_origin_allowed("null", CHROME_UA, tuple(mine))
+    from racecar_hw.base.errors import ConfigError
+
+    for bad in ("lichtblick.example.org", "https://x.example/path", "https://x.example:99999", "*", ""):
+        with pytest.raises(ConfigError, match=r"foxglove\.allowed_origins\[1\]"):
+            FoxgloveParams(allowed_origins=["https://ok.example", bad])
 
 
 def test_twist_to_ackermann_uses_the_wheelbase_and_the_limits():

@@ -13,15 +13,12 @@ import asyncio
 import json
 import re
 import time
-from pathlib import Path
 
 import aiohttp
 import pytest
-from live_sim import SimProcess, running_sim
+from live_sim import SimProcess, chromium, running_sim
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
-
-CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 
 
 @pytest.fixture(scope="module")
@@ -145,23 +142,6 @@ def test_an_open_loopback_page_refuses_a_foreign_host_name_and_origin(loopback_s
 
 # --- the page in a real browser ---------------------------------------------------------------------
 
-def _browser():
-    if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
-        pytest.skip(f"Debian chromium and chromium-driver are not installed ({CHROMIUM}, {CHROMEDRIVER}); "
-                    ".ci/run installs them as root")
-    webdriver = pytest.importorskip("selenium.webdriver")
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=412,915", "--disable-background-networking", "--disable-component-update",
-                "--disable-sync", "--disable-default-apps", "--disable-extensions", "--no-first-run",
-                "--metrics-recording-only", "--disable-client-side-phishing-detection"):
-        options.add_argument(arg)
-    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-
-
 def _until(predicate, timeout_s: float = 20.0, what: str = ""):
     deadline = time.monotonic() + timeout_s
     while True:
@@ -173,7 +153,7 @@ def _until(predicate, timeout_s: float = 20.0, what: str = ""):
 
 
 def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release(tmp_path):
-    driver = _browser()  # first: skips at once where there is no browser
+    driver = chromium()  # first: skips at once where there is no browser
     # circles at 1.0 and 0.6 m/s in turn, two seconds each: the speed on the page keeps changing
     steps = [[2.0 * k, 0.6 if k % 2 else 1.0, 0.25] for k in range(150)]
     driver_spec = {"type": "script", "input": "nav_0", "steps": steps}
