@@ -198,6 +198,8 @@ class Daemon:
         self._tasks: list[asyncio.Task[Any]] = []
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
+        #: control ticks between two of the mux's diagnostics (``mux.diagnostics_rate_hz``)
+        self._diagnostics_every = max(1, round(config.mux.rate_hz / config.mux.diagnostics_rate_hz))
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
         self._build_live()
@@ -334,6 +336,8 @@ class Daemon:
         self.mux.step(due, self.filters, periods)
         stats.ticks += 1
         stats.last_tick_ns = monotonic_ns()
+        if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
+            self.mux.publish_diagnostics(due)
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due

@@ -367,8 +367,19 @@ def test_the_safety_scene_the_speeds_and_the_log_reach_a_subscriber(sim):
             logs = await client.subscribe("/log")
             await _check_scene(client, scene)
             numbers = json.loads(await client.next_message(speeds))
-            assert set(numbers) >= {"commanded", "output", "allowed", "measured", "steering", "state"}
+            assert set(numbers) >= {"commanded", "output", "steering", "state"}
             assert numbers["state"] in ("clear", "limiting", "stopped")
+            # one JSON type per field, as Foxglove and Lichtblick can parse (["number", "null"] makes
+            # them refuse the channel and plot nothing), and every value of that type
+            schema = client.channels["/safety/speeds"]
+            assert schema["schemaEncoding"] == "jsonschema"
+            fields = json.loads(schema["schema"])["properties"]
+            assert set(numbers) <= set(fields) and {"allowed", "measured"} <= set(fields)
+            python = {"number": (int, float), "string": str}
+            for name, field in fields.items():
+                assert field["type"] in python, name
+                if name in numbers:
+                    assert isinstance(numbers[name], python[field["type"]]), (name, numbers[name])
             started = time.monotonic()
             assert (await client.call("/racecar/arm", 11))[4] == 1
             deadline = time.monotonic() + 20
@@ -409,6 +420,23 @@ async def _check_scene(client: Client, scene: int) -> None:
     assert len(xs) == 4 and min(xs) < 0.0 < max(xs) and min(ys) == pytest.approx(-max(ys)) and max(ys) > 0.0
     # both edges of the band start at the front bumper (the car stands or drives forwards here)
     assert outer.points[0].x == pytest.approx(max(xs)) and inner.points[0].x == pytest.approx(max(xs))
+
+
+def test_the_mux_diagnostics_reach_a_subscriber(sim):
+    async def main() -> None:
+        client = await _client(sim.port("foxglove"))
+        try:
+            client.ros_type("/diagnostics")
+            diagnostics = await client.subscribe("/diagnostics")
+            array = client.decode("/diagnostics", await client.next_message(diagnostics))
+            (status,) = array.status
+            values = {kv.key: kv.value for kv in status.values}
+            assert status.name == "racecar_hw: command mux" and values["state"] == "running"
+            assert "input foxglove (priority 85)" in values
+        finally:
+            await client.close()
+
+    asyncio.run(main())
 
 
 def test_the_true_pose_is_in_the_map_frame_on_free_ground_where_odometry_puts_the_car(sim):

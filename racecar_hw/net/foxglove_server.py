@@ -75,8 +75,11 @@ _SPEEDS_SCHEMA = {
     "properties": {
         "commanded": {"type": "number", "description": "speed the active source asks for, m/s"},
         "output": {"type": "number", "description": "speed sent to the VESC, m/s"},
-        "allowed": {"type": ["number", "null"], "description": "safety controller's allowed speed, m/s"},
-        "measured": {"type": ["number", "null"], "description": "odometry speed, m/s"},
+        # one type each: Foxglove and Lichtblick refuse a schema with ["number", "null"] (and then plot
+        # nothing); a value that is not known is left out instead
+        "allowed": {"type": "number", "description": "safety controller's allowed speed, m/s; absent: "
+                                                    "no limit"},
+        "measured": {"type": "number", "description": "odometry speed, m/s; absent: no odometry yet"},
         "steering": {"type": "number", "description": "output steering angle, rad, + left"},
         "state": {"type": "string", "description": "clear, limiting or stopped"},
         "reason": {"type": "string", "description": "the safety controller's reason"},
@@ -322,12 +325,13 @@ class FoxgloveServer:
         if self._special[self._scene_id]:
             self._scene.log(scene_update(state, self.control.shape, t_ns), log_time=t_ns)
         if self._speeds is not None and self._special[self._speeds_id]:
-            self._speeds.log({
+            speeds = {
                 "commanded": state.commanded_mps, "output": state.output_mps,
                 "allowed": state.allowed_mps if math.isfinite(state.allowed_mps) else None,
                 "measured": state.measured_mps, "steering": state.steering_rad,
                 "state": state.safety_colour, "reason": state.safety_reason, "source": state.source,
-            }, log_time=t_ns)
+            }
+            self._speeds.log({k: v for k, v in speeds.items() if v is not None}, log_time=t_ns)
 
     def _send_log(self, record: logging.LogRecord) -> None:
         text = record.getMessage()
@@ -532,6 +536,12 @@ class _Listener:
     def on_get_parameters(self, client: Any, param_names: list[str],
                           request_id: str | None = None) -> list[Parameter]:
         return self.server.get_parameters(param_names)
+
+    def on_parameters_subscribe(self, param_names: list[str]) -> None:
+        """Nothing to do: the parameters never change while the daemon runs."""
+
+    def on_parameters_unsubscribe(self, param_names: list[str]) -> None:
+        """Nothing to do (see :meth:`on_parameters_subscribe`)."""
 
     def on_set_parameters(self, client: Any, parameters: list[Parameter],
                           request_id: str | None = None) -> list[Parameter]:

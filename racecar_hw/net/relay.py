@@ -149,7 +149,6 @@ class Relay:
             await client.close()
             return client
 
-
     def _refusal(self, request: web.Request) -> web.Response | None:
         """The answer for a client that may not come in (401, 403), or None to let it in."""
         if self.token:
