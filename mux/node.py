@@ -5,6 +5,9 @@ arrive, and on every tick arbitrates (:mod:`mux.arbiter`), runs the optional fil
 puts the safety controller there), applies the :class:`~mux.limiter.RateLimiter` and publishes an
 ``AckermannDriveStamped`` (frame ``base_link``) on ``output_topic`` whatever the inputs do.
 
+A latched e-stop outputs zero speed and centred steering from its first tick on, past the limiter:
+the VESC gets its brake command at once instead of a ramp at ``max_decel_mps2``.
+
 Any unexpected exception inside the mux (a subscriber callback, arbitration, a filter, the
 limiter, diagnostics) is logged and moves the mux to FAULT: zero speed, centred steering, limiter
 bypassed, until :meth:`CommandMux.reset` (which leaves it e-stopped) and then
@@ -196,7 +199,10 @@ class CommandMux:
         return self.machine.state
 
     def engage_estop(self, reason: str = "requested") -> None:
-        """Latch the e-stop: zero speed, centred steering until :meth:`release_estop`."""
+        """Latch the e-stop: zero speed, centred steering until :meth:`release_estop`.
+
+        The next output (:meth:`step`) already brakes: the e-stop bypasses the rate limiter.
+        """
         before = self.machine.state
         self.machine.process(MuxEvent.ENGAGE_ESTOP, reason)
         if before is MuxState.RUNNING:
@@ -304,11 +310,14 @@ class CommandMux:
                 drive = arb.drive
                 for f in filters:
                     drive = f(drive, arb.source, now)
-                limit = self.limiter.limit if commit else self.limiter.preview
-                out = limit(drive, periods)
+                if self.machine.state is MuxState.RUNNING:
+                    limit = self.limiter.limit if commit else self.limiter.preview
+                    out = limit(drive, periods)
             except Exception as err:
                 self._fail("output filter or limiter", err)
-        if out is None or self.machine.state is MuxState.FAULT:
+        if out is None:
+            # e-stop or fault: brake and centre at once, past the limiter, which starts again from
+            # standstill after a release or reset
             self.limiter.reset()
             out = AckermannDrive()
         msg = AckermannDriveStamped(stamp_now(OUTPUT_FRAME, self._wall_clock()), out)

@@ -75,6 +75,17 @@ LINK_POLL_S = 0.5
 SWITCH_INTERVAL_S = 0.0001
 
 
+@dataclass(frozen=True)
+class EstopRequest:
+    """An e-stop asked for through a live interface (Foxglove service, status page)."""
+
+    at_ns: int                      #: when the request reached the daemon (monotonic ns)
+    who: str                        #: who asked, for the log ("web page (127.0.0.1)")
+    #: frames the VESC driver had written before it (its ``stats.frames_tx``): the brake is
+    #: the first motor command after them; None without a VESC
+    vesc_frames_before: int | None
+
+
 @dataclass
 class ControlStats:
     """Counters of the control loop."""
@@ -187,6 +198,8 @@ class Daemon:
         self._tasks: list[asyncio.Task[Any]] = []
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
+        #: control ticks between two of the mux's diagnostics (``mux.diagnostics_rate_hz``)
+        self._diagnostics_every = max(1, round(config.mux.rate_hz / config.mux.diagnostics_rate_hz))
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
         self._build_live()
@@ -323,6 +336,8 @@ class Daemon:
         self.mux.step(due, self.filters, periods)
         stats.ticks += 1
         stats.last_tick_ns = monotonic_ns()
+        if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
+            self.mux.publish_diagnostics(due)
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
@@ -374,8 +389,8 @@ class Daemon:
             margin_m=safety.margin_m, max_path_m=safety.max_path_m,
             laser=((float(laser[0, 3]), float(laser[1, 3]), yaw_of(laser)) if laser is not None
                    else (safety.laser.x_m, safety.laser.y_m, safety.laser.yaw_rad)))
-        #: e-stops asked for through the live interfaces: (monotonic ns, who), for reports
-        self.estop_requests: deque[tuple[int, str]] = deque(maxlen=1000)
+        #: e-stops asked for through the live interfaces, for reports (the simulator's timing log)
+        self.estop_requests: deque[EstopRequest] = deque(maxlen=1000)
         #: the topics the live interfaces (Foxglove, Zenoh) serve, named by ``zenoh.profile`` and
         #: ``zenoh.remap``; the simulator adds its own before run()
         self.live_topics: list[Topic] = network_topics(config)
@@ -418,7 +433,8 @@ class Daemon:
     def engage_estop(self, who: str) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
         now = monotonic_ns()
-        self.estop_requests.append((now, who))
+        self.estop_requests.append(EstopRequest(now, who, self.vesc.stats.frames_tx
+                                                if self.vesc is not None else None))
         self.mux.engage_estop(f"e-stop from {who}")
         if self.stats.ticks:  # the control loop runs: one step out of turn sends the brake
             self.mux.step(now, self.filters)

@@ -1,4 +1,5 @@
-"""``racecar-hw sim`` in a subprocess for the live-view tests, with its log read as it comes."""
+"""``racecar-hw sim`` in a subprocess for the live-view tests, with its log read as it comes; and a
+headless Chromium for the browser tests."""
 
 from __future__ import annotations
 
@@ -9,6 +10,12 @@ import threading
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 
 
 class SimProcess:
@@ -79,3 +86,22 @@ def running_sim(args: Sequence[str]) -> Iterator[SimProcess]:
         yield proc
     finally:
         proc.stop()
+
+
+def chromium(*extra_args: str, window: str = "412,915") -> Any:
+    """Debian's headless Chromium through selenium and chromedriver (no browser download); skips the
+    test with the reason where they are not installed. ``extra_args`` go on its command line."""
+    if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
+        pytest.skip(f"Debian chromium and chromium-driver are not installed ({CHROMIUM}, {CHROMEDRIVER}); "
+                    ".ci/run installs them as root")
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                f"--window-size={window}", "--disable-background-networking", "--disable-component-update",
+                "--disable-sync", "--disable-default-apps", "--disable-extensions", "--no-first-run",
+                "--metrics-recording-only", "--disable-client-side-phishing-detection", *extra_args):
+        options.add_argument(arg)
+    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)

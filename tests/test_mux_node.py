@@ -215,6 +215,31 @@ def test_estop_latches_and_needs_an_explicit_release():
     assert [s for _t, s in mux.switches] == ["estop", "safety"]
 
 
+def test_estop_brakes_and_centres_at_once_past_the_limiter():
+    bus, mux, clock = _mux()  # the limiter on: 8 m/s^2 braking, 3.2 rad/s steering
+    outputs: list[AckermannDriveStamped] = []
+    bus.subscribe(OUTPUT, outputs.append)
+    for _ in range(60):  # up to 1 m/s and 0.2 rad
+        bus.publish(TELEOP, _cmd(1.0, 0.2))
+        mux.step()
+        clock.advance(0.02)
+    assert (outputs[-1].drive.speed, outputs[-1].drive.steering_angle) == pytest.approx((1.0, 0.2))
+    mux.engage_estop("test button")
+    bus.publish(TELEOP, _cmd(1.0, 0.2))
+    first = mux.step().drive
+    # the first output after the engage is already the stop, not one 0.16 m/s braking step
+    assert (first.speed, first.steering_angle) == (0.0, 0.0)
+    assert (mux.limiter.speed, mux.limiter.steering_angle) == (0.0, 0.0)
+    clock.advance(0.02)
+    assert mux.step().drive == AckermannDrive()
+    # after the release the limiter starts from standstill: one acceleration step, not 1 m/s
+    assert mux.release_estop()
+    clock.advance(0.02)
+    bus.publish(TELEOP, _cmd(1.0, 0.2))
+    again = mux.step().drive
+    assert again.speed == pytest.approx(2.5 / 50) and again.steering_angle == pytest.approx(3.2 / 50)
+
+
 def test_estop_topic_engages_and_release_is_refused_while_it_says_true():
     bus, mux, clock = _mux()
     bus.publish("/estop", Bool(True))

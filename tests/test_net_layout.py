@@ -69,3 +69,10 @@ def test_the_lichtblick_layout_is_a_binary_split_tree_of_known_panels():
     assert sorted(leaves) == sorted(legacy["configById"])
     kinds = {leaf.split("!")[0] for leaf in leaves}
     assert kinds >= set(LEGACY_PANEL_TYPES.values()) | {"Plot", "Teleop", "StateTransitions"}
+    # the panel titles under the key each viewer reads (Lichtblick ignores Foxglove's)
+    configs = legacy["configById"].values()
+    assert {"car", "speed (m/s)", "e-stop"} <= {config.get("lichtblickPanelTitle") for config in configs}
+    assert all(c.get("lichtblickPanelTitle") == c.get("foxglovePanelTitle") for c in configs)
+    # the scan keeps its flat colour: without a colour field the viewers switch to a colour map
+    scan = next(c for k, c in legacy["configById"].items() if k.startswith("3D!"))["topics"]["/scan"]
+    assert scan["colorMode"] == "flat" and scan["colorField"]

@@ -3,7 +3,8 @@
 ``racecar-hw sim`` runs in a subprocess. The access tests bind the page (and the Foxglove relay) to
 every interface without a configured token, so the daemon generates one and prints it; requests are
 made with aiohttp. The browser test drives the page in Debian's headless Chromium through selenium
-and chromedriver (no browser download), clicks E-STOP and reads the timing from the sim's log.
+and chromedriver (no browser download), clicks E-STOP and reads from the sim's log when the fake VESC
+read the brake, and that it was the first motor command written after the request.
 """
 
 from __future__ import annotations
@@ -12,15 +13,12 @@ import asyncio
 import json
 import re
 import time
-from pathlib import Path
 
 import aiohttp
 import pytest
-from live_sim import SimProcess, running_sim
+from live_sim import SimProcess, chromium, running_sim
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
-
-CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 
 
 @pytest.fixture(scope="module")
@@ -144,23 +142,6 @@ def test_an_open_loopback_page_refuses_a_foreign_host_name_and_origin(loopback_s
 
 # --- the page in a real browser ---------------------------------------------------------------------
 
-def _browser():
-    if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
-        pytest.skip(f"Debian chromium and chromium-driver are not installed ({CHROMIUM}, {CHROMEDRIVER}); "
-                    ".ci/run installs them as root")
-    webdriver = pytest.importorskip("selenium.webdriver")
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=412,915", "--disable-background-networking", "--disable-component-update",
-                "--disable-sync", "--disable-default-apps", "--disable-extensions", "--no-first-run",
-                "--metrics-recording-only", "--disable-client-side-phishing-detection"):
-        options.add_argument(arg)
-    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-
-
 def _until(predicate, timeout_s: float = 20.0, what: str = ""):
     deadline = time.monotonic() + timeout_s
     while True:
@@ -172,7 +153,7 @@ def _until(predicate, timeout_s: float = 20.0, what: str = ""):
 
 
 def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release(tmp_path):
-    driver = _browser()  # first: skips at once where there is no browser
+    driver = chromium()  # first: skips at once where there is no browser
     # circles at 1.0 and 0.6 m/s in turn, two seconds each: the speed on the page keeps changing
     steps = [[2.0 * k, 0.6 if k % 2 else 1.0, 0.25] for k in range(150)]
     driver_spec = {"type": "script", "input": "nav_0", "steps": steps}
@@ -195,16 +176,20 @@ def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release
 
         log_from = len(sim.lines)
         driver.find_element(By.ID, "estop").click()
-        clicked_ms = _until(lambda: driver.execute_script("return window.racecar.estopClickedAt"))
-        timing = sim.wait_for(r"sim: e-stop from web page .* first motor command at wall ([\d.]+) .*"
-                              r"standstill command at wall ([\d.]+)", start=log_from)
-        first_s, standstill_s = float(timing.group(1)), float(timing.group(2))
-        clicked_s = clicked_ms / 1000.0
-        print(f"click -> first VESC command {1000 * (first_s - clicked_s):.1f} ms, "
-              f"-> standstill command {1000 * (standstill_s - clicked_s):.1f} ms")
-        assert 0.0 <= first_s - clicked_s < 0.2
-        # the mux brakes at its limit (8 m/s^2): from 1 m/s a standstill is asked ~0.125 s after the click
-        assert 0.0 <= standstill_s - clicked_s < 0.2 + 1.0 / 8.0
+        # the click's time is taken in the page, when its pointerdown handler runs (the wall clock in
+        # ms, the machine's clock the sim logs with): what selenium and chromedriver take to deliver
+        # the click is the test's, not the car's; the page's fetch, the server and the loop count
+        clicked_s = _until(lambda: driver.execute_script("return window.racecar.estopClickedAt")) / 1000.0
+        timing = sim.wait_for(r"sim: e-stop from web page \S+ at wall ([\d.]+); fake VESC: brake (.+) "
+                              r"at wall ([\d.]+) \(\+[\d.]+ ms\), (.+)$", start=log_from)
+        arrived_s, brake, brake_s, how = (float(timing.group(1)), timing.group(2), float(timing.group(3)),
+                                          timing.group(4))
+        print(f"click -> request in the daemon {1000 * (arrived_s - clicked_s):.1f} ms, "
+              f"-> brake ({brake}) read by the fake VESC {1000 * (brake_s - clicked_s):.1f} ms")
+        # the e-stop brakes at once: the first motor command written after the request is the brake
+        # (not one step of a ramp down), and it is on the wire within 0.2 s of the click
+        assert how == "the first motor command written after the request" and brake == "SET_RPM 0"
+        assert 0.0 <= brake_s - clicked_s < 0.2
         _until(lambda: text("estop") == "E-STOP LATCHED", what="the page to show the latch")
         _until(lambda: abs(float(text("measured").split()[0])) < 0.02, what="the car to stop")
         # it stays stopped while the figure-8 driver keeps commanding; a short press does not release

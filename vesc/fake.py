@@ -67,10 +67,15 @@ STATUS_KILL_SWITCH = 0x02
 
 @dataclass(frozen=True)
 class CommandRecord:
-    """A packet the fake decoded and when its bytes were read (monotonic ns)."""
+    """A packet the fake decoded, when its bytes were read (monotonic ns) and its frame number.
+
+    ``seq`` counts the frames decoded since the fake was made, from 1: with no frame lost on the
+    wire it is the client's own count of frames written (the driver's ``stats.frames_tx``).
+    """
 
     t_ns: int
     packet: Packet
+    seq: int = 0
 
 
 @dataclass
@@ -310,7 +315,7 @@ class FakeVesc:
         for packet in self._codec.events():
             self.frames_rx += 1
             with self._lock:
-                self._log.append(CommandRecord(now, packet))
+                self._log.append(CommandRecord(now, packet, self.frames_rx))
             self._handle(packet, now)
 
     def _handle(self, packet: Packet, now: int) -> None:

@@ -49,3 +49,26 @@ def local_host_header(host: str | None) -> bool:
         return False
     name = urlsplit(f"//{host}").hostname or ""
     return is_loopback(name)
+
+
+def browser_origin_allowed(origin: str | None, user_agent: str | None, allowed: tuple[str, ...]) -> bool:
+    """Whether a WebSocket client with this ``Origin`` may use an open (token-less) loopback server.
+
+    * no Origin: not a browser (a script, a tool, a local program): yes;
+    * an origin listed in ``allowed`` (exactly, case aside; ``"null"`` may be listed): yes;
+    * a page served by this machine (http or https on a loopback host, any port): yes;
+    * a page with no web origin (``null``, ``file://``, an app's own scheme) whose ``User-Agent``
+      names Electron: a desktop app (Foxglove, Lichtblick) showing its own files: yes. A web page
+      cannot send such a handshake: its opaque frames say ``null`` with the browser's own
+      User-Agent, and no browser lets a page set the headers of a WebSocket handshake;
+    * anything else (a page of any other site): no.
+    """
+    if origin is None:
+        return True
+    origin = origin.strip().lower().rstrip("/")
+    if origin in allowed:
+        return True
+    parts = urlsplit(origin)
+    if parts.scheme in ("http", "https"):
+        return is_loopback(parts.hostname or "")
+    return "electron/" in (user_agent or "").lower()

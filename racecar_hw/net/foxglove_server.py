@@ -16,6 +16,9 @@ What it serves:
   closes or the Wi-Fi drops; services ``/racecar/estop``, ``/racecar/release``, ``/racecar/arm`` and
   ``/racecar/disarm`` (``std_srvs/srv/Trigger``); the effective configuration as read-only parameters.
 
+Clients reach it through :mod:`racecar_hw.net.relay` (the token off loopback, the browser's Origin on an
+open loopback port); the SDK's own server listens behind it, on loopback with TLS only the relay trusts.
+
 Threads: bus callbacks run in the event loop and only queue jobs (:class:`~racecar_hw.net.outbox.Outbox`,
 drop oldest) while a client subscribes to the channel; the outbox thread serializes and hands the bytes
 to the SDK, whose own threads send them. The SDK calls the listener and the service handlers from its
@@ -33,6 +36,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+from urllib.parse import urlsplit
 
 import foxglove
 from foxglove import Capability, MessageSchema, Parameter, Schema, Service, ServiceRequest, ServiceSchema
@@ -46,7 +50,9 @@ from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Message, Twist, stamp_now
 from racecar_hw.base.params import param
 from racecar_hw.net.control import CarControl, LiveState
+from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
 from racecar_hw.net.outbox import Outbox
+from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -69,8 +75,11 @@ _SPEEDS_SCHEMA = {
     "properties": {
         "commanded": {"type": "number", "description": "speed the active source asks for, m/s"},
         "output": {"type": "number", "description": "speed sent to the VESC, m/s"},
-        "allowed": {"type": ["number", "null"], "description": "safety controller's allowed speed, m/s"},
-        "measured": {"type": ["number", "null"], "description": "odometry speed, m/s"},
+        # one type each: Foxglove and Lichtblick refuse a schema with ["number", "null"] (and then plot
+        # nothing); a value that is not known is left out instead
+        "allowed": {"type": "number", "description": "safety controller's allowed speed, m/s; absent: "
+                                                    "no limit"},
+        "measured": {"type": "number", "description": "odometry speed, m/s; absent: no odometry yet"},
         "steering": {"type": "number", "description": "output steering angle, rad, + left"},
         "state": {"type": "string", "description": "clear, limiting or stopped"},
         "reason": {"type": "string", "description": "the safety controller's reason"},
@@ -78,6 +87,8 @@ _SPEEDS_SCHEMA = {
     },
 }
 _TRIGGER_RESPONSE = "bool success\nstring message\n"
+#: Foxglove's web app (and its older and embedded addresses): pages that may connect without a token.
+DEFAULT_ORIGINS = ("https://app.foxglove.dev", "https://studio.foxglove.dev", "https://embed.foxglove.dev")
 
 
 @dataclass
@@ -87,7 +98,12 @@ class FoxgloveParams:
     enabled: bool = param(True, "serve the live view to Foxglove and Lichtblick (WebSocket)")
     host: str = param("127.0.0.1", "address to listen on; anything but loopback needs token")
     port: int = param(8765, "TCP port (0: any free port, logged at start)", min=0, max=65535)
-    token: str = param("", "required in the URL (ws://car:8765/?token=...) when host is not loopback")
+    token: str = param("", "required in the URL (ws://car:8765/?token=...) when host is not loopback; "
+                           "optional on loopback")
+    allowed_origins: list[str] = param(list(DEFAULT_ORIGINS),
+                                       "web origins whose pages may connect without a token (besides "
+                                       "pages served by this machine and desktop apps); 'null' admits "
+                                       "every opaque origin, including any site's sandboxed frames")
     teleop: bool = param(True, "let Foxglove's Teleop panel drive through the mux input 'foxglove'")
     teleop_topic: str = param("/foxglove/cmd_vel", "geometry_msgs/Twist topic the Teleop panel publishes")
     teleop_priority: int = param(85, "priority of the mux input 'foxglove' (below teleop's 90)",
@@ -103,10 +119,31 @@ class FoxgloveParams:
                             min=10, max=100_000)
 
     def __post_init__(self) -> None:
+        origins = []
+        for i, origin in enumerate(self.allowed_origins):
+            if not isinstance(origin, str) or not _is_origin(origin):
+                raise ConfigError(f"foxglove.allowed_origins[{i}]",
+                                  f"{origin!r} is not an origin: scheme://host[:port] with no path "
+                                  "(https://lichtblick.example.org), or null")
+            origins.append(origin.strip().lower().rstrip("/"))
+        self.allowed_origins = origins
         if self.enabled and not is_loopback(self.host) and not self.token:
             raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
                                                 "foxglove.token (clients add ?token=... to the URL), or "
                                                 "keep host 127.0.0.1 and reach it over ssh -L")
+
+
+def _is_origin(text: str) -> bool:
+    text = text.strip().rstrip("/")
+    if text.lower() == "null":
+        return True
+    parts = urlsplit(text)
+    try:
+        parts.port  # noqa: B018 - raises on a bad port
+    except ValueError:
+        return False
+    return bool(parts.scheme and parts.hostname) and not (parts.path or parts.query or parts.fragment
+                                                          or parts.username or parts.password)
 
 
 def twist_to_drive(twist: Twist, wheelbase_m: float, max_speed_mps: float,
@@ -159,7 +196,7 @@ class FoxgloveServer:
         self.name = name
         self.outbox = Outbox("foxglove-sender", params.queue_size)
         self.server: Any = None
-        self.relay: Any = None
+        self.relay: Relay | None = None
         self._context: foxglove.Context | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._channels: dict[int, _Channel] = {}
@@ -182,10 +219,8 @@ class FoxgloveServer:
 
     @property
     def port(self) -> int | None:
-        """The port clients connect to (the relay's when there is one), or None when not running."""
-        if self.relay is not None:
-            return int(self.relay.port)
-        return int(self.server.port) if self.server is not None else None
+        """The port clients connect to (the relay's), or None when not running."""
+        return int(self.relay.port) if self.relay is not None else None
 
     def start(self) -> bool:
         """Create the channels and start listening; False (logged) when the port cannot be had."""
@@ -210,30 +245,28 @@ class FoxgloveServer:
         capabilities = [Capability.Services, Capability.Parameters]
         if self.teleop_input is not None:
             capabilities.append(Capability.ClientPublish)
-        internal = not is_loopback(self.params.host)  # behind the token relay, on loopback
+        # the SDK behind the relay, on loopback with TLS only the relay trusts (see net.relay)
+        cert = make_loopback_cert()
         try:
             self.server = foxglove.start_server(
-                name=self.name, host="127.0.0.1" if internal else self.params.host,
-                port=0 if internal else self.params.port, capabilities=capabilities,
+                name=self.name, host=LOOPBACK, port=0, capabilities=capabilities,
                 server_listener=_Listener(self), supported_encodings=["cdr", "json"],
-                services=self._services(), context=ctx)
+                services=self._services(), context=ctx, tls_cert=cert.cert_pem, tls_key=cert.key_pem)
         except RuntimeError as err:
+            log.error("foxglove: cannot start the Foxglove server (%s); the Foxglove live view is off", err)
+            return False
+        self.relay = Relay(self.params.host, self.params.port, self.server.port, cert.cert_pem,
+                           token=self.params.token, allowed_origins=tuple(self.params.allowed_origins))
+        try:
+            self.relay.start()
+        except OSError as err:
             log.error("foxglove: cannot listen on %s:%d (%s); the Foxglove live view is off",
                       self.params.host, self.params.port, err)
+            self.relay = None
+            self.server.stop()
+            self.server = None
             return False
-        if internal:
-            from racecar_hw.net.relay import TokenRelay
-
-            self.relay = TokenRelay(self.params.host, self.params.port, self.server.port, self.params.token)
-            try:
-                self.relay.start()
-            except OSError as err:
-                log.error("foxglove: cannot listen on %s:%d (%s); the Foxglove live view is off",
-                          self.params.host, self.params.port, err)
-                self.relay = None
-                self.server.stop()
-                self.server = None
-                return False
+        log.info("foxglove: the SDK's server on wss://%s:%d, behind the relay", LOOPBACK, self.server.port)
         self.outbox.start()
         for row in self.topics:
             self._subs.append(self.bus.subscribe(row.bus, self._sender(self._by_bus[row.bus])))
@@ -292,12 +325,13 @@ class FoxgloveServer:
         if self._special[self._scene_id]:
             self._scene.log(scene_update(state, self.control.shape, t_ns), log_time=t_ns)
         if self._speeds is not None and self._special[self._speeds_id]:
-            self._speeds.log({
+            speeds = {
                 "commanded": state.commanded_mps, "output": state.output_mps,
                 "allowed": state.allowed_mps if math.isfinite(state.allowed_mps) else None,
                 "measured": state.measured_mps, "steering": state.steering_rad,
                 "state": state.safety_colour, "reason": state.safety_reason, "source": state.source,
-            }, log_time=t_ns)
+            }
+            self._speeds.log({k: v for k, v in speeds.items() if v is not None}, log_time=t_ns)
 
     def _send_log(self, record: logging.LogRecord) -> None:
         text = record.getMessage()
@@ -502,6 +536,12 @@ class _Listener:
     def on_get_parameters(self, client: Any, param_names: list[str],
                           request_id: str | None = None) -> list[Parameter]:
         return self.server.get_parameters(param_names)
+
+    def on_parameters_subscribe(self, param_names: list[str]) -> None:
+        """Nothing to do: the parameters never change while the daemon runs."""
+
+    def on_parameters_unsubscribe(self, param_names: list[str]) -> None:
+        """Nothing to do (see :meth:`on_parameters_subscribe`)."""
 
     def on_set_parameters(self, client: Any, parameters: list[Parameter],
                           request_id: str | None = None) -> list[Parameter]:

@@ -41,9 +41,13 @@ def build_layout(teleop_speed_mps: float = 0.5, teleop_yaw_rate: float = 1.0) ->
     """The racecar-hw layout."""
     three_d = fl.ThreeDeePanel(title="car", config=fl.ThreeDeeConfig(
         follow_tf="base_link", follow_mode="follow-position",
+        # 8 m away, looking down at 35 degrees: the car, its swept band and the nearest walls fill the view
+        camera_state=fl.ThreeDeeCameraState(distance=8.0, phi=35.0, theta_offset=0.0, perspective=True),
+        scene=fl.BaseRendererSceneSettings(transforms=fl.BaseRendererTransforms(show_label=False)),
         topics={
+            # a colour field must be named, or the viewer replaces the flat colour by a colour map
             "/scan": fl.BaseRendererLaserScanTopicSettings(visible=True, point_size=4.0, color_mode="flat",
-                                                           flat_color="#8fd3ff"),
+                                                           flat_color="#1f9bde", color_field="range"),
             SCENE_TOPIC: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
             "/map": fl.BaseRendererRosOccupancyGridTopicSettings(visible=True, color_mode="map", alpha=0.6),
             "/sim/pose": fl.BaseRendererPoseTopicSettings(visible=True, type="arrow", color="#ff40ff"),
@@ -102,8 +106,9 @@ def legacy_layout(layout: fl.Layout | None = None) -> dict[str, Any]:
             kind = LEGACY_PANEL_TYPES.get(node["panelType"], node["panelType"])
             ident = f"{kind}!{len(config_by_id) + 1:x}"
             config = dict(node.get("config", {}))
-            if node.get("title"):
+            if node.get("title"):  # Foxglove Studio 1.x reads the first key, Lichtblick the second
                 config["foxglovePanelTitle"] = node["title"]
+                config["lichtblickPanelTitle"] = node["title"]
             config_by_id[ident] = config
             return ident
         items = node["items"]

@@ -1,13 +1,23 @@
-"""A token check in front of the Foxglove SDK's server, for a bind outside loopback.
+"""The front door of the Foxglove live view: who may talk to the Foxglove SDK's server.
 
-The SDK's WebSocket server has no authentication hook, so when ``foxglove.host`` is not loopback the
-SDK listens on an ephemeral loopback port and this relay listens on ``host:port``: a WebSocket upgrade
-must carry the token (``?token=...`` in the URL, which Foxglove and Lichtblick keep, or an
-``Authorization: Bearer`` header), otherwise it gets 401 and never reaches the SDK. Accepted clients
-are piped frame for frame to the SDK server with the subprotocol they asked for.
+The SDK's WebSocket server checks neither a token nor a browser's ``Origin``. So it listens on an
+ephemeral loopback port, with TLS and a certificate only this relay trusts
+(:mod:`racecar_hw.net.loopback_tls`, so a web page that finds the port cannot use it either), and this
+relay listens on ``foxglove.host:port`` and decides:
 
-The relay runs in a thread of its own with its own event loop (aiohttp server and client), so relaying
-scans to a remote viewer never runs in the control loop.
+* with a token (required off loopback, optional on it): a WebSocket upgrade must carry it
+  (``?token=...`` in the URL, which Foxglove and Lichtblick keep, or an ``Authorization: Bearer``
+  header), otherwise 401;
+* without one (loopback): a browser's upgrade must come from an allowed origin
+  (:func:`~racecar_hw.net.auth.browser_origin_allowed`: Foxglove's web app, a page served by this
+  machine, a desktop app, or ``foxglove.allowed_origins``), otherwise 403. Non-browser clients send no
+  Origin and pass. This is what keeps a page of some other site, open in a browser on this machine
+  (or on a laptop with an ``ssh -L`` tunnel to the car), from releasing the e-stop, arming or driving.
+
+Accepted clients are piped frame for frame to the SDK server with the subprotocol they asked for;
+refused ones never reach it. The relay runs in a thread of its own with its own event loop (aiohttp
+server and client), niced like the sender thread, so relaying scans to a viewer never runs in the
+control loop.
 """
 
 from __future__ import annotations
@@ -15,13 +25,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
 from typing import Any
 
 import aiohttp
 from aiohttp import web
 
-from racecar_hw.net.auth import bearer, token_ok
+from racecar_hw.base.loopback import is_loopback
+from racecar_hw.net.auth import bearer, browser_origin_allowed, token_ok
+from racecar_hw.net.loopback_tls import LOOPBACK, pinned_context
+from racecar_hw.net.outbox import SENDER_NICE
 
 log = logging.getLogger(__name__)
 
@@ -29,17 +43,26 @@ log = logging.getLogger(__name__)
 MAX_FRAME = 64 * 1024 * 1024
 
 
-class TokenRelay:
-    """Listens on ``host:port``; relays token-bearing WebSocket clients to ``127.0.0.1:upstream_port``."""
+class Relay:
+    """Listens on ``host:port``; relays the clients it lets in to ``wss://127.0.0.1:upstream_port``.
 
-    def __init__(self, host: str, port: int, upstream_port: int, token: str) -> None:
-        if not token:
-            raise ValueError("a relay without a token would let anyone in")
+    ``upstream_cert`` is the SDK server's certificate (PEM), the only one trusted upstream; ``token``
+    (may be empty on a loopback host) and ``allowed_origins`` (lower case, no trailing slash) decide
+    who gets in, as the module says.
+    """
+
+    def __init__(self, host: str, port: int, upstream_port: int, upstream_cert: bytes, *, token: str = "",
+                 allowed_origins: tuple[str, ...] = ()) -> None:
+        if not token and not is_loopback(host):
+            raise ValueError(f"a relay on {host} without a token would let anyone in")
         self.host = host
         self.requested_port = port
-        self.upstream = f"ws://127.0.0.1:{upstream_port}/"
+        self.upstream = f"wss://{LOOPBACK}:{upstream_port}/"
+        self.upstream_ssl = pinned_context(upstream_cert)
         self.token = token
+        self.allowed_origins = allowed_origins
         self.port = 0
+        #: upgrades refused: without the token, or from a foreign origin
         self.refused = 0
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -52,6 +75,9 @@ class TokenRelay:
         failure: list[BaseException] = []
 
         def run() -> None:
+            with contextlib.suppress(AttributeError, OSError):  # Linux: per thread, like the sender's
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
+                               os.getpriority(os.PRIO_PROCESS, 0) + SENDER_NICE)
             loop = self._loop = asyncio.new_event_loop()
             try:
                 loop.run_until_complete(self._serve(started, failure))
@@ -97,17 +123,15 @@ class TokenRelay:
         await runner.cleanup()
 
     async def _handle(self, request: web.Request) -> web.StreamResponse:
-        given = request.query.get("token") or bearer(request.headers.get("Authorization"))
-        if not token_ok(given, self.token):
-            self.refused += 1
-            log.warning("foxglove: refused %s without the token (%d so far)", request.remote, self.refused)
-            return web.Response(status=401, text="401: token required (add ?token=... to the URL)\n")
+        refusal = self._refusal(request)
+        if refusal is not None:
+            return refusal
         asked = request.headers.get("Sec-WebSocket-Protocol", "")
         protocols = [p.strip() for p in asked.split(",") if p.strip()]
         async with aiohttp.ClientSession() as session:
             try:
                 upstream = await session.ws_connect(self.upstream, protocols=protocols,
-                                                    max_msg_size=MAX_FRAME)
+                                                    max_msg_size=MAX_FRAME, ssl=self.upstream_ssl)
             except aiohttp.ClientError as err:
                 log.error("foxglove: relay cannot reach the server: %s", err)
                 return web.Response(status=502, text="502: the Foxglove server is not answering\n")
@@ -124,6 +148,24 @@ class TokenRelay:
             await upstream.close()
             await client.close()
             return client
+
+    def _refusal(self, request: web.Request) -> web.Response | None:
+        """The answer for a client that may not come in (401, 403), or None to let it in."""
+        if self.token:
+            given = request.query.get("token") or bearer(request.headers.get("Authorization"))
+            if token_ok(given, self.token):
+                return None
+            self.refused += 1
+            log.warning("foxglove: refused %s without the token (%d so far)", request.remote, self.refused)
+            return web.Response(status=401, text="401: token required (add ?token=... to the URL)\n")
+        origin = request.headers.get("Origin")
+        if browser_origin_allowed(origin, request.headers.get("User-Agent"), self.allowed_origins):
+            return None
+        self.refused += 1
+        log.warning("foxglove: refused a browser page from %r (%d so far): a page of another site must not "
+                    "drive the car; if it is a viewer of yours, add its origin to foxglove.allowed_origins",
+                    origin, self.refused)
+        return web.Response(status=403, text=f"403: origin {origin} not allowed (foxglove.allowed_origins)\n")
 
 
 async def _pump(source: Any, sink: Any) -> None:

@@ -5,8 +5,8 @@
 * ``/sim/pose`` (``geometry_msgs/PoseStamped`` in ``map``): the world's true pose, so a viewer sees
   odometry drift against ground truth;
 * for every e-stop asked through a live interface (Foxglove service, status page), one log line with
-  the wall time of the request and of the first motor command the fake VESC read after it, and of the
-  first one that asks for a standstill (the mux's rate limiter brakes at ``max_decel_mps2``).
+  the wall time of the request and of the brake the fake VESC read, and whether that brake was the
+  first motor command written after the request (it must be: the mux's e-stop bypasses the limiter).
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ from racecar_hw.base.messages import (
     stamp_now,
 )
 from racecar_hw.base.transforms import StaticTransformParams
-from racecar_hw.daemon import Daemon
+from racecar_hw.daemon import Daemon, EstopRequest
 from racecar_hw.net.topics import DEFAULT, LATCHED, Direction, Topic
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.world import World
 from vesc.codec import SetCurrent, SetCurrentBrake, SetDuty, SetRpm
-from vesc.fake import FakeVesc
+from vesc.fake import CommandRecord, FakeVesc
 
 log = logging.getLogger(__name__)
 
@@ -76,39 +76,63 @@ async def publish_truth(bus: Bus, world: World, occ_map: OccupancyMap) -> None:
 
 
 async def log_estop_timing(daemon: Daemon, vesc: FakeVesc, timeout_s: float = 2.0) -> None:
-    """Log, for each live e-stop request, when the fake VESC read its first motor command after it."""
-    done = 0
+    """Log, for each live e-stop request, when the fake VESC read its brake, and whether at once.
+
+    The fake numbers the frames it reads (:attr:`~vesc.fake.CommandRecord.seq`); the request
+    carries how many the driver had written before it, so the first motor command written after
+    the request is known exactly, whatever was still in flight when it came. That command must
+    be the brake (SET_RPM 0 or SET_CURRENT_BRAKE); otherwise the log says how many motor commands
+    came first (an e-stop that ramps down instead of braking). Frame numbers match while no
+    frame is lost between the driver and the fake (no unplug during the run); a mismatch is
+    logged as such.
+    """
     while True:
         await asyncio.sleep(0.05)
-        while done < len(daemon.estop_requests):
-            at_ns, who = daemon.estop_requests[done]
-            first = stop = None
-            while monotonic_ns() - at_ns < timeout_s * NS_PER_S:
-                motor = [c for c in vesc.commands if c.t_ns >= at_ns and isinstance(c.packet, _MOTOR)]
-                first = motor[0] if motor else None
-                stop = next((c for c in motor if _standstill(c.packet)), None)
-                if stop is not None:
-                    break
-                await asyncio.sleep(0.02)
-            done += 1
-            offset = wall_ns() - monotonic_ns()
-            if first is None:
-                log.error("sim: e-stop from %s at wall %.6f: the fake VESC read no motor command after it",
-                          who, (at_ns + offset) / NS_PER_S)
-                continue
-            log.warning("sim: e-stop from %s at wall %.6f; fake VESC: first motor command at wall %.6f "
-                        "(+%.1f ms), standstill command at wall %s", who, (at_ns + offset) / NS_PER_S,
-                        (first.t_ns + offset) / NS_PER_S, (first.t_ns - at_ns) / 1e6,
-                        "none" if stop is None else f"{(stop.t_ns + offset) / NS_PER_S:.6f} "
-                                                    f"(+{(stop.t_ns - at_ns) / 1e6:.1f} ms)")
+        while daemon.estop_requests:
+            request = daemon.estop_requests.popleft()
+            after: list[CommandRecord] = []
+            brake = None
+            if request.vesc_frames_before is not None:
+                while brake is None and monotonic_ns() - request.at_ns < timeout_s * NS_PER_S:
+                    after = [c for c in vesc.commands
+                             if c.seq > request.vesc_frames_before and isinstance(c.packet, _MOTOR)]
+                    brake = next((c for c in after if _is_brake(c.packet)), None)
+                    if brake is None:
+                        await asyncio.sleep(0.02)
+            _log_estop(request, after, brake, timeout_s)
 
 
-def _standstill(packet: object) -> bool:
+def _log_estop(request: EstopRequest, after: list[CommandRecord], brake: CommandRecord | None,
+               timeout_s: float) -> None:
+    offset = wall_ns() - monotonic_ns()
+    asked = f"sim: e-stop from {request.who} at wall {(request.at_ns + offset) / NS_PER_S:.6f}"
+    if brake is None:
+        log.error("%s: the fake VESC read no brake command within %g s after it (%d other motor "
+                  "commands)", asked, timeout_s, len(after))
+        return
+    if after and after[0].t_ns < request.at_ns:
+        log.error("%s: the fake VESC's frame numbers do not match the driver's (a frame was lost); "
+                  "no timing", asked)
+        return
+    before = after.index(brake)
+    how = ("the first motor command written after the request" if before == 0 else
+           f"after {before} other motor commands written after the request: the e-stop did not brake "
+           "at once")
+    log.warning("%s; fake VESC: brake %s at wall %.6f (+%.1f ms), %s", asked, _name(brake.packet),
+                (brake.t_ns + offset) / NS_PER_S, (brake.t_ns - request.at_ns) / 1e6, how)
+
+
+def _name(packet: object) -> str:
     if isinstance(packet, SetRpm):
-        return packet.erpm == 0
+        return f"SET_RPM {packet.erpm}"
     if isinstance(packet, SetCurrentBrake):
-        return True
-    if isinstance(packet, (SetCurrent, SetDuty)):
-        value = packet.current if isinstance(packet, SetCurrent) else packet.duty
-        return value == 0
-    return False
+        return f"SET_CURRENT_BRAKE {packet.current:g} A"
+    return type(packet).__name__
+
+
+def _is_brake(packet: object) -> bool:
+    """What the driver brakes with: SET_RPM 0 (the speed loop holds the wheels) or SET_CURRENT_BRAKE.
+
+    A zero current or duty releases the motor (the car coasts): not a brake.
+    """
+    return (isinstance(packet, SetRpm) and packet.erpm == 0) or isinstance(packet, SetCurrentBrake)

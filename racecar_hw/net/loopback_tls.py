@@ -1,0 +1,63 @@
+"""A throwaway TLS certificate for a server only our own relay may talk to.
+
+The Foxglove SDK's server checks neither a token nor the ``Origin`` of a browser, so it listens on an
+ephemeral loopback port behind :mod:`racecar_hw.net.relay`. A web page in a browser on the same
+machine could still find that port (by trying ports) and talk to it directly; with TLS and a
+certificate nobody trusts but the relay, it cannot: a browser refuses ``wss://`` to an unknown
+certificate without asking anyone, and plain ``ws://`` gets no answer from a TLS server.
+
+:func:`make_loopback_cert` makes a new self-signed certificate for ``127.0.0.1`` (ECDSA P-256) at each
+start; the private key never leaves memory. :func:`pinned_context` is the client side that trusts
+exactly that certificate.
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import ssl
+from dataclasses import dataclass
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+#: The address the certificate names (and the only one the server listens on).
+LOOPBACK = "127.0.0.1"
+
+
+@dataclass(frozen=True)
+class LoopbackCert:
+    """A PEM certificate for :data:`LOOPBACK` and its PKCS#8 PEM private key."""
+
+    cert_pem: bytes
+    key_pem: bytes
+
+
+def make_loopback_cert(valid_days: int = 3650) -> LoopbackCert:
+    """A new self-signed server certificate for :data:`LOOPBACK`, valid from a minute ago."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "racecar-hw loopback")])
+    now = datetime.datetime.now(datetime.timezone.utc)
+    cert = (x509.CertificateBuilder()
+            .subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=1))
+            .not_valid_after(now + datetime.timedelta(days=valid_days))
+            .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address(LOOPBACK))]),
+                           critical=False)
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), critical=False)
+            .sign(key, hashes.SHA256()))
+    return LoopbackCert(
+        cert.public_bytes(serialization.Encoding.PEM),
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                          serialization.NoEncryption()))
+
+
+def pinned_context(cert_pem: bytes) -> ssl.SSLContext:
+    """A client context that trusts ``cert_pem`` and nothing else (host name checked: 127.0.0.1)."""
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.load_verify_locations(cadata=cert_pem.decode())
+    return context
