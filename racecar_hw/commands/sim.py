@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from racecar_hw.commands.daemon import add_config_options
-from racecar_hw.runtime.signals import add_stop_handlers
+from racecar_hw.runtime.interrupts import INTERRUPTED
+from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.sim.loopback import Loopback, SimResult, write_report
 from racecar_hw.sim.scenario import Scenario, load_scenario, scenario_names
@@ -87,14 +88,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration)
-    run = _run(loopback)
-    try:
-        result = asyncio.run(run)
-    except KeyboardInterrupt:  # before the loop's signal handlers were in place
-        run.close()
-        return 130
+    with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+        result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
-        return 130
+        return INTERRUPTED
     report = write_report(result, args.report or out / "report.json")
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
@@ -131,9 +128,10 @@ def _clearance(report: dict[str, Any]) -> str:
     return f"{cap:g} m or more (measured up to {cap:g} m)" if value >= cap else f"{value:.2f} m"
 
 
-async def _run(loopback: Loopback) -> SimResult | None:
-    """Run the scenario; the first SIGINT/SIGTERM ends it as its duration would (brake, write the
-    report for the time driven), a second one stops at once (None)."""
+async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
+    """Run the scenario; the first SIGINT/SIGTERM (or one ``stops`` noted before the loop ran) ends
+    it as its duration would (brake, write the report for the time driven), a second one stops at
+    once (None)."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
 
@@ -143,7 +141,7 @@ async def _run(loopback: Loopback) -> SimResult | None:
         else:
             task.cancel()
 
-    remove = add_stop_handlers(loop, on_signal)
+    remove = add_stop_handlers(loop, on_signal, noted=stops)
     try:
         return await task
     except asyncio.CancelledError:
