@@ -28,7 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", "-s", default=DEFAULT_SCENARIO, metavar="NAME|FILE",
                    help=f"a shipped scenario or a scenario file (default {DEFAULT_SCENARIO})")
     p.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
-    p.add_argument("--duration", type=_seconds, metavar="S", help="override the scenario's duration")
+    p.add_argument("--duration", type=_seconds, metavar="S",
+                   help="seconds to run (default: the scenario's; with --follow, as long as the "
+                        "replay, slowed down for the reverse cap if need be, and 1 s more)")
     p.add_argument("--report", metavar="FILE", help="write the JSON report here "
                                                     "(default: OUT/report.json)")
     p.add_argument("--out", metavar="DIR", help="directory for the trajectory CSV and plot "
@@ -86,8 +88,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
     if args.record:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
+    # --follow: the run lasts as long as the replay, unless a duration is given
+    given = args.duration is not None or any(o.partition("=")[0].strip() == "duration_s"
+                                             for o in args.scenario_overrides)
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
-                        status=status, duration_s=args.duration)
+                        status=status, duration_s=args.duration,
+                        until_replay_ends=bool(args.follow) and not given)
     with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
         result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
@@ -100,7 +106,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def summary(report: dict[str, Any]) -> str:
-    """The report's headline numbers in three lines."""
+    """The report's headline numbers in three lines, and a warning for a replay cut short."""
     pose = report["final_pose"]
 
     def num(value: float | None, fmt: str, unit: str) -> str:
@@ -118,7 +124,18 @@ def summary(report: dict[str, Any]) -> str:
         f"min clearance {_clearance(report)}, safety interventions {report['safety_interventions']}{by}",
         f"final pose x {num(pose['x'], '.2f', 'm')}  y {num(pose['y'], '.2f', 'm')}  "
         f"yaw {num(yaw, '.0f', 'deg')}",
+        *_cut_short(report),
     ])
+
+
+def _cut_short(report: dict[str, Any]) -> list[str]:
+    """A warning for each replay the run's duration ended before its last command."""
+    if report.get("interrupted"):
+        return []  # stopped by the user: the summary says so already
+    return [f"WARNING: the replay of {Path(f['bag']).name} was cut short: {f['followed']:.0%} of it "
+            f"followed when the run's duration ({report['duration_s']:g} s) ended; the replay takes "
+            f"{f['replay_s']:.1f} s (give a longer --duration, or, with --follow, none)"
+            for f in report.get("follow") or [] if not f["complete"]]
 
 
 def _clearance(report: dict[str, Any]) -> str:
