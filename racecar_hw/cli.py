@@ -17,8 +17,7 @@ from collections.abc import Sequence
 
 from racecar_hw import __version__
 from racecar_hw.base.errors import RacecarError
-from racecar_hw.runtime.console import setup_logging
-from racecar_hw.runtime.own_packages import find_foreign_packages
+from racecar_hw.runtime.interrupts import INTERRUPTED, StopSignals
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = (
@@ -47,7 +46,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``racecar-hw`` console script."""
+    """Entry point of the ``racecar-hw`` console script.
+
+    First of all SIGINT and SIGTERM are handled: start-up takes about a second, and a stop signal
+    in it ends the command quietly with status 130 once the imports are done
+    (:mod:`racecar_hw.runtime.interrupts`), instead of a traceback, or of being lost by a
+    background job that inherited SIGINT ignored. The slower imports come after that.
+    """
+    try:
+        with StopSignals() as stops:
+            return _main(argv, stops)
+    except KeyboardInterrupt:  # a stop signal before the command took over its handling
+        return INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None, stops: StopSignals) -> int:
+    # imported once the stop signals are handled (see main): these two take tens of milliseconds
+    from racecar_hw.runtime.console import setup_logging  # noqa: PLC0415
+    from racecar_hw.runtime.own_packages import find_foreign_packages  # noqa: PLC0415
+
     # Before any command module imports vesc, lidar_drivers, mux or safety.
     foreign = find_foreign_packages()
     if foreign:
@@ -55,6 +72,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"racecar-hw: {package.message()}", file=sys.stderr)
         return 2
     parser = build_parser()
+    stops.interrupt()  # the imports are done: a stop signal noted in them, or any later, interrupts
     args = parser.parse_args(argv)
     level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     setup_logging(level)  # a blocked stderr never stops the control loop
@@ -65,8 +83,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = int(args.func(args))
         sys.stdout.flush()  # here, where a closed pipe can be told apart from a failure
         return code
-    except KeyboardInterrupt:
-        return 130
     except RacecarError as err:
         print(f"racecar-hw {args.command}: {err}", file=sys.stderr)
         return 1

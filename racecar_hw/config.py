@@ -11,6 +11,7 @@ loopback), in the package's ``config/`` directory.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -164,8 +165,7 @@ def build_config(data: dict[str, Any]) -> Config:
         lock = gamepad.lock_params()
         if all(existing.topic != lock.topic for existing in config.mux.locks):
             config.mux.locks.append(lock)
-    _add_foxglove_input(config)
-    _add_cmd_vel_input(config)
+    config.mux.inputs.extend(added_inputs(config.foxglove, config.zenoh, config.mux.inputs))
     config.mux.validate("mux")
     if config.zenoh.enabled:
         config.zenoh.validate("zenoh")
@@ -176,23 +176,26 @@ def build_config(data: dict[str, Any]) -> Config:
     return config
 
 
-def _add_foxglove_input(config: Config) -> None:
-    """Give Foxglove's Teleop panel a mux input of its own, unless the config already names one."""
-    fox = config.foxglove
-    if fox.enabled and fox.teleop and all(i.name != FOXGLOVE_INPUT for i in config.mux.inputs):
-        config.mux.inputs.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
-                                             fox.teleop_timeout_s))
-
-
 #: The bus topic of the mux input that ROS 2 velocity commands (/cmd_vel) drive.
 CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
+#: The timeout (s) of the mux input ``cmd_vel``: a ROS 2 node's velocity commands, as nav_0's.
+CMD_VEL_TIMEOUT_S = 0.2
 
 
-def _add_cmd_vel_input(config: Config) -> None:
-    """With Zenoh's /cmd_vel on, the mux gets the input ``cmd_vel`` (priority 18) unless it has one."""
-    z = config.zenoh
-    if z.enabled and z.cmd_vel and all(i.name != CMD_VEL_INPUT for i in config.mux.inputs):
-        config.mux.inputs.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, 0.2))
+def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputParams] | list[dict[str, Any]]
+                 ) -> list[InputParams]:
+    """The mux inputs the features add after the configured ``inputs``, unless one of them has the
+    name already: ``foxglove`` for Foxglove's Teleop panel (``foxglove.teleop``, its priority and
+    timeout from ``foxglove.teleop_priority`` and ``teleop_timeout_s``), then ``cmd_vel`` for
+    ROS 2's /cmd_vel over Zenoh (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
+    names = {i["name"] if isinstance(i, dict) else i.name for i in inputs}
+    added = []
+    if fox.enabled and fox.teleop and FOXGLOVE_INPUT not in names:
+        added.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
+                                 fox.teleop_timeout_s))
+    if zenoh.enabled and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
+        added.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, CMD_VEL_TIMEOUT_S))
+    return added
 
 
 def cmd_vel_input_topic(config: Config) -> str | None:
@@ -239,9 +242,54 @@ def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] 
     if extra:
         data = merge(data, extra)
     defaults = to_dict(Config()) if overrides else None
+    later = []  # --set mux.inputs.N... beyond the configured inputs: one the features add
     for assignment in overrides:
-        apply_override(data, assignment, defaults)
+        if _input_index(assignment) >= len(_inputs(data, defaults)):
+            later.append(assignment)
+        else:
+            apply_override(data, assignment, defaults)
+    if later:
+        _set_added_inputs(data, defaults, later)
     return build_config(data)
+
+
+def _input_index(assignment: str) -> int:
+    """N of a ``mux.inputs.N...=value``; -1 for any other key."""
+    parts = assignment.partition("=")[0].strip().split(".")
+    return int(parts[2]) if parts[:2] == ["mux", "inputs"] and len(parts) > 2 and parts[2].isdigit() else -1
+
+
+def _inputs(data: dict[str, Any], defaults: dict[str, Any] | None) -> list[Any]:
+    """The configured mux inputs, as plain data: the file's, or the defaults'."""
+    mux = data.get("mux")
+    inputs = mux.get("inputs") if isinstance(mux, dict) else None
+    if inputs is None:
+        inputs = (defaults or to_dict(Config()))["mux"]["inputs"]
+    return inputs if isinstance(inputs, list) else []
+
+
+def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, assignments: list[str]) -> None:
+    """Apply ``--set mux.inputs.N...`` to the list check-config shows: the configured inputs, then
+    those the features add (:func:`added_inputs`, from the settings after every other ``--set``),
+    which are written into the data as configured inputs first."""
+    inputs = copy.deepcopy(_inputs(data, defaults))
+    mux = data.get("mux")
+    data["mux"] = mux = dict(mux) if isinstance(mux, dict) else {}
+    fox = build(FoxgloveParams, data.get("foxglove") or {}, "foxglove")
+    zenoh = build(ZenohParams, data.get("zenoh") or {}, "zenoh")
+    added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i])
+    mux["inputs"] = [*inputs, *to_dict(added)]
+    for assignment in assignments:
+        index = _input_index(assignment)
+        if index >= len(mux["inputs"]):
+            key = assignment.partition("=")[0].strip()
+            listed = ", ".join(f"{i} {item.get('name', '?') if isinstance(item, dict) else '?'}"
+                               for i, item in enumerate(mux["inputs"]))
+            raise ConfigError(key, f"no mux input {index}; the mux has {len(mux['inputs'])} inputs: "
+                                   f"{listed} (check-config lists them; foxglove is added by "
+                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel, when the config "
+                                   "names no input so)")
+        apply_override(data, assignment, defaults)
 
 
 def shipped_config(name: str) -> Path:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -53,11 +54,107 @@ def test_info_and_recover_of_an_interrupted_bag(tmp_path, capsys, fmt):
     assert "messages:  5" in out and "duration:  0.400 s" in out
     out_path = tmp_path / ("fixed.bag" if fmt == "ros1" else "fixed")
     assert main(["bag", "recover", str(bag), "-o", str(out_path)]) == 0
-    recovered = bag if fmt == "sqlite3" else out_path  # sqlite3: metadata.yaml fixed in place
-    assert f"recovered 5 messages into {recovered}" in capsys.readouterr().out
-    assert [c.drive.speed for c in load_commands(recovered, CMD)] == [0.0, 1.0, 2.0, 3.0, 4.0]
-    assert main(["bag", "info", str(recovered)]) == 0
+    assert f"recovered 5 messages into {out_path}" in capsys.readouterr().out
+    assert [c.drive.speed for c in load_commands(out_path, CMD)] == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert main(["bag", "info", str(out_path)]) == 0
     assert "complete:  yes" in capsys.readouterr().out
+    assert main(["bag", "info", str(bag)]) == 0  # -o leaves the bag as it was, sqlite3 too
+    assert "complete:  no: " in capsys.readouterr().out
+    if fmt == "sqlite3":  # without -o, fixed in place
+        assert main(["bag", "recover", str(bag)]) == 0
+        assert f"recovered 5 messages into {bag}" in capsys.readouterr().out
+        assert main(["bag", "info", str(bag)]) == 0
+        assert "complete:  yes" in capsys.readouterr().out
+
+
+def write_killed_split_set(tmp_path: Path, fmt: str, last: str) -> list[Path]:
+    """Three closed splits of four commands each, then a fourth split as a recording killed just
+    after opening it leaves it: ``opened`` (what reached the disk when the file was created:
+    nothing for MCAP, the header for ROS 1, the empty tables for sqlite3), ``header`` (its header
+    flushed too) or ``empty`` (0 bytes, e.g. a power loss before anything reached the disk).
+    Returns the bag (ROS 2: the directory) or, ROS 1, the four split files."""
+    work = tmp_path / "recording"
+    work.mkdir()
+    types = types_for(1 if fmt == "ros1" else 2)
+    paths = [work / (f"run_{i}.bag" if fmt == "ros1" else f"run/run_{i}") for i in range(4)]
+    meta = None
+    for i in range(3):
+        bag = BagFile(paths[i], fmt, "none", types, meta)
+        meta = bag.meta
+        for k in range(4):
+            n = 4 * i + k
+            msg = AckermannDriveStamped(Header(Time(1, 0), "base_link"), AckermannDrive(speed=float(n)))
+            bag.write(CMD, msg, T0 + n * 100_000_000)
+        bag.flush()
+        bag.close(last=False)
+    opened = BagFile(paths[3], fmt, "none", types, meta)
+    if last == "header":  # the header pushed to the file, no message yet
+        storage = getattr(opened._writer, "storage", None)
+        if fmt == "ros1":
+            opened._writer.bio.flush()
+        elif fmt == "mcap":
+            storage.bio.flush()
+    snapshot = tmp_path / "killed"
+    shutil.copytree(work, snapshot)  # what is on disk at the kill (the writer's buffers are lost)
+    opened.abort()
+    files = sorted(snapshot.rglob("run_*.*"))
+    if last == "empty":
+        files[-1].write_bytes(b"")
+    return files if fmt == "ros1" else [snapshot / "run"]
+
+
+@pytest.mark.parametrize("last", ["opened", "header", "empty"])
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
+def test_a_ros2_split_killed_as_it_opened_keeps_every_other_message(tmp_path, capsys, fmt, last):
+    (bag,) = write_killed_split_set(tmp_path, fmt, last)
+    last_file = sorted(bag.glob("run_*"))[-1]
+    if fmt == "mcap" and last == "opened":
+        assert last_file.stat().st_size == 0  # as the auditor's killed recording left it
+    assert main(["bag", "info", str(bag)]) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert "format:    ROS 2 (" in out and "4 files" in out
+    assert "complete:  no: " in out
+    if last_file.stat().st_size == 0:
+        assert f"no: {last_file.name} is empty (0 bytes" in out
+    assert "messages:  12 (readable ones)" in out and "duration:  1.100 s" in out
+    assert main(["bag", "recover", str(bag), "-o", str(tmp_path / "fixed")]) == 0, capsys.readouterr().err
+    assert f"recovered 12 messages into {tmp_path / 'fixed'}" in capsys.readouterr().out
+    assert [c.drive.speed for c in load_commands(tmp_path / "fixed", CMD)] == [float(i) for i in range(12)]
+    assert main(["bag", "info", str(tmp_path / "fixed")]) == 0
+    assert "complete:  yes" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("last", ["opened", "empty"])
+def test_a_ros1_split_killed_as_it_opened_is_an_empty_bag_and_the_others_are_whole(tmp_path, capsys,
+                                                                                    last):
+    """ROS 1 splits are separate bags (rosbag record --split): the last one holds nothing."""
+    *closed, killed = write_killed_split_set(tmp_path, "ros1", last)
+    for i, split in enumerate(closed):
+        assert main(["bag", "info", str(split)]) == 0
+        out = capsys.readouterr().out
+        assert "complete:  yes" in out and "messages:  4\n" in out
+        assert [c.drive.speed for c in load_commands(split, CMD)] == [float(4 * i + k) for k in range(4)]
+    if last == "empty":
+        assert main(["bag", "info", str(killed)]) == 1
+        assert "is empty (0 bytes): nothing was flushed" in capsys.readouterr().err
+        assert main(["bag", "recover", str(killed)]) == 1
+        assert "is empty (0 bytes)" in capsys.readouterr().err
+        return
+    assert main(["bag", "info", str(killed)]) == 0
+    out = capsys.readouterr().out
+    assert "complete:  no: not indexed" in out and "messages:  0 (readable ones)" in out
+    assert main(["bag", "recover", str(killed)]) == 0
+    assert "recovered 0 messages into" in capsys.readouterr().out
+
+
+def test_a_bag_whose_only_file_is_empty_has_nothing_to_recover(tmp_path, capsys):
+    (bag,) = write_killed_split_set(tmp_path, "mcap", "opened")
+    for split in sorted(bag.glob("run_*.mcap"))[:-1]:
+        split.unlink()
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "messages:  0 (readable ones)" in capsys.readouterr().out
+    assert main(["bag", "recover", str(bag)]) == 1
+    assert "nothing to recover: every file of" in capsys.readouterr().err
 
 
 def test_bag_errors_are_one_line(tmp_path, capsys):

@@ -22,9 +22,11 @@ from racecar_hw.bags.follow import (
     CommandSync,
     FollowerParams,
     Hole,
+    Step,
     command_from_message,
     fit_speed,
     holes,
+    keep_alive,
     load_commands,
     schedule,
     summarize_bag,
@@ -230,6 +232,7 @@ def test_schedule_backwards() -> None:
 def test_backwards_over_the_reverse_cap_is_slowed_and_stretched_to_the_same_path() -> None:
     cmds = cmds_from([0, 100, 200, 300])  # 1, 2, 3, 4 m/s forwards
     assert fit_speed(cmds, 0.5, reverse=True) == pytest.approx(0.125)  # 4 m/s backwards -> 0.5
+    assert fit_speed(cmds, 0.45, reverse=True) == pytest.approx(1 / 9)  # a whole number of times slower
     assert fit_speed(cmds, 0.5, reverse=False) == 1.0  # forwards: nothing reverses
     assert fit_speed(cmds, 5.0, reverse=True) == 1.0 and fit_speed(cmds, None, reverse=True) == 1.0
     for timestamps in (True, False):
@@ -243,6 +246,35 @@ def test_backwards_over_the_reverse_cap_is_slowed_and_stretched_to_the_same_path
                 pa.drive.speed * (pb.offset_ns - pa.offset_ns))
     with pytest.raises(ValueError):
         schedule(cmds, speed_scale=0.0)
+
+
+def _driven_m(steps: list[Step], timeout_s: float) -> float:
+    """How far the commands drive a car through a mux input with ``timeout_s``: each one holds
+    until the next arrives or the input times out (the physical world, reduced to distance)."""
+    timeout_ns = round(timeout_s * NS_PER_S)
+    return sum(abs(a.drive.speed) * min(b.offset_ns - a.offset_ns, timeout_ns) / NS_PER_S
+               for a, b in zip(steps, steps[1:], strict=False))
+
+
+@pytest.mark.parametrize("speed_scale", [1 / 2, 1 / 3, 1 / 8])
+@pytest.mark.parametrize("timestamps", [True, False], ids=["timestamps", "fixed-rate"])
+def test_a_slowed_replay_keeps_the_mux_input_alive_where_the_recording_did(speed_scale, timestamps) -> None:
+    """A 20 Hz recording with the holes a held-up recorder leaves: 0.15 s (which the 0.2 s mux
+    timeout bridged, the car drove on) and 0.5 s (it did not: the car stopped after 0.2 s).
+    Slowed down for the reverse cap, the replay must drive exactly as far."""
+    ms = [0, 50, 100, 250, 300, 350, 850, 900, 950, 1000]
+    cmds = [Command(T0 + t * 1_000_000, AckermannDrive(speed=1.0)) for t in ms]
+    recorded = schedule(cmds, use_timestamps=timestamps)
+    slow = schedule(cmds, use_timestamps=timestamps, reverse=True, speed_scale=speed_scale)
+    kept = keep_alive(slow, speed_scale)
+    assert _driven_m(kept, 0.2) == pytest.approx(_driven_m(recorded, 0.2))
+    if max(b.offset_ns - a.offset_ns for a, b in zip(slow, slow[1:], strict=False)) > 0.3 * NS_PER_S:
+        assert _driven_m(slow, 0.2) < _driven_m(recorded, 0.2) - 0.05  # what the stretch did alone
+    assert [s.offset_ns for s in kept] == sorted(s.offset_ns for s in kept)
+    assert kept[-1] == slow[-1] and {s.offset_ns for s in slow} <= {s.offset_ns for s in kept}
+    assert max(b.offset_ns - a.offset_ns for a, b in zip(kept, kept[1:], strict=False)) <= max(
+        b.offset_ns - a.offset_ns for a, b in zip(recorded, recorded[1:], strict=False))
+    assert keep_alive(recorded, 1.0) == recorded
 
 
 def test_follower_warns_of_the_reverse_cap_and_slows_down(tmp_path: Path, caplog) -> None:

@@ -8,6 +8,7 @@ import shlex
 from pathlib import Path
 
 import pytest
+import yaml
 
 from racecar_hw.cli import build_parser, main
 from racecar_hw.sim.scenario import load_scenario
@@ -52,6 +53,37 @@ def test_every_set_example_passes_check_config(config, assignment, capsys) -> No
     assert code == 1
     expected = shown[1].split("...")[0]  # the README abbreviates the list of keys
     assert err.startswith(expected), (err, expected)
+
+
+@pytest.mark.parametrize("config", ["config/car.yaml", "config/sim.yaml"])
+def test_set_numbers_the_mux_inputs_as_check_config_lists_them(config, capsys) -> None:
+    """Also the inputs Foxglove and Zenoh add after the configured ones (foxglove, cmd_vel)."""
+    assert main(["check-config", str(ROOT / config)]) == 0
+    listed = yaml.safe_load(capsys.readouterr().out)["mux"]["inputs"]
+    assert [i["name"] for i in listed[-2:]] == ["foxglove", "cmd_vel"]
+    assert "--set mux.inputs.6.timeout_s=0.5" in README and listed[6]["name"] == "foxglove"
+    for index, shown in enumerate(listed):
+        assert main(["check-config", str(ROOT / config), "--set", f"mux.inputs.{index}.timeout_s=0.75",
+                     "--set", f"mux.inputs.{index}.priority=199"]) == 0, capsys.readouterr().err
+        inputs = yaml.safe_load(capsys.readouterr().out)["mux"]["inputs"]
+        assert inputs[index] == {**shown, "timeout_s": 0.75, "priority": 199}
+        assert inputs[:index] + inputs[index + 1:] == listed[:index] + listed[index + 1:]
+    # the added ones follow their features' settings, wherever those --set are
+    assert main(["check-config", str(ROOT / config), "--set", "mux.inputs.7.priority=19",
+                 "--set", "foxglove.teleop_timeout_s=0.4"]) == 0
+    inputs = yaml.safe_load(capsys.readouterr().out)["mux"]["inputs"]
+    assert (inputs[6]["name"], inputs[6]["timeout_s"], inputs[7]["priority"]) == ("foxglove", 0.4, 19)
+    # one past the end: the error says which inputs there are and where the added ones come from
+    assert main(["check-config", str(ROOT / config), "--set", "mux.inputs.8.timeout_s=0.5"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("racecar-hw check-config: mux.inputs.8.timeout_s: no mux input 8; the mux "
+                          "has 8 inputs: 0 safety, 1 teleop, 2 nav_0, 3 nav_1, 4 nav_2, 5 nav_3, "
+                          "6 foxglove, 7 cmd_vel"), err
+    assert "foxglove.teleop" in err and "zenoh.cmd_vel" in err
+    # without the features, there is no input 6
+    assert main(["check-config", str(ROOT / config), "--set", "foxglove.enabled=false", "--set",
+                 "zenoh.enabled=false", "--set", "mux.inputs.6.timeout_s=0.5"]) == 1
+    assert "the mux has 6 inputs" in capsys.readouterr().err
 
 
 def test_every_command_line_in_the_configuration_section_works(capsys) -> None:

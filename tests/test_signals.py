@@ -1,4 +1,5 @@
-"""racecar_hw.runtime.signals: SIGINT and SIGTERM stop a command whatever it inherited."""
+"""racecar_hw.runtime.signals and .interrupts: SIGINT and SIGTERM stop a command whatever it inherited,
+from its first moment."""
 
 from __future__ import annotations
 
@@ -6,7 +7,13 @@ import asyncio
 import gc
 import os
 import signal
+import subprocess
+import sys
 import warnings
+from pathlib import Path
+
+import pytest
+from conftest import NO_ZENOH, wait_for
 
 from racecar_hw.runtime import signals
 
@@ -48,3 +55,91 @@ def test_ctrl_c_before_the_loop_runs_leaves_nothing_never_awaited(monkeypatch) -
         gc.collect()
     assert not [w for w in caught if "never awaited" in str(w.message)]
     assert made == []
+
+
+# --- a real racecar-hw process, stopped while it starts -------------------------------------------
+
+
+def _catches(pid: int, sig: int) -> bool:
+    """Whether the process has a handler of its own for ``sig`` (its SigCgt mask in /proc)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    mask = next(int(line.split()[1], 16) for line in status.splitlines() if line.startswith("SigCgt:"))
+    return bool(mask >> (sig - 1) & 1)
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a background job of a script inherits it
+
+
+START_UP = {
+    "fake-vesc": (["fake-vesc", "--link", "{tmp}/vesc"], "fake VESC"),
+    "sim": (["sim", "--duration", "60", "--no-status", "--set", NO_ZENOH, "--out", "{tmp}/out"], "figure8:"),
+}
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("command", sorted(START_UP))
+def test_a_stop_signal_as_the_command_starts_ends_it_quietly(tmp_path, command, stop) -> None:
+    """Sent as soon as racecar-hw handles it (its first line; about a second of imports is still
+    to come), to a background job that inherited SIGINT ignored: the signal is not lost (a
+    fake-vesc once served on for ten minutes) and there is no traceback; exit 130, nothing done."""
+    argv, banner = START_UP[command]
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli",
+                             *[a.format(tmp=tmp_path) for a in argv]],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ignore_sigint)
+    try:
+        wait_for(lambda: _catches(proc.pid, stop) or proc.poll() is not None, timeout=60, interval=0.001)
+        proc.send_signal(stop)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert "Traceback" not in err and "Error" not in err, err
+    if banner in out:  # a machine so loaded that the start-up was over first: the command's own end
+        assert proc.returncode == 0, err
+        return
+    assert proc.returncode == 130, (out, err)
+    assert out == "" and err == ""
+    assert not (tmp_path / "vesc").exists() and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", sorted(START_UP))
+def test_a_sigterm_the_moment_the_process_exists_never_leaves_it_running(tmp_path, command) -> None:
+    """Before racecar-hw's first line the inherited default ends the process; after it, exit 130."""
+    argv, _banner = START_UP[command]
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli",
+                             *[a.format(tmp=tmp_path) for a in argv]],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.send_signal(signal.SIGTERM)
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode in (-signal.SIGTERM, 130), (out, err)
+    assert out == "" and err == ""
+
+
+def test_a_stop_signal_after_the_banner_ends_fake_vesc_as_documented(tmp_path) -> None:
+    """Once it serves, a stop signal is its normal end: exit 0, the link removed, no traceback."""
+    link = tmp_path / "vesc"
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-vesc", "--link", str(link)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ignore_sigint)
+    try:
+        assert proc.stdout is not None
+        assert "fake VESC" in proc.stdout.readline()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "Traceback" not in err, err
+    assert not link.exists()

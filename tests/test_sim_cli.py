@@ -111,6 +111,49 @@ def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, cap
     assert capsys.readouterr().out.startswith("follow: ran ")
 
 
+def _straight_bag(tmp_path: Path, commands: int) -> Path:
+    """A recording of ``commands`` drive commands at 1 m/s straight ahead (20 Hz when followed)."""
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="straight"))
+    rec.start()
+    for _ in range(commands):
+        bus.publish(NAV0, AckermannDriveStamped(Header(Time(1, 0), "base_link"), AckermannDrive(speed=1.0)))
+    rec.stop()
+    return tmp_path / "straight"
+
+
+def test_follow_reverse_runs_the_whole_stretched_replay_and_says_when_duration_cuts_it(tmp_path, capsys):
+    """Backwards, the reverse cap (0.5 m/s) halves the recorded 1 m/s and doubles the replay's
+    length: 2.9 s, longer than the 1.5 s scenario. Without --duration the run lasts as long as the
+    replay (and a settle time), so the whole path is driven; a --duration that ends it first is
+    named in the summary and the report."""
+    bag = _straight_bag(tmp_path, 30)  # 29 gaps of 0.05 s: 1.45 s, 1.45 m
+    scenario = tmp_path / "short.yaml"
+    scenario.write_text("description: a short scenario in the room\nmap: room\nstart: [0.0, 0.0, 0.0]\n"
+                        "duration_s: 1.5\ndrivers: []\n")
+    common = ["sim", "--scenario", str(scenario), "--follow", str(bag), "--reverse", "--no-status",
+              "--set", NO_ZENOH]
+    assert main([*common, "--out", str(tmp_path / "whole")]) == 0
+    out = capsys.readouterr().out
+    report = json.loads((tmp_path / "whole" / "report.json").read_text())
+    (follow,) = report["follow"]
+    assert (follow["replay_s"], follow["speed_scale"]) == (2.9, 0.5)
+    assert follow["complete"] and follow["followed"] == 1.0
+    assert report["duration_s"] == 3.9  # the replay and 1 s to come to rest, not the scenario's 1.5
+    assert not report["interrupted"] and report["max_speed_mps"] <= 0.55
+    assert report["distance_m"] > 1.3 and report["final_pose"]["x"] < -1.3  # the whole 1.45 m, backwards
+    assert "WARNING" not in out and out.startswith("follow: ran ")
+
+    assert main([*common, "--duration", "1.5", "--out", str(tmp_path / "cut")]) == 0
+    out = capsys.readouterr().out
+    report = json.loads((tmp_path / "cut" / "report.json").read_text())
+    (follow,) = report["follow"]
+    assert not follow["complete"] and 0 < follow["followed"] < 1 and report["duration_s"] == 1.5
+    assert not report["interrupted"] and report["distance_m"] < 1.0
+    assert (f"WARNING: the replay of straight was cut short: {follow['followed']:.0%} of it followed when "
+            "the run's duration (1.5 s) ended; the replay takes 2.9 s") in out
+
+
 def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
     import asyncio
 

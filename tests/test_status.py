@@ -20,7 +20,7 @@ FULL = StatusSnapshot(speed_mps=1.25, steering_rad=-0.15, mux_source="nav_0", ba
 
 def console(**kwargs: object) -> tuple[Console, io.StringIO]:
     out = io.StringIO()
-    return Console(file=out, width=100, **kwargs), out  # type: ignore[arg-type]
+    return Console(file=out, **{"width": 100, **kwargs}), out  # type: ignore[arg-type]
 
 
 def test_render_shows_every_field() -> None:
@@ -40,14 +40,36 @@ def test_render_shows_link_states_and_the_simulation() -> None:
     con, out = console()
     con.print(render(snap))
     text = out.getvalue()
-    for expected in ("lost since 14:02:31 (35 s), crc errors 0", "up, reconnects 0", "sim time",
+    for expected in ("lost since 14:02:31 (35 s), crc er…", "up, reconnects 0", "sim time",
                      "12.3 s", "clearance", "0.46 m"):
         assert expected in text, expected
-    con2, out2 = console()
+    assert "lost since 14:02:31 (35 s), crc errors 0, reconnects 0" in plain_line(snap)  # in full
+    con2, out2 = console(width=120)
     con2.print(render(StatusSnapshot()))
     con2.print(render(StatusSnapshot(battery_v=12.0, scan_rate_hz=40.0, speed_mps=-1.0)))
-    widths = {len(line) for line in out2.getvalue().splitlines()}
-    assert len(widths) == 1, widths  # the box keeps its width as values come and go
+    con2.print(render(snap))
+    con2.print(render(StatusSnapshot(vesc_link="connecting 1234 s", vesc_crc_errors=123456,
+                                     vesc_reconnects=99999, lidar_link="lost since 23:59:59 (86399 s)",
+                                     lidar_reconnects=123456, sim_pose=(-12.34, -12.34, -3.1),
+                                     safety_state="limiting", safety_allowed_mps=0.25)))
+    lines = out2.getvalue().splitlines()
+    assert {len(line) for line in lines} == {100}  # the box keeps its width as values come and go
+    assert "x -12.34 m  y -12.34 m  yaw -178 deg" in out2.getvalue()  # a pose fits whole
+    long_link = next(line for line in lines if "connecting 1234 s" in line)
+    assert "vesc       connecting 1234 s, crc errors 1234…  lidar      lost since 23:59:59 (86399 s), " \
+           "recon… │" in long_link  # each value cut at its column with an ellipsis, the state kept
+
+
+def test_a_narrow_terminal_gets_a_narrower_box_with_whole_labels() -> None:
+    snap = StatusSnapshot(vesc_link="lost since 14:02:31 (35 s)", lidar_link="connecting 12 s",
+                          sim_time_s=1.0, sim_pose=(1.0, 2.0, 0.0), clearance_m=0.5)
+    con, out = console(width=80)
+    con.print(render(snap))
+    con.print(render(StatusSnapshot()))
+    lines = out.getvalue().splitlines()
+    assert {len(line) for line in lines} == {80}
+    assert all(label in out.getvalue() for label in ("speed", "battery", "safety", "clearance", "sim pose"))
+    assert "lost since 14:02:31 (35 …" in out.getvalue()
 
 
 def test_log_records_go_above_the_live_panel_not_behind_it() -> None:

@@ -20,7 +20,9 @@ tan(steering)/wheelbase whatever the direction of travel, so the same steering w
 speed retraces the path. With timestamps, the gaps between commands are replayed reversed. When
 the recorded speeds exceed what the car may do in reverse (the safety controller's reverse cap),
 every speed is scaled down by the same factor and the timing stretched by its inverse, so the path
-is still retraced, only slower (:func:`fit_speed`).
+is still retraced, only slower (:func:`fit_speed`); each command is then repeated at its
+unstretched spacing, so that no stretched gap outlasts the mux input's timeout where the recorded
+one did not (:func:`keep_alive`).
 
 Twist to Ackermann: ``speed = linear.x``, ``steering = atan(wheelbase * angular.z / linear.x)``
 (the steering whose path has the recorded yaw rate at the recorded speed, as the racecar stacks'
@@ -320,8 +322,37 @@ def schedule(commands: Sequence[Command], *, rate_hz: float = 20.0, use_timestam
     return steps
 
 
+def keep_alive(steps: Sequence[Step], speed_scale: float) -> list[Step]:
+    """``steps`` of a replay slowed by ``speed_scale`` (< 1: :func:`schedule`), each command
+    repeated at its unstretched spacing until the next one.
+
+    A stretched gap would otherwise let the mux input's timeout expire where the recording's did
+    not (a 0.15 s hole of a held-up recorder becomes 0.3 s, over the default 0.2 s), and the car
+    would stop there and fall short of the path. With the repeats the mux sees commands as often
+    as it did in the recording: a gap its timeout bridged then is bridged now, and one it did not
+    bridge drives the car as far as it did then (a timeout's worth at the slower speed per
+    repeat, as many repeats as the stretch: exactly so when ``1 / speed_scale`` is a whole number,
+    as :func:`fit_speed` makes it).
+    """
+    if speed_scale >= 1.0 or len(steps) < 2:
+        return list(steps)
+    repeats = math.ceil(1.0 / speed_scale - 1e-9) - 1  # exact for 1/2, 1/3 ... (fit_speed's)
+    out: list[Step] = []
+    for step, following in zip(steps, steps[1:], strict=False):
+        out.append(step)
+        gap = following.offset_ns - step.offset_ns
+        for k in range(1, repeats + 1):
+            at = step.offset_ns + round(gap * speed_scale * k)
+            if at < following.offset_ns:
+                out.append(Step(at, step.drive))
+    out.append(steps[-1])
+    return out
+
+
 def fit_speed(commands: Sequence[Command], limit_mps: float | None, reverse: bool) -> float:
-    """The ``speed_scale`` that keeps every speed of the replay within ``limit_mps`` (m/s).
+    """The ``speed_scale`` that keeps every speed of the replay within ``limit_mps`` (m/s): 1/2,
+    1/3, 1/4 ..., the largest such that does, so that the replay is a whole number of times slower
+    and :func:`keep_alive` repeats each command exactly as often as the stretch needs.
 
     ``limit_mps`` applies to reverse driving (the safety controller's reverse cap): forwards
     commands replayed backwards, and backwards ones replayed forwards. 1.0 when nothing exceeds it.
@@ -330,7 +361,7 @@ def fit_speed(commands: Sequence[Command], limit_mps: float | None, reverse: boo
         return 1.0
     sign = -1.0 if reverse else 1.0
     fastest = max((-sign * c.drive.speed for c in commands), default=0.0)  # reverse speeds, > 0
-    return min(1.0, limit_mps / fastest) if fastest > limit_mps else 1.0
+    return 1.0 / math.ceil(fastest / limit_mps - 1e-9) if fastest > limit_mps else 1.0
 
 
 @dataclass(frozen=True)
@@ -449,9 +480,10 @@ class BagFollower:
                         "reverse cap of %.2f m/s: every speed is scaled by %.2f and the timing "
                         "stretched to match, so the path is retraced %.1f times slower", p.bag,
                         (cap or 0.0) / self.speed_scale, cap, self.speed_scale, 1 / self.speed_scale)
-        self._steps = schedule(self.commands, rate_hz=p.rate_hz, use_timestamps=p.use_timestamps,
-                               time_scale=p.time_scale, reverse=p.reverse,
-                               speed_scale=self.speed_scale)
+        self._steps = keep_alive(schedule(self.commands, rate_hz=p.rate_hz,
+                                          use_timestamps=p.use_timestamps, time_scale=p.time_scale,
+                                          reverse=p.reverse, speed_scale=self.speed_scale),
+                                 self.speed_scale)
         return self._steps
 
     def stop(self) -> None:

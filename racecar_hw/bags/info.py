@@ -2,7 +2,8 @@
 
 A complete bag is summarized from its index (ROS 1) or summary and metadata (ROS 2) through
 rosbags, without reading every message. An incomplete one (an interrupted recording) is summarized
-from what :mod:`racecar_hw.bags.recover` finds in its files: the messages a recovery would keep.
+from what :mod:`racecar_hw.bags.recover` finds in its files: the messages a recovery would keep
+(an empty split file holds none).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from pathlib import Path
 
 from rosbags.highlevel import AnyReader
 
-from racecar_hw.bags.recover import BagState, inspect_bag, scan_mcap, scan_ros1
+from racecar_hw.bags.recover import BagState, inspect_bag, read_db, scan_mcap, scan_ros1
 from racecar_hw.bags.validate import guarded
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
@@ -57,8 +58,10 @@ class BagInfo:
 def bag_info(path: str | Path) -> BagInfo:
     """Summarize the bag at ``path`` (a ROS 1 file or a ROS 2 directory); raises :class:`BagError`."""
     state = inspect_bag(path)
-    if state.complete or state.format == "sqlite3":  # sqlite3 reads as it is, complete or not
+    if state.complete:
         return _from_reader(state)
+    if state.format == "sqlite3":
+        return _from_databases(state)
     times: dict[str, list[int]] = {}
     types: dict[str, str] = {}
     if state.format == "ros1":
@@ -81,6 +84,29 @@ def bag_info(path: str | Path) -> BagInfo:
     every = [t for ts in times.values() for t in ts]
     return BagInfo(state, [TopicSummary(t, types[t], len(ts)) for t, ts in sorted(times.items())],
                    min(every, default=None), max(every, default=None))
+
+
+def _from_databases(state: BagState) -> BagInfo:
+    """An incomplete sqlite3 bag, read database by database (changing nothing): a file without
+    tables, which a reader of the whole bag refuses, holds no messages."""
+    counts: dict[str, int] = {}
+    types: dict[str, str] = {}
+    starts, ends = [], []
+    for db in state.files:
+        content = read_db(db, readonly=True)
+        names = {}
+        for tid, name, msgtype, *_rest in content.topics:
+            names[tid] = name
+            types.setdefault(name, msgtype)
+            counts.setdefault(name, 0)
+        for tid, n in content.counts.items():
+            if tid in names:
+                counts[names[tid]] += n
+        if content.counts:
+            starts.append(content.start)
+            ends.append(content.end)
+    topics = [TopicSummary(t, types[t], n) for t, n in sorted(counts.items())]
+    return BagInfo(state, topics, min(starts, default=None), max(ends, default=None))
 
 
 def _from_reader(state: BagState) -> BagInfo:
@@ -117,7 +143,7 @@ def format_info(info: BagInfo) -> str:
     else:
         complete = f"no: {s.problem}\n{'':11}recover with: racecar-hw bag recover {s.path}"
         if s.format == "sqlite3":
-            complete += " (rewrites metadata.yaml in place)"
+            complete += " (rewrites metadata.yaml in place; -o OUT fixes a copy instead)"
     lines = [f"{'path:':<11}{s.path}",
              f"{'format:':<11}{FORMAT_NAMES[s.format]}{files}",
              f"{'complete:':<11}{complete}",

@@ -13,7 +13,11 @@ What a killed :class:`~racecar_hw.bags.record.Recorder` leaves, and what this mo
   pointing at garbage (a file rewritten by a tool with another header layout) is rebuilt too.
 * sqlite3 (ROS 2): every committed transaction. The bag already reads as it is; :func:`recover_bag`
   rolls back a hot journal (by opening each database normally) and rewrites ``metadata.yaml`` in
-  place with the real message counts.
+  place (or in a copy of the bag, when given an output) with the real message counts.
+
+A recording killed just after it opened a new split leaves that file empty (0 bytes, MCAP's magic
+alone, a ROS 1 header, a database without tables): it holds no messages, and the other files are
+read and recovered as they are.
 
 :func:`inspect_bag` says which format a bag is in, which files it has, and whether it is complete
 (and if not, why), without changing anything. The scanners are plain functions over bytes (no
@@ -22,6 +26,7 @@ I/O), so they can be tested on truncated and damaged data.
 
 from __future__ import annotations
 
+import shutil
 import sqlite3
 import struct
 from collections.abc import Iterator
@@ -84,8 +89,13 @@ class McapScan:
 
 
 def scan_mcap(data: bytes) -> McapScan:
-    """Every schema, channel and message in ``data`` up to the first truncated record."""
+    """Every schema, channel and message in ``data`` up to the first truncated record.
+
+    An empty ``data``, or one cut inside the magic (a split killed as it was opened), holds nothing.
+    """
     if not data.startswith(MCAP_MAGIC):
+        if MCAP_MAGIC.startswith(data):
+            return McapScan({}, {}, [], False)
         raise BagError("not an MCAP file (bad magic)")
     scan = McapScan({}, {}, [], False)
     for op, body in _mcap_records(data, len(MCAP_MAGIC)):
@@ -445,18 +455,33 @@ def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
 
 
 @dataclass
-class _DbContent:
+class DbContent:
+    """What one sqlite3 storage file holds; ``empty``: no table at all (0 bytes, or the recording
+    was killed as it created them), which is a file holding no messages."""
+
     path: Path
     topics: list[tuple[int, str, str, str, str, str]]  # id, name, type, format, qos, hash
     counts: dict[int, int]
     start: int
     end: int
+    empty: bool = False
 
 
-def _read_db(db: Path) -> _DbContent:
+
+def read_db(db: Path, *, readonly: bool = False) -> DbContent:
+    """Topics, message counts per topic id and time range (ns) of the sqlite3 file ``db``.
+
+    ``readonly``: change nothing (for ``bag info``); otherwise opening it rolls back a hot journal.
+    """
+    if _size(db) == 0:
+        return DbContent(db, [], {}, 0, 0, empty=True)
     try:
-        con = sqlite3.connect(db)  # opening read-write rolls back a hot journal
+        # immutable: no lock, no -shm or -wal file created next to a bag that may be read-only
+        con = sqlite3.connect(f"file:{db}?immutable=1", uri=True) if readonly else sqlite3.connect(db)
         try:
+            tables = {row[0] for row in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            if not tables:  # one without the other is a damaged file, and an error below
+                return DbContent(db, [], {}, 0, 0, empty=True)
             columns = {row[1] for row in con.execute("PRAGMA table_info(topics)")}
             digest = "type_description_hash" if "type_description_hash" in columns else "''"
             topics = con.execute(f"SELECT id, name, type, serialization_format, offered_qos_profiles,"
@@ -467,7 +492,7 @@ def _read_db(db: Path) -> _DbContent:
             con.close()
     except sqlite3.Error as err:
         raise BagError(f"{db} is not a readable sqlite3 bag: {err}") from err
-    return _DbContent(db, topics, counts, lo or 0, hi or 0)
+    return DbContent(db, topics, counts, lo or 0, hi or 0)
 
 
 def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
@@ -479,20 +504,24 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
     hot = [db.name for db in dbs if _size(db.parent / f"{db.name}-journal")]
     if hot:
         return f"{', '.join(hot)} has a journal left by an interrupted write"
+    listed = set(meta.get("relative_file_paths") or [])
+    contents = []
+    for db in dbs:
+        try:
+            content = read_db(db, readonly=True)
+        except BagError as err:
+            return f"{db.name} is not readable: {err.__cause__ or err}"
+        if content.empty and db.name in listed:  # unlisted and empty: not part of the bag
+            return (f"{db.name} is empty ({_size(db)} bytes, no tables): the recording was killed "
+                    "as it opened this split")
+        contents.append(content)
     if (meta.get("custom_data") or {}).get("racecar_hw") == RECORDING_OPEN:
         return "the recording was not closed (metadata.yaml is from its last flush)"
     said = {f.get("path"): f.get("message_count") for f in meta.get("files") or []}
-    for db in dbs:
-        # immutable: no lock, no -shm or -wal file created next to a bag that may be read-only
-        con = sqlite3.connect(f"file:{db}?immutable=1", uri=True)
-        try:
-            (n,) = con.execute("SELECT count(*) FROM messages").fetchone()
-        except sqlite3.Error as err:
-            return f"{db.name} is not readable: {err}"
-        finally:
-            con.close()
-        if db.name in said and said[db.name] != n:
-            return f"metadata.yaml counts {said[db.name]} messages in {db.name}, it holds {n}"
+    for content in contents:
+        name, n = content.path.name, sum(content.counts.values())
+        if name in said and said[name] != n:
+            return f"metadata.yaml counts {said[name]} messages in {name}, it holds {n}"
     return ""
 
 
@@ -504,7 +533,8 @@ def _size(path: Path) -> int:
 
 
 def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
-    contents = [_read_db(db) for db in dbs]
+    # a file without tables holds nothing: left out of metadata.yaml, which readers go by
+    contents = [c for c in (read_db(db) for db in dbs) if not c.empty]
     topics: dict[str, dict[str, object]] = {}
     counts: dict[str, int] = {}
     for c in contents:
@@ -571,6 +601,9 @@ def inspect_bag(path: str | Path) -> BagState:
         if src.stat().st_size == 0:
             raise BagError(f"{src} is empty (0 bytes): nothing was flushed before the recording ended")
         data = src.read_bytes()
+        if ROS1_MAGIC.startswith(data):
+            raise BagError(f"{src} holds only {len(data)} bytes, a cut-off bag header: nothing was "
+                           "flushed before the recording ended")
         if data.startswith(MCAP_MAGIC):
             raise BagError(f"{src} is an MCAP file: give its bag directory ({src.parent})")
         problem = check_ros1_index(data, scan_ros1(data))
@@ -579,11 +612,14 @@ def inspect_bag(path: str | Path) -> BagState:
     dbs = _storage_files(src, ".db3")
     if mcaps:
         for f in mcaps:
-            if f.stat().st_size == 0:
-                return BagState(src, "mcap", mcaps, False, f"{f.name} is empty (0 bytes)")
+            size = f.stat().st_size
+            if size <= len(MCAP_MAGIC):  # nothing past the magic: killed as this split was opened
+                return BagState(src, "mcap", mcaps, False,
+                                f"{f.name} is empty ({size} bytes): the recording was killed as it "
+                                "opened this split; it holds no messages")
             with f.open("rb") as fh:
-                fh.seek(-len(MCAP_MAGIC), 2)
-                if fh.read() != MCAP_MAGIC:
+                fh.seek(size - len(MCAP_MAGIC))
+                if size < 2 * len(MCAP_MAGIC) or fh.read() != MCAP_MAGIC:
                     return BagState(src, "mcap", mcaps, False,
                                     f"{f.name} has no footer (the recording was not closed)")
         if _metadata(src) is None:
@@ -601,8 +637,10 @@ def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResu
     gives a :class:`BagError` naming it and the cause, and nothing else.
 
     MCAP and ROS 1 bags are rewritten to ``out`` (default: ``<name>.recovered`` next to it for a
-    ROS 2 directory, ``<stem>.recovered.bag`` for ROS 1); sqlite3 bags are fixed in place. A bag
-    that was closed normally is left alone (``was_complete``).
+    ROS 2 directory, ``<stem>.recovered.bag`` for ROS 1); sqlite3 bags are fixed in place, or in a
+    copy at ``out`` when it is given. A bag that was closed normally is left alone
+    (``was_complete``). An empty split file (a recording killed as it opened a new split) holds no
+    messages; the other files' messages are all kept.
     """
     state = inspect_bag(path)
     src = state.path
@@ -617,10 +655,21 @@ def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResu
         if state.complete:
             messages = sum(len(scan_mcap(f.read_bytes()).messages) for f in state.files)
             return RecoveryResult(src, messages, True)
+        if all(_size(f) <= len(MCAP_MAGIC) for f in state.files):
+            raise BagError(f"nothing to recover: every file of {src} is empty (the recording was "
+                           "killed before it wrote anything)")
         target = Path(out) if out else src.with_name(f"{src.name}.recovered")
         if target.exists():
             raise BagError(f"{target} exists already, not overwriting (give another output)")
         return _recover_mcap(state.files, target)
     if state.complete:
-        return RecoveryResult(src, sum(sum(_read_db(db).counts.values()) for db in state.files), True)
-    return _recover_sqlite3(src, state.files)
+        return RecoveryResult(src, sum(sum(read_db(db).counts.values()) for db in state.files), True)
+    if out is None:
+        return _recover_sqlite3(src, state.files)
+    # a copy to fix, the bag as it was left alone (journals and WAL files go along)
+    target = Path(out)
+    try:
+        shutil.copytree(src, target)
+    except OSError as err:
+        raise BagError(f"cannot copy {src} to {target}: {err}") from err
+    return _recover_sqlite3(target, [target / f.name for f in state.files])

@@ -402,7 +402,10 @@ def _check_sqlite3(db: Path, max_bytes: int) -> None:
     except sqlite3.Error as err:
         raise BagError(f"cannot read bag {db}: {describe(err)}") from err
     try:
-        (largest,) = con.execute("SELECT MAX(LENGTH(data)) FROM messages").fetchone()
+        tables = {row[0] for row in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        # no table at all (0 bytes: a split killed as it opened, left out by the recovery): no message
+        (largest,) = (con.execute("SELECT MAX(LENGTH(data)) FROM messages").fetchone()
+                      if tables else (None,))
     except sqlite3.Error as err:
         raise BagError(f"cannot read bag {db}: {describe(err)}") from err
     finally:

@@ -22,10 +22,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                            description="Rewrite an interrupted MCAP or ROS 1 recording into a new, "
                                        "closed bag (default: NAME.recovered next to it, or "
                                        "STEM.recovered.bag) with every message that reached the "
-                                       "disk; fix a sqlite3 bag's metadata.yaml in place. A "
-                                       "complete bag is left alone.")
+                                       "disk; fix a sqlite3 bag's metadata.yaml in place (with "
+                                       "-o: in a copy at OUT, the bag left as it is). A complete "
+                                       "bag is left alone.")
     rec.add_argument("bag", help="ROS 1 .bag file or ROS 2 bag directory")
-    rec.add_argument("-o", "--output", metavar="OUT", help="where to write the recovered bag")
+    rec.add_argument("-o", "--output", metavar="OUT",
+                     help="where to write the recovered bag (sqlite3: a fixed copy); must not exist")
     rec.set_defaults(func=cmd_recover)
 
 

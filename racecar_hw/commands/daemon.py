@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 import sys
 
 from racecar_hw.config import describe_config, dump_config, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 
 
@@ -58,18 +58,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     daemon = Daemon(config, status=status)
     if daemon.follower is not None:
         daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
-    return asyncio.run(run_daemon(daemon))
+    with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+        return asyncio.run(run_daemon(daemon, noted=stops))
 
 
-async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None) -> int:
-    """Run ``daemon`` until SIGINT, SIGTERM or ``stop`` is set."""
-    stop = stop if stop is not None else asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,
+                     noted: StopSignals | None = None) -> int:
+    """Run ``daemon`` until SIGINT, SIGTERM (or one ``noted`` before the loop ran) or ``stop`` is set."""
+    event = stop if stop is not None else asyncio.Event()
+    remove = add_stop_handlers(asyncio.get_running_loop(), lambda _sig: event.set(), noted=noted)
     try:
-        await daemon.run(stop)
+        await daemon.run(event)
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        remove()
     return 0

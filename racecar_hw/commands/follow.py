@@ -13,6 +13,7 @@ from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.runtime.signals import StopSignals
 from racecar_hw.teleop.arming import ArmingChange
 
 
@@ -65,13 +66,14 @@ def cmd_follow(args: argparse.Namespace) -> int:
                   TimeRemainingColumn()) as bar:
         task = bar.add_task("bag", total=1.0)
         follower.progress = lambda fraction, eta: bar.update(task, completed=fraction)
-        code = asyncio.run(_follow(daemon, follower))
+        with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+            code = asyncio.run(_follow(daemon, follower, stops))
     if daemon.arming.changes and not daemon.arming.armed:
         print(f"racecar-hw follow: stopped at {follower.published} commands: {daemon.arming.reason}")
     return code
 
 
-async def _follow(daemon: Daemon, follower: BagFollower) -> int:
+async def _follow(daemon: Daemon, follower: BagFollower, stops: StopSignals) -> int:
     stop = asyncio.Event()
 
     def on_arming(change: ArmingChange) -> None:
@@ -87,4 +89,4 @@ async def _follow(daemon: Daemon, follower: BagFollower) -> int:
         stop.set()
 
     daemon.add_task(stop_when_done())
-    return await run_daemon(daemon, stop)
+    return await run_daemon(daemon, stop, noted=stops)

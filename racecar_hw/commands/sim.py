@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from racecar_hw.commands.daemon import add_config_options
-from racecar_hw.runtime.signals import add_stop_handlers
+from racecar_hw.runtime.interrupts import INTERRUPTED
+from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.sim.loopback import Loopback, SimResult, write_report
 from racecar_hw.sim.scenario import Scenario, load_scenario, scenario_names
@@ -27,7 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", "-s", default=DEFAULT_SCENARIO, metavar="NAME|FILE",
                    help=f"a shipped scenario or a scenario file (default {DEFAULT_SCENARIO})")
     p.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
-    p.add_argument("--duration", type=_seconds, metavar="S", help="override the scenario's duration")
+    p.add_argument("--duration", type=_seconds, metavar="S",
+                   help="seconds to run (default: the scenario's; with --follow, as long as the "
+                        "replay, slowed down for the reverse cap if need be, and 1 s more)")
     p.add_argument("--report", metavar="FILE", help="write the JSON report here "
                                                     "(default: OUT/report.json)")
     p.add_argument("--out", metavar="DIR", help="directory for the trajectory CSV and plot "
@@ -85,16 +88,16 @@ def cmd_sim(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
     if args.record:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
+    # --follow: the run lasts as long as the replay, unless a duration is given
+    given = args.duration is not None or any(o.partition("=")[0].strip() == "duration_s"
+                                             for o in args.scenario_overrides)
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
-                        status=status, duration_s=args.duration)
-    run = _run(loopback)
-    try:
-        result = asyncio.run(run)
-    except KeyboardInterrupt:  # before the loop's signal handlers were in place
-        run.close()
-        return 130
+                        status=status, duration_s=args.duration,
+                        until_replay_ends=bool(args.follow) and not given)
+    with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+        result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
-        return 130
+        return INTERRUPTED
     report = write_report(result, args.report or out / "report.json")
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
@@ -103,7 +106,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def summary(report: dict[str, Any]) -> str:
-    """The report's headline numbers in three lines."""
+    """The report's headline numbers in three lines, and a warning for a replay cut short."""
     pose = report["final_pose"]
 
     def num(value: float | None, fmt: str, unit: str) -> str:
@@ -121,7 +124,18 @@ def summary(report: dict[str, Any]) -> str:
         f"min clearance {_clearance(report)}, safety interventions {report['safety_interventions']}{by}",
         f"final pose x {num(pose['x'], '.2f', 'm')}  y {num(pose['y'], '.2f', 'm')}  "
         f"yaw {num(yaw, '.0f', 'deg')}",
+        *_cut_short(report),
     ])
+
+
+def _cut_short(report: dict[str, Any]) -> list[str]:
+    """A warning for each replay the run's duration ended before its last command."""
+    if report.get("interrupted"):
+        return []  # stopped by the user: the summary says so already
+    return [f"WARNING: the replay of {Path(f['bag']).name} was cut short: {f['followed']:.0%} of it "
+            f"followed when the run's duration ({report['duration_s']:g} s) ended; the replay takes "
+            f"{f['replay_s']:.1f} s (give a longer --duration, or, with --follow, none)"
+            for f in report.get("follow") or [] if not f["complete"]]
 
 
 def _clearance(report: dict[str, Any]) -> str:
@@ -131,9 +145,10 @@ def _clearance(report: dict[str, Any]) -> str:
     return f"{cap:g} m or more (measured up to {cap:g} m)" if value >= cap else f"{value:.2f} m"
 
 
-async def _run(loopback: Loopback) -> SimResult | None:
-    """Run the scenario; the first SIGINT/SIGTERM ends it as its duration would (brake, write the
-    report for the time driven), a second one stops at once (None)."""
+async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
+    """Run the scenario; the first SIGINT/SIGTERM (or one ``stops`` noted before the loop ran) ends
+    it as its duration would (brake, write the report for the time driven), a second one stops at
+    once (None)."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
 
@@ -143,7 +158,7 @@ async def _run(loopback: Loopback) -> SimResult | None:
         else:
             task.cancel()
 
-    remove = add_stop_handlers(loop, on_signal)
+    remove = add_stop_handlers(loop, on_signal, noted=stops)
     try:
         return await task
     except asyncio.CancelledError:

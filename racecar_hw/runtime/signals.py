@@ -5,41 +5,35 @@ a test harness that was itself started so) inherits SIGINT (and SIGQUIT) *ignore
 requires of such shells, and Python then leaves it ignored: ``asyncio.run`` installs its Ctrl-C
 handling only over Python's default handler, and ``KeyboardInterrupt`` is never raised. A
 ``racecar-hw fake-vesc`` started that way ran on after SIGINT until killed. Commands that serve
-until interrupted therefore install their handlers explicitly, here.
+until interrupted therefore install their handlers explicitly, here. Before that, from the start of
+``racecar-hw``, a stop signal interrupts the start-up (:mod:`racecar_hw.runtime.interrupts`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import signal
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
+
+from racecar_hw.runtime.interrupts import STOP_SIGNALS, StopSignals, interrupt_on_stop_signals
+
+__all__ = ["STOP_SIGNALS", "StopSignals", "add_stop_handlers", "interrupt_on_stop_signals",
+           "run_until_stop_signal"]
 
 T = TypeVar("T")
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
+def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int], None], *,
+                      noted: StopSignals | None = None) -> Callable[[], None]:
+    """``callback(signum)`` on SIGINT and SIGTERM in ``loop``; returns a function that removes them.
 
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def interrupt_on_stop_signals() -> Iterator[None]:
-    """Within the block, SIGINT and SIGTERM raise KeyboardInterrupt in the main thread."""
-    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int], None]) -> Callable[[], None]:
-    """``callback(signum)`` on SIGINT and SIGTERM in ``loop``; returns a function that removes them."""
+    ``noted``: the :class:`StopSignals` that covered the loop's start; a signal it noted is handed
+    to ``callback`` at once (as soon as the loop runs).
+    """
     for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, callback, sig)
+    if noted is not None and noted.noted is not None:
+        loop.call_soon(callback, noted.noted)
 
     def remove() -> None:
         for sig in STOP_SIGNALS:
@@ -51,13 +45,17 @@ def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int],
 def run_until_stop_signal(make: Callable[[], Coroutine[Any, Any, T]]) -> T | None:
     """Run the coroutine ``make()`` until it ends or SIGINT/SIGTERM cancels it (then None).
 
-    The coroutine is created inside the running loop, so a signal that arrives before the loop
-    starts leaves no coroutine "never awaited" behind.
+    Until the loop's own handlers are in place a signal is only noted, then handed to them: an
+    exception raised while ``asyncio.run`` builds its loop would leave a half-made loop behind
+    (and an "Exception ignored" traceback when it is collected). The coroutine is created inside
+    the running loop, so a signal that arrives before the loop starts leaves no coroutine "never
+    awaited" behind.
     """
+    stops = StopSignals()
 
     async def main() -> T | None:
         task = asyncio.ensure_future(make())
-        remove = add_stop_handlers(asyncio.get_running_loop(), lambda _sig: task.cancel())
+        remove = add_stop_handlers(asyncio.get_running_loop(), lambda _sig: task.cancel(), noted=stops)
         try:
             return await task
         except asyncio.CancelledError:
@@ -68,9 +66,9 @@ def run_until_stop_signal(make: Callable[[], Coroutine[Any, Any, T]]) -> T | Non
             remove()
 
     coro = main()
-    with interrupt_on_stop_signals():  # until the loop's own handlers are in place
+    with stops:
         try:
             return asyncio.run(coro)
         except KeyboardInterrupt:
-            coro.close()  # a signal before the loop ran it: not "never awaited"
+            coro.close()  # not "never awaited", whatever raised it
             return None

@@ -12,7 +12,8 @@ journald never blocks the loop.
 While the live panel is on a terminal, log records that would go to that terminal are printed
 through the panel's console instead (above the panel, which rich then redraws below them): a log
 line written behind the panel's back would scroll the screen and leave fragments of the box. The
-value columns have a fixed minimum width, so the box does not jump as numbers change.
+columns have a fixed width, so the box does not jump as values change; a value too long for its
+column ends in an ellipsis.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from rich.console import Console, RenderableType
+from rich.constrain import Constrain
 from rich.live import Live
 from rich.panel import Panel
 from rich.table import Table
@@ -146,24 +148,26 @@ def _style(label: str, s: StatusSnapshot) -> str:
     return ""
 
 
-#: Minimum column widths of the panel (characters), so it keeps its size as values change.
-LABEL_WIDTH, VALUE_WIDTH = 9, 30
+#: Widths of the panel and its label columns (characters): fixed, so the box keeps its size whatever
+#: the values (the value columns get 36 each); a longer value (a lost link with its counters) ends
+#: in an ellipsis, its start (the state) kept. The plain line has every value in full.
+PANEL_WIDTH, LABEL_WIDTH = 100, 9
 
 
 def render(s: StatusSnapshot, title: str = "racecar-hw") -> RenderableType:
-    """The snapshot as a rich panel of two label/value columns."""
-    grid = Table.grid(padding=(0, 2))
-    grid.add_column(style="bold cyan", no_wrap=True, min_width=LABEL_WIDTH)
-    grid.add_column(no_wrap=True, min_width=VALUE_WIDTH)
-    grid.add_column(style="bold cyan", no_wrap=True, min_width=LABEL_WIDTH)
-    grid.add_column(no_wrap=True, min_width=VALUE_WIDTH)
+    """The snapshot as a rich panel of two label/value columns, 100 columns wide (narrower only on
+    a narrower terminal, the values cut with an ellipsis)."""
+    grid = Table.grid(padding=(0, 2), expand=True)
+    for _pair in range(2):
+        grid.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
+        grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # the two share what is left
     cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)]
     for i in range(0, len(cells), 2):
         row: list[RenderableType] = [cells[i][0], cells[i][1]]
         if i + 1 < len(cells):
             row += [cells[i + 1][0], cells[i + 1][1]]
         grid.add_row(*row)
-    return Panel(grid, title=title, expand=False)
+    return Constrain(Panel(grid, title=title, expand=True), PANEL_WIDTH)
 
 
 class StatusPanel:

@@ -51,6 +51,12 @@ log = logging.getLogger(__name__)
 SAMPLE_PERIOD_S = 0.05
 MAX_SAMPLES = 200_000
 
+#: Seconds a run that lasts as long as its replay (``until_replay_ends``) goes on after the last
+#: command, for the car to come to rest.
+REPLAY_SETTLE_S = 1.0
+#: How much later than planned such a run waits for a replay held up by a loaded machine (s).
+REPLAY_LATE_MAX_S = 30.0
+
 #: Longest range the fake lidar casts, metres (UST-10LX: 10 m; others less matter little indoors).
 LIDAR_MAX_RANGE_M = {"urg-04lx": 5.6, "ust-10lx": 10.0, "ust-20lx": 20.0, "utm-30lx": 30.0,
                      "utm-30lx-ew": 30.0}
@@ -73,9 +79,13 @@ class Loopback:
     def __init__(self, scenario: Scenario, *, config_path: str | Path | None = None,
                  overrides: tuple[str, ...] | list[str] = (), out_dir: str | Path | None = None,
                  status: StatusPanel | None = None, duration_s: float | None = None,
+                 until_replay_ends: bool = False,
                  setup: Callable[[Loopback], None] | None = None) -> None:
         self.scenario = scenario
         self.duration_s = duration_s if duration_s is not None else scenario.duration_s
+        #: run as long as the follow drivers' replays (stretched for the reverse cap) and
+        #: :data:`REPLAY_SETTLE_S`, instead of the scenario's duration; ``duration_s`` wins
+        self.until_replay_ends = until_replay_ends and duration_s is None
         self._tmp = tempfile.TemporaryDirectory(prefix="racecar-hw-sim-")
         self.dev_dir = Path(self._tmp.name)
         self.out_dir = Path(out_dir) if out_dir is not None else None
@@ -103,6 +113,7 @@ class Loopback:
         self.ready_at_s: float | None = None
         self._mux_offset_s = 0.0
         self._followers: dict[int, BagFollower] = {}  # follow drivers' followers, loaded before the run
+        self._followed: dict[int, float] = {}  # follow drivers' fraction of their replay published
 
     # --- building -------------------------------------------------------------------------------
 
@@ -265,9 +276,26 @@ class Loopback:
                                    reverse_speed_cap_mps=reverse_speed_cap(self.config),
                                    limits=command_limits(self.config))
             self._followers[id(spec)] = follower
+            self._followed[id(spec)] = 0.0
+            follower.progress = lambda fraction, _eta: self._followed.__setitem__(id(spec), fraction)
         follower.bus = bus
         follower.load()
         return follower
+
+    def _replay_s(self, spec: DriverSpec) -> float:
+        """Seconds from a follow driver's first command to its last, as replayed (stretched when
+        the reverse cap slows it down)."""
+        steps = self._followers[id(spec)].load()
+        return steps[-1].offset_ns / NS_PER_S if steps else 0.0
+
+    def _replay_end_s(self) -> float:
+        """Scenario time (s) at which the last follow driver's replay ends (at its ``until_s``)."""
+        ends = []
+        for spec in self.scenario.drivers:
+            if spec.type == "follow":
+                end = spec.from_s + self._replay_s(spec)
+                ends.append(end if spec.until_s is None else min(end, spec.until_s))
+        return max(ends, default=0.0)
 
     async def _until(self, coro: Any, until_s: float | None) -> None:
         task = asyncio.ensure_future(coro)
@@ -372,6 +400,8 @@ class Loopback:
             for spec in self.scenario.drivers:
                 if spec.type == "follow":
                     await asyncio.to_thread(self._follower, spec, Bus())
+            if self.until_replay_ends and self._followers:
+                self.duration_s = self._replay_end_s() + REPLAY_SETTLE_S
             self.config = self._start_devices(config)
             assert self.world is not None
             created_ns = monotonic_ns()
@@ -399,6 +429,8 @@ class Loopback:
 
             async def timer() -> None:
                 await self._wait_until(self.duration_s)
+                if self.until_replay_ends:
+                    await self._wait_for_replays()
                 stop.set()
 
             self.daemon.add_task(timer())
@@ -408,6 +440,22 @@ class Loopback:
         finally:
             self.devices.stop()
             self._tmp.cleanup()
+
+    async def _wait_for_replays(self) -> None:
+        """A replay held up by a loaded machine ends later than planned: wait for it (at most
+        :data:`REPLAY_LATE_MAX_S`), then :data:`REPLAY_SETTLE_S` more."""
+        late = False
+        while not all(f.done for f in self._followers.values()):
+            if self.scenario_time() > self.duration_s + REPLAY_LATE_MAX_S:
+                log.warning("sim: the replay did not end %.0f s after it should have; stopping",
+                            REPLAY_LATE_MAX_S)
+                return
+            late = True
+            await asyncio.sleep(0.05)
+        if late:
+            log.info("sim: the replay ended %.2f s late (a held-up machine)",
+                     self.scenario_time() - self.duration_s + REPLAY_SETTLE_S)
+            await self._wait_until(self.scenario_time() + REPLAY_SETTLE_S)
 
     def request_stop(self, reason: str = "request") -> None:
         """End the run now (from the event loop), as if the duration had passed; the report says
@@ -440,6 +488,8 @@ class Loopback:
             "sim_time_s": round(sim_time, 3),
             "interrupted": self.stop_reason != "duration",
             "stop_reason": self.stop_reason,
+            "duration_s": round(self.duration_s, 3),
+            "follow": self._follow_report(),
             "ready_at_s": None if self.ready_at_s is None else round(self.ready_at_s, 3),
             "collided": world.collided,
             "collisions": [[round(c.t, 3), round(c.x, 3), round(c.y, 3)] for c in world.collisions],
@@ -489,6 +539,19 @@ class Loopback:
             result.trajectory_csv, result.plot_png = csv_path, png_path
         return result
 
+
+    def _follow_report(self) -> list[dict[str, Any]]:
+        """Each follow driver's replay: its length as replayed (s), the fraction of its commands
+        published, and whether it was followed to the end (``complete``)."""
+        out = []
+        for spec in self.scenario.drivers:
+            if spec.type == "follow" and id(spec) in self._followers:
+                followed = self._followed[id(spec)]
+                out.append({"bag": str(spec.bag), "reverse": spec.reverse,
+                            "replay_s": round(self._replay_s(spec), 3),
+                            "speed_scale": round(self._followers[id(spec)].speed_scale, 3),
+                            "followed": round(followed, 3), "complete": followed >= 1.0})
+        return out
 
     def _interventions(self) -> list[dict[str, Any]]:
         """Each intervention: when (world time), why, what caused it and where the car stopped.

@@ -1,0 +1,84 @@
+"""SIGINT and SIGTERM from a command's first moment: noted during start-up, then KeyboardInterrupt.
+
+``racecar-hw`` takes about a second to start (imports, building the argument parser). Python's own
+Ctrl-C handling then printed a ``KeyboardInterrupt`` traceback, SIGTERM killed the process
+wherever it was, and a process started as a background job of a non-interactive shell, which
+inherits SIGINT *ignored*, lost a SIGINT sent before the command installed its handlers (a
+``fake-vesc`` ran on for ten minutes). :func:`racecar_hw.cli.main` therefore handles both signals
+first of all, with :class:`StopSignals`:
+
+* while the modules are imported, a stop signal is only *noted*: an exception raised in the middle
+  of an import can come out as another error (Python wraps one raised while a class is created in
+  a ``RuntimeError``, with a traceback) or leave half-imported modules;
+* then :meth:`StopSignals.interrupt` raises ``KeyboardInterrupt`` for a noted signal, and for every
+  later one until the command installs its own handling (:mod:`racecar_hw.runtime.signals`);
+  ``main`` turns it into exit status :data:`INTERRUPTED`, without a traceback.
+
+This module imports nothing but :mod:`signal` and :mod:`contextlib`, so that it costs nothing
+before the handlers are in place. A signal in the few tens of milliseconds before (the interpreter
+starting) meets the disposition the process inherited: SIGTERM and a foreground SIGINT end it
+there, a SIGINT a background job inherited as ignored is discarded by the kernel.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+from collections.abc import Iterator
+from types import FrameType
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+#: The exit status of a command stopped by SIGINT or SIGTERM before it could finish (as a shell
+#: reports a program stopped by Ctrl-C): during start-up, a one-shot command, a second signal to
+#: ``sim``. Commands that serve until stopped exit 0 on a stop signal (their documented end).
+INTERRUPTED = 130
+
+
+def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def interrupt_on_stop_signals() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM raise KeyboardInterrupt in the main thread; the
+    handlers found are put back after it (an inherited "ignored" included)."""
+    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+class StopSignals:
+    """SIGINT and SIGTERM noted (:attr:`noted`) from ``with`` on, raised after :meth:`interrupt`.
+
+    Leaving the block puts back the handlers found on entering it.
+    """
+
+    def __init__(self) -> None:
+        #: the first stop signal received, None while there was none
+        self.noted: int | None = None
+        self._raising = False
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> StopSignals:
+        self._previous = {sig: signal.signal(sig, self._handle) for sig in STOP_SIGNALS}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+    def interrupt(self) -> None:
+        """From now on a stop signal raises KeyboardInterrupt; one noted before raises it at once."""
+        self._raising = True
+        if self.noted is not None:
+            raise KeyboardInterrupt
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.noted is None:
+            self.noted = signum
+        if self._raising:
+            raise KeyboardInterrupt
