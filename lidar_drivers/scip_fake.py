@@ -418,6 +418,11 @@ class FakeHokuyo:
                 if not data:
                     break
                 session.feed(data)
+        except asyncio.CancelledError:
+            # Ends the handler as a plain return: Python 3.11's start_server callback calls
+            # exception() on a cancelled handler task and logs a CancelledError traceback
+            # (fixed in 3.12), which a sim shutting down would print.
+            pass
         finally:
             self._drop(writer)
 

@@ -317,3 +317,25 @@ def test_classic_urg04lx_boots_in_scip11_until_switched(device_thread, tmp_path)
     run_client(f, "pty", scenario)
     with pytest.raises(ValueError, match="SCIP 1.1"):
         FakeHokuyo("ust-10lx", RoomRangeSource(8, 6), scip1=True)
+
+
+def test_a_loop_ending_with_a_client_still_connected_logs_no_traceback():
+    """asyncio.run cancels the connection's handler; Python 3.11's stream callback would log that."""
+    errors: list[dict] = []
+
+    async def main() -> None:
+        asyncio.get_running_loop().set_exception_handler(lambda _loop, context: errors.append(context))
+        fake = FakeHokuyo("ust-10lx", RoomRangeSource(8, 6), tcp=("127.0.0.1", 0))
+        asyncio.ensure_future(fake.serve())
+        assert await asyncio.to_thread(fake.ready.wait, 10)
+        _, writer = await asyncio.open_connection(*fake.tcp_address)
+        writer.write(b"VV\n")
+        await writer.drain()
+        deadline = time.monotonic() + 10
+        while not fake.received and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        assert list(fake.received) == ["VV"]
+        # returning here leaves serve() and the connection's handler for asyncio.run to cancel
+
+    asyncio.run(main())
+    assert errors == []
