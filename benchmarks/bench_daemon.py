@@ -246,7 +246,7 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
         {"name": "round trip fake lidar to fake VESC p50", "value": float(np.percentile(latency_ms, 50)),
          "unit": "ms", "target": None},
         {"name": "round trip fake lidar to fake VESC p99", "value": float(np.percentile(latency_ms, 99)),
-         "unit": "ms", "target": None},
+         "unit": "ms", "target": None, "samples": latency_ms},
         {"name": "host: CPU time stolen by the hypervisor", "unit": "% of busy",
          "value": 100.0 * (host1[1] - host0[1]) / max(1, host1[0] - host0[0]), "target": None},
     ]

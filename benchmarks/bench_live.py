@@ -12,7 +12,8 @@ The configurations run interleaved ``ROUNDS`` times (default 3), each leading a 
 (:mod:`rounds`), and each row is the median over the rounds, so a burst of load from elsewhere on a
 shared machine does not land on one side only. The p99 of a run is dominated by the time the loop
 thread spends off the CPU when the machine is shared; the daemon's CPU time in the scan path (its
-p99) is the part the live view can add.
+p99) is the part the live view can add. The round trip (fake lidar to fake VESC) is also given as
+one p99 over every scan of every round of a setting (:func:`rounds.pooled_p99`).
 
 Run ``python benchmarks/bench_live.py [SECONDS] [ROUNDS]``; ``run()`` returns the rows for run_all.py.
 """
@@ -31,7 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import bench_daemon
-from rounds import interleaved
+from rounds import interleaved, pooled_p99
 from table import print_rows
 
 ADDED_P99_TARGET = 0.05  # ms
@@ -131,10 +132,10 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
             clients.append(c)
             yield c
 
-    runs = interleaved({"off": lambda: _numbers(bench_daemon.run(seconds, config_extra=OFF)),
-                        "on": lambda: _numbers(bench_daemon.run(seconds, config_extra=ON, attach=attach)),
-                        "idle": lambda: _numbers(bench_daemon.run(seconds, config_extra=ON))}, rounds)
-    off, on, idle = runs["off"], runs["on"], runs["idle"]
+    raw = interleaved({"off": lambda: bench_daemon.run(seconds, config_extra=OFF),
+                       "on": lambda: bench_daemon.run(seconds, config_extra=ON, attach=attach),
+                       "idle": lambda: bench_daemon.run(seconds, config_extra=ON)}, rounds)
+    off, on, idle = ([_numbers(rows) for rows in raw[label]] for label in ("off", "on", "idle"))
 
     def median(runs: list[dict[str, float]], key: str) -> float:
         return statistics.median(r[key] for r in runs)
@@ -154,6 +155,12 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
                  "unit": "ms", "target": ADDED_P99_TARGET})
     rows.append({"name": "  of it the daemon's CPU time on the scan path, p99",
                  "value": median(on, "cpu_p99") - median(off, "cpu_p99"), "unit": "ms", "target": None})
+    for label, key in (("live view off", "off"), ("on with one client each", "on"),
+                       ("on with no client", "idle")):
+        rows.append({"name": f"round trip lidar to VESC, p99 of all rounds' scans, {label}",
+                     "value": pooled_p99(raw[key]), "unit": "ms", "target": None})
+    rows.append({"name": "round-trip p99 of all rounds added by the live view", "unit": "ms",
+                 "target": ADDED_P99_TARGET, "value": pooled_p99(raw["on"]) - pooled_p99(raw["off"])})
     rows.append({"name": "CPU share added by the live view", "value": median(on, "cpu") - median(off, "cpu"),
                  "unit": "%", "target": None})
     rows.append({"name": "Foxglove messages received per second (all channels)",

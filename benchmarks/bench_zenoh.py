@@ -15,7 +15,9 @@ figure-8 source, safety, recorder), one after the other in this one invocation:
 The settings of (a) run interleaved, ``ROUNDS`` times (default 3), each setting leading a round
 in turn (:mod:`rounds`), and each row is the median over the rounds. The
 p99 of the daemon's own CPU time in the scan path is shown too: unlike the wall-clock p99 it hardly
-moves with the other tenants of the machine.
+moves with the other tenants of the machine. So is the p99 of the round trip (fake lidar to fake
+VESC) over every scan of every round of a setting taken together (:func:`rounds.pooled_p99`),
+which rests on thousands of scans rather than on the eight slowest of one run.
 
 ``python benchmarks/bench_zenoh.py [SECONDS [ROUNDS]]``; ``run()`` returns the rows for run_all.py.
 """
@@ -28,7 +30,7 @@ import time
 
 import numpy as np
 from bench_daemon import run as run_daemon
-from rounds import interleaved
+from rounds import interleaved, pooled_p99
 from table import print_rows
 
 from vesc.codec import SetServoPosition
@@ -156,6 +158,12 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
                      "value": medians[label, cpu_p99] - medians["off", cpu_p99]})
         rows.append({"name": f"(c) CPU added, bridge {label}", "unit": "% of a core", "target": None,
                      "value": medians[label, cpu] - medians["off", cpu]})
+    for label in ("off", "on, no subscriber", "on, 3 subscribers"):
+        rows.append({"name": f"bridge {label}: round trip lidar to VESC, p99 of all rounds' scans",
+                     "value": pooled_p99(results[label]), "unit": "ms", "target": None})
+    for label in ("on, no subscriber", "on, 3 subscribers"):
+        rows.append({"name": f"(a) round-trip p99 of all rounds added, bridge {label}", "unit": "ms",
+                     "target": 0.05, "value": pooled_p99(results[label]) - pooled_p99(results["off"])})
     rows.extend(_callback_cost())
     rows.extend(r for r in trip if r["name"].startswith("(b)"))
     rows.append({"name": "(b) daemon CPU share with the remote client driving", "value": _pick(trip, cpu),

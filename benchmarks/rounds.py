@@ -10,6 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TypeVar
 
+import numpy as np
+
 T = TypeVar("T")
 
 
@@ -22,3 +24,17 @@ def interleaved(settings: dict[str, Callable[[], T]], rounds: int) -> dict[str, 
         for label in labels[k:] + labels[:k]:
             results[label].append(settings[label]())
     return results
+
+
+ROUND_TRIP_P99 = "round trip fake lidar to fake VESC p99"
+
+
+def pooled_p99(runs: list[list[dict]]) -> float:
+    """The p99 (ms) of every round-trip sample of ``runs`` (bench_daemon rows) taken together.
+
+    A p99 of one 20 s run rests on its 8 slowest scans, and the median of a few such p99s moves by
+    0.1 ms between runs of the same code on this host; thousands of samples from every round
+    pinned down together move far less.
+    """
+    samples = [row["samples"] for rows in runs for row in rows if row["name"] == ROUND_TRIP_P99]
+    return float(np.percentile(np.concatenate(samples), 99))
