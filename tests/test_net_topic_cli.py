@@ -17,7 +17,8 @@ def _topic(port: int, *args: str, timeout: float = 60) -> subprocess.CompletedPr
 
 def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     port = free_port()
-    sim = start_sim(tmp_path, port, duration=14.0)
+    # ended by SIGINT once the tools are done, however long they take on a loaded machine
+    sim = start_sim(tmp_path, port, duration=180.0)
     try:
         listed = _topic(port, "list", "-v")
         while "/scan" not in listed.stdout and sim.proc.poll() is None:  # the sim may still start
@@ -30,7 +31,7 @@ def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
                      "ackermann_msgs/msg/AckermannDriveStamped", "{drive: {speed: 0.4}}", "--rate", "20",
                      "--times", "20")
         bad = _topic(port, "pub", "/estop", "std_msgs/msg/Bool", "{data: maybe}")
-        report = sim.report()
+        report = sim.interrupt()
     finally:
         sim.kill()
     assert listed.returncode == 0, listed.stderr
@@ -42,7 +43,8 @@ def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     assert first["header"]["frame_id"] == "odom" and first["child_frame_id"] == "base_link"
     assert active.returncode == 0 and yaml.safe_load(active.stdout.split("---")[0])["data"] == "idle"
     rates = [float(m) for m in re.findall(r"average rate ([\d.]+) Hz", hz.stdout)]
-    assert rates and 30.0 < rates[-1] < 50.0, hz.stdout  # the UST-10LX's 40 Hz
+    # the UST-10LX's 40 Hz; a loaded machine makes the sim's fake lidar skip sweeps, never burst
+    assert rates and 20.0 < rates[-1] < 50.0, hz.stdout
     assert pub.returncode == 0 and pub.stdout.count("publishing #") == 20
     assert "nav_0" in switches(report)
     assert 0.3 < report["max_speed_mps"] < 0.5

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -42,6 +43,12 @@ class SimProcess:
         assert self.proc.returncode == 0, err[-3000:]
         self.log = err
         return json.loads((self.out / "report.json").read_text())
+
+    def interrupt(self, timeout: float = 120) -> dict:
+        """End the run now as Ctrl-C does (the report is written, marked interrupted) and read it."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        return self.report(timeout)
 
     def kill(self) -> None:
         if self.proc.poll() is None:
