@@ -83,9 +83,30 @@ def free_distance(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: 
 
     ``index`` is -1 when nothing within ``max_path_m`` is on the path.
     """
+    return free_distances(x, y, steering_rad, footprint, max_path_m, reverse, 0)[0]
+
+
+def free_distances(x: np.ndarray, y: np.ndarray, steering_rad: float, footprint: SweptFootprint,
+                   max_path_m: float, reverse: bool, first: int) -> tuple[PathHit, PathHit]:
+    """:func:`free_distance` over all the points and over the ``first`` ones only, from one sweep.
+
+    The second is what sweeping ``x[:first]``, ``y[:first]`` alone gives (the same point, the
+    same distance), without sweeping them again: each point's path length depends on that point
+    only. It is the first when that one's index is below ``first``.
+    """
+    miss = PathHit(max_path_m, -1)
     if len(x) == 0:
-        return PathHit(max_path_m, -1)
+        return miss, miss
     scale, band, values = _sweep(x, y, steering_rad, footprint, reverse)
+    hit = _nearest(band, values, scale, max_path_m)
+    if hit.index < first:  # -1 too: nothing on the path, nor among the first points
+        return hit, hit
+    k = int(np.searchsorted(band, first))  # band is in increasing order: its first k are < first
+    return hit, _nearest(band[:k], values[:k], scale, max_path_m)
+
+
+def _nearest(band: np.ndarray, values: np.ndarray, scale: float, max_path_m: float) -> PathHit:
+    """The nearest of the swept points ``band`` (see :func:`_sweep`) within ``max_path_m``."""
     if band.size == 0:
         return PathHit(max_path_m, -1)
     i = int(np.argmin(values))

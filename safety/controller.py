@@ -32,7 +32,7 @@ import numpy as np
 
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.messages import AckermannDrive, LaserScan
-from safety.arc import PathHit, SweptFootprint, free_distance, stopping_speed
+from safety.arc import PathHit, SweptFootprint, free_distances, stopping_speed
 from safety.memory import ObstacleMemory, plausible_increment
 from safety.params import SafetyParams
 
@@ -222,6 +222,7 @@ class SafetyController:
         self._hit_scan: _CachedScan | None = None
         self._hit_key: tuple[float, bool, float] | None = None
         self._hit = PathHit(math.nan, -1)
+        self._live_hit = self._hit  # the nearest of the live scan's own points on that path
         self._dirs_key: tuple[float, float, int] | None = None
         self._dirs = np.zeros(0, dtype=np.complex128)
         self._origin = complex(self._to_base[0, 2], self._to_base[1, 2])  # the laser in base_link
@@ -448,10 +449,13 @@ class SafetyController:
             return p.reverse_speed_cap_mps, math.nan, None, "reverse_cap"
         key = (steering, reverse, p.max_path_m)
         if scan is self._hit_scan and key == self._hit_key:
-            hit = self._hit  # the same scan and path as the last command: a control tick between scans
+            # the same scan and path as the last command: a control tick between scans
+            hit, live = self._hit, self._live_hit
         else:
-            hit = free_distance(scan.x, scan.y, steering, self.footprint, p.max_path_m, reverse)
-            self._hit_scan, self._hit_key, self._hit = scan, key, hit
+            # the nearest of the live scan's own points comes from the same sweep (for the name)
+            hit, live = free_distances(scan.x, scan.y, steering, self.footprint, p.max_path_m, reverse,
+                                       scan.live)
+            self._hit_scan, self._hit_key, self._hit, self._live_hit = scan, key, hit, live
         # a lidar slower than configured (its scan_time) is taken at its word, never a faster one
         sweep = max(p.scan_period_s, scan.sweep_s)
         latency = sweep + p.processing_s + p.command_transfer_s + max(age_ns, 0) / NS_PER_S
@@ -459,14 +463,12 @@ class SafetyController:
         obstacle = None
         if hit.index >= 0:
             index = hit.index
-            if index >= scan.live > 0:
-                # A remembered cell can sit up to a cell's diagonal nearer than the live return it
-                # came from: when the scan sees the same obstacle that close behind, the live scan
-                # names it (the distance stays the nearer, remembered one).
-                live = free_distance(scan.x[:scan.live], scan.y[:scan.live], steering, self.footprint,
-                                     p.max_path_m, reverse)
-                if live.index >= 0 and live.distance_m <= hit.distance_m + self._memory_cell_m:
-                    index = live.index
+            # A remembered cell can sit up to a cell's diagonal nearer than the live return it
+            # came from: when the scan sees the same obstacle that close behind, the live scan
+            # names it (the distance stays the nearer, remembered one).
+            if (index >= scan.live and live.index >= 0
+                    and live.distance_m <= hit.distance_m + self._memory_cell_m):
+                index = live.index
             obstacle = Obstacle(float(scan.x[index]), float(scan.y[index]), hit.distance_m,
                                 "scan" if index < scan.live else "memory")
         if reverse and p.reverse_speed_cap_mps < allowed:

@@ -14,6 +14,7 @@ from safety.arc import (
     STRAIGHT_RADIUS_M,
     SweptFootprint,
     free_distance,
+    free_distances,
     path_lengths,
     stopping_speed,
 )
@@ -148,6 +149,20 @@ def test_free_distance_is_the_minimum_path_length(seed: int, steering: float, re
     else:
         assert hit.distance_m == pytest.approx(best, abs=1e-9)
         assert lengths[hit.index] == pytest.approx(best, abs=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), steering=st.floats(-0.7, 0.7), reverse=st.booleans(),
+       n=st.integers(0, 60), first=st.integers(0, 70))
+def test_the_nearest_of_the_first_points_is_what_sweeping_them_alone_gives(seed: int, steering: float,
+                                                                          reverse: bool, n: int,
+                                                                          first: int) -> None:
+    # the live scan's points first, the remembered ones after them: one sweep names both
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(-2, 4, n), rng.uniform(-2, 2, n)
+    hit, nearest_first = free_distances(x, y, steering, CAR, 3.0, reverse, first)
+    assert hit == free_distance(x, y, steering, CAR, 3.0, reverse)
+    assert nearest_first == free_distance(x[:first], y[:first], steering, CAR, 3.0, reverse)
 
 
 def test_free_distance_picks_the_nearest_point_and_caps() -> None:

@@ -651,3 +651,25 @@ def test_a_wall_in_view_and_in_the_memory_is_named_by_the_live_scan() -> None:
         assert state.obstacle is not None and state.obstacle.source == "scan", dx
         assert state.reason == "obstacle" and out.speed < 3.0
         assert state.free_distance <= state.obstacle.x - FRONT + 1e-9
+
+
+def test_a_command_sweeps_the_path_once_with_the_memory_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The live scan names an obstacle whose remembered copy limits the path (above) from the same
+    sweep: the scan path pays for the remembered points, not for a second sweep of its own."""
+    import safety.arc
+
+    sweeps = []
+    sweep = safety.arc._sweep
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        sweeps.append(1)
+        return sweep(*args, **kwargs)
+
+    monkeypatch.setattr(safety.arc, "_sweep", counted)
+    ahead = [((1.0 + LASER_X + 0.03, -5.0), (1.0 + LASER_X + 0.03, 5.0))]
+    c = controller()
+    now = drive_along(c, straight((0.0, 0.0, 0.0), 0.2, speed=0.5), ahead)
+    sweeps.clear()
+    out, state = c.limit(drive(3.0), "nav", 0.5, now)
+    assert state.obstacle is not None and state.obstacle.source == "scan" and out.speed < 3.0
+    assert c.memory_active and len(sweeps) == 1
