@@ -5,7 +5,8 @@ figure-8 driver, the recorder writing MCAP).
 The Foxglove client is a raw WebSocket client (``foxglove.sdk.v1``) that subscribes to every channel
 the server advertises (more than any layout shows); the page client opens the status page's
 WebSocket as a browser does and takes its pushes (10 Hz, scan and band included). Both run in a
-thread of this process, so their own CPU time is not the daemon's.
+process of their own, as a viewer on a laptop would: their CPU time is not the daemon's, and their
+Python work does not delay this process's fakes, which time the round trip.
 
 A third configuration has both on with no client (the shipped default: they listen, but send nothing).
 The configurations run interleaved ``ROUNDS`` times (default 3), each leading a round in turn
@@ -25,8 +26,8 @@ import contextlib
 import json
 import re
 import statistics
+import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -41,86 +42,81 @@ ON = {"foxglove": {"enabled": True, "port": 0}, "web": {"enabled": True, "port":
 
 
 class Clients:
-    """One Foxglove client subscribed to everything and one status-page client, in a thread."""
+    """One Foxglove client subscribed to everything and one status-page client, in a process of their own.
+
+    As on a laptop, their Python work (taking 430 messages a second) does not share an interpreter
+    with the benchmark's fakes, whose reads time the round trip.
+    """
 
     def __init__(self, log_path: Path) -> None:
         self.log_path = log_path
         self.foxglove_messages = 0
         self.page_messages = 0
         self.channels = 0
-        self.started = self.ended = 0.0
-        self._stop = threading.Event()
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="bench-clients", daemon=True)
-
-    def _ports(self) -> tuple[int, int]:
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            text = self.log_path.read_text()
-            fox = re.search(r"foxglove: live view on ws://[^:]+:(\d+)", text)
-            web = re.search(r"web: status page on http://[^:]+:(\d+)/", text)
-            if fox and web:
-                return int(fox.group(1)), int(web.group(1))
-            time.sleep(0.1)
-        raise RuntimeError("the daemon did not log its live-view ports")
-
-    def _run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as err:  # noqa: BLE001 - reported by __enter__/__exit__
-            self._error = err
-            self._ready.set()
-
-    async def _main(self) -> None:
-        from websockets.asyncio.client import connect
-
-        fox_port, web_port = self._ports()
-        fox = await connect(f"ws://127.0.0.1:{fox_port}/", subprotocols=["foxglove.sdk.v1"], max_size=None)
-        page = await connect(f"ws://127.0.0.1:{web_port}/ws", origin=f"http://127.0.0.1:{web_port}")
-        channels: list[int] = []
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and len(channels) < 10:
-            frame = await asyncio.wait_for(fox.recv(), 10)
-            if isinstance(frame, str) and json.loads(frame)["op"] == "advertise":
-                channels += [ch["id"] for ch in json.loads(frame)["channels"]]
-        self.channels = len(channels)
-        await fox.send(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": i, "channelId": c} for i, c in enumerate(channels)]}))
-        self.started = time.monotonic()
-        self._ready.set()
-
-        async def count_fox() -> None:
-            async for _ in fox:
-                self.foxglove_messages += 1
-
-        async def count_page() -> None:
-            async for _ in page:
-                self.page_messages += 1
-
-        readers = [asyncio.ensure_future(count_fox()), asyncio.ensure_future(count_page())]
-        while not self._stop.is_set():
-            await asyncio.sleep(0.1)
-        self.ended = time.monotonic()
-        for task in readers:
-            task.cancel()
-        await fox.close()
-        await page.close()
-
-    @property
-    def elapsed(self) -> float:
-        return max(1e-9, self.ended - self.started)
+        self.elapsed = 1e-9
+        self._proc: subprocess.Popen[str] | None = None
 
     def __enter__(self) -> Clients:
-        self._thread.start()
-        self._ready.wait(30)
-        if self._error is not None or not self._ready.is_set():
-            raise RuntimeError(f"bench clients did not connect: {self._error!r}")
+        self._proc = subprocess.Popen([sys.executable, __file__, "--clients", str(self.log_path)],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert self._proc.stdout is not None
+        ready = self._proc.stdout.readline()  # the clients give up on their own within 30 s
+        if ready.strip() != "ready":
+            self._proc.kill()
+            raise RuntimeError(f"bench clients did not connect (exit {self._proc.wait()})")
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(10)
+        assert self._proc is not None
+        out, _ = self._proc.communicate("", timeout=30)  # closing stdin ends them
+        counts = json.loads(out.strip().splitlines()[-1])
+        self.foxglove_messages, self.page_messages = counts["foxglove"], counts["page"]
+        self.channels, self.elapsed = counts["channels"], max(1e-9, counts["elapsed"])
+
+
+def _ports(log_path: Path) -> tuple[int, int]:
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        text = log_path.read_text()
+        fox = re.search(r"foxglove: live view on ws://[^:]+:(\d+)", text)
+        web = re.search(r"web: status page on http://[^:]+:(\d+)/", text)
+        if fox and web:
+            return int(fox.group(1)), int(web.group(1))
+        time.sleep(0.1)
+    raise RuntimeError("the daemon did not log its live-view ports")
+
+
+async def _clients(log_path: Path) -> dict[str, float]:
+    """The clients' process: connect, say "ready", count until stdin closes, return the counts."""
+    from websockets.asyncio.client import connect
+
+    fox_port, web_port = await asyncio.to_thread(_ports, log_path)
+    fox = await connect(f"ws://127.0.0.1:{fox_port}/", subprotocols=["foxglove.sdk.v1"], max_size=None)
+    page = await connect(f"ws://127.0.0.1:{web_port}/ws", origin=f"http://127.0.0.1:{web_port}")
+    channels: list[int] = []
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and len(channels) < 10:
+        frame = await asyncio.wait_for(fox.recv(), 10)
+        if isinstance(frame, str) and json.loads(frame)["op"] == "advertise":
+            channels += [ch["id"] for ch in json.loads(frame)["channels"]]
+    await fox.send(json.dumps({"op": "subscribe", "subscriptions": [
+        {"id": i, "channelId": c} for i, c in enumerate(channels)]}))
+    counts = {"foxglove": 0, "page": 0}
+
+    async def count(name: str, ws: object) -> None:
+        async for _ in ws:  # type: ignore[attr-defined]
+            counts[name] += 1
+
+    readers = [asyncio.ensure_future(count("foxglove", fox)), asyncio.ensure_future(count("page", page))]
+    print("ready", flush=True)
+    started = time.monotonic()
+    await asyncio.to_thread(sys.stdin.read)
+    elapsed = time.monotonic() - started
+    for task in readers:
+        task.cancel()
+    await fox.close()
+    await page.close()
+    return {**counts, "channels": len(channels), "elapsed": elapsed}
 
 
 def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
@@ -185,6 +181,9 @@ def _numbers(rows: list[dict]) -> dict[str, float]:
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["--clients"]:
+        print(json.dumps(asyncio.run(_clients(Path(sys.argv[2])))), flush=True)
+        return
     seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
     rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
     print_rows(run(seconds, rounds))
