@@ -271,14 +271,31 @@ async def _stays_still(client: Client, odom: int, seconds: float) -> None:
         assert abs(_speed(client, await client.next_message(odom, time.monotonic()))) < 0.05
 
 
+async def _teleop_drives(client: Client, odom: int) -> Teleop:
+    """Start the Teleop Twist; returns once the car goes faster than 0.4 m/s."""
+    teleop = Teleop(client)
+    await teleop.start()
+    assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
+    return teleop
+
+
+async def _stops_and_stays(client: Client, odom: int) -> None:
+    await _speed_reaches(client, odom, lambda v: abs(v) < 0.02)
+    await _stays_still(client, odom, 1.5)
+
+
+async def _stops_when_let_go(client: Client, odom: int, teleop: Teleop) -> None:
+    """The tab closes: the teleop input times out and the car stops."""
+    await teleop.let_go()
+    await _speed_reaches(client, odom, lambda v: abs(v) < 0.02, timeout_s=10.0)
+
+
 def test_teleop_twist_drives_and_the_estop_service_stops_until_release(sim):
     async def main() -> None:
         client = await _client(sim.port("foxglove"))
         try:
             odom = await _odometry(client)
-            teleop = Teleop(client)
-            await teleop.start()
-            assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
+            teleop = await _teleop_drives(client, odom)
             log_from = len(sim.lines)
             response = await client.call("/racecar/estop", 1)
             assert response[4] == 1 and b"e-stop latched" in response
@@ -286,14 +303,11 @@ def test_teleop_twist_drives_and_the_estop_service_stops_until_release(sim):
             await asyncio.to_thread(
                 sim.wait_for, r"sim: e-stop from foxglove client \d+ .* fake VESC: brake SET_RPM 0 at "
                 r"wall .*, the first motor command written after the request$", start=log_from)
-            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02)
-            await _stays_still(client, odom, 1.5)  # while the Twist keeps coming
+            await _stops_and_stays(client, odom)  # while the Twist keeps coming
             response = await client.call("/racecar/release", 2)
             assert response[4] == 1
             assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
-            # the tab closes: the teleop input times out and the car stops
-            await teleop.let_go()
-            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02, timeout_s=10.0)
+            await _stops_when_let_go(client, odom, teleop)
         finally:
             await client.close()
 
@@ -306,20 +320,16 @@ def test_the_disarm_service_stops_every_source_until_armed_again(sim):
         try:
             odom = await _odometry(client)
             scene = await client.subscribe("/safety/scene")
-            teleop = Teleop(client)
-            await teleop.start()
-            assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
+            teleop = await _teleop_drives(client, odom)
             response = await client.call("/racecar/disarm", 21)
             assert response[4] == 1 and b"disarmed" in response
-            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02)
-            await _stays_still(client, odom, 1.5)  # the Twist keeps coming: disarmed stops it
+            await _stops_and_stays(client, odom)  # the Twist keeps coming: disarmed stops it
             label = client.decode_protobuf(
                 "/safety/scene", await client.next_message(scene, time.monotonic())).entities[0].texts[0].text
             assert label.endswith("(disarmed)"), label
             assert (await client.call("/racecar/arm", 22))[4] == 1
             assert await _speed_reaches(client, odom, lambda v: v > 0.4) > 0.4
-            await teleop.let_go()
-            await _speed_reaches(client, odom, lambda v: abs(v) < 0.02, timeout_s=10.0)
+            await _stops_when_let_go(client, odom, teleop)
         finally:
             await client.close()
 
