@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import wait_for
+from conftest import reaped, wait_for
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.rplidar_fake import FakeRplidar
@@ -72,7 +72,7 @@ def test_fake_lidar_process_serves_until_ctrl_c(capsys):
                              "ust-10lx", "--tcp", "127.0.0.1:0", "--room", "10x4"],
                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    try:
+    with reaped(proc):
         assert proc.stdout is not None
         line = proc.stdout.readline()
         port = re.search(r"tcp 127\.0\.0\.1:(\d+)", line)
@@ -82,10 +82,6 @@ def test_fake_lidar_process_serves_until_ctrl_c(capsys):
         assert "closest:    2.000 m" in capsys.readouterr().out  # 10 x 4 room: 2 m to the side
         proc.send_signal(signal.SIGINT)
         assert proc.wait(20) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
 
 
 def test_lidar_info_names_the_model_the_device_reports(device_thread, tmp_path, capsys):
@@ -105,7 +101,7 @@ def test_fake_rplidar_process_old_firmware_and_sigterm(tmp_path, capsys):
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-lidar", "--model", "a2m8",
                              "--link", str(link), "--firmware", "1.20"],
                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    try:
+    with reaped(proc):
         assert proc.stdout is not None
         assert "fake a2m8 at pty" in proc.stdout.readline()
         assert main(["lidar-info", "--port", str(link), "--model", "a2m8", "--timeout", "15"]) == 0
@@ -115,7 +111,3 @@ def test_fake_rplidar_process_old_firmware_and_sigterm(tmp_path, capsys):
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
         assert not link.exists()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)

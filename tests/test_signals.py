@@ -13,7 +13,7 @@ import warnings
 from pathlib import Path
 
 import pytest
-from conftest import NO_ZENOH, wait_for
+from conftest import NO_ZENOH, reaped, wait_for
 
 from racecar_hw.runtime import signals
 
@@ -91,14 +91,10 @@ def test_a_stop_signal_as_the_command_starts_ends_it_quietly(tmp_path, command, 
                              *[a.format(tmp=tmp_path) for a in argv]],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=_ignore_sigint)
-    try:
+    with reaped(proc):
         wait_for(lambda: _catches(proc.pid, stop) or proc.poll() is not None, timeout=60, interval=0.001)
         proc.send_signal(stop)
         out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert "Traceback" not in err and "Error" not in err, err
     if banner in out:  # a machine so loaded that the start-up was over first: the command's own end
         assert proc.returncode == 0, err
@@ -116,12 +112,8 @@ def test_a_sigterm_the_moment_the_process_exists_never_leaves_it_running(tmp_pat
                              *[a.format(tmp=tmp_path) for a in argv]],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     proc.send_signal(signal.SIGTERM)
-    try:
+    with reaped(proc):
         out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode in (-signal.SIGTERM, 130), (out, err)
     assert out == "" and err == ""
 
@@ -132,14 +124,10 @@ def test_a_stop_signal_after_the_banner_ends_fake_vesc_as_documented(tmp_path) -
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-vesc", "--link", str(link)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=_ignore_sigint)
-    try:
+    with reaped(proc):
         assert proc.stdout is not None
         assert "fake VESC" in proc.stdout.readline()
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 0 and "Traceback" not in err, err
     assert not link.exists()

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import NO_ZENOH
+from conftest import NO_ZENOH, reaped
 
 from racecar_hw.bags.record import Recorder, record_params
 from racecar_hw.base.bus import Bus
@@ -31,17 +31,13 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         # as a background job of a script inherits it: SIGINT ignored
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    try:
+    with reaped(proc):
         assert proc.stderr is not None
         for line in proc.stderr:  # the daemon runs (its INFO line); the figure-8 starts driving
             if "racecar-hw running" in line:
                 break
         proc.send_signal(stop)
         out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "never awaited" not in err
     report = json.loads((tmp_path / "report.json").read_text())

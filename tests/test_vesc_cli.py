@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import wait_for
+from conftest import reaped, wait_for
 
 from racecar_hw.cli import main
 from vesc.codec import GetValuesRequest
@@ -76,7 +76,7 @@ def test_fake_vesc_command_serves_until_ctrl_c(tmp_path, stop):
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "fake-vesc", "--link", str(link),
                              "--firmware", "3.40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             preexec_fn=ignore_sigint)
-    try:
+    with reaped(proc):
         wait_for(lambda: os.path.exists(link) or proc.poll() is not None)
         assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
         info = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "vesc-info", "--port", str(link)],
@@ -87,10 +87,6 @@ def test_fake_vesc_command_serves_until_ctrl_c(tmp_path, stop):
         assert proc.wait(30) == 0
         assert not os.path.exists(link)  # cleaned up: the pty's symlink is gone
         assert b"Traceback" not in (proc.stderr.read() if proc.stderr else b"")
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
 
 
 def test_vesc_info_into_a_closed_pipe_ends_quietly(tmp_path, device_thread):
