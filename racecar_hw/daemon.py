@@ -50,6 +50,7 @@ from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.links import LinkWatch
+from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
@@ -158,6 +159,9 @@ class Daemon:
         self.bus = bus if bus is not None else Bus()
         self.notifier = notifier if notifier is not None else Notifier.from_env()
         self.stats = ControlStats()
+        #: what the network surfaces refused (bad logins, forged frames, floods), for /diagnostics,
+        #: the panel, the status page and rate-limited log lines
+        self.refusals = Refusals()
         self.tf = TfTree.from_params(config.static_transforms)
         self.vesc: VescDriver | None = VescDriver(self.bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
@@ -577,6 +581,7 @@ class Daemon:
             self.cmd_vel.close()
         self.safety.close()
         self.mux.close()
+        self.refusals.flush()
         self.notifier.close()
         # A daemon run inside a longer-lived process (the sim, tests) leaves it as it found it.
         gc.unfreeze()
