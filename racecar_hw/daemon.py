@@ -46,9 +46,11 @@ from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
+from racecar_hw.net.gate import quiet_accept_errors
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
@@ -206,6 +208,8 @@ class Daemon:
         self._diagnostics_every = max(1, round(config.mux.rate_hz / config.mux.diagnostics_rate_hz))
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
+        self._file_limit: FileLimit | None = None
+        self._restore_exception_handler: Callable[[], None] | None = None
         self._build_live()
         self.bus.subscribe(config.mux.output_topic, self._on_output)
         # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
@@ -402,9 +406,11 @@ class Daemon:
         self.foxglove = (FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
                                         parameters=to_dict(config), teleop_input=teleop,
                                         wheelbase_m=config.vesc.wheelbase_m,
-                                        max_steering_rad=config.vesc.steering_max_rad)
+                                        max_steering_rad=config.vesc.steering_max_rad,
+                                        refusals=self.refusals)
                          if config.foxglove.enabled else None)
-        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic)
+        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic,
+                              refusals=self.refusals)
                     if config.web.enabled else None)
 
     def live_state(self) -> LiveState:
@@ -432,7 +438,8 @@ class Daemon:
             vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
             lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
             lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
-            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0)
+            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
+            control_ticks=self.stats.ticks, control_missed_ticks=self.stats.missed_ticks)
 
     def engage_estop(self, who: str) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
@@ -488,6 +495,10 @@ class Daemon:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
+        # every socket takes a descriptor: take what the system allows, and let an accept() that
+        # still finds none be a counted line, not a traceback a second (see docs/security.md)
+        self._file_limit = raise_open_file_limit()
+        self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
         if self.zenoh is not None:
             try:
                 await loop.run_in_executor(None, self.zenoh.open, loop)
@@ -588,3 +599,9 @@ class Daemon:
         if self._switch_interval is not None:
             sys.setswitchinterval(self._switch_interval)
             self._switch_interval = None
+        if self._file_limit is not None:
+            self._file_limit.restore()
+            self._file_limit = None
+        if self._restore_exception_handler is not None:
+            self._restore_exception_handler()
+            self._restore_exception_handler = None

@@ -203,3 +203,120 @@ def test_any_request_head_parses_or_is_refused_without_an_exception(head):
     if request is not None:
         assert isinstance(request.is_websocket_upgrade, bool)
         assert request.token is None or isinstance(request.token, str)
+
+
+# --- the connection gate: a cap, a head timeout, an idle timeout (racecar_hw.net.gate) -----------
+
+PARTIAL = b"GET /?token=t0k HTTP/1.1\r\nHost: 127.0.0.1\r\n"  # a head that is never finished
+
+
+async def _closed_by_server(reader: asyncio.StreamReader, timeout_s: float = DEADLINE_S) -> bool:
+    """Whether the server closes (or resets) the connection within ``timeout_s``, reading what comes."""
+    try:
+        async with asyncio.timeout(timeout_s):
+            while await reader.read(65536):
+                pass
+    except TimeoutError:
+        return False
+    except OSError:
+        pass  # reset: closed at once
+    return True
+
+
+async def _upgraded(port: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(UPGRADE % b"t0k")
+    head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), DEADLINE_S)
+    assert head.startswith(b"HTTP/1.1 101 ")
+    return reader, writer
+
+
+def test_beyond_the_cap_half_open_connections_make_room_and_then_new_ones_are_closed_at_once(tls):
+    from racecar_hw.net.gate import EVICTED, TOO_MANY, ConnectionLimits
+
+    cert_pem, context = tls
+    limits = ConnectionLimits(max_connections=4, head_timeout_s=60.0, idle_timeout_s=600.0)
+
+    async def main() -> None:
+        async with EchoUpstream(context) as upstream:
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k", limits=limits)) as relay:
+                half_open = []
+                for _ in range(4):
+                    reader, writer = await asyncio.open_connection("127.0.0.1", relay.port)
+                    writer.write(PARTIAL)
+                    await writer.drain()
+                    half_open.append((reader, writer))
+                # the cap is reached with unfinished requests: each viewer closes the oldest of them
+                viewers = []
+                for i in range(4):
+                    viewers.append(await _upgraded(relay.port))
+                    assert await _closed_by_server(half_open[i][0])
+                # four viewers in use: a fifth connection is closed at once, before it says anything
+                reader, writer = await asyncio.open_connection("127.0.0.1", relay.port)
+                assert await _closed_by_server(reader)
+                writer.close()
+                for reader, writer in viewers:  # and the viewers are untouched
+                    writer.write(b"ping")
+                    assert await asyncio.wait_for(reader.readexactly(4), DEADLINE_S) == b"ping"
+                    writer.close()
+                for _, writer in half_open:
+                    writer.close()
+                assert relay.refusals.total("relay", EVICTED) == 4
+                assert relay.refusals.total("relay", TOO_MANY) == 1
+                assert len(upstream.heads) == 4
+
+    asyncio.run(main())
+
+
+def test_an_unfinished_request_head_is_closed_after_the_head_timeout_and_a_silent_one_when_idle(tls):
+    from racecar_hw.net.gate import HEAD_LATE, IDLE, ConnectionLimits
+
+    cert_pem, context = tls
+    limits = ConnectionLimits(max_connections=8, head_timeout_s=0.5, idle_timeout_s=2.0)
+
+    async def main() -> None:
+        async with EchoUpstream(context) as upstream:
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k", limits=limits)) as relay:
+                slow, slow_writer = await asyncio.open_connection("127.0.0.1", relay.port)
+                slow_writer.write(PARTIAL)
+                talking = await _upgraded(relay.port)
+                silent = await _upgraded(relay.port)
+                assert await _closed_by_server(slow)
+                assert relay.refusals.total("relay", HEAD_LATE) == 1
+                # a viewer whose bytes keep moving stays past the head timeout and the idle timeout;
+                # the silent one is closed once idle
+                loop = asyncio.get_running_loop()
+                deadline = loop.time() + DEADLINE_S
+                reader, writer = talking
+                while relay.refusals.total("relay", IDLE) == 0:
+                    assert loop.time() < deadline, "the silent viewer was never closed"
+                    writer.write(b"x")
+                    assert await asyncio.wait_for(reader.readexactly(1), DEADLINE_S) == b"x"
+                    await asyncio.sleep(0.1)
+                assert await _closed_by_server(silent[0])
+                writer.write(b"still here")
+                assert await asyncio.wait_for(reader.readexactly(10), DEADLINE_S) == b"still here"
+                for _, w in (talking, silent):
+                    w.close()
+                slow_writer.close()
+                assert relay.refusals.total("relay", IDLE) == 1
+
+    asyncio.run(main())
+
+
+def test_a_thousand_refused_requests_log_a_few_summary_lines(tls, caplog):
+    cert_pem, context = tls
+
+    async def main() -> None:
+        async with EchoUpstream(context) as upstream:
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k")) as relay:
+                for _ in range(1000):
+                    assert (await _status(relay.port, UPGRADE % b"wrong"))[0] == 401
+                assert relay.refusals.total("relay") == 1000
+                assert relay.refusals.by_source() == {
+                    ("relay", "127.0.0.1", "upgrade without the token (401)"): 1000}
+
+    with caplog.at_level("INFO"):
+        asyncio.run(main())
+    lines = [r for r in caplog.records if "refused" in r.getMessage()]
+    assert 1 <= len(lines) <= 3, [r.getMessage() for r in lines]

@@ -62,6 +62,8 @@ class LiveState:
     lidar_scan_age_s: float | None
     lidar_rate_hz: float | None
     lidar_reconnects: int
+    control_ticks: int = 0              #: control loop ticks since the start
+    control_missed_ticks: int = 0       #: ticks the loop was too late for (a held-up machine)
 
     @property
     def safety_colour(self) -> str:
