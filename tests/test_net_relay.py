@@ -272,7 +272,7 @@ def test_an_unfinished_request_head_is_closed_after_the_head_timeout_and_a_silen
     from racecar_hw.net.gate import HEAD_LATE, IDLE, ConnectionLimits
 
     cert_pem, context = tls
-    limits = ConnectionLimits(max_connections=8, head_timeout_s=0.5, idle_timeout_s=2.0)
+    limits = ConnectionLimits(max_connections=8, head_timeout_s=0.5, idle_timeout_s=3.0)
 
     async def main() -> None:
         async with EchoUpstream(context) as upstream:
@@ -304,19 +304,45 @@ def test_an_unfinished_request_head_is_closed_after_the_head_timeout_and_a_silen
     asyncio.run(main())
 
 
-def test_a_thousand_refused_requests_log_a_few_summary_lines(tls, caplog):
+def test_refused_requests_log_one_summary_line_per_source_and_reason_per_interval(tls, caplog):
+    from racecar_hw.runtime.refusals import Refusals
+
     cert_pem, context = tls
+    refusals = Refusals(interval_s=600.0)  # longer than the test: exactly the first line
 
     async def main() -> None:
         async with EchoUpstream(context) as upstream:
-            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k")) as relay:
-                for _ in range(1000):
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k",
+                               refusals=refusals)) as relay:
+                for _ in range(300):
                     assert (await _status(relay.port, UPGRADE % b"wrong"))[0] == 401
-                assert relay.refusals.total("relay") == 1000
+                assert (await _status(relay.port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"))[0] == 400
                 assert relay.refusals.by_source() == {
-                    ("relay", "127.0.0.1", "upgrade without the token (401)"): 1000}
+                    ("relay", "127.0.0.1", "not a WebSocket upgrade (400)"): 1,
+                    ("relay", "127.0.0.1", "upgrade without the token (401)"): 300}
 
     with caplog.at_level("INFO"):
         asyncio.run(main())
-    lines = [r for r in caplog.records if "refused" in r.getMessage()]
-    assert 1 <= len(lines) <= 3, [r.getMessage() for r in lines]
+    lines = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+    assert len(lines) == 2 and all(line.startswith("relay: refused 127.0.0.1: ") for line in lines), lines
+    refusals.flush()  # at shutdown: the rest, counted
+    assert "299 times" in caplog.records[-1].getMessage()
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.lists(st.sampled_from([b"\r", b"\n", b"\r\n", b"a", b"GET / HTTP/1.1", b"\r\n\r\n", b"\x00"]),
+                max_size=40),
+       st.lists(st.integers(min_value=0, max_value=200), max_size=10))
+def test_the_gate_sees_a_head_end_however_the_reads_split_it(pieces, cuts):
+    from racecar_hw.net.gate import HEAD_END, head_end
+
+    stream = b"".join(pieces)
+    points = sorted({min(c, len(stream)) for c in cuts} | {0, len(stream)})
+    ended, tail = False, b""
+    for start, stop in zip(points, points[1:], strict=False):
+        ended, tail = head_end(tail, stream[start:stop])
+        assert len(tail) < len(HEAD_END)
+        if ended:
+            assert HEAD_END in stream[:stop]
+            break
+    assert ended == (HEAD_END in stream)

@@ -216,11 +216,7 @@ class _Guarded(asyncio.Protocol):
             return  # refused or closed by the gate: nothing more reaches the server
         conn.last = self._gate._clock()  # noqa: SLF001
         if not conn.head_done:
-            seen = conn.tail + data
-            if HEAD_END in seen:
-                conn.head_done, conn.tail = True, b""
-            else:
-                conn.tail = seen[-(len(HEAD_END) - 1):]
+            conn.head_done, conn.tail = head_end(conn.tail, data)
         self._inner.data_received(data)
 
     def eof_received(self) -> bool | None:
@@ -239,6 +235,18 @@ class _Guarded(asyncio.Protocol):
     def resume_writing(self) -> None:
         if self._inner is not None:
             self._inner.resume_writing()
+
+
+def head_end(tail: bytes, data: bytes) -> tuple[bool, bytes]:
+    """Whether a request head ends in ``data``, given the ``tail`` kept from the reads before it.
+
+    Returns (ended, the tail to keep for the next read): the head's end, ``\r\n\r\n``, may be split
+    across reads, so the last three bytes are kept, never more.
+    """
+    seen = tail + data
+    if HEAD_END in seen:
+        return True, b""
+    return False, seen[-(len(HEAD_END) - 1):]
 
 
 def _source(transport: asyncio.BaseTransport) -> str:
