@@ -14,11 +14,15 @@ relay listens on ``foxglove.host:port`` and decides on each connection's first r
   Origin and pass. This is what keeps a page of some other site, open in a browser on this machine
   (or on a laptop with an ``ssh -L`` tunnel to the car), from releasing the e-stop, arming or driving.
 
-A request that is not a WebSocket upgrade gets 400. An admitted client's request goes to the SDK's
-server as it came, and from then on the relay copies bytes both ways without reading them: the
-WebSocket handshake and the subprotocol are the SDK's and the client's business. Refused clients never
-reach it. The relay runs in a thread of its own with its own event loop, niced like the sender thread,
-so relaying scans to a viewer never runs in the control loop.
+A request that is not a WebSocket upgrade gets 400. Every refusal is counted per source and reason
+(surface ``"relay"``) in :class:`~racecar_hw.runtime.refusals.Refusals`, which logs summaries. Every
+connection passes a :class:`~racecar_hw.net.gate.ConnectionGate` before this relay reads it: a cap on
+connections, a timeout for the request head, and one for idleness (nothing moved either way).
+
+An admitted client's request goes to the SDK's server as it came, and from then on the relay copies
+bytes both ways without reading them: the WebSocket handshake and the subprotocol are the SDK's and the
+client's business. Refused clients never reach it. The relay runs in a thread of its own with its own
+event loop, niced like the sender thread, so relaying scans to a viewer never runs in the control loop.
 
 Why bytes and not WebSocket messages: a WebSocket proxy (aiohttp's, as before) parses and re-frames
 every message in Python, about 3.5 % of a core for one viewer of every channel (430 messages a

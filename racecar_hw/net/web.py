@@ -15,7 +15,11 @@ Endpoints (each needs the token when one is set: ``?token=`` or ``Authorization:
 Security: loopback needs no token unless one is configured; any other bind needs one (configured, or
 generated and printed at start), and requests without it get 401. WebSocket upgrades and POSTs from a
 browser must come from the page's own origin (403 otherwise); without a token the ``Host`` must name
-this machine (DNS rebinding).
+this machine (DNS rebinding). Refused requests are counted per source and reason in the daemon's
+:class:`~racecar_hw.runtime.refusals.Refusals` (surface ``"web"``), which logs summaries, not a line
+each. Every connection passes a :class:`~racecar_hw.net.gate.ConnectionGate` first: at most
+``max_connections`` at once, the request head within ``head_timeout_s``, closed after
+``idle_timeout_s`` with nothing received.
 
 The push work runs right after a scan's motor command is out (:meth:`WebServer.control_idle`), in the
 gap before the next scan, and only while a page is open; a client that cannot keep up skips frames.
