@@ -506,6 +506,7 @@ class Daemon:
                 for coro in self._extra:  # never started: no "coroutine was never awaited"
                     coro.close()
                 self._extra = []
+                self._restore_process()
                 raise
         self._publish_static_transforms()
         if self.recorder is not None:
@@ -599,6 +600,10 @@ class Daemon:
         if self._switch_interval is not None:
             sys.setswitchinterval(self._switch_interval)
             self._switch_interval = None
+        self._restore_process()
+
+    def _restore_process(self) -> None:
+        """Put back the open-file limit and the loop's exception handler run() changed."""
         if self._file_limit is not None:
             self._file_limit.restore()
             self._file_limit = None
