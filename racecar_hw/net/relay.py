@@ -60,8 +60,8 @@ log = logging.getLogger(__name__)
 MAX_HEAD = 16 * 1024
 #: The SDK's server must accept the relay's connection within this (seconds).
 UPSTREAM_TIMEOUT_S = 10.0
-#: Refused browser origins named in the log (each once); the rest are only counted.
-MAX_ORIGINS_NAMED = 8
+#: Refused browser origins (with their User-Agent) named in the log, each once; the rest are counted.
+MAX_ORIGINS_NAMED = 16
 #: Largest read copied at once (bytes).
 CHUNK = 256 * 1024
 
@@ -123,7 +123,7 @@ class Relay:
         self.refused = 0
         self.refusals = refusals if refusals is not None else Refusals()
         self.gate = ConnectionGate("relay", limits or ConnectionLimits(), self.refusals)
-        self._origins_named: set[str | None] = set()
+        self._origins_named: set[tuple[str | None, str]] = set()  # (Origin, User-Agent) named in the log
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._stopped: asyncio.Event | None = None
@@ -245,10 +245,11 @@ class Relay:
             return None
         self.refused += 1
         self.refusals.note("relay", remote, "browser page of a foreign origin (403)")
-        if len(self._origins_named) < MAX_ORIGINS_NAMED and origin not in self._origins_named:
-            # the operator needs the origin to allow a viewer of theirs; named once each, a few at most
-            # (an attacker chooses it freely)
-            self._origins_named.add(origin)
+        agent = (request.headers.get("User-Agent") or "")[:200]
+        if len(self._origins_named) < MAX_ORIGINS_NAMED and (origin, agent) not in self._origins_named:
+            # the operator needs the origin (and the client: a desktop app that changed its User-Agent)
+            # to allow a viewer of theirs; named once each, a few at most (an attacker chooses both)
+            self._origins_named.add((origin, agent))
             log.warning("foxglove: refused a browser page from %r: a page of another site must not drive "
                         "the car; if it is a viewer of yours, add its origin to foxglove.allowed_origins",
                         origin[:100] if origin else origin)
