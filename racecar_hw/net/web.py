@@ -177,17 +177,17 @@ class WebServer:
         if not token_ok(given, self.token):
             self.refused += 1
             self.refusals.note("web", request.remote or "unknown", "request without the token (401)")
-            return web.Response(status=401, text="401: this page needs its token: open the URL printed "
-                                                 "at start (…/?token=…)\n")
+            return _closing(web.Response(status=401, text="401: this page needs its token: open the URL "
+                                                          "printed at start (…/?token=…)\n"))
         if not self.token and not local_host_header(request.host):
             self.refused += 1
             self.refusals.note("web", request.remote or "unknown", "foreign Host header (403)")
-            return web.Response(status=403, text="403: open the page as localhost or 127.0.0.1\n")
+            return _closing(web.Response(status=403, text="403: open the page as localhost or 127.0.0.1\n"))
         browser_write = request.method == "POST" or request.headers.get("Upgrade", "").lower() == "websocket"
         if browser_write and not same_origin(request.headers.get("Origin"), request.host):
             self.refused += 1
             self.refusals.note("web", request.remote or "unknown", "cross-origin request (403)")
-            return web.Response(status=403, text="403: cross-origin request refused\n")
+            return _closing(web.Response(status=403, text="403: cross-origin request refused\n"))
         return await handler(request)
 
     # --- handlers -------------------------------------------------------------------------------
@@ -300,6 +300,12 @@ class WebServer:
         r, a = r[ok], a[ok] + lyaw
         xy = np.column_stack([lx + r * np.cos(a), ly + r * np.sin(a)])
         return np.round(xy, 2).ravel().tolist()
+
+
+def _closing(response: web.Response) -> web.Response:
+    """``response``, and the connection closes after it: a refused client keeps no connection slot."""
+    response.force_close()
+    return response
 
 
 def _forget(task: asyncio.Task[Any]) -> None:
