@@ -33,6 +33,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
+from mux.estop import REFUSED_ASSERTED
 from mux.params import MuxParams
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError, RacecarError
@@ -432,6 +433,7 @@ class Car:
             return
         self.publish(self.mux.estop_topic, Bool(False))
         self.publish(self.mux.estop_release_topic, Bool(True))
+        retried = False
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -440,6 +442,12 @@ class Car:
             if status.state == "running":
                 return
             if status.release_refusals > before.release_refusals:
+                if not retried and status.last_refusal.endswith(REFUSED_ASSERTED):
+                    # the release overtook our own "false" (two topics, two of Zenoh's threads):
+                    # once more, now that the false is in
+                    retried, before = True, status
+                    self.publish(self.mux.estop_release_topic, Bool(True))
+                    continue
                 raise ClientError(f"the daemon refused the release: {status.last_refusal} "
                                   f"(the e-stop was {status.estop})")
 
