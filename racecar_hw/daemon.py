@@ -174,7 +174,12 @@ class Daemon:
         self.arming = Arming.from_params(config.arming)
         self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
                         if config.gamepad.enabled else None)
-        self.keyboard = KeyboardTeleop(self.bus, config.keyboard) if config.keyboard.enabled else None
+        keyboard = Origin("keyboard", "keyboard")
+        self.keyboard = (KeyboardTeleop(self.bus, config.keyboard,
+                                        on_estop=lambda: self.engage_estop(keyboard),
+                                        on_release=lambda: log.warning("keyboard: %s",
+                                                                       self.release_estop(keyboard)[1]))
+                         if config.keyboard.enabled else None)
         self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
