@@ -202,3 +202,21 @@ def test_the_rule_a_topic_never_releases_what_anything_else_engaged(engagers, re
         assert why == REFUSED_OPERATOR_LATCH
     else:
         assert why is None
+
+
+def test_the_panel_says_who_latched_the_estop_on_a_line_of_its_own():
+    import io
+
+    from rich.console import Console
+
+    from racecar_hw.runtime.status import StatusSnapshot, plain_line, render
+
+    _bus, mux = _mux()
+    mux.engage_estop("e-stop from web page", WEB)
+    snap = StatusSnapshot(speed_mps=0.0, mux_source="estop", estop=mux.estop_text())
+    out = io.StringIO()
+    Console(file=out, width=100, color_system=None).print(render(snap))
+    row = next(line for line in out.getvalue().splitlines() if "e-stop" in line)
+    assert f"latched by web page (127.0.0.1) at {_clock(WALL_NS)}" in row  # in full, not cut
+    assert f"e-stop latched by web page (127.0.0.1) at {_clock(WALL_NS)}" in plain_line(snap)
+    assert "e-stop" not in plain_line(StatusSnapshot())  # never engaged: no line
