@@ -172,7 +172,11 @@ class Daemon:
         self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True,
                                  steering_limit_rad=config.vesc.steering_max_rad)
         self.arming = Arming.from_params(config.arming)
-        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
+        pad = Origin("gamepad", "gamepad")
+        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming,
+                                      on_estop=lambda: self.engage_estop(pad),
+                                      on_release=lambda: log.warning("gamepad: %s",
+                                                                     self.release_estop(pad)[1]))
                         if config.gamepad.enabled else None)
         keyboard = Origin("keyboard", "keyboard")
         self.keyboard = (KeyboardTeleop(self.bus, config.keyboard,
