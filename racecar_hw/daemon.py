@@ -264,6 +264,22 @@ class Daemon:
         if name is not None and self._control_alive(now):
             self.mux.step_early(name, now, self.filters)
 
+    def network_estop(self, topic: str, msg: Message, who: str) -> None:
+        """An e-stop or release message from a network session (``who``: ``zenoh``), in the loop.
+
+        It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
+        release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
+        now, as the live interfaces' e-stops do.
+        """
+        now = monotonic_ns()
+        frames = self.vesc.stats.frames_tx if self.vesc is not None else None
+        was_running = self.mux.state is MuxState.RUNNING
+        self.mux.publish_from(Origin("network", who), topic, msg)
+        if was_running and self.mux.state is not MuxState.RUNNING:
+            self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
+            if self._control_alive(now):
+                self.mux.step(now, self.filters)
+
     def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
         self._extra.append(coro)
@@ -467,22 +483,6 @@ class Daemon:
         if self.mux.state.value == "fault":
             why += f" ({self.mux.machine.reason})"
         return False, f"refused: {why}"
-
-    def network_estop(self, topic: str, msg: Message, who: str) -> None:
-        """An e-stop or release message from a network session (``who``: ``zenoh``), in the loop.
-
-        It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
-        release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
-        now, as the live interfaces' e-stops do.
-        """
-        now = monotonic_ns()
-        frames = self.vesc.stats.frames_tx if self.vesc is not None else None
-        was_running = self.mux.state is MuxState.RUNNING
-        self.mux.publish_from(Origin("network", who), topic, msg)
-        if was_running and self.mux.state is not MuxState.RUNNING:
-            self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
-            if self._control_alive(now):
-                self.mux.step(now, self.filters)
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""
