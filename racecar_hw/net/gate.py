@@ -180,6 +180,8 @@ class ConnectionGate:
         self.refusals.note(self.surface, source, reason)
 
     def _check(self) -> None:
+        if self._loop is not None and self._timer is not None:  # the next check first, come what may
+            self._timer = self._loop.call_later(self._period, self._check)
         now = self._clock()
         head_s, idle_s = self.limits.head_timeout_s, self.limits.idle_timeout_s
         for conn in list(self._conns.values()):
@@ -187,8 +189,6 @@ class ConnectionGate:
                 self._drop(conn, HEAD_LATE)
             elif now - conn.last >= idle_s:
                 self._drop(conn, IDLE)
-        if self._loop is not None and self._timer is not None:
-            self._timer = self._loop.call_later(self._period, self._check)
 
 
 class _Guarded(asyncio.Protocol):
