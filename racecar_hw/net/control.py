@@ -62,6 +62,9 @@ class LiveState:
     lidar_scan_age_s: float | None
     lidar_rate_hz: float | None
     lidar_reconnects: int
+    #: what the network surfaces refused: (surface, reason, total since start) of each kind
+    refused: tuple[tuple[str, str, int], ...] = ()
+    refused_recently: bool = False  #: anything refused in the last few seconds
 
     @property
     def safety_colour(self) -> str:

@@ -47,9 +47,10 @@ class StatusSnapshot:
     Speed in m/s (rear axle, negative in reverse), steering in rad (positive left), battery in V,
     scan rate in Hz, the safety controller's state and the speed it allows (m/s), each device's
     link state (``up``, ``connecting 3 s``, ``lost since 14:02:31 (35 s)``) and counters, whether
-    the car is armed (None: no arming input configured), and, when running on fake hardware, the
-    simulator's time (s), the car's pose in the map frame (x m, y m, yaw rad) and its clearance to
-    the nearest wall or obstacle (m).
+    the car is armed (None: no arming input configured), what the network surfaces refused
+    (:meth:`racecar_hw.runtime.security_status.SecurityStatus.line`; None: nothing yet), and, when
+    running on fake hardware, the simulator's time (s), the car's pose in the map frame (x m, y m,
+    yaw rad) and its clearance to the nearest wall or obstacle (m).
     """
 
     speed_mps: float | None = None
@@ -68,6 +69,7 @@ class StatusSnapshot:
     lidar_link: str | None = None
     sim_time_s: float | None = None
     clearance_m: float | None = None
+    refused: str | None = None
 
 
 #: What a non-finite reading shows: a summary never says ``nan``.
@@ -119,6 +121,8 @@ def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
         ("lidar", _link(s.lidar_link, f"reconnects {s.lidar_reconnects}")),
         ("armed", _armed(s.armed)),
     ]
+    if s.refused is not None:
+        fields.append(("refused", s.refused))
     if s.sim_time_s is not None:
         fields.append(("sim time", _num(s.sim_time_s, ".1f", "s")))
     if s.sim_pose is not None:
@@ -145,6 +149,8 @@ def _style(label: str, s: StatusSnapshot) -> str:
         return "yellow"
     if label == "lidar" and s.lidar_reconnects:
         return "yellow"
+    if label == "refused":
+        return "bold yellow" if "(recent)" in (s.refused or "") else "yellow"
     return ""
 
 
