@@ -41,6 +41,19 @@ ZENOH_LINES = [
     "OpenSyn. Invalid password. at /root/.cargo/git/checkouts/zenoh-9c599d5ef3e0480e/cc83980/io/"
     "zenoh-transport/src/unicast/establishment/ext/auth/usrpwd.rs:424.",
 ]
+#: What it wrote for a session without a client certificate, then one from another CA (mutual TLS):
+#: tls-listener's error names no address.
+TLS_LINES = [
+    f"{ESC}[2m2026-11-26T19:00:16.947501Z{ESC}[0m {ESC}[33m WARN{ESC}[0m acc-0 ThreadId(06) {ESC}[2m"
+    f"zenoh_link_tls::unicast{ESC}[0m{ESC}[2m:{ESC}[0m peer sent no certificates. Hint: increase the "
+    "system open file limit.",
+    f"{ESC}[2m2026-11-26T19:00:17.469550Z{ESC}[0m {ESC}[33m WARN{ESC}[0m acc-0 ThreadId(06) {ESC}[2m"
+    f"zenoh_link_tls::unicast{ESC}[0m{ESC}[2m:{ESC}[0m invalid peer certificate: UnknownIssuer. Hint: "
+    "increase the system open file limit.",
+    f"{ESC}[2m2026-11-26T19:00:17.469550Z{ESC}[0m {ESC}[33m WARN{ESC}[0m acc-0 ThreadId(06) {ESC}[2m"
+    f"zenoh_link_tls::unicast{ESC}[0m{ESC}[2m:{ESC}[0m Too many open files (os error 24). Hint: "
+    "increase the system open file limit.",
+]
 GOOD, BAD = ("driver", "good-password-123"), ("driver", "wrong-password")
 FAILED_LOGINS = 100
 #: Most lines naming the source a run of 100 failed logins may write: the first at once, one
@@ -68,6 +81,14 @@ def test_the_parser_keeps_each_threads_link_apart():
     assert parser.feed(ZENOH_LINES[2].encode()) == ("unknown address", "user/password: invalid password")
 
 
+def test_failed_tls_handshakes_are_counted_without_an_address_zenoh_does_not_log_one():
+    parser = LoginLineParser()
+    assert [parser.feed(line.encode()) for line in TLS_LINES] == [
+        ("unknown address", "tls: peer sent no certificates"),
+        ("unknown address", "tls: invalid peer certificate: UnknownIssuer"),
+        None]  # not a login: the descriptor limit (the sockets' business)
+
+
 def test_peer_hosts():
     assert peer_host("tcp/127.0.0.1:40112") == "127.0.0.1"
     assert peer_host("tls/[::1]:40112") == "::1"
@@ -77,7 +98,7 @@ def test_peer_hosts():
 def test_the_parser_takes_any_bytes():
     rng = random.Random(7)
     parser = LoginLineParser()
-    seeds = [line.encode() for line in ZENOH_LINES]
+    seeds = [line.encode() for line in ZENOH_LINES + TLS_LINES]
     for _ in range(5000):
         line = bytearray(rng.choice(seeds))
         for _ in range(rng.randint(1, 8)):
@@ -90,7 +111,8 @@ def test_the_parser_takes_any_bytes():
             else:
                 line[at:at] = bytes(rng.randrange(256) for _ in range(rng.randint(1, 20)))
         found = parser.feed(bytes(line))
-        assert found is None or (isinstance(found[0], str) and found[1].startswith("user/password: "))
+        assert found is None or (isinstance(found[0], str)
+                                 and found[1].startswith(("user/password: ", "tls: ")))
         parser.is_zenoh(bytes(line))
 
 

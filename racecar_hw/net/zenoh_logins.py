@@ -17,7 +17,9 @@ output, and turns on only the Zenoh log lines it needs, with the directives in :
   at DEBUG the step that failed (``UsrPwd extension - Recv OpenSyn. Invalid password.``, which names
   no address: it is matched to the last link the same thread named, as one handshake step runs on
   one thread from its trace line to its failure, with no await that waits in between);
-* ``zenoh_link_tls`` at WARN: a failed TLS handshake (an unknown or missing client certificate).
+* ``zenoh_link_tls`` at WARN: a failed TLS handshake (``peer sent no certificates``, ``invalid peer
+  certificate: UnknownIssuer``). The error tls-listener hands Zenoh carries no address and Zenoh logs
+  none for a connection before its handshake, so these are counted under ``unknown address``.
 
 About four lines of 0.5-1 KB per connection attempt, and nothing while sessions exchange data: the
 cost is per login, not per message. Each failed login is counted in the daemon's
