@@ -14,10 +14,14 @@ import pytest
 from mcap.reader import make_reader
 from mcap.records import Chunk
 from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
 
 from racecar_hw.bags.follow import load_commands
 from racecar_hw.bags.record import BagFile
 from racecar_hw.bags.recover import inspect_bag
+from racecar_hw.bags.validate import check_storage, mcap_chunk_crc_error
+from racecar_hw.base.errors import BagError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, LaserScan, Time
 from racecar_hw.cli import main
 from racecar_hw.rosmsg.typestore import types_for
@@ -129,3 +133,29 @@ def test_bag_info_reports_the_chunk_and_recover_keeps_the_good_chunks(tmp_path, 
     with next(recovered.glob("*.mcap")).open("rb") as f:
         chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
     assert chunks and all(c.uncompressed_crc == zlib.crc32(c.data) != 0 for c in chunks)
+
+
+@pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4, CompressionType.NONE])
+def test_chunks_the_mcap_library_wrote_pass_and_a_wrong_crc_is_found_through_decompression(
+        tmp_path, compression):
+    """An independent writer's chunks (compressed or not, each with its CRC) pass the follower's
+    check; the same file with one chunk's recorded CRC changed is refused naming that chunk."""
+    path = tmp_path / "other.mcap"
+    with path.open("wb") as f:
+        writer = McapWriter(f, chunk_size=2000, compression=compression)
+        writer.start("ros2", "test")
+        schema = writer.register_schema("std_msgs/msg/String", "ros2msg", b"string data")
+        channel = writer.register_channel("/chatter", "cdr", schema)
+        for i in range(60):
+            writer.add_message(channel, T0 + i, bytes(range(256)) * 4, T0 + i)
+        writer.finish()
+    offsets = chunk_offsets(path)
+    assert len(offsets) >= 3
+    check_storage(path)
+    assert mcap_chunk_crc_error(path) is None
+    data = bytearray(path.read_bytes())
+    data[offsets[1] + 9 + 24] ^= 0x01  # chunk 2's recorded CRC
+    path.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=rf"chunk 2 \(at byte {offsets[1]}\) fails its checksum"):
+        check_storage(path)
+    assert f"chunk 2 (at byte {offsets[1]}) fails its checksum" in (mcap_chunk_crc_error(path) or "")
