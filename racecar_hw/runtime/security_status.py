@@ -7,11 +7,13 @@ the Zenoh login watch) and builds one ``diagnostic_msgs/DiagnosticStatus`` named
 with the most refusals, and WARN while anything was refused in the last ``recent_s`` seconds (OK
 otherwise). Called on the control tick at the mux's diagnostics rate, after the motor command: it
 takes the counts only when the total has changed since the last call, so a quiet car pays for one
-lock and one sum of a few integers.
+lock and one sum of a few integers. Callable from any thread (the panel and the page call it from
+the event loop, the Foxglove server may from its own): one lock around the update.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
@@ -40,9 +42,14 @@ class SecurityStatus:
         self._changed_ns: int | None = None  #: when the total last grew (monotonic ns)
         self._counts: dict[tuple[str, str], int] = {}
         self._values: list[KeyValue] = [KeyValue("refused in all", "0")]
+        self._lock = threading.Lock()
 
     def _update(self, now_ns: int) -> int:
         """Take the counts if the total changed; the total."""
+        with self._lock:
+            return self._update_locked(now_ns)
+
+    def _update_locked(self, now_ns: int) -> int:
         total = self.refusals.total()
         if total != self._total:
             self._total = total
