@@ -1,6 +1,7 @@
 """Failed Zenoh logins are visible: counted by source in ``/diagnostics`` (read over Zenoh), with at
 most a handful of log lines naming the source, from a real ``racecar-hw sim`` whose Zenoh listener
-wants a user and password, and 100 real Zenoh sessions that present a wrong one.
+wants a user and password, and 100 real Zenoh sessions that present a wrong one; failed mutual-TLS
+handshakes counted too (Zenoh names no address for them).
 
 The parser of Zenoh's log lines is tested alone on lines Zenoh 1.10 wrote, and fuzzed."""
 
@@ -16,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import zenoh
 from conftest import wait_for
 from live_sim import SimProcess
+from test_net_zenoh_security import _tls_client, pki  # noqa: F401 - pki is a fixture
 from zenoh_util import free_port
 
 from racecar_hw.base.messages import DiagnosticArray
@@ -208,3 +210,53 @@ def test_100_failed_zenoh_logins_are_counted_in_diagnostics_with_a_handful_of_lo
                 for line in naming)
     assert total >= FAILED_LOGINS
     assert "Traceback" not in log
+
+
+def test_failed_tls_handshakes_are_counted_in_diagnostics(tmp_path, pki):  # noqa: F811 - the fixture
+    port = free_port()
+    sim = SimProcess(["--scenario", "wall", "--scenario-set", "drivers=[]", "--duration", "300",
+                      "--out", str(tmp_path / "sim"), "--set", "zenoh.enabled=true",
+                      "--set", f'zenoh.listen=["tls/127.0.0.1:{port}"]',
+                      "--set", "zenoh.tls.enable_mtls=true",
+                      "--set", f"zenoh.tls.listen_certificate={pki / 'server.pem'}",
+                      "--set", f"zenoh.tls.listen_private_key={pki / 'server.key'}",
+                      "--set", f"zenoh.tls.root_ca_certificate={pki / 'ca.pem'}",
+                      "--set", "web.enabled=false", "--set", "foxglove.enabled=false"], timeout_s=120)
+    try:
+        sim.wait_for("racecar-hw running")
+        refused = 0
+        for name in (None, "intruder") * 3:  # no certificate; one from another CA
+            config = _tls_client(port, pki, name)
+            config.insert_json5("connect/timeout_ms", "500")
+            try:
+                zenoh.open(config).close()
+            except zenoh.ZError:
+                refused += 1
+        assert refused == 6
+        laptop = zenoh.open(_tls_client(port, pki, "client"))
+        try:
+            types = ros2_types()
+            latest: dict[str, dict[str, str]] = {}
+
+            def on_sample(sample: zenoh.Sample) -> None:
+                msg = types.deserialize(sample.payload.to_bytes(), DiagnosticArray)
+                for status in msg.status:
+                    latest[status.name] = {kv.key: kv.value for kv in status.values}
+
+            key = rmw.topic_key(0, "/diagnostics", DiagnosticArray.ROS_TYPE,
+                                rmw.type_hash(DiagnosticArray.ROS_TYPE))
+            subscriber = laptop.declare_subscriber(key, on_sample)
+
+            def counts() -> tuple[int, int]:
+                values = latest.get(STATUS_NAME, {})
+                return (int(values.get("zenoh: tls: peer sent no certificates", "0")),
+                        int(values.get("zenoh: tls: invalid peer certificate: UnknownIssuer", "0")))
+
+            wait_for(lambda: counts() == (3, 3), timeout=60)
+            assert "source unknown address (zenoh: tls: peer sent no certificates)" in latest[STATUS_NAME]
+            subscriber.undeclare()
+        finally:
+            laptop.close()
+    finally:
+        sim.stop()
+    assert "Traceback" not in "\n".join(sim.lines)
