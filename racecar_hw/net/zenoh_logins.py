@@ -57,6 +57,8 @@ DIRECTIVES = ("off,zenoh_transport::unicast::establishment::accept=trace,"
 #: The surface failed logins are counted under in :class:`Refusals`.
 SURFACE = "zenoh"
 
+#: Bytes of a line read (the time, level, thread, target and the start of the message).
+PREFIX = 512
 _ANSI = re.compile(rb"\x1b\[[0-9;]*m")
 _THREAD = re.compile(rb"ThreadId\((\d+)\)")
 _TARGET = re.compile(rb" (zenoh_[a-z_:]+): ")
@@ -81,29 +83,35 @@ class LoginLineParser:
 
     def __init__(self) -> None:
         self._link_by_thread: dict[bytes, str] = {}
+        #: whether the last line fed was one of Zenoh's (it is not passed through)
+        self.last_was_zenoh = False
 
     def feed(self, raw: bytes) -> tuple[str, str] | None:
-        """One line (ANSI colours allowed)."""
-        line = _ANSI.sub(b"", raw)
-        target = _TARGET.search(line)
-        if target is None:
+        """One line (ANSI colours allowed). Only its first :data:`PREFIX` bytes are read: the
+        handshake lines name the link there, before the message dump that makes them long."""
+        line = raw[:PREFIX]
+        if b"\x1b" in line:  # colours: :func:`install` turns them off, RUST_LOG users may not
+            line = _ANSI.sub(b"", line)
+        # plain substring tests first: most lines (the other handshake steps) stop at one of them
+        self.last_was_zenoh = b" zenoh_" in line and _TARGET.search(line) is not None
+        if not self.last_was_zenoh:
             return None
-        thread_match = _THREAD.search(line)
-        thread = thread_match.group(1) if thread_match else b""
-        if target.group(1).startswith(b"zenoh_transport::unicast::establishment::accept"):
+        if b"Establishment Accept OpenSyn: " in line:  # the step whose check a wrong password fails
             step = _ACCEPT_STEP.search(line)
             if step is not None:
                 if len(self._link_by_thread) > 1024:  # bounded, whatever the thread ids
                     self._link_by_thread.clear()
-                self._link_by_thread[thread] = step.group(1).decode("utf-8", "replace")
-                return None
-            failure = _USRPWD.search(line)
-            if failure is not None:
-                peer = self._link_by_thread.pop(thread, None)
-                source = peer_host(peer) if peer else "unknown address"
-                return source, "user/password: " + failure.group(1).decode("utf-8", "replace").strip().lower()
+                self._link_by_thread[self._thread(line)] = step.group(1).decode("utf-8", "replace")
             return None
-        if target.group(1).startswith(b"zenoh_link_tls") and b" WARN " in line:
+        if b"UsrPwd extension - " in line:
+            failure = _USRPWD.search(line)
+            if failure is None:
+                return None
+            peer = self._link_by_thread.pop(self._thread(line), None)
+            source = peer_host(peer) if peer else "unknown address"
+            return source, "user/password: " + failure.group(1).decode("utf-8", "replace").strip().lower()
+        target = _TARGET.search(line)
+        if target is not None and target.group(1).startswith(b"zenoh_link_tls") and b" WARN " in line:
             text = line[target.end():].strip()
             lowered = text.lower()
             if not any(word in lowered for word in (b"certificate", b"tls", b"handshake")):
@@ -115,9 +123,14 @@ class LoginLineParser:
             return source, f"tls: {reason}"
         return None
 
+    @staticmethod
+    def _thread(line: bytes) -> bytes:
+        match = _THREAD.search(line)
+        return match.group(1) if match else b""
+
     def is_zenoh(self, raw: bytes) -> bool:
         """Whether ``raw`` is one of Zenoh's log lines (not passed through)."""
-        return _TARGET.search(_ANSI.sub(b"", raw[:400])) is not None
+        return _TARGET.search(_ANSI.sub(b"", raw[:PREFIX])) is not None
 
 
 class ZenohLoginWatch:
@@ -159,11 +172,12 @@ class ZenohLoginWatch:
         except Exception as err:  # noqa: BLE001 - a line we cannot read must not end the watch
             log.debug("zenoh log line not understood: %r", err)
             found = None
+            self.parser.last_was_zenoh = False
         if found is not None:
             self.failed += 1
             if self.refusals is not None:
                 self.refusals.note(SURFACE, found[0], found[1])
-        if self.pass_zenoh or not self.parser.is_zenoh(line):
+        if self.pass_zenoh or not self.parser.last_was_zenoh:
             with contextlib.suppress(OSError):
                 os.write(self.out_fd, line + b"\n")
 
@@ -212,7 +226,17 @@ def install() -> ZenohLoginWatch | None:
                                       line_buffering=True, write_through=True)
         watch = ZenohLoginWatch(read_fd, real, pass_zenoh="RUST_LOG" in os.environ)
         watch._thread.start()
-        zenoh.init_log_from_env_or(DIRECTIVES)
+        # no ANSI colours (tracing-subscriber reads NO_COLOR when the writer is built): cheaper to
+        # read; set only for that call, so the status panel keeps its colours
+        no_color = os.environ.get("NO_COLOR")
+        os.environ["NO_COLOR"] = "1"
+        try:
+            zenoh.init_log_from_env_or(DIRECTIVES)
+        finally:
+            if no_color is None:
+                del os.environ["NO_COLOR"]
+            else:
+                os.environ["NO_COLOR"] = no_color
         _installed = watch
         log.debug("counting failed Zenoh logins from Zenoh's log (%s)", DIRECTIVES)
         return watch
