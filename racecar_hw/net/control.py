@@ -66,6 +66,9 @@ class LiveState:
     lidar_reconnects: int
     #: who latched the e-stop and when, or how the last latch ended ("" when never engaged)
     estop: str = ""
+    #: what the network surfaces refused: (surface, reason, total since start) of each kind
+    refused: tuple[tuple[str, str, int], ...] = ()
+    refused_recently: bool = False  #: anything refused in the last few seconds
     control_ticks: int = 0              #: control loop ticks since the start
     control_missed_ticks: int = 0       #: ticks the loop was too late for (a held-up machine)
 

@@ -1,10 +1,10 @@
 """The process's open-file limit (``RLIMIT_NOFILE``): raised to its hard limit while the daemon runs.
 
 Many Linux systems start processes with a soft limit of 1,024 files and a far higher hard one. The
-daemon's own budget is small (devices, Zenoh, the capped network surfaces: see docs/security.md), but
-every socket counts, so it takes what it may: the soft limit is raised to the hard one at start and put
-back when the daemon stops (a daemon run inside a longer-lived process leaves it as it found it).
-The systemd unit sets both limits (``LimitNOFILE=``).
+daemon's own budget is small (devices, Zenoh, the capped network surfaces: see docs/live-view.md,
+"Connections"), but every socket counts, so it takes what it may: the soft limit is raised to the hard
+one at start and put back when the daemon stops (a daemon run inside a longer-lived process leaves it
+as it found it). The systemd unit sets both limits (``LimitNOFILE=``).
 """
 
 from __future__ import annotations
