@@ -173,7 +173,8 @@ class Daemon:
         self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
                         if config.gamepad.enabled else None)
         self.keyboard = KeyboardTeleop(self.bus, config.keyboard) if config.keyboard.enabled else None
-        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
+        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot,
+                                   refusals=self.refusals)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
         self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
@@ -452,6 +453,15 @@ class Daemon:
         if self.mux.state.value == "fault":
             return False, f"the mux is in fault ({self.mux.machine.reason}); it needs a reset"
         return False, f"refused: {self.config.mux.estop_topic} still says true"
+
+    def restart_mavlink_signing(self) -> str:
+        """The way back for the MAVLink link's signing state (SIGUSR1, ``systemctl reload``):
+        every stream's timestamp forgotten, ours from the wall clock again, as at start."""
+        if self.mavlink is None:
+            log.warning("restart of the MAVLink signing state asked for: the MAVLink link is off")
+            return "the MAVLink link is off"
+        forgotten = self.mavlink.restart_signing()
+        return f"MAVLink signing state restarted ({forgotten} stream(s) forgotten)"
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""
