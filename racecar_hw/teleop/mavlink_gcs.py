@@ -405,7 +405,8 @@ class MavlinkGcs:
     ``future_timestamp``, ``commands``, ``acks``, ``manual_inputs``, ``inputs_ignored`` (teleop
     outside MANUAL or without a fresh ground-station heartbeat), ``gcs_timeouts``,
     ``teleop_published``, ``statustexts``, ``send_errors``, ``datagrams`` (read from the sockets),
-    ``station_datagrams`` (of those, read from the station's own socket), ``signing_restarts``.
+    ``station_datagrams`` (of those, read from the station's own socket), ``drain_rests`` (a socket
+    still had datagrams waiting after its budget: a flood), ``signing_restarts``.
     :attr:`heartbeat_gap_max_ns`: the longest time between two heartbeats of a connected station.
 
     ``refusals``: where refused input is counted and logged (the daemon's; a private one if None).
@@ -442,7 +443,7 @@ class MavlinkGcs:
             "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "mavlink1_refused",
             "unsigned_refused", "bad_signature", "old_timestamp", "future_timestamp", "commands", "acks",
             "manual_inputs", "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts",
-            "send_errors", "datagrams", "station_datagrams", "signing_restarts"), 0)
+            "send_errors", "datagrams", "station_datagrams", "drain_rests", "signing_restarts"), 0)
         self.gcs_system_id = params.gcs_system_id
         self.gcs_heartbeat_ns: int | None = None
         self.heartbeat_gap_max_ns = 0
@@ -616,6 +617,7 @@ class MavlinkGcs:
             for (addr, counter), count in tally.items():
                 self._note(addr, counter, count)
         if not emptied and self._loop is not None:
+            self.counters["drain_rests"] += 1
             fd = sock.fileno()
             self._loop.remove_reader(fd)
             self._paused[fd] = self._loop.call_later(DRAIN_PAUSE_S, self._resume, sock)
