@@ -1,12 +1,15 @@
 """The MAVLink ground station under a flood (issue 24): ``racecar-hw sim`` in this process with the
 MAVLink link signed, a pymavlink ground station driving the car back and forth (heartbeats at
 2 Hz, MANUAL_CONTROL at 10 Hz), first for ``SECONDS`` alone, then for ``SECONDS`` while another
-process (tests/mavlink_flood.py) sends forged datagrams to the link's port as fast as it can.
+process (tests/mavlink_flood.py) sends forged datagrams to the link's port as fast as it can, and
+in between for ``SECONDS`` while the same flood goes to a port nobody reads (a control: what the
+flooding process's own CPU and the kernel's loopback work cost this process on this machine).
 
 For each window: the control ticks missed (of the mux's 50 Hz), the longest gap between two of the
 station's heartbeats the link accepted (the station sends every 0.5 s; the link drops the station
-after 2 s), the station's time-outs, the scan-to-command p99, and the datagrams the flood sent and
-the link read.
+after 2 s), the station's time-outs, the scan-to-command p99, the CPU time of this process (daemon,
+sim and station: the flood's process is not counted), and the datagrams the flood sent and the
+link read (and how often a socket had to rest).
 
 Run ``python benchmarks/bench_mavlink.py [SECONDS]``; ``run()`` returns the rows for run_all.py.
 """
@@ -16,8 +19,10 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import socket
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -72,13 +77,14 @@ def _p99(values: list[int]) -> float:
     return ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))] / 1e6
 
 
-async def _window(lb: Loopback, station: _Station, seconds: float, flood: bool) -> dict[str, Any]:
+async def _window(lb: Loopback, station: _Station, seconds: float, port: int | None) -> dict[str, Any]:
+    """Drive for ``seconds``, with the flood at ``port`` (None: no flood)."""
     daemon = lb.daemon
     assert daemon is not None and daemon.mavlink is not None
     link = daemon.mavlink
     proc = None
-    if flood:
-        proc = await asyncio.create_subprocess_exec(sys.executable, str(FLOOD), str(link.port), str(seconds),
+    if port is not None:
+        proc = await asyncio.create_subprocess_exec(sys.executable, str(FLOOD), str(port), str(seconds),
                                                     stdout=asyncio.subprocess.PIPE)
         assert proc.stdout is not None
         await asyncio.wait_for(proc.stdout.readline(), 60)  # "ready"
@@ -86,8 +92,10 @@ async def _window(lb: Loopback, station: _Station, seconds: float, flood: bool) 
     ticks, missed = stats.ticks, stats.missed_ticks
     timeouts, datagrams = link.counters["gcs_timeouts"], link.counters["datagrams"]
     latencies = len(stats.scan_to_command_ns)
+    rests = link.counters["drain_rests"]
     link.heartbeat_gap_max_ns = 0
     loop = asyncio.get_running_loop()
+    cpu0, wall0 = time.process_time(), time.monotonic()
     end = loop.time() + seconds
     forward = True
     while loop.time() < end:  # back and forth, 2 s each way, at 1 m/s
@@ -95,7 +103,9 @@ async def _window(lb: Loopback, station: _Station, seconds: float, flood: bool) 
         forward = not forward
         await asyncio.sleep(min(2.0, max(0.0, end - loop.time())))
     station.z = 0
+    cpu = 100.0 * (time.process_time() - cpu0) / (time.monotonic() - wall0)
     out: dict[str, Any] = {
+        "cpu_pct": cpu, "rests": link.counters["drain_rests"] - rests,
         "ticks": stats.ticks - ticks, "missed": stats.missed_ticks - missed,
         "gap_s": link.heartbeat_gap_max_ns / NS_PER_S, "timeouts": link.counters["gcs_timeouts"] - timeouts,
         "read": link.counters["datagrams"] - datagrams,
@@ -108,11 +118,11 @@ async def _window(lb: Loopback, station: _Station, seconds: float, flood: bool) 
 
 
 def measure(seconds: float = 10.0) -> dict[str, dict[str, Any]]:
-    """The calm window and the flood window."""
+    """The calm window, the flood at a port nobody reads, the flood at the link."""
     with tempfile.TemporaryDirectory() as tmp:
         key_file = Path(tmp) / "mavlink.key"
         station = _Station(write_signing_key(key_file))
-        scenario = load_scenario("wall", ["drivers=[]", f"duration_s={4 * seconds + 60}"])
+        scenario = load_scenario("wall", ["drivers=[]", f"duration_s={6 * seconds + 60}"])
         overrides = ["mavlink.enabled=true", "mavlink.bind_port=0",
                      f"mavlink.gcs_address=127.0.0.1:{station.port}", f"mavlink.signing_key_file={key_file}",
                      "zenoh.enabled=false", "foxglove.enabled=false", "web.enabled=false"]
@@ -127,8 +137,12 @@ def measure(seconds: float = 10.0) -> dict[str, dict[str, Any]]:
                 while not (lb.daemon.lidar is not None and lb.daemon.lidar.stats.scans > 0):
                     await asyncio.sleep(0.05)
                 await asyncio.sleep(1.0)
-                results["calm"] = await _window(lb, station, seconds, flood=False)
-                results["flood"] = await _window(lb, station, seconds, flood=True)
+                assert lb.daemon.mavlink is not None
+                results["calm"] = await _window(lb, station, seconds, None)
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as nobody:
+                    nobody.bind(("127.0.0.1", 0))
+                    results["elsewhere"] = await _window(lb, station, seconds, nobody.getsockname()[1])
+                results["flood"] = await _window(lb, station, seconds, lb.daemon.mavlink.port)
             finally:
                 for task in tasks:
                     task.cancel()
@@ -146,14 +160,14 @@ def run(seconds: float = 10.0) -> list[dict]:
     """Rows: missed ticks, heartbeat gaps, time-outs, scan-to-command p99, calm and flooded; the
     flood's rate and what the link read of it."""
     r = measure(seconds)
-    calm, flood = r["calm"], r["flood"]
+    flood = r["flood"]
     rows = [
         {"name": "mavlink_flood_sent_per_s", "value": flood["sent"] / flood["flood_s"], "unit": "datagrams/s",
          "target": None},
         {"name": "mavlink_flood_read_per_s", "value": flood["read"] / seconds, "unit": "datagrams/s",
          "target": None},
     ]
-    for name, w in (("calm", calm), ("flood", flood)):
+    for name, w in r.items():
         missed_pct = 100.0 * w["missed"] / max(1, w["ticks"] + w["missed"])
         rows += [
             {"name": f"mavlink_{name}_missed_ticks_pct", "value": missed_pct, "unit": "%", "target": 1.0},
@@ -161,7 +175,10 @@ def run(seconds: float = 10.0) -> list[dict]:
             {"name": f"mavlink_{name}_gcs_timeouts", "value": w["timeouts"], "unit": "", "target": 0},
             {"name": f"mavlink_{name}_scan_to_command_p99", "value": w["p99_ms"], "unit": "ms",
              "target": None},
+            {"name": f"mavlink_{name}_process_cpu", "value": w["cpu_pct"], "unit": "% of a core",
+             "target": None},
         ]
+    rows.append({"name": "mavlink_flood_socket_rests", "value": flood["rests"], "unit": "", "target": None})
     return rows
 
 
