@@ -385,6 +385,23 @@ def test_the_stations_socket_takes_only_the_stations_datagrams(tmp_path: Path):
     run_signed(tmp_path, scenario)
 
 
+def test_a_second_link_on_the_same_port_is_refused_as_before():
+    """The sockets share their port with each other (SO_REUSEPORT), never with another link."""
+    async def main() -> None:
+        gs = Station()
+        first = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), Arming())
+        assert first.station_socket
+        second = MavlinkGcs(Bus(), MavlinkParams(enabled=True, gcs_address=gs.address,
+                                                 bind_port=first.port), Arming())
+        with pytest.raises(OSError):
+            await second.start()
+        second.close()
+        first.close()
+        gs.close()
+
+    asyncio.run(main())
+
+
 def test_with_port_0_the_station_gets_its_socket_once_it_is_heard(tmp_path: Path):
     async def main() -> None:
         gs = Station()

@@ -48,7 +48,7 @@ in preference to the shared socket, so a flood from other addresses fills only t
 buffer and cannot push the station's heartbeats out. Each socket is drained each time it is
 readable (the station's first), until empty or for ``DRAIN_BUDGET_NS``; a socket that still has
 datagrams waiting after that rests for ``DRAIN_PAUSE_S`` (the kernel drops what overflows its
-buffer), so a flood takes at most a fifth of the event loop and the control loop keeps its ticks.
+buffer), so a flood takes about 5 % of the event loop at most and the control loop keeps its time.
 Forgeries are refused by :meth:`~racecar_hw.teleop.mavlink_rx.MavlinkRx.refuse_cheaply` before
 any parsing, and refusals are noted once per wake-up.
 """
@@ -135,7 +135,7 @@ SIGNING_UNITS_PER_S = 100_000
 #: The longest one wake-up drains a socket (ns) before the event loop's other work runs.
 DRAIN_BUDGET_NS = 500_000
 #: How long a socket that still had datagrams waiting after its budget rests (s): under a flood
-#: a socket takes at most budget / (budget + pause) of the loop, a fifth.
+#: a socket takes at most budget / (budget + pause) of the loop, about 5 %.
 DRAIN_PAUSE_S = 0.010
 #: Datagrams read per batch (the station's address is handled first within a batch).
 DRAIN_BATCH = 64
@@ -516,6 +516,8 @@ class MavlinkGcs:
         host, port = self.params.bind
         infos = await loop.getaddrinfo(host, port, type=socket.SOCK_DGRAM, flags=socket.AI_PASSIVE)
         family, _, _, _, sockaddr = infos[0]
+        if sockaddr[1]:
+            _check_free(family, sockaddr)
         sock = _udp_socket(family)
         try:
             sock.bind(sockaddr)
@@ -1110,6 +1112,14 @@ def _udp_socket(family: int) -> socket.socket:
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, reuse_port, 1)
     return sock
+
+
+def _check_free(family: int, sockaddr: tuple[Any, ...]) -> None:
+    """Raise the OSError (address in use) a plain bind gets when another socket holds the port:
+    with ``SO_REUSEPORT`` a second racecar-hw of the same user would otherwise share it silently
+    (each probes first, and a probe without ``SO_REUSEPORT`` cannot join a group)."""
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        probe.bind(sockaddr)
 
 
 def _axis(value: int) -> float:
