@@ -13,6 +13,7 @@ import asyncio
 import json
 import logging
 import os
+import signal
 import socket
 import sys
 from pathlib import Path
@@ -344,3 +345,22 @@ def test_a_hundred_forged_frames_are_counted_per_source_in_a_line_or_two(tmp_pat
     # the first refusal (the 100 may come in one read), then a summary at shutdown if more came
     assert 1 <= len(lines) <= 2, lines
     assert all("bad signature" in line for line in lines)
+
+
+def test_sigusr1_restarts_the_signing_state_of_racecar_hw_sim(tmp_path):
+    """``kill -USR1`` (what ``systemctl reload`` sends) restarts the link's signing state in a
+    running ``racecar-hw sim``, logs it, and the sim runs on."""
+    from live_sim import running_sim
+
+    key_file = tmp_path / "mavlink.key"
+    write_signing_key(key_file)
+    args = ["--scenario", "wall", "--scenario-set", "drivers=[]", "--duration", "120", "--out", str(tmp_path),
+            "--set", "foxglove.enabled=false", "--set", "web.enabled=false", "--set", "mavlink.enabled=true",
+            "--set", "mavlink.bind_port=0", "--set", f"mavlink.signing_key_file={key_file}"]
+    with running_sim(args) as sim:
+        sim.proc.send_signal(signal.SIGUSR1)
+        sim.wait_for(r"SIGUSR1: MAVLink signing state restarted \(0 stream\(s\) forgotten\)")
+        mark = len(sim.lines)
+        sim.proc.send_signal(signal.SIGUSR1)
+        sim.wait_for(r"SIGUSR1: MAVLink signing state restarted", start=mark)
+        assert sim.proc.poll() is None
