@@ -359,6 +359,24 @@ def test_sigusr1_restarts_the_signing_state_of_the_running_daemon(tmp_path: Path
     gs.close()
 
 
+def test_the_cheap_refusal_takes_only_whole_frames_and_hides_no_good_frame():
+    """A datagram that is one forged or unsigned frame is refused before the decoder; a damaged
+    header whose length spans the datagram, with a genuine frame behind it, goes to the decoder,
+    which finds the genuine frame."""
+    key, now = bytes(range(32)), signing_timestamp(wall_ns())
+    rx = MavlinkRx(key, now, future_window=60 * 100_000)
+    assert rx.refuse_cheaply(Packer(key=os.urandom(32), timestamp=now).heartbeat()) == "bad_signature"
+    assert rx.refuse_cheaply(Packer().heartbeat()) == "unsigned_refused"
+    genuine = Packer(key=key, timestamp=now).heartbeat()
+    assert rx.refuse_cheaply(genuine) is None and len(rx.decode(genuine, now)) == 1
+    behind = Packer(key=key, timestamp=now + 10).manual(500)
+    header = bytes((0xFD, len(behind) - 15, 0x01, 0, 0, GCS, 190, 0, 0, 0))  # spans the datagram
+    assert rx.refuse_cheaply(header + behind) is None
+    assert [m.get_type() for m in rx.decode(header + behind, now)] == ["MANUAL_CONTROL"]
+    assert rx.refuse_cheaply(genuine + genuine) is None  # two frames: the decoder's
+    assert rx.counters["bad_signature"] == 1 and rx.counters["unsigned_refused"] == 1
+
+
 def test_a_bad_future_window_is_refused_naming_the_key(capsys):
     assert cli_main(["check-config", "--set", "mavlink.future_window_s=-1"]) == 1
     err = capsys.readouterr().err

@@ -26,8 +26,9 @@ wall clock) is refused and records nothing, so one frame from a laptop whose clo
 ahead cannot make every later frame of that stream (or every new stream) look old.
 
 Under a flood, :meth:`MavlinkRx.refuse_cheaply` turns away the common forgeries (a datagram that is
-exactly one unsigned frame, or one signed frame whose signature fails) with one SHA-256 and no CRC,
-payload or timestamp work; anything else goes through :meth:`MavlinkRx.decode`.
+exactly one unsigned frame, or one signed frame whose signature fails) with one CRC and one
+SHA-256, without the decoder's search, timestamp or payload work; anything else goes through
+:meth:`MavlinkRx.decode`.
 
 Counters (:attr:`MavlinkRx.counters`): ``frames`` (accepted), ``bad_data`` (datagrams with bytes
 that were no valid frame), ``unknown_ids``, ``mavlink1_refused``, ``unsigned_refused``,
@@ -96,25 +97,30 @@ class MavlinkRx:
 
     def refuse_cheaply(self, data: bytes) -> str | None:
         """With signing on: the refusal (its counter's name, counted) when ``data`` is exactly one
-        MAVLink 2 frame that is unsigned (``"unsigned_refused"``), or signed with a signature that
-        fails (``"bad_signature"``); None when the datagram needs :meth:`decode`. One SHA-256 at
-        most, no CRC, no payload: the signature covers the CRC, so a frame it rejects is refused
-        whatever its CRC says."""
+        MAVLink 2 frame with a good CRC that is unsigned (``"unsigned_refused"``), or signed with a
+        signature that fails (``"bad_signature"``); None when the datagram needs :meth:`decode`
+        (a genuine frame, several frames, garbage). One CRC and one SHA-256 at most, no timestamp
+        and no payload. The CRC is checked so that a damaged header whose length happens to span
+        the datagram cannot hide a good frame behind it from the decoder."""
         key = self.secret_key
-        if key is None or len(data) < HEADER_V2 + 2 or data[0] != MARKER_V2:
+        n = len(data)
+        if key is None or n < HEADER_V2 + 2 or data[0] != MARKER_V2:
             return None
-        incompat = data[2]
+        plen, incompat = data[1], data[2]
         if incompat & ~IFLAG_SIGNED:
             return None
-        if incompat:  # signed
-            if HEADER_V2 + data[1] + 2 + SIGNATURE_LEN != len(data) or hmac.compare_digest(
-                    hashlib.sha256(key + data[:-6]).digest()[:6], data[-6:]):
-                return None  # several frames or garbage, or genuine: decode() sorts it out
-            refusal = "bad_signature"
-        elif HEADER_V2 + data[1] + 2 == len(data):
-            refusal = "unsigned_refused"
-        else:
+        if HEADER_V2 + plen + 2 + (SIGNATURE_LEN if incompat else 0) != n:
             return None
+        cls = mavlink.mavlink_map.get(data[7] | (data[8] << 8) | (data[9] << 16))
+        end = HEADER_V2 + plen
+        if cls is None or _crc(data[1:end] + bytes((cls.crc_extra,))) != data[end] | (data[end + 1] << 8):
+            return None
+        if not incompat:
+            refusal = "unsigned_refused"
+        elif hmac.compare_digest(hashlib.sha256(key + data[:-6]).digest()[:6], data[-6:]):
+            return None  # genuine: timestamp and payload in decode()
+        else:
+            refusal = "bad_signature"
         self.counters[refusal] += 1
         return refusal
 
@@ -235,6 +241,15 @@ class MavlinkRx:
             self.streams.popitem(last=False)
         self.timestamp = max(self.timestamp, stamp)
         return "ok"
+
+
+#: fastcrc's CRC-16/MCRF4XX (C code) when pymavlink found it (a pymavlink dependency), else None.
+_FAST_CRC = getattr(mavlink, "mcrf4xx", None)
+
+
+def _crc(data: bytes) -> int:
+    """MAVLink's CRC-16/MCRF4XX of ``data`` (fastcrc's, else pymavlink's own)."""
+    return int(_FAST_CRC(data, 0xFFFF)) if _FAST_CRC is not None else int(mavlink.x25crc(data).crc)
 
 
 def _next_marker(data: bytes, start: int) -> int:
