@@ -26,6 +26,8 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
 from racecar_hw.base.clock import NS_PER_S, wall_ns  # noqa: E402
+from racecar_hw.base.messages import DiagnosticArray  # noqa: E402
+from racecar_hw.runtime.security_status import STATUS_NAME  # noqa: E402
 from racecar_hw.sim.loopback import Loopback  # noqa: E402
 from racecar_hw.sim.scenario import load_scenario  # noqa: E402
 from racecar_hw.teleop.mavlink_gcs import signing_timestamp, write_signing_key  # noqa: E402
@@ -313,7 +315,7 @@ def test_the_signed_operator_keeps_control_through_a_flood_and_a_frame_an_hour_a
     assert 1 <= len(_lines_naming(caplog, checks["laptop"])) <= 2
 
 
-def test_a_hundred_forged_frames_are_counted_per_source_in_a_line_or_two(tmp_path, caplog):
+def test_a_hundred_forged_frames_are_counted_in_diagnostics_per_source_in_a_line_or_two(tmp_path, caplog):
     caplog.set_level(logging.WARNING)
     key_file = tmp_path / "mavlink.key"
     write_signing_key(key_file)
@@ -321,7 +323,16 @@ def test_a_hundred_forged_frames_are_counted_per_source_in_a_line_or_two(tmp_pat
     station = Station()  # reads our signed telemetry without checking it; sends forgeries
     checks: dict[str, Any] = {}
 
+    source = f"127.0.0.1:{station.port}"
+
     async def script(lb: Loopback) -> None:
+        security: list[dict[str, str]] = []
+
+        def on_diagnostics(msg: DiagnosticArray) -> None:
+            security.extend({kv.key: kv.value for kv in status.values}
+                            for status in msg.status if status.name == STATUS_NAME)
+
+        sub = lb.daemon.bus.subscribe(lb.daemon.config.mux.diagnostics_topic, on_diagnostics)
         try:
             await _wait(station, "HEARTBEAT", lambda m: m.type == mav.MAV_TYPE_GROUND_ROVER)
             now = signing_timestamp(wall_ns())
@@ -329,15 +340,20 @@ def test_a_hundred_forged_frames_are_counted_per_source_in_a_line_or_two(tmp_pat
                 station.conn.port.sendto(_signed_frame(wrong_key, 0, now + i),
                                          ("127.0.0.1", lb.daemon.mavlink.port))
             await async_wait_for(lambda: lb.daemon.refusals.total("mavlink") >= 100)
+            # /diagnostics: the network security status with the count, by reason and by source
+            await async_wait_for(lambda: security and security[-1].get("mavlink: bad signature") == "100")
+            checks["diagnostics"] = security[-1]
             await asyncio.sleep(0.2)  # nothing more comes
             checks["counts"] = lb.daemon.refusals.counts()
             checks["by_source"] = lb.daemon.refusals.by_source()
             checks["armed"] = lb.daemon.arming.armed
         finally:
+            sub.close()
             lb.request_stop()
 
     asyncio.run(_loopback(station, script, f"mavlink.signing_key_file={key_file}").run())
-    source = f"127.0.0.1:{station.port}"
+    assert checks["diagnostics"][f"source {source} (mavlink: bad signature)"] == "100"
+    assert checks["diagnostics"]["refused in all"] == "100"
     assert checks["counts"][("mavlink", "bad signature")] == 100
     assert checks["by_source"] == {("mavlink", source, "bad signature"): 100}
     assert not checks["armed"]
