@@ -197,7 +197,8 @@ class Daemon:
                                         on_release=lambda: log.warning("keyboard: %s",
                                                                        self.release_estop(keyboard)[1]))
                          if config.keyboard.enabled else None)
-        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
+        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot,
+                                   refusals=self.refusals)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
         self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
@@ -515,6 +516,15 @@ class Daemon:
         if self.mux.state.value == "fault":
             why += f" ({self.mux.machine.reason})"
         return False, f"refused: {why}"
+
+    def restart_mavlink_signing(self) -> str:
+        """The way back for the MAVLink link's signing state (SIGUSR1, ``systemctl reload``):
+        every stream's timestamp forgotten, ours from the wall clock again, as at start."""
+        if self.mavlink is None:
+            log.warning("restart of the MAVLink signing state asked for: the MAVLink link is off")
+            return "the MAVLink link is off"
+        forgotten = self.mavlink.restart_signing()
+        return f"MAVLink signing state restarted ({forgotten} stream(s) forgotten)"
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""
