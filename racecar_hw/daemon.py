@@ -41,11 +41,13 @@ from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
-from racecar_hw.base.params import to_dict
+from racecar_hw.base.params import describe, to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
+from racecar_hw.net.parameters import ParameterService
+from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
@@ -233,6 +235,13 @@ class Daemon:
         self.zenoh: ZenohBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
         z = config.zenoh
+        #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
+        self.rosout: RosoutHandler | None = (
+            RosoutHandler(self.bus, config.rosout, logger_name(z.namespace, z.node_name))
+            if config.rosout.enabled else None)
+        #: the read-only parameter services' answers: the effective configuration
+        self.parameters = ParameterService(to_dict(config),
+                                           {name: doc for name, _, doc in describe(Config)})
         if not z.enabled:
             return
         self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
@@ -242,7 +251,8 @@ class Daemon:
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF})
+                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
+                                 parameters=self.parameters)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -488,6 +498,8 @@ class Daemon:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
+        if self.rosout is not None:
+            self.rosout.install()
         if self.zenoh is not None:
             try:
                 await loop.run_in_executor(None, self.zenoh.open, loop)
@@ -577,6 +589,11 @@ class Daemon:
         if self.zenoh is not None:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)
+        if self.rosout is not None:
+            self.rosout.uninstall()
+            if self.rosout.dropped:
+                log.info("rosout: %d log records published, %d dropped (over rosout.max_rate_hz or "
+                         "before the loop ran)", self.rosout.published, self.rosout.dropped)
         if self.cmd_vel is not None:
             self.cmd_vel.close()
         self.safety.close()
