@@ -1,0 +1,78 @@
+"""``zenoh.ros_distro``: the bridge's keys and tokens for Humble's rmw_zenoh (``TypeHashNotSupported``)
+or for Jazzy and later (RIHS01), on a bus of its own with real Zenoh sessions on loopback. The two
+never meet on a key, as between real Humble and Jazzy nodes."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+import zenoh
+from conftest import async_wait_for
+from zenoh_util import endpoint, free_port
+
+from mux.params import MuxParams
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import Bool, LaserScan
+from racecar_hw.config import load_config
+from racecar_hw.net import rmw
+from racecar_hw.net.topics import topic_table
+from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.net.zenoh_config import ZenohParams, session_config
+from racecar_hw.rosmsg.typestore import ros2_types
+from safety.params import SafetyParams
+
+
+@pytest.mark.parametrize("distro", ["humble", "jazzy"])
+def test_the_bridge_speaks_the_configured_distribution_only(distro):
+    async def run() -> tuple[list, list[str], int]:
+        bus = Bus()
+        got: list = []
+        bus.subscribe("/estop", got.append)
+        port = free_port()
+        rows = topic_table(MuxParams(), SafetyParams())
+        bridge = ZenohBridge(bus, ZenohParams(listen=[endpoint(port)], ros_distro=distro), rows)
+        loop = asyncio.get_running_loop()
+        bus.bind_loop(loop)
+        await loop.run_in_executor(None, bridge.open, loop)
+        peer = zenoh.open(session_config("client", [], [endpoint(port)]))
+        try:
+            payload = ros2_types().serialize(Bool(True))
+            attach = rmw.Attachment(1, 1, bytes(16)).encode()
+            other = "jazzy" if distro == "humble" else "humble"
+            wrong = peer.declare_publisher(rmw.topic_key(0, "/estop", Bool.ROS_TYPE,
+                                                         rmw.wire_type_hash(Bool.ROS_TYPE, other)))
+            right = peer.declare_publisher(rmw.topic_key(0, "/estop", Bool.ROS_TYPE,
+                                                         rmw.wire_type_hash(Bool.ROS_TYPE, distro)))
+            await asyncio.sleep(0.3)
+            wrong.put(payload, attachment=attach)
+            right.put(payload, attachment=attach)
+            await async_wait_for(lambda: got, timeout=20)
+            await asyncio.sleep(0.3)
+            tokens = [str(r.ok.key_expr) for r in peer.liveliness().get(rmw.liveliness_pattern(0), timeout=5)
+                      if r.ok is not None]
+            return got, tokens, bridge.stats.received
+        finally:
+            peer.close()
+            await loop.run_in_executor(None, bridge.close)
+
+    got, tokens, received = asyncio.run(run())
+    assert len(got) == 1 and received == 1  # the other distribution's key never reached the bridge
+    endpoints = [rmw.parse_token(t) for t in tokens if "/NN/" not in t]
+    assert endpoints
+    expected = {"humble": {rmw.HUMBLE_TYPE_HASH}}.get(distro)
+    hashes = {e.type_hash for e in endpoints}
+    if expected is not None:
+        assert hashes == expected
+    else:
+        assert all(h.startswith("RIHS01_") for h in hashes)
+        scan = next(e for e in endpoints if e.topic == "/scan")
+        assert scan.type_hash == rmw.type_hash(LaserScan.ROS_TYPE)
+
+
+def test_an_unknown_distribution_is_refused_naming_the_key():
+    with pytest.raises(ConfigError, match="zenoh.ros_distro"):
+        load_config(None, ["zenoh.ros_distro=iron"])
+    assert load_config(None, ["zenoh.ros_distro=humble"]).zenoh.ros_distro == "humble"
+    assert load_config(None).zenoh.ros_distro == "jazzy"
