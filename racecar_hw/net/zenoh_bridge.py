@@ -54,6 +54,7 @@ from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.parameters import (
     PARAMETER_SERVICES,
     SERVICE_QOS,
+    CdrAnswers,
     ParameterService,
     ServiceSpec,
     service_name,
@@ -132,8 +133,8 @@ class ZenohBridge:
         self._next_entity = 1
         #: answers the parameter services (None: no services)
         self.parameters = parameters
+        self._answers = CdrAnswers(parameters) if parameters is not None else None
         self._queryables: list[Any] = []
-        self._answers: dict[tuple[str, bytes], bytes] = {}
 
     # --- names --------------------------------------------------------------------------------
 
@@ -196,7 +197,8 @@ class ZenohBridge:
                 self._declare_out(row, zenoh)
             else:
                 self._declare_in(row, zenoh)
-        if self.parameters is not None:
+        if self._answers is not None:
+            self._answers.warm()
             for spec in PARAMETER_SERVICES:
                 self._declare_service(spec)
         self.outbox.start()
@@ -367,9 +369,8 @@ class ZenohBridge:
     # --- services: Zenoh's threads ------------------------------------------------------------
 
     def _answerer(self, spec: ServiceSpec, key: str) -> Callable[[Any], None]:
-        types, stats, lock, answers = self._types, self.stats, self._lock, self._answers
-        parameters = self.parameters
-        assert parameters is not None
+        stats, lock, answers = self.stats, self._lock, self._answers
+        assert answers is not None
 
         def refuse(why: str) -> None:
             with lock:
@@ -388,15 +389,7 @@ class ZenohBridge:
                 return
             try:
                 request = rmw.Attachment.decode(attachment.to_bytes())
-                raw = payload.to_bytes()
-                reply = answers.get((spec.name, raw))
-                if reply is None:
-                    response = parameters.handle(spec.name, types.deserialize(raw, spec.request))
-                    reply = types.serialize(response)
-                    with lock:
-                        if len(answers) >= 256:
-                            answers.clear()
-                        answers[(spec.name, raw)] = reply
+                reply = answers.answer(spec.name, payload.to_bytes())
             except Exception as err:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
                 refuse(f"malformed request ({type(err).__name__})")
                 return
