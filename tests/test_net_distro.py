@@ -76,3 +76,36 @@ def test_an_unknown_distribution_is_refused_naming_the_key():
         load_config(None, ["zenoh.ros_distro=iron"])
     assert load_config(None, ["zenoh.ros_distro=humble"]).zenoh.ros_distro == "humble"
     assert load_config(None).zenoh.ros_distro == "jazzy"
+
+
+def test_the_client_set_for_humble_reads_a_humble_daemon_and_refuses_an_unknown_distribution():
+    from racecar_hw.client import Car, ClientError  # noqa: PLC0415
+
+    with pytest.raises(ClientError, match="ros_distro"):
+        Car("tcp/127.0.0.1:1", ros_distro="iron")
+
+    async def run() -> tuple[int, int]:
+        bus = Bus()
+        port = free_port()
+        rows = topic_table(MuxParams(), SafetyParams())
+        bridge = ZenohBridge(bus, ZenohParams(listen=[endpoint(port)], ros_distro="humble"), rows)
+        loop = asyncio.get_running_loop()
+        bus.bind_loop(loop)
+        await loop.run_in_executor(None, bridge.open, loop)
+        humble = await loop.run_in_executor(None, lambda: Car(endpoint(port), ros_distro="humble"))
+        jazzy = await loop.run_in_executor(None, lambda: Car(endpoint(port)))
+        try:
+            scan = LaserScan(range_max=10.0)
+            for _ in range(2000):
+                bus.publish("/scan", scan)
+                if humble.scan_stream.count >= 3:
+                    break
+                await asyncio.sleep(0.01)
+            return humble.scan_stream.count, jazzy.scan_stream.count
+        finally:
+            humble.close()
+            jazzy.close()
+            await loop.run_in_executor(None, bridge.close)
+
+    humble_scans, jazzy_scans = asyncio.run(run())
+    assert humble_scans >= 3 and jazzy_scans == 0
