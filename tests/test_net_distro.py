@@ -109,3 +109,38 @@ def test_the_client_set_for_humble_reads_a_humble_daemon_and_refuses_an_unknown_
 
     humble_scans, jazzy_scans = asyncio.run(run())
     assert humble_scans >= 3 and jazzy_scans == 0
+
+
+def test_a_sample_from_rmw_zenoh_before_0_2_4_is_dropped_with_a_hint_to_update(caplog):
+    """Jazzy's rmw_zenoh 0.2.0-0.2.3 attached a map with string keys; such a sample is told apart."""
+    import zenoh.ext  # noqa: PLC0415
+
+    old = zenoh.ext.z_serialize({"sequence_number": (1).to_bytes(8, "little"),
+                                 "source_timestamp": (2).to_bytes(8, "little"),
+                                 "source_gid": bytes(16)}).to_bytes()
+    assert rmw.is_old_attachment(old) and not rmw.is_old_attachment(rmw.Attachment(1, 2, bytes(16)).encode())
+
+    async def run() -> object:
+        bus = Bus()
+        port = free_port()
+        rows = topic_table(MuxParams(), SafetyParams())
+        bridge = ZenohBridge(bus, ZenohParams(listen=[endpoint(port)]), rows)
+        loop = asyncio.get_running_loop()
+        bus.bind_loop(loop)
+        await loop.run_in_executor(None, bridge.open, loop)
+        peer = zenoh.open(session_config("client", [], [endpoint(port)]))
+        try:
+            key = rmw.topic_key(0, "/estop", Bool.ROS_TYPE, rmw.type_hash(Bool.ROS_TYPE))
+            pub = peer.declare_publisher(key)
+            await asyncio.sleep(0.3)
+            pub.put(ros2_types().serialize(Bool(True)), attachment=old)
+            await async_wait_for(lambda: bridge.stats.old_attachment, timeout=20)
+            return bridge.stats
+        finally:
+            peer.close()
+            await loop.run_in_executor(None, bridge.close)
+
+    with caplog.at_level("WARNING", logger="racecar_hw.net.zenoh_bridge"):
+        stats = asyncio.run(run())
+    assert stats.old_attachment == 1 and stats.received == 0 and stats.malformed == 0
+    assert "update rmw_zenoh" in caplog.text and "0.2.0-0.2.3" in caplog.text

@@ -359,6 +359,16 @@ class Attachment:
         return cls(seq, stamp, gid)
 
 
+def is_old_attachment(data: bytes | bytearray | memoryview) -> bool:
+    """Whether an attachment is the string-keyed map of rmw_zenoh before 0.2.4 (Jazzy 0.2.0-0.2.3).
+
+    Those releases attached a Zenoh bytes map with the keys ``sequence_number``, ``source_timestamp``
+    and ``source_gid``; nothing here decodes it (update such a node), but it is told apart from noise.
+    """
+    raw = bytes(data)
+    return b"sequence_number" in raw and b"source_gid" in raw
+
+
 def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:
     """The attachment bytes for one sample (the publisher thread's fast path)."""
     return _ATTACHMENT.pack(sequence_number, source_timestamp_ns, GID_SIZE, gid)

@@ -66,6 +66,10 @@ from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
 
+#: What a sample from a Jazzy node on rmw_zenoh 0.2.0-0.2.3 gets in the log.
+OLD_ATTACHMENT_HINT = ("the sender's rmw_zenoh uses the old string-keyed attachment of Jazzy's 0.2.0-0.2.3 "
+                       "releases: update rmw_zenoh on that machine "
+                       "(sudo apt upgrade ros-jazzy-rmw-zenoh-cpp)")
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
 
@@ -80,6 +84,7 @@ class BridgeStats:
     received: int = 0        #: incoming samples handed to the bus
     no_attachment: int = 0   #: incoming samples without rmw_zenoh's attachment (dropped)
     malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
+    old_attachment: int = 0  #: incoming samples with rmw_zenoh 0.2.0-0.2.3's string-keyed attachment
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
     service_calls: int = 0   #: service requests answered
     service_errors: int = 0  #: service requests refused (no attachment, malformed) or failed replies
@@ -337,19 +342,20 @@ class ZenohBridge:
                 setattr(stats, name, getattr(stats, name) + 1)
                 n = getattr(stats, name)
             if n in (1, 10, 100) or n % 1000 == 0:
-                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros,
-                            name.replace("_", " "), n)
+                why = OLD_ATTACHMENT_HINT if name == "old_attachment" else name.replace("_", " ")
+                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros, why, n)
 
         def receive(sample: Any) -> None:
             attachment = sample.attachment
             if attachment is None:
                 count("no_attachment")
                 return
+            raw = attachment.to_bytes()
             try:
-                rmw.Attachment.decode(attachment.to_bytes())
+                rmw.Attachment.decode(raw)
                 msg = types.deserialize(sample.payload.to_bytes(), cls)
             except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
-                count("malformed")
+                count("old_attachment" if rmw.is_old_attachment(raw) else "malformed")
                 return
             if not all_finite(msg):
                 count("non_finite")
