@@ -291,8 +291,10 @@ class ZenohBridge:
             log.warning("zenoh session close failed: %r", err)
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
-                 "%d received, %d without attachment, %d malformed, %d non-finite", s.published,
-                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.non_finite)
+                 "%d received, %d without attachment, %d malformed, %d with an old rmw_zenoh's attachment, "
+                 "%d non-finite; %d service calls answered, %d refused", s.published,
+                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.old_attachment,
+                 s.non_finite, s.service_calls, s.service_errors)
 
     # --- out: bus thread, then the publisher thread -------------------------------------------
 
