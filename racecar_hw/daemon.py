@@ -686,7 +686,10 @@ class Daemon:
         self._restore_process()
 
     def _restore_process(self) -> None:
-        """Put back the open-file limit and the loop's exception handler run() changed."""
+        """Put back the open-file limit, the loop's exception handler and the log handlers run()
+        changed."""
+        if self.rosout is not None:
+            self.rosout.uninstall()
         if self._file_limit is not None:
             self._file_limit.restore()
             self._file_limit = None
