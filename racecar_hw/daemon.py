@@ -346,6 +346,27 @@ class Daemon:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
 
+    def drives_itself(self) -> bool:
+        """Whether a configured source drives the car without anyone at the controls (a followed
+        bag, the figure-8): then a run that never reached the VESC has failed."""
+        return self.follower is not None or self.figure8 is not None
+
+    def undriven_reason(self) -> str | None:
+        """Why no drive command reached a connected VESC in this run; None when one did, or
+        when there is no VESC to reach."""
+        vesc = self.vesc
+        if vesc is None or vesc.stats.drive_commands:
+            return None
+        port = self.config.vesc.port
+        if not vesc.ever_connected:
+            why = f": {vesc.last_error}" if vesc.last_error else ""
+            return (f"no motor command reached the VESC: it never connected on port {port}{why} "
+                    f"(check vesc.port and the cable)")
+        if vesc.firmware is None and vesc.stats.frames_rx == 0:
+            return (f"no motor command reached the VESC: port {port} opened but the VESC never "
+                    f"answered (check the baud rate and that it is a VESC)")
+        return "no motor command reached the VESC: the run ended before a command was sent"
+
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
         out = self.mux.last_output

@@ -59,7 +59,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     if daemon.follower is not None:
         daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
     with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
-        return asyncio.run(run_daemon(daemon, noted=stops))
+        code = asyncio.run(run_daemon(daemon, noted=stops))
+    if daemon.drives_itself():  # a bag or the figure-8 was to drive: say so when it never could
+        code = code or exit_if_undriven("run", daemon)
+    return code
+
+
+def exit_if_undriven(command: str, daemon: Daemon) -> int:
+    """1, after saying why on stderr, when no drive command reached a connected VESC; else 0.
+
+    A command that drives (``follow``, ``run`` with a bag or the figure-8) must not report a
+    success it did not have: a replay against a missing port drove nothing.
+    """
+    reason = daemon.undriven_reason()
+    if reason is None:
+        return 0
+    print(f"racecar-hw {command}: {reason}", file=sys.stderr)
+    return 1
 
 
 async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,
