@@ -242,7 +242,8 @@ class Daemon:
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF})
+                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
+                                 refusals=self.refusals)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""

@@ -17,6 +17,10 @@ A thin I/O shell around the codec, with one Zenoh session:
   sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
   decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
   bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
+  A second subscriber per input topic matches the topic whatever its type: a sample of another
+  type (``AckermannDrive`` where ``AckermannDriveStamped`` is taken, which rmw_zenoh puts on a
+  different key, so the input never sees it) is counted in ``wrong_type`` and in the daemon's
+  :class:`~racecar_hw.runtime.refusals.Refusals` (rate-limited log lines naming the type taken).
 * **Graph.** A liveliness token for the node and one per publisher and subscriber, so
   ``ros2 node list`` and ``ros2 topic list`` on a machine running rmw_zenoh show the car.
 
@@ -46,6 +50,7 @@ from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
 from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +69,7 @@ class BridgeStats:
     no_attachment: int = 0   #: incoming samples without rmw_zenoh's attachment (dropped)
     malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
+    wrong_type: int = 0      #: incoming samples on an input topic with another type or type hash
 
 
 class _Out:
@@ -85,12 +91,14 @@ class ZenohBridge:
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
     the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
-    ``/tf``: remote navigation code waits for them); the rest go out in batches.
+    ``/tf``: remote navigation code waits for them); the rest go out in batches. Samples of the
+    wrong type on an input topic are noted in ``refusals`` (the daemon passes its own).
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
-                 urgent: frozenset[str] | set[str] = frozenset()) -> None:
+                 urgent: frozenset[str] | set[str] = frozenset(),
+                 refusals: Refusals | None = None) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -98,6 +106,7 @@ class ZenohBridge:
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
+        self.refusals = refusals if refusals is not None else Refusals()
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
@@ -205,8 +214,35 @@ class ZenohBridge:
         else:
             sub = self.session.declare_subscriber(key, callback)
         self._subscribers.append(sub)
+        self._subscribers.append(self.session.declare_subscriber(
+            rmw.topic_key_pattern(self.domain_id, self.ros_name(row)), self._type_guard(row, key)))
         token = self._entity(rmw.SUBSCRIPTION, row).token()
         self._tokens.append(self.session.liveliness().declare_token(token))
+
+    def _type_guard(self, row: Topic, key: str) -> Callable[[Any], None]:
+        """A callback for every sample on the row's topic, whatever its type: counts the samples of
+        another type (or type hash), which the row's own subscriber never sees."""
+        expected = row.msgtype.ROS_TYPE
+        topic = self.ros_name(row)
+        stats, lock = self.stats, self._lock
+
+        def guard(sample: Any) -> None:
+            got = str(sample.key_expr)
+            if got == key:
+                return
+            with lock:
+                stats.wrong_type += 1
+            head, _, hash_ = got.rpartition("/")  # .../<dds type>/<type hash>
+            dds = head.rpartition("/")[2]
+            try:
+                sent = rmw.ros_type(dds)
+            except rmw.WireError:
+                sent = dds
+            reason = (f"type hash {hash_} of {sent} differs from racecar-hw's" if sent == expected
+                      else f"wrong type {sent} (it takes {expected})")
+            self.refusals.note("zenoh", topic, reason)
+
+        return guard
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
@@ -232,8 +268,9 @@ class ZenohBridge:
             log.warning("zenoh session close failed: %r", err)
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
-                 "%d received, %d without attachment, %d malformed, %d non-finite", s.published,
-                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.non_finite)
+                 "%d received, %d without attachment, %d malformed, %d non-finite, %d of a wrong type",
+                 s.published, self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed,
+                 s.non_finite, s.wrong_type)
 
     # --- out: bus thread, then the publisher thread -------------------------------------------
 
