@@ -172,3 +172,31 @@ def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
     assert snap.sim_pose is not None and snap.sim_pose[0] > 0.5  # driving down the corridor
     assert snap.clearance_m == pytest.approx(0.6, abs=0.05)
     assert snap.vesc_link == "up" and snap.lidar_link == "up"
+
+
+def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning(tmp_path):
+    """A ROS 1 bag from a car that steers further (0.3 rad; this car's limit is 0.26) drives the
+    simulated car in ``sim --follow``, clamped, with one warning that counts the commands."""
+    from racecar_hw.bags.record import BagFile
+    from racecar_hw.rosmsg.typestore import types_for
+
+    bag = tmp_path / "f1tenth.bag"
+    f = BagFile(bag, "ros1", "none", types_for(1))
+    for i in range(40):  # 2 s at 20 Hz: 0.8 m/s, turning left at 0.3 rad
+        f.write(NAV0, AckermannDriveStamped(Header(Time(1, i * 50_000_000), "base_link"),
+                                            AckermannDrive(speed=0.8, steering_angle=0.3)),
+                1_000_000_000 + i * 50_000_000)
+    f.close()
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--follow", str(bag),
+                           "--no-status", "--set", NO_ZENOH, "--set", "foxglove.enabled=false",
+                           "--set", "web.enabled=false", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    warnings = [line for line in proc.stderr.splitlines() if "limits" in line]
+    assert len(warnings) == 1, proc.stderr
+    assert "40 of 40 commands" in warnings[0] and "steering up to 0.3 rad (limit 0.26)" in warnings[0]
+    assert "clamped" in warnings[0] and "refused" not in proc.stderr
+    report = json.loads(next(out.glob("*.json")).read_text())
+    assert report["distance_m"] > 0.8  # the car drove
+    assert report["final_pose"]["yaw"] > 0.3  # and turned left, at the clamped angle
