@@ -29,9 +29,10 @@ from racecar_hw.base.params import build, describe, param, to_dict
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.ports import Listener, free_port, port_taken
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
 from racecar_hw.net.web import WebParams
-from racecar_hw.net.zenoh_config import ZenohParams
+from racecar_hw.net.zenoh_config import ZenohParams, parse_endpoint
 from racecar_hw.sources.figure8 import Figure8Params
 from racecar_hw.sources.scan_summary import ScanSummaryParams
 from racecar_hw.sources.setpoint import SetpointParams
@@ -217,6 +218,57 @@ def network_topics(config: Config) -> list[Topic]:
 
 #: An RPLIDAR's sweep period (s): about 10 Hz revolutions (A1 5.5 Hz at the slowest).
 RPLIDAR_SWEEP_S = 0.1
+
+
+#: Zenoh protocols that listen on a TCP port (the ones a port clash can hit).
+_TCP_PROTOCOLS = ("tcp", "tls", "ws")
+
+
+def listeners(config: Config) -> list[Listener]:
+    """Every TCP port the configuration listens on: Zenoh's listen endpoints, the Foxglove live
+    view, the status page (enabled ones; port 0, any free port, is left out)."""
+    out: list[Listener] = []
+    if config.zenoh.enabled:
+        for i, endpoint in enumerate(config.zenoh.listen):
+            key = f"zenoh.listen[{i}]"
+            proto, host, port = parse_endpoint(endpoint, key)
+            if proto in _TCP_PROTOCOLS and port:
+                out.append(Listener(key, "Zenoh (ROS 2 topics)", host, port))
+    if config.foxglove.enabled and config.foxglove.port:
+        out.append(Listener("foxglove.port", "the Foxglove live view", config.foxglove.host,
+                            config.foxglove.port))
+    if config.web.enabled and config.web.port:
+        out.append(Listener("web.port", "the status page", config.web.host, config.web.port))
+    return out
+
+
+def taken_listeners(config: Config) -> list[Listener]:
+    """The listeners whose port another program holds now (:func:`racecar_hw.net.ports.port_taken`)."""
+    return [item for item in listeners(config) if port_taken(item.host, item.port)]
+
+
+def move_to_free_ports(config: Config) -> list[tuple[Listener, str]]:
+    """Move every listener whose port is taken to a free port, in ``config``; returns each moved
+    one with where it listens now (an endpoint or URL to print). What ``racecar-hw sim`` does."""
+    moved: list[tuple[Listener, str]] = []
+    for item in taken_listeners(config):
+        port = free_port(item.host)
+        where = f"{item.host}:{port}"
+        if item.key.startswith("zenoh.listen["):
+            i = int(item.key[len("zenoh.listen["):-1])
+            endpoint = config.zenoh.listen[i]
+            proto, _, rest = endpoint.partition("/")
+            address, sep, tail = rest.partition("#")
+            host_part = address.rpartition(":")[0]
+            config.zenoh.listen[i] = where = f"{proto}/{host_part}:{port}" + (sep + tail if sep else "")
+        elif item.key == "foxglove.port":
+            config.foxglove.port = port
+            where = f"ws://{item.host}:{port}"
+        else:
+            config.web.port = port
+            where = f"http://{item.host}:{port}/"
+        moved.append((item, where))
+    return moved
 
 
 def _check_scan_timing(config: Config) -> None:

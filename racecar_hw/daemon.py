@@ -43,9 +43,10 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
+from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics, taken_listeners
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
+from racecar_hw.net.ports import taken_message
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
@@ -506,18 +507,27 @@ class Daemon:
             return
         self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
 
+    def _refuse_taken_ports(self) -> None:
+        """Refuse to start (a one-line ConfigError naming the key) when the live view's or the
+        page's port is taken: the rule for every interface (docs/live-view.md, "Ports"); Zenoh's
+        own open refuses a taken listen port the same way, naming ``zenoh.listen[i]``."""
+        for item in taken_listeners(self.config):
+            if not item.key.startswith("zenoh."):
+                raise ConfigError(item.key, taken_message(item))
+
     async def run(self, stop: asyncio.Event) -> None:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
-        if self.zenoh is not None:
-            try:
+        try:
+            self._refuse_taken_ports()
+            if self.zenoh is not None:
                 await loop.run_in_executor(None, self.zenoh.open, loop)
-            except BaseException:
-                for coro in self._extra:  # never started: no "coroutine was never awaited"
-                    coro.close()
-                self._extra = []
-                raise
+        except BaseException:
+            for coro in self._extra:  # never started: no "coroutine was never awaited"
+                coro.close()
+            self._extra = []
+            raise
         self._publish_static_transforms()
         if self.recorder is not None:
             self.recorder.start()

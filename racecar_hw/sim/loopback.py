@@ -14,6 +14,7 @@ import asyncio
 import json
 import logging
 import math
+import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,8 +30,9 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.overrides import merge
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import Config, load_config, shipped_config
+from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon, command_limits, reverse_speed_cap
+from racecar_hw.net.ports import Listener
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
@@ -114,6 +116,8 @@ class Loopback:
         self._mux_offset_s = 0.0
         self._followers: dict[int, BagFollower] = {}  # follow drivers' followers, loaded before the run
         self._followed: dict[int, float] = {}  # follow drivers' fraction of their replay published
+        #: listeners whose configured port was taken, with where they listen instead
+        self.moved_ports: list[tuple[Listener, str]] = []
 
     # --- building -------------------------------------------------------------------------------
 
@@ -126,7 +130,13 @@ class Loopback:
             "vesc": {"port": str(self.dev_dir / "vesc")},
             "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
-        return load_config(self.config_path, self.overrides, extra=extra)
+        config = load_config(self.config_path, self.overrides, extra=extra)
+        # the rule for ports (docs/live-view.md, "Ports"): a sim takes free ones, and says where
+        self.moved_ports = move_to_free_ports(config)
+        for listener, where in self.moved_ports:
+            print(f"racecar-hw sim: {listener.key} {listener.address()} is taken (another racecar-hw?); "
+                  f"{listener.what} is on {where} instead", file=sys.stderr, flush=True)
+        return config
 
     @staticmethod
     def _car_params(config: Config) -> CarParams:
