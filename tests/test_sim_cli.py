@@ -40,7 +40,7 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "never awaited" not in err
-    report = json.loads((tmp_path / "report.json").read_text())
+    report = json.loads((tmp_path / "figure8.json").read_text())  # named after the scenario
     assert report["interrupted"] is True and report["stop_reason"] == stop.name
     assert report["sim_time_s"] < 60
     assert read_csv(report["trajectory_csv"])
@@ -73,7 +73,7 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
                  "--follow-topic", "/cmd_vel"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("racecar-hw sim: topic /cmd_vel is not in") and err.count("\n") == 1
-    assert not (tmp_path / "report.json").exists()
+    assert not list(tmp_path.glob("*.json"))
 
 
 def test_follow_options_come_first_and_scenario_sets_apply_to_them(tmp_path):
@@ -101,7 +101,7 @@ def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, cap
     rec.stop()
     assert main(["sim", "--follow", str(tmp_path / "drive"), "--duration", "2", "--no-status",
                  *set_args(*QUIET_NET), "--out", str(tmp_path / "out")]) == 0
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    report = json.loads((tmp_path / "out" / "follow.json").read_text())
     assert report["scenario"] == "follow" and not report["interrupted"]
     assert report["distance_m"] > 0.3  # the car moved
     assert capsys.readouterr().out.startswith("follow: ran ")
@@ -131,7 +131,7 @@ def test_follow_reverse_runs_the_whole_stretched_replay_and_says_when_duration_c
               *set_args(*QUIET_NET)]
     assert main([*common, "--out", str(tmp_path / "whole")]) == 0
     out = capsys.readouterr().out
-    report = json.loads((tmp_path / "whole" / "report.json").read_text())
+    report = json.loads((tmp_path / "whole" / "follow.json").read_text())
     (follow,) = report["follow"]
     assert (follow["replay_s"], follow["speed_scale"]) == (2.9, 0.5)
     assert follow["complete"] and follow["followed"] == 1.0
@@ -142,7 +142,7 @@ def test_follow_reverse_runs_the_whole_stretched_replay_and_says_when_duration_c
 
     assert main([*common, "--duration", "1.5", "--out", str(tmp_path / "cut")]) == 0
     out = capsys.readouterr().out
-    report = json.loads((tmp_path / "cut" / "report.json").read_text())
+    report = json.loads((tmp_path / "cut" / "follow.json").read_text())
     (follow,) = report["follow"]
     assert not follow["complete"] and 0 < follow["followed"] < 1 and report["duration_s"] == 1.5
     assert not report["interrupted"] and report["distance_m"] < 1.0
@@ -200,3 +200,27 @@ def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning
     report = json.loads(next(out.glob("*.json")).read_text())
     assert report["distance_m"] > 0.8  # the car drove
     assert report["final_pose"]["yaw"] > 0.3  # and turned left, at the clamped angle
+
+
+def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_path):
+    """``sim --record`` prints the bag's path with the report's (named after the scenario), the
+    plot's and the trajectory's; ``bag info`` takes the bag's .mcap file as well as its folder."""
+    out, record = tmp_path / "out", tmp_path / "bags"
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall",
+                           "--duration", "1", "--no-status", *set_args(*QUIET_NET), "--out", str(out),
+                           "--record", str(record)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    said = dict(line.split(":", 1) for line in proc.stdout.splitlines()[-4:])
+    said = {k.strip(): Path(v.strip()) for k, v in said.items()}
+    assert said["report"] == out / "wall.json" and said["report"].is_file()
+    assert said["plot"] == out / "wall.png" and said["plot"].is_file()
+    assert said["trajectory"] == out / "wall-trajectory.csv" and said["trajectory"].is_file()
+    assert said["bag"].parent == record and said["bag"].is_dir()
+    assert json.loads(said["report"].read_text())["bags"] == [str(said["bag"])]
+    (mcap,) = said["bag"].glob("*.mcap")
+    for path in (mcap, said["bag"]):
+        info = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "bag", "info", str(path)],
+                              capture_output=True, text=True, timeout=120)
+        assert info.returncode == 0, info.stderr
+        assert f"path:      {said['bag']}\n" in info.stdout and "complete:  yes" in info.stdout
+        assert "//" not in info.stdout

@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seconds to run (default: the scenario's; with --follow, as long as the "
                         "replay, slowed down for the reverse cap if need be, and 1 s more)")
     p.add_argument("--report", metavar="FILE", help="write the JSON report here "
-                                                    "(default: OUT/report.json)")
+                                                    "(default: OUT/SCENARIO.json, as the plot and CSV)")
     p.add_argument("--out", metavar="DIR", help="directory for the trajectory CSV and plot "
                                                 "(default: next to the report, else ./sim-out)")
     p.add_argument("--scenario-set", dest="scenario_overrides", action="append", default=[],
@@ -98,11 +98,19 @@ def cmd_sim(args: argparse.Namespace) -> int:
         result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
         return INTERRUPTED
-    report = write_report(result, args.report or out / "report.json")
+    report = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
-    print(f"report: {report}\nplot: {result.plot_png}\ntrajectory: {result.trajectory_csv}")
+    print(outputs(result.report, report))
     return 0
+
+
+def outputs(report: dict[str, Any], report_path: Path) -> str:
+    """Where each output of the run went: the report, the plot, the trajectory, any bag."""
+    lines = [f"report:     {report_path}", f"plot:       {report['plot_png']}",
+             f"trajectory: {report['trajectory_csv']}"]
+    lines += [f"bag:        {bag}" for bag in report.get("bags") or []]
+    return "\n".join(lines)
 
 
 def summary(report: dict[str, Any]) -> str:

@@ -533,6 +533,9 @@ class Loopback:
             "safety_memory": daemon.config.safety.memory.enabled,
             "trajectory_csv": None,
             "plot_png": None,
+            # the bags --record wrote (ROS 2: the bag directory)
+            "bags": ([str(f) for f in daemon.recorder.stats.files] if daemon.recorder is not None
+                     else []),
         }
         result = SimResult(report, interventions_at=list(self.interventions_at))
         if self.out_dir is not None:
