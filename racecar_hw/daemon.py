@@ -43,10 +43,10 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics, taken_listeners
+from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, listeners, network_topics
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
-from racecar_hw.net.ports import taken_message
+from racecar_hw.net.ports import port_taken, taken_message
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
@@ -511,8 +511,8 @@ class Daemon:
         """Refuse to start (a one-line ConfigError naming the key) when the live view's or the
         page's port is taken: the rule for every interface (docs/live-view.md, "Ports"); Zenoh's
         own open refuses a taken listen port the same way, naming ``zenoh.listen[i]``."""
-        for item in taken_listeners(self.config):
-            if not item.key.startswith("zenoh."):
+        for item in listeners(self.config):
+            if not item.key.startswith("zenoh.") and port_taken(item.host, item.port):
                 raise ConfigError(item.key, taken_message(item))
 
     async def run(self, stop: asyncio.Event) -> None:

@@ -12,7 +12,7 @@ import time
 
 import pytest
 import yaml
-from conftest import wait_for
+from conftest import QUIET_NET, wait_for
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
@@ -125,7 +125,7 @@ def test_a_missing_vesc_shows_as_connecting_on_the_panel(tmp_path):
 
     config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
                                 "gamepad.enabled=false", "status.enabled=false",
-                                "safety.mode=off", "foxglove.enabled=false", "web.enabled=false"])
+                                "safety.mode=off", *QUIET_NET])
 
     async def scenario() -> tuple[str | None, str | None]:
         daemon = Daemon(config)

@@ -130,13 +130,15 @@ class Loopback:
             "vesc": {"port": str(self.dev_dir / "vesc")},
             "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
-        config = load_config(self.config_path, self.overrides, extra=extra)
-        # the rule for ports (docs/live-view.md, "Ports"): a sim takes free ones, and says where
+        return load_config(self.config_path, self.overrides, extra=extra)
+
+    def _take_free_ports(self, config: Config) -> None:
+        """The rule for ports (docs/live-view.md, "Ports"): a sim listens on free ports instead of
+        taken ones, and says where. After every refusal, so a refused run touches no port."""
         self.moved_ports = move_to_free_ports(config)
         for listener, where in self.moved_ports:
             print(f"racecar-hw sim: {listener.key} {listener.address()} is taken (another racecar-hw?); "
                   f"{listener.what} is on {where} instead", file=sys.stderr, flush=True)
-        return config
 
     @staticmethod
     def _car_params(config: Config) -> CarParams:
@@ -412,6 +414,7 @@ class Loopback:
                     await asyncio.to_thread(self._follower, spec, Bus())
             if self.until_replay_ends and self._followers:
                 self.duration_s = self._replay_end_s() + REPLAY_SETTLE_S
+            self._take_free_ports(config)
             self.config = self._start_devices(config)
             assert self.world is not None
             created_ns = monotonic_ns()
