@@ -61,7 +61,7 @@ from racecar_hw.sources.scan_summary import ScanSummaryPublisher
 from racecar_hw.sources.setpoint import SetpointRelay
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad import GamepadTeleop
-from racecar_hw.teleop.keyboard import KeyboardTeleop
+from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
 from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
 from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
@@ -201,6 +201,8 @@ class Daemon:
             self.links["lidar"] = LinkWatch(f"lidar {config.lidar.model}", lambda: lidar.connected,
                                             detail=lambda: lidar.last_error)
         self._tasks: list[asyncio.Task[Any]] = []
+        #: where the live interfaces listened once started (``live_urls``), for reports
+        self.started_live: dict[str, str] = {}
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
         #: control ticks between two of the mux's diagnostics (``mux.diagnostics_rate_hz``)
@@ -391,6 +393,8 @@ class Daemon:
             armed=self.arming.armed,
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
+            live_view=self.live_urls().get("foxglove"), page=self.live_urls().get("web"),
+            keys=KEY_HINTS if self.keyboard is not None else None,
         )
         if self.extra_status is not None:
             snap = dataclasses.replace(snap, **self.extra_status())
@@ -429,6 +433,15 @@ class Daemon:
                          if config.foxglove.enabled else None)
         self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic)
                     if config.web.enabled else None)
+
+    def live_urls(self) -> dict[str, str]:
+        """Where the live interfaces that run listen: ``foxglove`` (ws://) and ``web`` (http://)."""
+        urls: dict[str, str] = {}
+        if self.foxglove is not None and self.foxglove.port is not None:
+            urls["foxglove"] = f"ws://{self.config.foxglove.host}:{self.foxglove.port}"
+        if self.web is not None and self.web.port:
+            urls["web"] = f"http://{self.config.web.host}:{self.web.port}/"
+        return urls
 
     def live_state(self) -> LiveState:
         """The car now, for the live interfaces (:class:`racecar_hw.net.control.CarControl`)."""
@@ -536,6 +549,9 @@ class Daemon:
         if self.setpoint is not None:
             self.setpoint.start()
         await self._start_live()
+        self.started_live = self.live_urls()
+        for what, url in self.started_live.items():  # where to look, also when the log is quiet
+            log.info("%s on %s", {"foxglove": "live view (Foxglove)", "web": "status page"}[what], url)
         coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
         if self.links:
             coros.append(self._watch_links())

@@ -127,7 +127,8 @@ def test_lidar_info_takes_the_model_the_device_reports_without_model(device_thre
                           else None, tcp=("127.0.0.1", 0) if transport == "tcp" else None)
         device_thread.spawn(fake.serve())
         assert fake.ready.wait(10)
-        where = (["--tcp", "{}:{}".format(*fake.tcp_address)] if transport == "tcp" else ["--port", fake.path])
+        where = (["--tcp", "{}:{}".format(*fake.tcp_address)] if transport == "tcp"
+                 else ["--port", fake.path])
     assert main(["lidar-info", *where, "--timeout", "10"]) == 0
     out = capsys.readouterr().out
     assert re.search(rf"^model:      {model} \(device reports \S+\), detected$", out, re.M), out

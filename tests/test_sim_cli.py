@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -210,6 +211,9 @@ def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_p
                            "--duration", "1", "--no-status", *set_args(*QUIET_NET), "--out", str(out),
                            "--record", str(record)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
+    # the summary says where the live view and the page were (free ports here)
+    assert re.search(r"live view \(Foxglove\) ws://127\.0\.0\.1:\d+ and status page "
+                     r"http://127\.0\.0\.1:\d+/ \(while it ran\)", proc.stdout), proc.stdout
     said = dict(line.split(":", 1) for line in proc.stdout.splitlines()[-4:])
     said = {k.strip(): Path(v.strip()) for k, v in said.items()}
     assert said["report"] == out / "wall.json" and said["report"].is_file()
@@ -224,3 +228,36 @@ def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_p
         assert info.returncode == 0, info.stderr
         assert f"path:      {said['bag']}\n" in info.stdout and "complete:  yes" in info.stdout
         assert "//" not in info.stdout
+
+
+def test_the_panel_names_the_live_view_the_page_and_with_keyboard_the_keys(monkeypatch, tmp_path):
+    """What the status panel shows of the live interfaces (their URLs once listening) and, with
+    ``--keyboard``, the keys."""
+    import asyncio
+
+    from racecar_hw.config import load_config
+    from racecar_hw.daemon import Daemon
+    from racecar_hw.teleop.keyboard import KEY_HINTS
+
+    base = ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false", "status.enabled=false",
+            *QUIET_NET]
+    assert Daemon(load_config(None, base)).snapshot().keys is None
+    with (tmp_path / "keys").open("w+") as keys:  # the keyboard's stdin (pytest's has no descriptor)
+        monkeypatch.setattr("sys.stdin", keys)
+        assert Daemon(load_config(None, [*base, "keyboard.enabled=true"])).snapshot().keys == KEY_HINTS
+    daemon = Daemon(load_config(None, base))
+    assert (daemon.snapshot().live_view, daemon.snapshot().page) == (None, None)  # not yet listening
+
+    async def running() -> tuple[str | None, str | None]:
+        stop = asyncio.Event()
+        task = asyncio.create_task(daemon.run(stop))
+        while not daemon.started_live and not task.done():
+            await asyncio.sleep(0.05)
+        snap = daemon.snapshot()
+        stop.set()
+        await task
+        return snap.live_view, snap.page
+
+    live_view, page = asyncio.run(running())
+    assert live_view is not None and re.fullmatch(r"ws://127\.0\.0\.1:\d+", live_view)
+    assert page is not None and re.fullmatch(r"http://127\.0\.0\.1:\d+/", page)

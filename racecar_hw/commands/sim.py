@@ -132,8 +132,17 @@ def summary(report: dict[str, Any]) -> str:
         f"min clearance {_clearance(report)}, safety interventions {report['safety_interventions']}{by}",
         f"final pose x {num(pose['x'], '.2f', 'm')}  y {num(pose['y'], '.2f', 'm')}  "
         f"yaw {num(yaw, '.0f', 'deg')}",
+        *_live(report),
         *_cut_short(report),
     ])
+
+
+def _live(report: dict[str, Any]) -> list[str]:
+    """Where the live view and the status page were during the run, when they were on."""
+    live = report.get("live") or {}
+    names = {"foxglove": "live view (Foxglove)", "web": "status page"}
+    parts = [f"{names[k]} {url}" for k, url in live.items() if k in names]
+    return [f"{' and '.join(parts)} (while it ran)"] if parts else []
 
 
 def _cut_short(report: dict[str, Any]) -> list[str]:

@@ -26,7 +26,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from rich.console import Console, RenderableType
+from rich.console import Console, ConsoleOptions, RenderableType, RenderResult
 from rich.constrain import Constrain
 from rich.live import Live
 from rich.panel import Panel
@@ -68,6 +68,11 @@ class StatusSnapshot:
     lidar_link: str | None = None
     sim_time_s: float | None = None
     clearance_m: float | None = None
+    #: where the Foxglove live view and the status page listen (URLs), when they are on
+    live_view: str | None = None
+    page: str | None = None
+    #: the keys that drive, when keyboard teleop is on
+    keys: str | None = None
 
 
 #: What a non-finite reading shows: a summary never says ``nan``.
@@ -125,6 +130,12 @@ def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
         fields.append(("sim pose", _pose(s.sim_pose)))
     if s.clearance_m is not None:
         fields.append(("clearance", _num(s.clearance_m, ".2f", "m")))
+    if s.live_view is not None:
+        fields.append(("live view", s.live_view))
+    if s.page is not None:
+        fields.append(("page", s.page))
+    if s.keys is not None:
+        fields.append(("keys", s.keys))
     return fields
 
 
@@ -150,24 +161,41 @@ def _style(label: str, s: StatusSnapshot) -> str:
 
 #: Widths of the panel and its label columns (characters): fixed, so the box keeps its size whatever
 #: the values (the value columns get 36 each); a longer value (a lost link with its counters) ends
-#: in an ellipsis, its start (the state) kept. The plain line has every value in full.
+#: in an ellipsis, its start (the state) kept. The plain line has every value in full. On a terminal
+#: narrower than the panel (80 columns) the fields stand one per row, every value whole (wrapped
+#: in the rare case it is longer than the row).
 PANEL_WIDTH, LABEL_WIDTH = 100, 9
 
 
+class _StatusView:
+    """The panel, laid out for the width it is drawn in (see :data:`PANEL_WIDTH`)."""
+
+    def __init__(self, s: StatusSnapshot, title: str) -> None:
+        self.snapshot, self.title = s, title
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        s = self.snapshot
+        pairs = 2 if options.max_width >= PANEL_WIDTH else 1
+        grid = Table.grid(padding=(0, 2), expand=True)
+        for _pair in range(pairs):
+            grid.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
+            if pairs == 2:
+                grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # the two share the rest
+            else:
+                grid.add_column(overflow="fold", ratio=1)
+        cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)]
+        for i in range(0, len(cells), pairs):
+            row: list[RenderableType] = []
+            for label, text in cells[i:i + pairs]:
+                row += [label, text]
+            grid.add_row(*row)
+        yield Constrain(Panel(grid, title=self.title, expand=True), PANEL_WIDTH)
+
+
 def render(s: StatusSnapshot, title: str = "racecar-hw") -> RenderableType:
-    """The snapshot as a rich panel of two label/value columns, 100 columns wide (narrower only on
-    a narrower terminal, the values cut with an ellipsis)."""
-    grid = Table.grid(padding=(0, 2), expand=True)
-    for _pair in range(2):
-        grid.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
-        grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # the two share what is left
-    cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)]
-    for i in range(0, len(cells), 2):
-        row: list[RenderableType] = [cells[i][0], cells[i][1]]
-        if i + 1 < len(cells):
-            row += [cells[i + 1][0], cells[i + 1][1]]
-        grid.add_row(*row)
-    return Constrain(Panel(grid, title=title, expand=True), PANEL_WIDTH)
+    """The snapshot as a rich panel: two label/value columns, 100 columns wide; on a narrower
+    terminal (80 columns) one field per row, every value whole."""
+    return _StatusView(s, title)
 
 
 class StatusPanel:

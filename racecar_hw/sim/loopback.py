@@ -539,6 +539,8 @@ class Loopback:
             # the bags --record wrote (ROS 2: the bag directory)
             "bags": ([str(f) for f in daemon.recorder.stats.files] if daemon.recorder is not None
                      else []),
+            # where the live view and the status page listened during the run
+            "live": dict(daemon.started_live),
         }
         result = SimResult(report, interventions_at=list(self.interventions_at))
         if self.out_dir is not None:
