@@ -12,6 +12,7 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import unknown_key
 from racecar_hw.config import check_config, describe_config, dump_config, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 
@@ -82,6 +83,7 @@ def yaml_value(value: object) -> str:
 
 def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
+    install_for(config.zenoh)  # before the panel: it takes Python's standard output as it is then
     status = (StatusPanel(refresh_hz=config.status.refresh_hz)
               if config.status.enabled and not args.no_status else None)
     daemon = Daemon(config, status=status)

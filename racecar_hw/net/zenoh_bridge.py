@@ -21,6 +21,9 @@ A thin I/O shell around the codec, with one Zenoh session:
   type (``AckermannDrive`` where ``AckermannDriveStamped`` is taken, which rmw_zenoh puts on a
   different key, so the input never sees it) is counted in ``wrong_type`` and in the daemon's
   :class:`~racecar_hw.runtime.refusals.Refusals` (rate-limited log lines naming the type taken).
+  The e-stop and its release (``estop_topics``) go to ``on_estop(topic, msg, ORIGIN)`` instead,
+  so the mux knows they came from a network session (only an operator releases what an operator
+  latched: :mod:`mux.estop`).
 * **Graph.** A liveliness token for the node and one per publisher and subscriber, so
   ``ros2 node list`` and ``ros2 topic list`` on a machine running rmw_zenoh show the car.
 
@@ -53,6 +56,9 @@ from racecar_hw.rosmsg.typestore import ros2_types
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
+
+#: How the bridge names itself as the origin of the e-stop messages it hands over.
+ORIGIN = "zenoh"
 
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
@@ -93,16 +99,22 @@ class ZenohBridge:
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
     ``/tf``: remote navigation code waits for them); the rest go out in batches. Samples of the
     wrong type on an input topic are noted in ``refusals`` (the daemon passes its own).
+    Messages on ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
+    (without it they go on the bus, where the mux takes them as from a local publisher).
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
                  urgent: frozenset[str] | set[str] = frozenset(),
-                 refusals: Refusals | None = None) -> None:
+                 refusals: Refusals | None = None,
+                 on_estop: Callable[[str, Message, str], None] | None = None,
+                 estop_topics: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
         self.on_input = on_input
+        self.on_estop = on_estop
+        self.estop_topics = frozenset(estop_topics)
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
@@ -351,6 +363,9 @@ class ZenohBridge:
 
     def _deliver(self, topic: str, msg: Message) -> None:
         if self.session is None:
+            return
+        if self.on_estop is not None and topic in self.estop_topics:
+            self.on_estop(topic, msg, ORIGIN)  # the e-stop and its release, with their origin
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:
