@@ -189,7 +189,8 @@ class ZenohBridge:
                 self._enqueuer(out)(latest)
         log.info("zenoh bridge up: %s mode, session %s, domain %d, namespace %r, listen %s, "
                  "connect %s; %d topics out, %d in", p.mode, self.zid, self.domain_id,
-                 self.namespace or "/", p.listen, p.connect, len(self._outs), len(self._subscribers))
+                 self.namespace or "/", p.listen, p.connect, len(self._outs),
+                 sum(row.direction is not Direction.OUT for row in self.rows))
 
     def _declare_out(self, row: Topic, zenoh: Any) -> None:
         reliable = row.qos.reliability is Reliability.RELIABLE
