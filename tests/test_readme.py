@@ -129,6 +129,7 @@ SKIP_REASONS = {
     "bag_ros1tools.py": "python3-rosbag",
     "live_sim.py": "chromium-driver",
     "rplidar_sdk_peer.py": "pyrplidarsdk",
+    "test_estop_live.py": "eclipse-zenoh",
     "test_layers.py": "import-linter",
     "test_link.py": "Python older than 3.11",
     "test_mavlink_security.py": "IPv6",
