@@ -133,9 +133,11 @@ SKIP_REASONS = {
     "test_layers.py": "import-linter",
     "test_link.py": "Python older than 3.11",
     "test_mavlink_security.py": "IPv6",
+    "test_net_flood.py": "open-file limit",
     "test_net_rmw.py": "rosidl_adapter",
     "test_net_zenoh_security.py": "openssl",
     "test_net_zenoh_sim.py": "zenoh-ros2-sdk",
+    "test_open_files.py": "open-file limit",
     "test_systemd_files.py": "udevadm",
 }
 
