@@ -33,6 +33,7 @@ from typing import Any
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
+from mux.arbiter import MuxState
 from mux.node import CommandMux
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.bags.record import Recorder
@@ -40,13 +41,21 @@ from racecar_hw.bags.validate import CommandLimits
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
+from racecar_hw.base.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    DiagnosticArray,
+    LaserScan,
+    Message,
+    stamp_now,
+)
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
-from racecar_hw.net.topics import Topic
+from racecar_hw.net.inbox import Inbox
+from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.links import LinkWatch
@@ -225,13 +234,15 @@ class Daemon:
         return None
 
     def _build_network(self, config: Config) -> None:
-        """The Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
+        """The network inbox, the Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
 
         Built after the scan path's subscriptions, so a scan reaches the bridge's queue only after
-        its motor command is written.
+        its motor command is written. Every network surface hands its inbound messages to the one
+        :class:`~racecar_hw.net.inbox.Inbox`, which coalesces them into the event loop.
         """
         self.zenoh: ZenohBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
+        self.inbox: Inbox | None = None
         z = config.zenoh
         if not z.enabled:
             return
@@ -241,8 +252,17 @@ class Daemon:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
-        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF})
+        self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
+                           self._on_network_input, period_s=1.0 / config.mux.rate_hz,
+                           estop_topic=config.mux.estop_topic, release_topic=config.mux.estop_release_topic,
+                           on_estop=self.network_estop, refusals=self.refusals)
+        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, urgent={config.safety.scan_topic, TOPIC_ODOM,
+                                                                        TOPIC_TF}, inbox=self.inbox)
+
+    def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
+        """A command from a network surface, handed over by the inbox: on the bus, then send it."""
+        self.bus.publish(topic, msg)
+        self._on_remote_input(topic)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -250,6 +270,21 @@ class Daemon:
         now = monotonic_ns()
         if name is not None and self._control_alive(now):
             self.mux.step_early(name, now, self.filters)
+
+    def network_estop(self, topic: str, msg: Message, who: str) -> None:
+        """An e-stop or release message from a network surface (``who``: ``zenoh``), in the loop.
+
+        It goes on the bus for the mux; an e-stop that latches writes the brake now (as the live
+        interfaces' e-stops do), so the VESC's next motor command is the brake.
+        """
+        now = monotonic_ns()
+        frames = self.vesc.stats.frames_tx if self.vesc is not None else None
+        was_running = self.mux.state is MuxState.RUNNING
+        self.bus.publish(topic, msg)
+        if was_running and self.mux.state is not MuxState.RUNNING:
+            self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
+            if self._control_alive(now):
+                self.mux.step(now, self.filters)
 
     def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
@@ -342,6 +377,9 @@ class Daemon:
         stats.last_tick_ns = monotonic_ns()
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
+            if self.inbox is not None:
+                self.bus.publish(self.config.mux.diagnostics_topic,
+                                 DiagnosticArray(stamp_now("", wall_ns()), [self.inbox.diagnostics()]))
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
@@ -488,6 +526,8 @@ class Daemon:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
+        if self.inbox is not None:
+            self.inbox.bind(loop)
         if self.zenoh is not None:
             try:
                 await loop.run_in_executor(None, self.zenoh.open, loop)
@@ -574,6 +614,8 @@ class Daemon:
             self.setpoint.close()
         if self.mavlink is not None:
             self.mavlink.close()
+        if self.inbox is not None:
+            self.inbox.close()
         if self.zenoh is not None:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)

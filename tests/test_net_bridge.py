@@ -311,7 +311,8 @@ def test_any_bytes_from_the_network_are_counted_never_raised(payload, attachment
         attachment = attachment[:16] + b"\x10" + attachment[17:]  # often well-formed
     rows = {r.bus: r for r in topic_table(MuxParams(), SafetyParams(), cmd_vel_topic="/cmd_vel")}
     bridge = ZenohBridge(Bus(), ZenohParams(), list(rows.values()))
-    bridge._loop = loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    bridge.inbox.bind(loop)
     try:
         bridge._receiver(rows[topic])(_Sample(payload, attachment))
     finally:

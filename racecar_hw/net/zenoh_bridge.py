@@ -14,9 +14,12 @@ A thin I/O shell around the codec, with one Zenoh session:
   with a cache of ``depth`` samples, so a subscriber that starts later still gets them; they are
   always queued.
 * **In** (mux inputs, locks, e-stop, ``/cmd_vel``). Zenoh calls back in its own threads; there the
-  sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
-  decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
-  bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
+  sample's rmw_zenoh attachment is checked and the payload given to the network
+  :class:`~racecar_hw.net.inbox.Inbox` (shared with every network surface), which decodes it,
+  checks every number is finite and keeps the latest message per input for the event loop: at
+  most one hand-over per input per control tick whatever the arrival rate, e-stops at once and
+  first. In the loop it is published on the bus like any local input: the mux applies its
+  timeouts. Anything else is dropped and counted.
 * **Graph.** A liveliness token for the node and one per publisher and subscriber, so
   ``ros2 node list`` and ``ros2 topic list`` on a machine running rmw_zenoh show the car.
 
@@ -27,20 +30,17 @@ slow subscriber) holds up only the publisher thread.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
-import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
+from racecar_hw.net.inbox import NON_FINITE, Inbox, all_finite
 from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
@@ -48,6 +48,11 @@ from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
+
+__all__ = ["ORIGIN", "BridgeStats", "ZenohBridge", "all_finite"]
+
+#: How the bridge names itself as the origin of the messages it hands to the inbox.
+ORIGIN = "zenoh"
 
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
@@ -86,15 +91,23 @@ class ZenohBridge:
     the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
     ``/tf``: remote navigation code waits for them); the rest go out in batches.
+
+    Incoming messages go to ``inbox`` (the daemon's, shared with the other network surfaces,
+    which hands them over as it is told); without one the bridge has its own, which publishes
+    them on the bus and then calls ``on_input``.
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
-                 urgent: frozenset[str] | set[str] = frozenset()) -> None:
+                 urgent: frozenset[str] | set[str] = frozenset(),
+                 inbox: Inbox | None = None) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
         self.on_input = on_input
+        self._own_inbox = inbox is None
+        self.inbox = inbox if inbox is not None else Inbox(
+            [r.bus for r in rows if r.direction is Direction.IN], self._deliver)
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
@@ -147,6 +160,7 @@ class ZenohBridge:
         import zenoh.ext  # noqa: PLC0415
 
         self._loop = loop
+        self.inbox.bind(loop)
         p = self.params
         try:
             self.session = zenoh.open(config_for(p))
@@ -210,6 +224,8 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
+        if self._own_inbox:
+            self.inbox.close()
         for sub in self._bus_subs:
             sub.close()
         self._bus_subs.clear()
@@ -274,60 +290,35 @@ class ZenohBridge:
     # --- in: Zenoh's threads, then the event loop ---------------------------------------------
 
     def _receiver(self, row: Topic) -> Callable[[Any], None]:
-        types = ros2_types()
         cls, topic = row.msgtype, row.bus
-        stats, lock = self.stats, self._lock
+        stats, lock, inbox = self.stats, self._lock, self.inbox
 
         def count(name: str) -> None:
             with lock:
                 setattr(stats, name, getattr(stats, name) + 1)
-                n = getattr(stats, name)
-            if n in (1, 10, 100) or n % 1000 == 0:
-                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros,
-                            name.replace("_", " "), n)
 
         def receive(sample: Any) -> None:
             attachment = sample.attachment
             if attachment is None:
                 count("no_attachment")
+                inbox.refuse(ORIGIN, topic, "no attachment")
                 return
             try:
                 rmw.Attachment.decode(attachment.to_bytes())
-                msg = types.deserialize(sample.payload.to_bytes(), cls)
+                payload = sample.payload.to_bytes()
             except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
                 count("malformed")
+                inbox.refuse(ORIGIN, topic, "malformed attachment")
                 return
-            if not all_finite(msg):
-                count("non_finite")
-                return
-            loop = self._loop
-            if loop is None or loop.is_closed():
-                return
-            with lock:
-                stats.received += 1
-            try:
-                loop.call_soon_threadsafe(self._deliver, topic, msg)
-            except RuntimeError:  # the loop closed meanwhile
-                pass
+            refused = inbox.offer_cdr(ORIGIN, topic, cls, payload)
+            count("received" if refused is None else "non_finite" if refused == NON_FINITE else "malformed")
 
         return receive
 
-    def _deliver(self, topic: str, msg: Message) -> None:
+    def _deliver(self, topic: str, msg: Message, origin: str) -> None:
+        """The own inbox's hand-over, in the event loop: on the bus, then ``on_input``."""
         if self.session is None:
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:
             self.on_input(topic)
-
-
-def all_finite(msg: Any) -> bool:
-    """Whether every float (and float array) in a message is finite."""
-    if isinstance(msg, float):
-        return math.isfinite(msg)
-    if isinstance(msg, np.ndarray):
-        return msg.dtype.kind != "f" or bool(np.isfinite(msg).all())
-    if isinstance(msg, list):
-        return all(all_finite(item) for item in msg)
-    if dataclasses.is_dataclass(msg):
-        return all(all_finite(getattr(msg, f.name)) for f in dataclasses.fields(msg))
-    return True
