@@ -45,6 +45,8 @@ from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
+    DiagnosticStatus,
+    KeyValue,
     LaserScan,
     Message,
     stamp_now,
@@ -377,12 +379,23 @@ class Daemon:
         stats.last_tick_ns = monotonic_ns()
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
-            if self.inbox is not None:
-                self.bus.publish(self.config.mux.diagnostics_topic,
-                                 DiagnosticArray(stamp_now("", wall_ns()), [self.inbox.diagnostics()]))
+            self._publish_diagnostics()
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
+
+    def _publish_diagnostics(self) -> None:
+        """The daemon's own statuses beside the mux's: the control loop, and the network inbox."""
+        stats = self.stats
+        message = f"{stats.ticks} ticks, {stats.missed_ticks} missed"
+        statuses = [DiagnosticStatus(
+            DiagnosticStatus.OK, "racecar_hw: control loop", message,
+            "", [KeyValue("ticks", str(stats.ticks)), KeyValue("missed ticks", str(stats.missed_ticks)),
+                 KeyValue("scan cuts", str(stats.scan_cuts))])]
+        if self.inbox is not None:
+            statuses.append(self.inbox.diagnostics())
+        array = DiagnosticArray(stamp_now("", wall_ns()), statuses)
+        self.bus.publish(self.config.mux.diagnostics_topic, array)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""

@@ -160,7 +160,8 @@ class Inbox:
 
     # --- in: any thread -------------------------------------------------------------------------
 
-    def offer_cdr(self, origin: str, topic: str, cls: type[Message], payload: bytes) -> str | None:
+    def offer_cdr(self, origin: str, topic: str, cls: type[Message], payload: bytes,
+                  superseded: int = 0) -> str | None:
         """Decode a CDR ``payload`` of ``cls`` for ``topic`` and :meth:`offer` it.
 
         Returns None when taken in, else the reason it was refused (``malformed``, ``non-finite``).
@@ -170,13 +171,16 @@ class Inbox:
         except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
             self.refuse(origin, topic, MALFORMED)
             return MALFORMED
-        return self.offer(origin, topic, msg)
+        return self.offer(origin, topic, msg, superseded)
 
-    def offer(self, origin: str, topic: str, msg: Message) -> str | None:
+    def offer(self, origin: str, topic: str, msg: Message, superseded: int = 0) -> str | None:
         """Take in ``msg`` for ``topic`` from surface ``origin``, if every number in it is finite.
 
-        Returns None when taken in, else the reason it was refused. Never blocks for longer than
-        a dictionary update under the inbox's lock.
+        ``superseded``: newer messages of this input the surface's middleware already dropped
+        before this one (a surface that keeps only the newest sample, counting the gaps in the
+        publishers' sequence numbers), counted as received and superseded. Returns None when
+        taken in, else the reason it was refused. Never blocks for longer than a dictionary update
+        under the inbox's lock.
         """
         if not all_finite(msg):
             self.refuse(origin, topic, NON_FINITE)
@@ -191,22 +195,24 @@ class Inbox:
             loop = self._loop
             if loop is None:
                 return None  # not running (yet, or any more): nothing to hand over to
-            slot.counts.received += 1
+            slot.counts.received += 1 + superseded
+            slot.counts.superseded += superseded
+            slot.unreported += superseded
             if topic in self.stop_topics:
-                wake, superseded = self._queue_stop(topic, msg, origin, now)
+                wake, replaced = self._queue_stop(topic, msg, origin, now)
                 slot.origin = origin
             else:
-                superseded = slot.msg is not None
-                if superseded:
+                replaced = slot.msg is not None
+                if replaced:
                     slot.counts.superseded += 1
                 else:
                     self._dirty.append(slot)
                 slot.msg, slot.origin = msg, origin
                 wake = (now >= slot.next_ns or self._timer_ns is None or self._timer_ns > slot.next_ns)
-            if superseded:
+            if replaced:
                 slot.unreported += 1
-                if slot.unreported >= FLOOD_NOTE:
-                    flood, slot.unreported = slot.unreported, 0
+            if slot.unreported >= FLOOD_NOTE:
+                flood, slot.unreported = slot.unreported, 0
             if wake and not self._soon:
                 self._soon = True
                 self.wakeups += 1

@@ -54,6 +54,12 @@ __all__ = ["ORIGIN", "BridgeStats", "ZenohBridge", "all_finite"]
 #: How the bridge names itself as the origin of the messages it hands to the inbox.
 ORIGIN = "zenoh"
 
+#: Publishers per command row whose sequence numbers are followed (to count what Zenoh dropped).
+MAX_PUBLISHERS = 64
+#: The largest gap in one publisher's sequence numbers counted as superseded samples (a forged
+#: sequence number must not make the counts absurd).
+MAX_GAP = 1_000_000
+
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
 
@@ -120,6 +126,8 @@ class ZenohBridge:
         self._types = ros2_types()
         self._outs: list[_Out] = []
         self._subscribers: list[Any] = []
+        self._pumps: list[threading.Thread] = []
+        self._stopping = threading.Event()
         self._tokens: list[Any] = []
         self._bus_subs: list[Subscription] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -175,6 +183,8 @@ class ZenohBridge:
             else:
                 self._declare_in(row, zenoh)
         self.outbox.start()
+        for pump in self._pumps:
+            pump.start()
         for out in self._outs:
             self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
             latest = self.bus.latest(out.row.bus)
@@ -211,19 +221,39 @@ class ZenohBridge:
 
     def _declare_in(self, row: Topic, zenoh: Any) -> None:
         key = self.key(row)
-        callback = self._receiver(row)
         if row.qos.latched:
+            callback = self._receiver(row)
             history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=row.qos.depth)
             sub = zenoh.ext.declare_advanced_subscriber(self.session, key, callback, history=history,
                                                         subscriber_detection=True)
+        elif row.bus in self.inbox.stop_topics:
+            # every e-stop message, in order, through a callback in Zenoh's thread: never coalesced
+            sub = self.session.declare_subscriber(key, self._receiver(row))
         else:
-            sub = self.session.declare_subscriber(key, callback)
+            # a command: Zenoh keeps only the newest sample (in Rust, without the GIL) until this
+            # row's thread takes it, at most once per control tick (the inbox's period)
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+            self._pumps.append(threading.Thread(target=self._pump, args=(row, sub), daemon=True,
+                                                name=f"zenoh-in {row.ros}"))
         self._subscribers.append(sub)
         token = self._entity(rmw.SUBSCRIPTION, row).token()
         self._tokens.append(self.session.liveliness().declare_token(token))
 
+    def _pump(self, row: Topic, sub: Any) -> None:
+        """A command row's thread: take the newest sample, check it, offer it, rest one period."""
+        receive = self._receiver(row, gaps={})
+        period_s = self.inbox.period_ns / 1e9
+        while not self._stopping.is_set():
+            try:
+                sample = sub.recv()  # blocks without the GIL; raises once the session closes
+            except Exception:  # noqa: BLE001 - closed: the thread ends
+                return
+            receive(sample)
+            self._stopping.wait(period_s)
+
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
+        self._stopping.set()
         if self._own_inbox:
             self.inbox.close()
         for sub in self._bus_subs:
@@ -246,6 +276,9 @@ class ZenohBridge:
             session.close()
         except Exception as err:  # noqa: BLE001 - shutting down: report and go on
             log.warning("zenoh session close failed: %r", err)
+        for pump in self._pumps:  # the session's close ended their wait for a sample
+            pump.join(5.0)
+        self._pumps.clear()
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
                  "%d received, %d without attachment, %d malformed, %d non-finite", s.published,
@@ -289,7 +322,12 @@ class ZenohBridge:
 
     # --- in: Zenoh's threads, then the event loop ---------------------------------------------
 
-    def _receiver(self, row: Topic) -> Callable[[Any], None]:
+    def _receiver(self, row: Topic, gaps: dict[bytes, int] | None = None) -> Callable[[Any], None]:
+        """Check one sample of ``row`` and offer it to the inbox (in Zenoh's or the row's thread).
+
+        With ``gaps`` (a command row, whose older samples Zenoh drops for the newest), the gap in
+        each publisher's sequence numbers is counted as superseded.
+        """
         cls, topic = row.msgtype, row.bus
         stats, lock, inbox = self.stats, self._lock, self.inbox
 
@@ -304,13 +342,21 @@ class ZenohBridge:
                 inbox.refuse(ORIGIN, topic, "no attachment")
                 return
             try:
-                rmw.Attachment.decode(attachment.to_bytes())
+                meta = rmw.Attachment.decode(attachment.to_bytes())
                 payload = sample.payload.to_bytes()
             except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
                 count("malformed")
                 inbox.refuse(ORIGIN, topic, "malformed attachment")
                 return
-            refused = inbox.offer_cdr(ORIGIN, topic, cls, payload)
+            skipped = 0
+            if gaps is not None:
+                last = gaps.get(meta.gid)
+                if last is not None and meta.sequence_number > last:
+                    skipped = min(meta.sequence_number - last - 1, MAX_GAP)
+                if last is None and len(gaps) >= MAX_PUBLISHERS:
+                    gaps.clear()  # forged GIDs must not grow memory
+                gaps[meta.gid] = meta.sequence_number
+            refused = inbox.offer_cdr(ORIGIN, topic, cls, payload, superseded=skipped)
             count("received" if refused is None else "non_finite" if refused == NON_FINITE else "malformed")
 
         return receive
