@@ -1,6 +1,6 @@
 """A Zenoh client that floods one of the car's command topics, in a process of its own.
 
-    python tests/zenoh_flood.py PORT [--topic /cmd_vel] [--rate HZ] [--seconds S] [--speed M/S]
+    python tests/zenoh_flood.py PORT [--topic /cmd_vel] [--rate HZ] [--seconds S] [--speed M/S] [--nice N]
 
 Publishes ``geometry_msgs/Twist`` (``--speed`` forward) in rmw_zenoh's format (key, attachment with
 a growing sequence number) at ``--rate`` messages per second, or as fast as one Python process can
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -31,7 +32,10 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=0.0)
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--speed", type=float, default=0.5)
+    parser.add_argument("--nice", type=int, default=0, help="run at this niceness (0: as started)")
     args = parser.parse_args()
+    if args.nice:
+        os.nice(args.nice)
     session = zenoh.open(session_config("client", [], [f"tcp/127.0.0.1:{args.port}"]))
     key = rmw.topic_key(0, args.topic, Twist.ROS_TYPE, rmw.type_hash(Twist.ROS_TYPE))
     pub = session.declare_publisher(key)
