@@ -31,9 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -61,9 +59,6 @@ MAX_PUBLISHERS = 64
 #: The largest gap in one publisher's sequence numbers counted as superseded samples (a forged
 #: sequence number must not make the counts absurd).
 MAX_GAP = 1_000_000
-
-#: Added niceness of Zenoh's receiving threads: a flood's decoding yields to the control path.
-RX_NICE = 5
 
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
@@ -133,8 +128,6 @@ class ZenohBridge:
         self._subscribers: list[Any] = []
         self._pumps: list[threading.Thread] = []
         self._stopping = threading.Event()
-        self._niced: set[str] = set()
-        self._niced_at = -1e9
         self._tokens: list[Any] = []
         self._bus_subs: list[Subscription] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -256,31 +249,7 @@ class ZenohBridge:
             except Exception:  # noqa: BLE001 - closed: the thread ends
                 return
             receive(sample)
-            self._nice_receivers()
             self._stopping.wait(period_s)
-
-    def _nice_receivers(self) -> None:
-        """Lower the priority of Zenoh's receiving threads (``rx-N``, made when a link comes up) by
-        :data:`RX_NICE`, at most once a second: a flood costs the control path less CPU."""
-        now = time.monotonic()
-        if now < self._niced_at + 1.0:
-            return
-        self._niced_at = now
-        try:
-            tasks = os.listdir("/proc/self/task")
-        except OSError:
-            return
-        for tid in tasks:
-            if tid in self._niced:
-                continue
-            try:
-                with open(f"/proc/self/task/{tid}/comm") as f:
-                    name = f.read().strip()
-                if name.startswith("rx-"):
-                    os.setpriority(os.PRIO_PROCESS, int(tid), os.getpriority(os.PRIO_PROCESS, 0) + RX_NICE)
-                    self._niced.add(tid)
-            except (OSError, ValueError):
-                pass
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
