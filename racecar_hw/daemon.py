@@ -34,6 +34,7 @@ from typing import Any
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
 from mux.arbiter import MuxState
+from mux.estop import Origin
 from mux.node import CommandMux
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.bags.record import Recorder
@@ -54,6 +55,7 @@ from racecar_hw.base.messages import (
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
+from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.inbox import Inbox
@@ -63,6 +65,7 @@ from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
+from racecar_hw.runtime.security_status import SecurityStatus
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
 from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
@@ -173,17 +176,28 @@ class Daemon:
         #: what the network surfaces refused (bad logins, forged frames, floods), for /diagnostics,
         #: the panel, the status page and rate-limited log lines
         self.refusals = Refusals()
+        #: the refusals as a status in /diagnostics, a panel line and rows on the status page
+        self.security = SecurityStatus(self.refusals)
         self.tf = TfTree.from_params(config.static_transforms)
         self.vesc: VescDriver | None = VescDriver(self.bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
                                           if config.lidar.enabled else None)
-        self.mux = CommandMux(self.bus, config.mux)
+        self.mux = CommandMux(self.bus, config.mux, refusals=self.refusals)
         self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True,
                                  steering_limit_rad=config.vesc.steering_max_rad)
         self.arming = Arming.from_params(config.arming)
-        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
+        pad = Origin("gamepad", "gamepad")
+        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming,
+                                      on_estop=lambda: self.engage_estop(pad),
+                                      on_release=lambda: log.warning("gamepad: %s",
+                                                                     self.release_estop(pad)[1]))
                         if config.gamepad.enabled else None)
-        self.keyboard = KeyboardTeleop(self.bus, config.keyboard) if config.keyboard.enabled else None
+        keyboard = Origin("keyboard", "keyboard")
+        self.keyboard = (KeyboardTeleop(self.bus, config.keyboard,
+                                        on_estop=lambda: self.engage_estop(keyboard),
+                                        on_release=lambda: log.warning("keyboard: %s",
+                                                                       self.release_estop(keyboard)[1]))
+                         if config.keyboard.enabled else None)
         self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
@@ -260,6 +274,9 @@ class Daemon:
                            on_estop=self.network_estop, refusals=self.refusals)
         self.zenoh = ZenohBridge(self.bus, z, self.live_topics, urgent={config.safety.scan_topic, TOPIC_ODOM,
                                                                         TOPIC_TF}, inbox=self.inbox)
+        logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
+        if logins is not None:
+            logins.attach(self.refusals)
 
     def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
         """A command from a network surface, handed over by the inbox: on the bus, then send it."""
@@ -274,15 +291,16 @@ class Daemon:
             self.mux.step_early(name, now, self.filters)
 
     def network_estop(self, topic: str, msg: Message, who: str) -> None:
-        """An e-stop or release message from a network surface (``who``: ``zenoh``), in the loop.
+        """An e-stop or release message from a network session (``who``: ``zenoh``), in the loop.
 
-        It goes on the bus for the mux; an e-stop that latches writes the brake now (as the live
-        interfaces' e-stops do), so the VESC's next motor command is the brake.
+        It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
+        release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
+        now, as the live interfaces' e-stops do.
         """
         now = monotonic_ns()
         frames = self.vesc.stats.frames_tx if self.vesc is not None else None
         was_running = self.mux.state is MuxState.RUNNING
-        self.bus.publish(topic, msg)
+        self.mux.publish_from(Origin("network", who), topic, msg)
         if was_running and self.mux.state is not MuxState.RUNNING:
             self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
             if self._control_alive(now):
@@ -379,10 +397,19 @@ class Daemon:
         stats.last_tick_ns = monotonic_ns()
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
+            self._publish_security(due)
             self._publish_diagnostics()
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
+
+    def _publish_security(self, now_ns: int) -> None:
+        """The network surfaces' refusals as their own DiagnosticArray on the diagnostics topic."""
+        try:
+            array = DiagnosticArray(stamp_now("", wall_ns()), [self.security.status(now_ns)])
+            self.bus.publish(self.config.mux.diagnostics_topic, array)
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("network security diagnostics failed: %r", err)
 
     def _publish_diagnostics(self) -> None:
         """The daemon's own statuses beside the mux's: the control loop, and the network inbox."""
@@ -394,8 +421,12 @@ class Daemon:
                  KeyValue("scan cuts", str(stats.scan_cuts))])]
         if self.inbox is not None:
             statuses.append(self.inbox.diagnostics())
-        array = DiagnosticArray(stamp_now("", wall_ns()), statuses)
-        self.bus.publish(self.config.mux.diagnostics_topic, array)
+        stamp = stamp_now("", wall_ns())
+        try:
+            for status in statuses:  # one array each, as the mux and the network security publish
+                self.bus.publish(self.config.mux.diagnostics_topic, DiagnosticArray(stamp, [status]))
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("daemon diagnostics failed: %r", err)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -419,6 +450,8 @@ class Daemon:
             armed=self.arming.armed,
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
+            estop=self.mux.estop_text() if self.mux.estop is not None else None,
+            refused=self.security.line(),
         )
         if self.extra_status is not None:
             snap = dataclasses.replace(snap, **self.extra_status())
@@ -483,26 +516,28 @@ class Daemon:
             vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
             lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
             lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
-            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0)
+            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
+            estop=self.mux.estop_text() if self.mux.estop is not None else "",
+            refused=tuple(self.security.rows()), refused_recently=self.security.recent())
 
-    def engage_estop(self, who: str) -> str:
+    def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
         now = monotonic_ns()
-        self.estop_requests.append(EstopRequest(now, who, self.vesc.stats.frames_tx
+        self.estop_requests.append(EstopRequest(now, str(origin), self.vesc.stats.frames_tx
                                                 if self.vesc is not None else None))
-        self.mux.engage_estop(f"e-stop from {who}")
+        self.mux.engage_estop(f"e-stop from {origin}", origin)
         if self.stats.ticks:  # the control loop runs: one step out of turn sends the brake
             self.mux.step(now, self.filters)
-        return f"e-stop latched ({who}); release it to drive again"
+        return f"e-stop latched ({origin}); release it to drive again"
 
-    def release_estop(self, who: str) -> tuple[bool, str]:
-        """Release the latched e-stop, unless the mux refuses (fault, or the e-stop topic holds it)."""
-        if self.mux.release_estop():
-            log.warning("e-stop released by %s", who)
-            return True, f"e-stop released by {who}"
+    def release_estop(self, origin: Origin) -> tuple[bool, str]:
+        """Release the latched e-stop, unless the mux refuses (:meth:`CommandMux.release_estop`)."""
+        if self.mux.release_estop(origin):
+            return True, f"e-stop released by {origin}"
+        why = self.mux.release_refusal(origin) or "refused"
         if self.mux.state.value == "fault":
-            return False, f"the mux is in fault ({self.mux.machine.reason}); it needs a reset"
-        return False, f"refused: {self.config.mux.estop_topic} still says true"
+            why += f" ({self.mux.machine.reason})"
+        return False, f"refused: {why}"
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""
