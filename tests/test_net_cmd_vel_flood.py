@@ -7,7 +7,7 @@ this test's own Zenoh session reads ``/diagnostics`` (the daemon's control-loop 
 ticks, the inbox's counts) and ``/odom``, and sends the e-stop. The sim's log says when the fake
 VESC read the brake, and whether it was the first motor command written after the e-stop latched.
 
-The bound on missed ticks is measured robustly on a shared machine: up to three 5-second floods,
+The bound on missed ticks is measured robustly on a shared machine: up to five 5-second floods,
 the test passing on the first whose ticks stay within 1 % (another tenant of a loaded 2-core
 machine can starve the loop by itself, as a calm window shows; a loop that does per-message work,
 as before the inbox, misses far more in every round: 147 of 900 at 5,000 messages/s). The
@@ -34,7 +34,7 @@ from racecar_hw.rosmsg.typestore import ros2_types
 
 FLOOD = str(ROOT / "tests" / "zenoh_flood.py")
 FLOOD_S = 5.0
-ROUNDS = 3
+ROUNDS = 5
 #: The flooder's niceness: on the shared 2-core test machine a flooder at normal priority takes a
 #: core from every process on it (a calm window already misses ticks there); at 19 it still sends
 #: over 100,000 messages/s from the CPU others leave idle. benchmarks/bench_flood.py floods at
