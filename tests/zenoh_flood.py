@@ -5,7 +5,7 @@
 Publishes ``geometry_msgs/Twist`` (``--speed`` forward) in rmw_zenoh's format (key, attachment with
 a growing sequence number) at ``--rate`` messages per second, or as fast as one Python process can
 (``--rate 0``, the default), for ``--seconds``. Prints ``flooding`` when the first message goes,
-then one JSON line: ``{"sent": N, "seconds": S, "rate": N/S}``. Used by tests/test_net_flood.py and
+then one JSON line: ``{"sent": N, "seconds": S, "rate": N/S}``. Used by tests/test_net_cmd_vel_flood.py and
 benchmarks/bench_flood.py.
 """
 
