@@ -177,7 +177,11 @@ def test_a_cmd_vel_flood_neither_starves_the_loop_nor_delays_an_estop(tmp_path):
     assert best["missed"] <= 0.01 * (best["ticks"] + best["missed"]), summary
     # the car drove under the flood, and the e-stop latched within 0.1 s of being sent, its brake
     # the next motor command the fake VESC read
-    assert speeds and max(speeds) > 0.15, speeds
+    order = [source for _, source in report["mux_switches"]]
+    assert "estop" in order and order[order.index("estop") - 1] == "cmd_vel", report["mux_switches"]
+    assert report["max_speed_mps"] > 0.15
+    if speeds:  # odometry may not reach this session through the flood's congestion: the report says it
+        assert max(speeds) > 0.15, speeds
     line = re.search(r"sim: e-stop from network topic /estop \(zenoh\) at wall ([\d.]+); fake VESC: brake "
                      r"[^\n]* at wall ([\d.]+) \(\+[\d.]+ ms\), ([^\n]*)", sim.log)
     assert line, sim.log[-3000:]
