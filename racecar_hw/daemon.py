@@ -46,6 +46,8 @@ from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
+    DiagnosticStatus,
+    KeyValue,
     LaserScan,
     Message,
     stamp_now,
@@ -57,10 +59,11 @@ from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
+from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.ports import port_taken, taken_message
 from racecar_hw.net.rosout import RosoutHandler, logger_name
-from racecar_hw.net.topics import Topic
+from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
@@ -257,13 +260,15 @@ class Daemon:
         return None
 
     def _build_network(self, config: Config) -> None:
-        """The Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
+        """The network inbox, the Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
 
         Built after the scan path's subscriptions, so a scan reaches the bridge's queue only after
-        its motor command is written.
+        its motor command is written. Every network surface hands its inbound messages to the one
+        :class:`~racecar_hw.net.inbox.Inbox`, which coalesces them into the event loop.
         """
         self.zenoh: ZenohBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
+        self.inbox: Inbox | None = None
         z = config.zenoh
         #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
         self.rosout: RosoutHandler | None = (
@@ -280,15 +285,21 @@ class Daemon:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
-        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
+        self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
+                           self._on_network_input, period_s=1.0 / config.mux.rate_hz,
+                           estop_topic=config.mux.estop_topic, release_topic=config.mux.estop_release_topic,
+                           on_estop=self.network_estop, refusals=self.refusals)
+        self.zenoh = ZenohBridge(self.bus, z, self.live_topics,
                                  urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
-                                 refusals=self.refusals,
-                                 on_estop=self.network_estop,
-                                 estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
-                                 parameters=self.parameters)
+                                 inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
         logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
         if logins is not None:
             logins.attach(self.refusals)
+
+    def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
+        """A command from a network surface, handed over by the inbox: on the bus, then send it."""
+        self.bus.publish(topic, msg)
+        self._on_remote_input(topic)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -405,6 +416,7 @@ class Daemon:
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
             self._publish_security(due)
+            self._publish_diagnostics()
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
@@ -437,6 +449,23 @@ class Daemon:
             self.bus.publish(self.config.mux.diagnostics_topic, array)
         except Exception as err:  # bookkeeping must never stop the control tick
             log.error("network security diagnostics failed: %r", err)
+
+    def _publish_diagnostics(self) -> None:
+        """The daemon's own statuses beside the mux's: the control loop, and the network inbox."""
+        stats = self.stats
+        message = f"{stats.ticks} ticks, {stats.missed_ticks} missed"
+        statuses = [DiagnosticStatus(
+            DiagnosticStatus.OK, "racecar_hw: control loop", message,
+            "", [KeyValue("ticks", str(stats.ticks)), KeyValue("missed ticks", str(stats.missed_ticks)),
+                 KeyValue("scan cuts", str(stats.scan_cuts))])]
+        if self.inbox is not None:
+            statuses.append(self.inbox.diagnostics())
+        stamp = stamp_now("", wall_ns())
+        try:
+            for status in statuses:  # one array each, as the mux and the network security publish
+                self.bus.publish(self.config.mux.diagnostics_topic, DiagnosticArray(stamp, [status]))
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("daemon diagnostics failed: %r", err)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -621,6 +650,8 @@ class Daemon:
         self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
         if self.rosout is not None:
             self.rosout.install()
+        if self.inbox is not None:
+            self.inbox.bind(loop)
         try:
             self._refuse_taken_ports()
             if self.zenoh is not None:
@@ -712,6 +743,8 @@ class Daemon:
             self.setpoint.close()
         if self.mavlink is not None:
             self.mavlink.close()
+        if self.inbox is not None:
+            self.inbox.close()
         if self.zenoh is not None:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)
