@@ -265,6 +265,7 @@ class Daemon:
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
                                  urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
+                                 early={config.safety.scan_topic},
                                  on_estop=self.network_estop,
                                  estop_topics={config.mux.estop_topic, config.mux.estop_release_topic})
         logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
@@ -324,6 +325,8 @@ class Daemon:
             self.safety.publish_state_if_due(now)
             if self.vesc is not None and self.lidar is not None:
                 self._time_scan_path(self.vesc, self.lidar)
+        if self.zenoh is not None:  # remote navigation code waits for the scan: queue it now
+            self.zenoh.send_early(self.config.safety.scan_topic, scan)
         times = self.stats.scan_times
         times.append(now)
         if len(times) >= 2:

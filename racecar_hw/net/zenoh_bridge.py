@@ -94,13 +94,19 @@ class ZenohBridge:
     ``/tf``: remote navigation code waits for them); the rest go out in batches. Messages on
     ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
     (without it they go on the bus, where the mux takes them as from a local publisher).
+
+    ``early`` bus topics (the daemon names the scan) are not taken from the bus: the daemon hands
+    them over with :meth:`send_early` right after the scan's motor write, before its bookkeeping,
+    the obstacle memory's update, the scan summaries and the recorder, which a bus subscription
+    made after theirs would wait for. They wake the publisher thread at once.
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
                  urgent: frozenset[str] | set[str] = frozenset(),
                  on_estop: Callable[[str, Message, str], None] | None = None,
-                 estop_topics: frozenset[str] | set[str] = frozenset()) -> None:
+                 estop_topics: frozenset[str] | set[str] = frozenset(),
+                 early: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -113,7 +119,9 @@ class ZenohBridge:
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
-        self.urgent = frozenset(urgent)
+        self.early = frozenset(early)
+        self.urgent = frozenset(urgent) | self.early
+        self._early: dict[str, list[Callable[[Message], None]]] = {}
         # not niced: remote navigation code waits for the scan it sends (the Foxglove sender is)
         self.outbox = Outbox("zenoh-publisher", params.queue_size, nice=0)
         self._types = ros2_types()
@@ -174,7 +182,11 @@ class ZenohBridge:
                 self._declare_in(row, zenoh)
         self.outbox.start()
         for out in self._outs:
-            self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
+            enqueue = self._enqueuer(out)
+            if out.row.bus in self.early and not out.latched:
+                self._early.setdefault(out.row.bus, []).append(enqueue)
+            else:
+                self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
             latest = self.bus.latest(out.row.bus)
             if out.latched and latest is not None:
                 self._enqueuer(out)(latest)
@@ -222,6 +234,7 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
+        self._early = {}
         for sub in self._bus_subs:
             sub.close()
         self._bus_subs.clear()
@@ -257,6 +270,11 @@ class ZenohBridge:
     def control_idle(self) -> None:
         """The control path is idle until its next event (a scan's command is out): send now."""
         self.outbox.control_idle()
+
+    def send_early(self, topic: str, msg: Message) -> None:
+        """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
+        for enqueue in self._early.get(topic, ()):
+            enqueue(msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
         put, publish, stats = self.outbox.put, self._publish, self.stats
