@@ -20,6 +20,16 @@ VESC) over every scan of every round of a setting taken together (:func:`rounds.
 which rests on thousands of scans rather than on the eight slowest of one run.
 
 ``python benchmarks/bench_zenoh.py [SECONDS [ROUNDS]]``; ``run()`` returns the rows for run_all.py.
+
+``--far-side`` runs :func:`far_side` instead (issue 25's "the far side must be cheap and fast"):
+what one client answering every scan adds to the daemon's CPU, the client's own CPU and the round
+trip, beside the four-process rclpy chain of ``bench_rclpy_chain.py`` (``--chain-python PY``) and
+the same settings with older code (``--before TREE``), all interleaved::
+
+    python benchmarks/bench_zenoh.py --far-side 15 3 --before /tmp/main --chain-python .venv-rclpy/bin/python
+
+``BENCH_CLIENT_PROFILE=PATH`` runs the client under cProfile; ``BENCH_PYSPY=DIR`` (bench_daemon.py)
+samples the daemon and the client with py-spy.
 """
 
 from __future__ import annotations

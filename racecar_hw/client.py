@@ -77,7 +77,11 @@ class ClientError(RacecarError):
 
 @dataclass(frozen=True)
 class Scan:
-    """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left)."""
+    """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left).
+
+    ``ranges`` is the scan's own (float64) array; ``angles`` is shared by every scan of the same
+    geometry and read-only, and so are the arrays of ``msg`` (views of the received bytes).
+    """
 
     stamp_s: float
     frame_id: str
