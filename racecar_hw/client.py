@@ -17,6 +17,21 @@ that stops sending stops the car; send at 10-50 Hz. :class:`AsyncCar` is the sam
 
 Units: metres, radians (+ left, counter-clockwise), seconds, m/s; scans in the laser frame, odometry
 in ``odom``. Stamps are seconds since the epoch (the sender's clock).
+
+**Where the laser sits.** A scan's ranges and angles are in the laser's frame (``Scan.frame_id``,
+``laser``): angle 0 is straight ahead of the lidar, + to the left. The lidar is not at the car's
+origin (``base_link``, the rear axle's centre): the config's ``static_transforms`` place it, in the
+shipped configs 0.265 m ahead of the rear axle and 0.10 m up, facing forward (``xyz: [0.265, 0.0,
+0.1]``), so a wall 1.0 m from the lidar is 1.265 m from the rear axle. ``racecar-hw topic echo
+/tf_static`` prints the transform the daemon uses; :data:`LASER_IN_BASE_LINK` is the shipped one.
+
+**At start** ``car.scan``, ``car.odom`` and ``car.safety`` are None until the first message arrives
+(a few tens of milliseconds after connecting, longer while the daemon starts): iterate
+(``car.scans()``), or wait with ``car.next_scan()`` / ``car.next_odom()`` / :meth:`Car.wait_ready`,
+which raise :class:`ClientError` after their timeout instead of returning None.
+
+:class:`SafetyState`'s ``values`` hold numbers as numbers (``allowed_speed`` 0.5, ``interventions``
+3), ``true``/``false`` as bools, and the rest as text.
 """
 
 from __future__ import annotations
@@ -67,6 +82,9 @@ from racecar_hw.rosmsg.typestore import ros2_types
 from safety.params import SafetyParams
 
 T = TypeVar("T")
+#: Where the lidar sits on the car in the shipped configs (``static_transforms`` base_link ->
+#: laser): x forward, y left, z up (m) and yaw (rad) in ``base_link`` (the rear axle's centre).
+LASER_IN_BASE_LINK = (0.265, 0.0, 0.1, 0.0)
 #: The mux input of /cmd_vel Twists on the daemon's bus (racecar_hw.config.CMD_VEL_BUS_TOPIC).
 CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
 
@@ -79,8 +97,10 @@ class ClientError(RacecarError):
 class Scan:
     """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left).
 
-    ``ranges`` is the scan's own (float64) array; ``angles`` is shared by every scan of the same
-    geometry and read-only, and so are the arrays of ``msg`` (views of the received bytes).
+    The laser frame is the lidar's own (``frame_id``), not the car's: see "Where the laser sits" in
+    the module's documentation and :data:`LASER_IN_BASE_LINK`. ``ranges`` is the scan's own
+    (float64) array; ``angles`` is shared by every scan of the same geometry and read-only, and so
+    are the arrays of ``msg`` (views of the received bytes).
     """
 
     stamp_s: float
@@ -107,13 +127,15 @@ class Odom:
 
 @dataclass(frozen=True)
 class SafetyState:
-    """The safety controller's state: why it limits (``reason``), the speed it allows (m/s)."""
+    """The safety controller's state: why it limits (``reason``), the speed it allows (m/s); every
+    key it publishes in ``values``, typed (:func:`typed_value`): ``values["commanded_speed"]`` is a
+    float, ``values["intervening"]`` a bool, ``values["source"]`` a str."""
 
     stamp_s: float
     reason: str
     intervening: bool
     allowed_speed: float
-    values: dict[str, str]
+    values: dict[str, str | float | int | bool]
     msg: DiagnosticArray = field(repr=False)
 
 
@@ -161,15 +183,29 @@ def _odom(msg: Odometry) -> Odom:
                 pose.orientation.yaw(), twist.linear.x, twist.angular.z, msg)
 
 
+def typed_value(text: str) -> str | float | int | bool:
+    """A diagnostic value (always text on the wire) as what it means: ``"3"`` -> 3, ``"0.500"`` ->
+    0.5, ``"inf"`` -> inf, ``"true"``/``"false"`` -> bool; anything else stays text (``""`` too)."""
+    if text in ("true", "false"):
+        return text == "true"
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def _safety(msg: DiagnosticArray) -> SafetyState:
     status = msg.status[0] if msg.status else None
-    values = {kv.key: kv.value for kv in status.values} if status else {}
-    try:
-        allowed = float(values.get("allowed_speed", "nan"))
-    except ValueError:
-        allowed = math.nan
-    return SafetyState(msg.header.stamp.to_ns() / NS_PER_S, values.get("reason", ""),
-                       values.get("intervening") == "true", allowed, values, msg)
+    values = {kv.key: typed_value(kv.value) for kv in status.values} if status else {}
+    allowed = values.get("allowed_speed", math.nan)
+    reason = values.get("reason", "")
+    return SafetyState(msg.header.stamp.to_ns() / NS_PER_S, str(reason),
+                       values.get("intervening") is True,
+                       float(allowed) if isinstance(allowed, (int, float)) else math.nan, values, msg)
 
 
 def _names(mux: MuxParams, safety: SafetyParams, profile: str,
@@ -274,8 +310,10 @@ class Car:
     daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile`` and
     ``remap``: the daemon's ``zenoh.profile`` and ``zenoh.remap`` (bus topic -> ROS name), so the
     client finds topics the daemon renamed; ``input``: the mux input :meth:`drive` commands by default;
-    ``user``/``password`` when the daemon requires them; ``session``: an open Zenoh session to share
-    (another :class:`Car`'s, to reach several cars through one session; it is not closed here).
+    ``user``/``password`` when the daemon requires them; ``ros_distro``: the daemon's
+    ``zenoh.ros_distro`` (``humble`` puts ``TypeHashNotSupported`` in keys where ``jazzy`` puts
+    RIHS01); ``session``: an open Zenoh session to share (another :class:`Car`'s, to reach several
+    cars through one session; it is not closed here).
     """
 
     def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
@@ -283,10 +321,15 @@ class Car:
                  remap: Mapping[str, str] | None = None,
                  input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
                  node_name: str = "", mux: MuxParams | None = None,
-                 safety: SafetyParams | None = None, session: Any = None) -> None:
+                 safety: SafetyParams | None = None, session: Any = None,
+                 ros_distro: str = "jazzy") -> None:
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
 
         self.endpoints = [connect] if isinstance(connect, str) else list(connect)
+        if ros_distro not in rmw.ROS_DISTROS:
+            raise ClientError(f"ros_distro {ros_distro!r}: one of {', '.join(rmw.ROS_DISTROS)} "
+                              "(the daemon's zenoh.ros_distro)")
+        self.ros_distro = ros_distro
         self.namespace = rmw.check_namespace(namespace)
         env = os.environ.get("ROS_DOMAIN_ID", "").strip()
         self.domain_id = domain_id if domain_id is not None else (int(env) if env.isdigit() else 0)
@@ -343,11 +386,12 @@ class Car:
     def _entity(self, kind: str, topic: str, msgtype: type[Message], qos: Qos) -> rmw.Entity:
         entity_id, self._next_entity = self._next_entity, self._next_entity + 1
         return rmw.Entity(self.domain_id, self.zid, 0, entity_id, kind, "", self.namespace, self._node,
-                          topic, rmw.dds_type(msgtype.ROS_TYPE), rmw.type_hash(msgtype.ROS_TYPE),
-                          rmw.RmwQos.from_qos(qos))
+                          topic, rmw.dds_type(msgtype.ROS_TYPE),
+                          rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro), rmw.RmwQos.from_qos(qos))
 
     def _key(self, topic: str, msgtype: type[Message]) -> str:
-        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE, rmw.type_hash(msgtype.ROS_TYPE))
+        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE,
+                             rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro))
 
     # --- subscriptions ------------------------------------------------------------------------
 
@@ -403,8 +447,16 @@ class Car:
 
     @property
     def odom(self) -> Odom | None:
-        """The newest odometry so far, or None."""
+        """The newest odometry so far; None until the first arrives (see :meth:`wait_ready`)."""
         return self.odom_stream.latest
+
+    def wait_ready(self, timeout: float | None = 5.0) -> None:
+        """Wait until a scan and odometry have arrived, so ``scan`` and ``odom`` are not None;
+        ClientError after ``timeout`` s (the daemon not running, or not reachable)."""
+        if self.scan_stream.latest is None:
+            self.next_scan(timeout)
+        if self.odom_stream.latest is None:
+            self.next_odom(timeout)
 
     @property
     def safety(self) -> SafetyState | None:
