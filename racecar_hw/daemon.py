@@ -291,6 +291,7 @@ class Daemon:
                            on_estop=self.network_estop, refusals=self.refusals)
         self.zenoh = ZenohBridge(self.bus, z, self.live_topics,
                                  urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
+                                 early={config.safety.scan_topic},
                                  inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
         logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
         if logins is not None:
@@ -354,6 +355,8 @@ class Daemon:
             self.safety.publish_state_if_due(now)
             if self.vesc is not None and self.lidar is not None:
                 self._time_scan_path(self.vesc, self.lidar)
+        if self.zenoh is not None:  # remote navigation code waits for the scan: queue it now
+            self.zenoh.send_early(self.config.safety.scan_topic, scan)
         times = self.stats.scan_times
         times.append(now)
         if len(times) >= 2:

@@ -131,6 +131,11 @@ class ZenohBridge:
     ``/tf``: remote navigation code waits for them); the rest go out in batches. Samples of the
     wrong type on an input topic are noted in ``refusals`` (the daemon passes its own).
 
+    ``early`` bus topics (the daemon names the scan) are not taken from the bus: the daemon hands
+    them over with :meth:`send_early` right after the scan's motor write, before its bookkeeping,
+    the obstacle memory's update, the scan summaries and the recorder, which a bus subscription
+    made after theirs would wait for. They wake the publisher thread at once.
+
     Incoming messages go to ``inbox`` (the daemon's, shared with the other network surfaces,
     which hands them over as it is told); without one the bridge has its own, which publishes
     them on the bus and then calls ``on_input``.
@@ -141,7 +146,8 @@ class ZenohBridge:
                  urgent: frozenset[str] | set[str] = frozenset(),
                  refusals: Refusals | None = None,
                  parameters: ParameterService | None = None,
-                 inbox: Inbox | None = None) -> None:
+                 inbox: Inbox | None = None,
+                 early: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -156,7 +162,9 @@ class ZenohBridge:
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
-        self.urgent = frozenset(urgent)
+        self.early = frozenset(early)
+        self.urgent = frozenset(urgent) | self.early
+        self._early: dict[str, list[Callable[[Message], None]]] = {}
         # not niced: remote navigation code waits for the scan it sends (the Foxglove sender is)
         self.outbox = Outbox("zenoh-publisher", params.queue_size, nice=0)
         self._types = ros2_types()
@@ -243,7 +251,11 @@ class ZenohBridge:
         for pump in self._pumps:
             pump.start()
         for out in self._outs:
-            self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
+            enqueue = self._enqueuer(out)
+            if out.row.bus in self.early and not out.latched:
+                self._early.setdefault(out.row.bus, []).append(enqueue)
+            else:
+                self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
             latest = self.bus.latest(out.row.bus)
             if out.latched and latest is not None:
                 self._enqueuer(out)(latest)
@@ -349,6 +361,7 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
+        self._early = {}
         self._stopping.set()
         if self._own_inbox:
             self.inbox.close()
@@ -393,6 +406,11 @@ class ZenohBridge:
     def control_idle(self) -> None:
         """The control path is idle until its next event (a scan's command is out): send now."""
         self.outbox.control_idle()
+
+    def send_early(self, topic: str, msg: Message) -> None:
+        """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
+        for enqueue in self._early.get(topic, ()):
+            enqueue(msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
         put, publish, stats = self.outbox.put, self._publish, self.stats
