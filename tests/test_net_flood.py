@@ -252,7 +252,7 @@ def test_half_open_floods_leave_the_lidar_the_control_loop_and_new_clients_alone
         assert flood["ticks"] > 0 and flood["missed_ticks"] <= 0.01 * flood["ticks"], flood
         assert not [line for line in flood["log"] if "Traceback" in line or "Too many open files" in line]
 
-    report = json.loads((out / "report.json").read_text())
+    report = json.loads((out / "wall.json").read_text())  # the sim names its report after the scenario
     control, lidar = report["control"], report["lidar"]
     print(json.dumps({k: report[k] for k in ("control", "lidar", "safety_interventions_by_reason",
                                              "distance_m")}))

@@ -43,13 +43,24 @@ def _firmware(text: str) -> tuple[int, int]:
 
 
 def fake_vesc(args: argparse.Namespace) -> int:
-    """Serve a fake VESC at ``args.link`` until SIGINT (Ctrl-C) or SIGTERM; exits 0."""
-    fake = FakeVesc(args.link, firmware=args.firmware).open()
+    """Serve a fake VESC at ``args.link`` until SIGINT (Ctrl-C) or SIGTERM; exits 0.
+
+    The banner is printed by the serving coroutine, so only once the stop handlers of
+    :func:`run_until_stop_signal` are in place: a stop signal after it is the command's documented
+    end (exit 0, the link removed). Printed before them, a signal in between interrupted the
+    start-up instead (exit 130), though the banner said the fake VESC was serving.
+    """
+    fake = FakeVesc(args.link, firmware=args.firmware)
     major, minor = args.firmware
-    print(f"fake VESC (firmware {major}.{minor:02d}) at {fake.path} -> {fake.port.slave_path}; "
-          "Ctrl-C to stop", flush=True)
+
+    async def serve() -> None:
+        print(f"fake VESC (firmware {major}.{minor:02d}) at {fake.path} -> {fake.port.slave_path}; "
+              "Ctrl-C to stop", flush=True)
+        await fake.serve()
+
     try:
-        run_until_stop_signal(fake.serve)
+        fake.open()
+        run_until_stop_signal(serve)
     finally:
         fake.port.close()
     return 0

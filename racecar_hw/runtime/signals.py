@@ -69,7 +69,9 @@ def run_until_stop_signal(make: Callable[[], Coroutine[Any, Any, T]]) -> T | Non
     exception raised while ``asyncio.run`` builds its loop would leave a half-made loop behind
     (and an "Exception ignored" traceback when it is collected). The coroutine is created inside
     the running loop, so a signal that arrives before the loop starts leaves no coroutine "never
-    awaited" behind.
+    awaited" behind. Its first step runs with the handlers in place (and before a signal noted
+    earlier is handed to them), so what it does first, such as printing a "serving" banner,
+    happens only once a stop signal is the coroutine's normal end.
     """
     stops = StopSignals()
 
