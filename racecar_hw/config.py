@@ -28,6 +28,7 @@ from racecar_hw.base.overrides import apply_override, load_yaml, merge
 from racecar_hw.base.params import build, describe, param, to_dict
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
+from racecar_hw.net.dds_config import DdsParams
 from racecar_hw.net.foxglove_server import FoxgloveParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
 from racecar_hw.net.web import WebParams
@@ -122,6 +123,7 @@ class Config:
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     status: StatusSection = field(default_factory=StatusSection)
     zenoh: ZenohParams = field(default_factory=ZenohParams)
+    dds: DdsParams = field(default_factory=DdsParams)
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
@@ -134,7 +136,7 @@ _SECTIONS: dict[str, type] = {
     "follower": FollowerSection, "recorder": RecorderParams, "arming": ArmingParams,
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
     "status": StatusSection, "watchdog": WatchdogSection,
-    "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams,
+    "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams, "dds": DdsParams,
 }
 
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
@@ -165,11 +167,13 @@ def build_config(data: dict[str, Any]) -> Config:
         lock = gamepad.lock_params()
         if all(existing.topic != lock.topic for existing in config.mux.locks):
             config.mux.locks.append(lock)
-    config.mux.inputs.extend(added_inputs(config.foxglove, config.zenoh, config.mux.inputs))
+    config.mux.inputs.extend(added_inputs(config.foxglove, config.zenoh, config.mux.inputs, config.dds))
     config.mux.validate("mux")
-    if config.zenoh.enabled:
+    if config.zenoh.enabled or config.dds.enabled:
         config.zenoh.validate("zenoh")
         network_topics(config)
+    if config.dds.enabled:
+        config.dds.validate("dds")
     _check_scan_timing(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
@@ -182,18 +186,19 @@ CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
 CMD_VEL_TIMEOUT_S = 0.2
 
 
-def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputParams] | list[dict[str, Any]]
-                 ) -> list[InputParams]:
+def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputParams] | list[dict[str, Any]],
+                 dds: DdsParams | None = None) -> list[InputParams]:
     """The mux inputs the features add after the configured ``inputs``, unless one of them has the
     name already: ``foxglove`` for Foxglove's Teleop panel (``foxglove.teleop``, its priority and
     timeout from ``foxglove.teleop_priority`` and ``teleop_timeout_s``), then ``cmd_vel`` for
-    ROS 2's /cmd_vel over Zenoh (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
+    ROS 2's /cmd_vel over Zenoh or DDS (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
     names = {i["name"] if isinstance(i, dict) else i.name for i in inputs}
     added = []
     if fox.enabled and fox.teleop and FOXGLOVE_INPUT not in names:
         added.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
                                  fox.teleop_timeout_s))
-    if zenoh.enabled and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
+    ros = zenoh.enabled or (dds is not None and dds.enabled)
+    if ros and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
         added.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, CMD_VEL_TIMEOUT_S))
     return added
 
@@ -204,7 +209,8 @@ def cmd_vel_input_topic(config: Config) -> str | None:
 
 
 def network_topics(config: Config) -> list[Topic]:
-    """The topic table the network interfaces offer, named by ``zenoh.profile`` and ``zenoh.remap``."""
+    """The topic table the network interfaces (Zenoh, DDS, Foxglove) offer, named by ``zenoh.profile``
+    and ``zenoh.remap``: one table, two wires."""
     z = config.zenoh
     summary = config.scan_summary
     rows = topic_table(
@@ -277,7 +283,8 @@ def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, ass
     data["mux"] = mux = dict(mux) if isinstance(mux, dict) else {}
     fox = build(FoxgloveParams, data.get("foxglove") or {}, "foxglove")
     zenoh = build(ZenohParams, data.get("zenoh") or {}, "zenoh")
-    added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i])
+    dds = build(DdsParams, data.get("dds") or {}, "dds")
+    added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i], dds)
     mux["inputs"] = [*inputs, *to_dict(added)]
     for assignment in assignments:
         index = _input_index(assignment)

@@ -45,6 +45,7 @@ from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
 from racecar_hw.net.control import CarShape, LiveState
+from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
@@ -231,9 +232,10 @@ class Daemon:
         its motor command is written.
         """
         self.zenoh: ZenohBridge | None = None
+        self.dds: DdsBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
-        z = config.zenoh
-        if not z.enabled:
+        z, d = config.zenoh, config.dds
+        if not z.enabled and not d.enabled:
             return
         self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
         twist_input = cmd_vel_input_topic(config)
@@ -241,8 +243,13 @@ class Daemon:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
-        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF})
+        urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
+        if z.enabled:
+            self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
+                                     urgent=urgent)
+        if d.enabled:
+            self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
+                                 on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -287,6 +294,8 @@ class Daemon:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
         if self.zenoh is not None:
             self.zenoh.control_idle()
+        if self.dds is not None:
+            self.dds.control_idle()
         self.safety.remember()  # before waking the recorder's writer, which would contend for the GIL
         if self.recorder is not None:
             self.recorder.control_idle()
@@ -488,10 +497,14 @@ class Daemon:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
-        if self.zenoh is not None:
+        if self.zenoh is not None or self.dds is not None:
             try:
-                await loop.run_in_executor(None, self.zenoh.open, loop)
+                for bridge in (self.zenoh, self.dds):
+                    if bridge is not None:
+                        await loop.run_in_executor(None, bridge.open, loop)
             except BaseException:
+                if self.zenoh is not None:
+                    await loop.run_in_executor(None, self.zenoh.close)
                 for coro in self._extra:  # never started: no "coroutine was never awaited"
                     coro.close()
                 self._extra = []
@@ -574,9 +587,10 @@ class Daemon:
             self.setpoint.close()
         if self.mavlink is not None:
             self.mavlink.close()
-        if self.zenoh is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)
+        for bridge in (self.zenoh, self.dds):
+            if bridge is not None:
+                with contextlib.suppress(Exception):
+                    await asyncio.get_running_loop().run_in_executor(None, bridge.close)
         if self.cmd_vel is not None:
             self.cmd_vel.close()
         self.safety.close()

@@ -19,6 +19,8 @@ BAGS = SHARED / "fixtures" / "bags"
 #: Tests whose subject is not the network keep the daemon's Zenoh bridge off: its default listen
 #: port (7447) is shared by every process on this machine, and a test never binds a fixed port.
 NO_ZENOH = "zenoh.enabled=false"
+#: ... and their DDS interface: its discovery reaches every DDS participant on this machine's loopback.
+NO_DDS = "dds.enabled=false"
 
 
 @pytest.fixture

@@ -232,7 +232,9 @@ def test_the_cmd_vel_input_sits_between_nav_0_and_nav_1():
     inputs = {i.name: i for i in config.mux.inputs}
     assert inputs["nav_0"].priority > inputs["cmd_vel"].priority == 18 > inputs["nav_1"].priority
     assert "cmd_vel" not in {i.name for i in load_config(None, ["zenoh.cmd_vel=false"]).mux.inputs}
-    assert "cmd_vel" not in {i.name for i in load_config(None, ["zenoh.enabled=false"]).mux.inputs}
+    assert "cmd_vel" in {i.name for i in load_config(None, ["zenoh.enabled=false"]).mux.inputs}  # DDS
+    neither = load_config(None, ["zenoh.enabled=false", "dds.enabled=false"])
+    assert "cmd_vel" not in {i.name for i in neither.mux.inputs}
 
 
 def test_the_domain_id_comes_from_the_environment_unless_configured(monkeypatch):

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import NO_ZENOH, reaped
+from conftest import NO_DDS, NO_ZENOH, reaped
 
 from racecar_hw.bags.record import Recorder, record_params
 from racecar_hw.base.bus import Bus
@@ -27,7 +27,7 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
     (marked interrupted), the trajectory and the plot for the time driven; exit 0."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--duration", "120", "--no-status",
-         "--set", NO_ZENOH, "--out", str(tmp_path)],
+         "--set", NO_ZENOH, "--set", NO_DDS, "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         # as a background job of a script inherits it: SIGINT ignored
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
@@ -100,7 +100,7 @@ def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, cap
         bus.publish("/odom_placeholder", Header(Time(i, 0), "odom"))
     rec.stop()
     assert main(["sim", "--follow", str(tmp_path / "drive"), "--duration", "2", "--no-status",
-                 "--set", NO_ZENOH, "--out", str(tmp_path / "out")]) == 0
+                 "--set", NO_ZENOH, "--set", NO_DDS, "--out", str(tmp_path / "out")]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["scenario"] == "follow" and not report["interrupted"]
     assert report["distance_m"] > 0.3  # the car moved
@@ -128,7 +128,7 @@ def test_follow_reverse_runs_the_whole_stretched_replay_and_says_when_duration_c
     scenario.write_text("description: a short scenario in the room\nmap: room\nstart: [0.0, 0.0, 0.0]\n"
                         "duration_s: 1.5\ndrivers: []\n")
     common = ["sim", "--scenario", str(scenario), "--follow", str(bag), "--reverse", "--no-status",
-              "--set", NO_ZENOH]
+              "--set", NO_ZENOH, "--set", NO_DDS]
     assert main([*common, "--out", str(tmp_path / "whole")]) == 0
     out = capsys.readouterr().out
     report = json.loads((tmp_path / "whole" / "report.json").read_text())
@@ -165,7 +165,7 @@ def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
 
         loopback.daemon.add_task(look())
 
-    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup, overrides=[NO_ZENOH])
+    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup, overrides=[NO_ZENOH, NO_DDS])
     asyncio.run(loopback.run())
     (snap,) = seen
     assert snap.sim_time_s is not None and snap.sim_time_s > 1.0

@@ -10,7 +10,7 @@ import asyncio
 import os
 from typing import Any
 
-from conftest import NO_ZENOH, async_wait_for
+from conftest import NO_DDS, NO_ZENOH, async_wait_for
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
@@ -63,7 +63,7 @@ def _loopback(station: Station, script, *extra: str) -> Loopback:
     scenario = load_scenario("wall", ["drivers=[]", "duration_s=60"])
     overrides = ["mavlink.enabled=true", "mavlink.bind_port=0",
                  f"mavlink.gcs_address=127.0.0.1:{station.port}", "arming.start_armed=false", NO_ZENOH,
-                 *extra]
+                 NO_DDS, *extra]
 
     def setup(lb: Loopback) -> None:
         lb.daemon.add_task(script(lb))
