@@ -5,7 +5,7 @@ meet other jobs' participants (and theirs ours). Each test runs its processes in
 own with only loopback (``unshare -n``, root), so nothing leaves it and nothing from outside reaches
 it. ``multicast=True`` gives ``lo`` the MULTICAST flag and a 224.0.0.0/4 route, so ROS 2's default
 discovery (multicast) works in it; without it, ``lo`` is as on a normal host (no multicast) and only
-unicast discovery on 127.0.0.1 can work. ``lan`` adds a dummy interface with that address
+unicast discovery on 127.0.0.1 can work. ``lan`` adds an interface with that address
 (``10.77.0.1/24``, say): an interface beyond loopback, for the tests of what DDS accepts there.
 
 The ROS 2 environment is a virtual environment with the PyPI Kilted wheels (``ros-rclpy[fastrtps]``
@@ -78,9 +78,13 @@ def netns(*, multicast: bool = True, lan: str | None = None) -> Iterator[NetNs]:
             ns.ip("link", "set", "lo", "multicast", "on")
             ns.ip("route", "add", "224.0.0.0/4", "dev", "lo")
         if lan:
-            ns.ip("link", "add", "lan0", "type", "dummy")
+            # a veth pair (the dummy module is not always there): lan0 has the address
+            ns.ip("link", "add", "lan0", "type", "veth", "peer", "name", "lan1")
             ns.ip("addr", "add", lan, "dev", "lan0")
+            ns.ip("link", "set", "lan1", "up")
             ns.ip("link", "set", "lan0", "up", "multicast", "on")
+            if not multicast:  # as on a host: multicast goes out on the LAN
+                ns.ip("route", "add", "224.0.0.0/4", "dev", "lan0")
         yield ns
     finally:
         holder.kill()

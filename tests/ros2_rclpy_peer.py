@@ -3,12 +3,13 @@ node would; run by tests/test_dds_ros2.py in the ROS 2 environment (.ros-venv), 
 namespace with the daemon. Prints one JSON line of what it saw.
 
     python ros2_rclpy_peer.py check --active TOPIC --estop TOPIC --drive-s 2.0
-    python ros2_rclpy_peer.py publish TOPIC TYPE --seconds 2   (TYPE: twist or bool)
+    python ros2_rclpy_peer.py drive --drive-s 2.0
 
 ``check``: receive /scan (sensor-data QoS) and /odom; subscribe to /tf_static and the mux's active
 source only after that (a late joiner: TRANSIENT_LOCAL QoS); find racecar_hw in the node graph and
 as the publisher of /scan; drive with /cmd_vel (Twist 0.5 m/s, 0.6 rad/s at 20 Hz for ``--drive-s``),
 stop publishing and watch /odom come to rest; then engage the e-stop (std_msgs/Bool true).
+``drive``: receive /scan, then publish /cmd_vel (0.5 m/s) for ``--drive-s``.
 """
 
 from __future__ import annotations
@@ -106,9 +107,28 @@ def check(args: argparse.Namespace) -> dict:
     return seen
 
 
+def drive(args: argparse.Namespace) -> dict:
+    """Receive /scan, then publish /cmd_vel for ``--drive-s``: what a node beyond loopback does."""
+    node = rclpy.create_node("dds_driver")
+    seen: dict = {"scans": 0}
+    node.create_subscription(LaserScan, "/scan", lambda m: seen.__setitem__("scans", seen["scans"] + 1),
+                             qos_profile_sensor_data)
+    seen["scan"] = spin_until(node, lambda: seen["scans"] >= 3, args.timeout)
+    cmd = node.create_publisher(Twist, "/cmd_vel", 10)
+    seen["matched"] = spin_until(node, lambda: cmd.get_subscription_count() > 0, args.timeout)
+    twist = Twist()
+    twist.linear.x = 0.5
+    start = time.monotonic()
+    while time.monotonic() - start < args.drive_s:
+        cmd.publish(twist)
+        rclpy.spin_once(node, timeout_sec=0.05)
+    node.destroy_node()
+    return seen
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("what", choices=["check"])
+    parser.add_argument("what", choices=["check", "drive"])
     parser.add_argument("--active", default="/vesc/low_level/ackermann_cmd_mux/active")
     parser.add_argument("--estop", default="/estop")
     parser.add_argument("--namespace", default="/")
@@ -117,7 +137,7 @@ def main() -> int:
     args = parser.parse_args()
     rclpy.init()
     try:
-        result = check(args)
+        result = check(args) if args.what == "check" else drive(args)
     finally:
         rclpy.shutdown()
     print(json.dumps(result))

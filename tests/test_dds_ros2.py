@@ -79,14 +79,21 @@ def _speed_near(samples, t: float) -> float:
     return min(samples, key=lambda s: abs(s.t - t)).speed
 
 
-@pytest.mark.parametrize("discovery", ["default", "LOCALHOST"])
-def test_a_stock_rclpy_node_reads_the_car_finds_it_and_drives_it_over_dds(tmp_path, discovery):
+@pytest.mark.parametrize(("discovery", "host"), [
+    # ROS 2's default discovery (multicast), on loopback with multicast as in a container
+    ("default", "multicast loopback"),
+    # ... and as on a laptop: lo without multicast, a LAN interface where multicast goes
+    ("default", "LAN"),
+    ("LOCALHOST", "LAN"),
+])
+def test_a_stock_rclpy_node_reads_the_car_finds_it_and_drives_it_over_dds(tmp_path, discovery, host):
     python = ros_python()
     env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
     if discovery == "LOCALHOST":
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     out = tmp_path / "out"
-    with netns(multicast=discovery == "default") as ns:
+    lan = host == "LAN"
+    with netns(multicast=not lan, lan="10.77.0.1/24" if lan else None) as ns:
         # the node graph of Fast DDS 3 (Kilted): see dds.ros_distro
         sim = _start_sim(ns, out, "dds.ros_distro=kilted")
         try:
@@ -128,3 +135,33 @@ def test_a_stock_rclpy_node_reads_the_car_finds_it_and_drives_it_over_dds(tmp_pa
     assert abs(_speed_near(samples, twist_off + 0.4)) < 0.05
     assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
     assert "dds interface up" in log
+
+
+@pytest.mark.parametrize("allowed", [False, True])
+def test_beyond_loopback_dds_publishes_but_takes_commands_only_when_explicitly_allowed(tmp_path, allowed):
+    """dds.interface on a LAN address: the car's topics reach a node there; its /cmd_vel is
+    refused (counted, the start notice says why) unless dds.accept_unauthenticated_commands."""
+    python = ros_python()
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    out = tmp_path / "out"
+    with netns(multicast=False, lan="10.77.0.1/24") as ns:
+        sim = _start_sim(ns, out, "dds.interface=10.77.0.1", "dds.multicast=true", "dds.peers=[10.77.0.1]",
+                         f"dds.accept_unauthenticated_commands={str(allowed).lower()}")
+        try:
+            peer = ns.run([python, PEER, "drive", "--drive-s", "2.0", "--timeout", "45"],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+            assert peer.returncode == 0, peer.stderr[-3000:]
+            seen = json.loads(peer.stdout.strip().splitlines()[-1])
+        finally:
+            report, log = _report(sim, out) if sim.poll() is None else ({}, "")
+            if sim.poll() is None:
+                sim.kill()
+    assert seen["scan"] and seen["matched"], seen  # it publishes, and its reader is there
+    order = switches(report)
+    if allowed:
+        assert "cmd_vel" in order, report["mux_switches"]
+        assert "anyone on that network can drive the car" in log
+    else:
+        assert "cmd_vel" not in order, report["mux_switches"]
+        assert "publishing only. Commands from DDS" in log
+        assert "unauthenticated interface" in log  # the refusal, counted and logged
