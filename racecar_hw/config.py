@@ -294,8 +294,8 @@ def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, ass
                                for i, item in enumerate(mux["inputs"]))
             raise ConfigError(key, f"no mux input {index}; the mux has {len(mux['inputs'])} inputs: "
                                    f"{listed} (check-config lists them; foxglove is added by "
-                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel, when the config "
-                                   "names no input so)")
+                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel (with zenoh or dds "
+                                   "on), when the config names no input so)")
         apply_override(data, assignment, defaults)
 
 

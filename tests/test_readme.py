@@ -82,7 +82,8 @@ def test_set_numbers_the_mux_inputs_as_check_config_lists_them(config, capsys) -
     assert "foxglove.teleop" in err and "zenoh.cmd_vel" in err
     # without the features, there is no input 6
     assert main(["check-config", str(ROOT / config), "--set", "foxglove.enabled=false", "--set",
-                 "zenoh.enabled=false", "--set", "mux.inputs.6.timeout_s=0.5"]) == 1
+                 "zenoh.enabled=false", "--set", "dds.enabled=false",
+                 "--set", "mux.inputs.6.timeout_s=0.5"]) == 1
     assert "the mux has 6 inputs" in capsys.readouterr().err
 
 
