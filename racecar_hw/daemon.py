@@ -33,6 +33,8 @@ from typing import Any
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
+from mux.arbiter import MuxState
+from mux.estop import Origin
 from mux.node import CommandMux
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.bags.record import Recorder
@@ -40,7 +42,7 @@ from racecar_hw.bags.validate import CommandLimits
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan, Message
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
@@ -167,13 +169,22 @@ class Daemon:
         self.vesc: VescDriver | None = VescDriver(self.bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
                                           if config.lidar.enabled else None)
-        self.mux = CommandMux(self.bus, config.mux)
+        self.mux = CommandMux(self.bus, config.mux, refusals=self.refusals)
         self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True,
                                  steering_limit_rad=config.vesc.steering_max_rad)
         self.arming = Arming.from_params(config.arming)
-        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
+        pad = Origin("gamepad", "gamepad")
+        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming,
+                                      on_estop=lambda: self.engage_estop(pad),
+                                      on_release=lambda: log.warning("gamepad: %s",
+                                                                     self.release_estop(pad)[1]))
                         if config.gamepad.enabled else None)
-        self.keyboard = KeyboardTeleop(self.bus, config.keyboard) if config.keyboard.enabled else None
+        keyboard = Origin("keyboard", "keyboard")
+        self.keyboard = (KeyboardTeleop(self.bus, config.keyboard,
+                                        on_estop=lambda: self.engage_estop(keyboard),
+                                        on_release=lambda: log.warning("keyboard: %s",
+                                                                       self.release_estop(keyboard)[1]))
+                         if config.keyboard.enabled else None)
         self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
@@ -244,12 +255,14 @@ class Daemon:
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
+        estop_topics = {config.mux.estop_topic, config.mux.estop_release_topic}
         if z.enabled:
             self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                     urgent=urgent)
+                                     urgent=urgent, on_estop=self.network_estop, estop_topics=estop_topics)
         if d.enabled:
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
-                                 on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals)
+                                 on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
+                                 on_estop=self.network_estop, estop_topics=estop_topics)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -257,6 +270,22 @@ class Daemon:
         now = monotonic_ns()
         if name is not None and self._control_alive(now):
             self.mux.step_early(name, now, self.filters)
+
+    def network_estop(self, topic: str, msg: Message, who: str) -> None:
+        """An e-stop or release message from a network session (``who``: ``zenoh``, ``dds``), in the loop.
+
+        It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
+        release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
+        now, as the live interfaces' e-stops do.
+        """
+        now = monotonic_ns()
+        frames = self.vesc.stats.frames_tx if self.vesc is not None else None
+        was_running = self.mux.state is MuxState.RUNNING
+        self.mux.publish_from(Origin("network", who), topic, msg)
+        if was_running and self.mux.state is not MuxState.RUNNING:
+            self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
+            if self._control_alive(now):
+                self.mux.step(now, self.filters)
 
     def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
@@ -377,6 +406,7 @@ class Daemon:
             armed=self.arming.armed,
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
+            estop=self.mux.estop_text() if self.mux.estop is not None else None,
         )
         if self.extra_status is not None:
             snap = dataclasses.replace(snap, **self.extra_status())
@@ -441,26 +471,27 @@ class Daemon:
             vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
             lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
             lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
-            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0)
+            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
+            estop=self.mux.estop_text() if self.mux.estop is not None else "")
 
-    def engage_estop(self, who: str) -> str:
+    def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
         now = monotonic_ns()
-        self.estop_requests.append(EstopRequest(now, who, self.vesc.stats.frames_tx
+        self.estop_requests.append(EstopRequest(now, str(origin), self.vesc.stats.frames_tx
                                                 if self.vesc is not None else None))
-        self.mux.engage_estop(f"e-stop from {who}")
+        self.mux.engage_estop(f"e-stop from {origin}", origin)
         if self.stats.ticks:  # the control loop runs: one step out of turn sends the brake
             self.mux.step(now, self.filters)
-        return f"e-stop latched ({who}); release it to drive again"
+        return f"e-stop latched ({origin}); release it to drive again"
 
-    def release_estop(self, who: str) -> tuple[bool, str]:
-        """Release the latched e-stop, unless the mux refuses (fault, or the e-stop topic holds it)."""
-        if self.mux.release_estop():
-            log.warning("e-stop released by %s", who)
-            return True, f"e-stop released by {who}"
+    def release_estop(self, origin: Origin) -> tuple[bool, str]:
+        """Release the latched e-stop, unless the mux refuses (:meth:`CommandMux.release_estop`)."""
+        if self.mux.release_estop(origin):
+            return True, f"e-stop released by {origin}"
+        why = self.mux.release_refusal(origin) or "refused"
         if self.mux.state.value == "fault":
-            return False, f"the mux is in fault ({self.mux.machine.reason}); it needs a reset"
-        return False, f"refused: {self.config.mux.estop_topic} still says true"
+            why += f" ({self.mux.machine.reason})"
+        return False, f"refused: {why}"
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""

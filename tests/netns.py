@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -58,6 +59,13 @@ class NetNs:
         return subprocess.run([*self.prefix, *command], **kwargs)
 
 
+def _netns_of(pid: int) -> str | None:
+    try:
+        return os.readlink(f"/proc/{pid}/ns/net")
+    except OSError:
+        return None
+
+
 @contextmanager
 def netns(*, multicast: bool = True, lan: str | None = None) -> Iterator[NetNs]:
     """A fresh network namespace with loopback up; skips where namespaces cannot be made (not root)."""
@@ -70,6 +78,13 @@ def netns(*, multicast: bool = True, lan: str | None = None) -> Iterator[NetNs]:
     holder = subprocess.Popen(["unshare", "-n", "--", "sleep", "3600"])
     ns = NetNs(holder)
     try:
+        # unshare(1) makes the namespace after it started: until then nsenter would enter ours
+        own = os.readlink("/proc/self/ns/net")
+        deadline = time.monotonic() + 30
+        while _netns_of(holder.pid) in (own, None):
+            if holder.poll() is not None or time.monotonic() > deadline:
+                pytest.skip("unshare -n did not make a network namespace here")
+            time.sleep(0.01)
         try:
             ns.ip("link", "set", "lo", "up")
         except subprocess.CalledProcessError as err:

@@ -191,6 +191,8 @@ def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release
         assert how == "the first motor command written after the request" and brake == "SET_RPM 0"
         assert 0.0 <= brake_s - clicked_s < 0.2
         _until(lambda: text("estop") == "E-STOP LATCHED", what="the page to show the latch")
+        _until(lambda: text("estop-by").startswith("latched by web page (127.0.0.1) at "),
+               what="the page to say who latched it")
         _until(lambda: abs(float(text("measured").split()[0])) < 0.02, what="the car to stop")
         # it stays stopped while the figure-8 driver keeps commanding; a short press does not release
         release = driver.find_element(By.ID, "release")

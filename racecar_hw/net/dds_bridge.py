@@ -99,13 +99,17 @@ class DdsBridge:
 
     ``names``: the zenoh section's naming (namespace, node name): one table, two wires.
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
-    the bus; messages on ``urgent`` bus topics wake the publisher thread at once.
+    the bus; messages on ``urgent`` bus topics wake the publisher thread at once. Messages on
+    ``estop_topics`` go to ``on_estop(topic, msg, "dds")`` in the event loop instead of the bus
+    (the daemon's network e-stop: it may engage, and release only what the e-stop topic engaged).
     """
 
     def __init__(self, bus: Bus, params: DdsParams, rows: list[Topic], *, namespace: str = "",
                  node_name: str = "racecar_hw", on_input: Callable[[str], None] | None = None,
                  urgent: frozenset[str] | set[str] = frozenset(),
-                 refusals: Refusals | None = None) -> None:
+                 refusals: Refusals | None = None,
+                 on_estop: Callable[[str, Message, str], None] | None = None,
+                 estop_topics: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -114,6 +118,8 @@ class DdsBridge:
         self.node_name = node_name
         self.domain_id = params.resolved_domain_id()
         self.refusals = refusals if refusals is not None else Refusals()
+        self.on_estop = on_estop
+        self.estop_topics = frozenset(estop_topics)
         self.stats = DdsStats()
         self.urgent = frozenset(urgent)
         self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
@@ -319,6 +325,9 @@ class DdsBridge:
 
     def _deliver(self, topic: str, msg: Message) -> None:
         if not self._open:
+            return
+        if self.on_estop is not None and topic in self.estop_topics:
+            self.on_estop(topic, msg, SURFACE)  # the e-stop and its release, with their origin
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:

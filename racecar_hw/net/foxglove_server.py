@@ -43,6 +43,7 @@ from foxglove import Capability, MessageSchema, Parameter, Schema, Service, Serv
 from foxglove.channels import LogChannel, SceneUpdateChannel
 from foxglove.messages import Log, LogLevel, Timestamp
 
+from mux.estop import Origin
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
@@ -412,12 +413,14 @@ class FoxgloveServer:
     # --- services -------------------------------------------------------------------------------
 
     def _services(self) -> list[Service]:
+        control = self.control
         actions: dict[str, tuple[str, Callable[[str], tuple[bool, str]]]] = {
             "estop": ("latch the mux e-stop: the car brakes and stays braked until release",
-                      lambda who: (True, self.control.engage_estop(who))),
-            "release": ("release the latched e-stop", self.control.release_estop),
-            "arm": ("arm the car", self.control.arm),
-            "disarm": ("disarm the car: every source is stopped", self.control.disarm),
+                      lambda who: (True, control.engage_estop(Origin("foxglove", who)))),
+            "release": ("release the latched e-stop",
+                        lambda who: control.release_estop(Origin("foxglove", who))),
+            "arm": ("arm the car", control.arm),
+            "disarm": ("disarm the car: every source is stopped", control.disarm),
         }
         schema = ServiceSchema(
             "std_srvs/srv/Trigger",

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from aiohttp import WSMsgType, web
 
+from mux.estop import Origin
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.loopback import is_loopback
@@ -175,12 +176,12 @@ class WebServer:
 
     async def _estop(self, request: web.Request) -> web.Response:
         # straight to the mux, in this loop: the brake command is written before we answer
-        message = self.control.engage_estop(f"web page ({request.remote})")
+        message = self.control.engage_estop(Origin("web", f"web page ({request.remote})"))
         return web.json_response({"ok": True, "message": message,
                                   "state": self.payload(self.control.live_state(), scan=False)})
 
     async def _release(self, request: web.Request) -> web.Response:
-        ok, message = self.control.release_estop(f"web page ({request.remote})")
+        ok, message = self.control.release_estop(Origin("web", f"web page ({request.remote})"))
         return web.json_response({"ok": ok, "message": message,
                                   "state": self.payload(self.control.live_state(), scan=False)},
                                  status=200 if ok else 409)
@@ -241,7 +242,7 @@ class WebServer:
             "speed": {"commanded": _f(s.commanded_mps), "output": _f(s.output_mps),
                       "allowed": _f(s.allowed_mps), "measured": _f(s.measured_mps)},
             "steering": _f(s.steering_rad), "battery_v": _f(s.battery_v), "source": s.source,
-            "mux": {"state": s.mux_state, "reason": s.mux_reason}, "armed": s.armed,
+            "mux": {"state": s.mux_state, "reason": s.mux_reason, "estop": s.estop}, "armed": s.armed,
             "safety": {"state": s.safety_colour, "reason": s.safety_reason, "intervening": s.intervening,
                        "free_distance": _f(s.free_distance_m)},
             "links": {"lidar": {"age_s": _f(s.lidar_scan_age_s), "rate_hz": _f(s.lidar_rate_hz),

@@ -17,6 +17,9 @@ A thin I/O shell around the codec, with one Zenoh session:
   sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
   decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
   bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
+  The e-stop and its release (``estop_topics``) go to ``on_estop(topic, msg, ORIGIN)`` instead,
+  so the mux knows they came from a network session (only an operator releases what an operator
+  latched: :mod:`mux.estop`).
 * **Graph.** A liveliness token for the node and one per publisher and subscriber, so
   ``ros2 node list`` and ``ros2 topic list`` on a machine running rmw_zenoh show the car.
 
@@ -48,6 +51,9 @@ from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
+
+#: How the bridge names itself as the origin of the e-stop messages it hands over.
+ORIGIN = "zenoh"
 
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
@@ -85,16 +91,22 @@ class ZenohBridge:
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
     the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
-    ``/tf``: remote navigation code waits for them); the rest go out in batches.
+    ``/tf``: remote navigation code waits for them); the rest go out in batches. Messages on
+    ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
+    (without it they go on the bus, where the mux takes them as from a local publisher).
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
-                 urgent: frozenset[str] | set[str] = frozenset()) -> None:
+                 urgent: frozenset[str] | set[str] = frozenset(),
+                 on_estop: Callable[[str, Message, str], None] | None = None,
+                 estop_topics: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
         self.on_input = on_input
+        self.on_estop = on_estop
+        self.estop_topics = frozenset(estop_topics)
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
@@ -314,6 +326,9 @@ class ZenohBridge:
 
     def _deliver(self, topic: str, msg: Message) -> None:
         if self.session is None:
+            return
+        if self.on_estop is not None and topic in self.estop_topics:
+            self.on_estop(topic, msg, ORIGIN)  # the e-stop and its release, with their origin
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:
