@@ -289,3 +289,34 @@ def test_a_refusing_bridge_counts_and_drops_every_command():
         assert bridge.refusals.total("dds") == 2
     finally:
         loop.close()
+
+
+def test_the_node_graph_names_the_node_in_its_namespace_with_every_endpoint():
+    """ros_discovery_info as a late joiner reads it: /car1/racecar_hw, the participant's GID, and
+    the GIDs of the bridge's writers and readers (the topics are rt/car1/...)."""
+    domain_id = _domain()
+    params = DdsParams(domain_id=domain_id)
+    rows = [Topic("/dds_test/out", String, Direction.OUT, DEFAULT),
+            Topic("/dds_test/in", Bool, Direction.IN, DEFAULT)]
+    car = _Car(rows, params)
+    car.bridge = DdsBridge(car.bus, params, rows, namespace="car1")
+    with car:
+        from racecar_hw.net.dds_types import TypeFactory
+
+        peer = DomainParticipant(domain_id)
+        info_type = TypeFactory(dds_graph.graph_store(16)).topic_type(dds_graph.DISCOVERY_TYPE)
+        reader = DataReader(peer, DdsTopic(peer, dds_graph.DISCOVERY_TOPIC, info_type), qos_of(LATCHED))
+        got: list[RawSample] = []
+        wait_for(lambda: got.extend(reader.take(4)) or got, timeout=30)
+        info = dds_graph.decode_participant_info(got[0].data)
+        bridge = car.bridge
+        assert info.gid == bridge.participant.guid.bytes
+        node, = info.nodes
+        assert (node.namespace, node.name) == ("/car1", "racecar_hw")
+        assert node.writers == [o.writer.guid.bytes for o in bridge._outs]
+        assert node.readers == [r.guid.bytes for r in bridge._readers]
+        # the writer is on rt/car1/...: a reader there matches it
+        late = DataReader(peer, DdsTopic(peer, "rt/car1/dds_test/out",
+                                         ros2_factory().topic_type("std_msgs/msg/String")), qos_of(DEFAULT))
+        wait_for(lambda: bridge._outs[0].matching, timeout=30)
+        assert late.get_subscription_matched_status().current_count == 1
