@@ -42,10 +42,18 @@ from racecar_hw.bags.validate import CommandLimits
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan, Message
+from racecar_hw.base.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    DiagnosticArray,
+    LaserScan,
+    Message,
+    stamp_now,
+)
 from racecar_hw.base.params import to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
+from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.foxglove_server import FoxgloveServer
@@ -55,6 +63,7 @@ from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
+from racecar_hw.runtime.security_status import SecurityStatus
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
 from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
@@ -165,6 +174,8 @@ class Daemon:
         #: what the network surfaces refused (bad logins, forged frames, floods), for /diagnostics,
         #: the panel, the status page and rate-limited log lines
         self.refusals = Refusals()
+        #: the refusals as a status in /diagnostics, a panel line and rows on the status page
+        self.security = SecurityStatus(self.refusals)
         self.tf = TfTree.from_params(config.static_transforms)
         self.vesc: VescDriver | None = VescDriver(self.bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
@@ -259,6 +270,9 @@ class Daemon:
         if z.enabled:
             self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
                                      urgent=urgent, on_estop=self.network_estop, estop_topics=estop_topics)
+            logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
+            if logins is not None:
+                logins.attach(self.refusals)
         if d.enabled:
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
                                  on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
@@ -380,9 +394,18 @@ class Daemon:
         stats.last_tick_ns = monotonic_ns()
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
+            self._publish_security(due)
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
+
+    def _publish_security(self, now_ns: int) -> None:
+        """The network surfaces' refusals as their own DiagnosticArray on the diagnostics topic."""
+        try:
+            array = DiagnosticArray(stamp_now("", wall_ns()), [self.security.status(now_ns)])
+            self.bus.publish(self.config.mux.diagnostics_topic, array)
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("network security diagnostics failed: %r", err)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -407,6 +430,7 @@ class Daemon:
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
             estop=self.mux.estop_text() if self.mux.estop is not None else None,
+            refused=self.security.line(),
         )
         if self.extra_status is not None:
             snap = dataclasses.replace(snap, **self.extra_status())
@@ -472,7 +496,8 @@ class Daemon:
             lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
             lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
             lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
-            estop=self.mux.estop_text() if self.mux.estop is not None else "")
+            estop=self.mux.estop_text() if self.mux.estop is not None else "",
+            refused=tuple(self.security.rows()), refused_recently=self.security.recent())
 
     def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""

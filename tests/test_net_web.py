@@ -173,6 +173,7 @@ def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release
         _until(lambda: text("measured") != first, what="the speed to change")
         _until(lambda: float(text("measured").split()[0]) > 0.9, what="the car at 1 m/s")
         assert text("source") == "nav_0" and text("armed") == "ARMED"
+        assert text("refused") == "none"  # nothing refused: the counts cell says so
 
         log_from = len(sim.lines)
         driver.find_element(By.ID, "estop").click()

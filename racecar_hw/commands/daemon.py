@@ -8,6 +8,7 @@ import sys
 
 from racecar_hw.config import describe_config, dump_config, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 
@@ -53,6 +54,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
+    install_for(config.zenoh)  # before the panel: it takes Python's standard output as it is then
     status = (StatusPanel(refresh_hz=config.status.refresh_hz)
               if config.status.enabled and not args.no_status else None)
     daemon = Daemon(config, status=status)

@@ -66,6 +66,9 @@ class LiveState:
     lidar_reconnects: int
     #: who latched the e-stop and when, or how the last latch ended ("" when never engaged)
     estop: str = ""
+    #: what the network surfaces refused: (surface, reason, total since start) of each kind
+    refused: tuple[tuple[str, str, int], ...] = ()
+    refused_recently: bool = False  #: anything refused in the last few seconds
 
     @property
     def safety_colour(self) -> str:

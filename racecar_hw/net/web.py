@@ -250,6 +250,9 @@ class WebServer:
                       "vesc": {"connected": s.vesc_connected, "reconnects": s.vesc_reconnects,
                                "crc_errors": s.vesc_crc_errors}},
             "obstacle": list(s.obstacle) if s.obstacle is not None else None,
+            "refused": {"recent": s.refused_recently,
+                        "counts": [{"surface": surface, "reason": reason, "count": n}
+                                   for surface, reason, n in s.refused]},
         }
         if scan:
             shape = self.control.shape

@@ -81,8 +81,17 @@ class ZenohParams:
     queue_size: int = param(64, "outgoing messages waiting for the publisher thread before the "
                                 "oldest is dropped", min=1, max=100000)
     multicast_scouting: bool = param(False, "find peers by UDP multicast (reaches the whole LAN)")
+    count_failed_logins: bool = param(True, "count failed logins (user/password, TLS) by source address "
+                                            "in /diagnostics, the status page and the log, read from "
+                                            "Zenoh's own log on standard output (racecar-hw run, sim "
+                                            "and follow, when a listen authenticates)")
     auth: ZenohAuthParams = field(default_factory=ZenohAuthParams, metadata={"doc": "user/password"})
     tls: ZenohTlsParams = field(default_factory=ZenohTlsParams, metadata={"doc": "TLS"})
+
+    def authenticates(self) -> bool:
+        """Whether a session must log in to reach this daemon's listeners (user/password, TLS)."""
+        return bool(self.auth.dictionary_file or self.tls.enable_mtls
+                    or any(e.startswith(("tls/", "quic/")) for e in self.listen))
 
     def validate(self, key: str = "zenoh") -> None:
         """Refuse bad endpoints, names and an unauthenticated non-loopback listen, naming the key."""

@@ -47,9 +47,10 @@ class StatusSnapshot:
     Speed in m/s (rear axle, negative in reverse), steering in rad (positive left), battery in V,
     scan rate in Hz, the safety controller's state and the speed it allows (m/s), each device's
     link state (``up``, ``connecting 3 s``, ``lost since 14:02:31 (35 s)``) and counters, whether
-    the car is armed (None: no arming input configured), and, when running on fake hardware, the
-    simulator's time (s), the car's pose in the map frame (x m, y m, yaw rad) and its clearance to
-    the nearest wall or obstacle (m).
+    the car is armed (None: no arming input configured), what the network surfaces refused
+    (:meth:`racecar_hw.runtime.security_status.SecurityStatus.line`; None: nothing yet), and, when
+    running on fake hardware, the simulator's time (s), the car's pose in the map frame (x m, y m,
+    yaw rad) and its clearance to the nearest wall or obstacle (m).
     """
 
     speed_mps: float | None = None
@@ -71,6 +72,7 @@ class StatusSnapshot:
     #: who latched the mux e-stop and when (``latched by web page (127.0.0.1) at 18:50:01.123``),
     #: or who released the last latch; None: never engaged
     estop: str | None = None
+    refused: str | None = None
 
 
 #: What a non-finite reading shows: a summary never says ``nan``.
@@ -124,6 +126,8 @@ def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
     ]
     if s.estop is not None:
         fields.append(("e-stop", s.estop))
+    if s.refused is not None:
+        fields.append(("refused", s.refused))
     if s.sim_time_s is not None:
         fields.append(("sim time", _num(s.sim_time_s, ".1f", "s")))
     if s.sim_pose is not None:
@@ -152,6 +156,8 @@ def _style(label: str, s: StatusSnapshot) -> str:
         return "yellow"
     if label == "lidar" and s.lidar_reconnects:
         return "yellow"
+    if label == "refused":
+        return "bold yellow" if "(recent)" in (s.refused or "") else "yellow"
     return ""
 
 
