@@ -56,6 +56,7 @@ from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, netwo
 from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.dds_bridge import DdsBridge
+from racecar_hw.net.dds_config import cyclone_available
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
@@ -273,7 +274,10 @@ class Daemon:
             logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
             if logins is not None:
                 logins.attach(self.refusals)
-        if d.enabled:
+        if d.enabled and not cyclone_available():
+            log.warning("dds: the DDS interface is off: the cyclonedds package is not installed "
+                        "(pip install cyclonedds; docs/dds.md), or set dds.enabled: false")
+        elif d.enabled:
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
                                  on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
                                  on_estop=self.network_estop, estop_topics=estop_topics)

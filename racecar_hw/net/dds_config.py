@@ -172,6 +172,13 @@ def cyclone_xml(params: DdsParams) -> str:
         "</Domain></CycloneDDS>")
 
 
+def cyclone_available() -> bool:
+    """Whether the ``cyclonedds`` package is installed (a dependency on x86_64 only)."""
+    import importlib.util  # noqa: PLC0415
+
+    return importlib.util.find_spec("cyclonedds") is not None
+
+
 def security_plugins_available() -> bool:
     """Whether this Cyclone build ships its DDS Security plugins (``libdds_security_*``)."""
     try:
