@@ -280,7 +280,8 @@ class Daemon:
         elif d.enabled:
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
                                  on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
-                                 on_estop=self.network_estop, estop_topics=estop_topics)
+                                 on_estop=self.network_estop, estop_topics=estop_topics,
+                                 period_s=1.0 / config.mux.rate_hz)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""

@@ -12,6 +12,7 @@ import asyncio
 import math
 import random
 import subprocess
+import time
 
 import pytest
 from conftest import wait_for
@@ -239,15 +240,52 @@ def test_commands_are_checked_then_handed_to_the_bus():
         wait_for(lambda: writer.get_publication_matched_status().current_count > 0, timeout=30)
         types = ros2_types()
         nan = types.serialize(Twist(Vector3(math.nan, 0.0, 0.0), Vector3()))
+        s = car.bridge.stats
         writer.write(raw_sample(topic_type, nan))
+        wait_for(lambda: s.non_finite == 1, timeout=30)
         # (a cut-short payload is refused by Cyclone itself, at a writer and at a reader, which
         # check CDR against the type: the fuzz test below feeds such bytes to our decoder)
         writer.write(raw_sample(topic_type, types.serialize(Twist(Vector3(0.4, 0.0, 0.0), Vector3()))))
         wait_for(lambda: got, timeout=30)
         assert got[0].linear.x == 0.4 and car.inputs == ["/dds_test/cmd"]
-        s = car.bridge.stats
-        wait_for(lambda: s.non_finite == 1, timeout=10)
         assert s.received == 1
+
+
+def test_a_command_flood_is_handed_over_at_most_once_per_period_and_e_stops_never_coalesce():
+    """10,000 Twists as fast as a writer goes: the loop gets about one per control period, the
+    newest; every e-stop message reaches on_estop, in order."""
+    domain_id = _domain()
+    params = DdsParams(domain_id=domain_id)
+    rows = [Topic("/dds_test/cmd", Twist, Direction.IN, DEFAULT),
+            Topic("/dds_test/estop", Bool, Direction.IN, DEFAULT)]
+    stops: list[bool] = []
+    car = _Car(rows, params)
+    car.bridge = DdsBridge(car.bus, params, rows, on_input=car.inputs.append, period_s=0.05,
+                           on_estop=lambda topic, msg, who: stops.append(msg.data),
+                           estop_topics={"/dds_test/estop"})
+    with car:
+        got: list[Twist] = []
+        car.bus.subscribe("/dds_test/cmd", got.append)
+        peer = DomainParticipant(domain_id)
+        twist_type = ros2_factory().topic_type("geometry_msgs/msg/Twist")
+        bool_type = ros2_factory().topic_type("std_msgs/msg/Bool")
+        twists = DataWriter(peer, DdsTopic(peer, "rt/dds_test/cmd", twist_type), qos_of(DEFAULT))
+        estops = DataWriter(peer, DdsTopic(peer, "rt/dds_test/estop", bool_type), qos_of(DEFAULT))
+        wait_for(lambda: twists.get_publication_matched_status().current_count > 0
+                 and estops.get_publication_matched_status().current_count > 0, timeout=30)
+        types = ros2_types()
+        start = time.monotonic()
+        for i in range(10000):
+            cdr = types.serialize(Twist(Vector3(i / 1e4, 0.0, 0.0), Vector3()))
+            twists.write(raw_sample(twist_type, cdr))
+        for value in (True, False, True):
+            estops.write(raw_sample(bool_type, types.serialize(Bool(value))))
+        wait_for(lambda: got and got[-1].linear.x == 0.9999, timeout=30)
+        took = time.monotonic() - start  # the first write to the newest one handed over
+        wait_for(lambda: len(stops) == 3, timeout=30)
+    assert stops == [True, False, True]
+    # one hand-over per period at most (its count bounded by the time it all took, however slow)
+    assert len(got) <= took / 0.05 + 2, (len(got), took)
 
 
 class _Reader:

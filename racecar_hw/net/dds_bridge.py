@@ -14,9 +14,13 @@ The same topic table as the Zenoh bridge (:mod:`racecar_hw.net.topics`: profile,
   reader matches the writer (Cyclone's publication-matched status, kept by a listener); the
   sender thread serializes and writes. Latched rows are always queued, and Cyclone's writer
   history (transient local) gives late joiners the last ``depth`` samples.
-* **In**: Cyclone calls the reader's listener in its receive thread; the samples are taken, decoded
-  and checked there (a well-formed CDR payload, every number finite) and handed to the event loop
-  with ``call_soon_threadsafe``, which publishes them on the bus like any local input. On a
+* **In**: a command row's reader keeps only its newest sample (KEEP_LAST 1, in Cyclone's C code,
+  without the GIL); a thread per row waits for it in C, takes it, decodes and checks it (a
+  well-formed CDR payload, every number finite) and hands it to the event loop with
+  ``call_soon_threadsafe``, then rests one control period (``period_s``): a flood of ``/cmd_vel``
+  costs the loop at most one hand-over per row per tick. The e-stop and its release are never
+  coalesced: Cyclone calls their readers' listeners for every sample, in order, and they go to
+  ``on_estop`` (the daemon's network e-stop). On a
   non-loopback interface without ``accept_unauthenticated_commands`` every command is refused and
   counted (:class:`~racecar_hw.runtime.refusals.Refusals`, surface ``dds``).
 * **Graph**: ``ros_discovery_info`` names the participant's node (``/<namespace>/<node_name>``) and
@@ -26,6 +30,7 @@ The same topic table as the Zenoh bridge (:mod:`racecar_hw.net.topics`: profile,
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import threading
 from collections.abc import Callable
@@ -52,6 +57,8 @@ SURFACE = "dds"
 MAX_BLOCKING_NS = 100_000_000
 #: Samples taken from a reader per call.
 TAKE_N = 64
+#: How long a command row's thread waits for a sample before it looks whether to stop (ns).
+PUMP_WAIT_NS = 200_000_000
 
 
 @dataclass
@@ -109,7 +116,8 @@ class DdsBridge:
                  urgent: frozenset[str] | set[str] = frozenset(),
                  refusals: Refusals | None = None,
                  on_estop: Callable[[str, Message, str], None] | None = None,
-                 estop_topics: frozenset[str] | set[str] = frozenset()) -> None:
+                 estop_topics: frozenset[str] | set[str] = frozenset(),
+                 period_s: float = 0.02) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -120,6 +128,9 @@ class DdsBridge:
         self.refusals = refusals if refusals is not None else Refusals()
         self.on_estop = on_estop
         self.estop_topics = frozenset(estop_topics)
+        self.period_s = period_s
+        self._pumps: list[threading.Thread] = []
+        self._stopping = threading.Event()
         self.stats = DdsStats()
         self.urgent = frozenset(urgent)
         self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
@@ -179,13 +190,27 @@ class DdsBridge:
                                         listener=Listener(on_publication_matched=matched))
                 self._outs.append(out)
                 writer_gids.append(out.writer.guid.bytes)
-            else:
+            elif row.bus in self.estop_topics or row.qos.latched:
+                # every e-stop message, in order, from Cyclone's thread: never coalesced
                 reader = DataReader(self.participant, topic, qos,
                                     listener=Listener(on_data_available=self._receiver(row)))
                 self._readers.append(reader)
                 reader_gids.append(reader.guid.bytes)
+            else:
+                # a command: the reader keeps only the newest sample (in C, without the GIL) until
+                # this row's thread takes it, at most once per control tick
+                newest = qos_of(dataclasses.replace(row.qos, depth=1), dds_graph.user_data(
+                    rmw.type_hash(ros_type) if hashes else None))
+                reader = DataReader(self.participant, topic, newest)
+                self._readers.append(reader)
+                reader_gids.append(reader.guid.bytes)
+                self._pumps.append(threading.Thread(target=self._pump, args=(row, reader), daemon=True,
+                                                    name=f"dds-in {row.ros}"))
         self._publish_graph(reader_gids, writer_gids, DdsTopic, DataWriter)
         self.outbox.start()
+        self._stopping.clear()
+        for pump in self._pumps:
+            pump.start()
         for out in self._outs:
             self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
             latest = self.bus.latest(out.row.bus)
@@ -220,6 +245,11 @@ class DdsBridge:
             sub.close()
         self._bus_subs.clear()
         self.outbox.stop(5.0)
+        self._stopping.set()
+        for pump in self._pumps:  # each wakes within PUMP_WAIT_S
+            if pump.is_alive():
+                pump.join(5.0)
+        self._pumps.clear()
         if not self._open:
             return
         self._open = False
@@ -275,6 +305,22 @@ class DdsBridge:
                             self.stats.publish_errors, err)
 
     # --- in: Cyclone's receive thread, then the event loop ------------------------------------
+
+    def _pump(self, row: Topic, reader: Any) -> None:
+        """A command row's thread: wait (in C) for a sample, take the newest, rest one period."""
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: PLC0415
+
+        receive = self._receiver(row)
+        waitset = WaitSet(self.participant)
+        waitset.attach(ReadCondition(reader, SampleState.NotRead | ViewState.Any | InstanceState.Any))
+        while not self._stopping.is_set():
+            try:
+                if waitset.wait(PUMP_WAIT_NS) <= 0:
+                    continue
+            except Exception:  # noqa: BLE001 - the participant is gone: the thread ends
+                return
+            receive(reader)
+            self._stopping.wait(self.period_s)
 
     def _receiver(self, row: Topic) -> Callable[[Any], None]:
         types = self._types
