@@ -58,9 +58,11 @@ from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.dds_config import cyclone_available
 from racecar_hw.net.foxglove_server import FoxgloveServer
+from racecar_hw.net.gate import quiet_accept_errors
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
@@ -197,7 +199,8 @@ class Daemon:
                                         on_release=lambda: log.warning("keyboard: %s",
                                                                        self.release_estop(keyboard)[1]))
                          if config.keyboard.enabled else None)
-        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
+        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot,
+                                   refusals=self.refusals)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
         self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
@@ -230,6 +233,8 @@ class Daemon:
         self._diagnostics_every = max(1, round(config.mux.rate_hz / config.mux.diagnostics_rate_hz))
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
+        self._file_limit: FileLimit | None = None
+        self._restore_exception_handler: Callable[[], None] | None = None
         self._build_live()
         self.bus.subscribe(config.mux.output_topic, self._on_output)
         # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
@@ -470,9 +475,11 @@ class Daemon:
         self.foxglove = (FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
                                         parameters=to_dict(config), teleop_input=teleop,
                                         wheelbase_m=config.vesc.wheelbase_m,
-                                        max_steering_rad=config.vesc.steering_max_rad)
+                                        max_steering_rad=config.vesc.steering_max_rad,
+                                        refusals=self.refusals)
                          if config.foxglove.enabled else None)
-        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic)
+        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic,
+                              refusals=self.refusals)
                     if config.web.enabled else None)
 
     def live_state(self) -> LiveState:
@@ -502,7 +509,8 @@ class Daemon:
             lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
             lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
             estop=self.mux.estop_text() if self.mux.estop is not None else "",
-            refused=tuple(self.security.rows()), refused_recently=self.security.recent())
+            refused=tuple(self.security.rows()), refused_recently=self.security.recent(),
+            control_ticks=self.stats.ticks, control_missed_ticks=self.stats.missed_ticks)
 
     def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
@@ -522,6 +530,15 @@ class Daemon:
         if self.mux.state.value == "fault":
             why += f" ({self.mux.machine.reason})"
         return False, f"refused: {why}"
+
+    def restart_mavlink_signing(self) -> str:
+        """The way back for the MAVLink link's signing state (SIGUSR1, ``systemctl reload``):
+        every stream's timestamp forgotten, ours from the wall clock again, as at start."""
+        if self.mavlink is None:
+            log.warning("restart of the MAVLink signing state asked for: the MAVLink link is off")
+            return "the MAVLink link is off"
+        forgotten = self.mavlink.restart_signing()
+        return f"MAVLink signing state restarted ({forgotten} stream(s) forgotten)"
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""
@@ -558,6 +575,10 @@ class Daemon:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
+        # every socket takes a descriptor: take what the system allows, and let an accept() that
+        # still finds none be a counted line, not a traceback a second (see docs/live-view.md, "Connections")
+        self._file_limit = raise_open_file_limit()
+        self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
         if self.zenoh is not None or self.dds is not None:
             try:
                 for bridge in (self.zenoh, self.dds):
@@ -569,6 +590,7 @@ class Daemon:
                 for coro in self._extra:  # never started: no "coroutine was never awaited"
                     coro.close()
                 self._extra = []
+                self._restore_process()
                 raise
         self._publish_static_transforms()
         if self.recorder is not None:
@@ -663,3 +685,13 @@ class Daemon:
         if self._switch_interval is not None:
             sys.setswitchinterval(self._switch_interval)
             self._switch_interval = None
+        self._restore_process()
+
+    def _restore_process(self) -> None:
+        """Put back the open-file limit and the loop's exception handler run() changed."""
+        if self._file_limit is not None:
+            self._file_limit.restore()
+            self._file_limit = None
+        if self._restore_exception_handler is not None:
+            self._restore_exception_handler()
+            self._restore_exception_handler = None

@@ -548,7 +548,8 @@ class _Pack:
 
 def mavlink_inbound(signed: bool) -> Target:
     """Ground station -> car: datagrams into :class:`MavlinkRx` (CRC with CRC_EXTRA; signed:
-    SHA-256 signatures and per-stream timestamps, so a repeated frame is refused)."""
+    the cheap refusal of unsigned and forged single frames, SHA-256 signatures, per-stream
+    timestamps, so a repeated frame is refused, and the future-timestamp window)."""
     key = bytes(range(32)) if signed else None
 
     def batch(rng: random.Random) -> Batch:
@@ -571,8 +572,11 @@ def mavlink_inbound(signed: bool) -> Target:
         return Batch([Frame(b, (b,)) for b in pack.out])
 
     def decode(chunks: list[bytes]) -> list[Hashable]:
-        rx = MavlinkRx(key, 10**12 - 1000)
-        return [bytes(msg.get_msgbuf()) for c in chunks for msg in rx.decode(c)]
+        # as MavlinkGcs.handle_datagram: the cheap refusal first, then the decoder, on a clock at
+        # the frames' own time with the default 60 s future window
+        rx = MavlinkRx(key, 10**12 - 1000, future_window=60 * 100_000)
+        return [bytes(msg.get_msgbuf()) for c in chunks if not rx.refuse_cheaply(c)
+                for msg in rx.decode(c, 10**12)]
 
     name = "MAVLink inbound, signed" if signed else "MAVLink inbound"
     return Target(name, batch, decode, datagrams=True)

@@ -104,6 +104,28 @@ def test_the_foxglove_relay_wants_its_token(open_sim):
     asyncio.run(main())
 
 
+def test_refused_requests_are_summarised_in_the_log_not_logged_one_by_one(open_sim):
+    printed = open_sim.wait_for(r"racecar-hw: status page http://0\.0\.0\.0:(\d+)/\?token=(\S+) ")
+    base = f"http://127.0.0.1:{printed.group(1)}"
+    start = len(open_sim.lines)
+
+    async def main() -> float:
+        began = time.monotonic()
+        async with aiohttp.ClientSession() as http:
+            for _ in range(2000):
+                async with http.get(f"{base}/api/state") as res:
+                    # and the connection closes: a refused client keeps no connection slot
+                    assert res.status == 401 and res.headers.get("Connection", "").lower() == "close"
+        return time.monotonic() - began
+
+    elapsed = asyncio.run(main())
+    # a line for the first of its kind, then one summary per 10 s (Refusals' interval) with the count
+    # (the count since the last line: test_net_relay.py checks the wording); was a line per request
+    lines = [line for line in open_sim.lines[start:] if "web: refused" in line]
+    assert len(lines) <= 2 + elapsed / 10, lines
+    assert all("web: refused 127.0.0.1: request without the token (401)" in line for line in lines), lines
+
+
 @pytest.fixture(scope="module")
 def loopback_sim(tmp_path_factory):
     """A sim whose page listens on loopback without a token (the default)."""

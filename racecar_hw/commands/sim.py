@@ -15,7 +15,7 @@ from racecar_hw.commands.daemon import add_config_options
 from racecar_hw.config import load_config
 from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.interrupts import INTERRUPTED
-from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
+from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.sim.loopback import Loopback, SimResult, write_report
 from racecar_hw.sim.scenario import Scenario, load_scenario, scenario_names
@@ -172,7 +172,13 @@ async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
         else:
             task.cancel()
 
+    def restart_signing() -> str:
+        if loopback.daemon is None:
+            return "the daemon is not running yet"
+        return loopback.daemon.restart_mavlink_signing()
+
     remove = add_stop_handlers(loop, on_signal, noted=stops)
+    remove_restart = add_restart_signing_handler(loop, restart_signing)
     try:
         return await task
     except asyncio.CancelledError:
@@ -180,4 +186,5 @@ async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
             return None
         raise
     finally:
+        remove_restart()
         remove()

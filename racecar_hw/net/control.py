@@ -69,6 +69,8 @@ class LiveState:
     #: what the network surfaces refused: (surface, reason, total since start) of each kind
     refused: tuple[tuple[str, str, int], ...] = ()
     refused_recently: bool = False  #: anything refused in the last few seconds
+    control_ticks: int = 0              #: control loop ticks since the start
+    control_missed_ticks: int = 0       #: ticks the loop was too late for (a held-up machine)
 
     @property
     def safety_colour(self) -> str:

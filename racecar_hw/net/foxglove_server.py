@@ -51,12 +51,14 @@ from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Message, Twist, stamp_now
 from racecar_hw.base.params import param
 from racecar_hw.net.control import CarControl, LiveState
+from racecar_hw.net.gate import ConnectionLimits
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
 from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +120,14 @@ class FoxgloveParams:
                                  min=0.5, max=50.0)
     queue_size: int = param(1000, "messages waiting for the sender thread before the oldest are dropped",
                             min=10, max=100_000)
+    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
+                                     "not finished its request is closed, else the new one",
+                                 min=1, max=1000)
+    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
+                                  unit="s", min=0.5, max=60.0)
+    idle_timeout_s: float = param(60.0, "a connection on which nothing moves either way for this long is "
+                                        "closed (a viewer with no channel subscribed reconnects)",
+                                  unit="s", min=10.0, max=3600.0)
 
     def __post_init__(self) -> None:
         origins = []
@@ -132,6 +142,11 @@ class FoxgloveParams:
             raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
                                                 "foxglove.token (clients add ?token=... to the URL), or "
                                                 "keep host 127.0.0.1 and reach it over ssh -L")
+
+
+    def limits(self) -> ConnectionLimits:
+        """The relay's connection cap and timeouts."""
+        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
 
 
 def _is_origin(text: str) -> bool:
@@ -184,8 +199,11 @@ class FoxgloveServer:
 
     def __init__(self, bus: Bus, params: FoxgloveParams, control: CarControl, topics: list[Topic], *,
                  parameters: dict[str, Any] | None = None, teleop_input: str | None = None,
-                 wheelbase_m: float = 0.25, max_steering_rad: float = 0.34, name: str = "racecar-hw") -> None:
+                 wheelbase_m: float = 0.25, max_steering_rad: float = 0.34, name: str = "racecar-hw",
+                 refusals: Refusals | None = None) -> None:
         self.bus = bus
+        #: what the relay refused, counted per source and reason (surface "relay")
+        self.refusals = refusals if refusals is not None else Refusals()
         self.params = params
         self.control = control
         self._rows = topics  # read at start(): the simulator adds its rows after building the daemon
@@ -257,7 +275,8 @@ class FoxgloveServer:
             log.error("foxglove: cannot start the Foxglove server (%s); the Foxglove live view is off", err)
             return False
         self.relay = Relay(self.params.host, self.params.port, self.server.port, cert.cert_pem,
-                           token=self.params.token, allowed_origins=tuple(self.params.allowed_origins))
+                           token=self.params.token, allowed_origins=tuple(self.params.allowed_origins),
+                           limits=self.params.limits(), refusals=self.refusals)
         try:
             self.relay.start()
         except OSError as err:
