@@ -215,8 +215,10 @@ class Car:
     daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile`` and
     ``remap``: the daemon's ``zenoh.profile`` and ``zenoh.remap`` (bus topic -> ROS name), so the
     client finds topics the daemon renamed; ``input``: the mux input :meth:`drive` commands by default;
-    ``user``/``password`` when the daemon requires them; ``session``: an open Zenoh session to share
-    (another :class:`Car`'s, to reach several cars through one session; it is not closed here).
+    ``user``/``password`` when the daemon requires them; ``ros_distro``: the daemon's
+    ``zenoh.ros_distro`` (``humble`` puts ``TypeHashNotSupported`` in keys where ``jazzy`` puts
+    RIHS01); ``session``: an open Zenoh session to share (another :class:`Car`'s, to reach several
+    cars through one session; it is not closed here).
     """
 
     def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
@@ -224,10 +226,15 @@ class Car:
                  remap: Mapping[str, str] | None = None,
                  input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
                  node_name: str = "", mux: MuxParams | None = None,
-                 safety: SafetyParams | None = None, session: Any = None) -> None:
+                 safety: SafetyParams | None = None, session: Any = None,
+                 ros_distro: str = "jazzy") -> None:
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
 
         self.endpoints = [connect] if isinstance(connect, str) else list(connect)
+        if ros_distro not in rmw.ROS_DISTROS:
+            raise ClientError(f"ros_distro {ros_distro!r}: one of {', '.join(rmw.ROS_DISTROS)} "
+                              "(the daemon's zenoh.ros_distro)")
+        self.ros_distro = ros_distro
         self.namespace = rmw.check_namespace(namespace)
         env = os.environ.get("ROS_DOMAIN_ID", "").strip()
         self.domain_id = domain_id if domain_id is not None else (int(env) if env.isdigit() else 0)
@@ -284,11 +291,12 @@ class Car:
     def _entity(self, kind: str, topic: str, msgtype: type[Message], qos: Qos) -> rmw.Entity:
         entity_id, self._next_entity = self._next_entity, self._next_entity + 1
         return rmw.Entity(self.domain_id, self.zid, 0, entity_id, kind, "", self.namespace, self._node,
-                          topic, rmw.dds_type(msgtype.ROS_TYPE), rmw.type_hash(msgtype.ROS_TYPE),
-                          rmw.RmwQos.from_qos(qos))
+                          topic, rmw.dds_type(msgtype.ROS_TYPE),
+                          rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro), rmw.RmwQos.from_qos(qos))
 
     def _key(self, topic: str, msgtype: type[Message]) -> str:
-        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE, rmw.type_hash(msgtype.ROS_TYPE))
+        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE,
+                             rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro))
 
     # --- subscriptions ------------------------------------------------------------------------
 

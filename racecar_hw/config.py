@@ -30,6 +30,7 @@ from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.dds_config import DdsParams
 from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.rosout import RosoutParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
 from racecar_hw.net.web import WebParams
 from racecar_hw.net.zenoh_config import ZenohParams
@@ -124,6 +125,7 @@ class Config:
     status: StatusSection = field(default_factory=StatusSection)
     zenoh: ZenohParams = field(default_factory=ZenohParams)
     dds: DdsParams = field(default_factory=DdsParams)
+    rosout: RosoutParams = field(default_factory=RosoutParams)
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
@@ -137,6 +139,7 @@ _SECTIONS: dict[str, type] = {
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
     "status": StatusSection, "watchdog": WatchdogSection,
     "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams, "dds": DdsParams,
+    "rosout": RosoutParams,
 }
 
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
@@ -217,7 +220,8 @@ def network_topics(config: Config) -> list[Topic]:
         config.mux, config.safety, scan_topic=config.lidar.topic,
         scan_range_topic=summary.scan_range_topic if summary.enabled else None,
         open_space_topic=summary.open_space_topic if summary.enabled else None,
-        cmd_vel_topic=z.cmd_vel_topic if z.cmd_vel and cmd_vel_input_topic(config) else None)
+        cmd_vel_topic=z.cmd_vel_topic if z.cmd_vel and cmd_vel_input_topic(config) else None,
+        rosout=config.rosout.enabled)
     return named(rows, config.mux, z.profile, z.remap, "zenoh")
 
 

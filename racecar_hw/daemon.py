@@ -50,7 +50,7 @@ from racecar_hw.base.messages import (
     Message,
     stamp_now,
 )
-from racecar_hw.base.params import to_dict
+from racecar_hw.base.params import describe, to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
 from racecar_hw.net import zenoh_logins
@@ -59,6 +59,8 @@ from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.dds_config import cyclone_available
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
+from racecar_hw.net.parameters import ParameterService
+from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
@@ -263,6 +265,13 @@ class Daemon:
         self.dds: DdsBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
         z, d = config.zenoh, config.dds
+        #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
+        self.rosout: RosoutHandler | None = (
+            RosoutHandler(self.bus, config.rosout, logger_name(z.namespace, z.node_name))
+            if config.rosout.enabled else None)
+        #: the read-only parameter services' answers: the effective configuration
+        self.parameters = ParameterService(to_dict(config),
+                                           {name: doc for name, _, doc in describe(Config)})
         if not z.enabled and not d.enabled:
             return
         self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
@@ -275,7 +284,8 @@ class Daemon:
         estop_topics = {config.mux.estop_topic, config.mux.estop_release_topic}
         if z.enabled:
             self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                     urgent=urgent, on_estop=self.network_estop, estop_topics=estop_topics)
+                                     urgent=urgent, on_estop=self.network_estop, estop_topics=estop_topics,
+                                     parameters=self.parameters)
             logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
             if logins is not None:
                 logins.attach(self.refusals)
@@ -579,6 +589,8 @@ class Daemon:
         # still finds none be a counted line, not a traceback a second (see docs/live-view.md, "Connections")
         self._file_limit = raise_open_file_limit()
         self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
+        if self.rosout is not None:
+            self.rosout.install()
         if self.zenoh is not None or self.dds is not None:
             try:
                 for bridge in (self.zenoh, self.dds):
@@ -674,6 +686,11 @@ class Daemon:
             if bridge is not None:
                 with contextlib.suppress(Exception):
                     await asyncio.get_running_loop().run_in_executor(None, bridge.close)
+        if self.rosout is not None:
+            self.rosout.uninstall()
+            if self.rosout.dropped:
+                log.info("rosout: %d log records published, %d dropped (over rosout.max_rate_hz or "
+                         "before the loop ran)", self.rosout.published, self.rosout.dropped)
         if self.cmd_vel is not None:
             self.cmd_vel.close()
         self.safety.close()

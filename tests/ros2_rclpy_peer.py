@@ -8,7 +8,8 @@ namespace with the daemon. Prints one JSON line of what it saw.
 ``check``: receive /scan (sensor-data QoS) and /odom; subscribe to /tf_static and the mux's active
 source only after that (a late joiner: TRANSIENT_LOCAL QoS); find racecar_hw in the node graph and
 as the publisher of /scan; drive with /cmd_vel (Twist 0.5 m/s, 0.6 rad/s at 20 Hz for ``--drive-s``),
-stop publishing and watch /odom come to rest; then engage the e-stop (std_msgs/Bool true).
+stop publishing and watch /odom come to rest; then engage the e-stop (std_msgs/Bool true) and read
+the daemon's warning about it on /rosout (rcl_interfaces/msg/Log).
 ``drive``: receive /scan, then publish /cmd_vel (0.5 m/s) for ``--drive-s``.
 """
 
@@ -22,6 +23,7 @@ import time
 import rclpy
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import Log
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Bool, String
@@ -57,6 +59,12 @@ def check(args: argparse.Namespace) -> dict:
         seen["odom_frame"] = msg.header.frame_id
         seen["odom_speeds"].append((time.monotonic(), msg.twist.twist.linear.x))
 
+    seen["logs"] = []
+    rosout_qos = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                            reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(Log, "/rosout", lambda m: seen["logs"].append(
+        {"name": m.name, "level": int(m.level), "msg": m.msg}) if m.level >= 30 else None, rosout_qos)
     node.create_subscription(LaserScan, "/scan", on_scan, qos_profile_sensor_data)
     node.create_subscription(Odometry, "/odom", on_odom, 10)
     seen["scan_and_odom"] = spin_until(node, lambda: seen["scans"] >= 5 and seen["odoms"] >= 5, args.timeout)
@@ -103,6 +111,8 @@ def check(args: argparse.Namespace) -> dict:
         estop.publish(Bool(data=True))
         spin_until(node, lambda: "estop" in seen["active"], 0.2)
     seen["estop_seen"] = "estop" in seen["active"]
+    # the daemon's warning about it, on /rosout
+    spin_until(node, lambda: any("e-stop engaged" in log["msg"] for log in seen["logs"]), args.timeout)
     node.destroy_node()
     return seen
 

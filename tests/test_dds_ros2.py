@@ -3,7 +3,8 @@ rclpy node (the PyPI Kilted wheels, Fast DDS, in .ros-venv: tests/netns.py) in a
 namespace with only loopback. The node, with its default discovery and with
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, receives /scan (sensor-data QoS) and /odom, gets the
 mux's active source as a late joiner, finds racecar_hw in the node graph as the publisher of /scan,
-drives the car with /cmd_vel and engages /estop (tests/ros2_rclpy_peer.py). The sim's report and
+drives the car with /cmd_vel, engages /estop and reads the daemon's warning about it on /rosout
+(tests/ros2_rclpy_peer.py). The sim's report and
 trajectory say whether the car moved as commanded and stopped once the publisher stopped."""
 
 from __future__ import annotations
@@ -123,6 +124,10 @@ def test_a_stock_rclpy_node_reads_the_car_finds_it_and_drives_it_over_dds(tmp_pa
     assert seen["cmd_vel_subscribers"] == ["racecar_hw"]
     # the drive: Twist 0.5 m/s, 0.6 rad/s, then silence; then the e-stop
     assert seen["estop_seen"], seen["active"]
+    # /rosout: the mux's warning, from the daemon's node logger
+    engaged = [log for log in seen["logs"] if "e-stop engaged" in log["msg"]]
+    assert engaged, seen["logs"]
+    assert engaged[0]["level"] == 30 and engaged[0]["name"] == "racecar_hw.mux.node"
     order = switches(report)
     assert "cmd_vel" in order and "estop" in order, report["mux_switches"]
     assert order[order.index("cmd_vel") + 1] == "idle"

@@ -147,8 +147,8 @@ class DdsBridge:
         self._open = False
 
     def ros_name(self, row: Topic) -> str:
-        """The topic's full ROS name: the namespace, then the row's ROS name."""
-        return self.namespace + row.ros
+        """The topic's full ROS name: the namespace (unless the row is absolute), then the row's ROS name."""
+        return row.ros if row.absolute else self.namespace + row.ros
 
     # --- life cycle ---------------------------------------------------------------------------
 

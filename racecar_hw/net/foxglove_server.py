@@ -54,6 +54,7 @@ from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.gate import ConnectionLimits
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
 from racecar_hw.net.outbox import Outbox
+from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
 from racecar_hw.net.topics import Direction, Topic
@@ -492,9 +493,6 @@ def decode_twist(data: bytes, encoding: str) -> Twist:
     return msg
 
 
-#: Parameters whose value a client never sees (the web page's token, the relay's).
-SECRET_WORDS = ("token", "password", "secret")
-
 
 def flatten_parameters(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """Dotted keys to parameter values: scalars as they are, anything else as JSON text, secrets hidden."""
@@ -502,7 +500,7 @@ def flatten_parameters(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]
     for key, value in tree.items():
         name = f"{prefix}{key}"
         if any(word in str(key).lower() for word in SECRET_WORDS):
-            out[name] = "(set, hidden)" if value else ""
+            out[name] = HIDDEN if value else ""
         elif isinstance(value, dict):
             out.update(flatten_parameters(value, name + "."))
         elif isinstance(value, (bool, int, float, str)):
