@@ -52,7 +52,7 @@ from racecar_hw.base.messages import (
 )
 from racecar_hw.base.params import describe, to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
+from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, listeners, network_topics
 from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.dds_bridge import DdsBridge
@@ -60,6 +60,7 @@ from racecar_hw.net.dds_config import cyclone_available
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
 from racecar_hw.net.parameters import ParameterService
+from racecar_hw.net.ports import port_taken, taken_message
 from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
@@ -77,7 +78,7 @@ from racecar_hw.sources.scan_summary import ScanSummaryPublisher
 from racecar_hw.sources.setpoint import SetpointRelay
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad import GamepadTeleop
-from racecar_hw.teleop.keyboard import KeyboardTeleop
+from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
 from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
 from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
@@ -229,6 +230,8 @@ class Daemon:
             self.links["lidar"] = LinkWatch(f"lidar {config.lidar.model}", lambda: lidar.connected,
                                             detail=lambda: lidar.last_error)
         self._tasks: list[asyncio.Task[Any]] = []
+        #: where the live interfaces listened once started (``live_urls``), for reports
+        self.started_live: dict[str, str] = {}
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
         #: control ticks between two of the mux's diagnostics (``mux.diagnostics_rate_hz``)
@@ -284,7 +287,8 @@ class Daemon:
         estop_topics = {config.mux.estop_topic, config.mux.estop_release_topic}
         if z.enabled:
             self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                     urgent=urgent, on_estop=self.network_estop, estop_topics=estop_topics,
+                                     urgent=urgent, refusals=self.refusals, on_estop=self.network_estop,
+                                     estop_topics=estop_topics,
                                      parameters=self.parameters)
             logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
             if logins is not None:
@@ -419,6 +423,27 @@ class Daemon:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
 
+    def drives_itself(self) -> bool:
+        """Whether a configured source drives the car without anyone at the controls (a followed
+        bag, the figure-8): then a run that never reached the VESC has failed."""
+        return self.follower is not None or self.figure8 is not None
+
+    def undriven_reason(self) -> str | None:
+        """Why no drive command reached a connected VESC in this run; None when one did, or
+        when there is no VESC to reach."""
+        vesc = self.vesc
+        if vesc is None or vesc.stats.drive_commands:
+            return None
+        port = self.config.vesc.port
+        if not vesc.ever_connected:
+            why = f": {vesc.last_error}" if vesc.last_error else ""
+            return (f"no motor command reached the VESC: it never connected on port {port}{why} "
+                    f"(check vesc.port and the cable)")
+        if vesc.firmware is None and vesc.stats.frames_rx == 0:
+            return (f"no motor command reached the VESC: port {port} opened but the VESC never "
+                    f"answered (check the baud rate and that it is a VESC)")
+        return "no motor command reached the VESC: the run ended before a command was sent"
+
     def _publish_security(self, now_ns: int) -> None:
         """The network surfaces' refusals as their own DiagnosticArray on the diagnostics topic."""
         try:
@@ -449,6 +474,8 @@ class Daemon:
             armed=self.arming.armed,
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
+            live_view=self.live_urls().get("foxglove"), page=self.live_urls().get("web"),
+            keys=KEY_HINTS if self.keyboard is not None else None,
             estop=self.mux.estop_text() if self.mux.estop is not None else None,
             refused=self.security.line(),
         )
@@ -491,6 +518,15 @@ class Daemon:
         self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic,
                               refusals=self.refusals)
                     if config.web.enabled else None)
+
+    def live_urls(self) -> dict[str, str]:
+        """Where the live interfaces that run listen: ``foxglove`` (ws://) and ``web`` (http://)."""
+        urls: dict[str, str] = {}
+        if self.foxglove is not None and self.foxglove.port is not None:
+            urls["foxglove"] = f"ws://{self.config.foxglove.host}:{self.foxglove.port}"
+        if self.web is not None and self.web.port:
+            urls["web"] = f"http://{self.config.web.host}:{self.web.port}/"
+        return urls
 
     def live_state(self) -> LiveState:
         """The car now, for the live interfaces (:class:`racecar_hw.net.control.CarControl`)."""
@@ -581,6 +617,14 @@ class Daemon:
             return
         self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
 
+    def _refuse_taken_ports(self) -> None:
+        """Refuse to start (a one-line ConfigError naming the key) when the live view's or the
+        page's port is taken: the rule for every interface (docs/live-view.md, "Ports"); Zenoh's
+        own open refuses a taken listen port the same way, naming ``zenoh.listen[i]``."""
+        for item in listeners(self.config):
+            if not item.key.startswith("zenoh.") and port_taken(item.host, item.port):
+                raise ConfigError(item.key, taken_message(item))
+
     async def run(self, stop: asyncio.Event) -> None:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
@@ -591,19 +635,19 @@ class Daemon:
         self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
         if self.rosout is not None:
             self.rosout.install()
-        if self.zenoh is not None or self.dds is not None:
-            try:
-                for bridge in (self.zenoh, self.dds):
-                    if bridge is not None:
-                        await loop.run_in_executor(None, bridge.open, loop)
-            except BaseException:
-                if self.zenoh is not None:
-                    await loop.run_in_executor(None, self.zenoh.close)
-                for coro in self._extra:  # never started: no "coroutine was never awaited"
-                    coro.close()
-                self._extra = []
-                self._restore_process()
-                raise
+        try:
+            self._refuse_taken_ports()
+            for bridge in (self.zenoh, self.dds):
+                if bridge is not None:
+                    await loop.run_in_executor(None, bridge.open, loop)
+        except BaseException:
+            if self.zenoh is not None:
+                await loop.run_in_executor(None, self.zenoh.close)
+            for coro in self._extra:  # never started: no "coroutine was never awaited"
+                coro.close()
+            self._extra = []
+            self._restore_process()
+            raise
         self._publish_static_transforms()
         if self.recorder is not None:
             self.recorder.start()
@@ -612,6 +656,9 @@ class Daemon:
         if self.setpoint is not None:
             self.setpoint.start()
         await self._start_live()
+        self.started_live = self.live_urls()
+        for what, url in self.started_live.items():  # where to look, also when the log is quiet
+            log.info("%s on %s", {"foxglove": "live view (Foxglove)", "web": "status page"}[what], url)
         coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
         if self.links:
             coros.append(self._watch_links())
@@ -705,7 +752,10 @@ class Daemon:
         self._restore_process()
 
     def _restore_process(self) -> None:
-        """Put back the open-file limit and the loop's exception handler run() changed."""
+        """Put back the open-file limit, the loop's exception handler and the log handlers run()
+        changed."""
+        if self.rosout is not None:
+            self.rosout.uninstall()
         if self._file_limit is not None:
             self._file_limit.restore()
             self._file_limit = None

@@ -33,20 +33,23 @@ def _start_sim(ns: NetNs, out, *sets: str, duration: float = 40.0) -> subprocess
     command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", "wall",
                "--scenario-set", "drivers=[]", "--duration", str(duration), "--no-status",
                "--out", str(out), "--report", str(out / "report.json"),
-               "--set", "zenoh.enabled=false"]
+               "--set", "zenoh.enabled=false", "--set", "foxglove.port=0", "--set", "web.port=0"]
     for item in sets:
         command += ["--set", item]
-    return ns.popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    # its log goes to a file: a pipe nobody reads until the end fills and stops the sim
+    log = (out / "sim.log").open("w")
+    return ns.popen(command, stdout=subprocess.DEVNULL, stderr=log, text=True, cwd=ROOT)
 
 
 def _report(sim: subprocess.Popen[str], out) -> tuple[dict, str]:
     sim.send_signal(2)  # as Ctrl-C: the report is written
     try:
-        _, err = sim.communicate(timeout=120)
+        sim.wait(timeout=120)
     except subprocess.TimeoutExpired:
         sim.kill()
-        _, err = sim.communicate()
-        raise AssertionError(f"sim did not finish: {err[-3000:]}") from None
+        sim.wait()
+        raise AssertionError(f"sim did not finish: {(out / 'sim.log').read_text()[-3000:]}") from None
+    err = (out / "sim.log").read_text()
     assert (out / "report.json").exists(), err[-3000:]
     return json.loads((out / "report.json").read_text()), err
 

@@ -271,7 +271,8 @@ def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command()
 
     port = free_port()
     config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
-                                "status.enabled=false", f'zenoh.listen=["{endpoint(port)}"]'])
+                                "status.enabled=false", f'zenoh.listen=["{endpoint(port)}"]',
+                                "foxglove.enabled=false", "web.enabled=false"])
     daemon = Daemon(config)
     assert daemon.zenoh is not None and daemon.cmd_vel is not None
 

@@ -17,6 +17,10 @@ A thin I/O shell around the codec, with one Zenoh session:
   sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
   decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
   bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
+  A second subscriber per input topic matches the topic whatever its type: a sample of another
+  type (``AckermannDrive`` where ``AckermannDriveStamped`` is taken, which rmw_zenoh puts on a
+  different key, so the input never sees it) is counted in ``wrong_type`` and in the daemon's
+  :class:`~racecar_hw.runtime.refusals.Refusals` (rate-limited log lines naming the type taken).
   The e-stop and its release (``estop_topics``) go to ``on_estop(topic, msg, ORIGIN)`` instead,
   so the mux knows they came from a network session (only an operator releases what an operator
   latched: :mod:`mux.estop`).
@@ -66,6 +70,7 @@ from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
 from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +99,7 @@ class BridgeStats:
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
     service_calls: int = 0   #: service requests answered
     service_errors: int = 0  #: service requests refused (no attachment, malformed) or failed replies
+    wrong_type: int = 0      #: incoming samples on an input topic with another type or type hash
 
 
 class _Out:
@@ -115,14 +121,16 @@ class ZenohBridge:
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
     the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
-    ``/tf``: remote navigation code waits for them); the rest go out in batches. Messages on
-    ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
+    ``/tf``: remote navigation code waits for them); the rest go out in batches. Samples of the
+    wrong type on an input topic are noted in ``refusals`` (the daemon passes its own).
+    Messages on ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
     (without it they go on the bus, where the mux takes them as from a local publisher).
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
                  urgent: frozenset[str] | set[str] = frozenset(),
+                 refusals: Refusals | None = None,
                  on_estop: Callable[[str, Message, str], None] | None = None,
                  estop_topics: frozenset[str] | set[str] = frozenset(),
                  parameters: ParameterService | None = None) -> None:
@@ -135,6 +143,7 @@ class ZenohBridge:
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
+        self.refusals = refusals if refusals is not None else Refusals()
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
@@ -227,7 +236,7 @@ class ZenohBridge:
         log.info("zenoh bridge up: %s mode, session %s, domain %d, namespace %r, listen %s, "
                  "connect %s; %d topics out, %d in, %d services; peers: rmw_zenoh %s", p.mode, self.zid,
                  self.domain_id, self.namespace or "/", p.listen, p.connect, len(self._outs),
-                 len(self._subscribers), len(self._queryables),
+                 sum(row.direction is not Direction.OUT for row in self.rows), len(self._queryables),
                  "Humble (TypeHashNotSupported)" if p.ros_distro == "humble" else "Jazzy and later")
 
     def _declare_out(self, row: Topic, zenoh: Any) -> None:
@@ -265,6 +274,8 @@ class ZenohBridge:
         else:
             sub = self.session.declare_subscriber(key, callback)
         self._subscribers.append(sub)
+        self._subscribers.append(self.session.declare_subscriber(
+            rmw.topic_key_pattern(self.domain_id, self.ros_name(row)), self._type_guard(row, key)))
         token = self._entity(rmw.SUBSCRIPTION, row).token()
         self._tokens.append(self.session.liveliness().declare_token(token))
 
@@ -277,6 +288,31 @@ class ZenohBridge:
                             self.params.node_name, self.service_name(spec), rmw.dds_type(spec.srv_type),
                             self.type_hash(spec.srv_type), rmw.RmwQos.from_qos(SERVICE_QOS))
         self._tokens.append(self.session.liveliness().declare_token(entity.token()))
+
+    def _type_guard(self, row: Topic, key: str) -> Callable[[Any], None]:
+        """A callback for every sample on the row's topic, whatever its type: counts the samples of
+        another type (or type hash), which the row's own subscriber never sees."""
+        expected = row.msgtype.ROS_TYPE
+        topic = self.ros_name(row)
+        stats, lock = self.stats, self._lock
+
+        def guard(sample: Any) -> None:
+            got = str(sample.key_expr)
+            if got == key:
+                return
+            with lock:
+                stats.wrong_type += 1
+            head, _, hash_ = got.rpartition("/")  # .../<dds type>/<type hash>
+            dds = head.rpartition("/")[2]
+            try:
+                sent = rmw.ros_type(dds)
+            except rmw.WireError:
+                sent = dds
+            reason = (f"type hash {hash_} of {sent} differs from racecar-hw's" if sent == expected
+                      else f"wrong type {sent} (it takes {expected})")
+            self.refusals.note("zenoh", topic, reason)
+
+        return guard
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
@@ -304,9 +340,9 @@ class ZenohBridge:
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
                  "%d received, %d without attachment, %d malformed, %d with an old rmw_zenoh's attachment, "
-                 "%d non-finite; %d service calls answered, %d refused", s.published,
+                 "%d non-finite, %d of a wrong type; %d service calls answered, %d refused", s.published,
                  self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.old_attachment,
-                 s.non_finite, s.service_calls, s.service_errors)
+                 s.non_finite, s.wrong_type, s.service_calls, s.service_errors)
 
     # --- out: bus thread, then the publisher thread -------------------------------------------
 
