@@ -187,14 +187,21 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
             threads0 = _thread_cpu_s(proc.pid)
+            helper_threads0 = [(o, _thread_cpu_s(o.pid)) for o in others]
             fakes0 = time.process_time()
             host0 = _host_ticks()
+            spies = _spy(proc.pid, others, seconds)
+            helpers0 = sum(_cpu_s(o.pid) for o in others)
             cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             time.sleep(seconds)
             cpu1, t1 = _cpu_s(proc.pid), time.monotonic()
+            helpers1 = sum(_cpu_s(o.pid) for o in others)
+            for spy in spies:
+                spy.wait(30)
             host1 = _host_ticks()
             fakes1 = time.process_time()
             threads1 = _thread_cpu_s(proc.pid)
+            helper_threads = [(o.args, t0_, _thread_cpu_s(o.pid)) for o, t0_ in helper_threads0]
             rss = _peak_rss_mb(proc.pid)
             sent = np.array(lidar.frames_sent_ns, dtype=np.int64)
             commands = list(vesc.commands)
@@ -227,11 +234,19 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
         for name, cpu in sorted(threads1.items()):
             share = 100.0 * (cpu - threads0.get(name, 0.0)) / (t1 - t0)
             print(f"thread {name}: {share:.2f} % of a core", file=sys.stderr)
+        for args, before, after in helper_threads:
+            print(f"helper {' '.join(map(str, args))[-60:]!r}:", file=sys.stderr)
+            for name, cpu in sorted(after.items()):
+                share = 100.0 * (cpu - before.get(name, 0.0)) / (t1 - t0)
+                if share >= 0.05:
+                    print(f"  thread {name}: {share:.2f} % of a core", file=sys.stderr)
     scans = len(sent)
     extra = on_results(sent, commands) if callable(on_results) else []
     rows = [
         {"name": "daemon CPU share of one core", "value": 100.0 * (cpu1 - cpu0) / (t1 - t0),
          "unit": "%", "target": CPU_TARGET},
+        {"name": "helpers' CPU share of one core", "value": 100.0 * (helpers1 - helpers0) / (t1 - t0),
+         "unit": "%", "target": None},
         {"name": "daemon peak RSS", "value": rss, "unit": "MB", "target": RSS_TARGET},
         {"name": "scans during measurement", "value": scans, "unit": "scans", "target": None},
         {"name": "scan rate", "value": scans / (t1 - t0), "unit": "Hz", "target": None},
@@ -253,6 +268,22 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
          "value": 100.0 * (host1[1] - host0[1]) / max(1, host1[0] - host0[0]), "target": None},
     ]
     return rows + list(extra)
+
+
+def _spy(daemon: int, helpers: list[subprocess.Popen], seconds: float) -> list[subprocess.Popen]:
+    """With ``BENCH_PYSPY=DIR``: py-spy samples the daemon and each helper while measuring (collapsed
+    stacks per thread, DIR/daemon-N.txt and DIR/helper-N-K.txt; N counts the runs)."""
+    out = os.environ.get("BENCH_PYSPY")
+    if not out:
+        return []
+    spy = Path(sys.executable).with_name("py-spy")
+    n = len(list(Path(out).glob("daemon-*.txt")))
+    targets = [(daemon, f"daemon-{n}")] + [(h.pid, f"helper-{n}-{k}") for k, h in enumerate(helpers)]
+    return [subprocess.Popen([str(spy), "record", "--nonblocking", "--threads", "--format", "raw",
+                              "-r", "250", "-d", str(int(seconds)), "-o", f"{out}/{name}.txt",
+                              "--pid", str(pid)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            for pid, name in targets]
 
 
 def _summary(log: str) -> dict[str, float]:

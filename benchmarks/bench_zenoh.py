@@ -20,13 +20,26 @@ VESC) over every scan of every round of a setting taken together (:func:`rounds.
 which rests on thousands of scans rather than on the eight slowest of one run.
 
 ``python benchmarks/bench_zenoh.py [SECONDS [ROUNDS]]``; ``run()`` returns the rows for run_all.py.
+
+``--far-side`` runs :func:`far_side` instead (issue 25's "the far side must be cheap and fast"):
+what one client answering every scan adds to the daemon's CPU, the client's own CPU and the round
+trip, beside the four-process rclpy chain of ``bench_rclpy_chain.py`` (``--chain-python PY``) and
+the same settings with older code (``--before TREE``), all interleaved::
+
+    python benchmarks/bench_zenoh.py --far-side 15 3 --before /tmp/main --chain-python .venv-rclpy/bin/python
+
+``BENCH_CLIENT_PROFILE=PATH`` runs the client under cProfile; ``BENCH_PYSPY=DIR`` (bench_daemon.py)
+samples the daemon and the client with py-spy.
 """
 
 from __future__ import annotations
 
+import os
 import socket
 import sys
 import time
+from collections.abc import Callable
+from typing import TypeVar
 
 import numpy as np
 from bench_daemon import run as run_daemon
@@ -34,6 +47,8 @@ from rounds import interleaved, pooled_p99
 from table import print_rows
 
 from vesc.codec import SetServoPosition
+
+T = TypeVar("T")
 
 SUBSCRIBERS = '''
 import sys, time, zenoh
@@ -50,7 +65,16 @@ while True:
 '''
 
 CLIENT = '''
-import sys
+import os, sys
+if os.environ.get("BENCH_CLIENT_PROFILE"):  # a path: the client under cProfile, written at SIGTERM
+    import cProfile, signal
+    _profile = cProfile.Profile()
+    def _dump(*_):
+        _profile.disable()
+        _profile.dump_stats(os.environ["BENCH_CLIENT_PROFILE"])
+        os._exit(0)
+    signal.signal(signal.SIGTERM, _dump)
+    _profile.enable()
 from racecar_hw.client import Car
 # --drives: answer every scan with a command, the steering alternating so each answer shows
 car = Car(f"tcp/127.0.0.1:{sys.argv[1]}")
@@ -73,8 +97,8 @@ def _percentiles(values: list[float]) -> tuple[float, float]:
     return float(np.percentile(values, 50)), float(np.percentile(values, 99))
 
 
-def _round_trip(sent: np.ndarray, commands: list) -> list[dict]:
-    """Frame sent -> first later servo command whose position differs from the one before it."""
+def _latencies(sent: np.ndarray, commands: list) -> list[float]:
+    """Frame sent -> first later servo command whose position differs from the one before it (ms)."""
     servo = [(c.t_ns, c.packet.position) for c in commands if isinstance(c.packet, SetServoPosition)]
     times = np.array([t for t, _ in servo], dtype=np.int64)
     latencies = []
@@ -89,6 +113,11 @@ def _round_trip(sent: np.ndarray, commands: list) -> list[dict]:
             if abs(position - before) > 0.01:
                 latencies.append((t - t_sent) / 1e6)
                 break
+    return latencies
+
+
+def _round_trip(sent: np.ndarray, commands: list) -> list[dict]:
+    latencies = _latencies(sent, commands)
     p50, p99 = _percentiles(latencies)
     return [
         {"name": "(b) remote round trip: scan frame out -> client's command at the VESC, p50",
@@ -175,15 +204,117 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     return rows
 
 
+def _code_from(tree: str | None, fn: Callable[[], T]) -> Callable[[], T]:
+    """``fn`` with the daemon and its helpers importing racecar-hw from ``tree`` (None: this one)."""
+    if tree is None:
+        return fn
+
+    def run_there() -> T:
+        before = os.environ.get("PYTHONPATH")
+        os.environ["PYTHONPATH"] = tree
+        try:
+            return fn()
+        finally:
+            if before is None:
+                del os.environ["PYTHONPATH"]
+            else:
+                os.environ["PYTHONPATH"] = before
+
+    return run_there
+
+
+def far_side(seconds: float = 20.0, rounds: int = 4, chain_python: str | None = None,
+             before: str | None = None) -> list[dict]:
+    """What one remote ``racecar_hw.client`` answering every scan costs, and its round trip.
+
+    Settings interleaved for ``rounds`` rounds (:mod:`rounds`): the bridge on with nobody
+    subscribed; the same with the client answering every scan (both with the figure-8 source off,
+    as the client drives nav_0); and, with ``chain_python`` (a Python with rclpy, see
+    ``bench_rclpy_chain.py``), the four-process rclpy chain doing the same job against the same
+    fakes. Rows: the daemon's CPU share in both (median over rounds) and what the client adds, the
+    client's own CPU share, the round trip (scan frame out of the fake lidar to the answer at the
+    fake VESC) p50 / p99 over every answered scan of every round, and the chain's. With ``before``
+    (a source tree of racecar-hw, e.g. ``git archive main``), the two Zenoh settings also run with
+    the daemon and the client importing that code, interleaved with the rest ("before" rows).
+    """
+    py = sys.executable
+    quiet = {"figure8": {"enabled": False}}
+    trips: dict[str, list[float]] = {"client": [], "client, before": [], "rclpy chain": []}
+
+    def collect(label: str) -> Callable[[np.ndarray, list], list[dict]]:
+        def on_results(sent: np.ndarray, commands: list) -> list[dict]:
+            trips[label].extend(_latencies(sent, commands))
+            return []
+        return on_results
+
+    def client(label: str) -> list[dict]:
+        port = _free_port()
+        return run_daemon(seconds, zenoh_port=port, helpers=[[py, "-c", CLIENT, str(port), "--drives"]],
+                          on_results=collect(label))
+
+    settings: dict[str, Callable[[], list[dict]]] = {
+        "no subscriber": lambda: run_daemon(seconds, zenoh_port=_free_port(), config_extra=quiet),
+        "client": lambda: client("client"),
+    }
+    if before:
+        settings["no subscriber, before"] = _code_from(before, settings["no subscriber"])
+        settings["client, before"] = _code_from(before, lambda: client("client, before"))
+    if chain_python:
+        from bench_rclpy_chain import run as run_chain  # noqa: PLC0415
+
+        settings["rclpy chain"] = lambda: run_chain(seconds, chain_python, on_results=collect("rclpy chain"))
+    results = interleaved(settings, rounds)
+    cpu, helpers = "daemon CPU share of one core", "helpers' CPU share of one core"
+    med = {label: float(np.median([_pick(r, cpu) for r in runs])) for label, runs in results.items()
+           if label != "rclpy chain"}
+    rows = []
+    for suffix in ("", ", before") if before else ("",):
+        quiet_label, client_label = "no subscriber" + suffix, "client" + suffix
+        rows += [
+            {"name": f"daemon CPU, bridge on, nobody subscribed{suffix}", "value": med[quiet_label],
+             "unit": "%", "target": None},
+            {"name": f"daemon CPU, one client answering every scan{suffix}", "value": med[client_label],
+             "unit": "%", "target": None},
+            {"name": f"CPU added to the daemon by the client{suffix}", "unit": "points", "target": 2.0,
+             "value": med[client_label] - med[quiet_label]},
+            {"name": f"the client's own CPU share{suffix}", "unit": "%", "target": None,
+             "value": float(np.median([_pick(r, helpers) for r in results[client_label]]))},
+            {"name": f"daemon + client CPU{suffix}", "unit": "%", "target": None,
+             "value": float(np.median([_pick(r, cpu) + _pick(r, helpers) for r in results[client_label]]))},
+        ]
+    for label in trips:
+        if label not in results:
+            continue
+        p50, p99 = _percentiles(trips[label])
+        rows += [{"name": f"{label}: round trip scan frame out -> answer at the VESC, p50", "value": p50,
+                  "unit": "ms", "target": None},
+                 {"name": f"{label}: round trip, p99", "value": p99, "unit": "ms", "target": 2.0},
+                 {"name": f"{label}: scans answered and matched", "value": len(trips[label]),
+                  "unit": "scans", "target": None}]
+    if "rclpy chain" in results:
+        rows.append({"name": "rclpy chain: CPU of its four processes", "unit": "%", "target": None,
+                     "value": float(np.median([_pick(r, helpers) for r in results["rclpy chain"]]))})
+    steal = "host: CPU time stolen by the hypervisor"
+    every = [r for runs in results.values() for r in runs]
+    rows.append({"name": "host steal, all runs (max)", "unit": "% of busy",
+                 "value": max(_pick(r, steal) for r in every), "target": None})
+    return rows
+
+
 def _three(seconds: float) -> list[dict]:
     port = _free_port()
     return run_daemon(seconds, zenoh_port=port, helpers=[[sys.executable, "-c", SUBSCRIBERS, str(port), "3"]])
 
 
 def main() -> None:
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
-    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
-    print_rows(run(seconds, rounds))
+    args = sys.argv[1:]
+    far = "--far-side" in args
+    chain = args[args.index("--chain-python") + 1] if "--chain-python" in args else None
+    before = args[args.index("--before") + 1] if "--before" in args else None
+    numbers = [a for a in args if not a.startswith("-") and a not in (chain, before)]
+    seconds = float(numbers[0]) if numbers else 20.0
+    rounds = int(numbers[1]) if len(numbers) > 1 else (4 if far else 3)
+    print_rows(far_side(seconds, rounds, chain, before) if far else run(seconds, rounds))
 
 
 if __name__ == "__main__":

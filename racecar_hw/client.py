@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import math
 import os
 import threading
@@ -97,7 +98,9 @@ class Scan:
     """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left).
 
     The laser frame is the lidar's own (``frame_id``), not the car's: see "Where the laser sits" in
-    the module's documentation and :data:`LASER_IN_BASE_LINK`.
+    the module's documentation and :data:`LASER_IN_BASE_LINK`. ``ranges`` is the scan's own
+    (float64) array; ``angles`` is shared by every scan of the same geometry and read-only, and so
+    are the arrays of ``msg`` (views of the received bytes).
     """
 
     stamp_s: float
@@ -159,10 +162,18 @@ def _mux_status(msg: DiagnosticArray) -> MuxStatus:
                      int(values.get("estop_release_refusals", "0")), values.get("estop_last_refusal", ""))
 
 
+@functools.lru_cache(maxsize=8)
+def _angles(angle_min: float, angle_increment: float, n: int) -> np.ndarray:
+    """The beam angles of a scan geometry (rad), computed once per geometry; read-only."""
+    angles = angle_min + angle_increment * np.arange(n)
+    angles.flags.writeable = False
+    return angles
+
+
 def _scan(msg: LaserScan) -> Scan:
-    ranges = np.asarray(msg.ranges, dtype=np.float64)
+    ranges = msg.ranges.astype(np.float64)
     return Scan(msg.header.stamp.to_ns() / NS_PER_S, msg.header.frame_id, ranges,
-                msg.angle_min + msg.angle_increment * np.arange(len(ranges)),
+                _angles(msg.angle_min, msg.angle_increment, len(ranges)),
                 float(msg.range_min), float(msg.range_max), msg)
 
 
@@ -218,31 +229,77 @@ def _names(mux: MuxParams, safety: SafetyParams, profile: str,
 
 
 class _Stream(Generic[T]):
-    """One subscribed topic: the newest decoded value, callbacks, and a one-slot mailbox per reader."""
+    """One subscribed topic: the newest value, callbacks, and a one-slot mailbox per reader.
 
-    def __init__(self, convert: Callable[[Any], T]) -> None:
-        self.convert = convert
-        self.latest: T | None = None
+    Samples are decoded when somebody reads them: in Zenoh's thread while callbacks are registered,
+    otherwise when :attr:`latest` or :meth:`wait_newer` is read, and only the newest one. A topic
+    nobody reads (the odometry of code that only drives from scans) costs no decoding, and a slow
+    reader decodes only what it takes.
+    """
+
+    def __init__(self, decode: Callable[[bytes], T]) -> None:
+        self.decode = decode
         self.count = 0
         self.callbacks: list[Callable[[T], None]] = []
         self._cond = threading.Condition()
+        self._latest: T | None = None
+        self._raw: bytes | None = None  # the newest sample, not yet decoded
+        self._raw_count = 0  # the count at that sample
+        self._version = 0  # the count at the sample that gave ``_latest``
+
+    @property
+    def latest(self) -> T | None:
+        """The newest value so far, or None (a sample that does not decode counts as none)."""
+        with self._cond:
+            return self._take()
+
+    def _take(self) -> T | None:
+        raw, self._raw = self._raw, None
+        if raw is not None:
+            try:
+                self._latest = self.decode(raw)
+                self._version = self._raw_count
+            except Exception:  # noqa: BLE001 - a malformed sample is skipped
+                pass
+        return self._latest
+
+    def push_raw(self, raw: bytes) -> None:
+        """A new sample's payload (Zenoh's thread)."""
+        if self.callbacks:
+            try:
+                value = self.decode(raw)
+            except Exception:  # noqa: BLE001 - a malformed sample is skipped
+                return
+            self.push(value)
+            return
+        with self._cond:
+            self._raw = raw
+            self.count += 1
+            self._raw_count = self.count
+            self._cond.notify_all()
 
     def push(self, value: T) -> None:
         with self._cond:
-            self.latest = value
+            self._latest, self._raw = value, None
             self.count += 1
+            self._version = self.count
             self._cond.notify_all()
         for callback in list(self.callbacks):
             callback(value)
 
     def wait_newer(self, seen: int, timeout: float | None) -> tuple[T, int]:
         """The newest value once the count passed ``seen``; ClientError after ``timeout`` s."""
+        deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            if not self._cond.wait_for(lambda: self.count > seen, timeout):
-                raise ClientError(f"nothing received for {timeout} s: is the daemon running and "
-                                  "reachable, with the same domain id and namespace?")
-            assert self.latest is not None
-            return self.latest, self.count
+            while True:
+                left = None if deadline is None else max(0.0, deadline - time.monotonic())
+                if not self._cond.wait_for(lambda s=seen: self.count > s, left):
+                    raise ClientError(f"nothing received for {timeout} s: is the daemon running and "
+                                      "reachable, with the same domain id and namespace?")
+                value = self._take()
+                if value is not None and self._version > seen:
+                    return value, self.count
+                seen = self.count  # only samples that did not decode since: wait for the next
 
 
 class Car:
@@ -340,16 +397,16 @@ class Car:
 
     def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
                    qos: Qos) -> _Stream[T]:
-        stream: _Stream[T] = _Stream(convert)
+        deserialize = ros2_types().deserialize
+
+        def decode(raw: bytes) -> T:
+            return convert(deserialize(raw, msgtype))
+
+        stream: _Stream[T] = _Stream(decode)
         topic = self.ros_name(bus_topic)
-        types = ros2_types()
 
         def on_sample(sample: Any) -> None:
-            try:
-                value = convert(types.deserialize(sample.payload.to_bytes(), msgtype))
-            except Exception:  # noqa: BLE001 - a malformed sample is skipped
-                return
-            stream.push(value)
+            stream.push_raw(sample.payload.to_bytes())
 
         self._subs.append(self.session.declare_subscriber(self._key(topic, msgtype), on_sample))
         token = self._entity(rmw.SUBSCRIPTION, topic, msgtype, qos).token()

@@ -46,6 +46,8 @@ from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
+    DiagnosticStatus,
+    KeyValue,
     LaserScan,
     Message,
     stamp_now,
@@ -59,10 +61,11 @@ from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.dds_config import cyclone_available
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
+from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.ports import port_taken, taken_message
 from racecar_hw.net.rosout import RosoutHandler, logger_name
-from racecar_hw.net.topics import Topic
+from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
@@ -259,14 +262,16 @@ class Daemon:
         return None
 
     def _build_network(self, config: Config) -> None:
-        """The Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
+        """The network inbox, the Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
 
         Built after the scan path's subscriptions, so a scan reaches the bridge's queue only after
-        its motor command is written.
+        its motor command is written. Every network surface hands its inbound messages to the one
+        :class:`~racecar_hw.net.inbox.Inbox`, which coalesces them into the event loop.
         """
         self.zenoh: ZenohBridge | None = None
         self.dds: DdsBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
+        self.inbox: Inbox | None = None
         z, d = config.zenoh, config.dds
         #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
         self.rosout: RosoutHandler | None = (
@@ -284,12 +289,15 @@ class Daemon:
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
-        estop_topics = {config.mux.estop_topic, config.mux.estop_release_topic}
         if z.enabled:
-            self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                     urgent=urgent, refusals=self.refusals, on_estop=self.network_estop,
-                                     estop_topics=estop_topics,
-                                     parameters=self.parameters)
+            self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
+                               self._on_network_input, period_s=1.0 / config.mux.rate_hz,
+                               estop_topic=config.mux.estop_topic,
+                               release_topic=config.mux.estop_release_topic,
+                               on_estop=self.network_estop, refusals=self.refusals)
+            self.zenoh = ZenohBridge(self.bus, z, self.live_topics, urgent=urgent,
+                                     early={config.safety.scan_topic},
+                                     inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
             logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
             if logins is not None:
                 logins.attach(self.refusals)
@@ -297,10 +305,18 @@ class Daemon:
             log.warning("dds: the DDS interface is off: the cyclonedds package is not installed "
                         "(pip install cyclonedds; docs/dds.md), or set dds.enabled: false")
         elif d.enabled:
+            # its own coalescing (KEEP_LAST 1 readers, a thread per command row, one hand-over per
+            # tick) and the daemon's network e-stop; not yet the shared inbox (docs/dds.md)
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
                                  on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
-                                 on_estop=self.network_estop, estop_topics=estop_topics,
+                                 on_estop=self.network_estop,
+                                 estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
                                  period_s=1.0 / config.mux.rate_hz)
+
+    def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
+        """A command from a network surface, handed over by the inbox: on the bus, then send it."""
+        self.bus.publish(topic, msg)
+        self._on_remote_input(topic)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -355,6 +371,8 @@ class Daemon:
             self.safety.publish_state_if_due(now)
             if self.vesc is not None and self.lidar is not None:
                 self._time_scan_path(self.vesc, self.lidar)
+        if self.zenoh is not None:  # remote navigation code waits for the scan: queue it now
+            self.zenoh.send_early(self.config.safety.scan_topic, scan)
         times = self.stats.scan_times
         times.append(now)
         if len(times) >= 2:
@@ -419,6 +437,7 @@ class Daemon:
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
             self._publish_security(due)
+            self._publish_diagnostics()
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
@@ -451,6 +470,23 @@ class Daemon:
             self.bus.publish(self.config.mux.diagnostics_topic, array)
         except Exception as err:  # bookkeeping must never stop the control tick
             log.error("network security diagnostics failed: %r", err)
+
+    def _publish_diagnostics(self) -> None:
+        """The daemon's own statuses beside the mux's: the control loop, and the network inbox."""
+        stats = self.stats
+        message = f"{stats.ticks} ticks, {stats.missed_ticks} missed"
+        statuses = [DiagnosticStatus(
+            DiagnosticStatus.OK, "racecar_hw: control loop", message,
+            "", [KeyValue("ticks", str(stats.ticks)), KeyValue("missed ticks", str(stats.missed_ticks)),
+                 KeyValue("scan cuts", str(stats.scan_cuts))])]
+        if self.inbox is not None:
+            statuses.append(self.inbox.diagnostics())
+        stamp = stamp_now("", wall_ns())
+        try:
+            for status in statuses:  # one array each, as the mux and the network security publish
+                self.bus.publish(self.config.mux.diagnostics_topic, DiagnosticArray(stamp, [status]))
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("daemon diagnostics failed: %r", err)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -635,6 +671,8 @@ class Daemon:
         self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
         if self.rosout is not None:
             self.rosout.install()
+        if self.inbox is not None:
+            self.inbox.bind(loop)
         try:
             self._refuse_taken_ports()
             for bridge in (self.zenoh, self.dds):
@@ -729,6 +767,8 @@ class Daemon:
             self.setpoint.close()
         if self.mavlink is not None:
             self.mavlink.close()
+        if self.inbox is not None:
+            self.inbox.close()
         for bridge in (self.zenoh, self.dds):
             if bridge is not None:
                 with contextlib.suppress(Exception):

@@ -67,13 +67,23 @@ def test_incoming_samples_are_checked_before_they_reach_the_bus():
                                                                 AckermannDrive(0.1, 0.0, 1.5)))
             nan = ros2_types().serialize(AckermannDriveStamped(drive=AckermannDrive(speed=math.nan)))
             attach = rmw.Attachment(1, 1, bytes(16)).encode()
-            pub.put(good)                                   # no attachment: rmw_zenoh drops it too
-            pub.put(good, attachment=b"\x01\x02")           # not rmw_zenoh's attachment
-            pub.put(good[:9], attachment=attach)            # truncated CDR
-            pub.put(b"\xff" * 40, attachment=attach)        # garbage
-            pub.put(nan, attachment=attach)                 # NaN speed
-            pub.put(good, attachment=attach)                # the only one that counts
-            await async_wait_for(lambda: got and bridge.stats.non_finite, timeout=20)
+            s = bridge.stats
+            # a command row keeps only the newest sample: one at a time, each checked and counted
+            for payload, attachment in [
+                    (good, None),               # no attachment: rmw_zenoh drops it too
+                    (good, b"\x01\x02"),        # not rmw_zenoh's attachment
+                    (good[:9], attach),         # truncated CDR
+                    (b"\xff" * 40, attach),     # garbage
+                    (nan, attach),              # NaN speed
+                    (good, attach)]:            # the only one that counts
+                before = s.no_attachment + s.malformed + s.non_finite + s.received
+                if attachment is None:
+                    pub.put(payload)
+                else:
+                    pub.put(payload, attachment=attachment)
+                await async_wait_for(lambda b=before: s.no_attachment + s.malformed + s.non_finite
+                                     + s.received > b, timeout=20)
+            await async_wait_for(lambda: got, timeout=20)
             await asyncio.sleep(0.2)
             return got, bridge.stats
         finally:
@@ -267,6 +277,10 @@ def test_all_finite_looks_into_nested_messages_and_arrays():
 
 
 def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command():
+    """The scan reaches the bridge's queue from the daemon's scan path, right after the motor write
+    (and before the bookkeeping and the later subscribers), and wakes the publisher at once; the
+    bridge does not subscribe to the scan on the bus."""
+    from racecar_hw.base.clock import monotonic_ns
     from racecar_hw.daemon import Daemon
 
     port = free_port()
@@ -275,19 +289,37 @@ def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command()
                                 "foxglove.enabled=false", "web.enabled=false"])
     daemon = Daemon(config)
     assert daemon.zenoh is not None and daemon.cmd_vel is not None
+    events: list = []
+
+    class Motor:  # the VESC driver's command(), where the scan path writes the motor command
+        def command(self, drive: AckermannDrive) -> None:
+            events.append("motor write")
+
+    def remembered() -> None:
+        events.append("obstacle memory")
 
     async def run() -> list:
         loop = asyncio.get_running_loop()
         daemon.bus.bind_loop(loop)
+        daemon.zenoh.outbox.put = lambda fn, *args, urgent=False: events.append(("queued", urgent))
         await loop.run_in_executor(None, daemon.zenoh.open, loop)
         try:
-            return [s.callback for s in daemon.bus._subs["/scan"]]
+            callbacks = [s.callback for s in daemon.bus._subs["/scan"]]
+            scan_out = next(o for o in daemon.zenoh._outs if o.row.bus == "/scan")
+            scan_out.matching = True  # as if a remote node subscribed
+            daemon.vesc = Motor()  # type: ignore[assignment]
+            daemon.safety.remember = remembered  # type: ignore[method-assign]
+            daemon.mux.last_output = AckermannDriveStamped()
+            daemon.stats.ticks, daemon.stats.last_tick_ns = 1, monotonic_ns()
+            daemon.bus.publish("/scan", LaserScan(angle_min=-1.0, angle_increment=0.01,
+                                                  ranges=np.full(201, 5.0, dtype=np.float32)))
+            return callbacks
         finally:
             daemon.zenoh.close()
 
     callbacks = asyncio.run(run())
-    bridge_at = next(i for i, c in enumerate(callbacks) if c.__qualname__.startswith("ZenohBridge"))
-    assert callbacks.index(daemon._on_scan) < bridge_at
+    assert not any(c.__qualname__.startswith("ZenohBridge") for c in callbacks)
+    assert events == ["motor write", ("queued", True), "obstacle memory"]
 
 
 class _Bytes:
@@ -314,7 +346,8 @@ def test_any_bytes_from_the_network_are_counted_never_raised(payload, attachment
         attachment = attachment[:16] + b"\x10" + attachment[17:]  # often well-formed
     rows = {r.bus: r for r in topic_table(MuxParams(), SafetyParams(), cmd_vel_topic="/cmd_vel")}
     bridge = ZenohBridge(Bus(), ZenohParams(), list(rows.values()))
-    bridge._loop = loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    bridge.inbox.bind(loop)
     try:
         bridge._receiver(rows[topic])(_Sample(payload, attachment))
     finally:

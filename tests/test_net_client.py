@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 from conftest import wait_for
 from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
@@ -208,6 +209,44 @@ def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_o
     # nav_0 stayed the active source to the end: its zero command stopped the car, no timeout did
     assert switches(report)[-1] == "nav_0", report["mux_switches"]
     assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+
+
+def test_samples_are_decoded_when_read_and_only_the_newest():
+    """The client's stream keeps a sample's bytes until somebody reads it: a reader gets the newest
+    value, decoded once; a sample that does not decode is skipped (the last good value stays, a
+    waiting reader waits on); with a callback every sample is decoded as it arrives."""
+    from racecar_hw.base.messages import Header, LaserScan, Time  # noqa: PLC0415
+    from racecar_hw.client import Scan, _scan, _Stream  # noqa: PLC0415
+    from racecar_hw.rosmsg.typestore import ros2_types  # noqa: PLC0415
+
+    decoded = []
+
+    def decode(raw: bytes) -> Scan:
+        decoded.append(raw)
+        return _scan(ros2_types().deserialize(raw, LaserScan))
+
+    def scan_bytes(sec: int) -> bytes:
+        return ros2_types().serialize(LaserScan(Header(Time(sec, 0), "laser"), angle_increment=0.5,
+                                                ranges=np.full(5, float(sec), dtype=np.float32)))
+
+    stream = _Stream(decode)
+    assert stream.latest is None
+    for sec in (1, 2, 3):
+        stream.push_raw(scan_bytes(sec))
+    assert decoded == []  # nobody read yet
+    value, seen = stream.wait_newer(0, timeout=1.0)
+    assert value.stamp_s == 3.0 and seen == 3 and len(decoded) == 1
+    assert np.array_equal(value.angles, 0.5 * np.arange(5)) and value.ranges.dtype == np.float64
+    stream.push_raw(b"\x00\x01\x00\x00broken")
+    assert stream.latest.stamp_s == 3.0  # the last good value
+    with pytest.raises(ClientError):
+        stream.wait_newer(seen, timeout=0.2)  # only a broken sample came since
+    stream.push_raw(scan_bytes(4))
+    assert stream.wait_newer(seen, timeout=1.0)[0].stamp_s == 4.0
+    got = []
+    stream.callbacks.append(got.append)
+    stream.push_raw(scan_bytes(5))
+    assert [s.stamp_s for s in got] == [5.0] and stream.latest.stamp_s == 5.0
 
 
 def test_safety_values_are_typed_and_the_laser_pose_is_the_shipped_one():

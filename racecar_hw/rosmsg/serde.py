@@ -262,3 +262,218 @@ def generate(store: Typestore, classes: dict[str, type], typename: str, *, cdr: 
     fn: Serializer = namespace["serialize"]
     fn.__doc__ = source
     return fn
+
+
+# --- reading CDR -------------------------------------------------------------------------------
+
+Deserializer = Callable[[bytes], Any]
+
+
+class _Truncated(ValueError):
+    """The bytes end before the message does."""
+
+
+def _string(raw: bytes, p: int) -> tuple[str, int]:
+    """A CDR string at ``p`` (its uint32 length, aligned, counts the NUL): the text and the end."""
+    p += -(p - 4) & 3
+    (n,) = _U32.unpack_from(raw, p)
+    end = p + 4 + n
+    if n < 1 or end > len(raw) or raw[end - 1] != 0:
+        raise _Truncated("string")
+    return str(raw[p + 4:end - 1], "utf-8"), end
+
+
+def _count(raw: bytes, p: int, size: int) -> tuple[int, int]:
+    """A sequence's uint32 count at ``p`` (aligned): the count and where its elements start."""
+    p += -(p - 4) & 3
+    (n,) = _U32.unpack_from(raw, p)
+    p += 4
+    if size > 1:
+        p += -(p - 4) & (size - 1)
+    if p + n * size > len(raw):
+        raise _Truncated("sequence")
+    return n, p
+
+
+_U32 = Struct("<I")
+
+
+class _Reader:
+    """Emits the body of one CDR deserializer; like :class:`_Generator`, tracks the offset mod 8."""
+
+    def __init__(self, store: Typestore, classes: dict[str, type]) -> None:
+        import typing  # noqa: PLC0415 - only when generating
+
+        self.typing = typing
+        self.store = store
+        self.classes = classes
+        self.lines: list[str] = []
+        self.env: dict[str, Any] = {"_string": _string, "_count": _count, "_np": np, "_T": _Truncated}
+        self.indent = "    "
+        self.counter = 0
+        self.mod, self.res = 8, 0
+        self.run_fmt: list[str] = []
+        self.run_vars: list[str | None] = []
+
+    def name(self, prefix: str) -> str:
+        self.counter += 1
+        return f"{prefix}{self.counter}"
+
+    def emit(self, line: str) -> None:
+        self.lines.append(self.indent + line)
+
+    def forget(self, mod: int = 1) -> None:
+        self.mod, self.res = mod, 0
+
+    def align(self, size: int) -> None:
+        if size == 1:
+            return
+        if self.mod >= size:
+            pad = -self.res % size
+            if pad:
+                self.run_fmt.append(f"{pad}x")
+                self.run_vars.append(None)
+                self.res = (self.res + pad) % self.mod
+            return
+        self.flush()
+        self.emit(f"p += -(p - 4) & {size - 1}")
+        self.mod, self.res = size, 0
+
+    def flush(self) -> None:
+        if not self.run_fmt:
+            return
+        packer = Struct("<" + "".join(self.run_fmt))
+        var = self.name("_S")
+        self.env[var] = packer
+        names = [v for v in self.run_vars if v is not None]
+        if names:
+            self.emit(f"{', '.join(names)}, = {var}.unpack_from(raw, p)")
+        else:
+            self.emit(f"if p + {packer.size} > len(raw): raise _T('padding')")
+        self.emit(f"p += {packer.size}")
+        self.run_fmt, self.run_vars = [], []
+
+    def message(self, typename: str) -> str:
+        """Emit code reading ``typename``; returns the expression that builds the object."""
+        if typename not in self.store.fielddefs:
+            raise Unsupported(f"{typename} is not in the typestore")
+        _, fields = self.store.fielddefs[typename]
+        cls = self.classes.get(typename)
+        if cls is None or not fields:
+            raise Unsupported(f"no message class for {typename}")
+        hints = self.typing.get_type_hints(cls, vars(sys.modules[cls.__module__]))
+        present = {f.name for f in dataclasses.fields(cls)}
+        if not present <= {name for name, _ in fields}:
+            raise Unsupported(f"{cls.__name__} has fields {typename} lacks")
+        args = []
+        for fname, (node, detail) in fields:
+            value = self.field(node, detail, hints.get(fname))
+            if fname in present:
+                args.append(f"{fname}={value}")
+        var = self.name("_C")
+        self.env[var] = cls
+        return f"{var}({', '.join(args)})"
+
+    def field(self, node: int, detail: Any, hint: Any) -> str:
+        if node == _NODE_NAME:
+            return self.message(detail)
+        if node == _NODE_BASE:
+            return self.base(detail[0], hint)
+        if node in (_NODE_ARRAY, _NODE_SEQUENCE):
+            (inner_node, inner_detail), length = detail
+            if node == _NODE_SEQUENCE:
+                length = 0
+            if inner_node == _NODE_BASE and inner_detail[0] in _FORMATS and inner_detail[0] != "bool":
+                if hint is not np.ndarray:
+                    raise Unsupported(f"array field typed {hint}")
+                return self.numeric_array(inner_detail[0], length)
+            if inner_node == _NODE_NAME and node == _NODE_SEQUENCE:
+                return self.message_sequence(inner_detail)
+        raise Unsupported(f"field {node} {detail}")
+
+    def base(self, base: str, hint: Any) -> str:
+        if base == "string":
+            if hint is not str and hint is not None:
+                raise Unsupported(f"string typed {hint}")
+            self.flush()
+            var = self.name("_s")
+            self.emit(f"{var}, p = _string(raw, p)")
+            self.forget()
+            return var
+        if base not in _FORMATS:
+            raise Unsupported(f"base type {base}")
+        fmt, size = _FORMATS[base]
+        want = {"?": bool, "f": float, "d": float}.get(fmt, int)
+        if hint is not None and hint is not want:
+            raise Unsupported(f"{base} typed {hint}")
+        self.align(size)
+        var = self.name("_v")
+        self.run_fmt.append(fmt)
+        self.run_vars.append(var)
+        self.res = (self.res + size) % self.mod
+        return var
+
+    def numeric_array(self, base: str, length: int) -> str:
+        _, size = _FORMATS[base]
+        var = self.name("_a")
+        dtype = self.name("_D")
+        self.env[dtype] = np.dtype(_DTYPES[base]).newbyteorder("<")
+        if length:
+            self.align(size)
+            self.flush()
+            self.emit(f"if p + {size * length} > len(raw): raise _T('array')")
+            self.emit(f"{var} = _np.frombuffer(raw, {dtype}, {length}, p)")
+            self.emit(f"p += {size * length}")
+            self.res = (self.res + size * length) % self.mod
+            return var
+        if size > 4:
+            raise Unsupported(f"sequence of {base}")  # as the writer: rosbags' empty-sequence quirk
+        self.flush()
+        count = self.name("_n")
+        self.emit(f"{count}, p = _count(raw, p, {size})")
+        self.emit(f"{var} = _np.frombuffer(raw, {dtype}, {count}, p)")
+        self.emit(f"p += {count} * {size}")
+        self.forget(size)
+        return var
+
+    def message_sequence(self, typename: str) -> str:
+        self.flush()
+        count, var, i = self.name("_n"), self.name("_q"), self.name("_i")
+        self.emit(f"{count}, p = _count(raw, p, 1)")
+        self.emit(f"{var} = []")
+        self.emit(f"for {i} in range({count}):")
+        outer = self.indent
+        self.indent += "    "
+        self.forget()
+        built = self.message(typename)
+        self.flush()
+        self.emit(f"{var}.append({built})")
+        self.indent = outer
+        self.forget()
+        return var
+
+
+def generate_reader(store: Typestore, classes: dict[str, type], typename: str) -> Deserializer:
+    """The CDR deserializer ``f(raw) -> message`` of ``typename`` (little-endian CDR, its header first).
+
+    It reads what rosbags' ``deserialize_cdr`` reads and builds our dataclass directly; numeric
+    arrays are read-only ``numpy`` views of ``raw`` (no copy). Bytes that end early, a string
+    without its NUL, more than 3 bytes after the message, or another encapsulation raise; the
+    caller then takes the generic path.
+    Raises :class:`Unsupported` for shapes it does not generate (as :func:`generate`).
+    """
+    if sys.byteorder != "little":
+        raise Unsupported("big-endian host")
+    reader = _Reader(store, classes)
+    built = reader.message(typename)
+    reader.flush()
+    source = "\n".join(["def deserialize(raw):",
+                        f"    if raw[:4] != {CDR_HEADER!r}: raise _T('not little-endian CDR')",
+                        "    p = 4", *reader.lines,
+                        "    if p + 3 < len(raw): raise _T('bytes after the message')",  # as rosbags
+                        f"    return {built}"])
+    namespace = dict(reader.env)
+    exec(compile(source, f"<cdr reader {typename}>", "exec"), namespace)  # noqa: S102
+    fn: Deserializer = namespace["deserialize"]
+    fn.__doc__ = source
+    return fn

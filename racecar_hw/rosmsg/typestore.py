@@ -93,6 +93,7 @@ class BagTypes:
         self._to: dict[str, ToRos] = {}
         self._from: dict[str, FromRos] = {}
         self._fast: dict[type[Message], serde.Serializer | None] = {}
+        self._readers: dict[type[Message], serde.Deserializer | None] = {}
 
     # --- type information ---------------------------------------------------------------------
 
@@ -175,7 +176,40 @@ class BagTypes:
         return bytes(self.store.serialize_cdr(obj, msg.ROS_TYPE))
 
     def deserialize(self, raw: bytes | memoryview, cls: type[Message]) -> Message:
-        """Bytes of ``cls.ROS_TYPE`` (ROS 1 or CDR, per this store) as our dataclass."""
+        """Bytes of ``cls.ROS_TYPE`` (ROS 1 or CDR, per this store) as our dataclass.
+
+        CDR is read by the class's direct reader (:func:`racecar_hw.rosmsg.serde.generate_reader`)
+        when it has one and it accepts the bytes; its numeric arrays are then read-only views of
+        ``raw``. Otherwise, and for ROS 1, the generic rosbags path gives the result or the error.
+        """
+        if self.ros_version == 2:
+            try:
+                reader = self._readers[cls]
+            except KeyError:
+                reader = self.fast_reader(cls)
+            if reader is not None:
+                try:
+                    return reader(raw)
+                except Exception:  # noqa: BLE001 - the generic path gives the real result or error
+                    pass
+        return self.deserialize_generic(raw, cls)
+
+    def fast_reader(self, cls: type[Message]) -> serde.Deserializer | None:
+        """The direct CDR reader of ``cls`` (built once; ROS 2 stores only), or None if it has none."""
+        if cls in self._readers:
+            return self._readers[cls]
+        reader: serde.Deserializer | None = None
+        if self.ros_version == 2 and cls.ROS_TYPE in self.store.fielddefs:
+            try:
+                classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
+                reader = serde.generate_reader(self.store, classes, cls.ROS_TYPE)
+            except serde.Unsupported:
+                reader = None
+        self._readers[cls] = reader
+        return reader
+
+    def deserialize_generic(self, raw: bytes | memoryview, cls: type[Message]) -> Message:
+        """Bytes as our dataclass through a rosbags message object (the reference for the fast path)."""
         if self.ros_version == 1:
             obj = self.store.deserialize_ros1(raw, cls.ROS_TYPE)
         else:
