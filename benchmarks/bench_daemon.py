@@ -157,6 +157,8 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             "web": {"port": 0},
             "zenoh": ({"enabled": True, "listen": [f"tcp/127.0.0.1:{zenoh_port}"]}
                       if zenoh_port else {"enabled": False}),
+            # off unless a benchmark turns it on (bench_dds.py): the rows stay comparable
+            "dds": {"enabled": False},
         }
         if helpers and any("--drives" in h for h in helpers):
             config["figure8"] = {"enabled": False}  # the remote client drives nav_0

@@ -28,6 +28,7 @@ from racecar_hw.base.overrides import apply_override, key_lines, key_path, load_
 from racecar_hw.base.params import build, describe, param, to_dict, unknown_key
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
+from racecar_hw.net.dds_config import DdsParams
 from racecar_hw.net.foxglove_server import FoxgloveParams
 from racecar_hw.net.ports import Listener, free_port, port_taken
 from racecar_hw.net.rosout import RosoutParams
@@ -124,6 +125,7 @@ class Config:
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     status: StatusSection = field(default_factory=StatusSection)
     zenoh: ZenohParams = field(default_factory=ZenohParams)
+    dds: DdsParams = field(default_factory=DdsParams)
     rosout: RosoutParams = field(default_factory=RosoutParams)
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
@@ -137,7 +139,7 @@ _SECTIONS: dict[str, type] = {
     "follower": FollowerSection, "recorder": RecorderParams, "arming": ArmingParams,
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
     "status": StatusSection, "watchdog": WatchdogSection,
-    "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams,
+    "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams, "dds": DdsParams,
     "rosout": RosoutParams,
 }
 
@@ -169,11 +171,13 @@ def build_config(data: dict[str, Any]) -> Config:
         lock = gamepad.lock_params()
         if all(existing.topic != lock.topic for existing in config.mux.locks):
             config.mux.locks.append(lock)
-    config.mux.inputs.extend(added_inputs(config.foxglove, config.zenoh, config.mux.inputs))
+    config.mux.inputs.extend(added_inputs(config.foxglove, config.zenoh, config.mux.inputs, config.dds))
     config.mux.validate("mux")
-    if config.zenoh.enabled:
+    if config.zenoh.enabled or config.dds.enabled:
         config.zenoh.validate("zenoh")
         network_topics(config)
+    if config.dds.enabled:
+        config.dds.validate("dds")
     _check_scan_timing(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
@@ -186,18 +190,19 @@ CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
 CMD_VEL_TIMEOUT_S = 0.2
 
 
-def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputParams] | list[dict[str, Any]]
-                 ) -> list[InputParams]:
+def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputParams] | list[dict[str, Any]],
+                 dds: DdsParams | None = None) -> list[InputParams]:
     """The mux inputs the features add after the configured ``inputs``, unless one of them has the
     name already: ``foxglove`` for Foxglove's Teleop panel (``foxglove.teleop``, its priority and
     timeout from ``foxglove.teleop_priority`` and ``teleop_timeout_s``), then ``cmd_vel`` for
-    ROS 2's /cmd_vel over Zenoh (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
+    ROS 2's /cmd_vel over Zenoh or DDS (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
     names = {i["name"] if isinstance(i, dict) else i.name for i in inputs}
     added = []
     if fox.enabled and fox.teleop and FOXGLOVE_INPUT not in names:
         added.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
                                  fox.teleop_timeout_s))
-    if zenoh.enabled and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
+    ros = zenoh.enabled or (dds is not None and dds.enabled)
+    if ros and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
         added.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, CMD_VEL_TIMEOUT_S))
     return added
 
@@ -208,7 +213,8 @@ def cmd_vel_input_topic(config: Config) -> str | None:
 
 
 def network_topics(config: Config) -> list[Topic]:
-    """The topic table the network interfaces offer, named by ``zenoh.profile`` and ``zenoh.remap``."""
+    """The topic table the network interfaces (Zenoh, DDS, Foxglove) offer, named by ``zenoh.profile``
+    and ``zenoh.remap``: one table, two wires."""
     z = config.zenoh
     summary = config.scan_summary
     rows = topic_table(
@@ -401,7 +407,8 @@ def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, ass
     data["mux"] = mux = dict(mux) if isinstance(mux, dict) else {}
     fox = build(FoxgloveParams, data.get("foxglove") or {}, "foxglove")
     zenoh = build(ZenohParams, data.get("zenoh") or {}, "zenoh")
-    added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i])
+    dds = build(DdsParams, data.get("dds") or {}, "dds")
+    added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i], dds)
     mux["inputs"] = [*inputs, *to_dict(added)]
     for assignment in assignments:
         index = _input_index(assignment)
@@ -411,8 +418,8 @@ def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, ass
                                for i, item in enumerate(mux["inputs"]))
             raise ConfigError(key, f"no mux input {index}; the mux has {len(mux['inputs'])} inputs: "
                                    f"{listed} (check-config lists them; foxglove is added by "
-                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel, when the config "
-                                   "names no input so)")
+                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel (with zenoh or dds "
+                                   "on), when the config names no input so)")
         apply_override(data, assignment, defaults)
 
 

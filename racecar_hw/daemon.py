@@ -57,6 +57,8 @@ from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, listeners, network_topics
 from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
+from racecar_hw.net.dds_bridge import DdsBridge
+from racecar_hw.net.dds_config import cyclone_available
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
 from racecar_hw.net.inbox import Inbox
@@ -267,9 +269,10 @@ class Daemon:
         :class:`~racecar_hw.net.inbox.Inbox`, which coalesces them into the event loop.
         """
         self.zenoh: ZenohBridge | None = None
+        self.dds: DdsBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
         self.inbox: Inbox | None = None
-        z = config.zenoh
+        z, d = config.zenoh, config.dds
         #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
         self.rosout: RosoutHandler | None = (
             RosoutHandler(self.bus, config.rosout, logger_name(z.namespace, z.node_name))
@@ -277,7 +280,7 @@ class Daemon:
         #: the read-only parameter services' answers: the effective configuration
         self.parameters = ParameterService(to_dict(config),
                                            {name: doc for name, _, doc in describe(Config)})
-        if not z.enabled:
+        if not z.enabled and not d.enabled:
             return
         self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
         twist_input = cmd_vel_input_topic(config)
@@ -285,17 +288,30 @@ class Daemon:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
-        self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
-                           self._on_network_input, period_s=1.0 / config.mux.rate_hz,
-                           estop_topic=config.mux.estop_topic, release_topic=config.mux.estop_release_topic,
-                           on_estop=self.network_estop, refusals=self.refusals)
-        self.zenoh = ZenohBridge(self.bus, z, self.live_topics,
-                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
-                                 early={config.safety.scan_topic},
-                                 inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
-        logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
-        if logins is not None:
-            logins.attach(self.refusals)
+        urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
+        if z.enabled:
+            self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
+                               self._on_network_input, period_s=1.0 / config.mux.rate_hz,
+                               estop_topic=config.mux.estop_topic,
+                               release_topic=config.mux.estop_release_topic,
+                               on_estop=self.network_estop, refusals=self.refusals)
+            self.zenoh = ZenohBridge(self.bus, z, self.live_topics, urgent=urgent,
+                                     early={config.safety.scan_topic},
+                                     inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
+            logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
+            if logins is not None:
+                logins.attach(self.refusals)
+        if d.enabled and not cyclone_available():
+            log.warning("dds: the DDS interface is off: the cyclonedds package is not installed "
+                        "(pip install cyclonedds; docs/dds.md), or set dds.enabled: false")
+        elif d.enabled:
+            # its own coalescing (KEEP_LAST 1 readers, a thread per command row, one hand-over per
+            # tick) and the daemon's network e-stop; not yet the shared inbox (docs/dds.md)
+            self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
+                                 on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
+                                 on_estop=self.network_estop,
+                                 estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
+                                 period_s=1.0 / config.mux.rate_hz)
 
     def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
         """A command from a network surface, handed over by the inbox: on the bus, then send it."""
@@ -310,7 +326,7 @@ class Daemon:
             self.mux.step_early(name, now, self.filters)
 
     def network_estop(self, topic: str, msg: Message, who: str) -> None:
-        """An e-stop or release message from a network session (``who``: ``zenoh``), in the loop.
+        """An e-stop or release message from a network session (``who``: ``zenoh``, ``dds``), in the loop.
 
         It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
         release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
@@ -363,6 +379,8 @@ class Daemon:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
         if self.zenoh is not None:
             self.zenoh.control_idle()
+        if self.dds is not None:
+            self.dds.control_idle()
         self.safety.remember()  # before waking the recorder's writer, which would contend for the GIL
         if self.recorder is not None:
             self.recorder.control_idle()
@@ -657,9 +675,12 @@ class Daemon:
             self.inbox.bind(loop)
         try:
             self._refuse_taken_ports()
-            if self.zenoh is not None:
-                await loop.run_in_executor(None, self.zenoh.open, loop)
+            for bridge in (self.zenoh, self.dds):
+                if bridge is not None:
+                    await loop.run_in_executor(None, bridge.open, loop)
         except BaseException:
+            if self.zenoh is not None:
+                await loop.run_in_executor(None, self.zenoh.close)
             for coro in self._extra:  # never started: no "coroutine was never awaited"
                 coro.close()
             self._extra = []
@@ -748,9 +769,10 @@ class Daemon:
             self.mavlink.close()
         if self.inbox is not None:
             self.inbox.close()
-        if self.zenoh is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)
+        for bridge in (self.zenoh, self.dds):
+            if bridge is not None:
+                with contextlib.suppress(Exception):
+                    await asyncio.get_running_loop().run_in_executor(None, bridge.close)
         if self.rosout is not None:
             self.rosout.uninstall()
             if self.rosout.dropped:

@@ -30,10 +30,13 @@ BAGS = SHARED / "fixtures" / "bags"
 #: Tests whose subject is not the network keep the daemon's Zenoh bridge off: its default listen
 #: port (7447) is shared by every process on this machine, and a test never binds a fixed port.
 NO_ZENOH = "zenoh.enabled=false"
-#: What a test that starts a daemon or a sim but is not about the network sets: no Zenoh bridge, and
+#: ... and their DDS interface: its discovery reaches every DDS participant on this machine's loopback.
+NO_DDS = "dds.enabled=false"
+#: What a test that starts a daemon or a sim but is not about the network sets: no Zenoh bridge, no
+#: DDS interface, and
 #: the live view and the status page on free ports (port 0), never the defaults 8765 and 8080
 #: (a user's running sim would clash with the tests; docs/live-view.md, "Ports").
-QUIET_NET = (NO_ZENOH, "foxglove.port=0", "web.port=0")
+QUIET_NET = (NO_ZENOH, NO_DDS, "foxglove.port=0", "web.port=0")
 
 
 def set_args(*assignments: str) -> list[str]:

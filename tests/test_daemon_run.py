@@ -52,7 +52,7 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     config = {
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
-        "status": {"enabled": False}, "zenoh": {"enabled": False},
+        "status": {"enabled": False}, "zenoh": {"enabled": False}, "dds": {"enabled": False},
         "foxglove": {"port": 0}, "web": {"port": 0},
         "recorder": {"enabled": True, "path": str(tmp_path / "bags"), "name": "drive",
                      "format": "mcap"},
@@ -202,7 +202,7 @@ def test_follow_command_refuses_a_disarmed_car_then_drives_a_twist_bag_with_arm(
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
         "gamepad": {"enabled": False}, "status": {"enabled": False},
-        "zenoh": {"enabled": False}, "foxglove": {"port": 0}, "web": {"port": 0},
+        "zenoh": {"enabled": False}, "dds": {"enabled": False}, "foxglove": {"port": 0}, "web": {"port": 0},
     }))
     command = [sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--config", str(cfg)]
     refused = subprocess.run(command, capture_output=True, text=True, timeout=60)

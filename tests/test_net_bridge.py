@@ -242,7 +242,9 @@ def test_the_cmd_vel_input_sits_between_nav_0_and_nav_1():
     inputs = {i.name: i for i in config.mux.inputs}
     assert inputs["nav_0"].priority > inputs["cmd_vel"].priority == 18 > inputs["nav_1"].priority
     assert "cmd_vel" not in {i.name for i in load_config(None, ["zenoh.cmd_vel=false"]).mux.inputs}
-    assert "cmd_vel" not in {i.name for i in load_config(None, ["zenoh.enabled=false"]).mux.inputs}
+    assert "cmd_vel" in {i.name for i in load_config(None, ["zenoh.enabled=false"]).mux.inputs}  # DDS
+    neither = load_config(None, ["zenoh.enabled=false", "dds.enabled=false"])
+    assert "cmd_vel" not in {i.name for i in neither.mux.inputs}
 
 
 def test_the_domain_id_comes_from_the_environment_unless_configured(monkeypatch):
@@ -352,3 +354,18 @@ def test_any_bytes_from_the_network_are_counted_never_raised(payload, attachment
         loop.close()
     s = bridge.stats
     assert s.no_attachment + s.malformed + s.non_finite + s.received == 1
+
+
+def test_without_cyclonedds_the_daemon_runs_without_dds_and_says_so(monkeypatch, caplog, tmp_path):
+    """cyclonedds is a dependency on x86_64 only: elsewhere, unless installed, DDS is off, with a
+    warning that names the package and the key."""
+    import racecar_hw.daemon as daemon_module
+
+    monkeypatch.setattr(daemon_module, "cyclone_available", lambda: False)
+    config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
+                                "gamepad.enabled=false", "status.enabled=false", "safety.mode=off",
+                                "zenoh.enabled=false", "foxglove.enabled=false", "web.enabled=false"])
+    with caplog.at_level("WARNING"):
+        daemon = daemon_module.Daemon(config)
+    assert daemon.dds is None
+    assert "pip install cyclonedds" in caplog.text and "dds.enabled: false" in caplog.text

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import NO_ZENOH, async_wait_for
+from conftest import NO_DDS, NO_ZENOH, async_wait_for
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
@@ -86,7 +86,7 @@ def _loopback(station: Station, script, *extra: str) -> Loopback:
     scenario = load_scenario("wall", ["drivers=[]", "duration_s=60"])
     overrides = ["mavlink.enabled=true", "mavlink.bind_port=0",
                  f"mavlink.gcs_address=127.0.0.1:{station.port}", "arming.start_armed=false", NO_ZENOH,
-                 "foxglove.enabled=false", "web.enabled=false", *extra]  # never the default ports
+                 NO_DDS, "foxglove.enabled=false", "web.enabled=false", *extra]  # never the default ports
 
     def setup(lb: Loopback) -> None:
         lb.daemon.add_task(script(lb))

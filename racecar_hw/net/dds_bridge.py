@@ -1,0 +1,380 @@
+"""The DDS interface: the daemon's topics as ROS 2 topics on DDS, ROS 2's default middleware.
+
+The same topic table as the Zenoh bridge (:mod:`racecar_hw.net.topics`: profile, namespace, remaps,
+``/cmd_vel``), on a thin Cyclone DDS shell beside it:
+
+* **Names and types** as ROS 2's DDS middlewares use them: ``/scan`` is the DDS topic ``rt/scan``
+  of type ``sensor_msgs::msg::dds_::LaserScan_`` (:mod:`racecar_hw.net.dds_types`, generated from
+  the typestore and sending the CDR bytes :mod:`racecar_hw.rosmsg` makes, as the recorder and the
+  Zenoh bridge do). Each writer and reader has the row's QoS as ROS 2 nodes declare it (best
+  effort depth 5 for ``/scan``, transient local depth 1 for ``/tf_static`` and the mux's active
+  source, reliable depth 10 otherwise) and ``typehash=RIHS01_...;`` in its USER_DATA (Iron+).
+* **Out**: exactly as the Zenoh bridge: the bus callback only queues ``(row, message, wall ns)`` in
+  an :class:`~racecar_hw.net.outbox.Outbox` (bounded, drop-oldest), and nothing at all while no
+  reader matches the writer (Cyclone's publication-matched status, kept by a listener); the
+  sender thread serializes and writes. Latched rows are always queued, and Cyclone's writer
+  history (transient local) gives late joiners the last ``depth`` samples.
+* **In**: a command row's reader keeps only its newest sample (KEEP_LAST 1, in Cyclone's C code,
+  without the GIL); a thread per row waits for it in C, takes it, decodes and checks it (a
+  well-formed CDR payload, every number finite) and hands it to the event loop with
+  ``call_soon_threadsafe``, then rests one control period (``period_s``): a flood of ``/cmd_vel``
+  costs the loop at most one hand-over per row per tick. The e-stop and its release are never
+  coalesced: Cyclone calls their readers' listeners for every sample, in order, and they go to
+  ``on_estop`` (the daemon's network e-stop). On a
+  non-loopback interface without ``accept_unauthenticated_commands`` every command is refused and
+  counted (:class:`~racecar_hw.runtime.refusals.Refusals`, surface ``dds``).
+* **Graph**: ``ros_discovery_info`` names the participant's node (``/<namespace>/<node_name>``) and
+  its readers' and writers' GIDs, so ``ros2 node list`` and ``ros2 topic info -v`` show the car.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.clock import wall_ns
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.messages import Message
+from racecar_hw.net import dds_graph, rmw
+from racecar_hw.net.dds_config import DdsParams, cyclone_xml
+from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
+from racecar_hw.net.outbox import Outbox
+from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
+from racecar_hw.net.zenoh_bridge import all_finite
+from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
+
+log = logging.getLogger(__name__)
+
+SURFACE = "dds"
+#: How long a reliable writer may block when its history is full (ns); never reached with KEEP_LAST.
+MAX_BLOCKING_NS = 100_000_000
+#: Samples taken from a reader per call.
+TAKE_N = 64
+#: How long a command row's thread waits for a sample before it looks whether to stop (ns).
+PUMP_WAIT_NS = 200_000_000
+
+
+@dataclass
+class DdsStats:
+    """Counters of the DDS interface (read from any thread)."""
+
+    published: int = 0       #: samples written
+    skipped: int = 0         #: outgoing messages not queued: no reader matched
+    publish_errors: int = 0  #: serialization or write failures
+    received: int = 0        #: incoming samples handed to the bus
+    malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
+    non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
+    refused: int = 0         #: incoming commands refused: unauthenticated interface
+
+
+class _Out:
+    """One outgoing row: its writer, its topic type, and whether any reader matches."""
+
+    def __init__(self, row: Topic, writer: Any, topic_type: Any, latched: bool) -> None:
+        self.row = row
+        self.writer = writer
+        self.topic_type = topic_type
+        self.latched = latched
+        self.matching = latched
+
+
+def qos_of(qos: Qos, user_data: bytes = b"") -> Any:
+    """Cyclone QoS for a row's :class:`~racecar_hw.net.topics.Qos` (KEEP_LAST ``depth``)."""
+    from cyclonedds.qos import Policy  # noqa: PLC0415
+    from cyclonedds.qos import Qos as CQos  # noqa: PLC0415
+
+    policies = [
+        Policy.Reliability.Reliable(max_blocking_time=MAX_BLOCKING_NS)
+        if qos.reliability is Reliability.RELIABLE else Policy.Reliability.BestEffort,
+        Policy.Durability.TransientLocal if qos.latched else Policy.Durability.Volatile,
+        Policy.History.KeepLast(qos.depth),
+    ]
+    if user_data:
+        policies.append(Policy.Userdata(data=user_data))
+    return CQos(*policies)
+
+
+class DdsBridge:
+    """The bus's network rows on DDS. Build, ``open()`` (blocking, from any thread), ``close()``.
+
+    ``names``: the zenoh section's naming (namespace, node name): one table, two wires.
+    ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
+    the bus; messages on ``urgent`` bus topics wake the publisher thread at once. Messages on
+    ``estop_topics`` go to ``on_estop(topic, msg, "dds")`` in the event loop instead of the bus
+    (the daemon's network e-stop: it may engage, and release only what the e-stop topic engaged).
+    """
+
+    def __init__(self, bus: Bus, params: DdsParams, rows: list[Topic], *, namespace: str = "",
+                 node_name: str = "racecar_hw", on_input: Callable[[str], None] | None = None,
+                 urgent: frozenset[str] | set[str] = frozenset(),
+                 refusals: Refusals | None = None,
+                 on_estop: Callable[[str, Message, str], None] | None = None,
+                 estop_topics: frozenset[str] | set[str] = frozenset(),
+                 period_s: float = 0.02) -> None:
+        self.bus = bus
+        self.params = params
+        self.rows = rows
+        self.on_input = on_input
+        self.namespace = rmw.check_namespace(namespace)
+        self.node_name = node_name
+        self.domain_id = params.resolved_domain_id()
+        self.refusals = refusals if refusals is not None else Refusals()
+        self.on_estop = on_estop
+        self.estop_topics = frozenset(estop_topics)
+        self.period_s = period_s
+        self._pumps: list[threading.Thread] = []
+        self._stopping = threading.Event()
+        self.stats = DdsStats()
+        self.urgent = frozenset(urgent)
+        self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
+        self.factory: TypeFactory = ros2_factory()
+        self._types = ros2_types()
+        self._lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._domain: Any = None
+        self.participant: Any = None
+        self._outs: list[_Out] = []
+        self._readers: list[Any] = []
+        self._info_writer: Any = None
+        self._bus_subs: list[Subscription] = []
+        self._open = False
+
+    def ros_name(self, row: Topic) -> str:
+        """The topic's full ROS name: the namespace (unless the row is absolute), then the row's ROS name."""
+        return row.ros if row.absolute else self.namespace + row.ros
+
+    # --- life cycle ---------------------------------------------------------------------------
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Join the domain, create every writer and reader, publish the node, start the thread.
+
+        Raises a one-line :class:`ConfigError` naming ``dds.interface`` when Cyclone cannot start
+        on the configured interface.
+        """
+        from cyclonedds.core import DDSException, Listener  # noqa: PLC0415 - loads the C library
+        from cyclonedds.domain import Domain, DomainParticipant  # noqa: PLC0415
+        from cyclonedds.pub import DataWriter  # noqa: PLC0415
+        from cyclonedds.sub import DataReader  # noqa: PLC0415
+        from cyclonedds.topic import Topic as DdsTopic  # noqa: PLC0415
+
+        self._loop = loop
+        p = self.params
+        try:
+            self._domain = Domain(self.domain_id, cyclone_xml(p))
+            self.participant = DomainParticipant(self.domain_id)
+        except DDSException as err:
+            raise ConfigError("dds.interface", f"Cyclone DDS could not start on {p.interface!r} "
+                                               f"(domain {self.domain_id}): {err}") from None
+        self._open = True
+        hashes = p.ros_distro != "humble"
+        writer_gids, reader_gids = [], []
+        for row in self.rows:
+            ros_type = row.msgtype.ROS_TYPE
+            topic_type = self.factory.topic_type(ros_type)
+            topic = DdsTopic(self.participant, dds_graph.topic_name(self.ros_name(row)), topic_type)
+            qos = qos_of(row.qos, dds_graph.user_data(rmw.type_hash(ros_type) if hashes else None))
+            if row.direction is Direction.OUT:
+                out = _Out(row, None, topic_type, latched=row.qos.latched)
+
+                def matched(writer: Any, status: Any, out: _Out = out) -> None:
+                    out.matching = out.latched or status.current_count > 0
+
+                out.writer = DataWriter(self.participant, topic, qos,
+                                        listener=Listener(on_publication_matched=matched))
+                self._outs.append(out)
+                writer_gids.append(out.writer.guid.bytes)
+            elif row.bus in self.estop_topics or row.qos.latched:
+                # every e-stop message, in order, from Cyclone's thread: never coalesced
+                reader = DataReader(self.participant, topic, qos,
+                                    listener=Listener(on_data_available=self._receiver(row)))
+                self._readers.append(reader)
+                reader_gids.append(reader.guid.bytes)
+            else:
+                # a command: the reader keeps only the newest sample (in C, without the GIL) until
+                # this row's thread takes it, at most once per control tick
+                newest = qos_of(dataclasses.replace(row.qos, depth=1), dds_graph.user_data(
+                    rmw.type_hash(ros_type) if hashes else None))
+                reader = DataReader(self.participant, topic, newest)
+                self._readers.append(reader)
+                reader_gids.append(reader.guid.bytes)
+                self._pumps.append(threading.Thread(target=self._pump, args=(row, reader), daemon=True,
+                                                    name=f"dds-in {row.ros}"))
+        self._publish_graph(reader_gids, writer_gids, DdsTopic, DataWriter)
+        self.outbox.start()
+        self._stopping.clear()
+        for pump in self._pumps:
+            pump.start()
+        for out in self._outs:
+            self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
+            latest = self.bus.latest(out.row.bus)
+            if out.latched and latest is not None:
+                self._enqueuer(out)(latest)
+        log.info("dds interface up: domain %d, interface %s, peers %s, node %s/%s; %d topics out, %d in%s",
+                 self.domain_id, p.interface, ",".join(p.peers), self.namespace, self.node_name,
+                 len(self._outs), len(self._readers), "" if p.accepts_commands else " (commands refused)")
+        notice = p.start_notice()
+        if notice:
+            log.warning("%s", notice)
+
+    def _publish_graph(self, readers: list[bytes], writers: list[bytes], topic_cls: Any,
+                       writer_cls: Any) -> None:
+        """Publish ``ros_discovery_info``: this participant's one node and its endpoints."""
+        factory = TypeFactory(dds_graph.graph_store(self.params.gid_size))
+        topic_type = factory.topic_type(dds_graph.DISCOVERY_TYPE)
+        topic = topic_cls(self.participant, dds_graph.DISCOVERY_TOPIC, topic_type)
+        from racecar_hw.net.topics import LATCHED  # noqa: PLC0415
+
+        self._info_writer = writer_cls(self.participant, topic, qos_of(LATCHED))
+        node = dds_graph.NodeInfo(self.namespace or "/", self.node_name, readers, writers)
+        gid = bytes(16) if self.params.null_participant_gid else self.participant.guid.bytes
+        info = dds_graph.ParticipantInfo(gid, [node])
+        cdr = dds_graph.encode_participant_info(info, self.params.gid_size)
+        log.debug("dds: ros_discovery_info %s", info)
+        self._info_writer.write(raw_sample(topic_type, cdr))
+
+    def close(self) -> None:
+        """Stop the publisher thread, delete every entity, leave the domain (safe twice)."""
+        for sub in self._bus_subs:
+            sub.close()
+        self._bus_subs.clear()
+        self.outbox.stop(5.0)
+        self._stopping.set()
+        for pump in self._pumps:  # each wakes within PUMP_WAIT_S
+            if pump.is_alive():
+                pump.join(5.0)
+        self._pumps.clear()
+        if not self._open:
+            return
+        self._open = False
+        participant, self.participant = self.participant, None
+        self._outs.clear()
+        self._readers.clear()
+        self._info_writer = None
+        for entity in (participant, self._domain):
+            if entity is None:
+                continue
+            try:
+                entity.__del__()
+            except Exception:  # noqa: BLE001 - shutting down: report and go on
+                log.debug("dds: deleting %r failed", entity, exc_info=True)
+        self._domain = None
+        s = self.stats
+        log.info("dds interface closed: %d published (%d dropped, queue full), %d skipped (no reader); "
+                 "%d received, %d malformed, %d non-finite, %d refused", s.published, self.outbox.dropped,
+                 s.skipped, s.received, s.malformed, s.non_finite, s.refused)
+
+    # --- out: bus thread, then the publisher thread -------------------------------------------
+
+    @property
+    def dropped(self) -> int:
+        """Outgoing messages dropped because the queue was full (the oldest go first)."""
+        return self.outbox.dropped
+
+    def control_idle(self) -> None:
+        """The control path is idle until its next event (a scan's command is out): send now."""
+        self.outbox.control_idle()
+
+    def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
+        put, publish, stats = self.outbox.put, self._publish, self.stats
+        urgent = out.row.bus in self.urgent
+
+        def enqueue(msg: Message) -> None:
+            if not out.matching:
+                stats.skipped += 1
+                return
+            put(publish, out, msg, wall_ns(), urgent=urgent)
+
+        return enqueue
+
+    def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
+        """In the publisher thread: serialize ``msg`` and write it with its source timestamp."""
+        try:
+            out.writer.write(raw_sample(out.topic_type, self._types.serialize(msg)), timestamp=stamp)
+            self.stats.published += 1
+        except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
+            self.stats.publish_errors += 1
+            if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
+                log.warning("dds: could not publish %s (%d so far): %r", out.row.ros,
+                            self.stats.publish_errors, err)
+
+    # --- in: Cyclone's receive thread, then the event loop ------------------------------------
+
+    def _pump(self, row: Topic, reader: Any) -> None:
+        """A command row's thread: wait (in C) for a sample, take the newest, rest one period."""
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: PLC0415
+
+        receive = self._receiver(row)
+        waitset = WaitSet(self.participant)
+        waitset.attach(ReadCondition(reader, SampleState.NotRead | ViewState.Any | InstanceState.Any))
+        while not self._stopping.is_set():
+            try:
+                if waitset.wait(PUMP_WAIT_NS) <= 0:
+                    continue
+            except Exception:  # noqa: BLE001 - the participant is gone: the thread ends
+                return
+            receive(reader)
+            self._stopping.wait(self.period_s)
+
+    def _receiver(self, row: Topic) -> Callable[[Any], None]:
+        types = self._types
+        cls, topic = row.msgtype, row.bus
+        stats, lock = self.stats, self._lock
+        accept = self.params.accepts_commands
+        refusals, name = self.refusals, self.ros_name(row)
+
+        def count(field: str) -> None:
+            with lock:
+                setattr(stats, field, getattr(stats, field) + 1)
+            refusals.note(SURFACE, name, field.replace("_", " "))
+
+        def receive(reader: Any) -> None:
+            try:
+                samples = reader.take(TAKE_N)
+            except Exception:  # noqa: BLE001 - a reader being deleted at shutdown
+                return
+            for sample in samples:
+                data = getattr(sample, "data", None)
+                if data is None:  # an instance state change (a writer went away), no data
+                    continue
+                if not accept:
+                    with lock:
+                        stats.refused += 1
+                    refusals.note(SURFACE, name, "unauthenticated interface (dds.interface is not "
+                                                 "loopback; see dds.accept_unauthenticated_commands)")
+                    continue
+                try:
+                    msg = types.deserialize(data, cls)
+                except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
+                    count("malformed")
+                    continue
+                if not all_finite(msg):
+                    count("non_finite")
+                    continue
+                loop = self._loop
+                if loop is None or loop.is_closed():
+                    return
+                with lock:
+                    stats.received += 1
+                try:
+                    loop.call_soon_threadsafe(self._deliver, topic, msg)
+                except RuntimeError:  # the loop closed meanwhile
+                    return
+
+        return receive
+
+    def _deliver(self, topic: str, msg: Message) -> None:
+        if not self._open:
+            return
+        if self.on_estop is not None and topic in self.estop_topics:
+            self.on_estop(topic, msg, SURFACE)  # the e-stop and its release, with their origin
+            return
+        self.bus.publish(topic, msg)
+        if self.on_input is not None:
+            self.on_input(topic)
