@@ -160,6 +160,8 @@ class Loopback:
                            erpm_source=lambda: vesc.erpm, servo_source=lambda: vesc.servo,
                            laser_pose_in_base=laser, noise_std_m=sc.world.noise_std_m,
                            seed=sc.world.seed, on_collision=vesc.stall)
+        vesc.imu.motion = self.world.motion
+        vesc.imu.mount = self._imu_pose(config)
         source = self.world.range_source(max_range=LIDAR_MAX_RANGE_M.get(model, 12.0))
         # TCP only where the real device has it: an Ethernet Hokuyo (USB models and RPLIDARs: pty)
         use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo" \
@@ -190,6 +192,17 @@ class Loopback:
         if not tree.can_transform("base_link", frame):
             raise ConfigError("static_transforms", f"no transform from base_link to the lidar frame "
                                                    f"{frame!r}: the simulated lidar needs one")
+        m = tree.lookup("base_link", frame)
+        return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
+
+    @staticmethod
+    def _imu_pose(config: Config) -> tuple[float, float, float]:
+        """The IMU's (x, y, yaw) in base_link from the static transforms; base_link itself when the
+        config gives no ``base_link -> imu_frame_id``."""
+        tree = TfTree.from_params(config.static_transforms)
+        frame = config.vesc.imu_frame_id
+        if not tree.can_transform("base_link", frame):
+            return (0.0, 0.0, 0.0)
         m = tree.lookup("base_link", frame)
         return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
 
