@@ -48,6 +48,10 @@ class VescParams:
                                                 min=-10.0, max=10.0)
     steering_angle_to_servo_offset: float = param(0.5304, "servo position for straight ahead",
                                                   min=0.0, max=1.0)
+    steering_angle_to_servo_gain_right: float | None = param(
+        None, "servo position per radian for right turns (negative angles), where a car's linkage "
+        "turns one way more than the other (racecar-hw calibrate measures both); null: "
+        "steering_angle_to_servo_gain both ways", unit="1/rad", min=-10.0, max=10.0)
     servo_min: float = param(0.15, "lowest servo position ever sent (mechanical stop)", min=0.0, max=1.0)
     servo_max: float = param(0.85, "highest servo position ever sent (mechanical stop)", min=0.0, max=1.0)
     speed_max_mps: float = param(5.0, "speed limit, both directions (F1TENTH's 23250 ERPM / 4614)",
@@ -115,6 +119,10 @@ class VescParams:
     def __post_init__(self) -> None:
         if self.servo_min > self.servo_max:
             raise ConfigError("servo_min", f"{self.servo_min} is above servo_max {self.servo_max}")
+        right = self.steering_angle_to_servo_gain_right
+        if right is not None and (right == 0 or (right > 0) != (self.steering_angle_to_servo_gain > 0)):
+            raise ConfigError("steering_angle_to_servo_gain_right", f"{right} must be non-zero and of the "
+                              "sign of steering_angle_to_servo_gain")
         if self.reconnect_backoff_min_s > self.reconnect_backoff_max_s:
             raise ConfigError("reconnect_backoff_min_s", "is above reconnect_backoff_max_s")
         vid, sep, pid = self.usb_vid_pid.partition(":")
