@@ -6,7 +6,13 @@ puts the safety controller there), applies the :class:`~mux.limiter.RateLimiter`
 ``AckermannDriveStamped`` (frame ``base_link``) on ``output_topic`` whatever the inputs do.
 
 A latched e-stop outputs zero speed and centred steering from its first tick on, past the limiter:
-the VESC gets its brake command at once instead of a ramp at ``max_decel_mps2``.
+the VESC gets its brake command at once instead of a ramp at ``max_decel_mps2``. Stop is for anyone,
+release is for an operator (:mod:`mux.estop`): every request names its :class:`~mux.estop.Origin`,
+the latch remembers who engaged it (:attr:`CommandMux.estop`), and a release from the plain release
+topic is refused unless only the e-stop topic engaged the latch. Messages on the e-stop topics that
+a network surface hands over with :meth:`CommandMux.publish_from` carry its origin; any other
+publisher on the bus counts as ``local``. Refused releases are counted and logged rate-limited
+(:class:`~racecar_hw.runtime.refusals.Refusals`, surface ``estop``).
 
 Any unexpected exception inside the mux (a subscriber callback, arbitration, a filter, the
 limiter, diagnostics) is logged and moves the mux to FAULT: zero speed, centred steering, limiter
@@ -36,6 +42,7 @@ from mux.arbiter import (
     lock_engaged,
     stopped,
 )
+from mux.estop import DAEMON, DAEMON_ORIGIN, EstopRecord, Origin, release_refusal
 from mux.limiter import RateLimiter
 from mux.params import MuxParams
 from racecar_hw.base.bus import Bus, Subscription
@@ -50,6 +57,7 @@ from racecar_hw.base.messages import (
     String,
     stamp_now,
 )
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -81,16 +89,27 @@ class CommandMux:
 
     def __init__(self, bus: Bus, params: MuxParams | None = None, *,
                  clock: Callable[[], int] = monotonic_ns,
-                 wall_clock: Callable[[], int] = wall_ns) -> None:
+                 wall_clock: Callable[[], int] = wall_ns,
+                 refusals: Refusals | None = None) -> None:
         self.bus = bus
         self.params = params = params if params is not None else MuxParams()
         self.table = MuxTable.from_params(params)
         self.limiter = RateLimiter.from_params(params)
         self.machine = MuxStateMachine()
-        if params.start_estopped:
-            self.machine.process(MuxEvent.ENGAGE_ESTOP, "start_estopped")
         self._clock = clock
         self._wall_clock = wall_clock
+        #: refused releases, counted per (``estop``, origin, reason) and logged rate-limited
+        self.refusals = refusals if refusals is not None else Refusals()
+        #: the current latch (None while running), or the last one after its release
+        self.estop: EstopRecord | None = None
+        #: e-stop releases refused so far
+        self.release_refusals = 0
+        #: the last refused release: ``"<origin>: <reason>"`` ("" before the first)
+        self.last_refusal = ""
+        #: the origin of the message being published on the bus, while :meth:`publish_from` runs
+        self._origin: Origin | None = None
+        if params.start_estopped:
+            self.engage_estop("start_estopped", Origin(DAEMON, "mux.start_estopped"))
         self._start_ns = clock()
         self._period_ns = nanoseconds(1.0 / params.rate_hz)
         n, m = len(self.table.inputs), len(self.table.locks)
@@ -177,14 +196,30 @@ class CommandMux:
             self._lock_received[index] = self._clock()
         return self._guarded(take, f"lock {self.table.locks[index].name}")
 
+    def publish_from(self, origin: Origin, topic: str, msg: Any) -> None:
+        """Publish ``msg`` on the bus as coming from ``origin``: the e-stop topics' handlers see it.
+
+        For surfaces that hand over an e-stop or release (the network bridges); recorders and the
+        live view see the message as any other.
+        """
+        self._origin = origin
+        try:
+            self.bus.publish(topic, msg)
+        finally:
+            self._origin = None
+
+    def _topic_origin(self, topic: str) -> Origin:
+        return self._origin if self._origin is not None else Origin("local", topic)
+
     def _on_estop(self, msg: Bool) -> None:
         self._estop_asserted = bool(msg.data)
         if self._estop_asserted:
-            self.engage_estop(f"{self.params.estop_topic} said true")
+            self.engage_estop(f"{self.params.estop_topic} said true",
+                              self._topic_origin(self.params.estop_topic))
 
     def _on_release(self, msg: Bool) -> None:
         if msg.data:
-            self.release_estop()
+            self.release_estop(self._topic_origin(self.params.estop_release_topic))
 
     def last_command(self, name: str | None) -> AckermannDrive | None:
         """The last command input ``name`` sent (None: never, or not an input: idle, estop, fault)."""
@@ -198,42 +233,73 @@ class CommandMux:
         """RUNNING, ESTOP or FAULT."""
         return self.machine.state
 
-    def engage_estop(self, reason: str = "requested") -> None:
+    def _latched(self) -> EstopRecord | None:
+        """The record of the current latch (None while running)."""
+        record = self.estop
+        return record if record is not None and record.released_by is None else None
+
+    def engage_estop(self, reason: str = "requested", origin: Origin = DAEMON_ORIGIN) -> bool:
         """Latch the e-stop: zero speed, centred steering until :meth:`release_estop`.
 
-        The next output (:meth:`step`) already brakes: the e-stop bypasses the rate limiter.
+        Anyone may engage it. ``origin`` says who (logged, kept in :attr:`estop`, shown in the
+        diagnostics). The next output (:meth:`step`) already brakes: the e-stop bypasses the rate
+        limiter. Returns True when this latched it (it was running).
         """
         before = self.machine.state
         self.machine.process(MuxEvent.ENGAGE_ESTOP, reason)
-        if before is MuxState.RUNNING:
-            log.warning("mux e-stop engaged: %s", reason)
+        record = self._latched()
+        if record is None:
+            self.estop = EstopRecord(origin, self._wall_clock(), reason)
+            if before is MuxState.RUNNING:
+                log.warning("mux e-stop engaged by %s: %s", origin, reason)
+            else:
+                log.warning("mux e-stop engaged by %s while in %s: %s", origin, before.value, reason)
+            return before is MuxState.RUNNING
+        if record.engaged_again(origin):
+            log.warning("mux e-stop engaged again by %s while latched: %s", origin, reason)
+        return False
 
-    def release_estop(self) -> bool:
+    def release_refusal(self, origin: Origin = DAEMON_ORIGIN) -> str | None:
+        """Why ``origin`` may not release the e-stop now (:func:`mux.estop.release_refusal`), or None."""
+        return release_refusal(origin, self._latched(), self.params.estop_release_sources,
+                               in_fault=self.machine.state is MuxState.FAULT,
+                               asserted=self._estop_asserted)
+
+    def release_estop(self, origin: Origin = DAEMON_ORIGIN) -> bool:
         """Release a latched e-stop; True when the mux is now RUNNING.
 
-        Refused (False, logged) while the last message on ``estop_topic`` said true, and in FAULT
-        (call :meth:`reset` first).
+        Refused (False; counted and logged rate-limited, surface ``estop``) in FAULT (call
+        :meth:`reset` first), while the last message on ``estop_topic`` said true, for a source
+        ``estop_release_sources`` leaves out, and for the release topic when an operator, a
+        ``start_estopped`` or the daemon engaged the latch (:mod:`mux.estop`).
         """
         state = self.machine.state
-        if state is MuxState.FAULT:
-            log.warning("mux e-stop release refused: the mux is in fault (%s); reset first",
-                        self.machine.reason)
-            return False
-        if self._estop_asserted:
-            log.warning("mux e-stop release refused: %s still says true",
-                        self.params.estop_topic)
+        why = self.release_refusal(origin)
+        if why is not None:
+            self.release_refusals += 1
+            self.last_refusal = f"{origin}: {why}"
+            self.refusals.note("estop", str(origin), f"release refused: {why}")
             return False
         self.machine.process(MuxEvent.RELEASE_ESTOP)
+        record = self._latched()
+        was = record.text() if record is not None else "latched"
+        if record is not None:
+            record.released_by = origin
+            record.released_at_wall_ns = self._wall_clock()
         if state is MuxState.ESTOP:
-            log.warning("mux e-stop released")
+            log.warning("mux e-stop released by %s (it was %s)", origin, was)
         return True
 
     def reset(self) -> MuxState:
-        """Leave FAULT for ESTOP (a release is still needed to drive); returns the new state."""
+        """Leave FAULT for ESTOP (a release is still needed to drive); returns the new state.
+
+        The latch is then the daemon's: only an operator releases it.
+        """
         before = self.machine.state
         state = self.machine.process(MuxEvent.RESET)
         if before is MuxState.FAULT:
-            log.warning("mux fault reset; e-stop stays engaged until released")
+            self.estop = EstopRecord(Origin(DAEMON, "fault reset"), self._wall_clock(), self.machine.reason)
+            log.warning("mux fault reset; e-stop stays engaged until an operator releases it")
         return state
 
     def _fail(self, where: str, err: BaseException) -> None:
@@ -351,6 +417,10 @@ class CommandMux:
         if state is not MuxState.RUNNING:
             values.append(KeyValue("reason", self.machine.reason))
         values.append(KeyValue("estop_topic_asserted", str(self._estop_asserted).lower()))
+        values.append(KeyValue("estop", self.estop_text()))
+        values.append(KeyValue("estop_release_refusals", str(self.release_refusals)))
+        if self.last_refusal:
+            values.append(KeyValue("estop_last_refusal", self.last_refusal))
         for i, spec in enumerate(self.table.inputs):
             age = arb.ages_ns[i]
             if age is None:
@@ -383,6 +453,10 @@ class CommandMux:
                    else f"{state.value}: {self.machine.reason}")
         status = DiagnosticStatus(level, "racecar_hw: command mux", message, "", values)
         return DiagnosticArray(stamp_now("", self._wall_clock()), [status])
+
+    def estop_text(self) -> str:
+        """``latched by web page (127.0.0.1) at 18:50:01.123``; how the last one ended; or ``never``."""
+        return self.estop.text() if self.estop is not None else "never engaged"
 
     def publish_diagnostics(self, now_ns: int | None = None) -> None:
         """Publish :meth:`diagnostics` on ``diagnostics_topic``."""

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from mux.estop import OPERATORS, RELEASE_SOURCES
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import param
 
@@ -73,7 +74,14 @@ class MuxParams:
     estop_topic: str = param("/estop", "std_msgs/Bool; true engages the latched e-stop")
     estop_release_topic: str = param(
         "/estop_release", "std_msgs/Bool; true releases the e-stop, refused while estop_topic "
-        "still says true")
+        "still says true, and refused unless only the e-stop topic engaged it (see "
+        "estop_release_sources)")
+    estop_release_sources: list[str] = param(
+        list(RELEASE_SOURCES),
+        "who may release the latched e-stop: operator surfaces (" + ", ".join(OPERATORS) + ") "
+        "release any latch; 'network' (estop_release_topic from a Zenoh/DDS session) and 'local' "
+        "(estop_release_topic from code in the daemon) release only a latch that the e-stop topic "
+        "alone engaged; leave one out to refuse its releases")
     start_estopped: bool = param(False, "start with the e-stop engaged (release before driving)")
     rate_hz: float = param(50.0, "output rate; also the limiter's fixed step", unit="Hz",
                            min=1.0, max=1000.0)
@@ -114,6 +122,15 @@ class MuxParams:
                 raise ConfigError(where, f"{topic} is already used by {topics[topic]}")
             topics[topic] = where
 
+        seen: set[str] = set()
+        for i, source in enumerate(self.estop_release_sources):
+            if source not in RELEASE_SOURCES:
+                raise ConfigError(f"{key}.estop_release_sources[{i}]",
+                                  f"{source!r} is not a release source; allowed: "
+                                  + ", ".join(RELEASE_SOURCES))
+            if source in seen:
+                raise ConfigError(f"{key}.estop_release_sources[{i}]", f"{source!r} is listed twice")
+            seen.add(source)
         for name in ("output_topic", "estop_topic", "estop_release_topic", "active_topic",
                      "diagnostics_topic"):
             claim(getattr(self, name), f"{key}.{name}")

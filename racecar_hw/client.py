@@ -33,6 +33,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
+from mux.estop import REFUSED_ASSERTED
 from mux.params import MuxParams
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError, RacecarError
@@ -109,6 +110,29 @@ class SafetyState:
     allowed_speed: float
     values: dict[str, str]
     msg: DiagnosticArray = field(repr=False)
+
+
+@dataclass(frozen=True)
+class MuxStatus:
+    """The command mux's state from its ``/diagnostics``: ``running``, ``estop`` or ``fault``, who
+    latched the e-stop (``latched by web page (127.0.0.1) at 18:50:01.123``), and the releases it
+    refused (count, and the last one with its reason)."""
+
+    state: str
+    estop: str
+    release_refusals: int
+    last_refusal: str
+
+
+#: The name of the mux's status in ``/diagnostics``.
+MUX_STATUS_NAME = "racecar_hw: command mux"
+
+
+def _mux_status(msg: DiagnosticArray) -> MuxStatus:
+    status = next(s for s in msg.status if s.name == MUX_STATUS_NAME)  # StopIteration: not the mux's
+    values = {kv.key: kv.value for kv in status.values}
+    return MuxStatus(values.get("state", ""), values.get("estop", ""),
+                     int(values.get("estop_release_refusals", "0")), values.get("estop_last_refusal", ""))
 
 
 def _scan(msg: LaserScan) -> Scan:
@@ -191,8 +215,10 @@ class Car:
     daemon's ``zenoh`` section (``domain_id`` None: ``ROS_DOMAIN_ID`` or 0); ``profile`` and
     ``remap``: the daemon's ``zenoh.profile`` and ``zenoh.remap`` (bus topic -> ROS name), so the
     client finds topics the daemon renamed; ``input``: the mux input :meth:`drive` commands by default;
-    ``user``/``password`` when the daemon requires them; ``session``: an open Zenoh session to share
-    (another :class:`Car`'s, to reach several cars through one session; it is not closed here).
+    ``user``/``password`` when the daemon requires them; ``ros_distro``: the daemon's
+    ``zenoh.ros_distro`` (``humble`` puts ``TypeHashNotSupported`` in keys where ``jazzy`` puts
+    RIHS01); ``session``: an open Zenoh session to share (another :class:`Car`'s, to reach several
+    cars through one session; it is not closed here).
     """
 
     def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
@@ -200,10 +226,15 @@ class Car:
                  remap: Mapping[str, str] | None = None,
                  input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
                  node_name: str = "", mux: MuxParams | None = None,
-                 safety: SafetyParams | None = None, session: Any = None) -> None:
+                 safety: SafetyParams | None = None, session: Any = None,
+                 ros_distro: str = "jazzy") -> None:
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
 
         self.endpoints = [connect] if isinstance(connect, str) else list(connect)
+        if ros_distro not in rmw.ROS_DISTROS:
+            raise ClientError(f"ros_distro {ros_distro!r}: one of {', '.join(rmw.ROS_DISTROS)} "
+                              "(the daemon's zenoh.ros_distro)")
+        self.ros_distro = ros_distro
         self.namespace = rmw.check_namespace(namespace)
         env = os.environ.get("ROS_DOMAIN_ID", "").strip()
         self.domain_id = domain_id if domain_id is not None else (int(env) if env.isdigit() else 0)
@@ -241,6 +272,8 @@ class Car:
         self.odom_stream: _Stream[Odom] = self._subscribe("/odom", Odometry, _odom, DEFAULT)
         self.safety_stream: _Stream[SafetyState] = self._subscribe(safety.state_topic, DiagnosticArray,
                                                                    _safety, DEFAULT)
+        #: the mux's state, subscribed on the first :meth:`release_estop` (``/diagnostics``)
+        self.mux_stream: _Stream[MuxStatus] | None = None
 
     # --- names --------------------------------------------------------------------------------
 
@@ -258,11 +291,12 @@ class Car:
     def _entity(self, kind: str, topic: str, msgtype: type[Message], qos: Qos) -> rmw.Entity:
         entity_id, self._next_entity = self._next_entity, self._next_entity + 1
         return rmw.Entity(self.domain_id, self.zid, 0, entity_id, kind, "", self.namespace, self._node,
-                          topic, rmw.dds_type(msgtype.ROS_TYPE), rmw.type_hash(msgtype.ROS_TYPE),
-                          rmw.RmwQos.from_qos(qos))
+                          topic, rmw.dds_type(msgtype.ROS_TYPE),
+                          rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro), rmw.RmwQos.from_qos(qos))
 
     def _key(self, topic: str, msgtype: type[Message]) -> str:
-        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE, rmw.type_hash(msgtype.ROS_TYPE))
+        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE,
+                             rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro))
 
     # --- subscriptions ------------------------------------------------------------------------
 
@@ -380,10 +414,50 @@ class Car:
         """Engage the daemon's latched e-stop."""
         self.publish(self.mux.estop_topic, Bool(True))
 
-    def release_estop(self) -> None:
-        """Release the e-stop (refused by the daemon while something still asserts it)."""
+    def mux_status(self, timeout: float | None = 5.0) -> MuxStatus:
+        """The mux's state from its next ``/diagnostics`` (2 Hz); ClientError after ``timeout`` s."""
+        with self._lock:
+            if self.mux_stream is None:
+                self.mux_stream = self._subscribe(self.mux.diagnostics_topic, DiagnosticArray,
+                                                  _mux_status, DEFAULT)
+            stream = self.mux_stream
+        value, _ = stream.wait_newer(stream.count, timeout)
+        return value
+
+    def release_estop(self, timeout: float = 5.0) -> None:
+        """Release the daemon's e-stop, if the daemon lets this client: returns once the mux runs.
+
+        Stop is for anyone, release is for an operator: the release topic this sends on releases
+        only an e-stop that the e-stop topic alone engaged (this client's :meth:`estop`, another
+        network node), and only where the daemon's ``mux.estop_release_sources`` names ``network``.
+        An e-stop latched on the status page, in Foxglove or by ``start_estopped`` is released there.
+        Raises :class:`ClientError` saying why when the daemon refuses (read back from the mux's
+        ``/diagnostics``), or when the mux does not answer within ``timeout`` s. Returns at once
+        when the e-stop is not engaged.
+        """
+        deadline = time.monotonic() + timeout
+        before = self.mux_status(timeout)
+        if before.state == "running":
+            return
         self.publish(self.mux.estop_topic, Bool(False))
         self.publish(self.mux.estop_release_topic, Bool(True))
+        retried = False
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ClientError(f"the e-stop was not released within {timeout} s ({before.estop})")
+            status = self.mux_status(left)
+            if status.state == "running":
+                return
+            if status.release_refusals > before.release_refusals:
+                if not retried and status.last_refusal.endswith(REFUSED_ASSERTED):
+                    # the release overtook our own "false" (two topics, two of Zenoh's threads):
+                    # once more, now that the false is in
+                    retried, before = True, status
+                    self.publish(self.mux.estop_release_topic, Bool(True))
+                    continue
+                raise ClientError(f"the daemon refused the release: {status.last_refusal} "
+                                  f"(the e-stop was {status.estop})")
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -459,6 +533,14 @@ class AsyncCar:
     def safety_states(self, timeout: float | None = 5.0) -> AsyncIterator[SafetyState]:
         """The safety state as it arrives."""
         return self._iterate(self.car.safety_stream, timeout)
+
+    async def release_estop(self, timeout: float = 5.0) -> None:
+        """:meth:`Car.release_estop` without blocking the loop (it waits for the mux's answer)."""
+        await self._loop.run_in_executor(None, self.car.release_estop, timeout)
+
+    async def mux_status(self, timeout: float | None = 5.0) -> MuxStatus:
+        """:meth:`Car.mux_status` without blocking the loop."""
+        return await self._loop.run_in_executor(None, self.car.mux_status, timeout)
 
     async def close(self) -> None:
         """Close the connection without blocking the loop."""

@@ -29,6 +29,7 @@ from racecar_hw.base.params import build, describe, param, to_dict
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.rosout import RosoutParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
 from racecar_hw.net.web import WebParams
 from racecar_hw.net.zenoh_config import ZenohParams
@@ -122,6 +123,7 @@ class Config:
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     status: StatusSection = field(default_factory=StatusSection)
     zenoh: ZenohParams = field(default_factory=ZenohParams)
+    rosout: RosoutParams = field(default_factory=RosoutParams)
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
@@ -135,6 +137,7 @@ _SECTIONS: dict[str, type] = {
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
     "status": StatusSection, "watchdog": WatchdogSection,
     "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams,
+    "rosout": RosoutParams,
 }
 
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
@@ -211,7 +214,8 @@ def network_topics(config: Config) -> list[Topic]:
         config.mux, config.safety, scan_topic=config.lidar.topic,
         scan_range_topic=summary.scan_range_topic if summary.enabled else None,
         open_space_topic=summary.open_space_topic if summary.enabled else None,
-        cmd_vel_topic=z.cmd_vel_topic if z.cmd_vel and cmd_vel_input_topic(config) else None)
+        cmd_vel_topic=z.cmd_vel_topic if z.cmd_vel and cmd_vel_input_topic(config) else None,
+        rosout=config.rosout.enabled)
     return named(rows, config.mux, z.profile, z.remap, "zenoh")
 
 

@@ -33,6 +33,8 @@ from typing import Any
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
+from mux.arbiter import MuxState
+from mux.estop import Origin
 from mux.node import CommandMux
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.bags.record import Recorder
@@ -40,18 +42,31 @@ from racecar_hw.bags.validate import CommandLimits
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
-from racecar_hw.base.params import to_dict
+from racecar_hw.base.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    DiagnosticArray,
+    LaserScan,
+    Message,
+    stamp_now,
+)
+from racecar_hw.base.params import describe, to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
+from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
+from racecar_hw.net.gate import quiet_accept_errors
+from racecar_hw.net.parameters import ParameterService
+from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
+from racecar_hw.runtime.security_status import SecurityStatus
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
 from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
@@ -162,18 +177,30 @@ class Daemon:
         #: what the network surfaces refused (bad logins, forged frames, floods), for /diagnostics,
         #: the panel, the status page and rate-limited log lines
         self.refusals = Refusals()
+        #: the refusals as a status in /diagnostics, a panel line and rows on the status page
+        self.security = SecurityStatus(self.refusals)
         self.tf = TfTree.from_params(config.static_transforms)
         self.vesc: VescDriver | None = VescDriver(self.bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = (make_driver(self.bus, config.lidar)
                                           if config.lidar.enabled else None)
-        self.mux = CommandMux(self.bus, config.mux)
+        self.mux = CommandMux(self.bus, config.mux, refusals=self.refusals)
         self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True,
                                  steering_limit_rad=config.vesc.steering_max_rad)
         self.arming = Arming.from_params(config.arming)
-        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming)
+        pad = Origin("gamepad", "gamepad")
+        self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming,
+                                      on_estop=lambda: self.engage_estop(pad),
+                                      on_release=lambda: log.warning("gamepad: %s",
+                                                                     self.release_estop(pad)[1]))
                         if config.gamepad.enabled else None)
-        self.keyboard = KeyboardTeleop(self.bus, config.keyboard) if config.keyboard.enabled else None
-        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot)
+        keyboard = Origin("keyboard", "keyboard")
+        self.keyboard = (KeyboardTeleop(self.bus, config.keyboard,
+                                        on_estop=lambda: self.engage_estop(keyboard),
+                                        on_release=lambda: log.warning("keyboard: %s",
+                                                                       self.release_estop(keyboard)[1]))
+                         if config.keyboard.enabled else None)
+        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot,
+                                   refusals=self.refusals)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
         self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
@@ -206,6 +233,8 @@ class Daemon:
         self._diagnostics_every = max(1, round(config.mux.rate_hz / config.mux.diagnostics_rate_hz))
         self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
+        self._file_limit: FileLimit | None = None
+        self._restore_exception_handler: Callable[[], None] | None = None
         self._build_live()
         self.bus.subscribe(config.mux.output_topic, self._on_output)
         # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
@@ -233,6 +262,13 @@ class Daemon:
         self.zenoh: ZenohBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
         z = config.zenoh
+        #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
+        self.rosout: RosoutHandler | None = (
+            RosoutHandler(self.bus, config.rosout, logger_name(z.namespace, z.node_name))
+            if config.rosout.enabled else None)
+        #: the read-only parameter services' answers: the effective configuration
+        self.parameters = ParameterService(to_dict(config),
+                                           {name: doc for name, _, doc in describe(Config)})
         if not z.enabled:
             return
         self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
@@ -242,7 +278,13 @@ class Daemon:
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
-                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF})
+                                 urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
+                                 on_estop=self.network_estop,
+                                 estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
+                                 parameters=self.parameters)
+        logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
+        if logins is not None:
+            logins.attach(self.refusals)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -250,6 +292,22 @@ class Daemon:
         now = monotonic_ns()
         if name is not None and self._control_alive(now):
             self.mux.step_early(name, now, self.filters)
+
+    def network_estop(self, topic: str, msg: Message, who: str) -> None:
+        """An e-stop or release message from a network session (``who``: ``zenoh``), in the loop.
+
+        It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
+        release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
+        now, as the live interfaces' e-stops do.
+        """
+        now = monotonic_ns()
+        frames = self.vesc.stats.frames_tx if self.vesc is not None else None
+        was_running = self.mux.state is MuxState.RUNNING
+        self.mux.publish_from(Origin("network", who), topic, msg)
+        if was_running and self.mux.state is not MuxState.RUNNING:
+            self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
+            if self._control_alive(now):
+                self.mux.step(now, self.filters)
 
     def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
@@ -342,9 +400,18 @@ class Daemon:
         stats.last_tick_ns = monotonic_ns()
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
+            self._publish_security(due)
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
+
+    def _publish_security(self, now_ns: int) -> None:
+        """The network surfaces' refusals as their own DiagnosticArray on the diagnostics topic."""
+        try:
+            array = DiagnosticArray(stamp_now("", wall_ns()), [self.security.status(now_ns)])
+            self.bus.publish(self.config.mux.diagnostics_topic, array)
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("network security diagnostics failed: %r", err)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -368,6 +435,8 @@ class Daemon:
             armed=self.arming.armed,
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
+            estop=self.mux.estop_text() if self.mux.estop is not None else None,
+            refused=self.security.line(),
         )
         if self.extra_status is not None:
             snap = dataclasses.replace(snap, **self.extra_status())
@@ -402,9 +471,11 @@ class Daemon:
         self.foxglove = (FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
                                         parameters=to_dict(config), teleop_input=teleop,
                                         wheelbase_m=config.vesc.wheelbase_m,
-                                        max_steering_rad=config.vesc.steering_max_rad)
+                                        max_steering_rad=config.vesc.steering_max_rad,
+                                        refusals=self.refusals)
                          if config.foxglove.enabled else None)
-        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic)
+        self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic,
+                              refusals=self.refusals)
                     if config.web.enabled else None)
 
     def live_state(self) -> LiveState:
@@ -432,26 +503,38 @@ class Daemon:
             vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
             lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
             lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
-            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0)
+            lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
+            estop=self.mux.estop_text() if self.mux.estop is not None else "",
+            refused=tuple(self.security.rows()), refused_recently=self.security.recent(),
+            control_ticks=self.stats.ticks, control_missed_ticks=self.stats.missed_ticks)
 
-    def engage_estop(self, who: str) -> str:
+    def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
         now = monotonic_ns()
-        self.estop_requests.append(EstopRequest(now, who, self.vesc.stats.frames_tx
+        self.estop_requests.append(EstopRequest(now, str(origin), self.vesc.stats.frames_tx
                                                 if self.vesc is not None else None))
-        self.mux.engage_estop(f"e-stop from {who}")
+        self.mux.engage_estop(f"e-stop from {origin}", origin)
         if self.stats.ticks:  # the control loop runs: one step out of turn sends the brake
             self.mux.step(now, self.filters)
-        return f"e-stop latched ({who}); release it to drive again"
+        return f"e-stop latched ({origin}); release it to drive again"
 
-    def release_estop(self, who: str) -> tuple[bool, str]:
-        """Release the latched e-stop, unless the mux refuses (fault, or the e-stop topic holds it)."""
-        if self.mux.release_estop():
-            log.warning("e-stop released by %s", who)
-            return True, f"e-stop released by {who}"
+    def release_estop(self, origin: Origin) -> tuple[bool, str]:
+        """Release the latched e-stop, unless the mux refuses (:meth:`CommandMux.release_estop`)."""
+        if self.mux.release_estop(origin):
+            return True, f"e-stop released by {origin}"
+        why = self.mux.release_refusal(origin) or "refused"
         if self.mux.state.value == "fault":
-            return False, f"the mux is in fault ({self.mux.machine.reason}); it needs a reset"
-        return False, f"refused: {self.config.mux.estop_topic} still says true"
+            why += f" ({self.mux.machine.reason})"
+        return False, f"refused: {why}"
+
+    def restart_mavlink_signing(self) -> str:
+        """The way back for the MAVLink link's signing state (SIGUSR1, ``systemctl reload``):
+        every stream's timestamp forgotten, ours from the wall clock again, as at start."""
+        if self.mavlink is None:
+            log.warning("restart of the MAVLink signing state asked for: the MAVLink link is off")
+            return "the MAVLink link is off"
+        forgotten = self.mavlink.restart_signing()
+        return f"MAVLink signing state restarted ({forgotten} stream(s) forgotten)"
 
     def arm(self, who: str) -> tuple[bool, str]:
         """Arm the car for every source."""
@@ -488,6 +571,12 @@ class Daemon:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
         self.bus.bind_loop(loop)
+        # every socket takes a descriptor: take what the system allows, and let an accept() that
+        # still finds none be a counted line, not a traceback a second (see docs/live-view.md, "Connections")
+        self._file_limit = raise_open_file_limit()
+        self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
+        if self.rosout is not None:
+            self.rosout.install()
         if self.zenoh is not None:
             try:
                 await loop.run_in_executor(None, self.zenoh.open, loop)
@@ -495,6 +584,7 @@ class Daemon:
                 for coro in self._extra:  # never started: no "coroutine was never awaited"
                     coro.close()
                 self._extra = []
+                self._restore_process()
                 raise
         self._publish_static_transforms()
         if self.recorder is not None:
@@ -577,6 +667,11 @@ class Daemon:
         if self.zenoh is not None:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)
+        if self.rosout is not None:
+            self.rosout.uninstall()
+            if self.rosout.dropped:
+                log.info("rosout: %d log records published, %d dropped (over rosout.max_rate_hz or "
+                         "before the loop ran)", self.rosout.published, self.rosout.dropped)
         if self.cmd_vel is not None:
             self.cmd_vel.close()
         self.safety.close()
@@ -588,3 +683,16 @@ class Daemon:
         if self._switch_interval is not None:
             sys.setswitchinterval(self._switch_interval)
             self._switch_interval = None
+        self._restore_process()
+
+    def _restore_process(self) -> None:
+        """Put back the open-file limit, the loop's exception handler and the log handlers run()
+        changed."""
+        if self.rosout is not None:
+            self.rosout.uninstall()
+        if self._file_limit is not None:
+            self._file_limit.restore()
+            self._file_limit = None
+        if self._restore_exception_handler is not None:
+            self._restore_exception_handler()
+            self._restore_exception_handler = None

@@ -556,7 +556,8 @@ class _Pack:
 
 def mavlink_inbound(signed: bool) -> Target:
     """Ground station -> car: datagrams into :class:`MavlinkRx` (CRC with CRC_EXTRA; signed:
-    SHA-256 signatures and per-stream timestamps, so a repeated frame is refused)."""
+    the cheap refusal of unsigned and forged single frames, SHA-256 signatures, per-stream
+    timestamps, so a repeated frame is refused, and the future-timestamp window)."""
     key = bytes(range(32)) if signed else None
 
     def batch(rng: random.Random) -> Batch:
@@ -579,8 +580,11 @@ def mavlink_inbound(signed: bool) -> Target:
         return Batch([Frame(b, (b,)) for b in pack.out])
 
     def decode(chunks: list[bytes]) -> list[Hashable]:
-        rx = MavlinkRx(key, 10**12 - 1000)
-        return [bytes(msg.get_msgbuf()) for c in chunks for msg in rx.decode(c)]
+        # as MavlinkGcs.handle_datagram: the cheap refusal first, then the decoder, on a clock at
+        # the frames' own time with the default 60 s future window
+        rx = MavlinkRx(key, 10**12 - 1000, future_window=60 * 100_000)
+        return [bytes(msg.get_msgbuf()) for c in chunks if not rx.refuse_cheaply(c)
+                for msg in rx.decode(c, 10**12)]
 
     name = "MAVLink inbound, signed" if signed else "MAVLink inbound"
     return Target(name, batch, decode, datagrams=True)
@@ -604,11 +608,12 @@ def write_bag(path: Path, fmt: str, commands: Sequence[tuple[int, float, float]]
               stamped: bool = True, chunked: bool = True) -> Path:
     """An Ackermann bag of ``commands`` (t_ns, speed m/s, steering rad) on ``topic``, written with
     rosbags: AckermannDriveStamped, or AckermannDrive if not ``stamped``. ``chunked``: ROS 1 with
-    bz2 chunks of a few messages, so a file holds several chunks."""
+    bz2 chunks of a few messages, so a file holds several chunks. MCAP as the recorder writes it
+    (chunks with their CRC-32: :class:`racecar_hw.bags.writers.Ros2Writer`)."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
-    from rosbags.rosbag2 import Writer as Writer2
 
+    from racecar_hw.bags.writers import Ros2Writer as Writer2
     from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
     from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
 
@@ -671,6 +676,9 @@ class BagFuzz:
     refused: int = 0
     absurd: int = 0
     mutations: Counter[str] = field(default_factory=Counter)
+    #: loads whose commands differ from the undamaged bag's, by (format, mutation): damage that
+    #: went unseen (an MCAP chunk's CRC-32 catches it)
+    differed: Counter[tuple[str, str]] = field(default_factory=Counter)
 
 
 def fuzz_bags(workdir: Path, frames: int, seed: int = 0, max_message_bytes: int = 1 << 20) -> BagFuzz:
@@ -683,11 +691,14 @@ def fuzz_bags(workdir: Path, frames: int, seed: int = 0, max_message_bytes: int 
     rng = random.Random(seed)
     fuzz = BagFuzz(FuzzResult("bag loading"))
     originals: dict[str, tuple[Path, bytes]] = {}
+    expected: dict[str, list[tuple[int, float, float]]] = {}
     for fmt in BAG_FORMATS:
         commands = [(1_700_000_000 * 10**9 + i * 50_000_000, rng.uniform(-4.0, 4.0), rng.uniform(-0.25, 0.25))
                     for i in range(40)]
         bag = write_bag(workdir / (f"original-{fmt}" + (".bag" if fmt == "ros1" else "")), fmt, commands)
         originals[fmt] = (bag, _storage_file(bag).read_bytes())
+        expected[fmt] = [(c.t_ns, c.drive.speed, c.drive.steering_angle)
+                         for c in load_commands(bag, TOPIC, limits=limits)]
     target = workdir / "damaged"
     started = time.perf_counter()
     result = fuzz.result
@@ -709,6 +720,8 @@ def fuzz_bags(workdir: Path, frames: int, seed: int = 0, max_message_bytes: int 
                 result.examples.append(f"{fmt} {kind}: " + "".join(traceback.format_exception(err)))
             continue
         fuzz.loaded += 1
+        if [(c.t_ns, c.drive.speed, c.drive.steering_angle) for c in got] != expected[fmt]:
+            fuzz.differed[(fmt, kind)] += 1
         bad = [c for c in got if not (math.isfinite(c.drive.speed) and math.isfinite(c.drive.steering_angle)
                                       and abs(c.drive.speed) <= 5.0 and abs(c.drive.steering_angle) <= 0.26)]
         fuzz.absurd += bool(bad)

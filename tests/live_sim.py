@@ -21,11 +21,13 @@ CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver"
 class SimProcess:
     """Runs ``racecar-hw -v sim ARGS``; every stderr line is kept with the time it was read."""
 
-    def __init__(self, args: Sequence[str], timeout_s: float = 60.0) -> None:
+    def __init__(self, args: Sequence[str], timeout_s: float = 60.0, **popen: Any) -> None:
         # the Zenoh bridge (on by default, on a fixed port) is not what these tests are about
         command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--no-status",
                    "--set", "zenoh.enabled=false", *args]
-        self.proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        # ``popen``: more for subprocess.Popen (a preexec_fn that lowers the file limit)
+        self.proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                     **popen)
         self.lines: list[str] = []
         self._cond = threading.Condition()
         self._reader = threading.Thread(target=self._read, daemon=True)

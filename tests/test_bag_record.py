@@ -21,12 +21,11 @@ from conftest import wait_for
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bags.follow import load_commands, summarize_bag
 from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, offered_qos, record_params
 from racecar_hw.bags.recover import inspect_bag, recover_bag, scan_mcap
-from racecar_hw.bags.writers import ROS1_FILE_HEADER_RECORD, ROS2_METADATA_VERSION
+from racecar_hw.bags.writers import ROS1_FILE_HEADER_RECORD, ROS2_METADATA_VERSION, Ros2Writer
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -326,8 +325,8 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
     (tmp_path / "ref").mkdir()
     ours = BagFile(tmp_path / "ours" / "bag" / "bag", "mcap", "none", types)
     assert ours._mcap is not None  # the lean path is in use with this rosbags
-    ref = Writer2(tmp_path / "ref" / "bag", version=ROS2_METADATA_VERSION,
-                  storage_plugin=StoragePlugin.MCAP)
+    ref = Ros2Writer(tmp_path / "ref" / "bag", version=ROS2_METADATA_VERSION,
+                     storage_plugin=StoragePlugin.MCAP)
     ref.open()
     conns: dict[str, Connection] = {}
     for i, (topic, msg) in enumerate(msgs):

@@ -12,6 +12,7 @@ import asyncio
 import math
 import os
 import random
+import signal
 import socket
 import sys
 from collections.abc import Awaitable, Callable
@@ -252,6 +253,218 @@ def test_unsigned_packets_from_another_port_are_refused_and_never_redirect_telem
         await gs.wait("HEARTBEAT")
         assert not stranger.find("HEARTBEAT") and not arming.armed
         stranger.close()
+
+    run_signed(tmp_path, scenario)
+
+
+# --- issue 24: a wrong clock, the way back, floods ----------------------------------------------
+
+HOUR = 3600 * 100_000  # MAVLink signing units (10 µs)
+
+
+def test_a_signed_frame_an_hour_ahead_is_refused_and_records_nothing(tmp_path: Path):
+    """A second laptop with the station's key and a clock an hour fast, on the station's own
+    stream: refused (beyond MAVLink's rules, which would adopt it), nothing recorded, counted and
+    logged under its address; the station keeps control."""
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
+        station = Packer(key=key)
+        gs.send(link, station.heartbeat())
+        await async_wait_for(lambda: link.gcs_alive)
+        stream, ours = dict(link.rx.streams), link.rx.timestamp
+        laptop = Station()
+        fast = Packer(key=key, timestamp=signing_timestamp(wall_ns()) + HOUR)
+        laptop.send(link, fast.heartbeat(), fast.arm())
+        await async_wait_for(lambda: link.counters["future_timestamp"] == 2)
+        assert link.rx.streams == stream and link.rx.timestamp < ours + HOUR // 2
+        assert not arming.armed
+        source = laptop.address
+        assert link.refusals.by_source() == {
+            ("mavlink", source, "signing timestamp too far ahead of our clock"): 2}
+        gs.send(link, station.arm())
+        await gs.wait("COMMAND_ACK", ack_of(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
+        assert arming.armed
+        # within the window (here 30 s ahead) a frame is taken, as MAVLink's rules say
+        soon = Packer(key=key, link_id=5, timestamp=signing_timestamp(wall_ns()) + 30 * 100_000)
+        laptop.send(link, soon.heartbeat())
+        await async_wait_for(lambda: (5, GCS, 190) in link.rx.streams)
+        laptop.close()
+
+    run_signed(tmp_path, scenario)
+
+
+def test_without_the_window_a_frame_an_hour_ahead_locks_the_station_out_until_the_signing_restarts(
+        tmp_path: Path):
+    """``future_window_s: 0`` is MAVLink's plain rule: the frame an hour ahead is adopted and the
+    station's own frames look old. :meth:`MavlinkGcs.restart_signing` (SIGUSR1, ``systemctl
+    reload``) is the way back: the station is heard again."""
+    key = write_signing_key(tmp_path / "key")
+
+    async def main() -> None:
+        arming = Arming(start_armed=False)
+        gs = Station(key)
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0,
+                                           future_window_s=0, signing_key_file=str(tmp_path / "key")),
+                             arming)
+        station = Packer(key=key)
+        gs.send(link, station.heartbeat())
+        await async_wait_for(lambda: link.gcs_alive)
+        fast = Packer(key=key, timestamp=signing_timestamp(wall_ns()) + HOUR)
+        laptop = Station()
+        laptop.send(link, fast.heartbeat())
+        await async_wait_for(lambda: link.counters["rx"] == 2)
+        gs.send(link, station.arm())
+        await async_wait_for(lambda: link.counters["old_timestamp"] == 1)
+        assert not arming.armed  # locked out
+        assert link.restart_signing() == 1 and not link.rx.streams
+        assert link.counters["signing_restarts"] == 1
+        assert link.rx.timestamp < signing_timestamp(wall_ns()) + 100_000  # from the wall clock again
+        gs.send(link, station.arm())
+        await async_wait_for(lambda: arming.armed)
+        link.close()
+        gs.close()
+        laptop.close()
+
+    asyncio.run(main())
+
+
+def test_sigusr1_restarts_the_signing_state_of_the_running_daemon(tmp_path: Path):
+    from racecar_hw.commands.daemon import run_daemon
+    from racecar_hw.config import load_config
+    from racecar_hw.daemon import Daemon
+
+    key = write_signing_key(tmp_path / "key")
+    gs = Station(key)
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "zenoh.enabled=false", "foxglove.enabled=false",
+                                "web.enabled=false", "mavlink.enabled=true", "mavlink.bind_port=0",
+                                f"mavlink.gcs_address={gs.address}",
+                                f"mavlink.signing_key_file={tmp_path / 'key'}"])
+    daemon = Daemon(config)
+    link = daemon.mavlink
+    assert link is not None
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        task = asyncio.create_task(run_daemon(daemon, stop))
+        await async_wait_for(lambda: link.station_socket)
+        gs.send(link, Packer(key=key).heartbeat())
+        await async_wait_for(lambda: link.rx.streams)
+        os.kill(os.getpid(), signal.SIGUSR1)
+        await async_wait_for(lambda: link.counters["signing_restarts"] == 1)
+        assert not link.rx.streams
+        stop.set()
+        await task
+
+    asyncio.run(main())
+    gs.close()
+
+
+def test_the_cheap_refusal_takes_only_whole_frames_and_hides_no_good_frame():
+    """A datagram that is one forged or unsigned frame is refused before the decoder; a damaged
+    header whose length spans the datagram, with a genuine frame behind it, goes to the decoder,
+    which finds the genuine frame."""
+    key, now = bytes(range(32)), signing_timestamp(wall_ns())
+    rx = MavlinkRx(key, now, future_window=60 * 100_000)
+    assert rx.refuse_cheaply(Packer(key=os.urandom(32), timestamp=now).heartbeat()) == "bad_signature"
+    assert rx.refuse_cheaply(Packer().heartbeat()) == "unsigned_refused"
+    genuine = Packer(key=key, timestamp=now).heartbeat()
+    assert rx.refuse_cheaply(genuine) is None and len(rx.decode(genuine, now)) == 1
+    behind = Packer(key=key, timestamp=now + 10).manual(500)
+    header = bytes((0xFD, len(behind) - 15, 0x01, 0, 0, GCS, 190, 0, 0, 0))  # spans the datagram
+    assert rx.refuse_cheaply(header + behind) is None
+    assert [m.get_type() for m in rx.decode(header + behind, now)] == ["MANUAL_CONTROL"]
+    assert rx.refuse_cheaply(genuine + genuine) is None  # two frames: the decoder's
+    assert rx.counters["bad_signature"] == 1 and rx.counters["unsigned_refused"] == 1
+
+
+def test_a_bad_future_window_is_refused_naming_the_key(capsys):
+    assert cli_main(["check-config", "--set", "mavlink.future_window_s=-1"]) == 1
+    err = capsys.readouterr().err
+    assert "mavlink.future_window_s" in err and "Traceback" not in err
+
+
+def test_the_stations_socket_takes_only_the_stations_datagrams(tmp_path: Path):
+    """The kernel hands the station's datagrams to the station's own (connected) socket and
+    everyone else's to the shared one, so a flood there cannot crowd the station out."""
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
+        assert link.station_socket
+        attacker = Station()
+        forged = Packer(key=os.urandom(32)).heartbeat()
+        station = Packer(key=key)
+        for i in range(20):
+            attacker.send(link, *[forged] * 100)
+            gs.send(link, station.heartbeat())
+            await async_wait_for(lambda n=i + 1: link.counters["station_datagrams"] == n)
+        await async_wait_for(lambda: link.counters["rx"] == 20)
+        assert link.counters["station_datagrams"] == 20  # no forged datagram among them
+        assert 0 < link.counters["bad_signature"] <= 2000  # the kernel may drop some of the flood
+        attacker.close()
+
+    run_signed(tmp_path, scenario)
+
+
+def test_a_second_link_on_the_same_port_is_refused_as_before():
+    """The sockets share their port with each other (SO_REUSEPORT), never with another link."""
+    async def main() -> None:
+        gs = Station()
+        first = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), Arming())
+        assert first.station_socket
+        second = MavlinkGcs(Bus(), MavlinkParams(enabled=True, gcs_address=gs.address,
+                                                 bind_port=first.port), Arming())
+        with pytest.raises(OSError):
+            await second.start()
+        second.close()
+        first.close()
+        gs.close()
+
+    asyncio.run(main())
+
+
+def test_with_port_0_the_station_gets_its_socket_once_it_is_heard(tmp_path: Path):
+    async def main() -> None:
+        gs = Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address="127.0.0.1:0", bind_port=0), Arming())
+        assert not link.station_socket
+        gs.send(link, Packer().heartbeat())
+        await async_wait_for(lambda: link.gcs_alive)
+        assert link.station_socket
+        gs.send(link, Packer().heartbeat())
+        await async_wait_for(lambda: link.counters["station_datagrams"] == 1)
+        link.send_heartbeat()
+        await gs.wait("HEARTBEAT")  # telemetry leaves from the station's socket, on our port
+        link.close()
+        gs.close()
+
+    asyncio.run(main())
+
+
+def test_a_flooded_socket_rests_and_reads_again(tmp_path: Path):
+    """More forgeries than one budget takes: the shared socket rests, then reads again, and a
+    signed message from another port of the station's host is still heard after the flood."""
+    async def scenario(link: MavlinkGcs, gs: Station, arming: Arming, key: bytes) -> None:
+        attacker = Station()
+        forged = Packer(key=os.urandom(32)).heartbeat()
+        for _ in range(20):
+            attacker.send(link, *[forged] * 200)
+            await asyncio.sleep(0)
+        read = [-1]
+
+        def drained() -> bool:  # nothing read for 0.2 s: the flood is over
+            if link.counters["datagrams"] != read[0]:
+                read[0] = link.counters["datagrams"]
+                return False
+            return True
+
+        await async_wait_for(lambda: link.counters["datagrams"] > 0)
+        while not drained():
+            await asyncio.sleep(0.2)
+        assert link.counters["drain_rests"] >= 1 and link.counters["bad_signature"] == read[0]
+        other_port = Station()
+        other_port.send(link, Packer(key=key, link_id=3).heartbeat())
+        await async_wait_for(lambda: link.counters["rx"] == 1, timeout=20)
+        assert link.gcs_alive
+        attacker.close()
+        other_port.close()
 
     run_signed(tmp_path, scenario)
 

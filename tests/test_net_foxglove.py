@@ -432,17 +432,25 @@ async def _check_scene(client: Client, scene: int) -> None:
     assert outer.points[0].x == pytest.approx(max(xs)) and inner.points[0].x == pytest.approx(max(xs))
 
 
-def test_the_mux_diagnostics_reach_a_subscriber(sim):
+def test_the_mux_and_network_security_diagnostics_reach_a_subscriber(sim):
     async def main() -> None:
         client = await _client(sim.port("foxglove"))
         try:
             client.ros_type("/diagnostics")
             diagnostics = await client.subscribe("/diagnostics")
-            array = client.decode("/diagnostics", await client.next_message(diagnostics))
-            (status,) = array.status
-            values = {kv.key: kv.value for kv in status.values}
-            assert status.name == "racecar_hw: command mux" and values["state"] == "running"
-            assert "input foxglove (priority 85)" in values
+            await client.next_message(diagnostics)
+            statuses: dict = {}
+            deadline = time.monotonic() + 20.0
+            while len(statuses) < 2 and time.monotonic() < deadline:  # each publishes its own array
+                for _t, payload in list(client.messages.get(diagnostics, [])):
+                    (status,) = client.decode("/diagnostics", payload).status
+                    statuses[status.name] = status
+                await asyncio.sleep(0.05)
+            mux = statuses["racecar_hw: command mux"]
+            values = {kv.key: kv.value for kv in mux.values}
+            assert values["state"] == "running" and "input foxglove (priority 85)" in values
+            security = statuses["racecar_hw: network security"]
+            assert security.values[0].key == "refused in all"
         finally:
             await client.close()
 

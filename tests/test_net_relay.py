@@ -203,3 +203,146 @@ def test_any_request_head_parses_or_is_refused_without_an_exception(head):
     if request is not None:
         assert isinstance(request.is_websocket_upgrade, bool)
         assert request.token is None or isinstance(request.token, str)
+
+
+# --- the connection gate: a cap, a head timeout, an idle timeout (racecar_hw.net.gate) -----------
+
+PARTIAL = b"GET /?token=t0k HTTP/1.1\r\nHost: 127.0.0.1\r\n"  # a head that is never finished
+
+
+async def _closed_by_server(reader: asyncio.StreamReader, timeout_s: float = DEADLINE_S) -> bool:
+    """Whether the server closes (or resets) the connection within ``timeout_s``, reading what comes."""
+    try:
+        async with asyncio.timeout(timeout_s):
+            while await reader.read(65536):
+                pass
+    except TimeoutError:
+        return False
+    except OSError:
+        pass  # reset: closed at once
+    return True
+
+
+async def _upgraded(port: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(UPGRADE % b"t0k")
+    head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), DEADLINE_S)
+    assert head.startswith(b"HTTP/1.1 101 ")
+    return reader, writer
+
+
+def test_beyond_the_cap_half_open_connections_make_room_and_then_new_ones_are_closed_at_once(tls):
+    from racecar_hw.net.gate import EVICTED, TOO_MANY, ConnectionLimits
+
+    cert_pem, context = tls
+    limits = ConnectionLimits(max_connections=4, head_timeout_s=60.0, idle_timeout_s=600.0)
+
+    async def main() -> None:
+        async with EchoUpstream(context) as upstream:
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k", limits=limits)) as relay:
+                half_open = []
+                for _ in range(4):
+                    reader, writer = await asyncio.open_connection("127.0.0.1", relay.port)
+                    writer.write(PARTIAL)
+                    await writer.drain()
+                    half_open.append((reader, writer))
+                # the cap is reached with unfinished requests: each viewer closes the oldest of them
+                viewers = []
+                for i in range(4):
+                    viewers.append(await _upgraded(relay.port))
+                    assert await _closed_by_server(half_open[i][0])
+                # four viewers in use: a fifth connection is closed at once, before it says anything
+                reader, writer = await asyncio.open_connection("127.0.0.1", relay.port)
+                assert await _closed_by_server(reader)
+                writer.close()
+                for reader, writer in viewers:  # and the viewers are untouched
+                    writer.write(b"ping")
+                    assert await asyncio.wait_for(reader.readexactly(4), DEADLINE_S) == b"ping"
+                    writer.close()
+                for _, writer in half_open:
+                    writer.close()
+                assert relay.refusals.total("relay", EVICTED) == 4
+                assert relay.refusals.total("relay", TOO_MANY) == 1
+                assert len(upstream.heads) == 4
+
+    asyncio.run(main())
+
+
+def test_an_unfinished_request_head_is_closed_after_the_head_timeout_and_a_silent_one_when_idle(tls):
+    from racecar_hw.net.gate import HEAD_LATE, IDLE, ConnectionLimits
+
+    cert_pem, context = tls
+    limits = ConnectionLimits(max_connections=8, head_timeout_s=0.5, idle_timeout_s=3.0)
+
+    async def main() -> None:
+        async with EchoUpstream(context) as upstream:
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k", limits=limits)) as relay:
+                slow, slow_writer = await asyncio.open_connection("127.0.0.1", relay.port)
+                slow_writer.write(PARTIAL)
+                talking = await _upgraded(relay.port)
+                silent = await _upgraded(relay.port)
+                assert await _closed_by_server(slow)
+                assert relay.refusals.total("relay", HEAD_LATE) == 1
+                # a viewer whose bytes keep moving stays past the head timeout and the idle timeout;
+                # the silent one is closed once idle
+                loop = asyncio.get_running_loop()
+                deadline = loop.time() + DEADLINE_S
+                reader, writer = talking
+                while relay.refusals.total("relay", IDLE) == 0:
+                    assert loop.time() < deadline, "the silent viewer was never closed"
+                    writer.write(b"x")
+                    assert await asyncio.wait_for(reader.readexactly(1), DEADLINE_S) == b"x"
+                    await asyncio.sleep(0.1)
+                assert await _closed_by_server(silent[0])
+                writer.write(b"still here")
+                assert await asyncio.wait_for(reader.readexactly(10), DEADLINE_S) == b"still here"
+                for _, w in (talking, silent):
+                    w.close()
+                slow_writer.close()
+                assert relay.refusals.total("relay", IDLE) == 1
+
+    asyncio.run(main())
+
+
+def test_refused_requests_log_one_summary_line_per_source_and_reason_per_interval(tls, caplog):
+    from racecar_hw.runtime.refusals import Refusals
+
+    cert_pem, context = tls
+    refusals = Refusals(interval_s=600.0)  # longer than the test: exactly the first line
+
+    async def main() -> None:
+        async with EchoUpstream(context) as upstream:
+            with running(Relay("127.0.0.1", 0, upstream.port, cert_pem, token="t0k",
+                               refusals=refusals)) as relay:
+                for _ in range(300):
+                    assert (await _status(relay.port, UPGRADE % b"wrong"))[0] == 401
+                assert (await _status(relay.port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"))[0] == 400
+                assert relay.refusals.by_source() == {
+                    ("relay", "127.0.0.1", "not a WebSocket upgrade (400)"): 1,
+                    ("relay", "127.0.0.1", "upgrade without the token (401)"): 300}
+
+    with caplog.at_level("INFO"):
+        asyncio.run(main())
+    lines = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+    assert len(lines) == 2 and all(line.startswith("relay: refused 127.0.0.1: ") for line in lines), lines
+    refusals.flush()  # at shutdown: the rest, counted
+    assert "299 times" in caplog.records[-1].getMessage()
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.lists(st.sampled_from([b"\r", b"\n", b"\r\n", b"a", b"GET / HTTP/1.1", b"\r\n\r\n", b"\x00"]),
+                max_size=40),
+       st.lists(st.integers(min_value=0, max_value=200), max_size=10))
+def test_the_gate_sees_a_head_end_however_the_reads_split_it(pieces, cuts):
+    from racecar_hw.net.gate import HEAD_END, head_end
+
+    stream = b"".join(pieces)
+    points = sorted({min(c, len(stream)) for c in cuts} | {0, len(stream)})
+    ended, tail = False, b""
+    for start, stop in zip(points, points[1:], strict=False):
+        ended, tail = head_end(tail, stream[start:stop])
+        assert len(tail) < len(HEAD_END)
+        if ended:
+            assert HEAD_END in stream[:stop]
+            break
+    assert ended == (HEAD_END in stream)

@@ -242,3 +242,30 @@ def test_type_hashes_equal_ros2s_own_generator(package, classes, expected, capsy
         assert rmw.type_hash(cls.ROS_TYPE) == official[cls.ROS_TYPE] == ros2_types().digest(cls.ROS_TYPE)
     for name, value in expected.items():
         assert official[name] == value
+
+
+# --- distributions ------------------------------------------------------------------------------
+
+HUMBLE_SUB = DESIGN_SUB.replace(STRING_HASH, "TypeHashNotSupported")
+
+
+def test_tokens_of_every_current_release_parse():
+    # Humble (0.1.x): TypeHashNotSupported where later releases put the hash
+    humble = rmw.parse_token(HUMBLE_SUB)
+    assert humble.type_hash == rmw.HUMBLE_TYPE_HASH and humble.token() == HUMBLE_SUB
+    # Lyrical/Rolling (0.10+): an optional 14th field after the QoS
+    newer = DESIGN_PUB + "/backends:cuda"
+    entity = rmw.parse_token(newer)
+    assert (entity.topic, entity.type_hash, entity.qos.depth) == ("/chatter", STRING_HASH, 7)
+    assert entity.backends == "backends:cuda" and entity.token() == newer
+    for bad in (newer + "/more", DESIGN_NODE + "/x"):
+        with pytest.raises(rmw.WireError):
+            rmw.parse_token(bad)
+
+
+def test_the_type_hash_field_follows_the_peers_distribution():
+    assert rmw.wire_type_hash("std_msgs/msg/String") == STRING_HASH
+    assert rmw.wire_type_hash("std_msgs/msg/String", "jazzy") == STRING_HASH
+    assert rmw.wire_type_hash("std_msgs/msg/String", "humble") == "TypeHashNotSupported"
+    with pytest.raises(rmw.WireError, match="jazzy, humble"):
+        rmw.wire_type_hash("std_msgs/msg/String", "iron")

@@ -104,6 +104,28 @@ def test_the_foxglove_relay_wants_its_token(open_sim):
     asyncio.run(main())
 
 
+def test_refused_requests_are_summarised_in_the_log_not_logged_one_by_one(open_sim):
+    printed = open_sim.wait_for(r"racecar-hw: status page http://0\.0\.0\.0:(\d+)/\?token=(\S+) ")
+    base = f"http://127.0.0.1:{printed.group(1)}"
+    start = len(open_sim.lines)
+
+    async def main() -> float:
+        began = time.monotonic()
+        async with aiohttp.ClientSession() as http:
+            for _ in range(2000):
+                async with http.get(f"{base}/api/state") as res:
+                    # and the connection closes: a refused client keeps no connection slot
+                    assert res.status == 401 and res.headers.get("Connection", "").lower() == "close"
+        return time.monotonic() - began
+
+    elapsed = asyncio.run(main())
+    # a line for the first of its kind, then one summary per 10 s (Refusals' interval) with the count
+    # (the count since the last line: test_net_relay.py checks the wording); was a line per request
+    lines = [line for line in open_sim.lines[start:] if "web: refused" in line]
+    assert len(lines) <= 2 + elapsed / 10, lines
+    assert all("web: refused 127.0.0.1: request without the token (401)" in line for line in lines), lines
+
+
 @pytest.fixture(scope="module")
 def loopback_sim(tmp_path_factory):
     """A sim whose page listens on loopback without a token (the default)."""
@@ -173,6 +195,7 @@ def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release
         _until(lambda: text("measured") != first, what="the speed to change")
         _until(lambda: float(text("measured").split()[0]) > 0.9, what="the car at 1 m/s")
         assert text("source") == "nav_0" and text("armed") == "ARMED"
+        assert text("refused") == "none"  # nothing refused: the counts cell says so
 
         log_from = len(sim.lines)
         driver.find_element(By.ID, "estop").click()
@@ -191,6 +214,8 @@ def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release
         assert how == "the first motor command written after the request" and brake == "SET_RPM 0"
         assert 0.0 <= brake_s - clicked_s < 0.2
         _until(lambda: text("estop") == "E-STOP LATCHED", what="the page to show the latch")
+        _until(lambda: text("estop-by").startswith("latched by web page (127.0.0.1) at "),
+               what="the page to say who latched it")
         _until(lambda: abs(float(text("measured").split()[0])) < 0.02, what="the car to stop")
         # it stays stopped while the figure-8 driver keeps commanding; a short press does not release
         release = driver.find_element(By.ID, "release")

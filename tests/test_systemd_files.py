@@ -58,6 +58,18 @@ def test_unit_settings() -> None:
     assert unit_values("Service", "RestartSec") and unit_values("Service", "TimeoutStopSec")
 
 
+def test_unit_sets_the_open_file_limit_above_what_network_clients_may_hold() -> None:
+    from racecar_hw.net.foxglove_server import FoxgloveParams
+    from racecar_hw.net.web import WebParams
+
+    (value,) = unit_values("Service", "LimitNOFILE")
+    soft, _, hard = value.partition(":")
+    assert soft.isdigit() and (not hard or int(hard) >= int(soft))
+    # the page's connections, the relay's and their upstream halves, with room for devices and Zenoh
+    network = WebParams().max_connections + 2 * FoxgloveParams().max_connections
+    assert int(soft) >= 1024 + network
+
+
 def test_unit_hardening_keeps_serial_and_input_devices() -> None:
     assert unit_values("Service", "DevicePolicy") == ["closed"]
     allowed = unit_values("Service", "DeviceAllow")

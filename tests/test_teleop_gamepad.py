@@ -400,3 +400,60 @@ def test_a_recorded_regular_file_replays_then_counts_as_unplugged(tmp_path: Path
             await task
 
     asyncio.run(main())
+
+
+@pytest.mark.parametrize("profile", sorted(PROFILES))
+def test_b_latches_the_estop_and_b_with_start_held_releases_it_as_an_operator(tmp_path: Path,
+                                                                             profile: str) -> None:
+    from mux.arbiter import MuxState
+    from mux.estop import Origin
+    from mux.node import CommandMux
+
+    fifo = tmp_path / "event-joystick"
+    os.mkfifo(fifo)
+    params = GamepadParams(enabled=True, device=str(fifo), profile=profile, rate_hz=50.0,
+                           layout="64le", estop_release_hold_s=0.5, rescan_min_s=0.05, rescan_max_s=0.2)
+    pad_profile = PROFILES[profile]
+    b, start, speed = pad_profile.estop, pad_profile.arm, pad_profile.speed
+
+    def buttons(*pressed: tuple[int, int]) -> bytes:
+        return stream(*(ev(EV_KEY, code, value) for code, value in pressed), ev(EV_SYN, SYN_REPORT, 0))
+
+    async def main() -> None:
+        bus = Bus()
+        mux = CommandMux(bus)
+        origin = Origin("gamepad", "gamepad")
+        releases: list[bool] = []
+        pad = GamepadTeleop(bus, params, Arming(start_armed=True),
+                            on_estop=lambda: mux.engage_estop("B on the gamepad", origin),
+                            on_release=lambda: releases.append(mux.release_estop(origin)))
+        task = asyncio.create_task(pad.run())
+        await async_wait_for(lambda: pad.connected)
+        writer = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        os.write(writer, buttons((b, 1)) + buttons((b, 0)))  # a press of B: latched
+        await async_wait_for(lambda: mux.state is MuxState.ESTOP)
+        assert mux.estop_text().startswith("latched by gamepad at ")
+        # START alone, or B and START let go before the hold time, release nothing
+        os.write(writer, buttons((start, 1)) + buttons((start, 0)))
+        os.write(writer, buttons((b, 1), (start, 1)) + buttons((b, 0), (start, 0)))  # one read
+        await asyncio.sleep(0.8)
+        assert releases == [] and mux.state is MuxState.ESTOP
+        # held with the speed stick pushed: refused (the car would leap off)
+        os.write(writer, stream(ev(EV_ABS, speed.code, speed.maximum),
+                                ev(EV_SYN, SYN_REPORT, 0)) + buttons((b, 1), (start, 1)))
+        await asyncio.sleep(0.8)
+        assert releases == [] and mux.state is MuxState.ESTOP
+        os.write(writer, buttons((b, 0), (start, 0)))
+        os.write(writer, stream(ev(EV_ABS, speed.code, speed.centre), ev(EV_SYN, SYN_REPORT, 0)))
+        # held for the hold time with the stick centred: released, once
+        os.write(writer, buttons((b, 1), (start, 1)))
+        await async_wait_for(lambda: releases == [True])
+        assert mux.state is MuxState.RUNNING
+        await asyncio.sleep(0.3)
+        assert releases == [True]
+        os.close(writer)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(main())

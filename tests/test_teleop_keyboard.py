@@ -172,3 +172,44 @@ def test_shell_on_a_pty_uses_cbreak_and_restores_the_terminal() -> None:
         os.close(slave)
 
     asyncio.run(main())
+
+
+def test_e_latches_the_mux_estop_and_shift_r_releases_it_as_an_operator() -> None:
+    from mux.arbiter import MuxState
+    from mux.estop import Origin
+    from mux.node import CommandMux
+    from racecar_hw.base.messages import Bool
+
+    async def main() -> None:
+        bus = Bus()
+        mux = CommandMux(bus)
+        keyboard = Origin("keyboard", "keyboard")
+        p = KeyboardParams(rate_hz=50.0, hold_s=5.0)
+        got: list[AckermannDriveStamped] = []
+        bus.subscribe(p.topic, got.append)
+        r, w = os.pipe()
+        kb = KeyboardTeleop(bus, p, fd=r, on_estop=lambda: mux.engage_estop("e key", keyboard),
+                            on_release=lambda: mux.release_estop(keyboard))
+        task = asyncio.create_task(kb.run())
+        # a topic's e-stop: the release topic could undo it, the keyboard can too
+        bus.publish("/estop", Bool(True))
+        bus.publish("/estop", Bool(False))
+        os.write(w, b"R")
+        await async_wait_for(lambda: mux.state is MuxState.RUNNING)
+        os.write(w, b"ww")
+        await async_wait_for(lambda: got and got[-1].drive.speed == 0.5)
+        os.write(w, b"e")  # e-stop: latched, and the keyboard's own set-point drops to zero
+        await async_wait_for(lambda: mux.state is MuxState.ESTOP)
+        assert mux.estop_text().startswith("latched by keyboard at ")
+        await async_wait_for(lambda: got[-1].drive.speed == 0.0)
+        os.write(w, b"r")  # lower-case r is no key: nothing happens
+        bus.publish("/estop_release", Bool(True))  # the topic cannot undo the keyboard's e-stop
+        assert mux.state is MuxState.ESTOP
+        os.write(w, b"R")
+        await async_wait_for(lambda: mux.state is MuxState.RUNNING)
+        os.write(w, b"q")
+        await asyncio.wait_for(task, 10)
+        os.close(r)
+        os.close(w)
+
+    asyncio.run(main())

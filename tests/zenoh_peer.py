@@ -6,16 +6,23 @@ from their JSON type descriptions, injected because zenoh-ros2-sdk computes wron
 ackermann_msgs has no wheel: its two definitions (ros-drivers/ackermann_msgs, ros2 branch) are
 below, with the hash ROS 2's own generator gives them (tests/test_net_rmw.py checks it).
 
-    python tests/zenoh_peer.py PORT drive [--namespace /car1] [--input TOPIC] [--twist-topic T]
+    python tests/zenoh_peer.py PORT drive [--namespace /car1] [--input TOPIC] [--twist-topic T] [--humble]
     python tests/zenoh_peer.py PORT latched TOPIC
+    python tests/zenoh_peer.py PORT node [--node /racecar_hw]
     python tests/zenoh_peer.py PORT imu [--count N]
 
 ``drive``: wait for /scan and /odom, then publish AckermannDriveStamped on the input topic at
 20 Hz for 1.5 s (0.6 m/s, steering 0), pause 1.5 s, then Twist on /cmd_vel for 1.5 s (0.5 m/s,
-0.6 rad/s), pause; print a JSON line of what it saw. ``latched``: subscribe TRANSIENT_LOCAL to a
-TFMessage topic and print the frames of the first message (or none after 10 s). ``imu``: subscribe
-to /imu and /odom until ``--count`` IMU messages came (or 60 s) and print each with the odometry that
-came before it.
+0.6 rad/s), pause; print a JSON line of what it saw. ``--humble`` makes it a Humble rmw_zenoh node:
+``TypeHashNotSupported`` instead of every RIHS01 hash, in its keys and liveliness tokens.
+``latched``: subscribe TRANSIENT_LOCAL to a TFMessage topic and print the frames of the first
+message (or none after 10 s). ``node``: what ``ros2 node info`` and ``ros2 param`` see of the node:
+its services and publishers in the graph, ``list_parameters``, ``get_parameters`` (of
+``mux.rate_hz`` and ``zenoh.listen``), ``get_parameter_types``, ``describe_parameters`` and a refused
+``set_parameters``, all with the SDK's service client on the official ``rcl_interfaces``
+definitions and hashes; then it subscribes to ``/rosout``, engages the e-stop (``/estop`` true,
+which the mux logs as a warning) and reports the Log records it got. ``imu``: subscribe to /imu and
+/odom until ``--count`` IMU messages came (or 60 s) and print each with the odometry before it.
 """
 
 from __future__ import annotations
@@ -28,10 +35,12 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber
 from zenoh_ros2_sdk.session import ZenohSession
 
 SHARE = Path(sys.prefix) / "share"
+HUMBLE_HASH = "TypeHashNotSupported"
 ACKERMANN = {
     "ackermann_msgs/msg/AckermannDrive": "float32 steering_angle\nfloat32 steering_angle_velocity\n"
                                          "float32 speed\nfloat32 acceleration\nfloat32 jerk\n",
@@ -53,25 +62,42 @@ def definition(name: str) -> str:
     return (SHARE / pkg / "msg" / f"{short}.msg").read_text()
 
 
+def srv_definitions(srv: str) -> tuple[str, str]:
+    """The request and response definitions of a service type, from its official ``.srv`` file, with
+    the package's own types named in full (the SDK would look for ``pkg/srv/msg/Type`` otherwise)."""
+    pkg, _, short = srv.split("/")
+    text = (SHARE / pkg / "srv" / f"{short}.srv").read_text()
+    lines = []
+    for raw in text.splitlines():
+        parts = raw.split("#", 1)[0].split()
+        base = re.sub(r"\[.*\]", "", parts[0]).split("<=")[0] if parts else ""
+        if len(parts) >= 2 and "=" not in raw.split("#", 1)[0] and "/" not in base \
+                and base not in _PRIMITIVES:
+            raw = raw.replace(parts[0], f"{pkg}/{parts[0]}", 1)
+        lines.append(raw)
+    request, response = "\n".join(lines).split("---", 1)
+    return request, response
+
+
 def official_hash(name: str) -> str:
     if name.startswith("ackermann_msgs/"):
         return ACKERMANN_HASH
     if name == "tf2_msgs/msg/TFMessage":
         return TF_HASH
-    pkg, _, short = name.split("/")
-    return json.loads((SHARE / pkg / "msg" / f"{short}.json").read_text())["type_hashes"][0]["hash_string"]
+    pkg, kind, short = name.split("/")
+    return json.loads((SHARE / pkg / kind / f"{short}.json").read_text())["type_hashes"][0]["hash_string"]
 
 
-def register(session: ZenohSession, name: str, done: set[str]) -> None:
-    """Register ``name`` and every type it nests, dependencies first."""
+def register(session: ZenohSession, name: str, done: set[str], text: str | None = None) -> None:
+    """Register ``name`` (with ``text``, else its definition) and every type it nests, dependencies first."""
     if name in done:
         return
     pkg = name.split("/")[0]
-    text = definition(name)
+    text = definition(name) if text is None else text
     for raw in text.splitlines():
         line = raw.split("#", 1)[0].strip()
         parts = line.split()
-        if len(parts) < 2 or "=" in line:  # blank, comment or constant
+        if len(parts) < 2 or "=" in line[len(parts[0]):]:  # blank, comment or constant
             continue
         ftype = re.sub(r"\[.*\]", "", parts[0]).split("<=")[0]
         if ftype in _PRIMITIVES:
@@ -87,16 +113,21 @@ def register(session: ZenohSession, name: str, done: set[str]) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("port", type=int)
-    parser.add_argument("mode", choices=("drive", "latched", "imu"))
+    parser.add_argument("mode", choices=("drive", "latched", "node", "imu"))
     parser.add_argument("--count", type=int, default=300)
     parser.add_argument("topic", nargs="?", default="/tf_static")
     parser.add_argument("--namespace", default="")
     parser.add_argument("--input", default="/vesc/high_level/ackermann_cmd_mux/input/nav_0")
     parser.add_argument("--twist-topic", default="/cmd_vel")
+    parser.add_argument("--humble", action="store_true", help="be a Humble rmw_zenoh node")
+    parser.add_argument("--node", default="/racecar_hw")
     args = parser.parse_args()
     session = ZenohSession.get_instance("127.0.0.1", args.port)
     done: set[str] = set()
     common = dict(router_ip="127.0.0.1", router_port=args.port)
+    if args.mode == "node":
+        return node_info(session, args.port, args.node, done)
+    type_hash = (lambda name: HUMBLE_HASH) if args.humble else official_hash
     if args.mode == "latched":
         register(session, "tf2_msgs/msg/TFMessage", done)
         got: list = []
@@ -130,10 +161,10 @@ def main() -> int:
     ns = args.namespace
     subs = [ROS2Subscriber(f"{ns}/scan", "sensor_msgs/msg/LaserScan", on_scan,
                            msg_definition=definition("sensor_msgs/msg/LaserScan"),
-                           type_hash=official_hash("sensor_msgs/msg/LaserScan"), **common),
+                           type_hash=type_hash("sensor_msgs/msg/LaserScan"), **common),
             ROS2Subscriber(f"{ns}/odom", "nav_msgs/msg/Odometry", on_odom,
                            msg_definition=definition("nav_msgs/msg/Odometry"),
-                           type_hash=official_hash("nav_msgs/msg/Odometry"), **common)]
+                           type_hash=type_hash("nav_msgs/msg/Odometry"), **common)]
     deadline = time.monotonic() + 30
     while (seen["scan"] < 5 or seen["odom"] < 5) and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -141,10 +172,10 @@ def main() -> int:
     store = session.store.types
     drive_pub = ROS2Publisher(f"{ns}{args.input}", "ackermann_msgs/msg/AckermannDriveStamped",
                               msg_definition=ACKERMANN["ackermann_msgs/msg/AckermannDriveStamped"],
-                              type_hash=ACKERMANN_HASH, **common)
+                              type_hash=type_hash("ackermann_msgs/msg/AckermannDriveStamped"), **common)
     twist_pub = ROS2Publisher(f"{ns}{args.twist_topic}", "geometry_msgs/msg/Twist",
                               msg_definition=definition("geometry_msgs/msg/Twist"),
-                              type_hash=official_hash("geometry_msgs/msg/Twist"), **common)
+                              type_hash=type_hash("geometry_msgs/msg/Twist"), **common)
     time.sleep(0.5)  # let the daemon's subscriber see the new publishers' session
     Time, Header = store["builtin_interfaces/msg/Time"], store["std_msgs/msg/Header"]
     Drive, Vector3 = store["ackermann_msgs/msg/AckermannDrive"], store["geometry_msgs/msg/Vector3"]
@@ -201,6 +232,80 @@ def imu(session: ZenohSession, done: set[str], common: dict, ns: str, count: int
     print(json.dumps({"imu": rows[:count]}), flush=True)
     for entity in subs:
         entity.close()
+    return 0
+
+
+def node_info(session: ZenohSession, port: int, node: str, done: set[str]) -> int:
+    """The ``node`` mode (see the module documentation)."""
+    from zenoh_ros2_sdk import ROS2ServiceClient  # noqa: PLC0415
+    from zenoh_ros2_sdk.discovery import get_service_names_and_types, get_topic_info  # noqa: PLC0415
+
+    common = dict(router_ip="127.0.0.1", router_port=port)
+    out: dict = {}
+    for name in ("rcl_interfaces/msg/Log", "std_msgs/msg/Bool", "rcl_interfaces/msg/ParameterValue",
+                 "rcl_interfaces/msg/Parameter", "rcl_interfaces/msg/ParameterDescriptor",
+                 "rcl_interfaces/msg/ListParametersResult", "rcl_interfaces/msg/SetParametersResult"):
+        register(session, name, done)
+    # the graph: ros2 node info lists the node's services and publishers from these tokens
+    deadline = time.monotonic() + 60
+    services: list = []
+    while time.monotonic() < deadline and len(services) < 6:
+        services = [(name, types) for name, types in get_service_names_and_types(timeout=1.0, **common)
+                    if name.startswith(node + "/")]
+    out["services"] = services
+    rosout = get_topic_info("/rosout", timeout=1.0, verbose=True, **common)
+    out["rosout_publishers"] = ([f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in rosout.publishers]
+                                if rosout is not None else [])
+    out["rosout_qos"] = [p.qos for p in rosout.publishers] if rosout is not None else []
+
+    def client(service: str, srv: str) -> ROS2ServiceClient:
+        request, response = srv_definitions(srv)
+        register(session, f"{srv}_Request", done, request)
+        register(session, f"{srv}_Response", done, response)
+        return ROS2ServiceClient(f"{node}/{service}", srv, request_definition=request,
+                                 response_definition=response, type_hash=official_hash(srv),
+                                 timeout=10.0, **common)
+
+    listed = client("list_parameters", "rcl_interfaces/srv/ListParameters").call(prefixes=[], depth=0)
+    out["names"] = list(listed.result.names) if listed is not None else None
+    names = ["mux.rate_hz", "zenoh.listen"]
+    got = client("get_parameters", "rcl_interfaces/srv/GetParameters").call(names=names)
+    out["values"] = ([{"type": v.type, "double": v.double_value, "strings": list(v.string_array_value)}
+                      for v in got.values] if got is not None else None)
+    types = client("get_parameter_types", "rcl_interfaces/srv/GetParameterTypes").call(names=names)
+    out["types"] = [int(t) for t in types.types] if types is not None else None
+    described = client("describe_parameters", "rcl_interfaces/srv/DescribeParameters").call(names=names[:1])
+    out["read_only"] = ([d.read_only for d in described.descriptors] if described is not None else None)
+    store = session.store.types
+    Parameter, Value = store["rcl_interfaces/msg/Parameter"], store["rcl_interfaces/msg/ParameterValue"]
+    value = Value(type=3, bool_value=False, integer_value=0, double_value=10.0, string_value="",
+                  byte_array_value=np.zeros(0, np.uint8), bool_array_value=np.zeros(0, np.bool_),
+                  integer_array_value=np.zeros(0, np.int64), double_array_value=np.zeros(0, np.float64),
+                  string_array_value=[])
+    refused = client("set_parameters", "rcl_interfaces/srv/SetParameters").call(
+        parameters=[Parameter(name="mux.rate_hz", value=value)])
+    out["set"] = ([{"ok": r.successful, "reason": r.reason} for r in refused.results]
+                  if refused is not None else None)
+    # /rosout: a warning the daemon logs reaches a ROS 2 subscriber
+    logs: list = []
+
+    def on_log(m) -> None:  # noqa: ANN001 - a rosbags message of the SDK's own store
+        logs.append({"level": int(m.level), "name": m.name, "msg": m.msg})
+
+    sub = ROS2Subscriber("/rosout", "rcl_interfaces/msg/Log", on_log,
+                         msg_definition=definition("rcl_interfaces/msg/Log"),
+                         type_hash=official_hash("rcl_interfaces/msg/Log"), qos=":1:,1000:,:,:,,", **common)
+    estop = ROS2Publisher("/estop", "std_msgs/msg/Bool", msg_definition=definition("std_msgs/msg/Bool"),
+                          type_hash=official_hash("std_msgs/msg/Bool"), **common)
+    time.sleep(0.5)  # let the daemon's subscriber see the new publisher's session
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and not any("e-stop" in log["msg"] for log in logs):
+        estop.publish(data=True)
+        time.sleep(0.2)
+    out["logs"] = logs
+    print(json.dumps(out), flush=True)
+    sub.close()
+    estop.close()
     return 0
 
 

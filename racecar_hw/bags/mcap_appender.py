@@ -19,6 +19,7 @@ from struct import Struct
 from typing import Any
 
 from rosbags.rosbag2 import Writer as Writer2
+from rosbags.rosbag2.storage_mcap import McapWriter
 
 _MESSAGE_RECORD = Struct("<BQHIQQ")  # opcode, record length, channel id, sequence, log time, publish time
 _MESSAGE_FIXED = 2 + 4 + 8 + 8
@@ -40,9 +41,7 @@ class McapAppender:
     def attach(cls, writer: Writer2) -> McapAppender | None:
         """An appender for ``writer`` (open, MCAP, no per-message compression), or None."""
         storage: Any = getattr(writer, "storage", None)
-        if storage is None or type(storage).__name__ != "McapWriter":
-            return None
-        if type(storage).__module__ != "rosbags.rosbag2.storage_mcap":
+        if not isinstance(storage, McapWriter):
             return None
         if not all(hasattr(storage, a) for a in _STORAGE_ATTRS):
             return None

@@ -29,6 +29,7 @@ from __future__ import annotations
 import shutil
 import sqlite3
 import struct
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,12 +37,24 @@ from pathlib import Path
 import yaml
 from rosbags.interfaces import Qos
 from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.metadata import dump_qos_v8, parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from racecar_hw.bags.validate import DEFAULT_MAX_MESSAGE_BYTES, guarded, inflate
-from racecar_hw.bags.writers import RECORDING_OPEN, ROS1_MAGIC, ROS2_METADATA_VERSION, Ros1Writer
+from racecar_hw.bags.validate import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    crc_mismatch,
+    guarded,
+    inflate,
+    mcap_chunk_crc_error,
+)
+from racecar_hw.bags.writers import (
+    MCAP_CHUNK_CRC_OFFSET,
+    RECORDING_OPEN,
+    ROS1_MAGIC,
+    ROS2_METADATA_VERSION,
+    Ros1Writer,
+    Ros2Writer,
+)
 from racecar_hw.base.errors import BagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -58,6 +71,8 @@ class RecoveryResult:
     path: Path
     messages: int
     was_complete: bool
+    #: chunks left out because they fail their CRC-32, each named (file, number, byte offset)
+    bad_chunks: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -86,21 +101,28 @@ class McapScan:
     messages: list[tuple[int, int, bytes]]              # (channel id, log time ns, data)
     complete: bool                                       # a footer was found
     qos: dict[int, str] = field(default_factory=dict)   # channel id -> offered_qos_profiles
+    #: the chunks left out because they fail their CRC-32 (:func:`crc_mismatch`, without the path)
+    bad_chunks: list[str] = field(default_factory=list)
 
 
 def scan_mcap(data: bytes) -> McapScan:
     """Every schema, channel and message in ``data`` up to the first truncated record.
 
     An empty ``data``, or one cut inside the magic (a split killed as it was opened), holds nothing.
+    A chunk that carries a CRC-32 its records do not have is left out whole (``bad_chunks``): the
+    good chunks are kept. A closed file repeats the schemas and channels after its chunks, so the
+    other chunks' messages keep their channels even when the damaged chunk defined them.
     """
     if not data.startswith(MCAP_MAGIC):
         if MCAP_MAGIC.startswith(data):
             return McapScan({}, {}, [], False)
         raise BagError("not an MCAP file (bad magic)")
     scan = McapScan({}, {}, [], False)
-    for op, body in _mcap_records(data, len(MCAP_MAGIC)):
+    chunks = 0
+    for pos, op, body in _mcap_records_at(data, len(MCAP_MAGIC)):
         if op == 0x06:
-            _mcap_chunk(body, scan)
+            chunks += 1
+            _mcap_chunk(body, scan, chunks, pos)
         elif op == 0x02:
             scan.complete = True
         else:
@@ -109,6 +131,12 @@ def scan_mcap(data: bytes) -> McapScan:
 
 
 def _mcap_records(data: bytes, pos: int) -> Iterator[tuple[int, bytes]]:
+    for _at, op, body in _mcap_records_at(data, pos):
+        yield op, body
+
+
+def _mcap_records_at(data: bytes, pos: int) -> Iterator[tuple[int, int, bytes]]:
+    """(offset, opcode, body) of each record from ``pos`` up to the first one cut off."""
     end = len(data)
     while pos + 9 <= end:
         op = data[pos]
@@ -116,7 +144,7 @@ def _mcap_records(data: bytes, pos: int) -> Iterator[tuple[int, bytes]]:
         stop = pos + 9 + length
         if stop > end:
             return
-        yield op, data[pos + 9:stop]
+        yield pos, op, data[pos + 9:stop]
         pos = stop
 
 
@@ -125,7 +153,9 @@ def _mcap_string(body: bytes, pos: int) -> tuple[str, int]:
     return body[pos + 4:pos + 4 + n].decode(), pos + 4 + n
 
 
-def _mcap_chunk(body: bytes, scan: McapScan) -> None:
+def _mcap_chunk(body: bytes, scan: McapScan, number: int, at: int) -> None:
+    """The records of chunk ``number`` (1 = the first), at byte ``at``, into ``scan``; none of them
+    when the chunk fails its CRC-32."""
     pos = 8 + 8 + 8 + 4
     compression, pos = _mcap_string(body, pos)
     (size,) = _U64.unpack_from(body, pos)
@@ -135,6 +165,12 @@ def _mcap_chunk(body: bytes, scan: McapScan) -> None:
         records = _decompress(records, compression, declared)
     elif compression:
         raise BagError(f"MCAP chunk compression {compression!r} is not supported by the recovery")
+    (recorded,) = _U32.unpack_from(body, MCAP_CHUNK_CRC_OFFSET - 9)
+    if recorded:
+        computed = zlib.crc32(records)
+        if computed != recorded:
+            scan.bad_chunks.append(crc_mismatch("", number, at, recorded, computed, hint=False)[2:])
+            return
     for op, rec in _mcap_records(records, 0):
         _mcap_record(op, rec, scan)
 
@@ -175,7 +211,7 @@ def _mcap_record(op: int, body: bytes, scan: McapScan) -> None:
 def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
     scans = [scan_mcap(f.read_bytes()) for f in files]
     store = get_typestore(Stores.EMPTY)
-    with Writer2(out, version=ROS2_METADATA_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+    with Ros2Writer(out, version=ROS2_METADATA_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {}  # (topic, type, qos) -> connection, over every file
         count = 0
         for scan in scans:
@@ -196,7 +232,8 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
                 if cid in mine:
                     writer.write(mine[cid], t_ns, payload)
                     count += 1
-    return RecoveryResult(out, count, False)
+    bad = [f"{f.name}: {text}" for f, scan in zip(files, scans, strict=True) for text in scan.bad_chunks]
+    return RecoveryResult(out, count, False, bad)
 
 
 def _qos(text: str) -> list[Qos]:
@@ -624,6 +661,10 @@ def inspect_bag(path: str | Path) -> BagState:
                                     f"{f.name} has no footer (the recording was not closed)")
         if _metadata(src) is None:
             return BagState(src, "mcap", mcaps, False, "metadata.yaml is missing")
+        for f in mcaps:
+            bad = mcap_chunk_crc_error(f)
+            if bad is not None:
+                return BagState(src, "mcap", mcaps, False, bad)
         return BagState(src, "mcap", mcaps, True)
     if dbs:
         problem = _sqlite3_problem(src, dbs)

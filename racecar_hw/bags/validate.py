@@ -13,7 +13,9 @@ absurd values into the control path. Three pieces, used by every bag reader here
   pieces, its output counted and thrown away (:func:`inflate`), so a chunk that lies about its
   uncompressed size is refused before a reader decompresses it whole. It follows what rosbags
   reads: a ROS 1 bag's header, index and chunk records; every record of an MCAP file; the largest
-  message of a sqlite3 bag.
+  message of a sqlite3 bag. Every MCAP chunk that carries a CRC-32 (non-zero: recorded by this
+  project's recorder) is checked against it (:func:`mcap_chunk_crc_error` alone for ``bag info``
+  and ``bag recover``): a mismatch is refused naming the chunk (its number and byte offset).
 * :func:`check_commands`: every loaded drive command must be finite and within the car's
   configured speed and steering limits, or the bag is refused naming the first bad message's index
   and time.
@@ -27,6 +29,7 @@ import functools
 import math
 import sqlite3
 import struct
+import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -326,12 +329,75 @@ def _check_mcap(s: _Storage) -> None:
                     raise BagError(f"{s.path}: the footer points at byte {summary}, which starts no record")
             return
         if op == 0x06:
-            chunks[pos] = _check_mcap_chunk(s, pos, length)
+            chunks[pos] = _check_mcap_chunk(s, pos, length, len(chunks) + 1)
         elif op == 0x08:
             _check_mcap_chunk_index(s, pos, length, chunks)
         pos += 9 + length
     raise BagError(f"{s.path}: no footer record (truncated? an interrupted recording can be recovered "
                    "with racecar_hw.bags.recover)")
+
+
+def crc_mismatch(path: Path | str, number: int, pos: int, recorded: int, computed: int,
+                 hint: bool = True) -> str:
+    """What is said of MCAP chunk ``number`` (1 = the file's first) at byte ``pos`` of ``path`` whose
+    records do not have the CRC-32 its record carries (``hint``: and what to do about it)."""
+    text = (f"{path}: chunk {number} (at byte {pos}) fails its checksum: its records have CRC-32 "
+            f"0x{computed:08x}, the chunk says 0x{recorded:08x}")
+    return text + (" (the file is damaged; racecar-hw bag recover keeps the good chunks)" if hint else "")
+
+
+def _chunk_crc(s: _Storage, pos: int, length: int, number: int) -> None:
+    """Raise BagError (:func:`crc_mismatch`) when the chunk record at ``pos`` carries a CRC-32 (not 0)
+    its uncompressed records do not have; a chunk of a compression this cannot decompress is left
+    to the reader."""
+    body = pos + 9
+    end = body + length
+    (uncompressed,) = _U64.unpack(s.read(body + 16, 8))
+    (recorded,) = _U32.unpack(s.read(body + 24, 4))
+    if not recorded:
+        return
+    compression, compressed = _mcap_sizes(s, body + 28, end)
+    data = body + 28 + 4 + len(compression.encode()) + 8
+    s.declared("a chunk's data", data, compressed, end)
+    pieces: Iterable[bytes]
+    if compression in ("", "none"):
+        pieces = s.pieces(data, compressed)
+    elif _decompressor(compression) is not None:
+        what = (f"{s.path}: the {compression} chunk at byte {pos} declares {uncompressed} bytes "
+                "uncompressed, but it")
+        pieces = inflate(s.pieces(data, compressed), compression, min(uncompressed, s.limit), what)
+    else:
+        return
+    computed = 0
+    for piece in pieces:
+        computed = zlib.crc32(piece, computed)
+    if computed != recorded:
+        raise BagError(crc_mismatch(s.path, number, pos, recorded, computed))
+
+
+def mcap_chunk_crc_error(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> str | None:
+    """The first chunk of the MCAP file at ``path`` that fails its CRC-32 (:func:`crc_mismatch`), or
+    None. Walks the records up to the footer or the first one cut off (an interrupted recording):
+    structure is the readers' business (and :func:`check_storage`'s), only checksums are checked."""
+    with path.open("rb") as f:
+        s = _Storage(path, f, path.stat().st_size, max_bytes)
+        pos = len(MCAP_MAGIC)
+        number = 0
+        while pos + 9 <= s.size:
+            op = s.read(pos, 1)[0]
+            (length,) = _U64.unpack(s.read(pos + 1, 8))
+            if op == 0x02 or pos + 9 + length > s.size:
+                return None
+            if op == 0x06:
+                number += 1
+                try:
+                    _chunk_crc(s, pos, length, number)
+                except BagError as err:
+                    if "fails its checksum" in str(err):
+                        return str(err)
+                    return None  # damaged otherwise: the readers say how
+            pos += 9 + length
+    return None
 
 
 def _mcap_sizes(s: _Storage, at: int, end: int) -> tuple[str, int]:
@@ -354,7 +420,7 @@ class _McapChunk:
     uncompressed: int
 
 
-def _check_mcap_chunk(s: _Storage, pos: int, length: int) -> _McapChunk:
+def _check_mcap_chunk(s: _Storage, pos: int, length: int, number: int) -> _McapChunk:
     body = pos + 9
     end = body + length
     (uncompressed,) = _U64.unpack(s.read(body + 16, 8))
@@ -370,6 +436,7 @@ def _check_mcap_chunk(s: _Storage, pos: int, length: int) -> _McapChunk:
             raise BagError(f"{s.path}: the chunk at byte {pos} decompresses to {content} bytes, over "
                            f"the limit of {s.limit} (max_message_bytes)")
     s.inflates_within(pos, compression, data, compressed, uncompressed)
+    _chunk_crc(s, pos, length, number)
     return _McapChunk(length, compression, compressed, uncompressed)
 
 
@@ -456,5 +523,5 @@ def check_commands(commands: Sequence[_Timed], limits: CommandLimits, path: str 
                            "the bag is refused")
 
 
-__all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits", "check_commands", "check_storage", "describe",
-           "guarded", "inflate", "inflated_size", "reading"]
+__all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits", "check_commands", "check_storage", "crc_mismatch",
+           "describe", "guarded", "inflate", "inflated_size", "mcap_chunk_crc_error", "reading"]

@@ -13,6 +13,10 @@
   directory that may already hold others, so the splits of a recording are one rosbag2 bag with
   several files, as ``ros2 bag record --max-bag-size`` makes them. ``metadata.yaml`` is the
   caller's (it describes every file); rosbags' own is written aside and removed.
+* :class:`McapCrcWriter`: rosbags' MCAP storage writer, but every chunk record carries the CRC-32
+  of its uncompressed records (rosbags writes 0, "not computed", so a flipped bit went unseen).
+  :class:`Ros2Writer` and :class:`Ros2FileWriter` use it; the follower, ``bag info`` and
+  ``bag recover`` verify it (docs/bags.md, "Checksums").
 
 :data:`ROS2_METADATA_VERSION` is the metadata version written; see its comment.
 """
@@ -21,12 +25,14 @@ from __future__ import annotations
 
 import contextlib
 import struct
+from binascii import crc32
 from pathlib import Path
 from typing import Any
 
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
+from rosbags.rosbag2.storage_mcap import McapWriter
 
 #: rosbag2 metadata version written. Humble (rosbag2 0.15, ``rosbag2_storage/src/rosbag2_storage/
 #: metadata_io.cpp``) decodes any version without an upper bound, but reads each topic's
@@ -106,6 +112,41 @@ def _read_header_fields(record: bytes) -> dict[bytes, bytes]:
     return fields
 
 
+#: Where a chunk record's ``uncompressed_crc`` is, from the record's start: opcode (1), length (8),
+#: message_start_time, message_end_time, uncompressed_size (8 each).
+MCAP_CHUNK_CRC_OFFSET = 1 + 8 + 8 + 8 + 8
+_CRC = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+
+
+class McapCrcWriter(McapWriter):
+    """rosbags' MCAP writer whose chunks carry their CRC-32 (of the uncompressed records).
+
+    rosbags' ``close_chunk`` writes the chunk with CRC 0 and keeps its chunk index (whose third
+    u64 is the chunk's file offset); the CRC is then written over the 0 in the file. One seek per
+    chunk (1 MiB): the cost is the CRC itself (``benchmarks/bench_bags.py``).
+    """
+
+    def close_chunk(self) -> None:
+        """Close the pending chunk as rosbags does, with the chunk's CRC in its record."""
+        crc = crc32(self.chunk.bio.getbuffer())
+        super().close_chunk()
+        (start,) = _U64.unpack_from(self.chunks[-1].getbuffer(), 16)
+        end = self.bio.tell()
+        self.bio.seek(start + MCAP_CHUNK_CRC_OFFSET)
+        self.bio.write(_CRC.pack(crc))
+        self.bio.seek(end)
+
+
+_PLUGINS = {**Writer2.STORAGE_PLUGINS, StoragePlugin.MCAP: McapCrcWriter}
+
+
+class Ros2Writer(Writer2):
+    """rosbags' rosbag2 writer with :class:`McapCrcWriter` for MCAP storage (checksummed chunks)."""
+
+    STORAGE_PLUGINS = _PLUGINS
+
+
 class _StorageDir:
     """Stands in for the bag path rosbags' storage plugins get: they create ``path / f"{path.name}.<ext>"``,
     and this makes that ``bagdir / f"{stem}.<ext>"``."""
@@ -118,7 +159,7 @@ class _StorageDir:
         return self.bagdir / other
 
 
-class Ros2FileWriter(Writer2):
+class Ros2FileWriter(Ros2Writer):
     """rosbags' rosbag2 writer for one storage file ``<stem>.<ext>`` in the bag directory ``bagdir``.
 
     The directory may exist and hold other files of the same bag. rosbags' ``metadata.yaml`` for

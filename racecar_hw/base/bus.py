@@ -95,6 +95,11 @@ class Bus:
         """Name the event loop that owns this bus, for :meth:`publish_threadsafe`."""
         self._loop = loop
 
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop | None:
+        """The event loop that owns this bus (None before :meth:`bind_loop`)."""
+        return self._loop
+
     def publish_threadsafe(self, topic: str, msg: Message) -> None:
         """Publish from another thread: the message is delivered in the bus's loop."""
         if self._loop is None:

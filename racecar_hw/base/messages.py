@@ -525,6 +525,38 @@ class DiagnosticArray(Message):
     status: list[DiagnosticStatus] = field(default_factory=list)
 
 
+# --- rcl_interfaces: the node's log (/rosout) ---------------------------------------------------
+
+
+@dataclass
+class Log(Message):
+    """rcl_interfaces/Log: one log record of a node, as ROS 2 nodes publish on ``/rosout``.
+
+    ``level`` uses ROS's values, which equal Python's: DEBUG 10, INFO 20, WARN 30, ERROR 40, FATAL 50;
+    ``name`` is the logger (``<node>.<module>``), ``file``/``function``/``line`` where it was logged.
+    """
+
+    ROS_TYPE: ClassVar[str] = "rcl_interfaces/msg/Log"
+    MSGDEF: ClassVar[str] = (
+        "byte DEBUG=10\nbyte INFO=20\nbyte WARN=30\nbyte ERROR=40\nbyte FATAL=50\n"
+        "builtin_interfaces/Time stamp\nuint8 level\nstring name\nstring msg\nstring file\n"
+        "string function\nuint32 line\n"
+    )
+    DEBUG: ClassVar[int] = 10
+    INFO: ClassVar[int] = 20
+    WARN: ClassVar[int] = 30
+    ERROR: ClassVar[int] = 40
+    FATAL: ClassVar[int] = 50
+
+    stamp: Time = field(default_factory=Time)
+    level: int = 0
+    name: str = ""
+    msg: str = ""
+    file: str = ""
+    function: str = ""
+    line: int = 0
+
+
 # --- racecar_msgs: the seeds' scan summaries --------------------------------------------------
 
 

@@ -42,4 +42,6 @@ def cmd_recover(args: argparse.Namespace) -> int:
         print(f"{result.path} is complete ({result.messages} messages): nothing to recover")
     else:
         print(f"recovered {result.messages} messages into {result.path}")
+    for bad in result.bad_chunks:
+        print(f"left out (damaged): {bad}")
     return 0

@@ -8,7 +8,8 @@ import sys
 
 from racecar_hw.config import describe_config, dump_config, load_config
 from racecar_hw.daemon import Daemon
-from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
+from racecar_hw.net.zenoh_logins import install_for
+from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 
 
@@ -53,6 +54,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
+    install_for(config.zenoh)  # before the panel: it takes Python's standard output as it is then
     status = (StatusPanel(refresh_hz=config.status.refresh_hz)
               if config.status.enabled and not args.no_status else None)
     daemon = Daemon(config, status=status)
@@ -64,11 +66,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,
                      noted: StopSignals | None = None) -> int:
-    """Run ``daemon`` until SIGINT, SIGTERM (or one ``noted`` before the loop ran) or ``stop`` is set."""
+    """Run ``daemon`` until SIGINT, SIGTERM (or one ``noted`` before the loop ran) or ``stop`` is set.
+    SIGUSR1 (``systemctl reload``) restarts the MAVLink link's signing state."""
     event = stop if stop is not None else asyncio.Event()
-    remove = add_stop_handlers(asyncio.get_running_loop(), lambda _sig: event.set(), noted=noted)
+    loop = asyncio.get_running_loop()
+    remove = add_stop_handlers(loop, lambda _sig: event.set(), noted=noted)
+    remove_restart = add_restart_signing_handler(loop, daemon.restart_mavlink_signing)
     try:
         await daemon.run(event)
     finally:
+        remove_restart()
         remove()
     return 0

@@ -13,6 +13,7 @@ from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.signals import StopSignals
 from racecar_hw.teleop.arming import ArmingChange
 
@@ -47,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_follow(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *(["arming.start_armed=true"] if args.arm else [])]
     config = load_config(args.config, overrides)
+    install_for(config.zenoh)  # before the progress bar takes Python's standard output
     topics = {inp.name: inp.topic for inp in config.mux.inputs}
     if args.input not in topics:
         raise ConfigError("--input", f"no mux input {args.input!r}; inputs: " + ", ".join(topics))

@@ -10,9 +10,12 @@ import signal
 from pathlib import Path
 from typing import Any
 
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.commands.daemon import add_config_options
+from racecar_hw.config import load_config
+from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.interrupts import INTERRUPTED
-from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
+from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.sim.loopback import Loopback, SimResult, write_report
 from racecar_hw.sim.scenario import Scenario, load_scenario, scenario_names
@@ -77,6 +80,16 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
     return load_scenario(args.scenario, scenario_overrides)
 
 
+def _count_zenoh_logins(config_path: str | None, overrides: list[str]) -> None:
+    """Count failed Zenoh logins when the config's Zenoh listener authenticates (before the panel
+    takes Python's standard output); a config that does not load is the loopback's to report."""
+    try:
+        config = load_config(config_path, overrides)
+    except ConfigError:
+        return
+    install_for(config.zenoh)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     if args.list:
         for name in scenario_names():
@@ -84,10 +97,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return 0
     scenario = build_scenario(args)
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
-    status = None if args.no_status else StatusPanel(title=f"racecar-hw sim: {scenario.name}")
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
     if args.record:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
+    _count_zenoh_logins(args.config, overrides)
+    status = None if args.no_status else StatusPanel(title=f"racecar-hw sim: {scenario.name}")
     # --follow: the run lasts as long as the replay, unless a duration is given
     given = args.duration is not None or any(o.partition("=")[0].strip() == "duration_s"
                                              for o in args.scenario_overrides)
@@ -158,7 +172,13 @@ async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
         else:
             task.cancel()
 
+    def restart_signing() -> str:
+        if loopback.daemon is None:
+            return "the daemon is not running yet"
+        return loopback.daemon.restart_mavlink_signing()
+
     remove = add_stop_handlers(loop, on_signal, noted=stops)
+    remove_restart = add_restart_signing_handler(loop, restart_signing)
     try:
         return await task
     except asyncio.CancelledError:
@@ -166,4 +186,5 @@ async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
             return None
         raise
     finally:
+        remove_restart()
         remove()

@@ -63,6 +63,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pub.add_argument("values", nargs="?", default="{}", help="the message as YAML, e.g. '{data: true}'")
     pub.add_argument("--rate", type=float, default=0.0, metavar="HZ", help="repeat at this rate")
     pub.add_argument("--times", type=int, default=1, help="how many to send (0: until Ctrl-C; default 1)")
+    pub.add_argument("--ros-distro", default="jazzy", choices=rmw.ROS_DISTROS,
+                     help="the subscribers' rmw_zenoh: jazzy (Jazzy and later, RIHS01 hashes; default) "
+                          "or humble (TypeHashNotSupported); echo and hz read it from the graph")
     p.set_defaults(func=cmd_topic)
 
 
@@ -237,13 +240,14 @@ def _pub(session: Any, domain: int, args: argparse.Namespace) -> int:
     except (yaml.YAMLError, TypeError, ValueError) as err:
         raise TopicError(f"{args.values!r} is not a {args.type}: {err}") from None
     payload = ros2_types().serialize(msg)
+    type_hash = rmw.wire_type_hash(args.type, args.ros_distro)
     zid = str(session.zid())
     liveliness = session.liveliness()
     node = rmw.Entity(domain, zid, 0, 0, rmw.NODE, "", "", NODE)
     entity = rmw.Entity(domain, zid, 0, 1, rmw.PUBLISHER, "", "", NODE, args.topic, rmw.dds_type(args.type),
-                        rmw.type_hash(args.type), rmw.RmwQos(depth=10))
+                        type_hash, rmw.RmwQos(depth=10))
     tokens = [liveliness.declare_token(node.token()), liveliness.declare_token(entity.token())]
-    key = rmw.topic_key(domain, args.topic, args.type, rmw.type_hash(args.type))
+    key = rmw.topic_key(domain, args.topic, args.type, type_hash)
     publisher = session.declare_publisher(key)
     time.sleep(0.3)  # let subscribers' sessions learn of this publisher before the first put
     period = 1.0 / args.rate if args.rate > 0 else 0.1

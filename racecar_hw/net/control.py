@@ -14,6 +14,8 @@ import math
 from dataclasses import dataclass
 from typing import Protocol
 
+from mux.estop import Origin
+
 #: Safety colours, for the 3D scene and the page: free to drive, limited by the controller, held at 0.
 CLEAR, LIMITING, STOPPED = "clear", "limiting", "stopped"
 
@@ -62,6 +64,13 @@ class LiveState:
     lidar_scan_age_s: float | None
     lidar_rate_hz: float | None
     lidar_reconnects: int
+    #: who latched the e-stop and when, or how the last latch ended ("" when never engaged)
+    estop: str = ""
+    #: what the network surfaces refused: (surface, reason, total since start) of each kind
+    refused: tuple[tuple[str, str, int], ...] = ()
+    refused_recently: bool = False  #: anything refused in the last few seconds
+    control_ticks: int = 0              #: control loop ticks since the start
+    control_missed_ticks: int = 0       #: ticks the loop was too late for (a held-up machine)
 
     @property
     def safety_colour(self) -> str:
@@ -80,12 +89,13 @@ class CarControl(Protocol):
         """A copy of the car's state now."""
         ...
 
-    def engage_estop(self, who: str) -> str:
+    def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and send the brake now; returns what happened, for the requester."""
         ...
 
-    def release_estop(self, who: str) -> tuple[bool, str]:
-        """Release the latched e-stop: (released, why not or what happened)."""
+    def release_estop(self, origin: Origin) -> tuple[bool, str]:
+        """Release the latched e-stop if ``origin`` may (:mod:`mux.estop`): (released, why not or what
+        happened)."""
         ...
 
     def arm(self, who: str) -> tuple[bool, str]:

@@ -43,6 +43,7 @@ from foxglove import Capability, MessageSchema, Parameter, Schema, Service, Serv
 from foxglove.channels import LogChannel, SceneUpdateChannel
 from foxglove.messages import Log, LogLevel, Timestamp
 
+from mux.estop import Origin
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
@@ -50,12 +51,15 @@ from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Message, Twist, stamp_now
 from racecar_hw.base.params import param
 from racecar_hw.net.control import CarControl, LiveState
+from racecar_hw.net.gate import ConnectionLimits
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
 from racecar_hw.net.outbox import Outbox
+from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +121,14 @@ class FoxgloveParams:
                                  min=0.5, max=50.0)
     queue_size: int = param(1000, "messages waiting for the sender thread before the oldest are dropped",
                             min=10, max=100_000)
+    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
+                                     "not finished its request is closed, else the new one",
+                                 min=1, max=1000)
+    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
+                                  unit="s", min=0.5, max=60.0)
+    idle_timeout_s: float = param(60.0, "a connection on which nothing moves either way for this long is "
+                                        "closed (a viewer with no channel subscribed reconnects)",
+                                  unit="s", min=10.0, max=3600.0)
 
     def __post_init__(self) -> None:
         origins = []
@@ -131,6 +143,11 @@ class FoxgloveParams:
             raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
                                                 "foxglove.token (clients add ?token=... to the URL), or "
                                                 "keep host 127.0.0.1 and reach it over ssh -L")
+
+
+    def limits(self) -> ConnectionLimits:
+        """The relay's connection cap and timeouts."""
+        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
 
 
 def _is_origin(text: str) -> bool:
@@ -183,8 +200,11 @@ class FoxgloveServer:
 
     def __init__(self, bus: Bus, params: FoxgloveParams, control: CarControl, topics: list[Topic], *,
                  parameters: dict[str, Any] | None = None, teleop_input: str | None = None,
-                 wheelbase_m: float = 0.25, max_steering_rad: float = 0.34, name: str = "racecar-hw") -> None:
+                 wheelbase_m: float = 0.25, max_steering_rad: float = 0.34, name: str = "racecar-hw",
+                 refusals: Refusals | None = None) -> None:
         self.bus = bus
+        #: what the relay refused, counted per source and reason (surface "relay")
+        self.refusals = refusals if refusals is not None else Refusals()
         self.params = params
         self.control = control
         self._rows = topics  # read at start(): the simulator adds its rows after building the daemon
@@ -256,7 +276,8 @@ class FoxgloveServer:
             log.error("foxglove: cannot start the Foxglove server (%s); the Foxglove live view is off", err)
             return False
         self.relay = Relay(self.params.host, self.params.port, self.server.port, cert.cert_pem,
-                           token=self.params.token, allowed_origins=tuple(self.params.allowed_origins))
+                           token=self.params.token, allowed_origins=tuple(self.params.allowed_origins),
+                           limits=self.params.limits(), refusals=self.refusals)
         try:
             self.relay.start()
         except OSError as err:
@@ -412,12 +433,14 @@ class FoxgloveServer:
     # --- services -------------------------------------------------------------------------------
 
     def _services(self) -> list[Service]:
+        control = self.control
         actions: dict[str, tuple[str, Callable[[str], tuple[bool, str]]]] = {
             "estop": ("latch the mux e-stop: the car brakes and stays braked until release",
-                      lambda who: (True, self.control.engage_estop(who))),
-            "release": ("release the latched e-stop", self.control.release_estop),
-            "arm": ("arm the car", self.control.arm),
-            "disarm": ("disarm the car: every source is stopped", self.control.disarm),
+                      lambda who: (True, control.engage_estop(Origin("foxglove", who)))),
+            "release": ("release the latched e-stop",
+                        lambda who: control.release_estop(Origin("foxglove", who))),
+            "arm": ("arm the car", control.arm),
+            "disarm": ("disarm the car: every source is stopped", control.disarm),
         }
         schema = ServiceSchema(
             "std_srvs/srv/Trigger",
@@ -470,9 +493,6 @@ def decode_twist(data: bytes, encoding: str) -> Twist:
     return msg
 
 
-#: Parameters whose value a client never sees (the web page's token, the relay's).
-SECRET_WORDS = ("token", "password", "secret")
-
 
 def flatten_parameters(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """Dotted keys to parameter values: scalars as they are, anything else as JSON text, secrets hidden."""
@@ -480,7 +500,7 @@ def flatten_parameters(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]
     for key, value in tree.items():
         name = f"{prefix}{key}"
         if any(word in str(key).lower() for word in SECRET_WORDS):
-            out[name] = "(set, hidden)" if value else ""
+            out[name] = HIDDEN if value else ""
         elif isinstance(value, dict):
             out.update(flatten_parameters(value, name + "."))
         elif isinstance(value, (bool, int, float, str)):

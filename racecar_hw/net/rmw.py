@@ -22,6 +22,11 @@ ROS 2's Zenoh middleware (``rmw_zenoh_cpp``) puts every topic on Zenoh as follow
 * **QoS string**: ``R:D:H,depth:DLs,DLns:LSs,LSns:L,Ls,Lns``, each value empty when it equals
   rmw_zenoh's default (reliable, volatile, keep last, depth 42, infinite durations, automatic).
 * **GID**: XXH3-128 of the entity's liveliness token, low 64 bits first (``liveliness_utils.cpp``).
+* **Distributions**: rmw_zenoh's Humble releases (0.1.x) write :data:`HUMBLE_TYPE_HASH`
+  (``TypeHashNotSupported``) where later releases write the RIHS01 hash, in data keys and tokens
+  alike (:func:`wire_type_hash`); a Humble node and a Jazzy+ node never meet on a key. rmw_zenoh
+  0.10+ (Lyrical, Rolling) may append a 14th ``backends`` field to endpoint tokens. Jazzy releases
+  0.2.0-0.2.3 used an older attachment (string keys) that nothing here decodes: update them.
 
 Everything here is pure: strings and bytes in, strings, bytes and typed values out.
 """
@@ -50,6 +55,11 @@ KEEP_LAST, KEEP_ALL = 1, 2
 AUTOMATIC = 1
 #: ``RMW_DURATION_INFINITE``: a deadline, lifespan or lease that never expires
 INFINITE_S, INFINITE_NS = 9223372036, 854775807
+
+#: What rmw_zenoh's Humble releases put where later releases put the RIHS01 type hash.
+HUMBLE_TYPE_HASH = "TypeHashNotSupported"
+#: The peer distribution families (``zenoh.ros_distro``): Humble, or Jazzy and every later release.
+ROS_DISTROS = ("jazzy", "humble")
 
 NODE, PUBLISHER, SUBSCRIPTION, SERVICE, CLIENT = "NN", "MP", "MS", "SS", "SC"
 ENTITY_KINDS = (NODE, PUBLISHER, SUBSCRIPTION, SERVICE, CLIENT)
@@ -133,6 +143,15 @@ def demangle(part: str) -> str:
 def type_hash(ros_type_name: str) -> str:
     """The RIHS01 hash of a ROS 2 type, from the full type description in racecar-hw's typestore."""
     return ros2_types().digest(ros_type_name)
+
+
+def wire_type_hash(ros_type_name: str, distro: str = "jazzy") -> str:
+    """The type hash field of keys and tokens for peers of ``distro`` (one of :data:`ROS_DISTROS`)."""
+    if distro == "humble":
+        return HUMBLE_TYPE_HASH
+    if distro != "jazzy":
+        raise WireError(f"unknown ROS distribution family {distro!r}; one of {', '.join(ROS_DISTROS)}")
+    return type_hash(ros_type_name)
 
 
 def topic_key(domain_id: int, topic: str, ros_type_name: str, type_hash: str) -> str:
@@ -242,6 +261,8 @@ class Entity:
     dds_type: str = ""
     type_hash: str = ""
     qos: RmwQos | None = None
+    #: rmw_zenoh 0.10+'s optional 14th field of an endpoint token (buffer backends), kept as is
+    backends: str = ""
 
     @property
     def node(self) -> str:
@@ -262,6 +283,8 @@ class Entity:
                 raise WireError(f"{self.kind} entity without QoS")
             parts += [mangle(self.topic), mangle(self.dds_type), mangle(self.type_hash),
                       qos_to_string(self.qos)]
+            if self.backends:
+                parts.append(self.backends)
         return "/".join(parts)
 
     def gid(self) -> bytes:
@@ -296,10 +319,11 @@ def parse_token(token: str) -> Entity:
         if len(parts) != 9:
             raise WireError(f"{token!r}: a node token has 9 parts")
         return Entity(**common)
-    if len(parts) != 13:
-        raise WireError(f"{token!r}: an endpoint token has 13 parts")
+    if len(parts) not in (13, 14):
+        raise WireError(f"{token!r}: an endpoint token has 13 parts (14 with rmw_zenoh 0.10+'s backends)")
     return Entity(**common, topic=demangle(parts[9]), dds_type=demangle(parts[10]),
-                  type_hash=demangle(parts[11]), qos=qos_from_string(parts[12]))
+                  type_hash=demangle(parts[11]), qos=qos_from_string(parts[12]),
+                  backends=parts[13] if len(parts) == 14 else "")
 
 
 def liveliness_pattern(domain_id: int) -> str:
@@ -333,6 +357,16 @@ class Attachment:
         if length != GID_SIZE:
             raise WireError(f"attachment GID length {length}, expected {GID_SIZE}")
         return cls(seq, stamp, gid)
+
+
+def is_old_attachment(data: bytes | bytearray | memoryview) -> bool:
+    """Whether an attachment is the string-keyed map of rmw_zenoh before 0.2.4 (Jazzy 0.2.0-0.2.3).
+
+    Those releases attached a Zenoh bytes map with the keys ``sequence_number``, ``source_timestamp``
+    and ``source_gid``; nothing here decodes it (update such a node), but it is told apart from noise.
+    """
+    raw = bytes(data)
+    return b"sequence_number" in raw and b"source_gid" in raw
 
 
 def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:

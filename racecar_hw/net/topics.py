@@ -30,6 +30,7 @@ from racecar_hw.base.messages import (
     Float64,
     Imu,
     LaserScan,
+    Log,
     Message,
     Odometry,
     OpenSpace,
@@ -84,6 +85,11 @@ SENSOR_DATA = Qos(Reliability.BEST_EFFORT, Durability.VOLATILE, 5)
 LATCHED = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1)
 #: rclcpp's default QoS with depth 10.
 DEFAULT = Qos()
+#: rcl's ``/rosout`` publisher (``rcl_qos_profile_rosout_default``, less its 10 s lifespan): a late
+#: rqt_console still gets the recent records, and a TRANSIENT_LOCAL reader matches it over DDS.
+ROSOUT = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1000)
+#: The bus topic (and ROS name) of the daemon's log (:mod:`racecar_hw.net.rosout`).
+ROSOUT_TOPIC = "/rosout"
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,8 @@ class Topic:
     what: str = ""
     #: the ROS 2 name offered outside; the bus topic unless a profile or remap renames it
     ros: str = ""
+    #: the ROS name is used as is, without the interface's namespace (``/rosout``, as rcl does)
+    absolute: bool = False
 
     def __post_init__(self) -> None:
         if not self.ros:
@@ -107,9 +115,10 @@ class Topic:
 def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/scan",
                 scan_range_topic: str | None = "/scan_range",
                 open_space_topic: str | None = "/open_space",
-                cmd_vel_topic: str | None = None) -> list[Topic]:
+                cmd_vel_topic: str | None = None, rosout: bool = False) -> list[Topic]:
     """The default rows for a daemon with these mux and safety parameters.
 
+    ``rosout`` adds the daemon's log on ``/rosout`` (rcl_interfaces/msg/Log, outside any namespace).
     ``scan_topic`` is the lidar's topic; the scan summary topics are left out when ``None`` (their
     publisher is off). ``cmd_vel_topic`` adds an ``IN`` row of geometry_msgs/Twist (Nav2's velocity
     commands), which :mod:`racecar_hw.sources.cmd_vel` turns into the mux input ``cmd_vel``.
@@ -132,6 +141,9 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
         rows.append(Topic(scan_range_topic, ScanRange, out, DEFAULT, "closest and farthest return"))
     if open_space_topic:
         rows.append(Topic(open_space_topic, OpenSpace, out, DEFAULT, "longest range and its angle"))
+    if rosout:
+        rows.append(Topic(ROSOUT_TOPIC, Log, out, ROSOUT, "the daemon's log (rosout.level and above)",
+                          absolute=True))
     into = Direction.IN
     for source in mux.inputs:
         rows.append(Topic(source.topic, AckermannDriveStamped, into, DEFAULT,

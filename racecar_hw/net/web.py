@@ -15,7 +15,11 @@ Endpoints (each needs the token when one is set: ``?token=`` or ``Authorization:
 Security: loopback needs no token unless one is configured; any other bind needs one (configured, or
 generated and printed at start), and requests without it get 401. WebSocket upgrades and POSTs from a
 browser must come from the page's own origin (403 otherwise); without a token the ``Host`` must name
-this machine (DNS rebinding).
+this machine (DNS rebinding). Refused requests are counted per source and reason in the daemon's
+:class:`~racecar_hw.runtime.refusals.Refusals` (surface ``"web"``), which logs summaries, not a line
+each. Every connection passes a :class:`~racecar_hw.net.gate.ConnectionGate` first: at most
+``max_connections`` at once, the request head within ``head_timeout_s``, closed after
+``idle_timeout_s`` with nothing received.
 
 The push work runs right after a scan's motor command is out (:meth:`WebServer.control_idle`), in the
 gap before the next scan, and only while a page is open; a client that cannot keep up skips frames.
@@ -36,6 +40,7 @@ from typing import Any
 import numpy as np
 from aiohttp import WSMsgType, web
 
+from mux.estop import Origin
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.loopback import is_loopback
@@ -43,7 +48,9 @@ from racecar_hw.base.messages import LaserScan
 from racecar_hw.base.params import param
 from racecar_hw.net.auth import bearer, local_host_header, new_token, same_origin, token_ok
 from racecar_hw.net.control import CarControl, LiveState
+from racecar_hw.net.gate import ConnectionGate, ConnectionLimits
 from racecar_hw.net.scene import band_polygon, body_corners, swept_band
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -62,14 +69,28 @@ class WebParams:
     scan_points: int = param(360, "scan points per update at most (every n-th beam)", min=10, max=2000)
     max_range_m: float = param(8.0, "scan points farther than this are left out", unit="m",
                                min=1.0, max=60.0)
+    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
+                                     "not finished its request is closed, else the new one",
+                                 min=1, max=1000)
+    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
+                                  unit="s", min=0.5, max=60.0)
+    idle_timeout_s: float = param(60.0, "a connection that sends nothing for this long is closed (an open "
+                                        "page answers the server's ping every 5 s)",
+                                  unit="s", min=10.0, max=3600.0)
+
+    def limits(self) -> ConnectionLimits:
+        """The connection cap and timeouts."""
+        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
 
 
 class WebServer:
     """The status page on ``host:port``; :meth:`start` and :meth:`stop` from the event loop."""
 
     def __init__(self, bus: Bus, params: WebParams, control: CarControl, *,
-                 scan_topic: str = "/scan") -> None:
+                 scan_topic: str = "/scan", refusals: Refusals | None = None) -> None:
         self.bus = bus
+        #: refused requests and closed connections, counted per source and reason (surface "web")
+        self.refusals = refusals if refusals is not None else Refusals()
         self.params = params
         self.control = control
         self.scan_topic = scan_topic
@@ -80,6 +101,8 @@ class WebServer:
         self.pushes = 0
         self.refused = 0
         self._runner: web.AppRunner | None = None
+        self._server: asyncio.Server | None = None
+        self.gate = ConnectionGate("web", params.limits(), self.refusals)
         self._clients: dict[web.WebSocketResponse, asyncio.Task[Any] | None] = {}
         self._idle = asyncio.Event()
         self._next_push_ns = 0
@@ -100,19 +123,20 @@ class WebServer:
 
     async def start(self) -> bool:
         """Listen; False (logged) when the address cannot be had."""
-        runner = web.AppRunner(self.app(), handle_signals=False, access_log=None)
+        # aiohttp serves the requests; the listening socket is ours, so that every connection passes
+        # the gate first (a cap and a head timeout, which aiohttp does not have: see net.gate)
+        runner = web.AppRunner(self.app(), handle_signals=False, access_log=None,
+                               keepalive_timeout=self.params.idle_timeout_s)
         await runner.setup()
-        site = web.TCPSite(runner, self.params.host, self.params.port)
         try:
-            await site.start()
+            server = await self.gate.serve(runner.server, self.params.host, self.params.port)
         except OSError as err:
             log.error("web: cannot listen on %s:%d (%s); the status page is off", self.params.host,
                       self.params.port, err)
             await runner.cleanup()
             return False
-        self._runner = runner
-        server = site._server  # noqa: SLF001 - the port bound for port 0
-        self.port = server.sockets[0].getsockname()[1] if server is not None else self.params.port
+        self._runner, self._server = runner, server
+        self.port = server.sockets[0].getsockname()[1] if server.sockets else self.params.port
         self._push_task = asyncio.get_running_loop().create_task(self._push_loop(), name="web-push")
         url = f"http://{self.params.host}:{self.port}/"
         if self.token and not self.params.token:
@@ -133,9 +157,13 @@ class WebServer:
             with contextlib.suppress(Exception):
                 await ws.close()
         self._clients.clear()
+        self.gate.close()
+        server, self._server = self._server, None
+        if server is not None:
+            server.close()
         runner, self._runner = self._runner, None
         if runner is not None:
-            await runner.cleanup()
+            await runner.cleanup()  # closes the connections aiohttp serves
 
     def control_idle(self) -> None:
         """The control path is idle until the next scan: push now if a push is due."""
@@ -149,18 +177,18 @@ class WebServer:
         given = request.query.get("token") or bearer(request.headers.get("Authorization"))
         if not token_ok(given, self.token):
             self.refused += 1
-            log.warning("web: refused %s %s from %s without the token", request.method, request.path,
-                        request.remote)
-            return web.Response(status=401, text="401: this page needs its token: open the URL printed "
-                                                 "at start (…/?token=…)\n")
+            self.refusals.note("web", request.remote or "unknown", "request without the token (401)")
+            return _closing(web.Response(status=401, text="401: this page needs its token: open the URL "
+                                                          "printed at start (…/?token=…)\n"))
         if not self.token and not local_host_header(request.host):
-            return web.Response(status=403, text="403: open the page as localhost or 127.0.0.1\n")
+            self.refused += 1
+            self.refusals.note("web", request.remote or "unknown", "foreign Host header (403)")
+            return _closing(web.Response(status=403, text="403: open the page as localhost or 127.0.0.1\n"))
         browser_write = request.method == "POST" or request.headers.get("Upgrade", "").lower() == "websocket"
         if browser_write and not same_origin(request.headers.get("Origin"), request.host):
             self.refused += 1
-            log.warning("web: refused %s %s from origin %s", request.method, request.path,
-                        request.headers.get("Origin"))
-            return web.Response(status=403, text="403: cross-origin request refused\n")
+            self.refusals.note("web", request.remote or "unknown", "cross-origin request (403)")
+            return _closing(web.Response(status=403, text="403: cross-origin request refused\n"))
         return await handler(request)
 
     # --- handlers -------------------------------------------------------------------------------
@@ -175,12 +203,12 @@ class WebServer:
 
     async def _estop(self, request: web.Request) -> web.Response:
         # straight to the mux, in this loop: the brake command is written before we answer
-        message = self.control.engage_estop(f"web page ({request.remote})")
+        message = self.control.engage_estop(Origin("web", f"web page ({request.remote})"))
         return web.json_response({"ok": True, "message": message,
                                   "state": self.payload(self.control.live_state(), scan=False)})
 
     async def _release(self, request: web.Request) -> web.Response:
-        ok, message = self.control.release_estop(f"web page ({request.remote})")
+        ok, message = self.control.release_estop(Origin("web", f"web page ({request.remote})"))
         return web.json_response({"ok": ok, "message": message,
                                   "state": self.payload(self.control.live_state(), scan=False)},
                                  status=200 if ok else 409)
@@ -241,7 +269,7 @@ class WebServer:
             "speed": {"commanded": _f(s.commanded_mps), "output": _f(s.output_mps),
                       "allowed": _f(s.allowed_mps), "measured": _f(s.measured_mps)},
             "steering": _f(s.steering_rad), "battery_v": _f(s.battery_v), "source": s.source,
-            "mux": {"state": s.mux_state, "reason": s.mux_reason}, "armed": s.armed,
+            "mux": {"state": s.mux_state, "reason": s.mux_reason, "estop": s.estop}, "armed": s.armed,
             "safety": {"state": s.safety_colour, "reason": s.safety_reason, "intervening": s.intervening,
                        "free_distance": _f(s.free_distance_m)},
             "links": {"lidar": {"age_s": _f(s.lidar_scan_age_s), "rate_hz": _f(s.lidar_rate_hz),
@@ -249,6 +277,10 @@ class WebServer:
                       "vesc": {"connected": s.vesc_connected, "reconnects": s.vesc_reconnects,
                                "crc_errors": s.vesc_crc_errors}},
             "obstacle": list(s.obstacle) if s.obstacle is not None else None,
+            "refused": {"recent": s.refused_recently,
+                        "counts": [{"surface": surface, "reason": reason, "count": n}
+                                   for surface, reason, n in s.refused]},
+            "control": {"ticks": s.control_ticks, "missed_ticks": s.control_missed_ticks},
         }
         if scan:
             shape = self.control.shape
@@ -272,6 +304,12 @@ class WebServer:
         r, a = r[ok], a[ok] + lyaw
         xy = np.column_stack([lx + r * np.cos(a), ly + r * np.sin(a)])
         return np.round(xy, 2).ravel().tolist()
+
+
+def _closing(response: web.Response) -> web.Response:
+    """``response``, and the connection closes after it: a refused client keeps no connection slot."""
+    response.force_close()
+    return response
 
 
 def _forget(task: asyncio.Task[Any]) -> None:

@@ -17,8 +17,20 @@ A thin I/O shell around the codec, with one Zenoh session:
   sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
   decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
   bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
-* **Graph.** A liveliness token for the node and one per publisher and subscriber, so
-  ``ros2 node list`` and ``ros2 topic list`` on a machine running rmw_zenoh show the car.
+  The e-stop and its release (``estop_topics``) go to ``on_estop(topic, msg, ORIGIN)`` instead,
+  so the mux knows they came from a network session (only an operator releases what an operator
+  latched: :mod:`mux.estop`).
+* **Services** (the read-only parameter services, :mod:`racecar_hw.net.parameters`). One Zenoh
+  queryable per service, on rmw_zenoh's service key (``<domain>/<node>/<service>/<srv DDS type>/
+  <hash>``) and declared complete, as ``rmw_service_data.cpp`` does. A query carries the CDR request
+  and the client's 33-byte attachment; the answer, computed in Zenoh's thread (a pure function of
+  an immutable configuration, cached per request bytes) goes back as a reply on the same key with an
+  attachment of the request's sequence number, a fresh timestamp and the client's GID, which is
+  how rmw_zenoh's client matches it to its request.
+* **Graph.** A liveliness token for the node and one per publisher, subscriber and service server
+  (``SS``), so ``ros2 node list``, ``ros2 topic list`` and ``ros2 node info`` on a machine running
+  rmw_zenoh show the car. ``zenoh.ros_distro: humble`` writes ``TypeHashNotSupported`` where
+  Jazzy and later write the RIHS01 hash (keys and tokens): the two never meet on a key.
 
 Nothing here runs on the control path except the enqueue; a put that blocks (10 ms was seen with a
 slow subscriber) holds up only the publisher thread.
@@ -42,12 +54,27 @@ from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
 from racecar_hw.net.outbox import Outbox
+from racecar_hw.net.parameters import (
+    PARAMETER_SERVICES,
+    SERVICE_QOS,
+    CdrAnswers,
+    ParameterService,
+    ServiceSpec,
+    service_name,
+)
 from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
 from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
+
+#: What a sample from a Jazzy node on rmw_zenoh 0.2.0-0.2.3 gets in the log.
+OLD_ATTACHMENT_HINT = ("the sender's rmw_zenoh uses the old string-keyed attachment of Jazzy's 0.2.0-0.2.3 "
+                       "releases: update rmw_zenoh on that machine "
+                       "(sudo apt upgrade ros-jazzy-rmw-zenoh-cpp)")
+#: How the bridge names itself as the origin of the e-stop messages it hands over.
+ORIGIN = "zenoh"
 
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
@@ -63,7 +90,10 @@ class BridgeStats:
     received: int = 0        #: incoming samples handed to the bus
     no_attachment: int = 0   #: incoming samples without rmw_zenoh's attachment (dropped)
     malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
+    old_attachment: int = 0  #: incoming samples with rmw_zenoh 0.2.0-0.2.3's string-keyed attachment
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
+    service_calls: int = 0   #: service requests answered
+    service_errors: int = 0  #: service requests refused (no attachment, malformed) or failed replies
 
 
 class _Out:
@@ -85,16 +115,23 @@ class ZenohBridge:
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
     the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
-    ``/tf``: remote navigation code waits for them); the rest go out in batches.
+    ``/tf``: remote navigation code waits for them); the rest go out in batches. Messages on
+    ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
+    (without it they go on the bus, where the mux takes them as from a local publisher).
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
-                 urgent: frozenset[str] | set[str] = frozenset()) -> None:
+                 urgent: frozenset[str] | set[str] = frozenset(),
+                 on_estop: Callable[[str, Message, str], None] | None = None,
+                 estop_topics: frozenset[str] | set[str] = frozenset(),
+                 parameters: ParameterService | None = None) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
         self.on_input = on_input
+        self.on_estop = on_estop
+        self.estop_topics = frozenset(estop_topics)
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
@@ -111,17 +148,34 @@ class ZenohBridge:
         self._bus_subs: list[Subscription] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._next_entity = 1
+        #: answers the parameter services (None: no services)
+        self.parameters = parameters
+        self._answers = CdrAnswers(parameters) if parameters is not None else None
+        self._queryables: list[Any] = []
 
     # --- names --------------------------------------------------------------------------------
 
     def ros_name(self, row: Topic) -> str:
-        """The topic's full ROS name: the namespace, then the row's ROS name."""
-        return self.namespace + row.ros
+        """The topic's full ROS name: the namespace (unless the row is absolute), then the row's ROS name."""
+        return row.ros if row.absolute else self.namespace + row.ros
 
     def key(self, row: Topic) -> str:
         """The Zenoh key of a row's samples."""
         ros_type = row.msgtype.ROS_TYPE
-        return rmw.topic_key(self.domain_id, self.ros_name(row), ros_type, rmw.type_hash(ros_type))
+        return rmw.topic_key(self.domain_id, self.ros_name(row), ros_type, self.type_hash(ros_type))
+
+    def type_hash(self, ros_type: str) -> str:
+        """The type hash field of keys and tokens for the peers' distribution (``zenoh.ros_distro``)."""
+        return rmw.wire_type_hash(ros_type, self.params.ros_distro)
+
+    def service_key(self, spec: ServiceSpec) -> str:
+        """The Zenoh key of one of the node's services (rmw_zenoh: as a topic, of the service type)."""
+        return rmw.topic_key(self.domain_id, self.service_name(spec), spec.srv_type,
+                             self.type_hash(spec.srv_type))
+
+    def service_name(self, spec: ServiceSpec) -> str:
+        """The full ROS name of one of the node's services (``/<ns>/<node>/<service>``)."""
+        return service_name(self.namespace, self.params.node_name, spec.name)
 
     def _entity(self, kind: str, row: Topic | None = None) -> rmw.Entity:
         common = (self.domain_id, self.zid, 0)
@@ -131,7 +185,7 @@ class ZenohBridge:
         entity_id, self._next_entity = self._next_entity, self._next_entity + 1
         ros_type = row.msgtype.ROS_TYPE
         return rmw.Entity(*common, entity_id, kind, "", *node, self.ros_name(row), rmw.dds_type(ros_type),
-                          rmw.type_hash(ros_type), rmw.RmwQos.from_qos(row.qos))
+                          self.type_hash(ros_type), rmw.RmwQos.from_qos(row.qos))
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -160,6 +214,10 @@ class ZenohBridge:
                 self._declare_out(row, zenoh)
             else:
                 self._declare_in(row, zenoh)
+        if self._answers is not None:
+            self._answers.warm()
+            for spec in PARAMETER_SERVICES:
+                self._declare_service(spec)
         self.outbox.start()
         for out in self._outs:
             self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
@@ -167,8 +225,10 @@ class ZenohBridge:
             if out.latched and latest is not None:
                 self._enqueuer(out)(latest)
         log.info("zenoh bridge up: %s mode, session %s, domain %d, namespace %r, listen %s, "
-                 "connect %s; %d topics out, %d in", p.mode, self.zid, self.domain_id,
-                 self.namespace or "/", p.listen, p.connect, len(self._outs), len(self._subscribers))
+                 "connect %s; %d topics out, %d in, %d services; peers: rmw_zenoh %s", p.mode, self.zid,
+                 self.domain_id, self.namespace or "/", p.listen, p.connect, len(self._outs),
+                 len(self._subscribers), len(self._queryables),
+                 "Humble (TypeHashNotSupported)" if p.ros_distro == "humble" else "Jazzy and later")
 
     def _declare_out(self, row: Topic, zenoh: Any) -> None:
         reliable = row.qos.reliability is Reliability.RELIABLE
@@ -208,6 +268,16 @@ class ZenohBridge:
         token = self._entity(rmw.SUBSCRIPTION, row).token()
         self._tokens.append(self.session.liveliness().declare_token(token))
 
+    def _declare_service(self, spec: ServiceSpec) -> None:
+        key = self.service_key(spec)
+        self._queryables.append(self.session.declare_queryable(key, self._answerer(spec, key),
+                                                               complete=True))
+        entity_id, self._next_entity = self._next_entity, self._next_entity + 1
+        entity = rmw.Entity(self.domain_id, self.zid, 0, entity_id, rmw.SERVICE, "", self.namespace,
+                            self.params.node_name, self.service_name(spec), rmw.dds_type(spec.srv_type),
+                            self.type_hash(spec.srv_type), rmw.RmwQos.from_qos(SERVICE_QOS))
+        self._tokens.append(self.session.liveliness().declare_token(entity.token()))
+
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
         for sub in self._bus_subs:
@@ -217,13 +287,14 @@ class ZenohBridge:
         session, self.session = self.session, None
         if session is None:
             return
-        for entity in [*self._tokens, *self._subscribers, *(o.listener for o in self._outs if o.listener),
-                       *(o.publisher for o in self._outs)]:
+        for entity in [*self._tokens, *self._queryables, *self._subscribers,
+                       *(o.listener for o in self._outs if o.listener), *(o.publisher for o in self._outs)]:
             try:
                 entity.undeclare()
             except Exception:  # noqa: BLE001 - closing the session below undeclares the rest
                 pass
         self._tokens.clear()
+        self._queryables.clear()
         self._subscribers.clear()
         self._outs.clear()
         try:
@@ -232,8 +303,10 @@ class ZenohBridge:
             log.warning("zenoh session close failed: %r", err)
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
-                 "%d received, %d without attachment, %d malformed, %d non-finite", s.published,
-                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.non_finite)
+                 "%d received, %d without attachment, %d malformed, %d with an old rmw_zenoh's attachment, "
+                 "%d non-finite; %d service calls answered, %d refused", s.published,
+                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.old_attachment,
+                 s.non_finite, s.service_calls, s.service_errors)
 
     # --- out: bus thread, then the publisher thread -------------------------------------------
 
@@ -283,19 +356,20 @@ class ZenohBridge:
                 setattr(stats, name, getattr(stats, name) + 1)
                 n = getattr(stats, name)
             if n in (1, 10, 100) or n % 1000 == 0:
-                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros,
-                            name.replace("_", " "), n)
+                why = OLD_ATTACHMENT_HINT if name == "old_attachment" else name.replace("_", " ")
+                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros, why, n)
 
         def receive(sample: Any) -> None:
             attachment = sample.attachment
             if attachment is None:
                 count("no_attachment")
                 return
+            raw = attachment.to_bytes()
             try:
-                rmw.Attachment.decode(attachment.to_bytes())
+                rmw.Attachment.decode(raw)
                 msg = types.deserialize(sample.payload.to_bytes(), cls)
             except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
-                count("malformed")
+                count("old_attachment" if rmw.is_old_attachment(raw) else "malformed")
                 return
             if not all_finite(msg):
                 count("non_finite")
@@ -312,8 +386,49 @@ class ZenohBridge:
 
         return receive
 
+    # --- services: Zenoh's threads ------------------------------------------------------------
+
+    def _answerer(self, spec: ServiceSpec, key: str) -> Callable[[Any], None]:
+        stats, lock, answers = self.stats, self._lock, self._answers
+        assert answers is not None
+
+        def refuse(why: str) -> None:
+            with lock:
+                stats.service_errors += 1
+                n = stats.service_errors
+            if n in (1, 10, 100) or n % 1000 == 0:
+                log.warning("zenoh: refused a call of %s: %s (%d so far)", self.service_name(spec), why, n)
+
+        def answer(query: Any) -> None:
+            attachment, payload = query.attachment, query.payload
+            if spec.name.startswith("set_"):
+                log.info("zenoh: a client called %s: refused, the parameters are read-only",
+                         self.service_name(spec))
+            if attachment is None or payload is None:
+                refuse("no rmw_zenoh attachment" if attachment is None else "no request")
+                return
+            try:
+                request = rmw.Attachment.decode(attachment.to_bytes())
+                reply = answers.answer(spec.name, payload.to_bytes())
+            except Exception as err:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
+                refuse(f"malformed request ({type(err).__name__})")
+                return
+            try:
+                query.reply(key, reply, attachment=rmw.encode_attachment(
+                    request.sequence_number, wall_ns(), request.gid))
+            except Exception as err:  # noqa: BLE001 - the client went away: nothing to answer
+                refuse(f"reply failed ({err!r})")
+                return
+            with lock:
+                stats.service_calls += 1
+
+        return answer
+
     def _deliver(self, topic: str, msg: Message) -> None:
         if self.session is None:
+            return
+        if self.on_estop is not None and topic in self.estop_topics:
+            self.on_estop(topic, msg, ORIGIN)  # the e-stop and its release, with their origin
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:

@@ -26,6 +26,8 @@ from racecar_hw.base.params import param
 from racecar_hw.net.zenoh_security import check_credentials, check_pem, dictionary_users
 
 MODES = ("peer", "router", "client")
+#: ``zenoh.ros_distro``: the ROS 2 distribution family of the rmw_zenoh peers (rmw.ROS_DISTROS)
+ROS_DISTROS = ("jazzy", "humble")
 PROFILES = ("racecar", "f1tenth")
 DEFAULT_PORT = 7447
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
@@ -70,6 +72,11 @@ class ZenohParams:
     domain_id: int | None = param(None, "ROS domain id; none: ROS_DOMAIN_ID, else 0", min=0, max=232)
     namespace: str = param("", "ROS namespace of every topic and of the node, e.g. /car1")
     node_name: str = param("racecar_hw", "the ROS node name the car shows in ros2 node list")
+    ros_distro: str = param("jazzy", "the ROS 2 distribution of the rmw_zenoh nodes: jazzy (Jazzy, "
+                                      "Kilted, Lyrical, Rolling: RIHS01 type hashes in keys) or humble "
+                                      "(rmw_zenoh 0.1.x: TypeHashNotSupported); the two never meet on a "
+                                      "key. Jazzy's rmw_zenoh 0.2.0-0.2.3 cannot talk to the car: update it",
+                            choices=ROS_DISTROS)
     profile: str = param("racecar", "topic names: racecar (MIT/MuSHR ROS 1 names, as on the bus) or "
                                     "f1tenth (F1TENTH ROS 2 names: /drive, /teleop, /sensors/core)",
                          choices=PROFILES)
@@ -81,8 +88,17 @@ class ZenohParams:
     queue_size: int = param(64, "outgoing messages waiting for the publisher thread before the "
                                 "oldest is dropped", min=1, max=100000)
     multicast_scouting: bool = param(False, "find peers by UDP multicast (reaches the whole LAN)")
+    count_failed_logins: bool = param(True, "count failed logins (user/password, TLS) by source address "
+                                            "in /diagnostics, the status page and the log, read from "
+                                            "Zenoh's own log on standard output (racecar-hw run, sim "
+                                            "and follow, when a listen authenticates)")
     auth: ZenohAuthParams = field(default_factory=ZenohAuthParams, metadata={"doc": "user/password"})
     tls: ZenohTlsParams = field(default_factory=ZenohTlsParams, metadata={"doc": "TLS"})
+
+    def authenticates(self) -> bool:
+        """Whether a session must log in to reach this daemon's listeners (user/password, TLS)."""
+        return bool(self.auth.dictionary_file or self.tls.enable_mtls
+                    or any(e.startswith(("tls/", "quic/")) for e in self.listen))
 
     def validate(self, key: str = "zenoh") -> None:
         """Refuse bad endpoints, names and an unauthenticated non-loopback listen, naming the key."""

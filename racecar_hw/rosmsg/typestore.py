@@ -9,7 +9,11 @@ Two stores are used:
 * ROS 1: ``Stores.ROS1_NOETIC``, plus ``tf2_msgs/msg/TFMessage``, which that store lacks.
 
 Both get ackermann_msgs, vesc_msgs (the f1tenth/vesc ROS 2 ``VescState``) and racecar_msgs,
-registered from the ``MSGDEF`` of :data:`racecar_hw.base.messages.CUSTOM_TYPES`.
+registered from the ``MSGDEF`` of :data:`racecar_hw.base.messages.CUSTOM_TYPES`. The ROS 1 store also
+gets ``rcl_interfaces/msg/Log`` (the daemon's ``/rosout``); the ROS 2 store the request and response
+types of the parameter services (:mod:`racecar_hw.base.parameter_messages`), under rosidl's names
+(``rcl_interfaces/srv/ListParameters_Request``), and :meth:`BagTypes.digest` knows their service
+types' RIHS01 hashes.
 
 :meth:`BagTypes.serialize` packs our dataclasses directly (:mod:`racecar_hw.rosmsg.serde`); the
 conversion below is its reference and fallback, and serves reading. Conversion is generic over
@@ -24,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
+import sys
 import typing
 from collections.abc import Callable
 from typing import Any
@@ -34,7 +39,8 @@ from rosbags.typesys.store import Typestore
 
 from racecar_hw.base import messages
 from racecar_hw.base.errors import BagError
-from racecar_hw.base.messages import CUSTOM_TYPES, Message, TFMessage
+from racecar_hw.base.messages import CUSTOM_TYPES, Log, Message, TFMessage
+from racecar_hw.base.parameter_messages import PARAMETER_CLASSES, SERVICE_MESSAGE_TYPES, SERVICE_TYPE_HASHES
 from racecar_hw.rosmsg import serde
 
 ROS2_STORE = Stores.ROS2_HUMBLE
@@ -75,8 +81,14 @@ class BagTypes:
         add: dict[str, Any] = {}
         if ros_version == 1:
             add.update(get_types_from_msg(TFMessage.MSGDEF, TFMessage.ROS_TYPE))
+            add.update(get_types_from_msg(Log.MSGDEF, Log.ROS_TYPE))
         for cls in CUSTOM_TYPES:
             add.update(get_types_from_msg(cls.MSGDEF, cls.ROS_TYPE))
+        if ros_version == 2:
+            for cls in SERVICE_MESSAGE_TYPES:
+                # rosbags files a pkg/srv/Name under pkg/srv/msg/Name: keep rosidl's name
+                (fields,) = get_types_from_msg(cls.MSGDEF, cls.ROS_TYPE).values()
+                add[cls.ROS_TYPE] = fields
         self.store.register(add)
         self._to: dict[str, ToRos] = {}
         self._from: dict[str, FromRos] = {}
@@ -95,7 +107,9 @@ class BagTypes:
         return self.store.generate_msgdef(typename, ros_version=2)[0]
 
     def digest(self, typename: str) -> str:
-        """The ROS 1 md5sum or the ROS 2 RIHS01 type hash."""
+        """The ROS 1 md5sum or the ROS 2 RIHS01 type hash (of a message, or a parameter service)."""
+        if self.ros_version == 2 and typename in SERVICE_TYPE_HASHES:
+            return SERVICE_TYPE_HASHES[typename]
         if self.ros_version == 1:
             return self.store.generate_msgdef(typename)[1]
         return self.store.hash_rihs01(typename)
@@ -145,7 +159,7 @@ class BagTypes:
             return self._fast[cls]
         fast: serde.Serializer | None = None
         if cls.ROS_TYPE in self.store.fielddefs:
-            classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
+            classes: dict[str, type] = {**MESSAGE_CLASSES, **PARAMETER_CLASSES, cls.ROS_TYPE: cls}
             try:
                 fast = serde.generate(self.store, classes, cls.ROS_TYPE, cdr=self.ros_version == 2)
             except serde.Unsupported:
@@ -241,7 +255,7 @@ def _zero(node: int, detail: Any) -> Any:
 
 @functools.cache
 def _from_converter(cls: type[Message]) -> FromRos:
-    hints = typing.get_type_hints(cls, vars(messages))
+    hints = typing.get_type_hints(cls, vars(sys.modules[cls.__module__]))
     steps: list[tuple[str, Callable[[Any], Any]]] = []
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
         steps.append((f.name, _field_from(hints[f.name])))

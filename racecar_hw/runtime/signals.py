@@ -12,13 +12,20 @@ until interrupted therefore install their handlers explicitly, here. Before that
 from __future__ import annotations
 
 import asyncio
+import logging
+import signal
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 from racecar_hw.runtime.interrupts import STOP_SIGNALS, StopSignals, interrupt_on_stop_signals
 
-__all__ = ["STOP_SIGNALS", "StopSignals", "add_stop_handlers", "interrupt_on_stop_signals",
-           "run_until_stop_signal"]
+__all__ = ["RESTART_SIGNING_SIGNAL", "STOP_SIGNALS", "StopSignals", "add_restart_signing_handler",
+           "add_stop_handlers", "interrupt_on_stop_signals", "run_until_stop_signal"]
+
+#: The signal that restarts the MAVLink link's signing state in a running daemon (``systemctl
+#: reload racecar-hw`` sends it; see docs/teleop.md). Not SIGHUP: a daemon run in an SSH session
+#: should still end when the session hangs up.
+RESTART_SIGNING_SIGNAL = signal.SIGUSR1
 
 T = TypeVar("T")
 
@@ -40,6 +47,19 @@ def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int],
             loop.remove_signal_handler(sig)
 
     return remove
+
+
+def add_restart_signing_handler(loop: asyncio.AbstractEventLoop,
+                                restart: Callable[[], str]) -> Callable[[], None]:
+    """``restart()`` (the daemon's :meth:`~racecar_hw.daemon.Daemon.restart_mavlink_signing`) on
+    :data:`RESTART_SIGNING_SIGNAL` in ``loop``, its answer logged; returns a function that removes
+    the handler."""
+
+    def on_signal() -> None:
+        logging.getLogger("racecar_hw.daemon").warning("%s: %s", RESTART_SIGNING_SIGNAL.name, restart())
+
+    loop.add_signal_handler(RESTART_SIGNING_SIGNAL, on_signal)
+    return lambda: loop.remove_signal_handler(RESTART_SIGNING_SIGNAL)
 
 
 def run_until_stop_signal(make: Callable[[], Coroutine[Any, Any, T]]) -> T | None:

@@ -26,7 +26,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from rich.console import Console, RenderableType
+from rich.console import Console, Group, RenderableType
 from rich.constrain import Constrain
 from rich.live import Live
 from rich.panel import Panel
@@ -47,9 +47,10 @@ class StatusSnapshot:
     Speed in m/s (rear axle, negative in reverse), steering in rad (positive left), battery in V,
     scan rate in Hz, the safety controller's state and the speed it allows (m/s), each device's
     link state (``up``, ``connecting 3 s``, ``lost since 14:02:31 (35 s)``) and counters, whether
-    the car is armed (None: no arming input configured), and, when running on fake hardware, the
-    simulator's time (s), the car's pose in the map frame (x m, y m, yaw rad) and its clearance to
-    the nearest wall or obstacle (m).
+    the car is armed (None: no arming input configured), what the network surfaces refused
+    (:meth:`racecar_hw.runtime.security_status.SecurityStatus.line`; None: nothing yet), and, when
+    running on fake hardware, the simulator's time (s), the car's pose in the map frame (x m, y m,
+    yaw rad) and its clearance to the nearest wall or obstacle (m).
     """
 
     speed_mps: float | None = None
@@ -68,6 +69,10 @@ class StatusSnapshot:
     lidar_link: str | None = None
     sim_time_s: float | None = None
     clearance_m: float | None = None
+    #: who latched the mux e-stop and when (``latched by web page (127.0.0.1) at 18:50:01.123``),
+    #: or who released the last latch; None: never engaged
+    estop: str | None = None
+    refused: str | None = None
 
 
 #: What a non-finite reading shows: a summary never says ``nan``.
@@ -119,6 +124,10 @@ def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
         ("lidar", _link(s.lidar_link, f"reconnects {s.lidar_reconnects}")),
         ("armed", _armed(s.armed)),
     ]
+    if s.estop is not None:
+        fields.append(("e-stop", s.estop))
+    if s.refused is not None:
+        fields.append(("refused", s.refused))
     if s.sim_time_s is not None:
         fields.append(("sim time", _num(s.sim_time_s, ".1f", "s")))
     if s.sim_pose is not None:
@@ -136,6 +145,8 @@ def plain_line(s: StatusSnapshot) -> str:
 def _style(label: str, s: StatusSnapshot) -> str:
     if label == "armed":
         return {True: "bold green", False: "bold red", None: "dim"}[s.armed]
+    if label == "e-stop":
+        return "bold red" if s.estop and s.estop.startswith("latched") else ""
     if label == "safety" and s.safety_state and s.safety_state.lower() not in ("ok", "clear", "free"):
         return "bold yellow"
     link = s.vesc_link if label == "vesc" else s.lidar_link if label == "lidar" else None
@@ -145,6 +156,8 @@ def _style(label: str, s: StatusSnapshot) -> str:
         return "yellow"
     if label == "lidar" and s.lidar_reconnects:
         return "yellow"
+    if label == "refused":
+        return "bold yellow" if "(recent)" in (s.refused or "") else "yellow"
     return ""
 
 
@@ -161,13 +174,28 @@ def render(s: StatusSnapshot, title: str = "racecar-hw") -> RenderableType:
     for _pair in range(2):
         grid.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
         grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # the two share what is left
-    cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)]
+    # the e-stop line (who latched it, when) is too long for a column: it gets a row of its own
+    wide = [(label, text) for label, text in status_fields(s) if label in _WIDE]
+    cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)
+             if label not in _WIDE]
     for i in range(0, len(cells), 2):
         row: list[RenderableType] = [cells[i][0], cells[i][1]]
         if i + 1 < len(cells):
             row += [cells[i + 1][0], cells[i + 1][1]]
         grid.add_row(*row)
-    return Constrain(Panel(grid, title=title, expand=True), PANEL_WIDTH)
+    body: RenderableType = grid
+    if wide:
+        lines = Table.grid(padding=(0, 2), expand=True)
+        lines.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
+        lines.add_column(no_wrap=True, overflow="ellipsis", ratio=1)
+        for label, text in wide:
+            lines.add_row(label, Text(text, style=_style(label, s)))
+        body = Group(grid, lines)
+    return Constrain(Panel(body, title=title, expand=True), PANEL_WIDTH)
+
+
+#: Fields shown on a row of their own, across the panel.
+_WIDE = ("e-stop",)
 
 
 class StatusPanel:

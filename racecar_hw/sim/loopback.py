@@ -22,6 +22,7 @@ from typing import Any
 
 from lidar_drivers.params import HOKUYO_USB_MODELS
 from lidar_drivers.registry import family, make_fake
+from mux.estop import DAEMON, Origin
 from racecar_hw.bags.follow import BagFollower, FollowerParams
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
@@ -46,6 +47,9 @@ from vesc.codec import servo_on_wire
 from vesc.fake import FakeVesc
 
 log = logging.getLogger(__name__)
+
+#: The origin of a scenario's e-stop and release actions: the daemon itself.
+SCENARIO = Origin(DAEMON, "scenario")
 
 #: How often the control path is sampled for the plot (s of sim time), and at most how many samples.
 SAMPLE_PERIOD_S = 0.05
@@ -383,9 +387,9 @@ class Loopback:
         elif action == "clear_obstacles":
             self.world.clear_obstacles()
         elif action == "estop":
-            self.daemon.mux.engage_estop("scenario")
+            self.daemon.mux.engage_estop("scenario", SCENARIO)
         elif action == "estop_release":
-            self.daemon.mux.release_estop()
+            self.daemon.mux.release_estop(SCENARIO)
         elif action == "disarm":  # the operator lets go: the deadman, BACK or a ground station
             self.daemon.arming.disarm("scenario", "the operator let go")
         elif action == "arm":

@@ -10,8 +10,10 @@ Layers, bottom up:
   SYN_REPORT is discarded and the pad falls back to "all buttons released, sticks centred" until
   the shell re-reads the device state (EVIOCGKEY / EVIOCGABS) or new events arrive.
 * :class:`GamepadProfile` and :class:`TeleopMapping` - which codes are the deadman (LB), autonomy
-  (RB), arm (START), disarm (BACK) buttons and the speed (left stick vertical) and steering (right
-  stick horizontal) axes of the Logitech F710 in X and D mode and the Sony DualShock 4.
+  (RB), arm (START), disarm (BACK), e-stop (B; CIRCLE on the DualShock) buttons and the speed
+  (left stick vertical) and steering (right stick horizontal) axes of the Logitech F710 in X and D
+  mode and the Sony DualShock 4. B latches the mux e-stop; the release combination is B and START
+  held together for ``estop_release_hold_s`` (2 s) with the speed stick centred.
 * :class:`GamepadTeleop` - the asyncio shell: finds the pad under ``/dev/input``, reads it
   non-blocking, publishes AckermannDriveStamped on the mux's teleop input at a fixed rate while
   the deadman is held, and the autonomy lock (std_msgs/Bool). Unplug and replug are handled.
@@ -279,6 +281,8 @@ class GamepadProfile:
     disarm: int
     name_hints: tuple[str, ...] = ()
     buttons: dict[int, str] = field(default_factory=dict)
+    #: latches the mux e-stop; held with ``arm`` for the release time, releases it (-1: none)
+    estop: int = -1
 
     def centres(self) -> dict[int, int]:
         """Resting raw values of the mapped axes."""
@@ -291,7 +295,7 @@ class GamepadProfile:
             return AxisSpec(axis.code, lo, hi, axis.invert) if hi > lo else axis
         return GamepadProfile(self.name, self.description, self.vendor, self.products,
                               adjust(self.speed), adjust(self.steering), self.deadman, self.autonomy,
-                              self.arm, self.disarm, self.name_hints, self.buttons)
+                              self.arm, self.disarm, self.name_hints, self.buttons, self.estop)
 
 
 F710_X = GamepadProfile(
@@ -305,6 +309,7 @@ F710_X = GamepadProfile(
     buttons={BTN_SOUTH: "A", BTN_EAST: "B", BTN_NORTH: "X", BTN_WEST: "Y", BTN_TL: "LB",
              BTN_TR: "RB", BTN_SELECT: "BACK", BTN_START: "START", BTN_MODE: "LOGITECH",
              BTN_THUMBL: "L3", BTN_THUMBR: "R3"},
+    estop=BTN_EAST,
 )
 
 F710_D = GamepadProfile(
@@ -318,6 +323,7 @@ F710_D = GamepadProfile(
     buttons={BTN_TRIGGER: "X", BTN_THUMB: "A", BTN_THUMB2: "B", BTN_TOP: "Y", BTN_TOP2: "LB",
              BTN_PINKIE: "RB", BTN_BASE: "LT", BTN_BASE2: "RT", BTN_BASE3: "BACK",
              BTN_BASE4: "START", BTN_BASE5: "L3", BTN_BASE6: "R3"},
+    estop=BTN_THUMB2,
 )
 
 PS4 = GamepadProfile(
@@ -331,6 +337,7 @@ PS4 = GamepadProfile(
     buttons={BTN_SOUTH: "CROSS", BTN_EAST: "CIRCLE", BTN_NORTH: "TRIANGLE", BTN_WEST: "SQUARE",
              BTN_TL: "L1", BTN_TR: "R1", BTN_TL2: "L2", BTN_TR2: "R2", BTN_SELECT: "SHARE",
              BTN_START: "OPTIONS", BTN_MODE: "PS", BTN_THUMBL: "L3", BTN_THUMBR: "R3"},
+    estop=BTN_EAST,
 )
 
 #: Every known profile by name.
@@ -553,6 +560,9 @@ class GamepadParams:
     autonomy_lock_timeout_s: float = param(0.5, "mux lock deadman timeout: a silent pad engages it",
                                            unit="s", min=0.05, max=10.0)
     require_centred_to_arm: bool = param(True, "START arms only with the speed stick centred")
+    estop_release_hold_s: float = param(
+        2.0, "B (CIRCLE) latches the mux e-stop; B and START held together this long, with the speed "
+             "stick centred, release it", unit="s", min=0.5, max=10.0)
     rescan_min_s: float = param(0.5, "first retry delay after the pad is not found or vanished",
                                 unit="s", min=0.01, max=60.0)
     rescan_max_s: float = param(5.0, "longest retry delay (the delay doubles up to this)",
@@ -592,11 +602,20 @@ class GamepadTeleop:
     """
 
     def __init__(self, bus: Bus, params: GamepadParams, arming: Arming, *,
-                 clock: Callable[[], int] = monotonic_ns) -> None:
+                 clock: Callable[[], int] = monotonic_ns,
+                 on_estop: Callable[[], object] | None = None,
+                 on_release: Callable[[], object] | None = None) -> None:
         self.bus = bus
         self.params = params
         self.arming = arming
         self._clock = clock
+        #: called when B is pressed (the daemon latches the mux e-stop as the gamepad operator)
+        self.on_estop = on_estop
+        #: called once when B and START have been held together for ``estop_release_hold_s``
+        self.on_release = on_release
+        #: since when (monotonic ns) B and START are held together; None: not both
+        self._combo_since: int | None = None
+        self._combo_done = False
         self._layout = _LAYOUTS[params.layout]
         self.profile: GamepadProfile | None = PROFILES.get(params.profile)
         self.mapping: TeleopMapping | None = None
@@ -647,6 +666,7 @@ class GamepadTeleop:
                 log.warning("gamepad START ignored: centre the speed stick before arming")
             else:
                 self.arming.arm("gamepad", "START on the gamepad")
+        self._estop_buttons(profile, frame)
         if before.deadman and not self.command.deadman:
             self._publish_drive(AckermannDrive())
         elif self.command.deadman and not before.deadman:
@@ -654,6 +674,32 @@ class GamepadTeleop:
             self._publish_current()
         if before.autonomy != self.command.autonomy:
             self._publish_lock()
+
+    def _estop_buttons(self, profile: GamepadProfile, frame: PadFrame) -> None:
+        """B latches the e-stop; B and START held together start the release combination's clock."""
+        if profile.estop < 0:
+            return
+        if profile.estop in frame.pressed and self.on_estop is not None:
+            self.on_estop()
+        if profile.estop in frame.buttons and profile.arm in frame.buttons:
+            if self._combo_since is None:
+                self._combo_since = self._clock()
+                self._combo_done = False
+        else:
+            self._combo_since = None
+
+    def _check_release(self) -> None:
+        """Release once the combination has been held long enough (with the speed stick centred)."""
+        since = self._combo_since
+        if since is None or self._combo_done:
+            return
+        if self._clock() - since < int(self.params.estop_release_hold_s * NS_PER_S):
+            return
+        self._combo_done = True
+        if self.command.speed != 0.0:
+            log.warning("gamepad: e-stop release refused: centre the speed stick first")
+        elif self.on_release is not None:
+            self.on_release()
 
     def _publish_current(self) -> None:
         self._publish_drive(AckermannDrive(steering_angle=self.command.steering, speed=self.command.speed))
@@ -673,6 +719,7 @@ class GamepadTeleop:
         """One fixed-rate step: the current command while the deadman is held, and the lock."""
         if not self.connected:
             return
+        self._check_release()
         if self.command.deadman:
             self._publish_current()
         self._publish_lock()

@@ -3,7 +3,9 @@
 Keys: UP / ``w`` speed + one step, DOWN / ``s`` speed - one step, LEFT / ``a`` steering one step to
 the left, RIGHT / ``d`` one step to the right, SPACE stop (speed 0, steering centred), ENTER keep
 going (refreshes the deadman without changing anything), ``q`` quit (Ctrl-C too when stdin is not
-a terminal; on a terminal Ctrl-C stays a signal, SIGINT, for the caller).
+a terminal; on a terminal Ctrl-C stays a signal, SIGINT, for the caller), ``e`` latch the mux
+e-stop, ``R`` (shift: a deliberate key) release it. The keyboard is an operator surface: its release
+may undo an e-stop latched anywhere (:mod:`mux.estop`); the daemon wires both to the mux.
 
 Deadman: by default commands flow only while keys keep arriving - each key keeps the car going
 for ``hold_s`` (0.6 s; terminal autorepeat refreshes it while a key is held down). When that time
@@ -51,6 +53,8 @@ class Key(enum.Enum):
     STOP = "stop"
     KEEP = "keep"
     QUIT = "quit"
+    ESTOP = "estop"
+    RELEASE = "release"
 
 
 _PLAIN = {
@@ -58,6 +62,7 @@ _PLAIN = {
     b"a": Key.LEFT, b"A": Key.LEFT, b"d": Key.RIGHT, b"D": Key.RIGHT,
     b" ": Key.STOP, b"\r": Key.KEEP, b"\n": Key.KEEP,
     b"q": Key.QUIT, b"Q": Key.QUIT, b"\x03": Key.QUIT, b"\x04": Key.QUIT,
+    b"e": Key.ESTOP, b"E": Key.ESTOP, b"R": Key.RELEASE,
 }
 _ARROWS = {ord("A"): Key.FASTER, ord("B"): Key.SLOWER, ord("C"): Key.RIGHT, ord("D"): Key.LEFT}
 _ESC = 0x1B
@@ -200,12 +205,17 @@ class KeyboardTeleop:
     """Reads keys from ``fd`` (stdin by default) and drives the mux's teleop input.
 
     ``async run()`` returns after ``q`` / Ctrl-C or end of input; it restores the terminal and
-    publishes one zero command on the way out.
+    publishes one zero command on the way out. ``e`` calls ``on_estop()`` and ``R``
+    ``on_release()`` (the daemon latches and releases the mux e-stop as the keyboard operator).
     """
 
     def __init__(self, bus: Bus, params: KeyboardParams | None = None, fd: int | None = None, *,
-                 clock: Callable[[], int] = monotonic_ns) -> None:
+                 clock: Callable[[], int] = monotonic_ns,
+                 on_estop: Callable[[], object] | None = None,
+                 on_release: Callable[[], object] | None = None) -> None:
         self.bus = bus
+        self.on_estop = on_estop
+        self.on_release = on_release
         self.params = params or KeyboardParams()
         self.fd = sys.stdin.fileno() if fd is None else fd
         self._clock = clock
@@ -225,7 +235,15 @@ class KeyboardTeleop:
         now = self._clock()
         keys = self.decoder.feed(data)
         for key in keys:
-            self.state.on_key(key, now)
+            if key is Key.ESTOP:
+                self.state.on_key(Key.STOP, now)
+                if self.on_estop is not None:
+                    self.on_estop()
+            elif key is Key.RELEASE:
+                if self.on_release is not None:
+                    self.on_release()
+            else:
+                self.state.on_key(key, now)
         if keys:
             self.tick(now)
 
@@ -283,6 +301,6 @@ class KeyboardTeleop:
 
 
 HELP = ("keyboard teleop: UP/w faster, DOWN/s slower, LEFT/a RIGHT/d steer, SPACE stop, "
-        "ENTER keep going, q quit")
+        "ENTER keep going, e e-stop, R (shift) release it, q quit")
 
 __all__ = ["HELP", "Key", "KeyDecoder", "KeyboardParams", "KeyboardState", "KeyboardTeleop"]

@@ -34,8 +34,23 @@ Security: a ground station outside loopback needs MAVLink 2 signing (``signing_k
 :class:`~racecar_hw.base.errors.ConfigError` otherwise). Datagrams are decoded by
 :class:`~racecar_hw.teleop.mavlink_rx.MavlinkRx`: one datagram at a time, signatures verified
 before any timestamp is recorded; with signing on, every unsigned or badly signed message is
-refused and counted. Datagrams from any other host than the ground station's are dropped and
-counted whatever the signing, and messages from other system ids are ignored and counted.
+refused and counted, and a signed frame stamped more than ``future_window_s`` ahead of our wall
+clock is refused without recording its timestamp. Datagrams from any other host than the ground
+station's are dropped and counted whatever the signing, and messages from other system ids are
+ignored and counted. Every refusal is also counted in a
+:class:`~racecar_hw.runtime.refusals.Refusals` (surface ``"mavlink"``, source ``host:port``),
+which logs rate-limited summaries. :meth:`MavlinkGcs.restart_signing` forgets every stream's
+timestamp, as a restart would (the daemon calls it on SIGUSR1, ``systemctl reload racecar-hw``).
+
+Floods: the ground station's address has a socket of its own: a second socket on the same port
+(``SO_REUSEPORT``), connected to the station, to which the kernel delivers the station's datagrams
+in preference to the shared socket, so a flood from other addresses fills only the shared socket's
+buffer and cannot push the station's heartbeats out. Each socket is drained each time it is
+readable (the station's first), until empty or for ``DRAIN_BUDGET_NS``; a socket that still has
+datagrams waiting after that rests for ``DRAIN_PAUSE_S`` (the kernel drops what overflows its
+buffer), so a flood takes about 5 % of the event loop at most and the control loop keeps its time.
+Forgeries are refused by :meth:`~racecar_hw.teleop.mavlink_rx.MavlinkRx.refuse_cheaply` before
+any parsing, and refusals are noted once per wake-up.
 """
 
 from __future__ import annotations
@@ -48,6 +63,8 @@ import ipaddress
 import logging
 import math
 import os
+import socket
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,6 +88,7 @@ from racecar_hw.base.messages import (
     stamp_now,
 )
 from racecar_hw.base.params import param
+from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.status import StatusSnapshot
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.teleop.arming import Arming, ArmingChange
@@ -110,6 +128,31 @@ OBSTACLE_BINS = 72
 UINT16_MAX = 65535
 INT16_MAX = 32767
 TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
+#: Refusals of one wake-up of the reader: (sender address, counter name) -> count.
+Tally = dict[tuple[tuple[Any, ...], str], int]
+#: MAVLink signing time units per second (10 µs each).
+SIGNING_UNITS_PER_S = 100_000
+#: The longest one wake-up drains a socket (ns) before the event loop's other work runs.
+DRAIN_BUDGET_NS = 500_000
+#: How long a socket that still had datagrams waiting after its budget rests (s): under a flood
+#: a socket takes at most budget / (budget + pause) of the loop, about 5 %.
+DRAIN_PAUSE_S = 0.010
+#: Datagrams read per batch (the station's address is handled first within a batch).
+DRAIN_BATCH = 64
+#: Largest datagram read (bytes); a MAVLink 2 frame is at most 280.
+RECV_SIZE = 65536
+#: The log and diagnostics' words for each refusal counter (Refusals reason).
+REFUSAL_REASONS = {
+    "foreign": "not the ground station's host",
+    "bad_data": "malformed datagram",
+    "unknown_ids": "unknown message id",
+    "mavlink1_refused": "MAVLink 1 frame",
+    "unsigned_refused": "unsigned frame",
+    "bad_signature": "bad signature",
+    "old_timestamp": "replayed or old signing timestamp",
+    "future_timestamp": "signing timestamp too far ahead of our clock",
+    "other_sender": "not the ground station's system id",
+}
 
 
 def parse_address(text: str, key: str) -> tuple[str, int]:
@@ -163,6 +206,12 @@ class MavlinkParams:
     signing_key_file: str = param("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes, or a "
                                       "passphrase (hashed with SHA-256 as MAVProxy does)")
     signing_link_id: int = param(0, "link id in our signatures", min=0, max=255)
+    future_window_s: float = param(60.0, "a signed frame stamped more than this far ahead of this "
+                                         "car's wall clock is refused and its stream's timestamp "
+                                         "is not advanced, so a station with a wrong clock cannot "
+                                         "lock the operator out (beyond MAVLink's signing rules); "
+                                         "0 = no limit (a car whose clock is not set)", unit="s",
+                                   min=0.0, max=86400.0)
     heartbeat_timeout_s: float = param(2.0, "ground station lost after this long without its "
                                             "heartbeat: its teleop input is dropped", unit="s",
                                        min=0.2, max=60.0)
@@ -344,18 +393,6 @@ _SEVERITY = {
 }
 
 
-class _Protocol(asyncio.DatagramProtocol):
-    def __init__(self, owner: MavlinkGcs) -> None:
-        self.owner = owner
-
-    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        self.owner.handle_datagram(data, addr)
-
-    def error_received(self, exc: Exception) -> None:
-        # Loopback reports "connection refused" while no ground station listens: not a fault.
-        self.owner.counters["send_errors"] += 1
-
-
 class MavlinkGcs:
     """The ground-station link on the bus. ``await run()`` until cancelled.
 
@@ -364,15 +401,23 @@ class MavlinkGcs:
     lidar reconnects) and its battery voltage is used while no VESC state has arrived.
 
     :attr:`counters` (for tests and end-to-end checks): ``rx``, ``tx``, ``foreign`` (datagrams from
-    another host), ``bad_data``, ``unsigned_refused``, ``bad_signature``, ``commands``, ``acks``,
-    ``manual_inputs``, ``inputs_ignored`` (teleop outside MANUAL or without a fresh ground-station
-    heartbeat), ``gcs_timeouts``, ``teleop_published``, ``statustexts``, ``send_errors``.
+    another host), ``bad_data``, ``unsigned_refused``, ``bad_signature``, ``old_timestamp``,
+    ``future_timestamp``, ``commands``, ``acks``, ``manual_inputs``, ``inputs_ignored`` (teleop
+    outside MANUAL or without a fresh ground-station heartbeat), ``gcs_timeouts``,
+    ``teleop_published``, ``statustexts``, ``send_errors``, ``datagrams`` (read from the sockets),
+    ``station_datagrams`` (of those, read from the station's own socket), ``drain_rests`` (a socket
+    still had datagrams waiting after its budget: a flood), ``signing_restarts``.
+    :attr:`heartbeat_gap_max_ns`: the longest time between two heartbeats of a connected station.
+
+    ``refusals``: where refused input is counted and logged (the daemon's; a private one if None).
     """
 
     def __init__(self, bus: Bus, params: MavlinkParams, arming: Arming,
                  status_source: Callable[[], StatusSnapshot | None] | None = None, *,
-                 clock: Callable[[], int] = monotonic_ns, wall_clock: Callable[[], int] = wall_ns) -> None:
+                 clock: Callable[[], int] = monotonic_ns, wall_clock: Callable[[], int] = wall_ns,
+                 refusals: Refusals | None = None) -> None:
         self.bus = bus
+        self.refusals = refusals if refusals is not None else Refusals()
         self.params = params
         self.arming = arming
         self.status_source = status_source
@@ -386,7 +431,8 @@ class MavlinkGcs:
             raise ConfigError("mavlink.signing_key_file", _NEEDS_SIGNING.format(params.gcs_address))
         # pymavlink only packs and signs what we send; received datagrams go through self.rx
         self.mav = mavlink.MAVLink(self, params.system_id, params.component_id)
-        self.rx = MavlinkRx(self.secret_key, signing_timestamp(wall_clock()))
+        self.rx = MavlinkRx(self.secret_key, signing_timestamp(wall_clock()),
+                            future_window=round(params.future_window_s * SIGNING_UNITS_PER_S))
         if self.secret_key is not None:
             self.mav.signing.secret_key = self.secret_key
             self.mav.signing.link_id = params.signing_link_id
@@ -395,17 +441,25 @@ class MavlinkGcs:
         self.mode = MODES[params.start_mode]
         self.counters: dict[str, int] = dict.fromkeys((
             "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "mavlink1_refused",
-            "unsigned_refused", "bad_signature", "old_timestamp", "commands", "acks", "manual_inputs",
-            "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts", "send_errors"), 0)
+            "unsigned_refused", "bad_signature", "old_timestamp", "future_timestamp", "commands", "acks",
+            "manual_inputs", "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts",
+            "send_errors", "datagrams", "station_datagrams", "drain_rests", "signing_restarts"), 0)
         self.gcs_system_id = params.gcs_system_id
         self.gcs_heartbeat_ns: int | None = None
+        self.heartbeat_gap_max_ns = 0
         self.gcs_alive = False
         self.manual: ManualInput | None = None
         self._rc: dict[int, tuple[int, int] | None] = {1: None, 3: None}  # channel: (µs, set at ns)
         self._publishing = False
         #: where telemetry goes: the configured address; with port 0, the first authenticated sender
         self._dest: tuple[str, int] | None = (self._gcs_host, self._gcs_port) if self._gcs_port else None
-        self._transport: asyncio.DatagramTransport | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._sock: socket.socket | None = None  #: everyone's datagrams (and telemetry out, as a fallback)
+        self._station_sock: socket.socket | None = None  #: connected to the station: its datagrams
+        self._dest_addr: tuple[Any, ...] | None = None  #: _dest as a socket address of our family
+        self._paused: dict[int, asyncio.TimerHandle] = {}  #: fd: the resumption of a resting socket
+        self._buf = bytearray(RECV_SIZE)
+        self._view = memoryview(self._buf)
         self._start_ns = clock()
         self._last_slow_ns: int | None = None
         self._last_fast_ns: int | None = None
@@ -435,9 +489,14 @@ class MavlinkGcs:
     @property
     def port(self) -> int:
         """The bound local UDP port (after :meth:`start`)."""
-        if self._transport is None:
+        if self._sock is None:
             raise RuntimeError("the MAVLink link is not started")
-        return int(self._transport.get_extra_info("sockname")[1])
+        return int(self._sock.getsockname()[1])
+
+    @property
+    def station_socket(self) -> bool:
+        """True while the ground station's address has its own connected socket."""
+        return self._station_sock is not None
 
     @property
     def mode_name(self) -> str:
@@ -452,34 +511,177 @@ class MavlinkGcs:
     # --- transport ---------------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Bind the UDP socket."""
+        """Bind the UDP socket, and the ground station's own socket when its port is known."""
         loop = asyncio.get_running_loop()
-        transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self),
-                                                           local_addr=self.params.bind)
-        self._transport = transport
+        host, port = self.params.bind
+        infos = await loop.getaddrinfo(host, port, type=socket.SOCK_DGRAM, flags=socket.AI_PASSIVE)
+        family, _, _, _, sockaddr = infos[0]
+        if sockaddr[1]:
+            _check_free(family, sockaddr)
+        sock = _udp_socket(family)
+        try:
+            sock.bind(sockaddr)
+            if self._dest is not None:
+                dest = await loop.getaddrinfo(*self._dest, family=family, type=socket.SOCK_DGRAM)
+                self._dest_addr = dest[0][4]
+        except BaseException:
+            sock.close()
+            raise
+        self._loop, self._sock = loop, sock
+        loop.add_reader(sock.fileno(), self._on_shared_readable)
+        if self._dest_addr is not None:
+            self._open_station_socket(self._dest_addr)
         log.info("MAVLink link on udp %s:%d to ground station %s%s", self.params.bind[0], self.port,
                  self.params.gcs_address, " (signed)" if self.secret_key else "")
 
-    def write(self, buf: bytes) -> None:
-        """pymavlink's file interface: send one packed message to the ground station."""
-        if self._transport is None or self._dest is None:
+    def _open_station_socket(self, addr: tuple[Any, ...]) -> None:
+        """A second socket on our port, connected to the station: the kernel hands it the
+        station's datagrams before the shared socket, so a flood cannot crowd them out. Without
+        it (no SO_REUSEPORT, a refused bind) the link works as before on the one socket."""
+        if self._sock is None or self._loop is None or self._station_sock is not None:
             return
-        self._transport.sendto(bytes(buf), self._dest)
+        sock = _udp_socket(self._sock.family)
+        try:
+            sock.bind(self._sock.getsockname())
+            sock.connect(addr)
+        except OSError as err:
+            sock.close()
+            log.warning("MAVLink: no socket of its own for the ground station (%s); its datagrams "
+                        "share the socket with everyone's", err)
+            return
+        self._station_sock = sock
+        self._loop.add_reader(sock.fileno(), self._on_station_readable)
+
+    def write(self, buf: bytes) -> None:
+        """pymavlink's file interface: send one packed message to the ground station (dropped and
+        counted as a send error when the socket cannot take it now: nothing waits)."""
+        try:
+            if self._station_sock is not None:
+                self._station_sock.send(buf)
+            elif self._sock is not None and self._dest_addr is not None:
+                self._sock.sendto(buf, self._dest_addr)
+            else:
+                return
+        except OSError:  # a full buffer, or "connection refused" while no station listens
+            self.counters["send_errors"] += 1
+            return
         self.counters["tx"] += 1
 
     def close(self) -> None:
-        """Unsubscribe and close the socket (safe twice)."""
+        """Unsubscribe and close the sockets (safe twice)."""
         for sub in self._subs:
             sub.close()
         self._subs.clear()
         self._remove_arming_callback()
-        if self._transport is not None:
-            self._transport.close()
-            self._transport = None
+        for handle in self._paused.values():
+            handle.cancel()
+        self._paused.clear()
+        for sock in (self._station_sock, self._sock):
+            if sock is not None:
+                if self._loop is not None and not self._loop.is_closed():
+                    self._loop.remove_reader(sock.fileno())
+                sock.close()
+        self._station_sock = self._sock = None
+
+    def restart_signing(self) -> int:
+        """Forget every signing stream's timestamp and take our signing time from the wall clock
+        again, as a restart of the daemon does: the way back should a wrongly stamped frame ever
+        have been accepted (see docs/teleop.md). Our outgoing timestamps restart from the wall
+        clock too. Returns how many streams were forgotten."""
+        now = signing_timestamp(self._wall_clock())
+        forgotten = self.rx.restart(now)
+        self.mav.signing.timestamp = now
+        self.counters["signing_restarts"] += 1
+        log.warning("MAVLink: signing state restarted (%d stream(s) forgotten, our time from the "
+                    "wall clock again)", forgotten)
+        if self.secret_key is not None:
+            self.statustext("Signing state restarted", mavlink.MAV_SEVERITY_NOTICE)
+        return forgotten
+
+    # --- receiving -----------------------------------------------------------------------------
+
+    def _on_station_readable(self) -> None:
+        self._read(self._station_sock)
+
+    def _on_shared_readable(self) -> None:
+        self._read(self._station_sock)  # the station's datagrams first, whichever socket woke us
+        self._read(self._sock)
+
+    def _read(self, sock: socket.socket | None) -> None:
+        """Drain ``sock`` until empty or the budget is spent (then it rests); its refusals go to
+        :attr:`refusals` once per wake-up."""
+        if sock is None or sock.fileno() in self._paused:
+            return
+        tally: Tally = {}
+        try:
+            emptied = self._drain_socket(sock, time.monotonic_ns() + DRAIN_BUDGET_NS, tally)
+        finally:
+            for (addr, counter), count in tally.items():
+                self._note(addr, counter, count)
+        if not emptied and self._loop is not None:
+            self.counters["drain_rests"] += 1
+            fd = sock.fileno()
+            self._loop.remove_reader(fd)
+            self._paused[fd] = self._loop.call_later(DRAIN_PAUSE_S, self._resume, sock)
+
+    def _resume(self, sock: socket.socket) -> None:
+        """A resting socket reads again."""
+        fd = sock.fileno()
+        if self._paused.pop(fd, None) is None or self._loop is None or fd < 0:
+            return
+        station = sock is self._station_sock
+        self._loop.add_reader(fd, self._on_station_readable if station else self._on_shared_readable)
+
+    def _drain_socket(self, sock: socket.socket, deadline: int, tally: Tally) -> bool:
+        """Read and handle ``sock``'s datagrams in batches; False when the budget ran out first."""
+        station = sock is self._station_sock
+        dest = self._dest_addr[:2] if self._dest_addr is not None else None
+        while True:
+            batch: list[tuple[bytes, tuple[Any, ...]]] = []
+            empty = False
+            for _ in range(DRAIN_BATCH):
+                try:
+                    n, addr = sock.recvfrom_into(self._buf)
+                except BlockingIOError:
+                    empty = True
+                    break
+                except ConnectionRefusedError:  # an ICMP error for an earlier send: not a datagram
+                    self.counters["send_errors"] += 1
+                    continue
+                except OSError:
+                    empty = True
+                    break
+                batch.append((bytes(self._view[:n]), addr))
+            self.counters["datagrams"] += len(batch)
+            if station:
+                self.counters["station_datagrams"] += len(batch)
+            elif dest is not None and len(batch) > 1:  # the station's address first (stable)
+                batch.sort(key=lambda item: item[1][:2] != dest)
+            for data, addr in batch:
+                self.handle_datagram(data, addr, tally)
+            if empty:
+                return True
+            if time.monotonic_ns() >= deadline:
+                return False
+
+    def _refused(self, addr: tuple[Any, ...], counter: str, tally: Tally | None) -> None:
+        """Count a refusal from ``addr`` in :attr:`counters` and the refusals (``tally``: summed
+        per wake-up and noted at its end; None: noted at once)."""
+        self.counters[counter] += 1
+        if tally is None:
+            self._note(addr, counter, 1)
+        else:
+            key = (addr, counter)
+            tally[key] = tally.get(key, 0) + 1
+
+    def _note(self, addr: tuple[Any, ...], counter: str, count: int) -> None:
+        host, port = addr[0], addr[1]
+        source = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        self.refusals.note("mavlink", source, REFUSAL_REASONS[counter], count)
 
     async def run(self) -> None:
         """Bind (unless started), then tick at ``rate_hz`` until cancelled; a final stop on exit."""
-        if self._transport is None:
+        if self._sock is None:
             await self.start()
         ticker = Ticker(self.params.rate_hz, self._clock)
         try:
@@ -600,6 +802,8 @@ class MavlinkGcs:
             self.gcs_alive = False
             self.counters["gcs_timeouts"] += 1
             self.manual = None
+            log.warning("MAVLink: ground station heartbeat lost (%.1f s): its teleop input is dropped",
+                        self.params.heartbeat_timeout_s)
             self.statustext("GCS heartbeat lost: teleop input dropped", mavlink.MAV_SEVERITY_WARNING)
         drive = self._teleop_command(now)
         if drive is not None:
@@ -608,7 +812,7 @@ class MavlinkGcs:
         elif self._publishing:
             self._publish_drive(AckermannDrive())
             self._publishing = False
-        if self._transport is None:
+        if self._sock is None:
             return
         if self._last_slow_ns is None or now - self._last_slow_ns >= NS_PER_S:
             self._last_slow_ns = now
@@ -652,31 +856,37 @@ class MavlinkGcs:
 
     # --- incoming ----------------------------------------------------------------------------
 
-    def handle_datagram(self, data: bytes, addr: tuple[Any, ...]) -> None:
+    def handle_datagram(self, data: bytes, addr: tuple[Any, ...], tally: Tally | None = None) -> None:
         """One UDP datagram from ``addr``: decode it alone and act on every verified message of
-        the ground station in it. Never raises."""
+        the ground station in it. Refusals are counted in :attr:`counters` and :attr:`refusals`
+        (``tally``: summed there for the caller to note; None: noted at once). Never raises."""
         host = addr[0]
         if host != self._gcs_host and not (is_loopback(host) and is_loopback(self._gcs_host)):
-            self.counters["foreign"] += 1
+            self._refused(addr, "foreign", tally)
             return
         rx = self.rx
-        before = dict(rx.counters)
+        refusal = rx.refuse_cheaply(data)  # an unsigned or forged frame: one hash, nothing parsed
+        if refusal is not None:
+            self._refused(addr, refusal, tally)
+            return
         # our signing time follows the wall clock and every accepted timestamp, and never goes back
-        rx.timestamp = max(rx.timestamp, self.mav.signing.timestamp, signing_timestamp(self._wall_clock()))
-        messages = rx.decode(data)
+        wall = signing_timestamp(self._wall_clock())
+        rx.timestamp = max(rx.timestamp, self.mav.signing.timestamp, wall)
+        messages = rx.decode(data, wall)
         self.mav.signing.timestamp = max(self.mav.signing.timestamp, rx.timestamp)
-        for key in ("bad_data", "unknown_ids", "mavlink1_refused", "unsigned_refused", "bad_signature",
-                    "old_timestamp"):
-            self.counters[key] += rx.counters[key] - before[key]
+        for counter in rx.refused:
+            self._refused(addr, counter, tally)
         now = self._clock()
         for msg in messages:
             if msg.get_srcSystem() != self.gcs_system_id:
-                self.counters["other_sender"] += 1  # another system: heard, never obeyed
+                self._refused(addr, "other_sender", tally)  # another system: heard, never obeyed
                 continue
             self.counters["rx"] += 1
             if self._dest is None:  # gcs_address port 0: the first authenticated station
                 self._dest = (host, addr[1])
+                self._dest_addr = addr
                 log.info("MAVLink telemetry to %s port %d", host, addr[1])
+                self._open_station_socket(addr)
             kind = msg.get_type()
             try:
                 self._dispatch(kind, msg, now)
@@ -691,6 +901,8 @@ class MavlinkGcs:
     def _dispatch(self, kind: str, msg: Any, now: int) -> None:
         if kind == "HEARTBEAT":
             if msg.type == mavlink.MAV_TYPE_GCS:
+                if self.gcs_alive and self.gcs_heartbeat_ns is not None:
+                    self.heartbeat_gap_max_ns = max(self.heartbeat_gap_max_ns, now - self.gcs_heartbeat_ns)
                 self.gcs_heartbeat_ns = now
                 if not self.gcs_alive:
                     self.gcs_alive = True
@@ -888,6 +1100,26 @@ class MavlinkGcs:
         self.statustext(("Armed" if change.armed else "Disarmed") + f" by {change.source}",
                         mavlink.MAV_SEVERITY_NOTICE)
         self.send_heartbeat()
+
+
+def _udp_socket(family: int) -> socket.socket:
+    """A non-blocking UDP socket that may share its port with our other one (``SO_REUSEPORT``
+    shares only with sockets of the same user)."""
+    sock = socket.socket(family, socket.SOCK_DGRAM)
+    sock.setblocking(False)
+    reuse_port = getattr(socket, "SO_REUSEPORT", None)
+    if reuse_port is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, reuse_port, 1)
+    return sock
+
+
+def _check_free(family: int, sockaddr: tuple[Any, ...]) -> None:
+    """Raise the OSError (address in use) a plain bind gets when another socket holds the port:
+    with ``SO_REUSEPORT`` a second racecar-hw of the same user would otherwise share it silently
+    (each probes first, and a probe without ``SO_REUSEPORT`` cannot join a group)."""
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        probe.bind(sockaddr)
 
 
 def _axis(value: int) -> float:

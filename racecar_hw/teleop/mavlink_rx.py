@@ -19,9 +19,23 @@ out. Timestamps are kept per stream (link id, system id, component id): a known 
 must increase; a new stream's may be at most one minute behind our own, which follows the largest
 accepted timestamp. pymavlink decodes only the payload of a frame that passed all of this.
 
+A hardening beyond the signing rules (which only ask each stream's timestamps to increase, and the
+receiver to adopt the newest it accepts): with ``future_window`` set, a genuinely signed frame
+stamped more than that far ahead of our clock (the ``now`` given to :meth:`MavlinkRx.decode`, the
+wall clock) is refused and records nothing, so one frame from a laptop whose clock is an hour
+ahead cannot make every later frame of that stream (or every new stream) look old.
+
+Under a flood, :meth:`MavlinkRx.refuse_cheaply` turns away the common forgeries (a datagram that is
+exactly one unsigned frame, or one signed frame whose signature fails) with one CRC and one
+SHA-256, without the decoder's search, timestamp or payload work; anything else goes through
+:meth:`MavlinkRx.decode`.
+
 Counters (:attr:`MavlinkRx.counters`): ``frames`` (accepted), ``bad_data`` (datagrams with bytes
 that were no valid frame), ``unknown_ids``, ``mavlink1_refused``, ``unsigned_refused``,
-``bad_signature``, ``old_timestamp`` (a replay, or a stream too far behind).
+``bad_signature``, ``old_timestamp`` (a replay, or a stream too far behind), ``future_timestamp``
+(a genuine signature on a timestamp too far ahead of our clock). Each refusal in
+:meth:`MavlinkRx.decode` also appends its counter's name to :attr:`MavlinkRx.refused` (the refusals
+in the last datagram decoded).
 """
 
 from __future__ import annotations
@@ -55,17 +69,68 @@ class MavlinkRx:
     wall clock and reads it back for outgoing signatures. It only ever increases.
     """
 
-    def __init__(self, secret_key: bytes | None = None, timestamp: int = 0) -> None:
+    def __init__(self, secret_key: bytes | None = None, timestamp: int = 0, future_window: int = 0) -> None:
         self.secret_key = secret_key
         self.timestamp = timestamp
+        #: how far (10 µs units) a signed frame may be stamped ahead of ``now``; 0 = no limit
+        self.future_window = future_window
         self.streams: OrderedDict[tuple[int, int, int], int] = OrderedDict()
         self.counters: dict[str, int] = dict.fromkeys(
             ("frames", "bad_data", "unknown_ids", "mavlink1_refused", "unsigned_refused", "bad_signature",
-             "old_timestamp"), 0)
+             "old_timestamp", "future_timestamp"), 0)
+        #: the counter names of the refusals in the last datagram decoded
+        self.refused: list[str] = []
+        self._now: int | None = None
         self._mav = mavlink.MAVLink(None)  # payload decoding only: no buffer, no signing state
 
-    def decode(self, data: bytes) -> list[Any]:
-        """Every verified message in one datagram (pymavlink message objects), in order."""
+    def restart(self, timestamp: int) -> int:
+        """Forget every stream's timestamp and set our signing time to ``timestamp`` (the wall
+        clock), as a fresh start does; returns how many streams were forgotten."""
+        forgotten = len(self.streams)
+        self.streams.clear()
+        self.timestamp = timestamp
+        return forgotten
+
+    def _refuse(self, counter: str) -> None:
+        self.counters[counter] += 1
+        self.refused.append(counter)
+
+    def refuse_cheaply(self, data: bytes) -> str | None:
+        """With signing on: the refusal (its counter's name, counted) when ``data`` is exactly one
+        MAVLink 2 frame with a good CRC that is unsigned (``"unsigned_refused"``), or signed with a
+        signature that fails (``"bad_signature"``); None when the datagram needs :meth:`decode`
+        (a genuine frame, several frames, garbage). One CRC and one SHA-256 at most, no timestamp
+        and no payload. The CRC is checked so that a damaged header whose length happens to span
+        the datagram cannot hide a good frame behind it from the decoder."""
+        key = self.secret_key
+        n = len(data)
+        if key is None or n < HEADER_V2 + 2 or data[0] != MARKER_V2:
+            return None
+        plen, incompat = data[1], data[2]
+        if incompat & ~IFLAG_SIGNED:
+            return None
+        if HEADER_V2 + plen + 2 + (SIGNATURE_LEN if incompat else 0) != n:
+            return None
+        cls = mavlink.mavlink_map.get(data[7] | (data[8] << 8) | (data[9] << 16))
+        end = HEADER_V2 + plen
+        if cls is None or _crc(data[1:end] + bytes((cls.crc_extra,))) != data[end] | (data[end + 1] << 8):
+            return None
+        if not incompat:
+            refusal = "unsigned_refused"
+        elif hmac.compare_digest(hashlib.sha256(key + data[:-6]).digest()[:6], data[-6:]):
+            return None  # genuine: timestamp and payload in decode()
+        else:
+            refusal = "bad_signature"
+        self.counters[refusal] += 1
+        return refusal
+
+    def decode(self, data: bytes, now: int | None = None) -> list[Any]:
+        """Every verified message in one datagram (pymavlink message objects), in order.
+
+        ``now``: our clock in signing units (10 µs since 2015), for the future-timestamp window;
+        None skips that check."""
+        self._now = now
+        self.refused.clear()
         out: list[Any] = []
         n = len(data)
         i = 0
@@ -89,7 +154,7 @@ class MavlinkRx:
                 nxt = _next_marker(data, i)
                 i = n if nxt < 0 else nxt
         if bad:
-            self.counters["bad_data"] += 1
+            self._refuse("bad_data")
         return out
 
     def _frame_at(self, data: bytes, i: int) -> tuple[str, int] | None:
@@ -117,7 +182,7 @@ class MavlinkRx:
             return None
         cls = mavlink.mavlink_map.get(msgid)
         if cls is None:
-            self.counters["unknown_ids"] += 1
+            self._refuse("unknown_ids")
             return ("unknown", total)
         end = i + header + plen
         crc = mavlink.x25crc(data[i + 1:end] + bytes((cls.crc_extra,))).crc
@@ -130,12 +195,12 @@ class MavlinkRx:
         block; only a good signature proves the block too. A frame whose signature fails is
         consumed up to its CRC, since its "signature" may be the start of the next frame."""
         if frame[0] != MARKER_V2:
-            self.counters["mavlink1_refused"] += 1
+            self._refuse("mavlink1_refused")
             return None, len(frame)
         signed = bool(frame[2] & IFLAG_SIGNED)
         if self.secret_key is not None:  # signing on: every frame signed, every signature checked
             if not signed:
-                self.counters["unsigned_refused"] += 1
+                self._refuse("unsigned_refused")
                 return None, len(frame)
             verdict = self._signature(frame)
             if verdict != "ok":
@@ -143,7 +208,7 @@ class MavlinkRx:
         try:
             msg = self._mav.decode(bytearray(frame))
         except mavlink.MAVError:
-            self.counters["bad_data"] += 1
+            self._refuse("bad_data")
             return None, len(frame)
         msg._signed = signed and self.secret_key is not None
         self.counters["frames"] += 1
@@ -152,19 +217,23 @@ class MavlinkRx:
         return msg, len(frame)
 
     def _signature(self, frame: bytes) -> str:
-        """"ok", "forged" (the signature fails) or "old" (a good signature, a stale timestamp):
-        the signature first, then the stream's timestamp, and only then is it recorded."""
+        """"ok", "forged" (the signature fails), "future" (a good signature on a timestamp too far
+        ahead of our clock) or "old" (a good signature, a stale timestamp): the signature first,
+        then the timestamp, and only then is it recorded."""
         assert self.secret_key is not None
         expected = hashlib.sha256(self.secret_key + frame[:-6]).digest()[:6]
         if not hmac.compare_digest(expected, frame[-6:]):
-            self.counters["bad_signature"] += 1
+            self._refuse("bad_signature")
             return "forged"
         link_id = frame[-SIGNATURE_LEN]
         stamp = int.from_bytes(frame[-12:-6], "little")
+        if self.future_window and self._now is not None and stamp > self._now + self.future_window:
+            self._refuse("future_timestamp")
+            return "future"
         stream = (link_id, frame[5], frame[6])
         last = self.streams.get(stream)
         if (stamp <= last) if last is not None else (stamp + NEW_STREAM_LAG < self.timestamp):
-            self.counters["old_timestamp"] += 1
+            self._refuse("old_timestamp")
             return "old"
         self.streams[stream] = stamp
         self.streams.move_to_end(stream)
@@ -172,6 +241,15 @@ class MavlinkRx:
             self.streams.popitem(last=False)
         self.timestamp = max(self.timestamp, stamp)
         return "ok"
+
+
+#: fastcrc's CRC-16/MCRF4XX (C code) when pymavlink found it (a pymavlink dependency), else None.
+_FAST_CRC = getattr(mavlink, "mcrf4xx", None)
+
+
+def _crc(data: bytes) -> int:
+    """MAVLink's CRC-16/MCRF4XX of ``data`` (fastcrc's, else pymavlink's own)."""
+    return int(_FAST_CRC(data, 0xFFFF)) if _FAST_CRC is not None else int(mavlink.x25crc(data).crc)
 
 
 def _next_marker(data: bytes, start: int) -> int:
