@@ -17,6 +17,21 @@ that stops sending stops the car; send at 10-50 Hz. :class:`AsyncCar` is the sam
 
 Units: metres, radians (+ left, counter-clockwise), seconds, m/s; scans in the laser frame, odometry
 in ``odom``. Stamps are seconds since the epoch (the sender's clock).
+
+**Where the laser sits.** A scan's ranges and angles are in the laser's frame (``Scan.frame_id``,
+``laser``): angle 0 is straight ahead of the lidar, + to the left. The lidar is not at the car's
+origin (``base_link``, the rear axle's centre): the config's ``static_transforms`` place it, in the
+shipped configs 0.265 m ahead of the rear axle and 0.10 m up, facing forward (``xyz: [0.265, 0.0,
+0.1]``), so a wall 1.0 m from the lidar is 1.265 m from the rear axle. ``racecar-hw topic echo
+/tf_static`` prints the transform the daemon uses; :data:`LASER_IN_BASE_LINK` is the shipped one.
+
+**At start** ``car.scan``, ``car.odom`` and ``car.safety`` are None until the first message arrives
+(a few tens of milliseconds after connecting, longer while the daemon starts): iterate
+(``car.scans()``), or wait with ``car.next_scan()`` / ``car.next_odom()`` / :meth:`Car.wait_ready`,
+which raise :class:`ClientError` after their timeout instead of returning None.
+
+:class:`SafetyState`'s ``values`` hold numbers as numbers (``allowed_speed`` 0.5, ``interventions``
+3), ``true``/``false`` as bools, and the rest as text.
 """
 
 from __future__ import annotations
@@ -66,6 +81,9 @@ from racecar_hw.rosmsg.typestore import ros2_types
 from safety.params import SafetyParams
 
 T = TypeVar("T")
+#: Where the lidar sits on the car in the shipped configs (``static_transforms`` base_link ->
+#: laser): x forward, y left, z up (m) and yaw (rad) in ``base_link`` (the rear axle's centre).
+LASER_IN_BASE_LINK = (0.265, 0.0, 0.1, 0.0)
 #: The mux input of /cmd_vel Twists on the daemon's bus (racecar_hw.config.CMD_VEL_BUS_TOPIC).
 CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
 
@@ -76,7 +94,11 @@ class ClientError(RacecarError):
 
 @dataclass(frozen=True)
 class Scan:
-    """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left)."""
+    """One lidar scan: ``ranges[i]`` (m; inf: no return) at ``angles[i]`` (rad, laser frame, + left).
+
+    The laser frame is the lidar's own (``frame_id``), not the car's: see "Where the laser sits" in
+    the module's documentation and :data:`LASER_IN_BASE_LINK`.
+    """
 
     stamp_s: float
     frame_id: str
@@ -102,13 +124,15 @@ class Odom:
 
 @dataclass(frozen=True)
 class SafetyState:
-    """The safety controller's state: why it limits (``reason``), the speed it allows (m/s)."""
+    """The safety controller's state: why it limits (``reason``), the speed it allows (m/s); every
+    key it publishes in ``values``, typed (:func:`typed_value`): ``values["commanded_speed"]`` is a
+    float, ``values["intervening"]`` a bool, ``values["source"]`` a str."""
 
     stamp_s: float
     reason: str
     intervening: bool
     allowed_speed: float
-    values: dict[str, str]
+    values: dict[str, str | float | int | bool]
     msg: DiagnosticArray = field(repr=False)
 
 
@@ -148,15 +172,29 @@ def _odom(msg: Odometry) -> Odom:
                 pose.orientation.yaw(), twist.linear.x, twist.angular.z, msg)
 
 
+def typed_value(text: str) -> str | float | int | bool:
+    """A diagnostic value (always text on the wire) as what it means: ``"3"`` -> 3, ``"0.500"`` ->
+    0.5, ``"inf"`` -> inf, ``"true"``/``"false"`` -> bool; anything else stays text (``""`` too)."""
+    if text in ("true", "false"):
+        return text == "true"
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def _safety(msg: DiagnosticArray) -> SafetyState:
     status = msg.status[0] if msg.status else None
-    values = {kv.key: kv.value for kv in status.values} if status else {}
-    try:
-        allowed = float(values.get("allowed_speed", "nan"))
-    except ValueError:
-        allowed = math.nan
-    return SafetyState(msg.header.stamp.to_ns() / NS_PER_S, values.get("reason", ""),
-                       values.get("intervening") == "true", allowed, values, msg)
+    values = {kv.key: typed_value(kv.value) for kv in status.values} if status else {}
+    allowed = values.get("allowed_speed", math.nan)
+    reason = values.get("reason", "")
+    return SafetyState(msg.header.stamp.to_ns() / NS_PER_S, str(reason),
+                       values.get("intervening") is True,
+                       float(allowed) if isinstance(allowed, (int, float)) else math.nan, values, msg)
 
 
 def _names(mux: MuxParams, safety: SafetyParams, profile: str,
@@ -352,8 +390,16 @@ class Car:
 
     @property
     def odom(self) -> Odom | None:
-        """The newest odometry so far, or None."""
+        """The newest odometry so far; None until the first arrives (see :meth:`wait_ready`)."""
         return self.odom_stream.latest
+
+    def wait_ready(self, timeout: float | None = 5.0) -> None:
+        """Wait until a scan and odometry have arrived, so ``scan`` and ``odom`` are not None;
+        ClientError after ``timeout`` s (the daemon not running, or not reachable)."""
+        if self.scan_stream.latest is None:
+            self.next_scan(timeout)
+        if self.odom_stream.latest is None:
+            self.next_odom(timeout)
 
     @property
     def safety(self) -> SafetyState | None:

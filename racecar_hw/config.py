@@ -24,15 +24,16 @@ from mux.params import InputParams, MuxParams
 from racecar_hw.bags.follow import FollowerParams
 from racecar_hw.bags.record import RecorderParams
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.overrides import apply_override, load_yaml, merge
-from racecar_hw.base.params import build, describe, param, to_dict
+from racecar_hw.base.overrides import apply_override, key_lines, key_path, load_yaml, merge, remove_key
+from racecar_hw.base.params import build, describe, param, to_dict, unknown_key
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.ports import Listener, free_port, port_taken
 from racecar_hw.net.rosout import RosoutParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
 from racecar_hw.net.web import WebParams
-from racecar_hw.net.zenoh_config import ZenohParams
+from racecar_hw.net.zenoh_config import ZenohParams, parse_endpoint
 from racecar_hw.sources.figure8 import Figure8Params
 from racecar_hw.sources.scan_summary import ScanSummaryParams
 from racecar_hw.sources.setpoint import SetpointParams
@@ -150,7 +151,7 @@ def build_config(data: dict[str, Any]) -> Config:
     allowed = sorted([*_SECTIONS, "static_transforms", "sim"])
     unknown = sorted(set(data) - set(allowed))
     if unknown:
-        raise ConfigError(unknown[0], "unknown section; allowed sections: " + ", ".join(allowed))
+        raise ConfigError(unknown[0], unknown_key(unknown[0], allowed, "section"))
     values: dict[str, Any] = {}
     for name, cls in _SECTIONS.items():
         if name in data:
@@ -223,6 +224,57 @@ def network_topics(config: Config) -> list[Topic]:
 RPLIDAR_SWEEP_S = 0.1
 
 
+#: Zenoh protocols that listen on a TCP port (the ones a port clash can hit).
+_TCP_PROTOCOLS = ("tcp", "tls", "ws")
+
+
+def listeners(config: Config) -> list[Listener]:
+    """Every TCP port the configuration listens on: Zenoh's listen endpoints, the Foxglove live
+    view, the status page (enabled ones; port 0, any free port, is left out)."""
+    out: list[Listener] = []
+    if config.zenoh.enabled:
+        for i, endpoint in enumerate(config.zenoh.listen):
+            key = f"zenoh.listen[{i}]"
+            proto, host, port = parse_endpoint(endpoint, key)
+            if proto in _TCP_PROTOCOLS and port:
+                out.append(Listener(key, "Zenoh (ROS 2 topics)", host, port))
+    if config.foxglove.enabled and config.foxglove.port:
+        out.append(Listener("foxglove.port", "the Foxglove live view", config.foxglove.host,
+                            config.foxglove.port))
+    if config.web.enabled and config.web.port:
+        out.append(Listener("web.port", "the status page", config.web.host, config.web.port))
+    return out
+
+
+def taken_listeners(config: Config) -> list[Listener]:
+    """The listeners whose port another program holds now (:func:`racecar_hw.net.ports.port_taken`)."""
+    return [item for item in listeners(config) if port_taken(item.host, item.port)]
+
+
+def move_to_free_ports(config: Config) -> list[tuple[Listener, str]]:
+    """Move every listener whose port is taken to a free port, in ``config``; returns each moved
+    one with where it listens now (an endpoint or URL to print). What ``racecar-hw sim`` does."""
+    moved: list[tuple[Listener, str]] = []
+    for item in taken_listeners(config):
+        port = free_port(item.host)
+        where = f"{item.host}:{port}"
+        if item.key.startswith("zenoh.listen["):
+            i = int(item.key[len("zenoh.listen["):-1])
+            endpoint = config.zenoh.listen[i]
+            proto, _, rest = endpoint.partition("/")
+            address, sep, tail = rest.partition("#")
+            host_part = address.rpartition(":")[0]
+            config.zenoh.listen[i] = where = f"{proto}/{host_part}:{port}" + (sep + tail if sep else "")
+        elif item.key == "foxglove.port":
+            config.foxglove.port = port
+            where = f"ws://{item.host}:{port}"
+        else:
+            config.web.port = port
+            where = f"http://{item.host}:{port}/"
+        moved.append((item, where))
+    return moved
+
+
 def _check_scan_timing(config: Config) -> None:
     """Refuse a safety timing that would hold an RPLIDAR car still forever (stale every scan)."""
     lidar, safety = config.lidar, config.safety
@@ -242,6 +294,12 @@ def _check_scan_timing(config: Config) -> None:
 def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),
                 extra: dict[str, Any] | None = None) -> Config:
     """The config in ``path`` (None: the shipped car config), merged with ``extra``, then ``--set``s."""
+    return build_config(_assemble(path, overrides, extra))
+
+
+def _assemble(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),
+              extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The config's plain data: the file (None: the shipped car config), ``extra``, the ``--set``s."""
     data = load_yaml(path if path is not None else shipped_config("car"))
     if extra:
         data = merge(data, extra)
@@ -254,7 +312,69 @@ def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] 
             apply_override(data, assignment, defaults)
     if later:
         _set_added_inputs(data, defaults, later)
-    return build_config(data)
+    return data
+
+
+@dataclass(frozen=True)
+class ConfigProblem:
+    """One error of a config, with where its value came from: ``FILE:LINE``, ``--set K=V``, or the
+    file alone (a rule across keys, or a key the file does not name)."""
+
+    where: str
+    error: ConfigError
+
+    def __str__(self) -> str:
+        if self.where.startswith("--set "):
+            return f"{self.error} (from {self.where})"
+        return f"{self.where}: {self.error}"
+
+
+#: At most this many errors are collected from one config.
+MAX_PROBLEMS = 50
+
+
+def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = ()
+                 ) -> tuple[Config | None, list[ConfigProblem]]:
+    """Every error of a config at once (``racecar-hw check-config``): the config (None when it has
+    errors) and each error with the file and line (or the ``--set``) its value came from.
+
+    After an error its key is taken out (so its default applies) and the config is checked again,
+    until it builds or an error's key cannot be taken out (a rule across keys: then that error is
+    the last). A file that cannot be read or parsed, or a malformed ``--set``, is one error.
+    """
+    file = Path(path) if path is not None else shipped_config("car")
+    data = _assemble(file, overrides)
+    lines = key_lines(file)
+    sets = {key_path(o.partition("=")[0].strip()): o for o in overrides}
+    problems: list[ConfigProblem] = []
+    seen: set[str] = set()
+    while len(problems) < MAX_PROBLEMS:
+        try:
+            config = build_config(copy.deepcopy(data))
+        except ConfigError as err:
+            if err.key in seen:  # taking it out did not help: a rule across keys
+                break
+            seen.add(err.key)
+            where = key_path(err.key)
+            problems.append(ConfigProblem(_source(where, file, lines, sets), err))
+            if not err.key or not remove_key(data, where):
+                break
+            continue
+        return (None, problems) if problems else (config, [])
+    return None, problems
+
+
+def _source(where: tuple[str | int, ...], file: Path, lines: dict[tuple[str | int, ...], int],
+            sets: dict[tuple[str | int, ...], str]) -> str:
+    """Where the value at ``where`` came from: the --set that named it (or a section above it),
+    else the file's line of the key (or of the closest section above it), else the file."""
+    for n in range(len(where), 0, -1):
+        if where[:n] in sets:
+            return f"--set {sets[where[:n]]}"
+    for n in range(len(where), 0, -1):
+        if where[:n] in lines:
+            return f"{file}:{lines[where[:n]]}"
+    return str(file)
 
 
 def _input_index(assignment: str) -> int:

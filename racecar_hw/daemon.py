@@ -46,20 +46,24 @@ from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     DiagnosticArray,
+    DiagnosticStatus,
+    KeyValue,
     LaserScan,
     Message,
     stamp_now,
 )
 from racecar_hw.base.params import describe, to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, network_topics
+from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, listeners, network_topics
 from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
+from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.parameters import ParameterService
+from racecar_hw.net.ports import port_taken, taken_message
 from racecar_hw.net.rosout import RosoutHandler, logger_name
-from racecar_hw.net.topics import Topic
+from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
@@ -75,7 +79,7 @@ from racecar_hw.sources.scan_summary import ScanSummaryPublisher
 from racecar_hw.sources.setpoint import SetpointRelay
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad import GamepadTeleop
-from racecar_hw.teleop.keyboard import KeyboardTeleop
+from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
 from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
 from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
@@ -227,6 +231,8 @@ class Daemon:
             self.links["lidar"] = LinkWatch(f"lidar {config.lidar.model}", lambda: lidar.connected,
                                             detail=lambda: lidar.last_error)
         self._tasks: list[asyncio.Task[Any]] = []
+        #: where the live interfaces listened once started (``live_urls``), for reports
+        self.started_live: dict[str, str] = {}
         self._extra: list[Coroutine[Any, Any, Any]] = []
         self._watchdog_period_ns: int | None = None
         #: control ticks between two of the mux's diagnostics (``mux.diagnostics_rate_hz``)
@@ -254,13 +260,15 @@ class Daemon:
         return None
 
     def _build_network(self, config: Config) -> None:
-        """The Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
+        """The network inbox, the Zenoh bridge (ROS 2 topics for remote code) and the /cmd_vel converter.
 
         Built after the scan path's subscriptions, so a scan reaches the bridge's queue only after
-        its motor command is written.
+        its motor command is written. Every network surface hands its inbound messages to the one
+        :class:`~racecar_hw.net.inbox.Inbox`, which coalesces them into the event loop.
         """
         self.zenoh: ZenohBridge | None = None
         self.cmd_vel: CmdVelConverter | None = None
+        self.inbox: Inbox | None = None
         z = config.zenoh
         #: the daemon's log on /rosout (the topic table's row; every network interface carries it)
         self.rosout: RosoutHandler | None = (
@@ -277,14 +285,21 @@ class Daemon:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
-        self.zenoh = ZenohBridge(self.bus, z, self.live_topics, on_input=self._on_remote_input,
+        self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
+                           self._on_network_input, period_s=1.0 / config.mux.rate_hz,
+                           estop_topic=config.mux.estop_topic, release_topic=config.mux.estop_release_topic,
+                           on_estop=self.network_estop, refusals=self.refusals)
+        self.zenoh = ZenohBridge(self.bus, z, self.live_topics,
                                  urgent={config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF},
-                                 on_estop=self.network_estop,
-                                 estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
-                                 parameters=self.parameters)
+                                 inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
         logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
         if logins is not None:
             logins.attach(self.refusals)
+
+    def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
+        """A command from a network surface, handed over by the inbox: on the bus, then send it."""
+        self.bus.publish(topic, msg)
+        self._on_remote_input(topic)
 
     def _on_remote_input(self, topic: str) -> None:
         """A command from a remote client is on the bus: if its input wins, send it at once."""
@@ -401,9 +416,31 @@ class Daemon:
         if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
             self.mux.publish_diagnostics(due)
             self._publish_security(due)
+            self._publish_diagnostics()
         if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
             self.notifier.watchdog()
             self._last_watchdog_ns = due
+
+    def drives_itself(self) -> bool:
+        """Whether a configured source drives the car without anyone at the controls (a followed
+        bag, the figure-8): then a run that never reached the VESC has failed."""
+        return self.follower is not None or self.figure8 is not None
+
+    def undriven_reason(self) -> str | None:
+        """Why no drive command reached a connected VESC in this run; None when one did, or
+        when there is no VESC to reach."""
+        vesc = self.vesc
+        if vesc is None or vesc.stats.drive_commands:
+            return None
+        port = self.config.vesc.port
+        if not vesc.ever_connected:
+            why = f": {vesc.last_error}" if vesc.last_error else ""
+            return (f"no motor command reached the VESC: it never connected on port {port}{why} "
+                    f"(check vesc.port and the cable)")
+        if vesc.firmware is None and vesc.stats.frames_rx == 0:
+            return (f"no motor command reached the VESC: port {port} opened but the VESC never "
+                    f"answered (check the baud rate and that it is a VESC)")
+        return "no motor command reached the VESC: the run ended before a command was sent"
 
     def _publish_security(self, now_ns: int) -> None:
         """The network surfaces' refusals as their own DiagnosticArray on the diagnostics topic."""
@@ -412,6 +449,23 @@ class Daemon:
             self.bus.publish(self.config.mux.diagnostics_topic, array)
         except Exception as err:  # bookkeeping must never stop the control tick
             log.error("network security diagnostics failed: %r", err)
+
+    def _publish_diagnostics(self) -> None:
+        """The daemon's own statuses beside the mux's: the control loop, and the network inbox."""
+        stats = self.stats
+        message = f"{stats.ticks} ticks, {stats.missed_ticks} missed"
+        statuses = [DiagnosticStatus(
+            DiagnosticStatus.OK, "racecar_hw: control loop", message,
+            "", [KeyValue("ticks", str(stats.ticks)), KeyValue("missed ticks", str(stats.missed_ticks)),
+                 KeyValue("scan cuts", str(stats.scan_cuts))])]
+        if self.inbox is not None:
+            statuses.append(self.inbox.diagnostics())
+        stamp = stamp_now("", wall_ns())
+        try:
+            for status in statuses:  # one array each, as the mux and the network security publish
+                self.bus.publish(self.config.mux.diagnostics_topic, DiagnosticArray(stamp, [status]))
+        except Exception as err:  # bookkeeping must never stop the control tick
+            log.error("daemon diagnostics failed: %r", err)
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -435,6 +489,8 @@ class Daemon:
             armed=self.arming.armed,
             vesc_link=vesc_link.text() if vesc_link is not None else None,
             lidar_link=lidar_link.text() if lidar_link is not None else None,
+            live_view=self.live_urls().get("foxglove"), page=self.live_urls().get("web"),
+            keys=KEY_HINTS if self.keyboard is not None else None,
             estop=self.mux.estop_text() if self.mux.estop is not None else None,
             refused=self.security.line(),
         )
@@ -477,6 +533,15 @@ class Daemon:
         self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic,
                               refusals=self.refusals)
                     if config.web.enabled else None)
+
+    def live_urls(self) -> dict[str, str]:
+        """Where the live interfaces that run listen: ``foxglove`` (ws://) and ``web`` (http://)."""
+        urls: dict[str, str] = {}
+        if self.foxglove is not None and self.foxglove.port is not None:
+            urls["foxglove"] = f"ws://{self.config.foxglove.host}:{self.foxglove.port}"
+        if self.web is not None and self.web.port:
+            urls["web"] = f"http://{self.config.web.host}:{self.web.port}/"
+        return urls
 
     def live_state(self) -> LiveState:
         """The car now, for the live interfaces (:class:`racecar_hw.net.control.CarControl`)."""
@@ -567,6 +632,14 @@ class Daemon:
             return
         self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
 
+    def _refuse_taken_ports(self) -> None:
+        """Refuse to start (a one-line ConfigError naming the key) when the live view's or the
+        page's port is taken: the rule for every interface (docs/live-view.md, "Ports"); Zenoh's
+        own open refuses a taken listen port the same way, naming ``zenoh.listen[i]``."""
+        for item in listeners(self.config):
+            if not item.key.startswith("zenoh.") and port_taken(item.host, item.port):
+                raise ConfigError(item.key, taken_message(item))
+
     async def run(self, stop: asyncio.Event) -> None:
         """Run every component until ``stop`` is set; then brake, centre, flush and return."""
         loop = asyncio.get_running_loop()
@@ -577,15 +650,18 @@ class Daemon:
         self._restore_exception_handler = quiet_accept_errors(loop, self.refusals)
         if self.rosout is not None:
             self.rosout.install()
-        if self.zenoh is not None:
-            try:
+        if self.inbox is not None:
+            self.inbox.bind(loop)
+        try:
+            self._refuse_taken_ports()
+            if self.zenoh is not None:
                 await loop.run_in_executor(None, self.zenoh.open, loop)
-            except BaseException:
-                for coro in self._extra:  # never started: no "coroutine was never awaited"
-                    coro.close()
-                self._extra = []
-                self._restore_process()
-                raise
+        except BaseException:
+            for coro in self._extra:  # never started: no "coroutine was never awaited"
+                coro.close()
+            self._extra = []
+            self._restore_process()
+            raise
         self._publish_static_transforms()
         if self.recorder is not None:
             self.recorder.start()
@@ -594,6 +670,9 @@ class Daemon:
         if self.setpoint is not None:
             self.setpoint.start()
         await self._start_live()
+        self.started_live = self.live_urls()
+        for what, url in self.started_live.items():  # where to look, also when the log is quiet
+            log.info("%s on %s", {"foxglove": "live view (Foxglove)", "web": "status page"}[what], url)
         coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
         if self.links:
             coros.append(self._watch_links())
@@ -664,6 +743,8 @@ class Daemon:
             self.setpoint.close()
         if self.mavlink is not None:
             self.mavlink.close()
+        if self.inbox is not None:
+            self.inbox.close()
         if self.zenoh is not None:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(None, self.zenoh.close)

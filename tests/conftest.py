@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib.util
+import os
 import subprocess
 import time
 from collections.abc import Callable, Iterator
@@ -13,12 +15,30 @@ import pytest
 
 from racecar_hw.runtime.devicethread import DeviceThread
 
+# No test listens on a default port: the guard in tests/portguard fails such a bind, in this
+# process and (through PYTHONPATH) in every Python process a test starts.
+PORTGUARD = Path(__file__).resolve().parent / "portguard"
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    [str(PORTGUARD), *([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])])
+_spec = importlib.util.spec_from_file_location("racecar_hw_portguard", PORTGUARD / "sitecustomize.py")
+assert _spec is not None and _spec.loader is not None
+_spec.loader.exec_module(importlib.util.module_from_spec(_spec))  # installs the guard here
+
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 BAGS = SHARED / "fixtures" / "bags"
 
 #: Tests whose subject is not the network keep the daemon's Zenoh bridge off: its default listen
 #: port (7447) is shared by every process on this machine, and a test never binds a fixed port.
 NO_ZENOH = "zenoh.enabled=false"
+#: What a test that starts a daemon or a sim but is not about the network sets: no Zenoh bridge, and
+#: the live view and the status page on free ports (port 0), never the defaults 8765 and 8080
+#: (a user's running sim would clash with the tests; docs/live-view.md, "Ports").
+QUIET_NET = (NO_ZENOH, "foxglove.port=0", "web.port=0")
+
+
+def set_args(*assignments: str) -> list[str]:
+    """``--set`` before each assignment, for a command line."""
+    return [arg for item in assignments for arg in ("--set", item)]
 
 
 @pytest.fixture

@@ -53,8 +53,8 @@ def storage(path: Path) -> Path:
 
 @pytest.mark.parametrize(("fmt", "bad", "says"), [
     ("ros1", {3: (math.nan, 0.1)}, "speed nan"),
-    ("mcap", {7: (3e38, 0.0)}, "speed 3e+38 m/s, beyond the car's limit of 5 m/s"),
-    ("sqlite3", {12: (1.0, -1.2)}, "steering -1.2 rad, beyond the car's limit of 0.26 rad"),
+    ("mcap", {7: (3e38, 0.0)}, "speed 3e+38 m/s, which no 1/10-scale car drives (over 100 m/s)"),
+    ("sqlite3", {12: (1.0, -2.0)}, "steering -2 rad, which no wheel turns (over 1.571 rad)"),
     ("mcap", {0: (math.inf, 0.0)}, "speed inf"),
 ])
 def test_an_absurd_command_refuses_the_bag_naming_its_index_and_time(tmp_path, fmt, bad, says):
@@ -73,6 +73,20 @@ def test_an_absurd_command_refuses_the_bag_naming_its_index_and_time(tmp_path, f
 def test_commands_at_the_limits_load(tmp_path):
     path = bag(tmp_path, "ros1", commands(bad={0: (-5.0, 0.26), 1: (5.0, -0.26)}))
     assert len(load_commands(path, TOPIC, limits=LIMITS)) == 40
+
+
+def test_commands_beyond_the_limits_are_clamped_with_one_warning(tmp_path, caplog):
+    """A bag from a faster car that steers further (F1TENTH: 0.4189 rad) is followed, clamped to
+    this car's limits as any command is; only the absurd is refused (above)."""
+    path = bag(tmp_path, "mcap", commands(bad={3: (6.0, 0.3), 4: (-7.5, -0.4189), 5: (1.0, 0.1)}))
+    with caplog.at_level("WARNING"):
+        got = load_commands(path, TOPIC, limits=LIMITS)
+    assert [v for c in got[3:6] for v in (c.drive.speed, c.drive.steering_angle)] == pytest.approx(
+        [5.0, 0.26, -5.0, -0.26, 1.0, 0.1])
+    lines = [r.getMessage() for r in caplog.records if "limits" in r.getMessage()]
+    assert len(lines) == 1
+    assert "2 of 40 commands" in lines[0] and "speed up to 7.5 m/s (limit 5)" in lines[0]
+    assert "steering up to 0.4189 rad (limit 0.26)" in lines[0]
 
 
 # --- memory is bounded -------------------------------------------------------------------------

@@ -405,7 +405,8 @@ def test_follower_reports_bag_errors(tmp_path: Path) -> None:
 
 def test_a_twist_sharper_than_the_car_can_steer_is_clamped_not_refused(tmp_path: Path) -> None:
     """A Twist names a yaw rate, not a steering angle: one the car cannot follow is driven at the
-    steering limit (as /cmd_vel is), where an Ackermann command beyond the limit refuses the bag."""
+    steering limit (as /cmd_vel is), and so is an Ackermann command beyond the limit; only a
+    physically absurd angle refuses the bag."""
     from racecar_hw.bags.validate import CommandLimits
 
     store = ros2_types().store
@@ -420,6 +421,8 @@ def test_a_twist_sharper_than_the_car_can_steer_is_clamped_not_refused(tmp_path:
     got = load_commands(path, wheelbase_m=0.33, limits=limits)
     assert [c.drive.steering_angle for c in got] == pytest.approx([0.26, -0.26, math.atan(0.33 * 0.1 / 0.5)])
     assert all(c.drive.speed == pytest.approx(0.5) for c in got)
-    sharp = write_ours(tmp_path / "sharp", "mcap", [(NS_PER_S, 0.5, 0.9)])
+    sharp = write_ours(tmp_path / "sharp", "mcap", [(NS_PER_S, 0.5, 0.9)])  # beyond 0.26: clamped
+    assert load_commands(sharp, TELEOP_TOPIC, limits=limits)[0].drive.steering_angle == pytest.approx(0.26)
+    absurd = write_ours(tmp_path / "absurd", "mcap", [(NS_PER_S, 0.5, 1.7)])  # no wheel turns 1.7 rad
     with pytest.raises(BagError, match="steering"):
-        load_commands(sharp, TELEOP_TOPIC, limits=limits)
+        load_commands(absurd, TELEOP_TOPIC, limits=limits)

@@ -12,7 +12,7 @@ import time
 
 import pytest
 import yaml
-from conftest import wait_for
+from conftest import QUIET_NET, wait_for
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
@@ -53,6 +53,7 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
         "status": {"enabled": False}, "zenoh": {"enabled": False},
+        "foxglove": {"port": 0}, "web": {"port": 0},
         "recorder": {"enabled": True, "path": str(tmp_path / "bags"), "name": "drive",
                      "format": "mcap"},
     }
@@ -124,7 +125,7 @@ def test_a_missing_vesc_shows_as_connecting_on_the_panel(tmp_path):
 
     config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
                                 "gamepad.enabled=false", "status.enabled=false",
-                                "safety.mode=off"])
+                                "safety.mode=off", *QUIET_NET])
 
     async def scenario() -> tuple[str | None, str | None]:
         daemon = Daemon(config)
@@ -201,7 +202,7 @@ def test_follow_command_refuses_a_disarmed_car_then_drives_a_twist_bag_with_arm(
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
         "gamepad": {"enabled": False}, "status": {"enabled": False},
-        "zenoh": {"enabled": False},
+        "zenoh": {"enabled": False}, "foxglove": {"port": 0}, "web": {"port": 0},
     }))
     command = [sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--config", str(cfg)]
     refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
@@ -236,3 +237,77 @@ def test_follow_fails_in_one_line_for_a_missing_bag_or_topic(tmp_path, capsys):
     assert main(["follow", str(bag), "--arm", "--topic", "/b"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("racecar-hw follow: topic /b is not in") and err.count("\n") == 1
+
+
+def _short_drive_bag(path) -> None:
+    """A ROS 1 bag of 10 AckermannDriveStamped commands at 0.5 m/s."""
+    from racecar_hw.bags.record import BagFile
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped
+    from racecar_hw.rosmsg.typestore import types_for
+
+    f = BagFile(path, "ros1", "none", types_for(1))
+    for i in range(10):
+        f.write("/nav", AckermannDriveStamped(drive=AckermannDrive(speed=0.5)), 1 + i * 50_000_000)
+    f.close()
+
+
+def _no_network(tmp_path) -> dict:
+    return {"gamepad": {"enabled": False}, "status": {"enabled": False},
+            "zenoh": {"enabled": False}, "foxglove": {"enabled": False}, "web": {"enabled": False},
+            "lidar": {"enabled": False}}
+
+
+def test_follow_arm_against_a_missing_vesc_port_exits_1_saying_why(tmp_path):
+    """A replay that never reached a VESC did not drive the car: exit 1 and say why, not 100 % and 0."""
+    bag = tmp_path / "drive.bag"
+    _short_drive_bag(bag)
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(yaml.safe_dump({**_no_network(tmp_path), "vesc": {"port": str(tmp_path / "nope")}}))
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--arm",
+                           "--config", str(cfg)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("racecar-hw follow: no motor command reached the VESC: it never connected")
+    assert str(tmp_path / "nope") in last and "Traceback" not in proc.stderr
+
+
+def test_run_with_a_bag_follower_against_a_missing_vesc_exits_1_saying_why(tmp_path):
+    bag = tmp_path / "drive.bag"
+    _short_drive_bag(bag)
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(yaml.safe_dump({
+        **_no_network(tmp_path), "vesc": {"port": str(tmp_path / "nope")},
+        "arming": {"start_armed": True},
+        "follower": {"enabled": True, "bag": str(bag),
+                     "input_topic": "/vesc/high_level/ackermann_cmd_mux/input/nav_0"}}))
+    proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "-v", "run", "--config", str(cfg)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        lines: list[str] = []
+        while time.monotonic() < deadline:  # wait for the daemon to run before stopping it
+            line = proc.stderr.readline()
+            lines.append(line)
+            if "racecar-hw running" in line or not line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, "".join(lines) + err
+    assert "racecar-hw run: no motor command reached the VESC: it never connected" in err
+
+
+def test_follow_arm_with_the_vesc_connected_exits_0(fakes, tmp_path):
+    vesc, lidar = fakes
+    host, port = lidar.tcp_address
+    bag = tmp_path / "drive.bag"
+    _short_drive_bag(bag)
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(yaml.safe_dump({**_no_network(tmp_path), "vesc": {"port": str(tmp_path / "vesc")},
+                                   "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"}}))
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "follow", str(bag), "--arm",
+                           "--config", str(cfg)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert any(isinstance(c.packet, SetRpm) and c.packet.erpm > 0 for c in vesc.commands)

@@ -111,3 +111,25 @@ def test_fake_rplidar_process_old_firmware_and_sigterm(tmp_path, capsys):
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
         assert not link.exists()
+
+
+@pytest.mark.parametrize("kind", ["ust-20lx tcp", "urg-04lx pty", "c1 pty"])
+def test_lidar_info_takes_the_model_the_device_reports_without_model(device_thread, tmp_path, capsys, kind):
+    """No --model: the device's own name picks it (Ethernet: SCIP; serial: SCIP, then RPLIDAR)."""
+    model, transport = kind.split()
+    if model == "c1":
+        fake = FakeRplidar("c1", RoomRangeSource(8, 6), str(tmp_path / "rplidar"))
+        device_thread.spawn(fake.serve())
+        wait_for(lambda: fake.port.plugged)
+        where = ["--port", fake.link]
+    else:
+        fake = FakeHokuyo(model, RoomRangeSource(8, 6), link=str(tmp_path / "urg") if transport == "pty"
+                          else None, tcp=("127.0.0.1", 0) if transport == "tcp" else None)
+        device_thread.spawn(fake.serve())
+        assert fake.ready.wait(10)
+        where = (["--tcp", "{}:{}".format(*fake.tcp_address)] if transport == "tcp"
+                 else ["--port", fake.path])
+    assert main(["lidar-info", *where, "--timeout", "10"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(rf"^model:      {model} \(device reports \S+\), detected$", out, re.M), out
+    assert "warning" not in out and re.search(r"closest:\s+[\d.]+ m", out)

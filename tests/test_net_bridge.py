@@ -67,13 +67,23 @@ def test_incoming_samples_are_checked_before_they_reach_the_bus():
                                                                 AckermannDrive(0.1, 0.0, 1.5)))
             nan = ros2_types().serialize(AckermannDriveStamped(drive=AckermannDrive(speed=math.nan)))
             attach = rmw.Attachment(1, 1, bytes(16)).encode()
-            pub.put(good)                                   # no attachment: rmw_zenoh drops it too
-            pub.put(good, attachment=b"\x01\x02")           # not rmw_zenoh's attachment
-            pub.put(good[:9], attachment=attach)            # truncated CDR
-            pub.put(b"\xff" * 40, attachment=attach)        # garbage
-            pub.put(nan, attachment=attach)                 # NaN speed
-            pub.put(good, attachment=attach)                # the only one that counts
-            await async_wait_for(lambda: got and bridge.stats.non_finite, timeout=20)
+            s = bridge.stats
+            # a command row keeps only the newest sample: one at a time, each checked and counted
+            for payload, attachment in [
+                    (good, None),               # no attachment: rmw_zenoh drops it too
+                    (good, b"\x01\x02"),        # not rmw_zenoh's attachment
+                    (good[:9], attach),         # truncated CDR
+                    (b"\xff" * 40, attach),     # garbage
+                    (nan, attach),              # NaN speed
+                    (good, attach)]:            # the only one that counts
+                before = s.no_attachment + s.malformed + s.non_finite + s.received
+                if attachment is None:
+                    pub.put(payload)
+                else:
+                    pub.put(payload, attachment=attachment)
+                await async_wait_for(lambda b=before: s.no_attachment + s.malformed + s.non_finite
+                                     + s.received > b, timeout=20)
+            await async_wait_for(lambda: got, timeout=20)
             await asyncio.sleep(0.2)
             return got, bridge.stats
         finally:
@@ -269,7 +279,8 @@ def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command()
 
     port = free_port()
     config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
-                                "status.enabled=false", f'zenoh.listen=["{endpoint(port)}"]'])
+                                "status.enabled=false", f'zenoh.listen=["{endpoint(port)}"]',
+                                "foxglove.enabled=false", "web.enabled=false"])
     daemon = Daemon(config)
     assert daemon.zenoh is not None and daemon.cmd_vel is not None
 
@@ -311,7 +322,8 @@ def test_any_bytes_from_the_network_are_counted_never_raised(payload, attachment
         attachment = attachment[:16] + b"\x10" + attachment[17:]  # often well-formed
     rows = {r.bus: r for r in topic_table(MuxParams(), SafetyParams(), cmd_vel_topic="/cmd_vel")}
     bridge = ZenohBridge(Bus(), ZenohParams(), list(rows.values()))
-    bridge._loop = loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    loop = asyncio.new_event_loop()  # not running: a hand-over only queues
+    bridge.inbox.bind(loop)
     try:
         bridge._receiver(rows[topic])(_Sample(payload, attachment))
     finally:

@@ -178,7 +178,11 @@ def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_o
             assert all(s.ranges.size == 1081 for s in scans[:3])
             assert all(isinstance(o.speed, float) for o in odoms[:3])
             with Car(endpoint(port), profile="f1tenth") as unmapped, pytest.raises(ClientError):
-                unmapped.next_odom(timeout=2.0)  # the daemon's odometry is not on /odom
+                unmapped.wait_ready(timeout=2.0)  # the daemon's odometry is not on /odom
+            with Car(endpoint(port), profile="f1tenth", remap=remap) as fresh:
+                assert fresh.odom is None  # nothing has arrived the instant it connects
+                fresh.wait_ready(timeout=30)
+                assert fresh.scan is not None and fresh.odom is not None
 
             with Car(endpoint(port), profile="f1tenth", remap=remap) as driver:
                 deadline = time.monotonic() + 30
@@ -189,8 +193,8 @@ def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_o
 
             def stopped_by_nav_0() -> bool:
                 values = watcher.safety.values  # the mux's command, before the safety limit
-                assert values["interventions"] == "0", values  # not stopped by the wall ahead
-                return (values["source"] == "nav_0" and float(values["commanded_speed"]) == 0.0
+                assert values["interventions"] == 0, values  # not stopped by the wall ahead (typed)
+                return (values["source"] == "nav_0" and values["commanded_speed"] == 0.0
                         and abs(watcher.odom.speed) < 0.02)
 
             # without the stop, nav_0 would hold 0.5 m/s for 30 s, until the safety controller
@@ -204,3 +208,26 @@ def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_o
     # nav_0 stayed the active source to the end: its zero command stopped the car, no timeout did
     assert switches(report)[-1] == "nav_0", report["mux_switches"]
     assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
+
+
+def test_safety_values_are_typed_and_the_laser_pose_is_the_shipped_one():
+    """``SafetyState.values`` as the safety node publishes them: numbers as numbers, true/false as
+    bools, text as text; the documented laser pose is the shipped configs' base_link -> laser."""
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.client import LASER_IN_BASE_LINK, _safety, typed_value
+    from racecar_hw.config import load_config, shipped_config
+    from safety.node import SafetyNode
+
+    assert [typed_value(t) for t in ("3", "0.500", "-1.25", "inf", "true", "false", "", "nav_0")] == [
+        3, 0.5, -1.25, math.inf, True, False, "", "nav_0"]
+    config = load_config(None)
+    node = SafetyNode(Bus(), config.safety, None)
+    state = _safety(node.state_message())
+    assert isinstance(state.values["allowed_speed"], float) and isinstance(state.values["intervening"], bool)
+    assert isinstance(state.values["commanded_speed"], float) and isinstance(state.values["mode"], str)
+    assert isinstance(state.values["memory_points"], int)
+    assert state.intervening is state.values["intervening"] and state.reason == state.values["reason"]
+    for name in ("car", "sim"):
+        laser = next(t for t in load_config(shipped_config(name)).static_transforms
+                     if t.child_frame_id == "laser")
+        assert (*laser.xyz, 0.0) == pytest.approx(LASER_IN_BASE_LINK)

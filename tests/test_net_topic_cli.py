@@ -50,3 +50,60 @@ def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     assert 0.3 < report["max_speed_mps"] < 0.5
     assert bad.returncode == 1 and "expected true or false" in bad.stderr and "Traceback" not in bad.stderr
     assert unknown.returncode == 1 and "not in the ROS graph" in unknown.stderr
+
+
+def test_a_wrong_type_is_refused_by_topic_pub_and_counted_by_the_daemon(tmp_path):
+    """``topic pub`` names the type the daemon takes and exits 1; a sample of the wrong type put
+    straight on Zenoh (as a ROS 2 node would) is counted and logged by the daemon."""
+    import time
+
+    import zenoh
+
+    from racecar_hw.net import rmw
+
+    port = free_port()
+    sim = start_sim(tmp_path, port, duration=180.0)
+    topic = "/vesc/high_level/ackermann_cmd_mux/input/nav_0"
+    try:
+        listed = _topic(port, "list")
+        while topic not in listed.stdout and sim.proc.poll() is None:  # the sim may still start
+            listed = _topic(port, "list")
+        wrong = _topic(port, "pub", topic, "ackermann_msgs/msg/AckermannDrive", "{speed: 0.5}")
+        right = _topic(port, "pub", topic, "ackermann_msgs/msg/AckermannDriveStamped",
+                       "{drive: {speed: 0.0}}")
+        session = zenoh.open(zenoh.Config.from_json5(
+            f'{{mode: "client", connect: {{endpoints: ["{endpoint(port)}"]}}, '
+            f'scouting: {{multicast: {{enabled: false}}}}}}'))
+        try:
+            ros_type = "ackermann_msgs/msg/AckermannDrive"
+            key = rmw.topic_key(0, topic, ros_type, rmw.type_hash(ros_type))
+            publisher = session.declare_publisher(key)
+            from racecar_hw.base.messages import AckermannDrive
+            from racecar_hw.rosmsg.typestore import ros2_types
+
+            payload = ros2_types().serialize(AckermannDrive(speed=0.5))
+            deadline = time.monotonic() + 60
+            sent = 0
+            while time.monotonic() < deadline and sent < 200:  # until the daemon's guard matched
+                sent += 1
+                publisher.put(payload, attachment=rmw.encode_attachment(sent, time.time_ns(), bytes(16)))
+                time.sleep(0.02)
+            publisher.undeclare()
+        finally:
+            session.close()
+        sim.interrupt()
+    finally:
+        sim.kill()
+    assert wrong.returncode == 1, wrong.stdout + wrong.stderr
+    assert "publishing" not in wrong.stdout and "Traceback" not in wrong.stderr
+    assert wrong.stderr.count("\n") == 1
+    assert f"{topic} takes ackermann_msgs/msg/AckermannDriveStamped" in wrong.stderr
+    assert "not ackermann_msgs/msg/AckermannDrive" in wrong.stderr
+    assert right.returncode == 0, right.stderr
+    lines = [line for line in sim.log.splitlines() if "wrong type" in line]
+    assert lines, sim.log[-3000:]
+    assert (f"zenoh: refused {topic}: wrong type ackermann_msgs/msg/AckermannDrive (it takes "
+            f"ackermann_msgs/msg/AckermannDriveStamped)") in lines[0]
+    # rate-limited: the first at once, then summaries (one at shutdown), not 200 lines
+    assert len(lines) <= 3
+    assert re.search(r"of a wrong type|(\d+) in all", sim.log)

@@ -280,12 +280,15 @@ def test_zenohs_open_errors_name_the_auth_and_tls_keys_in_one_line(tmp_path):
 
 
 def test_the_daemon_says_in_one_line_what_to_do_when_its_port_is_taken(tmp_path):
+    """``racecar-hw run`` refuses (``sim`` would move to a free port: docs/live-view.md, "Ports")."""
     port = free_port()
     holder = zenoh.open(session_config("router", [endpoint(port)], []))  # as rmw_zenohd would
     try:
-        proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--duration", "5",
-                               "--no-status", "--set", f'zenoh.listen=["{endpoint(port)}"]',
-                               "--report", str(tmp_path / "r.json")],
+        proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--no-status",
+                               "--set", f'zenoh.listen=["{endpoint(port)}"]',
+                               "--set", f"vesc.port={tmp_path / 'no-vesc'}", "--set", "lidar.enabled=false",
+                               "--set", "gamepad.enabled=false", "--set", "foxglove.enabled=false",
+                               "--set", "web.enabled=false"],
                               capture_output=True, text=True, timeout=120, cwd=ROOT)
     finally:
         holder.close()

@@ -44,7 +44,8 @@ def test_mutable_defaults_are_not_shared():
 
 
 @pytest.mark.parametrize(("data", "key", "words"), [
-    ({"rate": 1}, "mux.rate", "unknown key; allowed keys: enabled, inner, inputs"),
+    ({"rate": 1}, "mux.rate", "unknown key; did you mean rate_hz?"),  # the close match (difflib)
+    ({"qqq": 1}, "mux.qqq", "unknown key; allowed keys: enabled, inner, inputs"),  # none close
     ({"rate_hz": "fast"}, "mux.rate_hz", "expected a number"),
     ({"rate_hz": 0.5}, "mux.rate_hz", "out of range; allowed: 1.0 to 1000.0"),
     ({"rate_hz": float("nan")}, "mux.rate_hz", "NaN"),

@@ -121,3 +121,45 @@ def test_every_command_in_the_table_exists(capsys) -> None:
             parser.parse_args([*command.split(), "--help"])
         assert exc.value.code == 0, command
     capsys.readouterr()
+
+
+#: Each test file that may skip, with what the README's list of skip reasons must name for it.
+SKIP_REASONS = {
+    "conftest.py": "../shared/fixtures/bags",
+    "bag_ros1tools.py": "python3-rosbag",
+    "live_sim.py": "chromium-driver",
+    "rplidar_sdk_peer.py": "pyrplidarsdk",
+    "test_estop_live.py": "eclipse-zenoh",
+    "test_layers.py": "import-linter",
+    "test_link.py": "Python older than 3.11",
+    "test_mavlink_security.py": "IPv6",
+    "test_net_flood.py": "open-file limit",
+    "test_net_rmw.py": "rosidl_adapter",
+    "test_net_zenoh_security.py": "openssl",
+    "test_net_zenoh_sim.py": "zenoh-ros2-sdk",
+    "test_open_files.py": "open-file limit",
+    "test_systemd_files.py": "udevadm",
+}
+
+
+def test_the_readme_names_every_reason_a_test_may_skip() -> None:
+    """Every file with a skip is known here, and the README names its reason."""
+    skipping = sorted(p.name for p in (ROOT / "tests").glob("*.py")
+                      if re.search(r"pytest\.skip\(|importorskip\(|mark\.skipif\(", p.read_text())
+                      and p.name != "test_readme.py")
+    assert skipping == sorted(SKIP_REASONS)
+    top = README.split("\n## ", 1)[0]
+    for name, words in SKIP_REASONS.items():
+        assert words in top, (name, words)
+    assert "systemd-analyze" in top and "ros-*-msgs" in top and "selenium" in top
+
+
+def test_fake_vesc_help_says_the_default_firmware_as_it_is_reported(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["fake-vesc", "--help"])
+    assert "(default 6.02)" in capsys.readouterr().out.replace("\n", " ").replace("  ", " ")
+
+
+def test_pyproject_names_the_package_config_is_installed_as() -> None:
+    text = (ROOT / "pyproject.toml").read_text()
+    assert "mapped into racecar_hw.shipped" in text and "mapped into racecar_hw.config" not in text

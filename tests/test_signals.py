@@ -13,7 +13,7 @@ import warnings
 from pathlib import Path
 
 import pytest
-from conftest import NO_ZENOH, reaped, wait_for
+from conftest import QUIET_NET, reaped, set_args, wait_for
 
 from racecar_hw.runtime import signals
 
@@ -76,7 +76,8 @@ def _ignore_sigint() -> None:
 
 START_UP = {
     "fake-vesc": (["fake-vesc", "--link", "{tmp}/vesc"], "fake VESC"),
-    "sim": (["sim", "--duration", "60", "--no-status", "--set", NO_ZENOH, "--out", "{tmp}/out"], "figure8:"),
+    "sim": (["sim", "--duration", "60", "--no-status", *set_args(*QUIET_NET), "--out", "{tmp}/out"],
+            "figure8:"),
 }
 
 

@@ -15,7 +15,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
-from conftest import NO_ZENOH
+from conftest import QUIET_NET
 
 from racecar_hw.bags.follow import holes, load_commands
 from racecar_hw.sim.loopback import Loopback
@@ -61,7 +61,7 @@ def held_up(hold_s: float = 0.13, every_s: float = 0.7) -> Iterator[None]:
 def _run(scenario_overrides: list[str], overrides: list[str] = (), *,
          until_replay_ends: bool = False) -> dict:
     scenario = load_scenario("figure8", scenario_overrides)
-    loopback = Loopback(scenario, overrides=[TOLERATE_STALLS, NO_ZENOH, *overrides],
+    loopback = Loopback(scenario, overrides=[TOLERATE_STALLS, *QUIET_NET, *overrides],
                         until_replay_ends=until_replay_ends)
     report = asyncio.run(loopback.run()).report
     print(json.dumps({k: report.get(k) for k in ("final_pose", "distance_m", "collided", "max_speed_mps",

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from conftest import NO_ZENOH, reaped
+from conftest import QUIET_NET, reaped, set_args
 
 from racecar_hw.bags.record import Recorder, record_params
 from racecar_hw.base.bus import Bus
@@ -27,7 +28,7 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
     (marked interrupted), the trajectory and the plot for the time driven; exit 0."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--duration", "120", "--no-status",
-         "--set", NO_ZENOH, "--out", str(tmp_path)],
+         *set_args(*QUIET_NET), "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         # as a background job of a script inherits it: SIGINT ignored
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
@@ -40,7 +41,7 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "never awaited" not in err
-    report = json.loads((tmp_path / "report.json").read_text())
+    report = json.loads((tmp_path / "figure8.json").read_text())  # named after the scenario
     assert report["interrupted"] is True and report["stop_reason"] == stop.name
     assert report["sim_time_s"] < 60
     assert read_csv(report["trajectory_csv"])
@@ -73,7 +74,7 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
                  "--follow-topic", "/cmd_vel"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("racecar-hw sim: topic /cmd_vel is not in") and err.count("\n") == 1
-    assert not (tmp_path / "report.json").exists()
+    assert not list(tmp_path.glob("*.json"))
 
 
 def test_follow_options_come_first_and_scenario_sets_apply_to_them(tmp_path):
@@ -100,8 +101,8 @@ def test_a_recording_of_the_whole_bus_is_followed_on_its_mux_input(tmp_path, cap
         bus.publish("/odom_placeholder", Header(Time(i, 0), "odom"))
     rec.stop()
     assert main(["sim", "--follow", str(tmp_path / "drive"), "--duration", "2", "--no-status",
-                 "--set", NO_ZENOH, "--out", str(tmp_path / "out")]) == 0
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
+                 *set_args(*QUIET_NET), "--out", str(tmp_path / "out")]) == 0
+    report = json.loads((tmp_path / "out" / "follow.json").read_text())
     assert report["scenario"] == "follow" and not report["interrupted"]
     assert report["distance_m"] > 0.3  # the car moved
     assert capsys.readouterr().out.startswith("follow: ran ")
@@ -128,10 +129,10 @@ def test_follow_reverse_runs_the_whole_stretched_replay_and_says_when_duration_c
     scenario.write_text("description: a short scenario in the room\nmap: room\nstart: [0.0, 0.0, 0.0]\n"
                         "duration_s: 1.5\ndrivers: []\n")
     common = ["sim", "--scenario", str(scenario), "--follow", str(bag), "--reverse", "--no-status",
-              "--set", NO_ZENOH]
+              *set_args(*QUIET_NET)]
     assert main([*common, "--out", str(tmp_path / "whole")]) == 0
     out = capsys.readouterr().out
-    report = json.loads((tmp_path / "whole" / "report.json").read_text())
+    report = json.loads((tmp_path / "whole" / "follow.json").read_text())
     (follow,) = report["follow"]
     assert (follow["replay_s"], follow["speed_scale"]) == (2.9, 0.5)
     assert follow["complete"] and follow["followed"] == 1.0
@@ -142,7 +143,7 @@ def test_follow_reverse_runs_the_whole_stretched_replay_and_says_when_duration_c
 
     assert main([*common, "--duration", "1.5", "--out", str(tmp_path / "cut")]) == 0
     out = capsys.readouterr().out
-    report = json.loads((tmp_path / "cut" / "report.json").read_text())
+    report = json.loads((tmp_path / "cut" / "follow.json").read_text())
     (follow,) = report["follow"]
     assert not follow["complete"] and 0 < follow["followed"] < 1 and report["duration_s"] == 1.5
     assert not report["interrupted"] and report["distance_m"] < 1.0
@@ -165,10 +166,98 @@ def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
 
         loopback.daemon.add_task(look())
 
-    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup, overrides=[NO_ZENOH])
+    loopback = Loopback(load_scenario("corridor"), duration_s=1.5, setup=setup, overrides=[*QUIET_NET])
     asyncio.run(loopback.run())
     (snap,) = seen
     assert snap.sim_time_s is not None and snap.sim_time_s > 1.0
     assert snap.sim_pose is not None and snap.sim_pose[0] > 0.5  # driving down the corridor
     assert snap.clearance_m == pytest.approx(0.6, abs=0.05)
     assert snap.vesc_link == "up" and snap.lidar_link == "up"
+
+
+def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning(tmp_path):
+    """A ROS 1 bag from a car that steers further (0.3 rad; this car's limit is 0.26) drives the
+    simulated car in ``sim --follow``, clamped, with one warning that counts the commands."""
+    from racecar_hw.bags.record import BagFile
+    from racecar_hw.rosmsg.typestore import types_for
+
+    bag = tmp_path / "f1tenth.bag"
+    f = BagFile(bag, "ros1", "none", types_for(1))
+    for i in range(40):  # 2 s at 20 Hz: 0.8 m/s, turning left at 0.3 rad
+        f.write(NAV0, AckermannDriveStamped(Header(Time(1, i * 50_000_000), "base_link"),
+                                            AckermannDrive(speed=0.8, steering_angle=0.3)),
+                1_000_000_000 + i * 50_000_000)
+    f.close()
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--follow", str(bag),
+                           "--no-status", *set_args(*QUIET_NET), "--set", "foxglove.enabled=false",
+                           "--set", "web.enabled=false", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    warnings = [line for line in proc.stderr.splitlines() if "limits" in line]
+    assert len(warnings) == 1, proc.stderr
+    assert "40 of 40 commands" in warnings[0] and "steering up to 0.3 rad (limit 0.26)" in warnings[0]
+    assert "clamped" in warnings[0] and "refused" not in proc.stderr
+    report = json.loads(next(out.glob("*.json")).read_text())
+    assert report["distance_m"] > 0.8  # the car drove
+    assert report["final_pose"]["yaw"] > 0.3  # and turned left, at the clamped angle
+
+
+def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_path):
+    """``sim --record`` prints the bag's path with the report's (named after the scenario), the
+    plot's and the trajectory's; ``bag info`` takes the bag's .mcap file as well as its folder."""
+    out, record = tmp_path / "out", tmp_path / "bags"
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall",
+                           "--duration", "1", "--no-status", *set_args(*QUIET_NET), "--out", str(out),
+                           "--record", str(record)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    # the summary says where the live view and the page were (free ports here)
+    assert re.search(r"live view \(Foxglove\) ws://127\.0\.0\.1:\d+ and status page "
+                     r"http://127\.0\.0\.1:\d+/ \(while it ran\)", proc.stdout), proc.stdout
+    said = dict(line.split(":", 1) for line in proc.stdout.splitlines()[-4:])
+    said = {k.strip(): Path(v.strip()) for k, v in said.items()}
+    assert said["report"] == out / "wall.json" and said["report"].is_file()
+    assert said["plot"] == out / "wall.png" and said["plot"].is_file()
+    assert said["trajectory"] == out / "wall-trajectory.csv" and said["trajectory"].is_file()
+    assert said["bag"].parent == record and said["bag"].is_dir()
+    assert json.loads(said["report"].read_text())["bags"] == [str(said["bag"])]
+    (mcap,) = said["bag"].glob("*.mcap")
+    for path in (mcap, said["bag"]):
+        info = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "bag", "info", str(path)],
+                              capture_output=True, text=True, timeout=120)
+        assert info.returncode == 0, info.stderr
+        assert f"path:      {said['bag']}\n" in info.stdout and "complete:  yes" in info.stdout
+        assert "//" not in info.stdout
+
+
+def test_the_panel_names_the_live_view_the_page_and_with_keyboard_the_keys(monkeypatch, tmp_path):
+    """What the status panel shows of the live interfaces (their URLs once listening) and, with
+    ``--keyboard``, the keys."""
+    import asyncio
+
+    from racecar_hw.config import load_config
+    from racecar_hw.daemon import Daemon
+    from racecar_hw.teleop.keyboard import KEY_HINTS
+
+    base = ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false", "status.enabled=false",
+            *QUIET_NET]
+    assert Daemon(load_config(None, base)).snapshot().keys is None
+    with (tmp_path / "keys").open("w+") as keys:  # the keyboard's stdin (pytest's has no descriptor)
+        monkeypatch.setattr("sys.stdin", keys)
+        assert Daemon(load_config(None, [*base, "keyboard.enabled=true"])).snapshot().keys == KEY_HINTS
+    daemon = Daemon(load_config(None, base))
+    assert (daemon.snapshot().live_view, daemon.snapshot().page) == (None, None)  # not yet listening
+
+    async def running() -> tuple[str | None, str | None]:
+        stop = asyncio.Event()
+        task = asyncio.create_task(daemon.run(stop))
+        while not daemon.started_live and not task.done():
+            await asyncio.sleep(0.05)
+        snap = daemon.snapshot()
+        stop.set()
+        await task
+        return snap.live_view, snap.page
+
+    live_view, page = asyncio.run(running())
+    assert live_view is not None and re.fullmatch(r"ws://127\.0\.0\.1:\d+", live_view)
+    assert page is not None and re.fullmatch(r"http://127\.0\.0\.1:\d+/", page)

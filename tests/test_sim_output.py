@@ -15,6 +15,7 @@ from racecar_hw.sim import mapgen
 from racecar_hw.sim.car import CarParams, Collider
 from racecar_hw.sim.occupancy import load_map, load_shipped_map
 from racecar_hw.sim.plot import (
+    ALLOWED_LABEL,
     ControlSample,
     Mark,
     as_marks,
@@ -153,7 +154,7 @@ def test_the_figure_reads_in_metres_with_the_path_coloured_by_speed_and_the_even
                 if line.get_xdata()[0] == line.get_xdata()[1]]
     assert 2.0 in vertical and 4.5 in vertical
     labels = [line.get_label() for line in ax_speed.get_lines() if not line.get_label().startswith("_")]
-    assert labels == ["commanded", "output", "allowed (top: above)", "measured"]
+    assert labels == ["commanded", "output", ALLOWED_LABEL, "measured"]
     allowed = next(line for line in ax_speed.get_lines() if line.get_label().startswith("allowed"))
     assert max(allowed.get_ydata()) < ax_speed.get_ylim()[1]  # drawn on the plot even where it is high
     assert ax_speed.get_ylabel() == "speed (m/s)" and ax_steer.get_ylabel() == "steering (rad)"
@@ -163,6 +164,57 @@ def test_the_figure_reads_in_metres_with_the_path_coloured_by_speed_and_the_even
     assert spans["source:nav_0"].x0 == pytest.approx(0.5) and spans["source:nav_0"].x1 == pytest.approx(3.0)
     assert spans["source:estop"].x1 == pytest.approx(4.9)
     assert "nav_0" in [t.get_text() for t in ax_source.texts]
+
+
+def _allowed_line(fig):  # noqa: ANN001, ANN202
+    ax_speed = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"][1]
+    (line,) = [line for line in ax_speed.get_lines() if line.get_label() == ALLOWED_LABEL]
+    return ax_speed, np.asarray(line.get_ydata(), dtype=float)
+
+
+def test_the_allowed_speed_is_drawn_on_the_side_the_car_drives_and_holds_while_idle() -> None:
+    """Reversing, the allowed |speed| is drawn below zero with the measured speed; not limiting, it
+    runs along that side's edge; single idle ticks (nothing commanded or sent) do not drop it to 0."""
+    occ = load_shipped_map("room")
+    series = ([ControlSample(k * 0.1, 1.0, 1.0, 1.1, 0.9, 0.0) for k in range(10)]          # forwards
+              + [ControlSample(1.0, 0.0, 0.0, 0.0, 0.5, 0.0)]                               # one idle tick
+              + [ControlSample(1.1 + k * 0.1, -0.5, -0.5, 0.3, -0.4, 0.0) for k in range(10)]  # reverse
+              + [ControlSample(2.1, 0.0, 0.0, 0.0, -0.1, 0.0)]                              # idle again
+              + [ControlSample(2.2 + k * 0.1, -0.5, -0.5, math.inf, -0.5, 0.0) for k in range(5)])
+    fig = run_figure(occ, [(0.0, 0.0, 0.0, 0.0, 0.0)], series=series)
+    ax, allowed = _allowed_line(fig)
+    assert allowed[:10] == pytest.approx([1.1] * 10)
+    assert allowed[10] == pytest.approx(1.1)  # the idle tick keeps the value, no drop to 0
+    assert allowed[11:21] == pytest.approx([-0.3] * 10)  # reversing: below zero, as measured
+    assert allowed[21] == pytest.approx(-0.3)
+    low, _ = ax.get_ylim()
+    assert allowed[22:] == pytest.approx([low * 0.985] * 5)  # not limiting: along the bottom edge
+    assert all(a < 0 for a, s in zip(allowed, series, strict=True) if s.commanded < 0)
+
+
+def test_a_reverse_wall_run_plots_the_allowed_speed_on_the_measured_side(tmp_path: Path) -> None:
+    """The shipped reverse-wall scenario, run on the loopback: wherever the car reverses, the
+    plotted allowed speed is below zero too (read from the figure's data, not its pixels)."""
+    import asyncio
+
+    from racecar_hw.sim.loopback import Loopback
+    from racecar_hw.sim.scenario import load_scenario
+
+    loopback = Loopback(load_scenario("reverse-wall"), out_dir=tmp_path,
+                        overrides=["zenoh.enabled=false", "foxglove.enabled=false", "web.enabled=false"])
+    result = asyncio.run(loopback.run())
+    samples = loopback.control_samples
+    fig = run_figure(loopback.map, [(0.0, 0.0, 0.0, 0.0, 0.0)], series=samples)
+    _, allowed = _allowed_line(fig)
+    reversing = [i for i, s in enumerate(samples) if s.commanded < -0.05 and s.measured < -0.05]
+    assert len(reversing) > 10, "the scenario reverses"
+    # below zero; exactly 0 where the safety controller stops the car at the wall
+    assert all(allowed[i] <= 0 for i in reversing), [(samples[i], allowed[i]) for i in reversing
+                                                      if allowed[i] > 0][:5]
+    assert sum(allowed[i] < 0 for i in reversing) > len(reversing) / 2
+    forwards = [i for i, s in enumerate(samples) if s.commanded > 0.05 and s.measured > 0.05]
+    assert forwards and all(allowed[i] >= 0 for i in forwards)
+    assert result.plot_png is not None and result.plot_png.exists()
 
 
 def test_marks_accept_every_shape_a_report_holds() -> None:

@@ -15,7 +15,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import NO_ZENOH
+from conftest import QUIET_NET, set_args
 
 from racecar_hw.sim.loopback import Loopback, SimResult
 from racecar_hw.sim.scenario import load_scenario, scenario_names
@@ -24,7 +24,7 @@ from racecar_hw.sim.trajectory import read_csv
 
 def run(name: str, tmp_path, *overrides: str, duration_s: float | None = None) -> SimResult:
     scenario = load_scenario(name, list(overrides))
-    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s, overrides=[NO_ZENOH])
+    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s, overrides=[*QUIET_NET])
     result = asyncio.run(loopback.run())
     # shown with a failure: interventions by reason and missed control ticks tell a loaded
     # machine's hold-ups (stale_scan, missed ticks) from a wrong outcome
@@ -91,7 +91,7 @@ def test_a_scans_motor_command_is_written_before_its_summaries_are_made(tmp_path
             vesc.last_motor_write_ns >= lidar.frame_arrival_ns))
 
     loopback = Loopback(load_scenario("wall", []), out_dir=tmp_path, duration_s=1.5, setup=setup,
-                        overrides=[NO_ZENOH])
+                        overrides=[*QUIET_NET])
     asyncio.run(loopback.run())
     assert loopback.daemon is not None
     timed = len(loopback.daemon.stats.scan_to_command_ns)  # scans whose command the scan path wrote
@@ -114,7 +114,7 @@ def test_wall_head_on_never_touched_and_stopped_close(tmp_path, speed):
 def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     scenario = load_scenario("wall", ["lidar.model=a1", "lidar.transport=pty"])
     loopback = Loopback(scenario, out_dir=tmp_path,
-                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", NO_ZENOH])
+                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", *QUIET_NET])
     r = asyncio.run(loopback.run()).report
     assert r["lidar"]["model"] == "a1" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # ~10 Hz revolutions
     assert not r["collided"], r["collisions"]
@@ -128,7 +128,7 @@ def test_a_usb_hokuyo_is_reached_on_a_pty_even_with_transport_tcp(tmp_path):
     scenario = load_scenario("wall", ["lidar.model=urg-04lx"])
     assert scenario.lidar.transport == "tcp"
     loopback = Loopback(scenario, out_dir=tmp_path,
-                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", NO_ZENOH])
+                        overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", *QUIET_NET])
     r = asyncio.run(loopback.run()).report
     assert loopback.lidar.tcp is None and loopback.lidar.tcp_address is None
     assert r["lidar"]["model"] == "urg-04lx" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # 10 Hz scans
@@ -260,7 +260,7 @@ def test_the_memory_update_comes_after_the_scans_motor_command(tmp_path):
 
     # the memory takes every scan in here (by default every other one)
     scenario = load_scenario("wall", ["config.safety.memory.update_period_s=0"])
-    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=1.5, setup=setup)
+    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=1.5, setup=setup, overrides=[*QUIET_NET])
     asyncio.run(loopback.run())
     assert loopback.daemon is not None
     timed = len(loopback.daemon.stats.scan_to_command_ns)  # scans whose command the scan path wrote
@@ -310,7 +310,7 @@ def test_cli_sim_writes_report_csv_and_plot(tmp_path):
     report = tmp_path / "out" / "report.json"
     proc = subprocess.run(
         [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall", "--duration", "3",
-         "--no-status", "--set", NO_ZENOH, "--report", str(report)],
+         "--no-status", *set_args(*QUIET_NET), "--report", str(report)],
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     data = json.loads(report.read_text())

@@ -10,7 +10,8 @@ import pytest
 from conftest import async_wait_for
 from rich.console import Console
 
-from racecar_hw.runtime.status import StatusPanel, StatusSnapshot, plain_line, render
+from racecar_hw.runtime.status import StatusPanel, StatusSnapshot, plain_line, render, status_fields
+from racecar_hw.teleop.keyboard import KEY_HINTS
 
 FULL = StatusSnapshot(speed_mps=1.25, steering_rad=-0.15, mux_source="nav_0", battery_v=11.8,
                       scan_rate_hz=39.9, safety_state="limiting", safety_allowed_mps=0.5,
@@ -60,16 +61,31 @@ def test_render_shows_link_states_and_the_simulation() -> None:
            "recon… │" in long_link  # each value cut at its column with an ellipsis, the state kept
 
 
-def test_a_narrow_terminal_gets_a_narrower_box_with_whole_labels() -> None:
+def test_an_80_column_terminal_gets_one_field_per_row_every_value_whole() -> None:
     snap = StatusSnapshot(vesc_link="lost since 14:02:31 (35 s)", lidar_link="connecting 12 s",
-                          sim_time_s=1.0, sim_pose=(1.0, 2.0, 0.0), clearance_m=0.5)
+                          sim_time_s=1.0, sim_pose=(-12.34, -12.34, -3.1), clearance_m=0.5,
+                          vesc_crc_errors=123456, vesc_reconnects=99999,
+                          live_view="ws://127.0.0.1:8765", page="http://127.0.0.1:8080/", keys=KEY_HINTS)
     con, out = console(width=80)
     con.print(render(snap))
     con.print(render(StatusSnapshot()))
     lines = out.getvalue().splitlines()
     assert {len(line) for line in lines} == {80}
-    assert all(label in out.getvalue() for label in ("speed", "battery", "safety", "clearance", "sim pose"))
-    assert "lost since 14:02:31 (35 …" in out.getvalue()
+    assert "…" not in out.getvalue()  # nothing cut
+    for label, text in status_fields(snap):
+        assert any(f"│ {label:9}  {text}" in line for line in lines), (label, text)
+    assert "live view  ws://127.0.0.1:8765" in out.getvalue() and "page       http://127.0.0.1:8080/" \
+        in out.getvalue()
+    assert "keys       arrows/WASD, space stop, q quit" in out.getvalue()
+
+
+def test_the_live_view_page_and_keys_fit_the_wide_panel_whole() -> None:
+    snap = StatusSnapshot(live_view="ws://127.0.0.1:8765", page="http://127.0.0.1:8080/", keys=KEY_HINTS)
+    con, out = console()
+    con.print(render(snap))
+    text = out.getvalue()
+    assert "ws://127.0.0.1:8765" in text and "http://127.0.0.1:8080/" in text and KEY_HINTS in text
+    assert "live view ws://127.0.0.1:8765 | page http://127.0.0.1:8080/ | keys " in plain_line(snap)
 
 
 def test_log_records_go_above_the_live_panel_not_behind_it() -> None:

@@ -117,10 +117,12 @@ IMU_STALE_POLLS = 3
 class VescLinkStats:
     """Link statistics, cumulative over reconnects.
 
-    ``failsafes``: times the no-command failsafe engaged; ``refused_commands``: NaN/inf drive
-    commands; ``write_errors``: writes that found the port gone; ``ignored_fw_versions``: FW_VERSION
-    frames not taken (unasked, mid-session, or an unknown version); ``implausible_telemetry``:
-    GET_VALUES replies dropped for physically impossible values.
+    ``drive_commands``: drive commands (:meth:`VescDriver.command`) written to a connected VESC
+    (one that answered FW_VERSION); ``failsafes``: times the no-command failsafe engaged;
+    ``refused_commands``: NaN/inf drive commands; ``write_errors``: writes that found the port
+    gone; ``ignored_fw_versions``: FW_VERSION frames not taken (unasked, mid-session, or an
+    unknown version); ``implausible_telemetry``: GET_VALUES replies dropped for physically
+    impossible values.
     """
 
     frames_tx: int = 0
@@ -136,6 +138,7 @@ class VescLinkStats:
     ignored_fw_versions: int = 0
     implausible_telemetry: int = 0
     imu_replies: int = 0
+    drive_commands: int = 0
 
 
 def values_to_state(v: Values) -> VescState:
@@ -181,6 +184,8 @@ class VescDriver:
         self._closed = False
         self._run_task: asyncio.Task[None] | None = None
         self._ever_connected = False
+        #: why the port last failed to open, for the operator; None once it opened
+        self.last_error: str | None = None
         self._timeout_ns = nanoseconds(self.params.command_timeout_s)
         self._alive_ns = nanoseconds(self.params.alive_interval_s)
         # A poll is due 0.9 poll periods after the last one: a command going out then carries it, so
@@ -204,6 +209,11 @@ class VescDriver:
     def connected(self) -> bool:
         """Whether the port is open and the VESC answered FW_VERSION on it."""
         return self._link is not None and self._link.is_open and self._firmware is not None
+
+    @property
+    def ever_connected(self) -> bool:
+        """Whether the port ever opened in this driver's life."""
+        return self._ever_connected
 
     @property
     def last_motor_write_ns(self) -> int:
@@ -268,9 +278,11 @@ class VescDriver:
             if now - self._last_poll_ns >= self._poll_due_ns:
                 # the telemetry poll rides along: one write instead of two
                 self._last_poll_ns = now
-                self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo), *self._polls)
+                written = self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo), *self._polls)
             else:
-                self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo))
+                written = self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo))
+            if written:
+                self.stats.drive_commands += 1
         self._arm_failsafe_timer()  # counts from _last_command_ns; the write need not wait for it
 
     def brake_and_centre(self) -> None:
@@ -292,6 +304,7 @@ class VescDriver:
                     await self._open()
                 except DeviceError as err:
                     failures += 1
+                    self.last_error = str(err)
                     (log.warning if failures == 1 else log.debug)("VESC not available: %s", err)
                     await self._pause(backoff)
                     backoff = min(backoff * 2.0, self.params.reconnect_backoff_max_s)
@@ -304,6 +317,7 @@ class VescDriver:
                 if self._ever_connected:
                     self.stats.reconnects += 1
                 self._ever_connected = True
+                self.last_error = None
                 failures = 0
                 backoff = self.params.reconnect_backoff_min_s
                 try:
@@ -521,17 +535,18 @@ class VescDriver:
             frames[packet] = data
         return data
 
-    def _write(self, *packets: Packet) -> None:
+    def _write(self, *packets: Packet) -> bool:
+        """Write ``packets`` in one write; whether the OS took them."""
         link = self._link
         if link is None or not link.is_open:
-            return
+            return False
         data = b"".join([self._encode(p) for p in packets])
         try:
             link.write(data)
         except DeviceError as err:
             self.stats.write_errors += 1
             log.debug("VESC write failed: %s", err)
-            return
+            return False
         self.stats.frames_tx += len(packets)
         now = monotonic_ns()
         for p in packets:
@@ -541,6 +556,7 @@ class VescDriver:
             elif isinstance(p, SetServoPosition):
                 self._servo_sent = p.position
                 self.bus.publish(TOPIC_SERVO, Float64(p.position))
+        return True
 
     def _on_bytes(self, data: bytes) -> None:
         self._codec.receive_data(data)

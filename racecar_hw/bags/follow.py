@@ -196,13 +196,14 @@ def load_commands(path: str | Path, topic: str | None = None,
                   wheelbase_m: float = DEFAULT_WHEELBASE_M, *, limits: CommandLimits | None = None,
                   max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> list[Command]:
     """The drive commands on ``topic`` (None or "": :func:`choose_topic`) of the bag at ``path``,
-    in bag-time order; Twist is converted with ``wheelbase_m`` (m), its steering clamped to
-    ``limits`` (as the VESC driver would clamp it: a Twist cannot name a steering angle).
+    in bag-time order; Twist is converted with ``wheelbase_m`` (m). Commands beyond ``limits``
+    are clamped to them, as the VESC driver clamps any command, with one warning that counts them.
 
     Raises :class:`BagError` (and nothing else) for a missing or zero-byte file, an unreadable or
     damaged bag, one declaring a record over ``max_message_bytes``, an empty bag, a missing topic or
     one of another type (listing the topics and types found), a storage that yields nothing although
-    its metadata counts messages, and a command that is not finite or beyond ``limits``.
+    its metadata counts messages, and a command that is not finite or physically absurd
+    (:func:`~racecar_hw.bags.validate.check_commands`).
     """
     limits = limits or CommandLimits()
     bag = Path(path)
@@ -238,7 +239,7 @@ def load_commands(path: str | Path, topic: str | None = None,
             if conn.msgtype in TWIST_TYPES and _turns_in_place(msg, conn.msgtype):
                 turning_in_place += 1
             command = command_from_message(conn.msgtype, msg, t_ns, wheelbase_m)
-            if conn.msgtype in TWIST_TYPES:
+            if conn.msgtype in TWIST_TYPES:  # a Twist names no steering angle: not the bag's ask
                 command = _clamp_steering(command, limits.max_steering_rad)
             out.append(command)
     finally:
@@ -248,7 +249,34 @@ def load_commands(path: str | Path, topic: str | None = None,
                     "which an Ackermann car cannot do: they are followed as stops", bag,
                     turning_in_place, len(out), topic)
     out.sort(key=lambda c: c.t_ns)
-    check_commands(out, limits, bag, topic)
+    check_commands(out, bag, topic)
+    return clamp_commands(out, limits, bag, topic)
+
+
+def clamp_commands(commands: list[Command], limits: CommandLimits, bag: str | Path,
+                   topic: str) -> list[Command]:
+    """``commands`` with speed and steering clamped to ``limits``; one warning counts the clamped
+    ones and names the most the bag asked for (a bag from a car that steers further is normal)."""
+    out: list[Command] = []
+    clamped = 0
+    top_speed = top_steering = 0.0
+    for command in commands:
+        drive = limits.clamp(command.drive)
+        if drive is not command.drive:
+            clamped += 1
+            top_speed = max(top_speed, abs(command.drive.speed))
+            top_steering = max(top_steering, abs(command.drive.steering_angle))
+            command = dataclasses.replace(command, drive=drive)
+        out.append(command)
+    if clamped:
+        asked = []
+        if top_speed > limits.max_speed_mps:
+            asked.append(f"speed up to {top_speed:g} m/s (limit {limits.max_speed_mps:g})")
+        if top_steering > limits.max_steering_rad:
+            asked.append(f"steering up to {top_steering:g} rad (limit {limits.max_steering_rad:g})")
+        log.warning("%s: %d of %d commands on %s ask for more than this car's limits, %s: they are "
+                    "clamped to the limits (vesc.speed_max_mps, vesc.steering_max_rad), as any "
+                    "command is", bag, clamped, len(out), topic, " and ".join(asked))
     return out
 
 
@@ -448,7 +476,7 @@ class BagFollower:
         self.progress = progress
         self.wheelbase_m = wheelbase_m
         self.reverse_speed_cap_mps = reverse_speed_cap_mps
-        #: what a command may ask for (the car's configured limits); a bag beyond them is refused
+        #: what a command may ask for (the car's configured limits); commands beyond them are clamped
         self.limits = limits or CommandLimits()
         self.done = False
         self.published = 0

@@ -641,10 +641,10 @@ def inspect_bag(path: str | Path) -> BagState:
         if ROS1_MAGIC.startswith(data):
             raise BagError(f"{src} holds only {len(data)} bytes, a cut-off bag header: nothing was "
                            "flushed before the recording ended")
-        if data.startswith(MCAP_MAGIC):
-            raise BagError(f"{src} is an MCAP file: give its bag directory ({src.parent})")
-        problem = check_ros1_index(data, scan_ros1(data))
-        return BagState(src, "ros1", [src], not problem, problem)
+        if not data.startswith(MCAP_MAGIC):
+            problem = check_ros1_index(data, scan_ros1(data))
+            return BagState(src, "ros1", [src], not problem, problem)
+        src = src.parent  # a ROS 2 bag's .mcap file: the bag is its directory
     mcaps = _storage_files(src, ".mcap")
     dbs = _storage_files(src, ".db3")
     if mcaps:

@@ -16,15 +16,18 @@ absurd values into the control path. Three pieces, used by every bag reader here
   message of a sqlite3 bag. Every MCAP chunk that carries a CRC-32 (non-zero: recorded by this
   project's recorder) is checked against it (:func:`mcap_chunk_crc_error` alone for ``bag info``
   and ``bag recover``): a mismatch is refused naming the chunk (its number and byte offset).
-* :func:`check_commands`: every loaded drive command must be finite and within the car's
-  configured speed and steering limits, or the bag is refused naming the first bad message's index
-  and time.
+* :func:`check_commands`: every loaded drive command must be finite and physically possible
+  (:data:`ABSURD_SPEED_MPS`, :data:`ABSURD_STEERING_RAD`), or the bag is refused naming the first
+  bad message's index and time. A command merely beyond this car's configured limits is not
+  refused: the follower clamps it to :class:`CommandLimits`, as the VESC driver clamps any command
+  (a bag recorded on a car that steers further, F1TENTH's 0.4189 rad, is normal).
 """
 
 from __future__ import annotations
 
 import bz2
 import contextlib
+import dataclasses
 import functools
 import math
 import sqlite3
@@ -487,10 +490,22 @@ def _check_sqlite3(db: Path, max_bytes: int) -> None:
 
 @dataclass(frozen=True)
 class CommandLimits:
-    """What a loaded command may ask for: |speed| (m/s) and |steering| (rad); inf = no limit."""
+    """What this car can be asked for: |speed| (m/s) and |steering| (rad); inf = no limit.
+
+    Loaded commands beyond them are clamped to them (:meth:`clamp`), not refused.
+    """
 
     max_speed_mps: float = math.inf
     max_steering_rad: float = math.inf
+
+    def clamp(self, drive: AckermannDrive) -> AckermannDrive:
+        """``drive`` with its speed and steering angle clamped to the limits (the same object when
+        within them)."""
+        speed = min(max(drive.speed, -self.max_speed_mps), self.max_speed_mps)
+        steering = min(max(drive.steering_angle, -self.max_steering_rad), self.max_steering_rad)
+        if speed == drive.speed and steering == drive.steering_angle:
+            return drive
+        return dataclasses.replace(drive, speed=speed, steering_angle=steering)
 
 
 class _Timed(Protocol):
@@ -498,13 +513,17 @@ class _Timed(Protocol):
     drive: AckermannDrive
 
 
-#: Relative slack on the limits: a float32 bag value of the limit itself may round just above it.
-_SLACK = 1e-6
+#: No 1/10-scale car drives this fast (m/s; the RC speed record is about 90 m/s): a bag asking for
+#: more is damaged or not a drive command, and is refused.
+ABSURD_SPEED_MPS = 100.0
+#: A steered wheel cannot turn further than this (rad): a bag asking for more is refused.
+ABSURD_STEERING_RAD = math.pi / 2
 
 
-def check_commands(commands: Sequence[_Timed], limits: CommandLimits, path: str | Path, topic: str) -> None:
-    """Refuse (BagError) the bag at the first command that is not finite or beyond ``limits``,
-    naming its index on ``topic`` and its time (seconds after the first command, and bag time)."""
+def check_commands(commands: Sequence[_Timed], path: str | Path, topic: str) -> None:
+    """Refuse (BagError) the bag at the first command that is not finite or physically absurd
+    (beyond :data:`ABSURD_SPEED_MPS` or :data:`ABSURD_STEERING_RAD`), naming its index on ``topic``
+    and its time (seconds after the first command, and bag time)."""
     t0 = commands[0].t_ns if commands else 0
     for i, cmd in enumerate(commands):
         d = cmd.drive
@@ -512,16 +531,17 @@ def check_commands(commands: Sequence[_Timed], limits: CommandLimits, path: str 
                   "jerk": d.jerk, "steering_angle_velocity": d.steering_angle_velocity}
         problem = next((f"{name} {value}" for name, value in fields.items() if not math.isfinite(value)),
                        None)
-        if problem is None and abs(d.speed) > limits.max_speed_mps * (1 + _SLACK):
-            problem = f"speed {d.speed:g} m/s, beyond the car's limit of {limits.max_speed_mps:g} m/s"
-        if problem is None and abs(d.steering_angle) > limits.max_steering_rad * (1 + _SLACK):
-            problem = (f"steering {d.steering_angle:g} rad, beyond the car's limit of "
-                       f"{limits.max_steering_rad:g} rad")
+        if problem is None and abs(d.speed) > ABSURD_SPEED_MPS:
+            problem = f"speed {d.speed:g} m/s, which no 1/10-scale car drives (over {ABSURD_SPEED_MPS:g} m/s)"
+        if problem is None and abs(d.steering_angle) > ABSURD_STEERING_RAD:
+            problem = (f"steering {d.steering_angle:g} rad, which no wheel turns (over "
+                       f"{ABSURD_STEERING_RAD:.4g} rad)")
         if problem is not None:
             raise BagError(f"{path}: message {i} on {topic} ({(cmd.t_ns - t0) / NS_PER_S:.3f} s into "
                            f"the recording, bag time {cmd.t_ns / NS_PER_S:.3f} s) asks for {problem}; "
                            "the bag is refused")
 
 
-__all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits", "check_commands", "check_storage", "crc_mismatch",
-           "describe", "guarded", "inflate", "inflated_size", "mcap_chunk_crc_error", "reading"]
+__all__ = ["ABSURD_SPEED_MPS", "ABSURD_STEERING_RAD", "DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits",
+           "check_commands", "check_storage", "crc_mismatch", "describe", "guarded", "inflate",
+           "inflated_size", "mcap_chunk_crc_error", "reading"]

@@ -10,6 +10,7 @@ file that leaves ``mux`` out: it changes the second of the default inputs.
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,62 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError("", f"{p} must hold a mapping of sections, not {type(data).__name__}")
     return data
+
+
+def key_lines(path: str | Path) -> dict[tuple[str | int, ...], int]:
+    """Where each key of a YAML file is: its path (names, and numbers for list items) -> line (from 1).
+
+    Empty for a file that cannot be read or parsed (load_yaml reports that)."""
+    try:
+        root = yaml.compose(Path(path).read_text())
+    except (OSError, yaml.YAMLError):
+        return {}
+    out: dict[tuple[str | int, ...], int] = {}
+
+    def walk(node: Any, at: tuple[str | int, ...]) -> None:
+        if isinstance(node, yaml.MappingNode):
+            for key, value in node.value:
+                here = (*at, str(key.value))
+                out[here] = key.start_mark.line + 1
+                walk(value, here)
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                out[(*at, i)] = item.start_mark.line + 1
+                walk(item, (*at, i))
+
+    walk(root, ())
+    return out
+
+
+def key_path(key: str) -> tuple[str | int, ...]:
+    """A dotted error key as a path: ``mux.inputs[1].timeout_s`` or ``mux.inputs.1.timeout_s`` ->
+    ``("mux", "inputs", 1, "timeout_s")``."""
+    out: list[str | int] = []
+    for token in re.findall(r"\[\d+\]|[^.\[\]]+", key):
+        if token.startswith("["):
+            out.append(int(token[1:-1]))
+        else:
+            out.append(int(token) if token.isdigit() else token)
+    return tuple(out)
+
+
+def remove_key(data: Any, path: tuple[str | int, ...]) -> bool:
+    """Delete the value at ``path`` in ``data`` (mappings and lists); whether there was one."""
+    node = data
+    for part in path[:-1]:
+        in_dict = isinstance(node, dict) and part in node
+        if in_dict or (isinstance(node, list) and isinstance(part, int) and part < len(node)):
+            node = node[part]
+        else:
+            return False
+    last = path[-1] if path else None
+    if isinstance(node, dict) and last in node:
+        del node[last]
+        return True
+    if isinstance(node, list) and isinstance(last, int) and last < len(node):
+        del node[last]
+        return True
+    return False
 
 
 def apply_override(data: dict[str, Any], assignment: str,

@@ -17,10 +17,11 @@ and documentation, for ``check-config`` and the docs.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import types
 import typing
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any, TypeVar
 
 from racecar_hw.base.errors import ConfigError
@@ -51,6 +52,16 @@ def param(
     return dataclasses.field(default=default, metadata=meta)
 
 
+def unknown_key(name: str, allowed: Iterable[str], what: str = "key") -> str:
+    """The message for an unknown ``name``: the close match (difflib) when there is one, else
+    every allowed name."""
+    choices = sorted(allowed)
+    close = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
+    if close:
+        return f"unknown {what}; did you mean {close[0]}?"
+    return f"unknown {what}; allowed {what}s: {', '.join(choices)}"
+
+
 def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
     """An instance of the parameter dataclass ``cls`` from ``data``; ``key`` prefixes error keys."""
     if data is None:
@@ -60,8 +71,7 @@ def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields))
     if unknown:
-        allowed = ", ".join(sorted(fields))
-        raise ConfigError(_join(key, str(unknown[0])), f"unknown key; allowed keys: {allowed}")
+        raise ConfigError(_join(key, str(unknown[0])), unknown_key(str(unknown[0]), fields, "key"))
     hints = typing.get_type_hints(cls)
     values: dict[str, Any] = {}
     for name, f in fields.items():

@@ -6,7 +6,11 @@ import argparse
 import asyncio
 import sys
 
-from racecar_hw.config import describe_config, dump_config, load_config
+import yaml
+
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import unknown_key
+from racecar_hw.config import check_config, describe_config, dump_config, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
@@ -38,18 +42,43 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("file", nargs="?", help="config file (default: the shipped car config)")
     c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one parameter (repeatable)")
-    c.add_argument("--describe", action="store_true", help="list every parameter with its default")
+    c.add_argument("--describe", nargs="?", const="", default=None, metavar="SECTION",
+                   help="list every parameter (of SECTION, e.g. vesc) with its default, as YAML")
     c.set_defaults(func=cmd_check_config)
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    if args.describe:
-        for key, default, doc in describe_config():
-            print(f"{key} = {default!r}\n    {doc}")
-        return 0
-    config = load_config(args.file, args.overrides)
+    """Print the effective config; or every error at once, each with the file and line (or the
+    --set) its value came from, exit 1."""
+    if args.describe is not None:
+        return describe(args.describe)
+    config, problems = check_config(args.file, args.overrides)
+    if problems:
+        for problem in problems:
+            print(f"racecar-hw check-config: {problem}", file=sys.stderr)
+        return 1
+    assert config is not None
     sys.stdout.write(dump_config(config))
     return 0
+
+
+def describe(section: str) -> int:
+    """Every parameter (of ``section``, when given) with its default as YAML and its documentation."""
+    rows = describe_config()
+    if section:
+        sections = sorted({key.split(".", 1)[0] for key, _, _ in rows})
+        name = section.rstrip(".")
+        if name not in sections and name.rstrip("[]") + "[]" not in sections:
+            raise ConfigError(name, unknown_key(name, sections, "section"))
+        rows = [row for row in rows if row[0].split(".", 1)[0] in (name, name.rstrip("[]") + "[]")]
+    for key, default, doc in rows:
+        print(f"{key}: {yaml_value(default)}\n    {doc}")
+    return 0
+
+
+def yaml_value(value: object) -> str:
+    """``value`` as one line of YAML (``null``, ``false``, ``[a, b]``), as a config file says it."""
+    return yaml.safe_dump(value, default_flow_style=True, width=10_000).strip().removesuffix("...").strip()
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -61,7 +90,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     if daemon.follower is not None:
         daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
     with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
-        return asyncio.run(run_daemon(daemon, noted=stops))
+        code = asyncio.run(run_daemon(daemon, noted=stops))
+    if daemon.drives_itself():  # a bag or the figure-8 was to drive: say so when it never could
+        code = code or exit_if_undriven("run", daemon)
+    return code
+
+
+def exit_if_undriven(command: str, daemon: Daemon) -> int:
+    """1, after saying why on stderr, when no drive command reached a connected VESC; else 0.
+
+    A command that drives (``follow``, ``run`` with a bag or the figure-8) must not report a
+    success it did not have: a replay against a missing port drove nothing.
+    """
+    reason = daemon.undriven_reason()
+    if reason is None:
+        return 0
+    print(f"racecar-hw {command}: {reason}", file=sys.stderr)
+    return 1
 
 
 async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,

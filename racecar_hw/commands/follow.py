@@ -10,7 +10,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
-from racecar_hw.commands.daemon import add_config_options, run_daemon
+from racecar_hw.commands.daemon import add_config_options, exit_if_undriven, run_daemon
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.zenoh_logins import install_for
@@ -72,7 +72,7 @@ def cmd_follow(args: argparse.Namespace) -> int:
             code = asyncio.run(_follow(daemon, follower, stops))
     if daemon.arming.changes and not daemon.arming.armed:
         print(f"racecar-hw follow: stopped at {follower.published} commands: {daemon.arming.reason}")
-    return code
+    return code or exit_if_undriven("follow", daemon)
 
 
 async def _follow(daemon: Daemon, follower: BagFollower, stops: StopSignals) -> int:

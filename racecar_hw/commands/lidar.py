@@ -51,7 +51,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     where = info.add_mutually_exclusive_group(required=True)
     where.add_argument("--port", metavar="PATH", help="serial path or pyserial URL")
     where.add_argument("--tcp", metavar="HOST:PORT", help="Ethernet Hokuyo address")
-    info.add_argument("--model", required=True, choices=MODELS, type=str.lower, help="lidar model")
+    info.add_argument("--model", choices=MODELS, type=str.lower,
+                      help="lidar model (default: the one the device reports; with --port a Hokuyo "
+                           "is tried first, then an RPLIDAR)")
     info.add_argument("--baudrate", type=int, default=None, help="serial baud (default: the model's)")
     info.add_argument("--timeout", type=float, default=5.0, metavar="S",
                       help="seconds to wait for the first scan (default 5)")
@@ -124,23 +126,47 @@ def fake_lidar(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Models tried, in order, when ``lidar-info`` is not given ``--model``: each stands for its
+#: protocol (SCIP 2.0 over Ethernet; SCIP on a serial port, then the RPLIDAR protocol); the model
+#: the device then reports is used.
+PROBE_MODELS = {"tcp": ("ust-10lx",), "port": ("urg-04lx", "a1")}
+
+
 def lidar_info(args: argparse.Namespace) -> int:
     """Print the lidar's identity, geometry and one scan's closest/farthest return."""
-    if args.tcp and family(args.model) != "hokuyo":
+    if args.model and args.tcp and family(args.model) != "hokuyo":
         print(f"racecar-hw lidar-info: {args.model} is a serial lidar; use --port")
         return 2
-    params = LidarParams(model=args.model, port=args.port, tcp=args.tcp, baudrate=args.baudrate,
-                         reconnect_backoff_min_s=0.2)
-    driver, scan = asyncio.run(_first_scan(params, args.timeout))
+    detected = args.model is None
+    driver, scan = None, None
+    for model in [args.model] if args.model else PROBE_MODELS["tcp" if args.tcp else "port"]:
+        driver, scan = _probe(args, model)
+        reported = driver.info.get("model")
+        key = model_for_reported(reported) if reported else None
+        if detected and key is not None and key != model:
+            driver, scan = _probe(args, key)  # the model the device names: its own geometry
+            model = key
+        if not detected or scan is not None or reported:
+            break
+    assert driver is not None
+    if detected:
+        if not driver.info.get("model"):
+            tried = " or ".join(PROBE_MODELS["tcp" if args.tcp else "port"])
+            why = f" ({driver.last_error})" if driver.last_error else ""
+            print(f"racecar-hw lidar-info: no lidar named itself within {args.timeout:g} s, tried as "
+                  f"{tried}{why}; give --model")
+            return 1
+        args.model = model
     reported = driver.info.get("model")
-    mismatch = _model_mismatch(args.model, reported)
+    mismatch = None if detected else _model_mismatch(args.model, reported)
     if scan is None:
         print(f"racecar-hw lidar-info: no scan within {args.timeout:g} s"
               + (f" ({driver.last_error})" if driver.last_error else ""))
         if mismatch:
             print(f"racecar-hw lidar-info: {mismatch}")
         return 1
-    print(f"model:      {args.model}" + (f" (device reports {reported})" if reported else ""))
+    print(f"model:      {args.model}" + (f" (device reports {reported})" if reported else "")
+          + (", detected" if detected else ""))
     if mismatch:
         print(f"warning:    {mismatch}")
     for key, value in driver.info.items():
@@ -166,6 +192,13 @@ def _model_mismatch(model: str, reported: str | None) -> str | None:
     key = model_for_reported(reported)
     advice = f"use --model {key} (lidar.model: {key})" if key else "check lidar.model"
     return f"the device reports {reported}, not {model_name(model)} ({model}); {advice}"
+
+
+def _probe(args: argparse.Namespace, model: str) -> tuple[LidarDriver, LaserScan | None]:
+    """The driver for ``model`` at the given port or address after its first scan (None: none came)."""
+    params = LidarParams(model=model, port=args.port, tcp=args.tcp, baudrate=args.baudrate,
+                         reconnect_backoff_min_s=0.2)
+    return asyncio.run(_first_scan(params, args.timeout))
 
 
 async def _first_scan(params: LidarParams, timeout: float) -> tuple[LidarDriver, LaserScan | None]:

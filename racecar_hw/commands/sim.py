@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seconds to run (default: the scenario's; with --follow, as long as the "
                         "replay, slowed down for the reverse cap if need be, and 1 s more)")
     p.add_argument("--report", metavar="FILE", help="write the JSON report here "
-                                                    "(default: OUT/report.json)")
+                                                    "(default: OUT/SCENARIO.json, as the plot and CSV)")
     p.add_argument("--out", metavar="DIR", help="directory for the trajectory CSV and plot "
                                                 "(default: next to the report, else ./sim-out)")
     p.add_argument("--scenario-set", dest="scenario_overrides", action="append", default=[],
@@ -112,11 +112,19 @@ def cmd_sim(args: argparse.Namespace) -> int:
         result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
         return INTERRUPTED
-    report = write_report(result, args.report or out / "report.json")
+    report = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
-    print(f"report: {report}\nplot: {result.plot_png}\ntrajectory: {result.trajectory_csv}")
+    print(outputs(result.report, report))
     return 0
+
+
+def outputs(report: dict[str, Any], report_path: Path) -> str:
+    """Where each output of the run went: the report, the plot, the trajectory, any bag."""
+    lines = [f"report:     {report_path}", f"plot:       {report['plot_png']}",
+             f"trajectory: {report['trajectory_csv']}"]
+    lines += [f"bag:        {bag}" for bag in report.get("bags") or []]
+    return "\n".join(lines)
 
 
 def summary(report: dict[str, Any]) -> str:
@@ -138,8 +146,17 @@ def summary(report: dict[str, Any]) -> str:
         f"min clearance {_clearance(report)}, safety interventions {report['safety_interventions']}{by}",
         f"final pose x {num(pose['x'], '.2f', 'm')}  y {num(pose['y'], '.2f', 'm')}  "
         f"yaw {num(yaw, '.0f', 'deg')}",
+        *_live(report),
         *_cut_short(report),
     ])
+
+
+def _live(report: dict[str, Any]) -> list[str]:
+    """Where the live view and the status page were during the run, when they were on."""
+    live = report.get("live") or {}
+    names = {"foxglove": "live view (Foxglove)", "web": "status page"}
+    parts = [f"{names[k]} {url}" for k, url in live.items() if k in names]
+    return [f"{' and '.join(parts)} (while it ran)"] if parts else []
 
 
 def _cut_short(report: dict[str, Any]) -> list[str]:

@@ -239,6 +239,7 @@ def _pub(session: Any, domain: int, args: argparse.Namespace) -> int:
         msg = from_plain(cls, values)
     except (yaml.YAMLError, TypeError, ValueError) as err:
         raise TopicError(f"{args.values!r} is not a {args.type}: {err}") from None
+    _check_pub_type(session, domain, args.topic, args.type)
     payload = ros2_types().serialize(msg)
     type_hash = rmw.wire_type_hash(args.type, args.ros_distro)
     zid = str(session.zid())
@@ -266,6 +267,23 @@ def _pub(session: Any, domain: int, args: argparse.Namespace) -> int:
         for token in tokens:
             token.undeclare()
     return 0
+
+
+def _check_pub_type(session: Any, domain: int, topic: str, ros_type: str) -> None:
+    """Refuse to publish ``ros_type`` on a topic the graph knows with other types only.
+
+    rmw_zenoh puts each type on its own key, so a subscriber of another type (the daemon's mux
+    inputs) would never see the message: publishing it would only look like success. A topic not in
+    the graph yet is published to as ``ros2 topic pub`` does.
+    """
+    found = [e for e in graph(session, domain) if e.topic == topic
+             and e.kind in (rmw.PUBLISHER, rmw.SUBSCRIPTION)]
+    types = sorted({e.ros_type for e in found})
+    if found and ros_type not in types:
+        takers = sorted({e.node for e in found if e.kind == rmw.SUBSCRIPTION})
+        who = f" (subscribed by {', '.join(takers)})" if takers else ""
+        raise TopicError(f"{topic} takes {' or '.join(types)}{who}, not {ros_type}; a message of "
+                         f"another type would never arrive")
 
 
 def from_plain(cls: type[Message], data: Any) -> Message:

@@ -20,8 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         description="Create a pty that speaks the VESC protocol (motor, servo, battery model) and a "
                     "symlink to it at --link, then serve until Ctrl-C.")
     fake.add_argument("--link", required=True, metavar="PATH", help="symlink to create, e.g. /tmp/vesc")
-    fake.add_argument("--firmware", default="6.2", type=_firmware, metavar="X.Y",
-                      help="firmware version to emulate; picks the GET_VALUES layout (default 6.2)")
+    fake.add_argument("--firmware", default="6.02", type=_firmware, metavar="X.YY",
+                      help="firmware version to emulate, as vesc-info prints it; picks the "
+                           "GET_VALUES layout (default 6.02)")
     fake.set_defaults(func=fake_vesc)
 
     info = subparsers.add_parser(
@@ -37,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def _firmware(text: str) -> tuple[int, int]:
     major, sep, minor = text.partition(".")
     if not sep or not major.isdigit() or not minor.isdigit():
-        raise argparse.ArgumentTypeError(f"{text!r} is not a version like 6.2 or 3.40")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a version like 6.02 or 3.40")
     return int(major), int(minor)
 
 

@@ -14,12 +14,17 @@ A thin I/O shell around the codec, with one Zenoh session:
   with a cache of ``depth`` samples, so a subscriber that starts later still gets them; they are
   always queued.
 * **In** (mux inputs, locks, e-stop, ``/cmd_vel``). Zenoh calls back in its own threads; there the
-  sample is checked (rmw_zenoh's attachment, a well-formed CDR payload, every number finite) and
-  decoded, then handed to the event loop with ``call_soon_threadsafe``, which publishes it on the
-  bus like any local input: the mux applies its timeouts. Anything else is dropped and counted.
-  The e-stop and its release (``estop_topics``) go to ``on_estop(topic, msg, ORIGIN)`` instead,
-  so the mux knows they came from a network session (only an operator releases what an operator
-  latched: :mod:`mux.estop`).
+  sample's rmw_zenoh attachment is checked and the payload given to the network
+  :class:`~racecar_hw.net.inbox.Inbox` (shared with every network surface), which decodes it,
+  checks every number is finite and keeps the latest message per input for the event loop: at
+  most one hand-over per input per control tick whatever the arrival rate, e-stops at once and
+  first (with their origin, so the mux knows they came from a network session: only an operator
+  releases what an operator latched, :mod:`mux.estop`). In the loop it is published on the bus
+  like any local input: the mux applies its timeouts. Anything else is dropped and counted.
+  A second subscriber per input topic matches the topic whatever its type: a sample of another
+  type (``AckermannDrive`` where ``AckermannDriveStamped`` is taken, which rmw_zenoh puts on a
+  different key, so the input never sees it) is counted in ``wrong_type`` and in the daemon's
+  :class:`~racecar_hw.runtime.refusals.Refusals` (rate-limited log lines naming the type taken).
 * **Services** (the read-only parameter services, :mod:`racecar_hw.net.parameters`). One Zenoh
   queryable per service, on rmw_zenoh's service key (``<domain>/<node>/<service>/<srv DDS type>/
   <hash>``) and declared complete, as ``rmw_service_data.cpp`` does. A query carries the CDR request
@@ -39,20 +44,17 @@ slow subscriber) holds up only the publisher thread.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
-import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
+from racecar_hw.net.inbox import NON_FINITE, Inbox, all_finite
 from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.parameters import (
     PARAMETER_SERVICES,
@@ -66,6 +68,7 @@ from racecar_hw.net.topics import Direction, Reliability, Topic
 from racecar_hw.net.zenoh_config import ZenohParams, config_for
 from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +76,17 @@ log = logging.getLogger(__name__)
 OLD_ATTACHMENT_HINT = ("the sender's rmw_zenoh uses the old string-keyed attachment of Jazzy's 0.2.0-0.2.3 "
                        "releases: update rmw_zenoh on that machine "
                        "(sudo apt upgrade ros-jazzy-rmw-zenoh-cpp)")
-#: How the bridge names itself as the origin of the e-stop messages it hands over.
+
+__all__ = ["ORIGIN", "BridgeStats", "ZenohBridge", "all_finite"]
+
+#: How the bridge names itself as the origin of the messages it hands to the inbox.
 ORIGIN = "zenoh"
+
+#: Publishers per command row whose sequence numbers are followed (to count what Zenoh dropped).
+MAX_PUBLISHERS = 64
+#: The largest gap in one publisher's sequence numbers counted as superseded samples (a forged
+#: sequence number must not make the counts absurd).
+MAX_GAP = 1_000_000
 
 #: The sporadic heartbeat of a RELIABLE + TRANSIENT_LOCAL publisher (s), as rmw_zenoh sets it.
 HEARTBEAT_S = 0.5
@@ -94,6 +106,7 @@ class BridgeStats:
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
     service_calls: int = 0   #: service requests answered
     service_errors: int = 0  #: service requests refused (no attachment, malformed) or failed replies
+    wrong_type: int = 0      #: incoming samples on an input topic with another type or type hash
 
 
 class _Out:
@@ -115,26 +128,31 @@ class ZenohBridge:
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
     the bus (the daemon uses it to send a fresh remote command to the VESC at once). Messages on
     ``urgent`` bus topics wake the publisher thread at once (the daemon names the scan, odometry and
-    ``/tf``: remote navigation code waits for them); the rest go out in batches. Messages on
-    ``estop_topics`` go to ``on_estop(topic, msg, ORIGIN)`` in the event loop instead of the bus
-    (without it they go on the bus, where the mux takes them as from a local publisher).
+    ``/tf``: remote navigation code waits for them); the rest go out in batches. Samples of the
+    wrong type on an input topic are noted in ``refusals`` (the daemon passes its own).
+
+    Incoming messages go to ``inbox`` (the daemon's, shared with the other network surfaces,
+    which hands them over as it is told); without one the bridge has its own, which publishes
+    them on the bus and then calls ``on_input``.
     """
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
                  urgent: frozenset[str] | set[str] = frozenset(),
-                 on_estop: Callable[[str, Message, str], None] | None = None,
-                 estop_topics: frozenset[str] | set[str] = frozenset(),
-                 parameters: ParameterService | None = None) -> None:
+                 refusals: Refusals | None = None,
+                 parameters: ParameterService | None = None,
+                 inbox: Inbox | None = None) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
         self.on_input = on_input
-        self.on_estop = on_estop
-        self.estop_topics = frozenset(estop_topics)
+        self._own_inbox = inbox is None
+        self.inbox = inbox if inbox is not None else Inbox(
+            [r.bus for r in rows if r.direction is Direction.IN], self._deliver)
         self.domain_id = params.resolved_domain_id()
         self.namespace = rmw.check_namespace(params.namespace)
         self.stats = BridgeStats()
+        self.refusals = refusals if refusals is not None else Refusals()
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
@@ -144,6 +162,8 @@ class ZenohBridge:
         self._types = ros2_types()
         self._outs: list[_Out] = []
         self._subscribers: list[Any] = []
+        self._pumps: list[threading.Thread] = []
+        self._stopping = threading.Event()
         self._tokens: list[Any] = []
         self._bus_subs: list[Subscription] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -201,6 +221,7 @@ class ZenohBridge:
         import zenoh.ext  # noqa: PLC0415
 
         self._loop = loop
+        self.inbox.bind(loop)
         p = self.params
         try:
             self.session = zenoh.open(config_for(p))
@@ -219,6 +240,8 @@ class ZenohBridge:
             for spec in PARAMETER_SERVICES:
                 self._declare_service(spec)
         self.outbox.start()
+        for pump in self._pumps:
+            pump.start()
         for out in self._outs:
             self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
             latest = self.bus.latest(out.row.bus)
@@ -227,7 +250,7 @@ class ZenohBridge:
         log.info("zenoh bridge up: %s mode, session %s, domain %d, namespace %r, listen %s, "
                  "connect %s; %d topics out, %d in, %d services; peers: rmw_zenoh %s", p.mode, self.zid,
                  self.domain_id, self.namespace or "/", p.listen, p.connect, len(self._outs),
-                 len(self._subscribers), len(self._queryables),
+                 sum(row.direction is not Direction.OUT for row in self.rows), len(self._queryables),
                  "Humble (TypeHashNotSupported)" if p.ros_distro == "humble" else "Jazzy and later")
 
     def _declare_out(self, row: Topic, zenoh: Any) -> None:
@@ -257,14 +280,23 @@ class ZenohBridge:
 
     def _declare_in(self, row: Topic, zenoh: Any) -> None:
         key = self.key(row)
-        callback = self._receiver(row)
         if row.qos.latched:
+            callback = self._receiver(row)
             history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=row.qos.depth)
             sub = zenoh.ext.declare_advanced_subscriber(self.session, key, callback, history=history,
                                                         subscriber_detection=True)
+        elif row.bus in self.inbox.stop_topics:
+            # every e-stop message, in order, through a callback in Zenoh's thread: never coalesced
+            sub = self.session.declare_subscriber(key, self._receiver(row))
         else:
-            sub = self.session.declare_subscriber(key, callback)
+            # a command: Zenoh keeps only the newest sample (in Rust, without the GIL) until this
+            # row's thread takes it, at most once per control tick (the inbox's period)
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+            self._pumps.append(threading.Thread(target=self._pump, args=(row, sub), daemon=True,
+                                                name=f"zenoh-in {row.ros}"))
         self._subscribers.append(sub)
+        self._subscribers.append(self.session.declare_subscriber(
+            rmw.topic_key_pattern(self.domain_id, self.ros_name(row)), self._type_guard(row, key)))
         token = self._entity(rmw.SUBSCRIPTION, row).token()
         self._tokens.append(self.session.liveliness().declare_token(token))
 
@@ -278,8 +310,48 @@ class ZenohBridge:
                             self.type_hash(spec.srv_type), rmw.RmwQos.from_qos(SERVICE_QOS))
         self._tokens.append(self.session.liveliness().declare_token(entity.token()))
 
+    def _type_guard(self, row: Topic, key: str) -> Callable[[Any], None]:
+        """A callback for every sample on the row's topic, whatever its type: counts the samples of
+        another type (or type hash), which the row's own subscriber never sees."""
+        expected = row.msgtype.ROS_TYPE
+        topic = self.ros_name(row)
+        stats, lock = self.stats, self._lock
+
+        def guard(sample: Any) -> None:
+            got = str(sample.key_expr)
+            if got == key:
+                return
+            with lock:
+                stats.wrong_type += 1
+            head, _, hash_ = got.rpartition("/")  # .../<dds type>/<type hash>
+            dds = head.rpartition("/")[2]
+            try:
+                sent = rmw.ros_type(dds)
+            except rmw.WireError:
+                sent = dds
+            reason = (f"type hash {hash_} of {sent} differs from racecar-hw's" if sent == expected
+                      else f"wrong type {sent} (it takes {expected})")
+            self.refusals.note("zenoh", topic, reason)
+
+        return guard
+
+    def _pump(self, row: Topic, sub: Any) -> None:
+        """A command row's thread: take the newest sample, check it, offer it, rest one period."""
+        receive = self._receiver(row, gaps={})
+        period_s = self.inbox.period_ns / 1e9
+        while not self._stopping.is_set():
+            try:
+                sample = sub.recv()  # blocks without the GIL; raises once the session closes
+            except Exception:  # noqa: BLE001 - closed: the thread ends
+                return
+            receive(sample)
+            self._stopping.wait(period_s)
+
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
+        self._stopping.set()
+        if self._own_inbox:
+            self.inbox.close()
         for sub in self._bus_subs:
             sub.close()
         self._bus_subs.clear()
@@ -301,12 +373,15 @@ class ZenohBridge:
             session.close()
         except Exception as err:  # noqa: BLE001 - shutting down: report and go on
             log.warning("zenoh session close failed: %r", err)
+        for pump in self._pumps:  # the session's close ended their wait for a sample
+            pump.join(5.0)
+        self._pumps.clear()
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
                  "%d received, %d without attachment, %d malformed, %d with an old rmw_zenoh's attachment, "
-                 "%d non-finite; %d service calls answered, %d refused", s.published,
+                 "%d non-finite, %d of a wrong type; %d service calls answered, %d refused", s.published,
                  self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.old_attachment,
-                 s.non_finite, s.service_calls, s.service_errors)
+                 s.non_finite, s.wrong_type, s.service_calls, s.service_errors)
 
     # --- out: bus thread, then the publisher thread -------------------------------------------
 
@@ -346,43 +421,49 @@ class ZenohBridge:
 
     # --- in: Zenoh's threads, then the event loop ---------------------------------------------
 
-    def _receiver(self, row: Topic) -> Callable[[Any], None]:
-        types = ros2_types()
+    def _receiver(self, row: Topic, gaps: dict[bytes, int] | None = None) -> Callable[[Any], None]:
+        """Check one sample of ``row`` and offer it to the inbox (in Zenoh's or the row's thread).
+
+        With ``gaps`` (a command row, whose older samples Zenoh drops for the newest), the gap in
+        each publisher's sequence numbers is counted as superseded.
+        """
         cls, topic = row.msgtype, row.bus
-        stats, lock = self.stats, self._lock
+        stats, lock, inbox = self.stats, self._lock, self.inbox
 
         def count(name: str) -> None:
             with lock:
                 setattr(stats, name, getattr(stats, name) + 1)
                 n = getattr(stats, name)
-            if n in (1, 10, 100) or n % 1000 == 0:
-                why = OLD_ATTACHMENT_HINT if name == "old_attachment" else name.replace("_", " ")
-                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros, why, n)
+            if name == "old_attachment" and (n in (1, 10, 100) or n % 1000 == 0):
+                log.warning("zenoh: dropped a message for %s: %s (%d so far)", row.ros,
+                            OLD_ATTACHMENT_HINT, n)
 
         def receive(sample: Any) -> None:
             attachment = sample.attachment
             if attachment is None:
                 count("no_attachment")
+                inbox.refuse(ORIGIN, topic, "no attachment")
                 return
             raw = attachment.to_bytes()
             try:
-                rmw.Attachment.decode(raw)
-                msg = types.deserialize(sample.payload.to_bytes(), cls)
+                meta = rmw.Attachment.decode(raw)
+                payload = sample.payload.to_bytes()
             except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
-                count("old_attachment" if rmw.is_old_attachment(raw) else "malformed")
+                old = rmw.is_old_attachment(raw)
+                count("old_attachment" if old else "malformed")
+                inbox.refuse(ORIGIN, topic,
+                             "an old rmw_zenoh's attachment" if old else "malformed attachment")
                 return
-            if not all_finite(msg):
-                count("non_finite")
-                return
-            loop = self._loop
-            if loop is None or loop.is_closed():
-                return
-            with lock:
-                stats.received += 1
-            try:
-                loop.call_soon_threadsafe(self._deliver, topic, msg)
-            except RuntimeError:  # the loop closed meanwhile
-                pass
+            skipped = 0
+            if gaps is not None:
+                last = gaps.get(meta.gid)
+                if last is not None and meta.sequence_number > last:
+                    skipped = min(meta.sequence_number - last - 1, MAX_GAP)
+                if last is None and len(gaps) >= MAX_PUBLISHERS:
+                    gaps.clear()  # forged GIDs must not grow memory
+                gaps[meta.gid] = meta.sequence_number
+            refused = inbox.offer_cdr(ORIGIN, topic, cls, payload, superseded=skipped)
+            count("received" if refused is None else "non_finite" if refused == NON_FINITE else "malformed")
 
         return receive
 
@@ -424,25 +505,10 @@ class ZenohBridge:
 
         return answer
 
-    def _deliver(self, topic: str, msg: Message) -> None:
+    def _deliver(self, topic: str, msg: Message, origin: str) -> None:
+        """The own inbox's hand-over, in the event loop: on the bus, then ``on_input``."""
         if self.session is None:
-            return
-        if self.on_estop is not None and topic in self.estop_topics:
-            self.on_estop(topic, msg, ORIGIN)  # the e-stop and its release, with their origin
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:
             self.on_input(topic)
-
-
-def all_finite(msg: Any) -> bool:
-    """Whether every float (and float array) in a message is finite."""
-    if isinstance(msg, float):
-        return math.isfinite(msg)
-    if isinstance(msg, np.ndarray):
-        return msg.dtype.kind != "f" or bool(np.isfinite(msg).all())
-    if isinstance(msg, list):
-        return all(all_finite(item) for item in msg)
-    if dataclasses.is_dataclass(msg):
-        return all(all_finite(getattr(msg, f.name)) for f in dataclasses.fields(msg))
-    return True

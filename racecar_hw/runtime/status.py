@@ -26,7 +26,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from rich.console import Console, Group, RenderableType
+from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
 from rich.constrain import Constrain
 from rich.live import Live
 from rich.panel import Panel
@@ -69,6 +69,11 @@ class StatusSnapshot:
     lidar_link: str | None = None
     sim_time_s: float | None = None
     clearance_m: float | None = None
+    #: where the Foxglove live view and the status page listen (URLs), when they are on
+    live_view: str | None = None
+    page: str | None = None
+    #: the keys that drive, when keyboard teleop is on
+    keys: str | None = None
     #: who latched the mux e-stop and when (``latched by web page (127.0.0.1) at 18:50:01.123``),
     #: or who released the last latch; None: never engaged
     estop: str | None = None
@@ -134,6 +139,12 @@ def status_fields(s: StatusSnapshot) -> list[tuple[str, str]]:
         fields.append(("sim pose", _pose(s.sim_pose)))
     if s.clearance_m is not None:
         fields.append(("clearance", _num(s.clearance_m, ".2f", "m")))
+    if s.live_view is not None:
+        fields.append(("live view", s.live_view))
+    if s.page is not None:
+        fields.append(("page", s.page))
+    if s.keys is not None:
+        fields.append(("keys", s.keys))
     return fields
 
 
@@ -163,35 +174,54 @@ def _style(label: str, s: StatusSnapshot) -> str:
 
 #: Widths of the panel and its label columns (characters): fixed, so the box keeps its size whatever
 #: the values (the value columns get 36 each); a longer value (a lost link with its counters) ends
-#: in an ellipsis, its start (the state) kept. The plain line has every value in full.
+#: in an ellipsis, its start (the state) kept. The plain line has every value in full. On a terminal
+#: narrower than the panel (80 columns) the fields stand one per row, every value whole (wrapped
+#: in the rare case it is longer than the row).
 PANEL_WIDTH, LABEL_WIDTH = 100, 9
 
 
+class _StatusView:
+    """The panel, laid out for the width it is drawn in (see :data:`PANEL_WIDTH`)."""
+
+    def __init__(self, s: StatusSnapshot, title: str) -> None:
+        self.snapshot, self.title = s, title
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        s = self.snapshot
+        pairs = 2 if options.max_width >= PANEL_WIDTH else 1
+        grid = Table.grid(padding=(0, 2), expand=True)
+        for _pair in range(pairs):
+            grid.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
+            if pairs == 2:
+                grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # the two share the rest
+            else:
+                grid.add_column(overflow="fold", ratio=1)
+        fields = status_fields(s)
+        # in two columns the e-stop line (who latched it, when) is too long for a column: a row
+        # of its own, across the panel
+        wide = [(label, text) for label, text in fields if pairs == 2 and label in _WIDE]
+        cells = [(label, Text(text, style=_style(label, s))) for label, text in fields
+                 if not (pairs == 2 and label in _WIDE)]
+        for i in range(0, len(cells), pairs):
+            row: list[RenderableType] = []
+            for label, text in cells[i:i + pairs]:
+                row += [label, text]
+            grid.add_row(*row)
+        body: RenderableType = grid
+        if wide:
+            lines = Table.grid(padding=(0, 2), expand=True)
+            lines.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
+            lines.add_column(no_wrap=True, overflow="ellipsis", ratio=1)
+            for label, text in wide:
+                lines.add_row(label, Text(text, style=_style(label, s)))
+            body = Group(grid, lines)
+        yield Constrain(Panel(body, title=self.title, expand=True), PANEL_WIDTH)
+
+
 def render(s: StatusSnapshot, title: str = "racecar-hw") -> RenderableType:
-    """The snapshot as a rich panel of two label/value columns, 100 columns wide (narrower only on
-    a narrower terminal, the values cut with an ellipsis)."""
-    grid = Table.grid(padding=(0, 2), expand=True)
-    for _pair in range(2):
-        grid.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
-        grid.add_column(no_wrap=True, overflow="ellipsis", ratio=1)  # the two share what is left
-    # the e-stop line (who latched it, when) is too long for a column: it gets a row of its own
-    wide = [(label, text) for label, text in status_fields(s) if label in _WIDE]
-    cells = [(label, Text(text, style=_style(label, s))) for label, text in status_fields(s)
-             if label not in _WIDE]
-    for i in range(0, len(cells), 2):
-        row: list[RenderableType] = [cells[i][0], cells[i][1]]
-        if i + 1 < len(cells):
-            row += [cells[i + 1][0], cells[i + 1][1]]
-        grid.add_row(*row)
-    body: RenderableType = grid
-    if wide:
-        lines = Table.grid(padding=(0, 2), expand=True)
-        lines.add_column(style="bold cyan", no_wrap=True, width=LABEL_WIDTH)
-        lines.add_column(no_wrap=True, overflow="ellipsis", ratio=1)
-        for label, text in wide:
-            lines.add_row(label, Text(text, style=_style(label, s)))
-        body = Group(grid, lines)
-    return Constrain(Panel(body, title=title, expand=True), PANEL_WIDTH)
+    """The snapshot as a rich panel: two label/value columns, 100 columns wide; on a narrower
+    terminal (80 columns) one field per row, every value whole."""
+    return _StatusView(s, title)
 
 
 #: Fields shown on a row of their own, across the panel.

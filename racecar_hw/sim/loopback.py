@@ -14,6 +14,7 @@ import asyncio
 import json
 import logging
 import math
+import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,8 +31,9 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.overrides import merge
 from racecar_hw.base.transforms import TfTree, yaw_of
-from racecar_hw.config import Config, load_config, shipped_config
+from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon, command_limits, reverse_speed_cap
+from racecar_hw.net.ports import Listener
 from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
@@ -118,6 +120,8 @@ class Loopback:
         self._mux_offset_s = 0.0
         self._followers: dict[int, BagFollower] = {}  # follow drivers' followers, loaded before the run
         self._followed: dict[int, float] = {}  # follow drivers' fraction of their replay published
+        #: listeners whose configured port was taken, with where they listen instead
+        self.moved_ports: list[tuple[Listener, str]] = []
 
     # --- building -------------------------------------------------------------------------------
 
@@ -131,6 +135,14 @@ class Loopback:
             "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
         return load_config(self.config_path, self.overrides, extra=extra)
+
+    def _take_free_ports(self, config: Config) -> None:
+        """The rule for ports (docs/live-view.md, "Ports"): a sim listens on free ports instead of
+        taken ones, and says where. After every refusal, so a refused run touches no port."""
+        self.moved_ports = move_to_free_ports(config)
+        for listener, where in self.moved_ports:
+            print(f"racecar-hw sim: {listener.key} {listener.address()} is taken (another racecar-hw?); "
+                  f"{listener.what} is on {where} instead", file=sys.stderr, flush=True)
 
     @staticmethod
     def _car_params(config: Config, true: CarSpec | None = None) -> CarParams:
@@ -437,6 +449,7 @@ class Loopback:
                     await asyncio.to_thread(self._follower, spec, Bus())
             if self.until_replay_ends and self._followers:
                 self.duration_s = self._replay_end_s() + REPLAY_SETTLE_S
+            self._take_free_ports(config)
             self.config = self._start_devices(config)
             assert self.world is not None
             created_ns = monotonic_ns()
@@ -559,6 +572,11 @@ class Loopback:
             "odometry_error_m": self._odometry_error(),
             "trajectory_csv": None,
             "plot_png": None,
+            # the bags --record wrote (ROS 2: the bag directory)
+            "bags": ([str(f) for f in daemon.recorder.stats.files] if daemon.recorder is not None
+                     else []),
+            # where the live view and the status page listened during the run
+            "live": dict(daemon.started_live),
         }
         result = SimResult(report, interventions_at=list(self.interventions_at))
         if self.out_dir is not None:

@@ -262,19 +262,48 @@ def _draw_speeds(ax: Any, samples: np.ndarray, interventions: list[Mark], collis
     t = samples[:, 0]
     columns = {"commanded": 1, "output": 2, "allowed": 3, "measured": 4}
     shown = [samples[:, columns[name]] for name in ("commanded", "output", "measured")]
-    top = max(0.5, float(np.nanmax(np.abs(np.concatenate(shown)))) * 1.3)
-    # the allowed speed is often far above anything driven (and inf when not limiting): drawn along
-    # the top edge there, so the line is always on the plot
-    allowed = np.minimum(np.nan_to_num(samples[:, 3], nan=top, posinf=top), top * 0.985)
+    top = max(0.5, float(np.nanmax(np.concatenate(shown))) * 1.3)
+    bottom = min(0.0, float(np.nanmin(np.concatenate(shown))) * 1.3)
+    if bottom < 0.0:
+        bottom = min(bottom, -0.5)
+    allowed = allowed_series(samples, top, bottom)
     styles = {"commanded": "-", "output": "--", "allowed": "-", "measured": "-"}
     for name, col in columns.items():
         values = allowed if name == "allowed" else samples[:, col]
         wide = name == "allowed"
-        ax.step(t, values, where="post", label="allowed (top: above)" if wide else name,
+        ax.step(t, values, where="post", label=ALLOWED_LABEL if wide else name,
                 color=SPEED_COLOURS[name], linestyle=styles[name], linewidth=1.8 if wide else 1.3)
-    bottom = min(0.0, float(np.nanmin(np.concatenate(shown))) * 1.3)
     ax.set_ylim(bottom, top)
-    ax.legend(loc="upper right", fontsize="small", ncols=4, framealpha=0.85)
+    ax.legend(loc="upper right", fontsize="small", ncols=2, framealpha=0.85)
+
+
+#: The legend's name of the safety controller's allowed speed.
+ALLOWED_LABEL = "allowed by safety (at the edge: no limit)"
+
+
+def allowed_series(samples: np.ndarray, top: float, bottom: float) -> np.ndarray:
+    """The safety controller's allowed speed as drawn (m/s), one value per :class:`ControlSample`.
+
+    The allowed speed is a magnitude (the largest permitted |speed|); it is drawn on the side of the
+    direction the car is asked to go (the commanded speed's sign, else the output's, else the
+    measured), so in reverse it sits below zero with the measured speed. Where it does not limit
+    (inf, or beyond the axis) it runs along that side's edge (``top``, ``bottom``). While idle (no
+    speed commanded or sent) the controller's value says nothing about the drive: the line keeps
+    the last driving value instead of dropping to 0 for single idle ticks.
+    """
+    out = np.empty(len(samples))
+    magnitude, sign = math.inf, 1.0
+    for i, row in enumerate(samples):
+        commanded, output, allowed, measured = (float(v) for v in row[1:5])
+        if commanded != 0.0 or output != 0.0:
+            magnitude = allowed if math.isfinite(allowed) else math.inf
+            ref = commanded if commanded != 0.0 else output
+            sign = -1.0 if ref < 0.0 else 1.0
+        elif i == 0 and measured < 0.0:
+            sign = -1.0
+        edge = top if sign > 0 else -bottom
+        out[i] = sign * min(magnitude, edge * 0.985)
+    return out
 
 
 def _draw_steering(ax: Any, samples: np.ndarray) -> None:

@@ -201,6 +201,10 @@ def _clamp(value: float, limit: float) -> float:
     return max(-limit, min(limit, round(value, 9)))
 
 
+#: The keys, in a few words, for the status panel.
+KEY_HINTS = "arrows/WASD, space stop, q quit"
+
+
 class KeyboardTeleop:
     """Reads keys from ``fd`` (stdin by default) and drives the mux's teleop input.
 

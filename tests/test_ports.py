@@ -1,0 +1,90 @@
+"""Port clashes, one rule for Zenoh, the Foxglove live view and the status page (docs/live-view.md,
+"Ports"): ``sim`` takes free ports and prints them; ``run`` refuses in one line naming the key.
+
+The test suite never binds the default ports (7447, 8765, 8080): here three free ports stand in for
+them, held by listening sockets as another program would hold the defaults.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+
+import yaml
+from live_sim import SimProcess
+
+from racecar_hw.config import load_config, move_to_free_ports, taken_listeners
+
+
+@contextlib.contextmanager
+def held_ports(n: int) -> Iterator[list[int]]:
+    """``n`` loopback ports, each held by a listening socket until the block ends."""
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket()
+            s.bind(("127.0.0.1", 0))
+            s.listen()
+            socks.append(s)
+        yield [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def _sets(zenoh: int, foxglove: int, web: int) -> list[str]:
+    return [f'zenoh.listen=["tcp/127.0.0.1:{zenoh}"]', f"foxglove.port={foxglove}", f"web.port={web}"]
+
+
+def test_taken_ports_are_found_and_moved_for_all_three_interfaces():
+    with held_ports(3) as (z, f, w):
+        config = load_config(None, _sets(z, f, w))
+        assert [t.key for t in taken_listeners(config)] == ["zenoh.listen[0]", "foxglove.port", "web.port"]
+        moved = move_to_free_ports(config)
+        assert [m.key for m, _ in moved] == ["zenoh.listen[0]", "foxglove.port", "web.port"]
+        assert config.foxglove.port not in (f, 0) and config.web.port not in (w, 0)
+        assert config.zenoh.listen[0] != f"tcp/127.0.0.1:{z}"
+        assert moved[1][1] == f"ws://127.0.0.1:{config.foxglove.port}"
+        assert moved[2][1] == f"http://127.0.0.1:{config.web.port}/"
+        assert not taken_listeners(config)
+
+
+def test_a_sim_started_while_its_ports_are_held_runs_on_printed_free_ports():
+    with held_ports(3) as (z, f, w):
+        sim = SimProcess(["--duration", "60", "--set", "zenoh.enabled=true",
+                          *[a for s in _sets(z, f, w) for a in ("--set", s)]])
+        try:
+            zenoh = sim.wait_for(rf"zenoh.listen\[0\] 127.0.0.1:{z} is taken .*; "
+                                 r"Zenoh \(ROS 2 topics\) is on tcp/127.0.0.1:(\d+) instead")
+            fox = sim.wait_for(rf"foxglove.port 127.0.0.1:{f} is taken .*; the Foxglove live view is on "
+                               r"ws://127.0.0.1:(\d+) instead")
+            web = sim.wait_for(rf"web.port 127.0.0.1:{w} is taken .*; the status page is on "
+                               r"http://127.0.0.1:(\d+)/ instead")
+            sim.wait_for("racecar-hw running")
+            assert sim.port("foxglove") == int(fox.group(1)) != f
+            assert sim.port("web") == int(web.group(1)) != w
+            sim.wait_for(rf"zenoh bridge up: .*listen \['tcp/127.0.0.1:{zenoh.group(1)}'\]")
+            with socket.create_connection(("127.0.0.1", int(web.group(1))), timeout=10):
+                pass  # the page listens where the line said
+        finally:
+            sim.stop()
+
+
+def test_run_refuses_a_taken_port_in_one_line_naming_the_key(tmp_path):
+    for key in ("foxglove", "web"):
+        with held_ports(1) as (held,):
+            cfg = tmp_path / f"{key}.yaml"
+            cfg.write_text(yaml.safe_dump({
+                "vesc": {"port": str(tmp_path / "no-vesc")}, "lidar": {"enabled": False},
+                "gamepad": {"enabled": False}, "zenoh": {"enabled": False},
+                "foxglove": {"port": held, "enabled": key == "foxglove"},
+                "web": {"port": held, "enabled": key == "web"}}))
+            proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
+                                  capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 1, proc.stderr
+        assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+        assert proc.stderr.startswith(f"racecar-hw run: {key}.port: 127.0.0.1:{held} is already in use"), \
+            proc.stderr
