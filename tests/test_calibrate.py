@@ -13,14 +13,16 @@ import subprocess
 import sys
 
 import pytest
+from conftest import QUIET_NET, ahead_of_other_load, set_args
 from zenoh_util import ROOT
 
 VALUE = re.compile(r"^(\w+): (\S+) \(true: (\S+)\)", re.MULTILINE)
 
 
 def _calibrate(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "racecar_hw.cli", "calibrate", "--sim", *args],
-                          capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    return subprocess.run([sys.executable, "-m", "racecar_hw.cli", "calibrate", "--sim", *args,
+                           *set_args(*QUIET_NET)], capture_output=True, text=True, timeout=timeout,
+                          cwd=ROOT, preexec_fn=ahead_of_other_load)
 
 
 def _figure8(tmp_path, config) -> dict:
@@ -28,9 +30,9 @@ def _figure8(tmp_path, config) -> dict:
     proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim",
                            "--scenario", "miscalibrated-figure8",
                            "--config", str(config), "--no-status", "--out", str(out),
-                           "--report", str(out / "report.json"), "--set", "zenoh.enabled=false",
-                           "--set", "foxglove.enabled=false", "--set", "web.enabled=false"],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+                           "--report", str(out / "report.json"), *set_args(*QUIET_NET)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT,
+                          preexec_fn=ahead_of_other_load)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads((out / "report.json").read_text())
 
@@ -39,8 +41,7 @@ def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(
     config = tmp_path / "car.yaml"
     shutil.copy(ROOT / "config" / "sim.yaml", config)
     shipped = config.read_text()
-    proc = _calibrate("--config", str(config), "--write", str(config), "--set", "zenoh.enabled=false",
-                      "--set", "foxglove.enabled=false", "--set", "web.enabled=false")
+    proc = _calibrate("--config", str(config), "--write", str(config))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     found = {name: (float(a), float(b)) for name, a, b in VALUE.findall(proc.stdout)}
     gain, offset, steer = (found[k] for k in ("speed_to_erpm_gain", "steering_angle_to_servo_offset",
@@ -68,8 +69,7 @@ def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(
      "the safety controller intervened"),
 ])
 def test_calibrate_stops_the_car_and_says_why(args, why):
-    proc = _calibrate(*args, "--set", "zenoh.enabled=false", "--set", "foxglove.enabled=false",
-                      "--set", "web.enabled=false", timeout=300)
+    proc = _calibrate(*args, timeout=300)
     assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert why in proc.stderr, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr

@@ -180,8 +180,8 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
             except CalibrationAborted as err:
                 outcome.append(str(err))
             finally:
-                procedure.close()
                 loopback.request_stop("calibration ended")
+                procedure.close()
 
         daemon.add_task(calibrate())
 
@@ -261,6 +261,8 @@ def _write(path: Path, values: dict[str, float]) -> None:
         lines += (["\n"] if lines and not lines[-1].endswith("\n") else []) + ["vesc:\n"]
         start = len(lines) - 1
     end = next((i for i in range(start + 1, len(lines)) if re.match(r"^\S", lines[i])), len(lines))
+    while end > start + 1 and not lines[end - 1].strip():  # new keys go after the block's last line
+        end -= 1
     for key, value in values.items():
         pattern = re.compile(rf"^(\s+){re.escape(key)}:\s*[^#\n]*(#.*)?$")
         for i in range(start + 1, end):

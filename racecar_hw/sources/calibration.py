@@ -165,7 +165,7 @@ class CalibrationProcedure:
     def close(self) -> None:
         """Stop listening."""
         for sub in self._subs:
-            sub.cancel()
+            sub.close()
         self._subs = []
 
     # --- sensors ----------------------------------------------------------------------------------
@@ -222,6 +222,8 @@ class CalibrationProcedure:
                 self.step = f"arc at {steering:+.2f} rad"
                 arcs.append(await self._arc(steering, p.speed_mps))
                 arcs.append(await self._arc(steering, -p.reverse_speed_mps))
+                self.say(f"arc at {steering:+.2f} rad: curvature {arcs[-2].curvature(gain.value):+.3f} "
+                         f"and {arcs[-1].curvature(gain.value):+.3f} 1/m (forward, back)")
             curvature = np.array([a.curvature(gain.value) for a in arcs])
             steering_fit = fit_steering(np.array([a.servo for a in arcs]), curvature, p.wheelbase_m)
             self.step = "done"
