@@ -24,6 +24,7 @@ COMMANDS: tuple[str, ...] = (
     "daemon",
     "sim",
     "follow",
+    "calibrate",
     "bag",
     "vesc",
     "lidar",

@@ -251,14 +251,22 @@ def _vesc_values(rng: random.Random) -> vc.Values:
                      tachometer=rng.randint(-10**6, 10**6), status=rng.randint(0, 3))
 
 
+def _vesc_imu(rng: random.Random) -> vc.ImuData:
+    """An IMU reply with a random mask, every value exact in float32 (as the wire carries it)."""
+    mask = rng.randint(1, vc.IMU_MASK_ALL)
+    return vc.ImuData(**{name: rng.randint(-2**20, 2**20) / 1024 for i, name in enumerate(vc.IMU_FIELDS)
+                         if mask >> i & 1})
+
+
 def vesc_replies() -> Target:
-    """Device -> host: GET_VALUES (6.2 layout) and FW_VERSION replies into the driver's codec."""
+    """Device -> host: GET_VALUES (6.2 layout), IMU and FW_VERSION replies into the driver's codec."""
     device = vc.VescCodec(vc.Role.DEVICE, (6, 2))
 
     def batch(rng: random.Random) -> Batch:
         frames = []
         for _ in range(16):
-            packet = (_vesc_values(rng) if rng.random() < 0.9
+            roll = rng.random()
+            packet = (_vesc_values(rng) if roll < 0.7 else _vesc_imu(rng) if roll < 0.9
                       else vc.FwVersion(rng.randint(2, 7), rng.randint(0, 99), "60", rng.randbytes(12)))
             frames.append(Frame(device.send(packet), (_vesc_key(packet),)))
         return Batch(frames, FLUSH)
@@ -292,7 +300,7 @@ def vesc_requests() -> Target:
                 vc.SetCurrentBrake(rng.randint(0, 20000) / 1000),
                 vc.SetCurrent(rng.randint(-9000, 9000) / 1000),
                 vc.SetDuty(rng.randint(-95000, 95000) / 1e5), vc.GetValuesRequest(), vc.Alive(),
-                vc.FwVersionRequest()])
+                vc.FwVersionRequest(), vc.GetImuDataRequest(rng.randint(0, vc.IMU_MASK_ALL))])
             frames.append(Frame(host.send(packet), (packet,)))
         return Batch(frames, FLUSH)
 

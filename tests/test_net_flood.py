@@ -14,7 +14,6 @@ SIGTERM) must show the lidar stream uninterrupted: no stale-scan or no-scan inte
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import os
 import resource
@@ -24,6 +23,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from conftest import ahead_of_other_load
 from live_sim import SimProcess
 from websockets.sync.client import connect
 
@@ -37,9 +37,6 @@ SERVE_WITHIN_S = 1.0
 PROBE_EVERY_S = 2.0
 #: The log may grow by fewer lines than this during one flood.
 MAX_LOG_LINES = 100
-#: The sim's scheduling when the test may set it (see _lower_file_limit).
-DAEMON_RT_PRIORITY = 10
-DAEMON_NICE = -10
 PARTIAL_HEAD = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUser-Agent: slow\r\n"  # never finished
 
 
@@ -47,13 +44,8 @@ def _lower_file_limit() -> None:  # in the sim's process, before it starts
     resource.setrlimit(resource.RLIMIT_NOFILE, (FILE_LIMIT, FILE_LIMIT))
     # The tests share a small machine: what is measured is the flood's effect on the daemon (on a car
     # the attacker's CPU is elsewhere), not other processes', so the daemon runs ahead of them when
-    # this test may arrange it (as root: real-time FIFO, else a lower niceness); a quiet window before
-    # the floods shows what the machine alone costs.
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DAEMON_RT_PRIORITY))
-    except (OSError, AttributeError):
-        with contextlib.suppress(OSError):
-            os.nice(DAEMON_NICE)
+    # this test may arrange it; a quiet window before the floods shows what the machine alone costs.
+    ahead_of_other_load()
 
 
 @pytest.fixture

@@ -78,3 +78,31 @@ def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile,
     assert abs(_speed_near(samples, twist_off + 0.4)) < 0.05
     assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
     assert not report["collided"]
+
+
+def test_imu_over_zenoh_while_the_car_turns(tmp_path):
+    """The figure-8 (1 m/s, steering 0.25 rad): /imu read by the independent peer has the yaw rate
+    the kinematics give, v tan(delta) / L (the odometry's), gravity on z, SI units, its frame and
+    covariances."""
+    port = free_port()
+    sim = start_sim(tmp_path, port, scenario="figure8", scenario_sets=(), duration=30.0)
+    try:
+        rows = _peer(port, "imu", "--count", "400", timeout=90)["imu"]
+    finally:
+        sim.kill()
+    assert len(rows) == 400  # 8 s of 50 Hz polls
+    assert {r["frame"] for r in rows} == {"imu"}
+    first = rows[0]
+    assert first["cov_w"][0] > 0 and first["cov_a"][0] > 0 and first["cov_o"][0] > 0
+    assert first["cov_o"][8] > 10 * first["cov_o"][0]  # no magnetometer: yaw far less certain
+    # in the turns (the odometry's |yaw rate| near 1 m/s * tan(0.25) / 0.25 m = 1.02 rad/s)
+    turning = [r for r in rows if r["odom"] and abs(r["odom"]["yaw_rate"]) > 0.8
+               and abs(r["odom"]["speed"] - 1.0) < 0.05]
+    assert len(turning) > 50, len(turning)
+    ratios = sorted(r["gyro"][2] / r["odom"]["yaw_rate"] for r in turning)
+    assert ratios[len(ratios) // 2] == pytest.approx(1.0, abs=0.05)
+    # at rest and in the turns: gravity on z in m/s^2, nothing on x and y beyond the turn's
+    acc_z = sorted(r["acc"][2] for r in rows)
+    assert acc_z[len(acc_z) // 2] == pytest.approx(9.81, abs=0.3)
+    lateral = sorted(abs(r["acc"][1]) for r in turning)
+    assert lateral[len(lateral) // 2] == pytest.approx(1.0 * 1.02, rel=0.25)  # v * omega, m/s^2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import binascii
+import dataclasses
 import math
 import struct
 
@@ -12,11 +13,14 @@ from hypothesis import strategies as st
 
 from racecar_hw.base.errors import LocalProtocolError
 from vesc.codec import (
+    IMU_FIELDS,
     MAX_PAYLOAD,
     Alive,
     FwVersion,
     FwVersionRequest,
+    GetImuDataRequest,
     GetValuesRequest,
+    ImuData,
     Layout,
     RawPacket,
     Role,
@@ -28,7 +32,9 @@ from vesc.codec import (
     SetServoPosition,
     Values,
     VescCodec,
+    decode_imu_data,
     decode_values,
+    encode_payload,
     encode_values,
     frame,
     known_firmware,
@@ -290,6 +296,7 @@ requests = st.one_of(
     st.builds(SetPosition, st.integers(0, 360_000_000).map(lambda i: i / 1e6)),
     st.builds(SetServoPosition, st.integers(0, 1000).map(lambda i: i / 1000)),
     st.just(Alive()), st.just(GetValuesRequest()), st.just(FwVersionRequest()),
+    st.builds(GetImuDataRequest, st.integers(0, 0xFFFF)),
 )
 #: Garbage that cannot start a frame, so frames after it are never swallowed by a false start.
 no_start = st.binary(max_size=40).map(lambda b: bytes(x for x in b if x not in (2, 3, 4)))
@@ -382,3 +389,88 @@ def test_pyvesc_decodes_our_pre_3_07_values_reply():
     assert msg.v_in == pytest.approx(15.9)
     assert msg.tachometer == -123456
     assert msg.current_motor == pytest.approx(-12.34)
+
+
+# --- COMM_GET_IMU_DATA (id 65) ----------------------------------------------------------------
+
+def _imu_payload(values: dict[int, float], controller_id: int | None = None) -> bytes:
+    """The reply as comm/commands.c lays it out: id, the mask (u16 big-endian), then one big-endian
+    float32 per set bit in ascending bit order, then (6.05 on) the controller id byte."""
+    mask = 0
+    for bit in values:
+        mask |= 1 << bit
+    out = bytes([65, mask >> 8, mask & 0xFF])
+    for bit in sorted(values):
+        out += struct.pack(">f", values[bit])
+    return out + (bytes([controller_id]) if controller_id is not None else b"")
+
+
+#: Every field, in firmware units: rad, g, deg/s, µT, quaternion; values exact in float32.
+FULL_IMU = {0: 0.015625, 1: -0.03125, 2: 1.5, 3: 0.125, 4: -0.0625, 5: 0.984375, 6: 0.5, 7: -0.25,
+            8: 45.75, 9: 0.0, 10: 0.0, 11: 0.0, 12: 0.75, 13: 0.0, 14: 0.0, 15: -0.5}
+
+
+@pytest.mark.parametrize("fw, controller_id", [((5, 2), None), ((6, 2), None), ((6, 5), 0), ((6, 6), 0)])
+def test_imu_full_mask_byte_for_byte(fw, controller_id):
+    reply = ImuData(**{IMU_FIELDS[bit]: v for bit, v in FULL_IMU.items()})
+    payload = encode_payload(reply, fw)
+    expected = _imu_payload(FULL_IMU, controller_id)
+    assert payload == expected
+    assert len(payload) == (68 if controller_id is not None else 67)
+    host = VescCodec(Role.HOST, fw)
+    host.receive_data(frame(expected))
+    (back,) = host.events()
+    assert back == dataclasses.replace(reply, controller_id=controller_id)
+    assert back.gyro_z == 45.75 and back.acc_z == 0.984375 and back.q0 == 0.75
+
+
+@pytest.mark.parametrize("controller_id", [None, 7])
+def test_imu_partial_mask_byte_for_byte(controller_id):
+    # gyro z and the quaternion only (bits 8, 12-15): what odometry needs
+    values = {8: -12.5, 12: 1.0, 13: 0.0, 14: 0.0, 15: 0.0}
+    expected = _imu_payload(values, controller_id)
+    assert expected[1:3] == bytes([0xF1, 0x00])
+    back = decode_imu_data(expected)
+    assert back == ImuData(gyro_z=-12.5, q0=1.0, q1=0.0, q2=0.0, q3=0.0, controller_id=controller_id)
+    assert back.mask == 0xF100
+    device = VescCodec(Role.DEVICE, (6, 5) if controller_id is not None else (6, 2))
+    sent = encode_payload(back, device.firmware)
+    assert sent == _imu_payload(values, controller_id)
+
+
+def test_imu_request_on_the_wire():
+    assert host().send(GetImuDataRequest()) == frame(bytes([65, 0xFF, 0xFF]))
+    assert host().send(GetImuDataRequest(0x0100)) == frame(bytes([65, 0x01, 0x00]))
+    d = device()
+    d.receive_data(frame(bytes([65, 0xFF, 0xFF])) + frame(bytes([65])))
+    request, short = d.events()
+    assert request == GetImuDataRequest(0xFFFF)
+    assert isinstance(short, RawPacket) and "mask" in short.reason
+    with pytest.raises(LocalProtocolError):
+        host().send(GetImuDataRequest(0x10000))
+
+
+def test_imu_short_or_non_finite_replies_are_raw():
+    assert isinstance(decode_imu_data(bytes([65, 0xFF])), RawPacket)
+    short = decode_imu_data(_imu_payload(FULL_IMU)[:-1])
+    assert isinstance(short, RawPacket) and "needs 67" in short.reason
+    nan = decode_imu_data(bytes([65, 0x01, 0x00]) + struct.pack(">f", math.nan))
+    assert isinstance(nan, RawPacket) and "gyro_z" in nan.reason
+    with pytest.raises(LocalProtocolError):
+        encode_payload(ImuData(gyro_z=math.inf))
+    with pytest.raises(LocalProtocolError):
+        encode_payload(ImuData(gyro_z=1e39))
+
+
+def test_imu_trailing_bytes_after_the_id_are_ignored():
+    back = decode_imu_data(_imu_payload({8: 3.0}, 2) + b"\x99\x98")
+    assert back == ImuData(gyro_z=3.0, controller_id=2)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=80))
+def test_imu_decoder_never_raises(body):
+    event = decode_imu_data(bytes([65]) + body)
+    assert isinstance(event, (ImuData, RawPacket))
+    if isinstance(event, ImuData):
+        assert all(math.isfinite(getattr(event, n)) for n in IMU_FIELDS if getattr(event, n) is not None)

@@ -9,6 +9,7 @@ below, with the hash ROS 2's own generator gives them (tests/test_net_rmw.py che
     python tests/zenoh_peer.py PORT drive [--namespace /car1] [--input TOPIC] [--twist-topic T] [--humble]
     python tests/zenoh_peer.py PORT latched TOPIC
     python tests/zenoh_peer.py PORT node [--node /racecar_hw]
+    python tests/zenoh_peer.py PORT imu [--count N]
 
 ``drive``: wait for /scan and /odom, then publish AckermannDriveStamped on the input topic at
 20 Hz for 1.5 s (0.6 m/s, steering 0), pause 1.5 s, then Twist on /cmd_vel for 1.5 s (0.5 m/s,
@@ -20,7 +21,8 @@ its services and publishers in the graph, ``list_parameters``, ``get_parameters`
 ``mux.rate_hz`` and ``zenoh.listen``), ``get_parameter_types``, ``describe_parameters`` and a refused
 ``set_parameters``, all with the SDK's service client on the official ``rcl_interfaces``
 definitions and hashes; then it subscribes to ``/rosout``, engages the e-stop (``/estop`` true,
-which the mux logs as a warning) and reports the Log records it got.
+which the mux logs as a warning) and reports the Log records it got. ``imu``: subscribe to /imu and
+/odom until ``--count`` IMU messages came (or 60 s) and print each with the odometry before it.
 """
 
 from __future__ import annotations
@@ -111,7 +113,8 @@ def register(session: ZenohSession, name: str, done: set[str], text: str | None 
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("port", type=int)
-    parser.add_argument("mode", choices=("drive", "latched", "node"))
+    parser.add_argument("mode", choices=("drive", "latched", "node", "imu"))
+    parser.add_argument("--count", type=int, default=300)
     parser.add_argument("topic", nargs="?", default="/tf_static")
     parser.add_argument("--namespace", default="")
     parser.add_argument("--input", default="/vesc/high_level/ackermann_cmd_mux/input/nav_0")
@@ -140,6 +143,8 @@ def main() -> int:
         print(json.dumps({"frames": got[0] if got else None}), flush=True)
         sub.close()
         return 0
+    if args.mode == "imu":
+        return imu(session, done, common, args.namespace, args.count)
     for name in ("sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist",
                  "ackermann_msgs/msg/AckermannDriveStamped"):
         register(session, name, done)
@@ -191,6 +196,41 @@ def main() -> int:
     time.sleep(1.0)
     print(json.dumps({**seen, **sent}), flush=True)
     for entity in (*subs, drive_pub, twist_pub):
+        entity.close()
+    return 0
+
+
+def imu(session: ZenohSession, done: set[str], common: dict, ns: str, count: int) -> int:
+    """/imu with the odometry's speed and yaw rate just before each message, as one JSON line."""
+    for name in ("sensor_msgs/msg/Imu", "nav_msgs/msg/Odometry"):
+        register(session, name, done)
+    last_odom: dict = {}
+    rows: list[dict] = []
+
+    def on_odom(msg) -> None:  # noqa: ANN001
+        last_odom.update(speed=msg.twist.twist.linear.x, yaw_rate=msg.twist.twist.angular.z)
+
+    def on_imu(msg) -> None:  # noqa: ANN001
+        rows.append({"frame": msg.header.frame_id, "gyro": [msg.angular_velocity.x, msg.angular_velocity.y,
+                                                             msg.angular_velocity.z],
+                     "acc": [msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z],
+                     "q": [msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w],
+                     "cov_o": list(map(float, msg.orientation_covariance)),
+                     "cov_w": list(map(float, msg.angular_velocity_covariance)),
+                     "cov_a": list(map(float, msg.linear_acceleration_covariance)),
+                     "odom": dict(last_odom)})
+
+    subs = [ROS2Subscriber(f"{ns}/odom", "nav_msgs/msg/Odometry", on_odom,
+                           msg_definition=definition("nav_msgs/msg/Odometry"),
+                           type_hash=official_hash("nav_msgs/msg/Odometry"), **common),
+            ROS2Subscriber(f"{ns}/imu", "sensor_msgs/msg/Imu", on_imu,
+                           msg_definition=definition("sensor_msgs/msg/Imu"),
+                           type_hash=official_hash("sensor_msgs/msg/Imu"), **common)]
+    deadline = time.monotonic() + 60
+    while len(rows) < count and time.monotonic() < deadline:
+        time.sleep(0.05)
+    print(json.dumps({"imu": rows[:count]}), flush=True)
+    for entity in subs:
         entity.close()
     return 0
 

@@ -4,6 +4,7 @@
 
     erpm  = speed_to_erpm_gain * speed + speed_to_erpm_offset                  (speed in m/s)
     servo = steering_angle_to_servo_gain * steering_angle + steering_angle_to_servo_offset
+            (steering_angle_to_servo_gain_right for negative angles, when set)
 
 Speed is first clamped to +-speed_max_mps and the steering angle (rad, positive left) to
 +-steering_max_rad, so the limits are symmetric in SI units; the servo value is then clamped to
@@ -47,13 +48,15 @@ class AckermannConversion:
     steering_max_rad: float = 0.26
     invert_motor: bool = False
     invert_servo: bool = False
+    steering_angle_to_servo_gain_right: float | None = None
 
     @classmethod
     def from_params(cls, p: VescParams) -> AckermannConversion:
         """The conversion configured in ``p``."""
         return cls(p.speed_to_erpm_gain, p.speed_to_erpm_offset, p.steering_angle_to_servo_gain,
                    p.steering_angle_to_servo_offset, p.servo_min, p.servo_max, p.speed_max_mps,
-                   p.steering_max_rad, p.invert_motor, p.invert_servo)
+                   p.steering_max_rad, p.invert_motor, p.invert_servo,
+                   p.steering_angle_to_servo_gain_right)
 
     @property
     def erpm_gain(self) -> float:
@@ -62,8 +65,16 @@ class AckermannConversion:
 
     @property
     def servo_gain(self) -> float:
-        """Servo units per radian, sign included."""
+        """Servo units per radian of left turn, sign included."""
         gain = self.steering_angle_to_servo_gain
+        return -gain if self.invert_servo else gain
+
+    @property
+    def servo_gain_right(self) -> float:
+        """Servo units per radian of right turn, sign included."""
+        gain = self.steering_angle_to_servo_gain_right
+        if gain is None:
+            return self.servo_gain
         return -gain if self.invert_servo else gain
 
     def speed_to_erpm(self, speed: float) -> int:
@@ -76,7 +87,8 @@ class AckermannConversion:
         """Servo position for ``angle`` rad (positive left) after both limits; refuses NaN/inf."""
         _finite(angle, "steering_angle")
         a = min(max(angle, -self.steering_max_rad), self.steering_max_rad)
-        servo = self.servo_gain * a + self.steering_angle_to_servo_offset
+        gain = self.servo_gain if a >= 0 else self.servo_gain_right
+        servo = gain * a + self.steering_angle_to_servo_offset
         return min(max(servo, self.servo_min), self.servo_max)
 
     def to_vesc(self, drive: AckermannDrive) -> VescSetpoint:
@@ -96,7 +108,8 @@ class AckermannConversion:
         """Steering angle (rad, positive left) from a servo position: the inverse map."""
         if self.servo_gain == 0.0:
             return 0.0
-        return (servo - self.steering_angle_to_servo_offset) / self.servo_gain
+        angle = (servo - self.steering_angle_to_servo_offset) / self.servo_gain
+        return angle if angle >= 0 else (servo - self.steering_angle_to_servo_offset) / self.servo_gain_right
 
 
 def _finite(value: float, what: str) -> None:

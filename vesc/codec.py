@@ -62,6 +62,7 @@ class CommandId(enum.IntEnum):
     SET_SERVO_POS = 12
     PRINT = 21
     ALIVE = 30
+    GET_IMU_DATA = 65
 
 
 class Role(enum.Enum):
@@ -209,6 +210,63 @@ class Alive:
     ID: ClassVar[int] = CommandId.ALIVE
 
 
+#: COMM_GET_IMU_DATA's fields in mask-bit order (comm/commands.c): angles (rad), acceleration (g),
+#: angular rate (deg/s), magnetic field (µT; 0 on BMI160/LSM6DS3 boards), orientation quaternion.
+IMU_FIELDS: tuple[str, ...] = ("roll", "pitch", "yaw", "acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y",
+                               "gyro_z", "mag_x", "mag_y", "mag_z", "q0", "q1", "q2", "q3")
+#: Every field: what the F1TENTH driver asks for.
+IMU_MASK_ALL = 0xFFFF
+#: The firmware that added COMM_GET_IMU_DATA (CHANGELOG: 3.52).
+IMU_SINCE = (3, 52)
+#: The firmware that appends the controller id byte to the IMU reply (bldc commit e0bc1154).
+IMU_ID_SINCE = (6, 5)
+
+
+@dataclass(frozen=True)
+class GetImuDataRequest:
+    """COMM_GET_IMU_DATA request (host -> device): ``mask`` bit i asks for :data:`IMU_FIELDS` [i]."""
+
+    ID: ClassVar[int] = CommandId.GET_IMU_DATA
+
+    mask: int = IMU_MASK_ALL
+
+
+@dataclass(frozen=True)
+class ImuData:
+    """COMM_GET_IMU_DATA reply (device -> host), in the firmware's units and axes.
+
+    ``roll``, ``pitch``, ``yaw`` rad (the firmware negates roll and yaw relative to the quaternion:
+    use ``q0..q3`` or ``gyro_z`` for heading); ``acc_*`` g; ``gyro_*`` deg/s; ``mag_*`` µT;
+    ``q0`` (w), ``q1..q3`` (x, y, z). A field the reply's mask left out is None. ``controller_id``
+    is the CAN id byte firmware 6.05 and later appends (None before).
+    """
+
+    ID: ClassVar[int] = CommandId.GET_IMU_DATA
+
+    roll: float | None = None
+    pitch: float | None = None
+    yaw: float | None = None
+    acc_x: float | None = None
+    acc_y: float | None = None
+    acc_z: float | None = None
+    gyro_x: float | None = None
+    gyro_y: float | None = None
+    gyro_z: float | None = None
+    mag_x: float | None = None
+    mag_y: float | None = None
+    mag_z: float | None = None
+    q0: float | None = None
+    q1: float | None = None
+    q2: float | None = None
+    q3: float | None = None
+    controller_id: int | None = None
+
+    @property
+    def mask(self) -> int:
+        """The mask of the fields present."""
+        return sum(1 << i for i, name in enumerate(IMU_FIELDS) if getattr(self, name) is not None)
+
+
 @dataclass(frozen=True)
 class RawPacket:
     """A packet the codec does not decode in its role: an unknown id, or a malformed payload.
@@ -228,17 +286,18 @@ class RawPacket:
 
 #: Commands that drive the motor; each resets the firmware's command timeout.
 MotorCommand = SetDuty | SetCurrent | SetCurrentBrake | SetRpm | SetPosition
-Request = (FwVersionRequest | GetValuesRequest | SetDuty | SetCurrent | SetCurrentBrake | SetRpm
-           | SetPosition | SetServoPosition | Alive)
-Reply = FwVersion | Values
+Request = (FwVersionRequest | GetValuesRequest | GetImuDataRequest | SetDuty | SetCurrent | SetCurrentBrake
+           | SetRpm | SetPosition | SetServoPosition | Alive)
+Reply = FwVersion | Values | ImuData
 Packet = Request | Reply | RawPacket
 
 #: Packets whose arrival resets the firmware's command timeout (comm/commands.c, timeout_reset()).
 TIMEOUT_RESETTING: tuple[type, ...] = (SetDuty, SetCurrent, SetCurrentBrake, SetRpm, SetPosition, Alive)
 
-_REQUEST_TYPES: tuple[type, ...] = (FwVersionRequest, GetValuesRequest, SetDuty, SetCurrent,
-                                    SetCurrentBrake, SetRpm, SetPosition, SetServoPosition, Alive)
-_REPLY_TYPES: tuple[type, ...] = (FwVersion, Values)
+_REQUEST_TYPES: tuple[type, ...] = (FwVersionRequest, GetValuesRequest, GetImuDataRequest, SetDuty,
+                                    SetCurrent, SetCurrentBrake, SetRpm, SetPosition, SetServoPosition,
+                                    Alive)
+_REPLY_TYPES: tuple[type, ...] = (FwVersion, Values, ImuData)
 
 
 # --- scalar helpers ----------------------------------------------------------------------------
@@ -456,6 +515,51 @@ def decode_fw_version(payload: bytes) -> FwVersion | RawPacket:
     return FwVersion(major, minor, name, bytes(rest[:12]), bytes(rest[12:]))
 
 
+# --- GET_IMU_DATA ------------------------------------------------------------------------------
+
+_F32 = struct.Struct(">f")
+
+
+def encode_imu_data(reply: ImuData, firmware: tuple[int, int] | None = None) -> bytes:
+    """The IMU reply payload (id included): the mask, each present field as float32, and from
+    firmware 6.05 on the controller id (0 when ``reply`` has none)."""
+    out = bytearray([CommandId.GET_IMU_DATA]) + _U16.pack(reply.mask)
+    for name in IMU_FIELDS:
+        value = getattr(reply, name)
+        if value is not None:
+            if not math.isfinite(value):
+                raise LocalProtocolError(f"IMU {name}: {value} is not finite")
+            try:
+                out += _F32.pack(value)
+            except (OverflowError, struct.error) as err:
+                raise LocalProtocolError(f"IMU {name}: {value} does not fit a float32") from err
+    if firmware is not None and firmware >= IMU_ID_SINCE:
+        out.append(reply.controller_id or 0)
+    return bytes(out)
+
+
+def decode_imu_data(payload: bytes) -> ImuData | RawPacket:
+    """An IMU reply payload (id included), read by its echoed mask; a byte after the fields is
+    the controller id (6.05 on), anything beyond it is ignored."""
+    if len(payload) < 3:
+        return RawPacket(payload, "GET_IMU_DATA reply without its mask")
+    mask = _U16.unpack_from(payload, 1)[0]
+    names = [name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1]
+    end = 3 + 4 * len(names)
+    if len(payload) < end:
+        return RawPacket(payload, f"GET_IMU_DATA reply of {len(payload)} bytes, its mask {mask:#06x} "
+                                  f"needs {end}")
+    fields: dict[str, float | int] = {}
+    for k, name in enumerate(names):
+        value = _F32.unpack_from(payload, 3 + 4 * k)[0]
+        if not math.isfinite(value):
+            return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
+        fields[name] = value
+    if len(payload) > end:
+        fields["controller_id"] = payload[end]
+    return ImuData(**fields)  # type: ignore[arg-type]
+
+
 # --- packets <-> payloads ----------------------------------------------------------------------
 
 
@@ -477,6 +581,12 @@ def encode_payload(packet: Packet, firmware: tuple[int, int] | None = None) -> b
     if isinstance(packet, SetServoPosition):
         _check_range(packet.position, 0.0, 1.0, "servo position")
         return bytes([packet.ID]) + _i16(packet.position, SERVO_SCALE, "servo position")
+    if isinstance(packet, GetImuDataRequest):
+        if not 0 <= packet.mask <= 0xFFFF:
+            raise LocalProtocolError(f"IMU mask {packet.mask} is not 16 bits")
+        return bytes([packet.ID]) + _U16.pack(packet.mask)
+    if isinstance(packet, ImuData):
+        return encode_imu_data(packet, firmware)
     if isinstance(packet, FwVersion):
         return encode_fw_version(packet)
     if isinstance(packet, Values):
@@ -512,6 +622,10 @@ def decode_request(payload: bytes) -> Request | RawPacket:
         return GetValuesRequest()
     if cid == CommandId.ALIVE:
         return Alive()
+    if cid == CommandId.GET_IMU_DATA:
+        if len(payload) < 3:
+            return RawPacket(payload, "GET_IMU_DATA without its mask")
+        return GetImuDataRequest(_U16.unpack_from(payload, 1)[0])
     if cid == CommandId.SET_SERVO_POS:
         if len(payload) < 3:
             return RawPacket(payload, "SET_SERVO_POS without its i16 argument")
@@ -533,6 +647,8 @@ def decode_reply(payload: bytes, firmware: tuple[int, int] | None) -> Reply | Ra
         return decode_fw_version(payload)
     if cid == CommandId.GET_VALUES:
         return decode_values(payload, firmware)
+    if cid == CommandId.GET_IMU_DATA:
+        return decode_imu_data(payload)
     return RawPacket(payload)
 
 

@@ -10,7 +10,14 @@ topic                                      type                      when
 ``/vesc/sensors/servo_position_command``   Float64 (0..1)            every servo position sent
 ``/odom``                                  Odometry                  every telemetry reply
 ``/tf``                                    TFMessage (odom->base)    every reply, if publish_tf
+``/imu``                                   Imu (SI, ``imu`` frame)   every IMU reply, if imu
 =========================================  ========================  ===========================
+
+With ``imu`` on and firmware 3.52 or later, every poll also asks COMM_GET_IMU_DATA (all fields);
+the reply is published in SI units (:mod:`vesc.imu`), the gyro as measured. The gyro's z bias is
+learned while the motor stands still; with ``odometry_yaw_rate: imu`` odometry takes its yaw rate
+from the bias-corrected gyro once the bias has settled and while IMU replies keep coming (else the
+steering model).
 
 :meth:`VescDriver.command` (called by the daemon's control loop at about 50 Hz) converts an
 AckermannDrive and writes SET_RPM + SET_SERVO_POS at once. Those motor commands keep the firmware's
@@ -52,6 +59,7 @@ from racecar_hw.base.messages import (
     AckermannDrive,
     Float64,
     Header,
+    Imu,
     Odometry,
     TFMessage,
     Time,
@@ -61,11 +69,14 @@ from racecar_hw.base.messages import (
 from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
+    IMU_SINCE,
     TIMEOUT_RESETTING,
     Alive,
     FwVersion,
     FwVersionRequest,
+    GetImuDataRequest,
     GetValuesRequest,
+    ImuData,
     Packet,
     RawPacket,
     Role,
@@ -76,6 +87,7 @@ from vesc.codec import (
     VescCodec,
     known_firmware,
 )
+from vesc.imu import DEG, GyroBias, ImuCovariances, imu_message
 from vesc.odometry import OdometryIntegrator
 from vesc.params import VescParams
 
@@ -96,6 +108,9 @@ TOPIC_CORE = "/vesc/sensors/core"
 TOPIC_SERVO = "/vesc/sensors/servo_position_command"
 TOPIC_ODOM = "/odom"
 TOPIC_TF = "/tf"
+TOPIC_IMU = "/imu"
+#: IMU replies older than this many poll periods are not used for odometry's yaw rate.
+IMU_STALE_POLLS = 3
 
 
 @dataclass
@@ -122,6 +137,7 @@ class VescLinkStats:
     write_errors: int = 0
     ignored_fw_versions: int = 0
     implausible_telemetry: int = 0
+    imu_replies: int = 0
     drive_commands: int = 0
 
 
@@ -176,6 +192,16 @@ class VescDriver:
         # telemetry keeps the configured rate (at most ~10 % above it) with fewer writes.
         self._poll_due_ns = nanoseconds(0.9 / self.params.poll_rate_hz)
         self._last_poll_ns = 0
+        #: what each poll asks for: GET_VALUES, and the IMU where the firmware has one
+        self._polls: tuple[Packet, ...] = (GetValuesRequest(),)
+        self._imu_cov = ImuCovariances(params.imu_orientation_variance, params.imu_yaw_variance,
+                                       params.imu_angular_velocity_variance,
+                                       params.imu_linear_acceleration_variance)
+        self.gyro_bias = GyroBias(params.imu_bias_time_s)
+        self._last_imu: Imu | None = None
+        self._last_imu_ns = 0
+        self._imu_stale_ns = nanoseconds(IMU_STALE_POLLS / params.poll_rate_hz)
+        self._standing = True  # the last telemetry said ERPM 0
 
     # --- public state -------------------------------------------------------------------------
 
@@ -215,6 +241,11 @@ class VescDriver:
         return self._last_state
 
     @property
+    def last_imu(self) -> Imu | None:
+        """The last message published on ``/imu``."""
+        return self._last_imu
+
+    @property
     def servo_sent(self) -> float:
         """The last servo position written to the VESC (0..1)."""
         return self._servo_sent
@@ -247,8 +278,7 @@ class VescDriver:
             if now - self._last_poll_ns >= self._poll_due_ns:
                 # the telemetry poll rides along: one write instead of two
                 self._last_poll_ns = now
-                written = self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo),
-                                      GetValuesRequest())
+                written = self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo), *self._polls)
             else:
                 written = self._write(SetRpm(setpoint.erpm), SetServoPosition(setpoint.servo))
             if written:
@@ -437,7 +467,7 @@ class VescDriver:
         now = monotonic_ns()
         if now - self._last_poll_ns >= self._poll_due_ns:
             self._last_poll_ns = now
-            self._write(GetValuesRequest())
+            self._write(*self._polls)
         if not (self._fresh(now) or self._failsafe_timer_armed()):
             self._engage_failsafe()  # engages, or repeats brake and centre while braked
         elif now - self._last_motor_tx_ns >= self._alive_ns:
@@ -545,6 +575,8 @@ class VescDriver:
     def _on_packet(self, packet: Packet) -> None:
         if isinstance(packet, Values):
             self._on_values(packet)
+        elif isinstance(packet, ImuData):
+            self._on_imu(packet)
         elif isinstance(packet, FwVersion):
             self._on_fw_version(packet)
         elif isinstance(packet, RawPacket):
@@ -567,6 +599,8 @@ class VescDriver:
         self._firmware = packet.version
         self._codec.firmware = packet.version
         self._fw_reply = packet
+        with_imu = self.params.imu and packet.version >= IMU_SINCE
+        self._polls = (GetValuesRequest(), GetImuDataRequest()) if with_imu else (GetValuesRequest(),)
 
     def _plausible(self, values: Values) -> bool:
         lo, hi = PLAUSIBLE_V_IN
@@ -585,12 +619,31 @@ class VescDriver:
         mono, stamp = monotonic_ns(), wall_ns()
         msg = VescStateStamped(Header(Time.from_ns(stamp), ""), values_to_state(values))
         self._last_state = msg
+        self._standing = values.erpm == 0
         self.bus.publish(TOPIC_CORE, msg)
-        self.odometry.update(values.erpm, self._servo_sent, mono)
+        self.odometry.update(values.erpm, self._servo_sent, mono, self._gyro_yaw_rate(mono))
         odom: Odometry = self.odometry.odometry(stamp)
         self.bus.publish(TOPIC_ODOM, odom)
         if self.params.publish_tf:
             self.bus.publish(TOPIC_TF, TFMessage([self.odometry.transform(stamp)]))
+
+    def _gyro_yaw_rate(self, now_ns: int) -> float | None:
+        """The bias-corrected gyro z rate (rad/s) for odometry, or None: use the steering model."""
+        imu = self._last_imu
+        if (self.params.odometry_yaw_rate != "imu" or imu is None or not self.gyro_bias.settled
+                or now_ns - self._last_imu_ns > self._imu_stale_ns):
+            return None
+        return imu.angular_velocity.z - self.gyro_bias.bias
+
+    def _on_imu(self, data: ImuData) -> None:
+        if self._firmware is None or data.gyro_z is None:
+            return
+        mono, stamp = monotonic_ns(), wall_ns()
+        self.stats.imu_replies += 1
+        self.gyro_bias.update(data.gyro_z * DEG, self._standing, mono)
+        msg = imu_message(data, stamp, self.params.imu_frame_id, self._imu_cov)
+        self._last_imu, self._last_imu_ns = msg, mono
+        self.bus.publish(TOPIC_IMU, msg)
 
 
 async def probe(port: str, baudrate: int = 115200,

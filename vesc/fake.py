@@ -18,6 +18,8 @@ Model (integrated every ``tick_s``):
 - Battery: ``v_in = battery_v - battery_resistance_ohm * input_current``; input current is motor
   current times duty. Charge and energy are integrated. The tachometer counts 6 steps per
   electrical revolution.
+- COMM_GET_IMU_DATA (firmware 3.52 and later): :attr:`FakeVesc.imu`, an
+  :class:`~vesc.imu_model.ImuModel` fed the car's motion by the simulation (at rest otherwise).
 - :meth:`stall` holds the wheels (after a collision): ERPM stays 0 whatever is commanded, and a
   driven motor draws ``stall_current_a``.
 
@@ -41,11 +43,14 @@ from typing import TypeVar
 from racecar_hw.base.clock import monotonic_ns, seconds
 from racecar_hw.runtime.fakepty import PtyPort
 from vesc.codec import (
+    IMU_SINCE,
     TIMEOUT_RESETTING,
     Alive,
     FwVersion,
     FwVersionRequest,
+    GetImuDataRequest,
     GetValuesRequest,
+    ImuData,
     Packet,
     RawPacket,
     Role,
@@ -58,6 +63,7 @@ from vesc.codec import (
     Values,
     VescCodec,
 )
+from vesc.imu_model import ImuModel
 
 T = TypeVar("T")
 
@@ -108,8 +114,11 @@ class FakeVesc:
                  friction_current_a: float = 1.0, stall_current_a: float = 60.0,
                  battery_v: float = 16.8, battery_resistance_ohm: float = 0.05,
                  timeout_s: float = 1.0, tick_s: float = 0.005, log_size: int = 20000,
-                 seed: int = 0) -> None:
+                 seed: int = 0, imu: ImuModel | None = None) -> None:
         self.firmware = firmware
+        #: the on-board IMU (firmware 3.52 and later answer COMM_GET_IMU_DATA); by default at rest:
+        #: the simulation sets its ``motion`` to the world's
+        self.imu = imu if imu is not None else ImuModel(seed=seed)
         self.hw_name = hw_name
         self.accel_erpm_s = accel_erpm_s
         self.erpm_per_volt = erpm_per_volt
@@ -327,6 +336,9 @@ class FakeVesc:
             self._reply(self._fw_version())
         elif isinstance(packet, GetValuesRequest):
             self._reply(self._values())
+        elif isinstance(packet, GetImuDataRequest):
+            if self.firmware >= IMU_SINCE:  # older firmware does not know the command: no answer
+                self._reply(self.imu.sample(seconds(now), packet.mask))
         elif isinstance(packet, SetServoPosition):
             with self._lock:
                 self._state.servo = min(max(packet.position, 0.0), 1.0)
@@ -440,7 +452,7 @@ class FakeVesc:
                 temp_mos1=31.5, temp_mos2=31.0, temp_mos3=30.5, avg_vd=0.0,
                 avg_vq=_bounded(s.duty * s.v_in, 2e6), status=s.status, temp_pcb=30.0)
 
-    def _reply(self, packet: FwVersion | Values) -> None:
+    def _reply(self, packet: FwVersion | Values | ImuData) -> None:
         data = self._codec.send(packet)
         with self._lock:
             corrupt, self._corrupt_next = self._corrupt_next, False

@@ -2,7 +2,8 @@
 
 Speed v (m/s, rear axle, negative in reverse) = :meth:`AckermannConversion.erpm_to_speed`;
 steering delta (rad, positive left) = :meth:`AckermannConversion.servo_to_steering` of the
-commanded servo value (the VESC does not measure the steering); yaw rate = v tan(delta) / wheelbase.
+commanded servo value (the VESC does not measure the steering); yaw rate = v tan(delta) / wheelbase,
+or the IMU's gyro z when the driver passes one (``vesc.odometry_yaw_rate: imu``).
 So moving forward with the wheels turned left gives a positive (counter-clockwise) yaw rate, and
 reversing with the wheels turned left a negative one.
 
@@ -81,15 +82,16 @@ class OdometryIntegrator:
         self.speed = self.yaw_rate = 0.0
         self._last_ns = None
 
-    def update(self, erpm: float, servo: float, t_ns: int) -> Pose2D:
+    def update(self, erpm: float, servo: float, t_ns: int, yaw_rate: float | None = None) -> Pose2D:
         """Add a sample taken at monotonic ``t_ns``; returns the new pose.
 
-        The first sample (and any sample not later than the previous one) only sets the
-        velocities.
+        ``yaw_rate`` (rad/s, a gyro's) replaces the steering model's when given. The first sample
+        (and any sample not later than the previous one) only sets the velocities.
         """
         speed = self.conversion.erpm_to_speed(erpm)
-        delta = self.conversion.servo_to_steering(servo)
-        yaw_rate = speed * math.tan(delta) / self.wheelbase_m
+        if yaw_rate is None:
+            delta = self.conversion.servo_to_steering(servo)
+            yaw_rate = speed * math.tan(delta) / self.wheelbase_m
         if self._last_ns is not None and t_ns > self._last_ns:
             dt = seconds(t_ns - self._last_ns)
             v = 0.5 * (self.speed + speed)

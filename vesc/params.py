@@ -48,6 +48,10 @@ class VescParams:
                                                 min=-10.0, max=10.0)
     steering_angle_to_servo_offset: float = param(0.5304, "servo position for straight ahead",
                                                   min=0.0, max=1.0)
+    steering_angle_to_servo_gain_right: float | None = param(
+        None, "servo position per radian for right turns (negative angles), where a car's linkage "
+        "turns one way more than the other (racecar-hw calibrate measures both); null: "
+        "steering_angle_to_servo_gain both ways", unit="1/rad", min=-10.0, max=10.0)
     servo_min: float = param(0.15, "lowest servo position ever sent (mechanical stop)", min=0.0, max=1.0)
     servo_max: float = param(0.85, "highest servo position ever sent (mechanical stop)", min=0.0, max=1.0)
     speed_max_mps: float = param(5.0, "speed limit, both directions (F1TENTH's 23250 ERPM / 4614)",
@@ -87,9 +91,38 @@ class VescParams:
     twist_covariance_yaw_rate: float = param(0.1, "variance of the yaw rate", unit="(rad/s)^2",
                                              min=0.0, max=1e6)
 
+    odometry_yaw_rate: str = param(
+        "steering", "where odometry's yaw rate comes from: 'steering' (v tan(delta) / wheelbase from "
+        "the servo command) or 'imu' (the gyro's z rate, its bias learned at standstill; the "
+        "steering model until the car has stood still for imu_bias_time_s)", choices=("steering", "imu"))
+
+    # --- IMU (COMM_GET_IMU_DATA, firmware 3.52 and later; docs/vesc.md)
+    imu: bool = param(True, "poll the VESC's IMU with the telemetry and publish sensor_msgs/Imu on "
+                      "/imu (firmware before 3.52 has none: nothing is published)")
+    imu_frame_id: str = param("imu", "frame of the IMU messages; give base_link -> imu in "
+                              "static_transforms")
+    imu_orientation_variance: float = param(
+        0.0012, "variance of roll and pitch (about (2 deg)^2: the firmware's accelerometer "
+        "fusion on a vibrating car)", unit="rad^2", min=0.0, max=1e6)
+    imu_yaw_variance: float = param(
+        100.0, "variance of yaw: large, the heading is relative to the one at boot and drifts "
+        "(no magnetometer)", unit="rad^2", min=0.0, max=1e6)
+    imu_angular_velocity_variance: float = param(
+        2e-6, "variance of each rate (BMI160: 0.008 deg/s/sqrt(Hz) over its 80 Hz bandwidth, "
+        "0.07 deg/s)", unit="(rad/s)^2", min=0.0, max=1e6)
+    imu_linear_acceleration_variance: float = param(
+        2.5e-4, "variance of each acceleration (BMI160: 180 ug/sqrt(Hz) over 80 Hz, 1.6 mg; motor "
+        "vibration adds more on a car)", unit="(m/s^2)^2", min=0.0, max=1e6)
+    imu_bias_time_s: float = param(2.0, "time constant of the gyro bias estimate, learned while the "
+                                   "motor stands still", unit="s", min=0.1, max=600.0)
+
     def __post_init__(self) -> None:
         if self.servo_min > self.servo_max:
             raise ConfigError("servo_min", f"{self.servo_min} is above servo_max {self.servo_max}")
+        right = self.steering_angle_to_servo_gain_right
+        if right is not None and (right == 0 or (right > 0) != (self.steering_angle_to_servo_gain > 0)):
+            raise ConfigError("steering_angle_to_servo_gain_right", f"{right} must be non-zero and of the "
+                              "sign of steering_angle_to_servo_gain")
         if self.reconnect_backoff_min_s > self.reconnect_backoff_max_s:
             raise ConfigError("reconnect_backoff_min_s", "is above reconnect_backoff_max_s")
         vid, sep, pid = self.usb_vid_pid.partition(":")

@@ -28,6 +28,7 @@ from racecar_hw.base.messages import (
     Bool,
     DiagnosticArray,
     Float64,
+    Imu,
     LaserScan,
     Log,
     Message,
@@ -40,7 +41,7 @@ from racecar_hw.base.messages import (
     VescStateStamped,
 )
 from safety.params import SafetyParams
-from vesc.driver import TOPIC_CORE, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF
+from vesc.driver import TOPIC_CORE, TOPIC_IMU, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF
 
 
 class Direction(enum.Enum):
@@ -130,6 +131,7 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
         Topic("/tf_static", TFMessage, out, LATCHED, "static transforms (base_link -> laser ...)"),
         Topic(TOPIC_CORE, VescStateStamped, out, DEFAULT, "VESC telemetry"),
         Topic(TOPIC_SERVO, Float64, out, DEFAULT, "servo position command (0..1)"),
+        Topic(TOPIC_IMU, Imu, out, DEFAULT, "the VESC's IMU (SI units, frame imu)"),
         Topic(mux.output_topic, AckermannDriveStamped, out, DEFAULT, "mux output: the drive command"),
         Topic(mux.active_topic, String, out, LATCHED, "the mux's active source"),
         Topic(mux.diagnostics_topic, DiagnosticArray, out, DEFAULT, "diagnostics"),
@@ -165,6 +167,7 @@ F1TENTH_INPUTS = {"nav_0": "/drive", "teleop": "/teleop"}
 F1TENTH_TOPICS = {
     "/vesc/sensors/core": "/sensors/core",
     "/vesc/sensors/servo_position_command": "/sensors/servo_position_command",
+    "/imu": "/sensors/imu/raw",
     "/vesc/low_level/ackermann_cmd_mux/output": "/ackermann_cmd",
 }
 

@@ -54,6 +54,8 @@ class CarParams:
                                                          "(F1TENTH's 0.5304 as the VESC receives it, in "
                                                          "thousandths)",
                                                   min=0.0, max=1.0)
+    steering_angle_to_servo_gain_right: float | None = param(
+        None, "servo position per radian of right turn; none: steering_angle_to_servo_gain", unit="1/rad")
     wheelbase: float = param(0.25, "rear axle to front axle", unit="m", min=0.05, max=2.0)
     length: float = param(0.55, "footprint length, bumper to bumper", unit="m", min=0.05, max=3.0)
     width: float = param(0.30, "footprint width", unit="m", min=0.05, max=2.0)
@@ -80,6 +82,8 @@ def steering_from_servo(servo: float, params: CarParams) -> float:
     if not math.isfinite(servo):
         return 0.0
     delta = (servo - params.steering_angle_to_servo_offset) / params.steering_angle_to_servo_gain
+    if delta < 0 and params.steering_angle_to_servo_gain_right is not None:
+        delta = (servo - params.steering_angle_to_servo_offset) / params.steering_angle_to_servo_gain_right
     return max(-params.max_steering_angle, min(params.max_steering_angle, delta))
 
 

@@ -42,7 +42,7 @@ from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, map_to_odom, publi
 from racecar_hw.sim.obstacles import point_polygon_distance
 from racecar_hw.sim.occupancy import load_map
 from racecar_hw.sim.plot import ControlSample, Mark, plot_run
-from racecar_hw.sim.scenario import DriverSpec, FaultSpec, Scenario
+from racecar_hw.sim.scenario import CarSpec, DriverSpec, FaultSpec, Scenario
 from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
 from racecar_hw.sim.world import World, compose
 from vesc.codec import servo_on_wire
@@ -145,16 +145,28 @@ class Loopback:
                   f"{listener.what} is on {where} instead", file=sys.stderr, flush=True)
 
     @staticmethod
-    def _car_params(config: Config) -> CarParams:
+    def _car_params(config: Config, true: CarSpec | None = None) -> CarParams:
         """The simulated car: calibrated for the daemon's config, so it drives straight at the
         servo position that reaches the VESC for steering 0 (the offset in thousandths, as the
-        wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift)."""
+        wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift),
+        except where the scenario's ``car`` gives its true values."""
         v, fp = config.vesc, config.safety.footprint
-        return CarParams(speed_to_erpm_gain=v.speed_to_erpm_gain, speed_to_erpm_offset=v.speed_to_erpm_offset,
-                         steering_angle_to_servo_gain=v.steering_angle_to_servo_gain,
-                         steering_angle_to_servo_offset=servo_on_wire(v.steering_angle_to_servo_offset),
-                         wheelbase=v.wheelbase_m, length=fp.length_m, width=fp.width_m,
-                         rear_overhang=fp.rear_overhang_m)
+        t = true if true is not None else CarSpec()
+
+        def pick(value: float | None, configured: float | None) -> float | None:
+            return configured if value is None else value
+
+        right = (t.steering_angle_to_servo_gain_right if t.steering_angle_to_servo_gain is not None
+                 else pick(t.steering_angle_to_servo_gain_right, v.steering_angle_to_servo_gain_right))
+        return CarParams(speed_to_erpm_gain=pick(t.speed_to_erpm_gain, v.speed_to_erpm_gain),
+                         speed_to_erpm_offset=v.speed_to_erpm_offset,
+                         steering_angle_to_servo_gain=pick(t.steering_angle_to_servo_gain,
+                                                           v.steering_angle_to_servo_gain),
+                         steering_angle_to_servo_gain_right=right,
+                         steering_angle_to_servo_offset=pick(t.steering_angle_to_servo_offset,
+                                                             servo_on_wire(v.steering_angle_to_servo_offset)),
+                         wheelbase=pick(t.wheelbase_m, v.wheelbase_m), length=fp.length_m,
+                         width=fp.width_m, rear_overhang=fp.rear_overhang_m)
 
     def _check(self, config: Config) -> None:
         """Refuse, before anything starts, a driver on an input the mux does not have (a one-line
@@ -172,10 +184,14 @@ class Loopback:
             config.static_transforms.append(map_to_odom(sc.start))  # odometry drawn in the map
         laser = self._laser_pose(config)
         vesc = self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
-        self.world = World(self.map, self._car_params(config), sc.start,
+        self.car_params = self._car_params(config, sc.car)
+        self.world = World(self.map, self.car_params, sc.start,
                            erpm_source=lambda: vesc.erpm, servo_source=lambda: vesc.servo,
                            laser_pose_in_base=laser, noise_std_m=sc.world.noise_std_m,
                            seed=sc.world.seed, on_collision=vesc.stall)
+        vesc.imu.motion = self.world.motion
+        vesc.imu.mount = self._imu_pose(config)
+        vesc.imu.errors.gyro_bias_dps = sc.car.gyro_bias_dps
         source = self.world.range_source(max_range=LIDAR_MAX_RANGE_M.get(model, 12.0))
         # TCP only where the real device has it: an Ethernet Hokuyo (USB models and RPLIDARs: pty)
         use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo" \
@@ -206,6 +222,17 @@ class Loopback:
         if not tree.can_transform("base_link", frame):
             raise ConfigError("static_transforms", f"no transform from base_link to the lidar frame "
                                                    f"{frame!r}: the simulated lidar needs one")
+        m = tree.lookup("base_link", frame)
+        return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
+
+    @staticmethod
+    def _imu_pose(config: Config) -> tuple[float, float, float]:
+        """The IMU's (x, y, yaw) in base_link from the static transforms; base_link itself when the
+        config gives no ``base_link -> imu_frame_id``."""
+        tree = TfTree.from_params(config.static_transforms)
+        frame = config.vesc.imu_frame_id
+        if not tree.can_transform("base_link", frame):
+            return (0.0, 0.0, 0.0)
         m = tree.lookup("base_link", frame)
         return float(m[0, 3]), float(m[1, 3]), yaw_of(m)
 
@@ -375,6 +402,10 @@ class Loopback:
             self.daemon.mux.engage_estop("scenario", SCENARIO)
         elif action == "estop_release":
             self.daemon.mux.release_estop(SCENARIO)
+        elif action == "disarm":  # the operator lets go: the deadman, BACK or a ground station
+            self.daemon.arming.disarm("scenario", "the operator let go")
+        elif action == "arm":
+            self.daemon.arming.arm("scenario")
 
     async def _watch_interventions(self) -> None:
         """Note where and when interventions start, and sample the control path for the plot."""
@@ -538,6 +569,7 @@ class Loopback:
                         "scan_cuts": daemon.stats.scan_cuts},
             "interventions": self._interventions(),
             "safety_memory": daemon.config.safety.memory.enabled,
+            "odometry_error_m": self._odometry_error(),
             "trajectory_csv": None,
             "plot_png": None,
             # the bags --record wrote (ROS 2: the bag directory)
@@ -561,6 +593,20 @@ class Loopback:
             result.trajectory_csv, result.plot_png = csv_path, png_path
         return result
 
+
+    def _odometry_error(self) -> float | None:
+        """How far the car truly is (m) from where its odometry says at the end, the odom frame
+        being the start pose in the map (what the map -> odom transform says); None without odometry."""
+        assert self.world is not None and self.daemon is not None
+        odom = self.daemon.bus.latest(self.daemon.config.safety.odom_topic)
+        if odom is None:
+            return None
+        x0, y0, yaw0 = self.scenario.start
+        ox, oy = float(odom.pose.pose.position.x), float(odom.pose.pose.position.y)
+        mx = x0 + math.cos(yaw0) * ox - math.sin(yaw0) * oy
+        my = y0 + math.sin(yaw0) * ox + math.cos(yaw0) * oy
+        pose = self.world.pose
+        return _num(math.hypot(pose.x - mx, pose.y - my))
 
     def _follow_report(self) -> list[dict[str, Any]]:
         """Each follow driver's replay: its length as replayed (s), the fraction of its commands

@@ -17,6 +17,7 @@ A scenario is YAML (shipped ones in ``config/scenarios/``; any path works too)::
          speed_mps: 1.0, appear_s: 0.5}
       - {shape: polygon, points: [[0, 0], [1, 0], [0.5, 0.8]], at: [6.0, -2.0], disappear_s: 4}
     config: {safety: {margin_m: 0.3}}   # merged into the daemon's sim config
+    car: {speed_to_erpm_gain: 5075}     # the simulated car's true values (default: as configured)
 
 Scenario time starts when the car is ready to drive (the VESC answered and the first scan is in),
 as a driver on a real car would wait; ``duration_s``, ``from_s``/``until_s`` and ``at_s`` count from
@@ -27,7 +28,8 @@ each held until the next), ``figure8`` (``speed_mps``, ``steering_rad``, ``figur
 (the lab-0 relay holding ``speed_mps``/``steering_rad``), ``follow`` (a bag, see racecar_hw.bags.follow).
 Fault actions: ``lidar_unplug``, ``lidar_replug``, ``vesc_unplug``, ``vesc_replug``,
 ``obstacle_ahead`` (``distance_m`` ahead of the car's front, ``radius_m``), ``clear_obstacles``,
-``vesc_garbage`` (``bytes``), ``estop``, ``estop_release``.
+``vesc_garbage`` (``bytes``), ``estop``, ``estop_release``, ``disarm`` (the operator lets go),
+``arm``.
 Obstacle shapes: ``disc`` (``radius_m``), ``box`` (``size_m``: length along ``yaw_rad``, width),
 ``polygon`` (convex ``points`` around ``at``, turned by ``yaw_rad``). Each appears at ``at`` at
 ``appear_s``, moves at ``velocity_mps`` or through ``waypoints`` at ``speed_mps`` (stopping at the
@@ -50,7 +52,7 @@ from racecar_hw.sim.obstacles import Box, Circle, Obstacle, Polygon
 DRIVER_TYPES = ("constant", "script", "figure8", "setpoint", "follow")
 OBSTACLE_SHAPES = ("disc", "box", "polygon")
 FAULT_ACTIONS = ("lidar_unplug", "lidar_replug", "vesc_unplug", "vesc_replug", "obstacle_ahead",
-                 "clear_obstacles", "vesc_garbage", "estop", "estop_release")
+                 "clear_obstacles", "vesc_garbage", "estop", "estop_release", "disarm", "arm")
 
 
 @dataclass
@@ -151,6 +153,25 @@ class WorldSpec:
 
 
 @dataclass
+class CarSpec:
+    """The simulated car where it is not what the daemon's config says: a miscalibrated car, for
+    testing calibration and odometry honestly. Each ``null`` means "as configured" (a calibrated car).
+    """
+
+    speed_to_erpm_gain: float | None = param(None, "the motor's true ERPM per m/s",
+                                             unit="ERPM/(m/s)", min=1.0, max=100000.0)
+    steering_angle_to_servo_offset: float | None = param(None, "the servo position that truly steers "
+                                                         "straight", min=0.0, max=1.0)
+    steering_angle_to_servo_gain: float | None = param(None, "the true servo position per radian "
+                                                       "(left turns)", unit="1/rad", min=-10.0, max=10.0)
+    steering_angle_to_servo_gain_right: float | None = param(None, "the true servo position per radian "
+                                                             "of right turns; null: as left",
+                                                             unit="1/rad", min=-10.0, max=10.0)
+    wheelbase_m: float | None = param(None, "the true wheelbase", unit="m", min=0.05, max=2.0)
+    gyro_bias_dps: float = param(0.5, "the fake IMU's gyro z offset", unit="deg/s", min=-10.0, max=10.0)
+
+
+@dataclass
 class Scenario:
     """A whole scenario. See the module documentation for the file format."""
 
@@ -168,6 +189,7 @@ class Scenario:
     obstacles: list[ObstacleSpec] = param([], "obstacles besides the map: shapes that appear, move "
                                               "and disappear")
     config: dict[str, Any] = param({}, "overrides merged into the daemon's sim config")
+    car: CarSpec = param(CarSpec(), "the simulated car's true gains where they differ from the config")
     name: str = param("", "scenario name (default: the file name)")
 
     def map_path(self) -> Path:

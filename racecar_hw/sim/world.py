@@ -48,6 +48,7 @@ from racecar_hw.sim.obstacles import Box, Circle, Obstacle, rectangle
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.raycast import RayCaster
 from racecar_hw.sim.trajectory import TrajectoryReport, TrajectorySample, report
+from vesc.imu_model import AT_REST, PlanarMotion
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +118,7 @@ class World:
         self._pose = pose
         self._speed = 0.0
         self._steering = 0.0
+        self._motion = AT_REST
         self._collided = False
         self._collisions: list[Collision] = []
         self._distance = 0.0
@@ -150,6 +152,11 @@ class World:
         """Front-wheel steering angle (rad, + left)."""
         with self._lock:
             return self._steering
+
+    def motion(self) -> PlanarMotion:
+        """The car's motion at the rear axle over the last step (what its IMU feels)."""
+        with self._lock:
+            return self._motion
 
     @property
     def collided(self) -> bool:
@@ -342,7 +349,12 @@ class World:
                 hit, pose, travelled, clearance = False, self._pose, 0.0, self._min_clearance
             moving = not (hit or self._collided)
             self._pose = pose
-            self._speed = speed if moving else 0.0
+            new_speed = speed if moving else 0.0
+            yaw_rate = new_speed * math.tan(steering) / p.wheelbase
+            before = self._motion
+            self._motion = (PlanarMotion(new_speed, yaw_rate, (new_speed - before.speed) / dt,
+                                         (yaw_rate - before.yaw_rate) / dt) if dt > 0 else before)
+            self._speed = new_speed
             self._steering = steering
             self._distance += travelled
             self._min_clearance = min(self._min_clearance, clearance)
