@@ -27,7 +27,8 @@ memory off and then on (the default), so that what the memory adds to the CPU sh
 scan-to-command latency is measured in one run; ``--memory on|off`` runs only one. ``run()`` (for
 run_all.py and the other daemon benchmarks) runs once with the shipped default unless asked.
 
-Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder] [--memory on|off]``; ``run()``
+Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder] [--memory on|off | --imu]``
+(``--imu``: four runs, the VESC's IMU off, on, on, off); ``run()``
 returns the rows for run_all.py. ``BENCH_VERBOSE=1`` also prints round-trip percentiles, the CPU
 share of each daemon thread and of the benchmark's own fakes; ``BENCH_PROFILE=PATH`` runs the
 daemon under cProfile.
@@ -302,6 +303,13 @@ def main() -> None:
     memory: tuple[bool, ...] = (False, True)
     if "--memory" in args:
         memory = (args[args.index("--memory") + 1] == "on",)
+    if "--imu" in args:  # the VESC's IMU polled or not, alternating off, on, on, off (issue 28)
+        rows = []
+        for on in (False, True, True, False):
+            for row in run(seconds, recorder="--no-recorder" not in args, config_extra={"vesc": {"imu": on}}):
+                rows.append({**row, "name": f"{row['name']}, imu {'on' if on else 'off'}"})
+        print_rows(rows)
+        return
     rows = run(seconds, recorder="--no-recorder" not in args, memory=memory)
     print_rows(rows)
 
