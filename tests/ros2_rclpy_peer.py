@@ -9,7 +9,8 @@ namespace with the daemon. Prints one JSON line of what it saw.
 source only after that (a late joiner: TRANSIENT_LOCAL QoS); find racecar_hw in the node graph and
 as the publisher of /scan; drive with /cmd_vel (Twist 0.5 m/s, 0.6 rad/s at 20 Hz for ``--drive-s``),
 stop publishing and watch /odom come to rest; then engage the e-stop (std_msgs/Bool true) and read
-the daemon's warning about it on /rosout (rcl_interfaces/msg/Log).
+the daemon's warning about it on /rosout (rcl_interfaces/msg/Log). Throughout, /imu
+(sensor_msgs/Imu): its frame, acceleration, covariances, and its yaw rate next to the odometry's.
 ``drive``: receive /scan, then publish /cmd_vel (0.5 m/s) for ``--drive-s``.
 """
 
@@ -25,7 +26,7 @@ from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import Log
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import LaserScan
+from sensor_msgs.msg import Imu, LaserScan
 from std_msgs.msg import Bool, String
 
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
@@ -58,6 +59,16 @@ def check(args: argparse.Namespace) -> dict:
         seen["odoms"] += 1
         seen["odom_frame"] = msg.header.frame_id
         seen["odom_speeds"].append((time.monotonic(), msg.twist.twist.linear.x))
+        seen["odom_yaw_rate"] = msg.twist.twist.angular.z
+
+    seen["imu"] = []
+
+    def on_imu(msg: Imu) -> None:
+        seen["imu"].append({"frame": msg.header.frame_id, "gyro_z": msg.angular_velocity.z,
+                            "acc_z": msg.linear_acceleration.z,
+                            "cov_w": float(msg.angular_velocity_covariance[0]),
+                            "cov_a": float(msg.linear_acceleration_covariance[0]),
+                            "odom_yaw_rate": seen.get("odom_yaw_rate")})
 
     seen["logs"] = []
     rosout_qos = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
@@ -67,6 +78,7 @@ def check(args: argparse.Namespace) -> dict:
         {"name": m.name, "level": int(m.level), "msg": m.msg}) if m.level >= 30 else None, rosout_qos)
     node.create_subscription(LaserScan, "/scan", on_scan, qos_profile_sensor_data)
     node.create_subscription(Odometry, "/odom", on_odom, 10)
+    node.create_subscription(Imu, "/imu", on_imu, 10)
     seen["scan_and_odom"] = spin_until(node, lambda: seen["scans"] >= 5 and seen["odoms"] >= 5, args.timeout)
     # late joiners: the daemon published these once, long before this subscription exists
     seen["tf_static_frames"] = []

@@ -143,6 +143,17 @@ def test_a_stock_rclpy_node_reads_the_car_finds_it_and_drives_it_over_dds(tmp_pa
     assert abs(_speed_near(samples, twist_off + 0.4)) < 0.05
     assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
     assert "dds interface up" in log
+    # /imu: SI units, its frame and covariances; while turning, the gyro's yaw rate is the
+    # kinematics' (the odometry's v tan(delta) / L) within 5 %
+    imu = seen["imu"]
+    assert len(imu) > 50 and {m["frame"] for m in imu} == {"imu"}
+    assert imu[0]["cov_w"] > 0 and imu[0]["cov_a"] > 0
+    acc_z = sorted(m["acc_z"] for m in imu)
+    assert acc_z[len(acc_z) // 2] == pytest.approx(9.81, abs=0.3)
+    ratios = sorted(m["gyro_z"] / m["odom_yaw_rate"] for m in imu
+                    if m["odom_yaw_rate"] is not None and abs(m["odom_yaw_rate"]) > 0.3)
+    assert len(ratios) > 10, len(ratios)
+    assert ratios[len(ratios) // 2] == pytest.approx(1.0, abs=0.05)
 
 
 @pytest.mark.parametrize("allowed", [False, True])
