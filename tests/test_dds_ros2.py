@@ -25,7 +25,7 @@ pytest.importorskip("cyclonedds", reason="cyclonedds (a dependency) is not insta
 PEER = str(ROOT / "tests" / "ros2_rclpy_peer.py")
 ACTIVE = "/vesc/low_level/ackermann_cmd_mux/active"
 #: The sim's static transforms and its map -> odom, as the Zenoh acceptance test lists them.
-STATIC_FRAMES = ["laser", "left_cam", "odom", "right_cam"]
+STATIC_FRAMES = ["imu", "laser", "left_cam", "odom", "right_cam"]
 
 
 def _start_sim(ns: NetNs, out, *sets: str, duration: float = 40.0) -> subprocess.Popen[str]:

@@ -55,7 +55,7 @@ def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile,
     assert seen["scan_before_driving"] >= 5 and seen["odom_before_driving"] >= 5
     assert seen["scan_beams"] == 1081 and seen["odom_frame"] == "odom"
     # the sim config's static transforms, and the sim's map -> odom at the start pose
-    assert sorted(latched["frames"]) == ["laser", "left_cam", "odom", "right_cam"]
+    assert sorted(latched["frames"]) == ["imu", "laser", "left_cam", "odom", "right_cam"]
     order = switches(report)
     assert "nav_0" in order and "cmd_vel" in order, report["mux_switches"]
     assert order.index("cmd_vel") > order.index("nav_0")
