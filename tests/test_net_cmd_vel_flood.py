@@ -7,11 +7,11 @@ this test's own Zenoh session reads ``/diagnostics`` (the daemon's control-loop 
 ticks, the inbox's counts) and ``/odom``, and sends the e-stop. The sim's log says when the fake
 VESC read the brake, and whether it was the first motor command written after the e-stop latched.
 
-The bound on missed ticks is measured robustly on a shared machine: up to five 5-second floods,
-the test passing on the first whose ticks stay within 1 % (another tenant of a loaded 2-core
-machine can starve the loop by itself, as a calm window shows; a loop that does per-message work,
-as before the inbox, misses far more in every round: 147 of 900 at 5,000 messages/s). The
-e-stop is sent into a flood of its own at the end.
+One 5-second flood must leave at least 99 % of the control ticks. The sim runs ahead of the other
+tenants of the test machine (tests/conftest.py, ``ahead_of_other_load``): another tenant of a loaded
+2-core machine can starve the loop by itself, as a calm window shows, and what is measured is the
+flood's effect (a loop that does per-message work, as before the inbox, missed 147 of 900 ticks at
+5,000 messages/s). The e-stop is sent into a flood of its own at the end.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import time
 
 import pytest
 import zenoh
+from conftest import ahead_of_other_load
 from zenoh_util import ROOT, endpoint, free_port, start_sim
 
 from racecar_hw.base.messages import Bool, DiagnosticArray, Odometry
@@ -34,7 +35,6 @@ from racecar_hw.rosmsg.typestore import ros2_types
 
 FLOOD = str(ROOT / "tests" / "zenoh_flood.py")
 FLOOD_S = 5.0
-ROUNDS = 5
 #: The flooder's niceness: on the shared 2-core test machine a flooder at normal priority takes a
 #: core from every process on it (a calm window already misses ticks there); at 19 it still sends
 #: over 100,000 messages/s from the CPU others leave idle. benchmarks/bench_flood.py floods at
@@ -121,7 +121,8 @@ def _result(proc: subprocess.Popen) -> dict:
 
 def test_a_cmd_vel_flood_neither_starves_the_loop_nor_delays_an_estop(tmp_path):
     port = free_port()
-    sim = start_sim(tmp_path, port, scenario="wall", duration=300.0)
+    # what is measured is the flood's effect on the daemon, not other tenants' of the test machine
+    sim = start_sim(tmp_path, port, scenario="wall", duration=300.0, preexec_fn=ahead_of_other_load)
     procs: list[subprocess.Popen] = []
     session = None
     rounds: list[dict] = []
@@ -135,14 +136,11 @@ def test_a_cmd_vel_flood_neither_starves_the_loop_nor_delays_an_estop(tmp_path):
         watch.after(calm)  # the daemon ticks
         time.sleep(FLOOD_S)
         calm_ticks, calm_missed = watch.window(calm, time.monotonic())
-        for _ in range(ROUNDS):
-            proc, started = _flood(port, FLOOD_S)
-            procs.append(proc)
-            result = _result(proc)
-            ticks, missed = watch.window(started, time.monotonic())
-            rounds.append({**result, "ticks": ticks, "missed": missed})
-            if missed <= 0.01 * (ticks + missed):
-                break
+        proc, started = _flood(port, FLOOD_S)
+        procs.append(proc)
+        result = _result(proc)
+        ticks, missed = watch.window(started, time.monotonic())
+        rounds.append({**result, "ticks": ticks, "missed": missed})
         # the e-stop, from this second session, into a flood of its own while the car drives
         proc, started = _flood(port, 3.0)
         procs.append(proc)
@@ -173,8 +171,8 @@ def test_a_cmd_vel_flood_neither_starves_the_loop_nor_delays_an_estop(tmp_path):
     superseded = int(re.search(r"superseded (\d+)", inbox["/cmd_vel"]).group(1))
     assert received > 10_000 and superseded > 0.9 * received, summary
     # at most 1 % of the control ticks during a 5-second flood were missed
-    best = rounds[-1]
-    assert best["missed"] <= 0.01 * (best["ticks"] + best["missed"]), summary
+    flood, = rounds
+    assert flood["missed"] <= 0.01 * (flood["ticks"] + flood["missed"]), summary
     # the car drove under the flood, and the e-stop latched within 0.1 s of being sent, its brake
     # the next motor command the fake VESC read
     order = [source for _, source in report["mux_switches"]]

@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,7 +58,8 @@ class SimProcess:
 
 
 def start_sim(out: Path, listen_port: int | None, *sets: str, scenario: str = "wall",
-              scenario_sets: tuple[str, ...] = ("drivers=[]",), duration: float = 12.0) -> SimProcess:
+              scenario_sets: tuple[str, ...] = ("drivers=[]",), duration: float = 12.0,
+              preexec_fn: Callable[[], None] | None = None) -> SimProcess:
     """Start ``racecar-hw sim`` with its Zenoh bridge listening on ``listen_port`` (None: ``sets`` say).
 
     The live view and the status page listen on free ports (never the defaults 8765 and 8080).
@@ -72,7 +74,8 @@ def start_sim(out: Path, listen_port: int | None, *sets: str, scenario: str = "w
         command += ["--set", f'zenoh.listen=["{endpoint(listen_port)}"]']
     for item in sets:
         command += ["--set", item]
-    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            preexec_fn=preexec_fn)
     return SimProcess(proc, out, time.monotonic())
 
 
