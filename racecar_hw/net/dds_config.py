@@ -29,6 +29,7 @@ from xml.sax.saxutils import quoteattr
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
+from racecar_hw.net.topics import ros_domain_id
 
 #: ROS 2 distributions as their DDS graph differs: Humble's ``rmw_dds_common/msg/Gid`` has 24 bytes
 #: and no type hashes exist; Iron and later use 16-byte GIDs and RIHS01 hashes in USER_DATA.
@@ -121,14 +122,7 @@ class DdsParams:
 
     def resolved_domain_id(self, key: str = "dds") -> int:
         """``domain_id``, else ``ROS_DOMAIN_ID`` from the environment, else 0."""
-        if self.domain_id is not None:
-            return self.domain_id
-        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-        if not env:
-            return 0
-        if not env.isdigit() or int(env) > 232:
-            raise ConfigError(f"{key}.domain_id", f"ROS_DOMAIN_ID={env!r} is not a domain id (0..232)")
-        return int(env)
+        return ros_domain_id(self.domain_id, f"{key}.domain_id")
 
     def start_notice(self) -> str | None:
         """What start prints for a non-loopback interface (None on loopback)."""

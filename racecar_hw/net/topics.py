@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -208,3 +209,16 @@ def named(rows: list[Topic], mux: MuxParams, profile: str = "racecar",
                                      f"{profile}); two topics cannot share a ROS name")
         seen[row.ros] = row.bus
     return out
+
+
+def ros_domain_id(configured: int | None, key: str) -> int:
+    """``configured``, else ``ROS_DOMAIN_ID`` from the environment, else 0 (as ROS 2 does); a bad
+    environment value is a :class:`ConfigError` naming ``key``."""
+    if configured is not None:
+        return configured
+    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not env:
+        return 0
+    if not env.isdigit() or int(env) > 232:
+        raise ConfigError(key, f"ROS_DOMAIN_ID={env!r} is not a domain id (0..232)")
+    return int(env)

@@ -16,13 +16,13 @@ docs/interop.md lists what differs and why).
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
+from racecar_hw.net.topics import ros_domain_id
 from racecar_hw.net.zenoh_security import check_credentials, check_pem, dictionary_users
 
 MODES = ("peer", "router", "client")
@@ -163,14 +163,7 @@ class ZenohParams:
 
     def resolved_domain_id(self) -> int:
         """``domain_id``, else ``ROS_DOMAIN_ID`` from the environment, else 0."""
-        if self.domain_id is not None:
-            return self.domain_id
-        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-        if not env:
-            return 0
-        if not env.isdigit() or int(env) > 232:
-            raise ConfigError("zenoh.domain_id", f"ROS_DOMAIN_ID={env!r} is not a domain id (0..232)")
-        return int(env)
+        return ros_domain_id(self.domain_id, "zenoh.domain_id")
 
 
 def parse_endpoint(endpoint: str, key: str) -> tuple[str, str, int | None]:
