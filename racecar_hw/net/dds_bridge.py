@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from racecar_hw.base.bus import Bus, Subscription
-from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import dds_graph, rmw
@@ -282,16 +281,7 @@ class DdsBridge:
         self.outbox.control_idle()
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
-        put, publish, stats = self.outbox.put, self._publish, self.stats
-        urgent = out.row.bus in self.urgent
-
-        def enqueue(msg: Message) -> None:
-            if not out.matching:
-                stats.skipped += 1
-                return
-            put(publish, out, msg, wall_ns(), urgent=urgent)
-
-        return enqueue
+        return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
 
     def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
         """In the publisher thread: serialize ``msg`` and write it with its source timestamp."""

@@ -22,6 +22,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from racecar_hw.base.clock import wall_ns
+
 log = logging.getLogger(__name__)
 
 #: The sender thread runs the queue at least this often (seconds).
@@ -85,6 +87,21 @@ class Outbox:
         queue.append((fn, args))
         if (urgent or len(queue) >= WAKE_AT) and not self._wake.is_set():
             self._wake.set()
+
+    def enqueuer(self, publish: Callable[[Any, Any, int], None], out: Any, stats: Any,
+                 urgent: bool = False) -> Callable[[Any], None]:
+        """A bus callback for one outgoing row of a network bridge: queue ``publish(out, msg, wall
+        ns)``, or, while nobody subscribes (``out.matching`` false), count ``stats.skipped`` and
+        serialize nothing."""
+        put = self.put
+
+        def enqueue(msg: Any) -> None:
+            if not out.matching:
+                stats.skipped += 1
+                return
+            put(publish, out, msg, wall_ns(), urgent=urgent)
+
+        return enqueue
 
     def __len__(self) -> int:
         return len(self._queue)

@@ -413,16 +413,7 @@ class ZenohBridge:
             enqueue(msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
-        put, publish, stats = self.outbox.put, self._publish, self.stats
-        urgent = out.row.bus in self.urgent
-
-        def enqueue(msg: Message) -> None:
-            if not out.matching:
-                stats.skipped += 1
-                return
-            put(publish, out, msg, wall_ns(), urgent=urgent)
-
-        return enqueue
+        return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
 
     def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
         """In the publisher thread: serialize ``msg`` and put it with rmw_zenoh's attachment."""
