@@ -10,6 +10,7 @@ import difflib
 import math
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,22 +139,24 @@ def _run_car(args: argparse.Namespace) -> CalibrationResult | str:
 
     async def main() -> int:
         stop = asyncio.Event()
-
-        async def calibrate() -> None:
-            try:
-                outcome.append(await procedure.run())
-            except CalibrationAborted as err:
-                outcome.append(str(err))
-            finally:
-                stop.set()
-
-        daemon.add_task(calibrate())
+        daemon.add_task(_calibrate(procedure, outcome, then=stop.set))
         return await run_daemon(daemon, stop, noted=stops)
 
     with StopSignals() as stops:
         asyncio.run(main())
-    procedure.close()
     return outcome[0] if outcome else "interrupted before the procedure ended"
+
+
+async def _calibrate(procedure: CalibrationProcedure, outcome: list[CalibrationResult | str],
+                     then: Callable[[], object]) -> None:
+    """Run the procedure, put its result (or why it stopped) in ``outcome``, then ``then()``."""
+    try:
+        outcome.append(await procedure.run())
+    except CalibrationAborted as err:
+        outcome.append(str(err))
+    finally:
+        then()
+        procedure.close()
 
 
 def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]:
@@ -173,17 +176,8 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
                             car.steering_angle_to_servo_gain_right or car.steering_angle_to_servo_gain,
                             math.radians(loopback.vesc.imu.errors.gyro_bias_dps)))
         procedure = CalibrationProcedure(daemon.bus, _params(args, daemon.config), _watch(daemon), say=print)
-
-        async def calibrate() -> None:
-            try:
-                outcome.append(await procedure.run())
-            except CalibrationAborted as err:
-                outcome.append(str(err))
-            finally:
-                loopback.request_stop("calibration ended")
-                procedure.close()
-
-        daemon.add_task(calibrate())
+        daemon.add_task(_calibrate(procedure, outcome,
+                                   then=lambda: loopback.request_stop("calibration ended")))
 
     loopback = Loopback(scenario, config_path=args.config, overrides=args.overrides, duration_s=600.0,
                         setup=setup)
