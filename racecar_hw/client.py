@@ -235,10 +235,16 @@ class _Stream(Generic[T]):
     otherwise when :attr:`latest` or :meth:`wait_newer` is read, and only the newest one. A topic
     nobody reads (the odometry of code that only drives from scans) costs no decoding, and a slow
     reader decodes only what it takes.
+
+    ``shared``: the topic carries other publishers' samples that ``decode`` rejects (the mux's
+    status among the other components' arrays on ``/diagnostics``). Such a stream decodes every
+    sample on arrival and counts only those it accepts, so a rejected one never hides the one
+    a reader waits for.
     """
 
-    def __init__(self, decode: Callable[[bytes], T]) -> None:
+    def __init__(self, decode: Callable[[bytes], T], shared: bool = False) -> None:
         self.decode = decode
+        self.shared = shared
         self.count = 0
         self.callbacks: list[Callable[[T], None]] = []
         self._cond = threading.Condition()
@@ -265,7 +271,7 @@ class _Stream(Generic[T]):
 
     def push_raw(self, raw: bytes) -> None:
         """A new sample's payload (Zenoh's thread)."""
-        if self.callbacks:
+        if self.callbacks or self.shared:
             try:
                 value = self.decode(raw)
             except Exception:  # noqa: BLE001 - a malformed sample is skipped
@@ -294,7 +300,7 @@ class _Stream(Generic[T]):
             while True:
                 left = None if deadline is None else max(0.0, deadline - time.monotonic())
                 if not self._cond.wait_for(lambda s=seen: self.count > s, left):
-                    raise ClientError(f"nothing received for {timeout} s: is the daemon running and "
+                    raise ClientError(f"nothing received for {timeout:g} s: is the daemon running and "
                                       "reachable, with the same domain id and namespace?")
                 value = self._take()
                 if value is not None and self._version > seen:
@@ -396,13 +402,13 @@ class Car:
     # --- subscriptions ------------------------------------------------------------------------
 
     def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
-                   qos: Qos) -> _Stream[T]:
+                   qos: Qos, shared: bool = False) -> _Stream[T]:
         deserialize = ros2_types().deserialize
 
         def decode(raw: bytes) -> T:
             return convert(deserialize(raw, msgtype))
 
-        stream: _Stream[T] = _Stream(decode)
+        stream: _Stream[T] = _Stream(decode, shared)
         topic = self.ros_name(bus_topic)
 
         def on_sample(sample: Any) -> None:
@@ -522,7 +528,7 @@ class Car:
         with self._lock:
             if self.mux_stream is None:
                 self.mux_stream = self._subscribe(self.mux.diagnostics_topic, DiagnosticArray,
-                                                  _mux_status, DEFAULT)
+                                                  _mux_status, DEFAULT, shared=True)
             stream = self.mux_stream
         value, _ = stream.wait_newer(stream.count, timeout)
         return value
@@ -620,7 +626,7 @@ class AsyncCar:
                 try:
                     yield await asyncio.wait_for(box.get(), timeout)
                 except asyncio.TimeoutError:
-                    raise ClientError(f"nothing received for {timeout} s: is the daemon running and "
+                    raise ClientError(f"nothing received for {timeout:g} s: is the daemon running and "
                                       "reachable?") from None
         finally:
             stream.callbacks.remove(callback)

@@ -289,3 +289,31 @@ def test_safety_values_are_typed_and_the_laser_pose_is_the_shipped_one():
         laser = next(t for t in load_config(shipped_config(name)).static_transforms
                      if t.child_frame_id == "laser")
         assert (*laser.xyz, 0.0) == pytest.approx(LASER_IN_BASE_LINK)
+
+
+def test_the_mux_status_is_not_hidden_by_other_components_diagnostics():
+    """``/diagnostics`` carries one array per component; a reader waiting for the mux's status gets
+    it even when another component's array arrives right after it (the race that failed CI's
+    e-stop test on a loaded machine: the newest sample was never the mux's when the reader woke)."""
+    from racecar_hw.base.messages import DiagnosticArray, DiagnosticStatus, Header, KeyValue, Time  # noqa: PLC0415
+    from racecar_hw.client import MUX_STATUS_NAME, _mux_status, _Stream  # noqa: PLC0415
+    from racecar_hw.rosmsg.typestore import ros2_types  # noqa: PLC0415
+
+    def array(name: str, state: str) -> bytes:
+        status = DiagnosticStatus(DiagnosticStatus.OK, name, "", "", [KeyValue("state", state)])
+        return ros2_types().serialize(DiagnosticArray(Header(Time(1, 0), ""), [status]))
+
+    def decode(raw: bytes):
+        return _mux_status(ros2_types().deserialize(raw, DiagnosticArray))
+
+    stream = _Stream(decode, shared=True)
+    stream.push_raw(array(MUX_STATUS_NAME, "estop"))
+    stream.push_raw(array("racecar_hw: control loop", "whatever"))
+    stream.push_raw(array("racecar_hw: network security", "whatever"))
+    value, seen = stream.wait_newer(0, timeout=1.0)
+    assert value.state == "estop" and seen == 1  # the other arrays were not counted
+    with pytest.raises(ClientError, match="nothing received for 0.2 s"):
+        stream.wait_newer(seen, timeout=0.2)
+    stream.push_raw(array(MUX_STATUS_NAME, "running"))
+    stream.push_raw(array("racecar_hw: control loop", "whatever"))
+    assert stream.wait_newer(seen, timeout=1.0)[0].state == "running"
