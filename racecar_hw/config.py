@@ -41,7 +41,7 @@ from racecar_hw.sources.setpoint import SetpointParams
 from racecar_hw.teleop.arming import ArmingParams
 from racecar_hw.teleop.gamepad import GamepadParams
 from racecar_hw.teleop.keyboard import KeyboardParams
-from racecar_hw.teleop.mavlink_gcs import MavlinkParams
+from racecar_hw.teleop.mavlink_params import MavlinkParams
 from safety.params import SafetyParams
 from vesc.params import VescParams
 

@@ -29,7 +29,7 @@ import sys
 from collections import deque
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
@@ -68,6 +68,7 @@ from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
@@ -82,9 +83,11 @@ from racecar_hw.sources.setpoint import SetpointRelay
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad import GamepadTeleop
 from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
-from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
 from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
+
+if TYPE_CHECKING:  # imported where mavlink.enabled: pymavlink comes with the mavlink extra
+    from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 
 log = logging.getLogger(__name__)
 
@@ -205,9 +208,13 @@ class Daemon:
                                         on_release=lambda: log.warning("keyboard: %s",
                                                                        self.release_estop(keyboard)[1]))
                          if config.keyboard.enabled else None)
-        self.mavlink = (MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot,
-                                   refusals=self.refusals)
-                        if config.mavlink.enabled else None)
+        self.mavlink: MavlinkGcs | None = None
+        if config.mavlink.enabled:
+            require_extra("mavlink", "the MAVLink ground-station link", "mavlink.enabled")
+            from racecar_hw.teleop.mavlink_gcs import MavlinkGcs  # noqa: PLC0415 - needs the extra
+
+            self.mavlink = MavlinkGcs(self.bus, config.mavlink, self.arming, status_source=self.snapshot,
+                                      refusals=self.refusals)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
         self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
         self.scan_summary = (ScanSummaryPublisher(self.bus, config.scan_summary)

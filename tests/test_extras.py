@@ -1,0 +1,148 @@
+"""A lean car: the daemon imports the simulator's and MAVLink's libraries only when their feature is
+on, and a feature switched on without its extra is refused in one line naming the pip command
+(docs/install.md, "Extras")."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from conftest import NO_DDS, reaped, wait_for
+from zenoh_util import free_port
+
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.scip_fake import FakeHokuyo
+from racecar_hw.cli import main
+from racecar_hw.runtime.extras import EXTRAS
+from vesc.fake import FakeVesc
+
+ROOT = Path(__file__).resolve().parents[1]
+#: The top-level modules of the sim and mavlink extras, and what pymavlink may pull in.
+EXTRA_MODULES = {"matplotlib", "PIL", "pymavlink", "lxml"}
+
+#: Runs the command line in this very process, as the console script does, and at its exit (after
+#: SIGTERM's orderly shutdown) writes every module the process imported to the file in argv[1].
+WRAPPER = textwrap.dedent("""
+    import json, sys
+    from racecar_hw.cli import main
+    out, argv = sys.argv[1], sys.argv[2:]
+    code = main(argv)
+    with open(out, "w") as f:
+        json.dump(sorted(sys.modules), f)
+    sys.exit(code)
+""")
+
+
+@pytest.fixture
+def fakes(device_thread, tmp_path):
+    vesc = FakeVesc(str(tmp_path / "vesc"))
+    lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
+    device_thread.spawn(vesc.serve())
+    device_thread.spawn(lidar.serve())
+    assert lidar.ready.wait(10)
+    return vesc, lidar
+
+
+def run_car(vesc: FakeVesc, lidar: FakeHokuyo, tmp_path: Path, *sets: str) -> set[str]:
+    """``racecar-hw run --config config/car.yaml`` on the fakes, with the live interfaces on free
+    ports, until it drives the fake VESC; then SIGTERM. The modules its process had imported."""
+    host, port = lidar.tcp_address
+    sets = (f"vesc.port={tmp_path / 'vesc'}", f"lidar.tcp={host}:{port}",
+            "foxglove.port=0", "web.port=0", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
+            NO_DDS, *sets)  # DDS stays off: its discovery would reach every test's participants
+    modules = tmp_path / "modules.json"
+    argv = ["run", "--config", str(ROOT / "config" / "car.yaml"), *[x for s in sets for x in ("--set", s)]]
+    proc = subprocess.Popen([sys.executable, "-c", WRAPPER, str(modules), *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        wait_for(lambda: proc.poll() is not None or (lidar.clients > 0 and len(vesc.commands) > 20),
+                 timeout=60)
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err[-2000:]
+    return set(json.loads(modules.read_text()))
+
+
+def top_level(modules: set[str]) -> set[str]:
+    return {m.split(".", 1)[0] for m in modules}
+
+
+def test_the_car_daemon_runs_without_the_sim_and_mavlink_libraries(fakes, tmp_path):
+    vesc, lidar = fakes
+    modules = run_car(vesc, lidar, tmp_path)
+    # the process was the daemon with its live interfaces ...
+    assert {"racecar_hw.daemon", "racecar_hw.net.foxglove_server", "racecar_hw.net.web",
+            "racecar_hw.net.zenoh_bridge", "zenoh", "foxglove", "aiohttp"} <= modules
+    # ... and neither the simulator nor the MAVLink link, nor their libraries, were imported
+    assert not EXTRA_MODULES & top_level(modules), sorted(EXTRA_MODULES & top_level(modules))
+    assert not {m for m in modules if m.startswith(("racecar_hw.sim", "racecar_hw.teleop.mavlink_"))
+                and m != "racecar_hw.teleop.mavlink_params"}
+
+
+def test_mavlink_switched_on_imports_pymavlink_in_the_daemon(fakes, tmp_path):
+    """The same measurement sees the import when the feature is on (the check above can fail)."""
+    vesc, lidar = fakes
+    modules = run_car(vesc, lidar, tmp_path, "mavlink.enabled=true", "mavlink.bind_port=0",
+                      "mavlink.gcs_address=127.0.0.1:0")
+    assert {"pymavlink", "racecar_hw.teleop.mavlink_gcs"} <= modules
+    assert not {"matplotlib", "PIL"} & top_level(modules)
+
+
+def test_every_extra_is_declared_in_pyproject():
+    text = (ROOT / "pyproject.toml").read_text()
+    import tomllib
+
+    declared = tomllib.loads(text)["project"]["optional-dependencies"]
+    for name, extra in EXTRAS.items():
+        assert sorted(d.split(">")[0].lower() for d in declared[name]) == sorted(
+            dist.lower() for dist, _ in extra.modules), name
+    dependencies = " ".join(tomllib.loads(text)["project"]["dependencies"]).lower()
+    assert not any(dist.lower() in dependencies for e in EXTRAS.values() for dist, _ in e.modules)
+    assert "racecar-hw[sim,mavlink]" in declared["test"]
+
+
+def _hidden(monkeypatch, *modules: str) -> None:
+    """Make Python see ``modules`` as not installed (a ``None`` in sys.modules: import raises
+    ModuleNotFoundError and ``importlib.util.find_spec`` finds nothing)."""
+    for name in modules:
+        monkeypatch.setitem(sys.modules, name, None)
+
+
+def test_mavlink_on_without_its_extra_is_one_line_naming_pip(monkeypatch, capsys):
+    _hidden(monkeypatch, "pymavlink")
+    code = main(["run", "--no-status", "--set", "vesc.enabled=false", "--set", "lidar.enabled=false",
+                 "--set", "gamepad.enabled=false", "--set", "zenoh.enabled=false", "--set", NO_DDS,
+                 "--set", "foxglove.port=0", "--set", "web.port=0", "--set", "mavlink.enabled=true"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert err == ("racecar-hw run: mavlink.enabled: the MAVLink ground-station link needs pymavlink, "
+                   "which the mavlink extra installs: pip install 'racecar-hw[mavlink]'\n")
+
+
+@pytest.mark.parametrize("hidden, named", [(("matplotlib",), "matplotlib"), (("PIL",), "Pillow"),
+                                            (("matplotlib", "PIL"), "matplotlib and Pillow")])
+def test_sim_without_its_extra_is_one_line_naming_pip(monkeypatch, capsys, tmp_path, hidden, named):
+    _hidden(monkeypatch, *hidden)
+    code = main(["sim", "--no-status", "--duration", "1", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert err == (f"racecar-hw sim: the simulator (its maps and plot) needs {named}, which the sim "
+                   "extra installs: pip install 'racecar-hw[sim]'\n")
+    assert not list(tmp_path.iterdir())  # refused before anything ran
+    # the list of scenarios needs no extra
+    assert main(["sim", "--list"]) == 0
+    assert "figure8" in capsys.readouterr().out
+
+
+def test_calibrate_sim_without_its_extra_is_one_line_naming_pip(monkeypatch, capsys):
+    _hidden(monkeypatch, "matplotlib")
+    assert main(["calibrate", "--sim"]) == 1
+    assert capsys.readouterr().err == (
+        "racecar-hw calibrate: calibrate --sim (the simulator) needs matplotlib, which the sim extra "
+        "installs: pip install 'racecar-hw[sim]'\n")
