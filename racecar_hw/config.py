@@ -29,7 +29,7 @@ from racecar_hw.base.params import build, describe, param, to_dict, unknown_key
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.dds_config import DdsParams
-from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.ports import Listener, free_port, port_taken
 from racecar_hw.net.rosout import RosoutParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table

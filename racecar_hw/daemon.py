@@ -59,7 +59,6 @@ from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.dds_config import cyclone_available
-from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.gate import quiet_accept_errors
 from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.parameters import ParameterService
@@ -68,7 +67,7 @@ from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
-from racecar_hw.runtime.extras import require_extra
+from racecar_hw.runtime.extras import missing_extra, require_extra
 from racecar_hw.runtime.fdlimit import FileLimit, raise_open_file_limit
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
@@ -86,7 +85,8 @@ from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
 from safety.node import SafetyNode
 from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
 
-if TYPE_CHECKING:  # imported where mavlink.enabled: pymavlink comes with the mavlink extra
+if TYPE_CHECKING:  # imported where switched on: they need the foxglove and mavlink extras
+    from racecar_hw.net.foxglove_server import FoxgloveServer
     from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 
 log = logging.getLogger(__name__)
@@ -552,12 +552,18 @@ class Daemon:
         #: ``zenoh.remap``; the simulator adds its own before run()
         self.live_topics: list[Topic] = network_topics(config)
         teleop = next((i.topic for i in config.mux.inputs if i.name == FOXGLOVE_INPUT), None)
-        self.foxglove = (FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
-                                        parameters=to_dict(config), teleop_input=teleop,
-                                        wheelbase_m=config.vesc.wheelbase_m,
-                                        max_steering_rad=config.vesc.steering_max_rad,
-                                        refusals=self.refusals)
-                         if config.foxglove.enabled else None)
+        self.foxglove: FoxgloveServer | None = None
+        absent = missing_extra("foxglove", "the Foxglove live view") if config.foxglove.enabled else None
+        if absent is not None:  # on by default: a car whose config predates the extra still drives
+            log.warning("foxglove: the live view is off: %s; or set foxglove.enabled: false", absent)
+        elif config.foxglove.enabled:
+            from racecar_hw.net.foxglove_server import FoxgloveServer  # noqa: PLC0415 - needs the extra
+
+            self.foxglove = FoxgloveServer(self.bus, config.foxglove, self, self.live_topics,
+                                           parameters=to_dict(config), teleop_input=teleop,
+                                           wheelbase_m=config.vesc.wheelbase_m,
+                                           max_steering_rad=config.vesc.steering_max_rad,
+                                           refusals=self.refusals)
         self.web = (WebServer(self.bus, config.web, self, scan_topic=safety.scan_topic,
                               refusals=self.refusals)
                     if config.web.enabled else None)

@@ -1,10 +1,11 @@
-"""A lean car: the daemon imports the simulator's and MAVLink's libraries only when their feature is
-on, and a feature switched on without its extra is refused in one line naming the pip command
-(docs/install.md, "Extras")."""
+"""A lean car: the daemon imports the libraries of the simulator, the Foxglove live view and MAVLink
+only when their feature is on, and a feature switched on without its extra says so in one line
+naming the pip command (docs/install.md, "Extras")."""
 
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+import tomllib
 from conftest import NO_DDS, reaped, wait_for
 from zenoh_util import free_port
 
@@ -22,15 +24,18 @@ from racecar_hw.runtime.extras import EXTRAS
 from vesc.fake import FakeVesc
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The top-level modules of the sim and mavlink extras, and what pymavlink may pull in.
-EXTRA_MODULES = {"matplotlib", "PIL", "pymavlink", "lxml"}
+#: The top-level modules of the extras, and what pymavlink may pull in.
+EXTRA_MODULES = {"matplotlib", "PIL", "pymavlink", "lxml", "foxglove", "cryptography"}
 
 #: Runs the command line in this very process, as the console script does, and at its exit (after
 #: SIGTERM's orderly shutdown) writes every module the process imported to the file in argv[1].
+#: argv[2] lists modules to make absent first (a None in sys.modules: Python then finds no such
+#: module, as when it is not installed).
 WRAPPER = textwrap.dedent("""
     import json, sys
+    out, hidden, argv = sys.argv[1], json.loads(sys.argv[2]), sys.argv[3:]
+    sys.modules.update(dict.fromkeys(hidden))
     from racecar_hw.cli import main
-    out, argv = sys.argv[1], sys.argv[2:]
     code = main(argv)
     with open(out, "w") as f:
         json.dump(sorted(sys.modules), f)
@@ -48,16 +53,18 @@ def fakes(device_thread, tmp_path):
     return vesc, lidar
 
 
-def run_car(vesc: FakeVesc, lidar: FakeHokuyo, tmp_path: Path, *sets: str) -> set[str]:
+def run_car(vesc: FakeVesc, lidar: FakeHokuyo, tmp_path: Path, *sets: str,
+            hidden: tuple[str, ...] = ()) -> tuple[set[str], str]:
     """``racecar-hw run --config config/car.yaml`` on the fakes, with the live interfaces on free
-    ports, until it drives the fake VESC; then SIGTERM. The modules its process had imported."""
+    ports, until it drives the fake VESC; then SIGTERM. The modules its process had imported, and
+    its log."""
     host, port = lidar.tcp_address
     sets = (f"vesc.port={tmp_path / 'vesc'}", f"lidar.tcp={host}:{port}",
             "foxglove.port=0", "web.port=0", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]',
             NO_DDS, *sets)  # DDS stays off: its discovery would reach every test's participants
     modules = tmp_path / "modules.json"
     argv = ["run", "--config", str(ROOT / "config" / "car.yaml"), *[x for s in sets for x in ("--set", s)]]
-    proc = subprocess.Popen([sys.executable, "-c", WRAPPER, str(modules), *argv],
+    proc = subprocess.Popen([sys.executable, "-c", WRAPPER, str(modules), json.dumps(hidden), *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     with reaped(proc):
         wait_for(lambda: proc.poll() is not None or (lidar.clients > 0 and len(vesc.commands) > 20),
@@ -66,7 +73,7 @@ def run_car(vesc: FakeVesc, lidar: FakeHokuyo, tmp_path: Path, *sets: str) -> se
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err[-2000:]
-    return set(json.loads(modules.read_text()))
+    return set(json.loads(modules.read_text())), err
 
 
 def top_level(modules: set[str]) -> set[str]:
@@ -75,33 +82,54 @@ def top_level(modules: set[str]) -> set[str]:
 
 def test_the_car_daemon_runs_without_the_sim_and_mavlink_libraries(fakes, tmp_path):
     vesc, lidar = fakes
-    modules = run_car(vesc, lidar, tmp_path)
-    # the process was the daemon with its live interfaces ...
-    assert {"racecar_hw.daemon", "racecar_hw.net.foxglove_server", "racecar_hw.net.web",
-            "racecar_hw.net.zenoh_bridge", "zenoh", "foxglove", "aiohttp"} <= modules
-    # ... and neither the simulator nor the MAVLink link, nor their libraries, were imported
+    modules, _ = run_car(vesc, lidar, tmp_path)
+    # the process was the daemon with the car's interfaces (the status page, Zenoh) ...
+    assert {"racecar_hw.daemon", "racecar_hw.net.web", "racecar_hw.net.zenoh_bridge", "zenoh",
+            "aiohttp"} <= modules
+    # ... and neither the simulator, the live view nor the MAVLink link, nor their libraries
     assert not EXTRA_MODULES & top_level(modules), sorted(EXTRA_MODULES & top_level(modules))
-    assert not {m for m in modules if m.startswith(("racecar_hw.sim", "racecar_hw.teleop.mavlink_"))
-                and m != "racecar_hw.teleop.mavlink_params"}
+    assert not {m for m in modules if m.startswith(("racecar_hw.sim", "racecar_hw.teleop.mavlink_gcs",
+                                                    "racecar_hw.net.foxglove_server"))}
 
 
-def test_mavlink_switched_on_imports_pymavlink_in_the_daemon(fakes, tmp_path):
-    """The same measurement sees the import when the feature is on (the check above can fail)."""
+def test_mavlink_and_foxglove_switched_on_are_imported_in_the_daemon(fakes, tmp_path):
+    """The same measurement sees the imports when the features are on (the check above can fail)."""
     vesc, lidar = fakes
-    modules = run_car(vesc, lidar, tmp_path, "mavlink.enabled=true", "mavlink.bind_port=0",
-                      "mavlink.gcs_address=127.0.0.1:0")
-    assert {"pymavlink", "racecar_hw.teleop.mavlink_gcs"} <= modules
+    modules, _ = run_car(vesc, lidar, tmp_path, "mavlink.enabled=true", "mavlink.bind_port=0",
+                         "mavlink.gcs_address=127.0.0.1:0", "foxglove.enabled=true")
+    assert {"pymavlink", "racecar_hw.teleop.mavlink_gcs", "foxglove", "cryptography",
+            "racecar_hw.net.foxglove_server"} <= modules
     assert not {"matplotlib", "PIL"} & top_level(modules)
+
+
+def test_the_live_view_without_its_extra_is_one_warning_and_the_car_drives(fakes, tmp_path):
+    """On by default (the car config turns it off): a config that predates the extra still drives."""
+    vesc, lidar = fakes
+    modules, err = run_car(vesc, lidar, tmp_path, "foxglove.enabled=true", hidden=("foxglove",))
+    lines = [line for line in err.splitlines() if "foxglove" in line]
+    assert lines == [line for line in lines if "the Foxglove live view needs foxglove-sdk, which the "
+                     "foxglove extra installs: pip install 'racecar-hw[foxglove]'; or set "
+                     "foxglove.enabled: false" in line] and len(lines) == 1, err[-2000:]
+    assert "Traceback" not in err
+    assert "racecar_hw.net.foxglove_server" not in modules
 
 
 def test_every_extra_is_declared_in_pyproject():
     text = (ROOT / "pyproject.toml").read_text()
-    import tomllib
-
     declared = tomllib.loads(text)["project"]["optional-dependencies"]
+
+    def dists(name: str) -> set[str]:  # with the extras it names (racecar-hw[foxglove])
+        out: set[str] = set()
+        for requirement in declared[name]:
+            if requirement.startswith("racecar-hw["):
+                for other in requirement[len("racecar-hw["):-1].split(","):
+                    out |= dists(other)
+            else:
+                out.add(re.split(r"[<>=;\[ ]", requirement)[0].lower())
+        return out
+
     for name, extra in EXTRAS.items():
-        assert sorted(d.split(">")[0].lower() for d in declared[name]) == sorted(
-            dist.lower() for dist, _ in extra.modules), name
+        assert dists(name) == {dist.lower() for dist, _ in extra.modules}, name
     dependencies = " ".join(tomllib.loads(text)["project"]["dependencies"]).lower()
     assert not any(dist.lower() in dependencies for e in EXTRAS.values() for dist, _ in e.modules)
     assert "racecar-hw[sim,mavlink]" in declared["test"]

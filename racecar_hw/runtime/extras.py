@@ -1,10 +1,14 @@
 """The optional parts of racecar-hw (pip extras) and the one-line error when one is missing.
 
 A car installs ``racecar-hw`` alone: what its shipped configuration (``config/car.yaml``) runs. The
-simulator's plots and maps (``[sim]``: matplotlib, Pillow) and the MAVLink ground-station link
+Foxglove live view (``[foxglove]``: foxglove-sdk, cryptography), the simulator's plots and maps
+(``[sim]``: matplotlib, Pillow, and the live view) and the MAVLink ground-station link
 (``[mavlink]``: pymavlink) are extras, imported only where their feature is switched on
-(docs/install.md, "Extras"). Switching one on without its extra is refused before anything runs,
-with one line naming the pip command, as an unknown key is: no traceback.
+(docs/install.md, "Extras"). A command or a feature that is off by default (``racecar-hw sim``,
+``mavlink.enabled``) is refused without its extra before anything runs, with one line naming the
+pip command, as an unknown key is: no traceback. The live view, on by default, is left off with
+one warning line instead, as the DDS interface is without cyclonedds: a car whose configuration
+predates the extra still drives.
 
 The check looks the modules up without importing them (:func:`importlib.util.find_spec`), so it
 costs nothing when the extra is there.
@@ -38,7 +42,10 @@ class Extra:
 
 #: Every extra a feature of the program needs (``[test]`` is for the test suite only).
 EXTRAS: dict[str, Extra] = {
-    "sim": Extra("sim", (("matplotlib", "matplotlib"), ("Pillow", "PIL"))),
+    "foxglove": Extra("foxglove", (("foxglove-sdk", "foxglove"), ("cryptography", "cryptography"))),
+    # the simulator shows its run in the Foxglove live view too: [sim] includes [foxglove]
+    "sim": Extra("sim", (("matplotlib", "matplotlib"), ("Pillow", "PIL"), ("foxglove-sdk", "foxglove"),
+                         ("cryptography", "cryptography"))),
     "mavlink": Extra("mavlink", (("pymavlink", "pymavlink"),)),
 }
 
@@ -47,17 +54,27 @@ class MissingExtra(ConfigError):
     """A feature is switched on whose extra is not installed; the message names the pip command."""
 
 
-def require_extra(name: str, feature: str, key: str = "") -> None:
-    """Raise :class:`MissingExtra` unless extra ``name`` is installed.
+def missing_extra(name: str, feature: str) -> str | None:
+    """None when extra ``name`` is installed; else what is missing, and the pip command, in words.
 
-    ``feature`` says what needs it ("the MAVLink ground-station link"); ``key`` is the config key
-    that switched it on (``mavlink.enabled``), empty for a command.
+    ``feature`` says what needs it ("the MAVLink ground-station link").
     """
     extra = EXTRAS[name]
     missing = extra.missing()
-    if missing:
-        raise MissingExtra(key, f"{feature} needs {' and '.join(missing)}, which the {name} extra "
-                                f"installs: {extra.pip}")
+    if not missing:
+        return None
+    return f"{feature} needs {' and '.join(missing)}, which the {name} extra installs: {extra.pip}"
 
 
-__all__ = ["EXTRAS", "Extra", "MissingExtra", "require_extra"]
+def require_extra(name: str, feature: str, key: str = "") -> None:
+    """Raise :class:`MissingExtra` unless extra ``name`` is installed.
+
+    ``feature`` says what needs it; ``key`` is the config key that switched it on
+    (``mavlink.enabled``), empty for a command.
+    """
+    message = missing_extra(name, feature)
+    if message is not None:
+        raise MissingExtra(key, message)
+
+
+__all__ = ["EXTRAS", "Extra", "MissingExtra", "missing_extra", "require_extra"]
