@@ -63,7 +63,8 @@ def missing_extra(name: str, feature: str) -> str | None:
     missing = extra.missing()
     if not missing:
         return None
-    return f"{feature} needs {' and '.join(missing)}, which the {name} extra installs: {extra.pip}"
+    names = missing[0] if len(missing) == 1 else f"{', '.join(missing[:-1])} and {missing[-1]}"
+    return f"{feature} needs {names}, which the {name} extra installs: {extra.pip}"
 
 
 def require_extra(name: str, feature: str, key: str = "") -> None:
