@@ -73,7 +73,7 @@ from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.security_status import SecurityStatus
-from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
+from racecar_hw.runtime.status import StatusSnapshot
 from racecar_hw.runtime.ticker import PeriodicTimer
 from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
 from racecar_hw.sources.figure8 import Figure8Driver
@@ -87,6 +87,7 @@ from vesc.driver import TOPIC_ODOM, TOPIC_TF, VescDriver
 
 if TYPE_CHECKING:  # imported where switched on: they need the foxglove and mavlink extras
     from racecar_hw.net.foxglove_server import FoxgloveServer
+    from racecar_hw.runtime.panel import StatusPanel
     from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,6 @@ from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.interrupts import INTERRUPTED
 from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
-from racecar_hw.runtime.status import StatusPanel
 
 if TYPE_CHECKING:  # the simulator is imported when the command runs: it needs the sim extra
     from racecar_hw.sim.loopback import Loopback, SimResult
@@ -103,6 +102,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             print(f"{name:18} {load_scenario(name).description}")
         return 0
     require_extra("sim", "the simulator (its maps and plot)")
+    from racecar_hw.runtime.panel import StatusPanel  # noqa: PLC0415 - rich, with the command
     from racecar_hw.sim.loopback import Loopback, write_report  # noqa: PLC0415 - needs the extra
 
     scenario = build_scenario(args)

@@ -35,7 +35,7 @@ from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_c
 from racecar_hw.daemon import Daemon, command_limits, reverse_speed_cap
 from racecar_hw.net.ports import Listener
 from racecar_hw.runtime.devicethread import DeviceThread
-from racecar_hw.runtime.status import StatusPanel
+from racecar_hw.runtime.panel import StatusPanel
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.sim.car import CLEARANCE_RANGE_M, CarParams, footprint
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, map_to_odom, publish_truth
