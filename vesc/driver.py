@@ -66,6 +66,7 @@ from racecar_hw.base.messages import (
     VescState,
     VescStateStamped,
 )
+from racecar_hw.base.topics import TOPIC_CORE, TOPIC_IMU, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF
 from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
@@ -104,11 +105,6 @@ PLAUSIBLE_V_IN = (0.0, 100.0)
 #: Largest |duty cycle| a reply can carry (the firmware clamps to 0.95).
 PLAUSIBLE_DUTY = 1.0
 
-TOPIC_CORE = "/vesc/sensors/core"
-TOPIC_SERVO = "/vesc/sensors/servo_position_command"
-TOPIC_ODOM = "/odom"
-TOPIC_TF = "/tf"
-TOPIC_IMU = "/imu"
 #: IMU replies older than this many poll periods are not used for odometry's yaw rate.
 IMU_STALE_POLLS = 3
 
