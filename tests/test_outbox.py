@@ -1,4 +1,4 @@
-"""The sender thread's queue shared by the Foxglove server and the Zenoh bridge."""
+"""The one bounded work queue with its thread: shared by the network publishers and the bag recorder."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from racecar_hw.net.outbox import WAKE_AT, Outbox
+from racecar_hw.runtime.outbox import WAKE_AT, Outbox
 
 DEADLINE_S = 10.0
 
