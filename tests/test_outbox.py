@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -80,3 +81,66 @@ def test_control_idle_wakes_only_when_a_run_is_due_and_jobs_wait() -> None:
 def test_a_queue_without_room_is_refused() -> None:
     with pytest.raises(ValueError, match="size"):
         Outbox("test", size=0)
+
+
+def test_a_full_queue_of_a_writer_keeps_what_it_has_and_drops_the_new_job() -> None:
+    outbox = Outbox("test", size=3, drop="newest")
+    seen: list[int] = []
+    for n in range(5):
+        outbox.put(seen.append, n)
+    assert (len(outbox), outbox.dropped) == (3, 2)
+    outbox.start()
+    outbox.stop(DEADLINE_S)
+    assert seen == [0, 1, 2]
+    with pytest.raises(ValueError, match="drop"):
+        Outbox("test", drop="random")
+
+
+def test_setup_runs_in_the_thread_first_and_its_failure_is_raised_by_start() -> None:
+    threads: list[str] = []
+    outbox = Outbox("writer", size=10)
+    outbox.put(lambda: threads.append(threading.current_thread().name))
+    outbox.start(setup=lambda: threads.append(threading.current_thread().name))
+    outbox.stop(DEADLINE_S)
+    assert threads == ["writer", "writer"]
+
+    def broken() -> None:
+        raise OSError("disk full")
+
+    failing = Outbox("writer", size=10)
+    with pytest.raises(OSError, match="disk full"):
+        failing.start(setup=broken)
+    assert not failing.running
+
+
+def test_on_batch_runs_after_each_batch_and_on_stop_after_the_last_job() -> None:
+    events: list[str] = []
+    batched = threading.Event()
+
+    def on_batch() -> float:
+        events.append("batch")
+        batched.set()
+        return 0.01  # wake again soon: a periodic flush
+
+    outbox = Outbox("test", size=10, batch_s=30.0, on_batch=on_batch,
+                    on_stop=lambda: events.append("stop"))
+    outbox.start()
+    try:
+        assert batched.wait(DEADLINE_S)
+        outbox.put(events.append, "job")
+        # on_batch asked for 0.01 s, not 2 * batch_s (a minute): the job runs without a wake-up
+        assert wait_until(lambda: "job" in events)
+    finally:
+        outbox.put(events.append, "last")
+        outbox.stop(timeout_s=None)
+    assert events[-2:] == ["last", "stop"]
+    assert events.index("job") > 0 and events[events.index("job") + 1] == "batch"
+
+
+def wait_until(condition, timeout_s: float = DEADLINE_S) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.005)
+    return False

@@ -17,9 +17,9 @@ latency matters (the scan itself, queued after its motor command, for remote nav
 
 Hooks for a writer that owns a resource in its thread (the recorder's bag: sqlite3 connections
 belong to the thread that made them): ``start(setup)`` runs ``setup`` in the thread first and
-re-raises what it raises; ``on_batch`` runs after every batch and says in how many seconds it
-wants to run again (a periodic flush); ``on_stop`` runs last, after :meth:`Outbox.stop` has run
-everything queued.
+re-raises what it raises; ``on_batch`` runs when the thread starts and after every batch, and
+says in how many seconds it wants to run again (a periodic flush: the thread wakes for it);
+``on_stop`` runs last, after :meth:`Outbox.stop` has run everything queued.
 """
 
 from __future__ import annotations
@@ -190,8 +190,12 @@ class Outbox:
         finally:
             ready.set()
         queue = self._queue
-        wait_s = 2 * self.batch_s
         while True:
+            wait_s = 2 * self.batch_s
+            if self._on_batch is not None:  # at the start, then after every batch
+                next_s = self._on_batch()
+                if next_s is not None:
+                    wait_s = min(wait_s, max(0.0, next_s))
             self._drain_due = time.monotonic() + self.batch_s
             self._wake.wait(wait_s)
             self._wake.clear()
@@ -208,11 +212,6 @@ class Outbox:
                     self.failed += 1
                     if self.failed == 1 or self.failed % 1000 == 0:
                         log.exception("%s: a job failed (%d so far)", self.name, self.failed)
-            wait_s = 2 * self.batch_s
-            if self._on_batch is not None:
-                next_s = self._on_batch()
-                if next_s is not None:
-                    wait_s = min(wait_s, max(0.0, next_s))
             if stopping:
                 if self._on_stop is not None:
                     self._on_stop()
