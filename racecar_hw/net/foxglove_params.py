@@ -13,6 +13,7 @@ from urllib.parse import urlsplit
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import FOXGLOVE_TELEOP_TOPIC
 from racecar_hw.net.gate import ConnectionLimits
 
 #: Foxglove's web app (and its older and embedded addresses): pages that may connect without a token.
@@ -33,7 +34,7 @@ class FoxgloveParams:
                                        "pages served by this machine and desktop apps); 'null' admits "
                                        "every opaque origin, including any site's sandboxed frames")
     teleop: bool = param(True, "let Foxglove's Teleop panel drive through the mux input 'foxglove'")
-    teleop_topic: str = param("/foxglove/cmd_vel", "geometry_msgs/Twist topic the Teleop panel publishes")
+    teleop_topic: str = param(FOXGLOVE_TELEOP_TOPIC, "geometry_msgs/Twist topic the Teleop panel publishes")
     teleop_priority: int = param(85, "priority of the mux input 'foxglove' (below teleop's 90)",
                                  min=0, max=255)
     teleop_timeout_s: float = param(0.3, "the car stops this long after the last Twist (a closed tab, "

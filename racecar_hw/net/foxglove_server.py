@@ -19,7 +19,7 @@ What it serves:
 Clients reach it through :mod:`racecar_hw.net.relay` (the token off loopback, the browser's Origin on an
 open loopback port); the SDK's own server listens behind it, on loopback with TLS only the relay trusts.
 
-Threads: bus callbacks run in the event loop and only queue jobs (:class:`~racecar_hw.net.outbox.Outbox`,
+Threads: bus callbacks run in the event loop and only queue jobs (:class:`~racecar_hw.runtime.outbox.Outbox`,
 drop oldest) while a client subscribes to the channel; the outbox thread serializes and hands the bytes
 to the SDK, whose own threads send them. The SDK calls the listener and the service handlers from its
 threads; they hand work to the event loop (``call_soon_threadsafe``), and a service waits for its answer.
@@ -49,12 +49,12 @@ from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Mess
 from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
-from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.outbox import Outbox
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)

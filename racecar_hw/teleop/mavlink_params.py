@@ -13,11 +13,11 @@ from dataclasses import dataclass
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import TELEOP_TOPIC
 
 #: ArduPilot Rover's custom mode numbers.
 MODES: dict[str, int] = {"MANUAL": 0, "HOLD": 4, "GUIDED": 15}
 MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
-TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 
 
 def parse_address(text: str, key: str) -> tuple[str, int]:
