@@ -13,6 +13,7 @@ Run: ``python benchmarks/bench_serde.py``. ``run()`` returns the rows for benchm
 
 from __future__ import annotations
 
+import functools
 import statistics
 import tempfile
 import timeit
@@ -83,6 +84,30 @@ def serializer_rows() -> list[dict]:
     return rows
 
 
+def append_ours(msg: Message, raw: bytes, n: int) -> None:
+    """``n`` appends of ``raw`` to a new MCAP file with :class:`McapStorage`, closed."""
+    types = ros2_types()
+    with tempfile.TemporaryDirectory() as tmp:
+        storage = McapStorage(Path(tmp) / "b.mcap")
+        cid = storage.add_connection("/x", msg.ROS_TYPE, types.msgdef(msg.ROS_TYPE),
+                                     types.digest(msg.ROS_TYPE), "")
+        for i in range(n):
+            storage.write(cid, i, raw)
+        storage.close("")
+
+
+def append_rosbags(msg: Message, raw: bytes, n: int) -> None:
+    """The same with rosbags' rosbag2 writer (its public API)."""
+    types = ros2_types()
+    with tempfile.TemporaryDirectory() as tmp:
+        writer = Writer2(Path(tmp) / "b", version=8, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        conn = writer.add_connection("/x", msg.ROS_TYPE, typestore=types.store)
+        for i in range(n):
+            writer.write(conn, i, raw)
+        writer.close()
+
+
 def mcap_rows(count: int = 20000) -> list[dict]:
     types = ros2_types()
     rows = []
@@ -90,27 +115,9 @@ def mcap_rows(count: int = 20000) -> list[dict]:
         raw = types.serialize(msg)
         n = count if len(raw) < 1000 else count // 10
         name = type(msg).__name__
-
-        def ours() -> None:
-            with tempfile.TemporaryDirectory() as tmp:
-                storage = McapStorage(Path(tmp) / "b.mcap")
-                cid = storage.add_connection("/x", msg.ROS_TYPE, types.msgdef(msg.ROS_TYPE),
-                                             types.digest(msg.ROS_TYPE), "")
-                for i in range(n):
-                    storage.write(cid, i, raw)
-                storage.close("")
-
-        def theirs() -> None:
-            with tempfile.TemporaryDirectory() as tmp:
-                writer = Writer2(Path(tmp) / "b", version=8, storage_plugin=StoragePlugin.MCAP)
-                writer.open()
-                conn = writer.add_connection("/x", msg.ROS_TYPE, typestore=types.store)
-                for i in range(n):
-                    writer.write(conn, i, raw)
-                writer.close()
-
-        for what, fn in (("mcap library (McapStorage, CRCs)", ours), ("rosbags rosbag2.Writer.write", theirs)):
-            times = [t / n * 1e6 for t in timeit.repeat(fn, number=1, repeat=5)]
+        for what, fn in (("mcap library (McapStorage, CRCs)", append_ours),
+                         ("rosbags rosbag2.Writer.write", append_rosbags)):
+            times = [t / n * 1e6 for t in timeit.repeat(functools.partial(fn, msg, raw, n), number=1, repeat=5)]
             rows.append({"name": f"MCAP append {name} ({len(raw)} B), {what}, best / median",
                          "value": f"{min(times):.2f} / {statistics.median(times):.2f}", "unit": "µs/msg",
                          "target": None})
