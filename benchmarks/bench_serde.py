@@ -117,7 +117,8 @@ def mcap_rows(count: int = 20000) -> list[dict]:
         name = type(msg).__name__
         for what, fn in (("mcap library (McapStorage, CRCs)", append_ours),
                          ("rosbags rosbag2.Writer.write", append_rosbags)):
-            times = [t / n * 1e6 for t in timeit.repeat(functools.partial(fn, msg, raw, n), number=1, repeat=5)]
+            call = functools.partial(fn, msg, raw, n)
+            times = [t / n * 1e6 for t in timeit.repeat(call, number=1, repeat=5)]
             rows.append({"name": f"MCAP append {name} ({len(raw)} B), {what}, best / median",
                          "value": f"{min(times):.2f} / {statistics.median(times):.2f}", "unit": "µs/msg",
                          "target": None})
