@@ -388,6 +388,26 @@ def test_mcap_written_with_the_mcap_library_holds_what_rosbags_writes(tmp_path: 
     assert scan_mcap(mcap).complete
 
 
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3", "ros1"])
+def test_a_message_the_serializer_refuses_is_dropped_and_counted_and_recording_goes_on(
+        tmp_path: Path, fmt: str, caplog: pytest.LogCaptureFixture) -> None:
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, fmt, name="bad"))
+    rec.start()
+    bad = cmd(1)
+    bad.header.stamp.sec = 1.5  # type: ignore[assignment]  # a float in an integer field
+    bus.publish(CMD, cmd(0))
+    bus.publish(CMD, bad)
+    bus.publish(CMD, bad)
+    bus.publish(CMD, cmd(2))
+    stats = rec.stop()
+    assert (stats.written, stats.dropped, stats.error) == (2, 2, None)
+    assert [c.drive.speed for c in load_commands(stats.files[0], CMD)] == [0.0, 1.0]
+    assert inspect_bag(stats.files[0]).complete
+    said = [r.getMessage() for r in caplog.records if "cannot be serialized" in r.getMessage()]
+    assert len(said) == 1 and "AckermannDriveStamped" in said[0] and CMD in said[0]
+
+
 def test_writer_drains_the_queue_on_its_own(tmp_path: Path) -> None:
     bus = Bus()
     rec = Recorder(bus, record_params(tmp_path, name="drain", flush_interval_s=3600.0))

@@ -273,6 +273,11 @@ class Ros2BagMetadata:
         tmp.replace(meta)
 
 
+class UnserializableMessage(BagError):
+    """A message the serializer refuses (a value that does not fit its field): that message is
+    dropped and counted, the recording goes on."""
+
+
 class BagFile:
     """One file being written (one split): connections by topic, flush to disk, close.
 
@@ -309,11 +314,16 @@ class BagFile:
 
     def write(self, topic: str, msg: Message, t_ns: int) -> int:
         """Serialize and append ``msg``; returns the payload size in bytes."""
+        seq = self._seq.get(topic, 0) + 1
+        try:
+            data = self.types.serialize(msg, seq)
+        except Exception as err:
+            raise UnserializableMessage(f"{topic}: a {type(msg).__name__} that cannot be serialized: "
+                                        f"{type(err).__name__}: {err}") from err
         conn = self._conns.get(topic)
         if conn is None:
             conn = self._add_connection(topic, type(msg))
-        seq = self._seq[topic] = self._seq[topic] + 1
-        data = self.types.serialize(msg, seq)
+        self._seq[topic] = seq
         if self._storage is not None:
             self._storage.write(conn, t_ns, data)
         else:
@@ -417,6 +427,7 @@ class Recorder:
         self._written = 0
         self._dropped = 0
         self._dropped_logged = 0
+        self._unserializable: set[str] = set()  # topics that had a message the serializer refused
         self._bytes = 0
         self._flushed = 0
         self._files: list[Path] = []
@@ -559,7 +570,15 @@ class Recorder:
             for static_topic, static_msg in self._static.items():
                 if static_topic != topic:
                     self._bytes += self._file.write(static_topic, static_msg, t_ns)
-        self._bytes += self._file.write(topic, msg, t_ns)
+        try:
+            self._bytes += self._file.write(topic, msg, t_ns)
+        except UnserializableMessage as err:  # the message's fault, not the bag's: drop it, go on
+            self._dropped += 1
+            if topic not in self._unserializable:
+                self._unserializable.add(topic)
+                log.warning("bag: dropped %s (and any further such message on this topic, counted as "
+                            "dropped)", err)
+            return
         self._written += 1
 
     def _should_split(self, t_ns: int) -> bool:
