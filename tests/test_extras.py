@@ -25,7 +25,7 @@ from vesc.fake import FakeVesc
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The top-level modules of the extras, and what pymavlink may pull in.
-EXTRA_MODULES = {"matplotlib", "PIL", "pymavlink", "lxml", "foxglove", "cryptography"}
+EXTRA_MODULES = {"matplotlib", "PIL", "pymavlink", "lxml", "foxglove", "cryptography", "mcap", "zstandard"}
 
 #: Runs the command line in this very process, as the console script does, and at its exit (after
 #: SIGTERM's orderly shutdown) writes every module the process imported to the file in argv[1].
@@ -176,3 +176,23 @@ def test_calibrate_sim_without_its_extra_is_one_line_naming_pip(monkeypatch, cap
     assert capsys.readouterr().err == (
         "racecar-hw calibrate: calibrate --sim (the simulator) needs matplotlib, which the sim extra "
         "installs: pip install 'racecar-hw[sim]'\n")
+
+
+def test_mcap_recording_without_its_extra_is_one_line_naming_pip(monkeypatch, capsys, tmp_path):
+    """The recorder (off in the car config) writes MCAP by default; sqlite3 and ROS 1 need no extra."""
+    from racecar_hw.bags.writers import McapStorage
+    from racecar_hw.runtime.extras import MissingExtra
+
+    _hidden(monkeypatch, "mcap")
+    assert main(["check-config", "--set", "recorder.enabled=true"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.rstrip().endswith(
+        "recorder.format: recording MCAP bags (or format: sqlite3 or ros1) needs mcap, which the mcap "
+        "extra installs: pip install 'racecar-hw[mcap]'"), err
+    assert main(["check-config", "--set", "recorder.enabled=true", "--set", "recorder.format=sqlite3"]) == 0
+    assert main(["check-config"]) == 0  # the car config records nothing
+    capsys.readouterr()
+    # recovering an MCAP bag writes one too: the same line, not a traceback
+    with pytest.raises(MissingExtra, match=r"pip install 'racecar-hw\[mcap\]'"):
+        McapStorage(tmp_path / "x.mcap")
+    assert not (tmp_path / "x.mcap").exists()

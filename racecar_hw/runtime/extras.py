@@ -43,9 +43,11 @@ class Extra:
 #: Every extra a feature of the program needs (``[test]`` is for the test suite only).
 EXTRAS: dict[str, Extra] = {
     "foxglove": Extra("foxglove", (("foxglove-sdk", "foxglove"), ("cryptography", "cryptography"))),
-    # the simulator shows its run in the Foxglove live view too: [sim] includes [foxglove]
+    # MCAP bags (the recorder's default format, off in the car's config), with zstandard and lz4
+    "mcap": Extra("mcap", (("mcap", "mcap"),)),
+    # the simulator shows its run in the Foxglove live view and records MCAP (--record)
     "sim": Extra("sim", (("matplotlib", "matplotlib"), ("Pillow", "PIL"), ("foxglove-sdk", "foxglove"),
-                         ("cryptography", "cryptography"))),
+                         ("cryptography", "cryptography"), ("mcap", "mcap"))),
     "mavlink": Extra("mavlink", (("pymavlink", "pymavlink"),)),
 }
 
