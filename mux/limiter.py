@@ -57,6 +57,12 @@ class RateLimiter:
         self.speed = _finite_or_zero(speed)
         self.steering_angle = _finite_or_zero(steering_angle)
 
+    def clamp(self, speed: float) -> None:
+        """Lower the held speed to at most ``|speed|`` (m/s), keeping its direction: a safety cut
+        between steps. The next steps start from there, so they cannot raise the speed again faster
+        than ``max_accel_mps2``. A held speed already at or below ``|speed|`` is unchanged."""
+        self.speed = math.copysign(min(abs(self.speed), abs(speed)), self.speed)
+
     def step(self, speed: float, steering_angle: float, periods: int = 1) -> tuple[float, float]:
         """Move toward the target over ``periods`` fixed periods; returns (speed, steering)."""
         speed = _finite_or_zero(speed)

@@ -22,18 +22,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import gc
 import logging
 import math
 import sys
-from collections import deque
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field
 from typing import Any
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
-from mux.arbiter import MuxState
 from mux.estop import Origin
 from mux.node import CommandMux
 from racecar_hw.bags.follow import BagFollower
@@ -44,17 +42,12 @@ from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import (
     AckermannDrive,
-    AckermannDriveStamped,
-    DiagnosticArray,
     DiagnosticStatus,
-    KeyValue,
-    LaserScan,
-    Message,
-    stamp_now,
 )
 from racecar_hw.base.params import describe, to_dict
 from racecar_hw.base.transforms import TfTree, yaw_of
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, listeners, network_topics
+from racecar_hw.control.path import ControlPath
 from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarShape, LiveState
 from racecar_hw.net.dds_bridge import DdsBridge
@@ -74,7 +67,6 @@ from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.security_status import SecurityStatus
 from racecar_hw.runtime.status import StatusPanel, StatusSnapshot
-from racecar_hw.runtime.ticker import PeriodicTimer
 from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
 from racecar_hw.sources.figure8 import Figure8Driver
 from racecar_hw.sources.scan_summary import ScanSummaryPublisher
@@ -97,69 +89,6 @@ LINK_POLL_S = 0.5
 SWITCH_INTERVAL_S = 0.0001
 
 
-@dataclass(frozen=True)
-class EstopRequest:
-    """An e-stop asked for through a live interface (Foxglove service, status page)."""
-
-    at_ns: int                      #: when the request reached the daemon (monotonic ns)
-    who: str                        #: who asked, for the log ("web page (127.0.0.1)")
-    #: frames the VESC driver had written before it (its ``stats.frames_tx``): the brake is
-    #: the first motor command after them; None without a VESC
-    vesc_frames_before: int | None
-
-
-@dataclass
-class ControlStats:
-    """Counters of the control loop."""
-
-    ticks: int = 0
-    missed_ticks: int = 0
-    scan_cuts: int = 0
-    last_tick_ns: int = 0
-    scan_rate_hz: float = 0.0
-    #: recent scan-to-command latencies (ns): from the read that completed a scan returning to the
-    #: scan path's VESC command written
-    scan_to_command_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
-    #: the loop thread's CPU time (ns) in each of those: the rest of a latency is time the thread
-    #: was off the CPU (preempted, or its virtual CPU not running)
-    scan_to_command_cpu_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
-    #: arrival times (monotonic ns) of the last scans, for scan_rate_hz
-    scan_times: deque[int] = field(default_factory=lambda: deque(maxlen=20))
-
-    def latency_ms(self) -> dict[str, float]:
-        """Percentiles of the recent scan-to-command latencies, milliseconds.
-
-        ``p50``, ``p99``, ``max`` and ``count`` of the latencies; ``cpu_p50`` and ``cpu_p99`` of the
-        CPU time in them, ``off_cpu_p99`` of the time off the CPU.
-        """
-        if not self.scan_to_command_ns:
-            return {}
-        wall = list(self.scan_to_command_ns)
-        cpu = list(self.scan_to_command_cpu_ns)
-        off = [w - c for w, c in zip(wall, cpu, strict=True)]
-        return {"p50": _percentile(wall, 50) / 1e6, "p99": _percentile(wall, 99) / 1e6,
-                "max": max(wall) / 1e6, "count": float(len(wall)),
-                "cpu_p50": _percentile(cpu, 50) / 1e6, "cpu_p99": _percentile(cpu, 99) / 1e6,
-                "off_cpu_p99": _percentile(off, 99) / 1e6}
-
-    def summary(self) -> str:
-        """One line for the log at exit; says so when no scan's command was timed (never ``nan``)."""
-        head = f"{self.ticks} ticks, {self.missed_ticks} missed, {self.scan_cuts} scan cuts"
-        lat = self.latency_ms()
-        if not lat:
-            return f"{head}; no scan-to-command latency measured (no scan led to a motor command)"
-        return (f"{head}; scan-to-command latency p50={lat['p50']:.3f} ms p99={lat['p99']:.3f} ms "
-                f"max={lat['max']:.3f} ms over {int(lat['count'])} scans; on the CPU "
-                f"p50={lat['cpu_p50']:.3f} ms p99={lat['cpu_p99']:.3f} ms; off it "
-                f"p99={lat['off_cpu_p99']:.3f} ms")
-
-
-def _percentile(values: list[int], q: int) -> int:
-    """The ``q``-th percentile of ``values`` (not empty): the nearest rank, no interpolation."""
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, (q * len(ordered)) // 100)]
-
-
 def reverse_speed_cap(config: Config) -> float | None:
     """The fastest the safety controller lets the car reverse (m/s); None when it does not cap
     (``off``, and ``cone``, which only stops the car through the mux)."""
@@ -179,7 +108,6 @@ class Daemon:
         self.config = config
         self.bus = bus if bus is not None else Bus()
         self.notifier = notifier if notifier is not None else Notifier.from_env()
-        self.stats = ControlStats()
         #: what the network surfaces refused (bad logins, forged frames, floods), for /diagnostics,
         #: the panel, the status page and rate-limited log lines
         self.refusals = Refusals()
@@ -191,7 +119,7 @@ class Daemon:
                                           if config.lidar.enabled else None)
         self.mux = CommandMux(self.bus, config.mux, refusals=self.refusals)
         self.safety = SafetyNode(self.bus, config.safety, self._laser_to_base(), defer_memory=True,
-                                 steering_limit_rad=config.vesc.steering_max_rad)
+                                 steering_limit_rad=config.vesc.steering_max_rad, scans_from_bus=False)
         self.arming = Arming.from_params(config.arming)
         pad = Origin("gamepad", "gamepad")
         self.gamepad = (GamepadTeleop(self.bus, config.gamepad, self.arming,
@@ -209,7 +137,12 @@ class Daemon:
                                    refusals=self.refusals)
                         if config.mavlink.enabled else None)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()
-        self.filters: tuple[Filter, ...] = (self.arming.filter, *hold, self.safety.filter)
+        #: arrival -> arbitration -> arming/hold -> safety -> limiter -> VESC write, then the bus
+        self.control = ControlPath(self.bus, self.mux, self.safety, filters=(self.arming.filter, *hold),
+                                   vesc=self.vesc, lidar=self.lidar, scan_topic=config.safety.scan_topic,
+                                   diagnostics_rate_hz=config.mux.diagnostics_rate_hz,
+                                   notifier=self.notifier, statuses=self._statuses)
+        self.stats = self.control.stats
         self.scan_summary = (ScanSummaryPublisher(self.bus, config.scan_summary)
                              if config.scan_summary.enabled else None)
         self.setpoint = SetpointRelay(self.bus, config.setpoint) if config.setpoint.enabled else None
@@ -236,19 +169,15 @@ class Daemon:
         #: where the live interfaces listened once started (``live_urls``), for reports
         self.started_live: dict[str, str] = {}
         self._extra: list[Coroutine[Any, Any, Any]] = []
-        self._watchdog_period_ns: int | None = None
-        #: control ticks between two of the mux's diagnostics (``mux.diagnostics_rate_hz``)
-        self._diagnostics_every = max(1, round(config.mux.rate_hz / config.mux.diagnostics_rate_hz))
-        self._last_watchdog_ns = 0
         self._switch_interval: float | None = None
         self._file_limit: FileLimit | None = None
         self._restore_exception_handler: Callable[[], None] | None = None
         self._build_live()
-        self.bus.subscribe(config.mux.output_topic, self._on_output)
-        # The bus calls a topic's subscribers in order: the safety node's (above) caches the scan,
-        # this one writes the motor command, and diagnostics subscribed in run() come after it.
-        self.bus.subscribe(config.safety.scan_topic, self._on_scan)
         self._build_network(config)
+        if self.zenoh is not None:  # remote navigation code waits for the scan: queued at once
+            self.control.early.append(functools.partial(self.zenoh.send_early, config.safety.scan_topic))
+        self.control.idle.extend(s.control_idle for s in (self.zenoh, self.dds, self.recorder)
+                                 if s is not None)
 
     # --- wiring ---------------------------------------------------------------------------------
 
@@ -282,19 +211,20 @@ class Daemon:
                                            {name: doc for name, _, doc in describe(Config)})
         if not z.enabled and not d.enabled:
             return
-        self._remote_inputs = {i.topic: i.name for i in config.mux.inputs}
+        remote = self.control.remote_inputs
+        remote.update({i.topic: i.name for i in config.mux.inputs})
         twist_input = cmd_vel_input_topic(config)
         if z.cmd_vel and twist_input:
             self.cmd_vel = CmdVelConverter(self.bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
-            self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
+            remote[z.cmd_vel_topic] = remote[twist_input]
         urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
         if z.enabled:
             self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
-                               self._on_network_input, period_s=1.0 / config.mux.rate_hz,
+                               self.control.take_input, period_s=1.0 / config.mux.rate_hz,
                                estop_topic=config.mux.estop_topic,
                                release_topic=config.mux.estop_release_topic,
-                               on_estop=self.network_estop, refusals=self.refusals)
+                               on_estop=self.control.network_estop, refusals=self.refusals)
             self.zenoh = ZenohBridge(self.bus, z, self.live_topics, urgent=urgent,
                                      early={config.safety.scan_topic},
                                      inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
@@ -308,139 +238,14 @@ class Daemon:
             # its own coalescing (KEEP_LAST 1 readers, a thread per command row, one hand-over per
             # tick) and the daemon's network e-stop; not yet the shared inbox (docs/dds.md)
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
-                                 on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
-                                 on_estop=self.network_estop,
+                                 on_input=self.control.input_arrived, urgent=urgent, refusals=self.refusals,
+                                 on_estop=self.control.network_estop,
                                  estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
                                  period_s=1.0 / config.mux.rate_hz)
-
-    def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:
-        """A command from a network surface, handed over by the inbox: on the bus, then send it."""
-        self.bus.publish(topic, msg)
-        self._on_remote_input(topic)
-
-    def _on_remote_input(self, topic: str) -> None:
-        """A command from a remote client is on the bus: if its input wins, send it at once."""
-        name = self._remote_inputs.get(topic)
-        now = monotonic_ns()
-        if name is not None and self._control_alive(now):
-            self.mux.step_early(name, now, self.filters)
-
-    def network_estop(self, topic: str, msg: Message, who: str) -> None:
-        """An e-stop or release message from a network session (``who``: ``zenoh``, ``dds``), in the loop.
-
-        It reaches the mux as from the ``network`` surface (:mod:`mux.estop`: it may engage, and
-        release only what the e-stop topic alone engaged); an e-stop that latches writes the brake
-        now, as the live interfaces' e-stops do.
-        """
-        now = monotonic_ns()
-        frames = self.vesc.stats.frames_tx if self.vesc is not None else None
-        was_running = self.mux.state is MuxState.RUNNING
-        self.mux.publish_from(Origin("network", who), topic, msg)
-        if was_running and self.mux.state is not MuxState.RUNNING:
-            self.estop_requests.append(EstopRequest(now, f"network topic {topic} ({who})", frames))
-            if self._control_alive(now):
-                self.mux.step(now, self.filters)
 
     def add_task(self, coro: Coroutine[Any, Any, Any]) -> None:
         """Run ``coro`` with the daemon's components (sim drivers, teleop)."""
         self._extra.append(coro)
-
-    def _on_output(self, msg: AckermannDriveStamped) -> None:
-        if self.vesc is not None:
-            self.vesc.command(msg.drive)
-        if self.foxglove is not None:
-            self.foxglove.on_output()
-
-    def _on_scan(self, scan: LaserScan) -> None:
-        """Re-check the current command against the new scan and send it at once.
-
-        The motor command goes first; bookkeeping, the safety state and the obstacle memory's
-        update come after it.
-        """
-        now = monotonic_ns()
-        last = self.mux.last_output
-        if last is not None and self._control_alive(now):
-            cut = self.safety.limit(last.drive, self.mux.source or "idle", now)
-            if abs(cut.speed) < abs(last.drive.speed):
-                self.stats.scan_cuts += 1
-                limiter = self.mux.limiter
-                limiter.speed = math.copysign(min(abs(limiter.speed), abs(cut.speed)), limiter.speed)
-                self.mux.step(now, (lambda drive, source, t: cut,))
-            elif self.vesc is not None:
-                self.vesc.command(cut)
-            self.safety.publish_state_if_due(now)
-            if self.vesc is not None and self.lidar is not None:
-                self._time_scan_path(self.vesc, self.lidar)
-        if self.zenoh is not None:  # remote navigation code waits for the scan: queue it now
-            self.zenoh.send_early(self.config.safety.scan_topic, scan)
-        times = self.stats.scan_times
-        times.append(now)
-        if len(times) >= 2:
-            self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
-        if self.zenoh is not None:
-            self.zenoh.control_idle()
-        if self.dds is not None:
-            self.dds.control_idle()
-        self.safety.remember()  # before waking the recorder's writer, which would contend for the GIL
-        if self.recorder is not None:
-            self.recorder.control_idle()
-        if self.foxglove is not None:
-            self.foxglove.control_idle()
-        if self.web is not None:
-            self.web.control_idle()
-
-    def _time_scan_path(self, vesc: VescDriver, lidar: LidarDriver) -> None:
-        """Record the time from the scan's arrival to its motor command, if one was written."""
-        arrived = lidar.frame_arrival_ns
-        written = vesc.last_motor_write_ns
-        if arrived and written >= arrived:  # this scan's command reached the OS
-            self.stats.scan_to_command_ns.append(written - arrived)
-            cpu = vesc.last_motor_write_cpu_ns - lidar.frame_arrival_cpu_ns
-            self.stats.scan_to_command_cpu_ns.append(min(cpu, written - arrived))
-
-    def _control_alive(self, now_ns: int) -> bool:
-        """Whether the control loop ticked within the last two periods.
-
-        The scan path re-sends commands only while the control loop runs: a stalled loop must
-        let the VESC driver's command timeout brake the car, not be masked by scans.
-        """
-        period = NS_PER_S / self.config.mux.rate_hz
-        return self.stats.ticks > 0 and now_ns - self.stats.last_tick_ns < 2 * period
-
-    # --- control loop ---------------------------------------------------------------------------
-
-    async def _control_loop(self) -> None:
-        """Tick the mux at its rate from a loop timer (no task wake-up per tick) until cancelled."""
-        interval = self.notifier.watchdog_interval_s()
-        if interval:
-            self._watchdog_period_ns = int(interval * NS_PER_S / 2)
-        failed: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-
-        def on_error(err: BaseException) -> None:
-            if not failed.done():
-                failed.set_exception(err)
-
-        timer = PeriodicTimer(self.config.mux.rate_hz, self._control_tick, on_error=on_error)
-        timer.start()
-        try:
-            await failed
-        finally:
-            timer.cancel()
-
-    def _control_tick(self, due: int, periods: int) -> None:
-        """One control tick due at ``due`` (monotonic ns), ``periods`` periods after the last."""
-        stats = self.stats
-        stats.missed_ticks += periods - 1
-        self.mux.step(due, self.filters, periods)
-        stats.ticks += 1
-        stats.last_tick_ns = monotonic_ns()
-        if stats.ticks % self._diagnostics_every == 0:  # after the motor command: only bookkeeping
-            self.mux.publish_diagnostics(due)
-            self._publish_security(due)
-            self._publish_diagnostics()
-        if self._watchdog_period_ns and due - self._last_watchdog_ns >= self._watchdog_period_ns:
-            self.notifier.watchdog()
-            self._last_watchdog_ns = due
 
     def drives_itself(self) -> bool:
         """Whether a configured source drives the car without anyone at the controls (a followed
@@ -463,30 +268,12 @@ class Daemon:
                     f"answered (check the baud rate and that it is a VESC)")
         return "no motor command reached the VESC: the run ended before a command was sent"
 
-    def _publish_security(self, now_ns: int) -> None:
-        """The network surfaces' refusals as their own DiagnosticArray on the diagnostics topic."""
-        try:
-            array = DiagnosticArray(stamp_now("", wall_ns()), [self.security.status(now_ns)])
-            self.bus.publish(self.config.mux.diagnostics_topic, array)
-        except Exception as err:  # bookkeeping must never stop the control tick
-            log.error("network security diagnostics failed: %r", err)
-
-    def _publish_diagnostics(self) -> None:
-        """The daemon's own statuses beside the mux's: the control loop, and the network inbox."""
-        stats = self.stats
-        message = f"{stats.ticks} ticks, {stats.missed_ticks} missed"
-        statuses = [DiagnosticStatus(
-            DiagnosticStatus.OK, "racecar_hw: control loop", message,
-            "", [KeyValue("ticks", str(stats.ticks)), KeyValue("missed ticks", str(stats.missed_ticks)),
-                 KeyValue("scan cuts", str(stats.scan_cuts))])]
+    def _statuses(self, now_ns: int) -> list[DiagnosticStatus]:
+        """The daemon's statuses beside the mux's: network security, the control loop, the inbox."""
+        statuses = [self.security.status(now_ns), self.control.status()]
         if self.inbox is not None:
             statuses.append(self.inbox.diagnostics())
-        stamp = stamp_now("", wall_ns())
-        try:
-            for status in statuses:  # one array each, as the mux and the network security publish
-                self.bus.publish(self.config.mux.diagnostics_topic, DiagnosticArray(stamp, [status]))
-        except Exception as err:  # bookkeeping must never stop the control tick
-            log.error("daemon diagnostics failed: %r", err)
+        return statuses
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel shows."""
@@ -540,7 +327,7 @@ class Daemon:
             laser=((float(laser[0, 3]), float(laser[1, 3]), yaw_of(laser)) if laser is not None
                    else (safety.laser.x_m, safety.laser.y_m, safety.laser.yaw_rad)))
         #: e-stops asked for through the live interfaces, for reports (the simulator's timing log)
-        self.estop_requests: deque[EstopRequest] = deque(maxlen=1000)
+        self.estop_requests = self.control.estop_requests
         #: the topics the live interfaces (Foxglove, Zenoh) serve, named by ``zenoh.profile`` and
         #: ``zenoh.remap``; the simulator adds its own before run()
         self.live_topics: list[Topic] = network_topics(config)
@@ -596,12 +383,7 @@ class Daemon:
 
     def engage_estop(self, origin: Origin) -> str:
         """Latch the mux e-stop and write the brake command now (not at the next tick)."""
-        now = monotonic_ns()
-        self.estop_requests.append(EstopRequest(now, str(origin), self.vesc.stats.frames_tx
-                                                if self.vesc is not None else None))
-        self.mux.engage_estop(f"e-stop from {origin}", origin)
-        if self.stats.ticks:  # the control loop runs: one step out of turn sends the brake
-            self.mux.step(now, self.filters)
+        self.control.engage_estop(origin)
         return f"e-stop latched ({origin}); release it to drive again"
 
     def release_estop(self, origin: Origin) -> tuple[bool, str]:
@@ -637,6 +419,10 @@ class Daemon:
             self.foxglove = None
         if self.web is not None and not await self.web.start():
             self.web = None
+        if self.foxglove is not None:
+            foxglove = self.foxglove
+            self.bus.subscribe(self.config.mux.output_topic, lambda msg: foxglove.on_output())
+        self.control.idle.extend(s.control_idle for s in (self.foxglove, self.web) if s is not None)
 
     async def _stop_live(self) -> None:
         if self.foxglove is not None:
@@ -697,7 +483,7 @@ class Daemon:
         self.started_live = self.live_urls()
         for what, url in self.started_live.items():  # where to look, also when the log is quiet
             log.info("%s on %s", {"foxglove": "live view (Foxglove)", "web": "status page"}[what], url)
-        coros: list[Coroutine[Any, Any, Any]] = [self._control_loop(), self.safety.run()]
+        coros: list[Coroutine[Any, Any, Any]] = [self.control.run(), self.safety.run()]
         if self.links:
             coros.append(self._watch_links())
         if self.vesc is not None:
