@@ -360,8 +360,9 @@ def test_without_cyclonedds_the_daemon_runs_without_dds_and_says_so(monkeypatch,
     """cyclonedds is a dependency on x86_64 only: elsewhere, unless installed, DDS is off, with a
     warning that names the package and the key."""
     import racecar_hw.daemon as daemon_module
+    import racecar_hw.interfaces as interfaces_module
 
-    monkeypatch.setattr(daemon_module, "cyclone_available", lambda: False)
+    monkeypatch.setattr(interfaces_module, "cyclone_available", lambda: False)
     config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
                                 "gamepad.enabled=false", "status.enabled=false", "safety.mode=off",
                                 "zenoh.enabled=false", "foxglove.enabled=false", "web.enabled=false"])

@@ -455,7 +455,7 @@ class Loopback:
             created_ns = monotonic_ns()
             self.daemon = Daemon(self.config, status=self.status)
             world = self.world
-            self.daemon.extra_status = lambda: {
+            self.daemon.state.extra_status = lambda: {
                 "sim_time_s": world.sim_time, "sim_pose": tuple(world.pose),
                 "clearance_m": world.clearance()}
             # world time at which the mux started counting (its switch times are relative to it)
