@@ -241,7 +241,6 @@ class SafetyNode:
             "commanded_speed": f"{self._commanded:.3f}",
             "output_speed": f"{self._output:.3f}",
             "interventions": str(self.controller.interventions),
-            "rejected_commands": str(self.controller.rejected_commands),
             "fault": self.fault or "",
         }
         if self.cone is not None:
@@ -262,7 +261,8 @@ class SafetyNode:
 
 
 def _finite_or_zero(value: object) -> float:
-    """``value`` as a finite float, or 0.0 when it is not a finite number."""
+    """``value`` as a finite float, or 0.0 when it is not a finite number (the node never raises,
+    whatever a caller hands it; behind the mux every command is finite already)."""
     try:
         number = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):

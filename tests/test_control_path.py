@@ -7,6 +7,7 @@ Hokuyo driver against the fake Hokuyo over TCP.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 
 import numpy as np
@@ -157,3 +158,23 @@ def test_a_scan_cut_is_written_then_published_and_holds_the_limiter_down():
     assert first == "motor" and cut < 2.0
     assert rest[:2] == [("scan", 0.0), ("output", cut)]
     assert daemon.mux.limiter.speed == cut  # clamped: the next tick ramps up from here at most
+
+
+def test_a_non_finite_command_stops_at_the_mux_edge_and_only_finite_commands_are_written():
+    """The one finiteness check for bus sources is where a command enters the mux: NaN or inf
+    there becomes a stop from that source (counted), so the filters, the limiter and the VESC
+    write downstream only see finite numbers. (The network inbox refuses such messages before the
+    bus, tests/test_net_inbox.py; the VESC driver still refuses NaN/inf, tests/test_vesc_driver.py.)"""
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "foxglove.enabled=false", "web.enabled=false",
+                                "arming.start_armed=true", "safety.mode=off", *QUIET_NET])
+    daemon = Daemon(config)
+    written: list[AckermannDrive] = []
+    daemon.control._write = written.append
+    for speed, steering in ((1.0, 0.1), (math.nan, 0.1), (1.0, math.inf), (-math.inf, math.nan), (1.0, 0.1)):
+        daemon.bus.publish(TELEOP, AckermannDriveStamped(drive=AckermannDrive(steering, 0.0, speed)))
+        daemon.control.tick(monotonic_ns())
+    assert len(written) == 5
+    assert all(math.isfinite(d.speed) and math.isfinite(d.steering_angle) for d in written)
+    assert written[0].speed > 0.0 and written[-1].speed > 0.0
+    assert daemon.mux.rejected["teleop"] == 3
