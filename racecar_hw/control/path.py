@@ -2,8 +2,8 @@
 
 ::
 
-    input arrived ─┐                       (mux input topics, on the bus; remote inputs also
-                   │                        call take_input/input_arrived for an early step)
+    input arrived ─┐                       (mux input topics, on the bus; a remote input comes
+                   │                        through take_input, for an early step)
     tick ──────────┼─> arbitration -> arming -> hold -> safety limit -> rate limiter ─┐
     e-stop ────────┘    (CommandMux.decide/decide_early; the e-stop bypasses limits)  │
     new scan ──> safety controller judges it -> last output re-checked ─> cut? ──────┤
@@ -169,13 +169,9 @@ class ControlPath:
             idle()
 
     def take_input(self, topic: str, msg: Message, origin: str = "") -> None:
-        """A command from a network surface (the inbox's hand-over): on the bus, then
-        :meth:`input_arrived`."""
+        """A command from a network surface (the inbox's hand-over, ``origin`` its surface): on the
+        bus, where the mux keeps it; if its input wins, it is sent now, not at the next tick."""
         self.bus.publish(topic, msg)
-        self.input_arrived(topic)
-
-    def input_arrived(self, topic: str) -> None:
-        """A remote client's command is on the bus: if its input wins, send it now, not at the tick."""
         name = self.remote_inputs.get(topic)
         now = monotonic_ns()
         if name is not None and self.alive(now):
