@@ -372,11 +372,11 @@ def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monke
     bus = Bus()
     rec = Recorder(bus, record_params(tmp_path, name="idle", flush_interval_s=3600.0))
     rec.start()
-    wait_for(lambda: rec._drain_due < math.inf)  # noqa: SLF001 - the writer set its first due time
+    wait_for(lambda: rec._outbox._drain_due < math.inf)  # noqa: SLF001 - the writer set its first due time
     bus.publish(CMD, cmd(1))
     rec.control_idle()  # not due yet: the message waits for its batch
     assert rec.stats.written == 0 and rec.stats.queued == 1
-    rec._drain_due = 0.0  # noqa: SLF001 - as if BATCH_S had passed
+    rec._outbox._drain_due = 0.0  # noqa: SLF001 - as if BATCH_S had passed
     rec.control_idle()
     wait_for(lambda: rec.stats.written == 1)
     assert rec.stop().written == 1

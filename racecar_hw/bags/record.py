@@ -1,7 +1,8 @@
 """Record bus topics into ROS 2 (MCAP or sqlite3) or ROS 1 bags, without ever delaying the bus.
 
 :class:`Recorder` is a bus listener. Its callback runs in the bus's event-loop thread and only
-appends ``(topic, message, receive time)`` to a bounded queue; a writer thread serializes and writes.
+queues ``(topic, message, receive time)`` in an :class:`~racecar_hw.runtime.outbox.Outbox` (the
+queue and thread the network publishers use too); its writer thread serializes and writes.
 The writer is not woken per message: it drains the queue every :data:`BATCH_S`, or at once when
 :data:`WAKE_AT` messages (or a quarter of ``queue_size``) wait. A control loop that has idle
 moments says so with :meth:`Recorder.control_idle`: the daemon calls it when a scan's motor command
@@ -40,12 +41,9 @@ before recording began. ROS 2 topics are offered with the QoS a ROS 2 publisher 
 
 from __future__ import annotations
 
-import collections
 import logging
-import math
 import os
 import re
-import threading
 import time
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -81,6 +79,7 @@ from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
 from racecar_hw.rosmsg.typestore import BagTypes, types_for
+from racecar_hw.runtime.outbox import Outbox
 
 log = logging.getLogger(__name__)
 
@@ -94,19 +93,9 @@ LZ4_REFUSAL = (
     "read the LZ4 chunks rosbags writes; use compression 'bz2' or 'none'"
 )
 
-
 #: Niceness the writer thread gives itself (Linux: per thread): disk work yields the CPU to the
 #: control path whenever both want it. Lowering one's own priority needs no privilege.
 WRITER_NICE = 10
-
-
-def _lower_thread_priority(nice: int) -> None:
-    """Make the calling thread nicer by ``nice`` where the OS supports per-thread priorities."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
-    except (AttributeError, OSError):
-        log.debug("cannot lower the bag writer's priority on this system")
 
 
 @dataclass
@@ -442,21 +431,20 @@ class Recorder:
         self.bus = bus
         self.params = params
         self.types = types_for(1 if params.format == "ros1" else 2)
-        self._queue: collections.deque[tuple[str, Message, int]] = collections.deque()
-        self._wake = threading.Event()
         # The writer drains every BATCH_S; a queue this long wakes it at once (well before drops).
-        self._wake_at = max(1, min(WAKE_AT, params.queue_size // 4))
-        self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the writer
-        self._stopping = False
-        self._thread: threading.Thread | None = None
+        # A full queue drops the new message: the bag keeps what it has queued.
+        self._outbox = Outbox("bag-writer", params.queue_size, WRITER_NICE, batch_s=BATCH_S,
+                              wake_at=min(WAKE_AT, params.queue_size // 4), drop="newest",
+                              on_batch=self._flush_if_due, on_stop=self._close)
         self._sub: Subscription | None = None
         self._wanted: dict[str, bool] = {}
         self._static: dict[str, Message] = {}
         self._file: BagFile | None = None
         self._split_index = 0
         self._base = ""
+        self._next_flush = 0.0
         self._written = 0
-        self._dropped = 0
+        self._dropped = 0  # after a write error (the outbox counts those of a full queue)
         self._dropped_logged = 0
         self._bytes = 0
         self._flushed = 0
@@ -468,20 +456,24 @@ class Recorder:
     @property
     def stats(self) -> RecorderStats:
         """Counts so far (written, dropped, payload bytes, waiting) and the bags created."""
-        return RecorderStats(self._written, self._dropped, self._bytes, len(self._queue),
+        return RecorderStats(self._written, self._all_dropped, self._bytes, len(self._outbox),
                              self._flushed, list(self._files), self._error)
+
+    @property
+    def _all_dropped(self) -> int:
+        return self._dropped + self._outbox.dropped
 
     @property
     def running(self) -> bool:
         """Whether the writer thread is running."""
-        return self._thread is not None and self._thread.is_alive()
+        return self._outbox.running
 
     def start(self) -> None:
         """Open the first bag, queue the latched topics already published, and subscribe."""
         if not self.params.enabled:
             log.info("bag recording disabled")
             return
-        if self._thread is not None:
+        if self.running:
             return
         out = Path(self.params.path).expanduser()
         out.mkdir(parents=True, exist_ok=True)
@@ -491,17 +483,15 @@ class Recorder:
         for topic in LATCHED_TOPICS:
             latest = self.bus.latest(topic)
             if latest is not None and self._is_wanted(topic):
-                self._queue.append((topic, latest, now))
+                self._outbox.put(self._write, topic, latest, now)
         # The writer thread opens the bag: sqlite3 connections belong to the thread that made them.
-        opened = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(opened,), name="bag-writer",
-                                        daemon=True)
-        self._thread.start()
-        opened.wait()
-        if self._file is None:
-            self._thread.join()
-            self._thread = None
-            raise BagError(self._error or "bag writer did not start")
+        try:
+            self._outbox.start(setup=self._open_first)
+        except BagError as err:
+            self._error = str(err)
+            self._outbox.clear()
+            raise
+        assert self._file is not None
         self._sub = self.bus.subscribe_all(self._on_message)
         log.info("recording %s to %s", ", ".join(self.params.topics) or "all topics",
                  self._file.path)
@@ -511,12 +501,8 @@ class Recorder:
         if self._sub is not None:
             self._sub.close()
             self._sub = None
-        thread = self._thread
-        if thread is not None:
-            self._stopping = True
-            self._wake.set()
-            thread.join()
-            self._thread = None
+        if self.running:
+            self._outbox.stop(timeout_s=None)  # every recorded message reaches the file
             stats = self.stats
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
@@ -537,18 +523,14 @@ class Recorder:
             wanted = self._is_wanted(topic)
         if not wanted:
             return
-        if len(self._queue) >= self.params.queue_size or self._error is not None:
+        if self._error is not None:
             self._dropped += 1
             return
-        queue = self._queue
-        queue.append((topic, msg, wall_ns()))
-        if len(queue) >= self._wake_at:
-            self._wake.set()
+        self._outbox.put(self._write, topic, msg, wall_ns())
 
     def control_idle(self) -> None:
         """The control path is idle until its next event: wake the writer if a drain is due."""
-        if self._queue and time.monotonic() >= self._drain_due and not self._wake.is_set():
-            self._wake.set()
+        self._outbox.control_idle()
 
     def _is_wanted(self, topic: str) -> bool:
         p = self.params
@@ -559,39 +541,32 @@ class Recorder:
 
     # --- writer thread ------------------------------------------------------------------------
 
-    def _run(self, opened: threading.Event) -> None:
-        _lower_thread_priority(WRITER_NICE)
-        try:
-            self._file = self._open_split()
-        except BagError as err:
-            self._error = str(err)
-            return
-        finally:
-            opened.set()
-        interval = self.params.flush_interval_s
-        next_flush = time.monotonic() + interval
-        while True:
-            now = time.monotonic()
-            self._drain_due = now + BATCH_S
-            self._wake.wait(timeout=min(2 * BATCH_S, max(0.0, next_flush - now)))
-            self._wake.clear()
-            stopping = self._stopping
+    def _open_first(self) -> None:
+        self._file = self._open_split()
+        self._next_flush = time.monotonic() + self.params.flush_interval_s
+
+    def _flush_if_due(self) -> float:
+        """After every batch: flush when the interval is up; returns the seconds to the next flush."""
+        now = time.monotonic()
+        if now >= self._next_flush:
+            self._next_flush = now + self.params.flush_interval_s
             try:
-                while self._queue:
-                    self._write(*self._queue.popleft())
-                if time.monotonic() >= next_flush:
-                    next_flush = time.monotonic() + interval
-                    self._flush()
+                self._flush()
             except Exception as err:
                 self._fail(err)
-            if stopping and not self._queue:
-                break
-        self._close()
+        return self._next_flush - time.monotonic()
 
     def _write(self, topic: str, msg: Message, t_ns: int) -> None:
         if self._file is None:
             self._dropped += 1
             return
+        try:
+            self._write_file(topic, msg, t_ns)
+        except Exception as err:
+            self._fail(err)
+
+    def _write_file(self, topic: str, msg: Message, t_ns: int) -> None:
+        assert self._file is not None
         if topic in LATCHED_TOPICS:
             self._static[topic] = msg
         if self._should_split(t_ns):
@@ -602,7 +577,6 @@ class Recorder:
                     self._bytes += self._file.write(static_topic, static_msg, t_ns)
         self._bytes += self._file.write(topic, msg, t_ns)
         self._written += 1
-
     def _should_split(self, t_ns: int) -> bool:
         f = self._file
         assert f is not None
@@ -636,17 +610,17 @@ class Recorder:
         if self._file is not None:
             self._file.flush()
             self._flushed = self._written
-        if self._dropped > self._dropped_logged:
+        dropped = self._all_dropped
+        if dropped > self._dropped_logged:
             log.warning("bag writer is behind: dropped %d messages so far (queue_size %d)",
-                        self._dropped, self.params.queue_size)
-            self._dropped_logged = self._dropped
+                        dropped, self.params.queue_size)
+            self._dropped_logged = dropped
 
     def _fail(self, err: Exception) -> None:
         self._error = f"{type(err).__name__}: {err}"
         log.error("bag writing failed, recording stops (messages now count as dropped): %s",
                   self._error)
-        self._dropped += len(self._queue)
-        self._queue.clear()
+        self._dropped += self._outbox.clear()
         if self._file is not None:
             self._file.abort()
             self._file = None
@@ -660,9 +634,10 @@ class Recorder:
         except Exception as err:
             self._fail(err)
         self._file = None
-        if self._dropped > self._dropped_logged:
-            log.warning("bag recorder dropped %d messages in total", self._dropped)
-            self._dropped_logged = self._dropped
+        dropped = self._all_dropped
+        if dropped > self._dropped_logged:
+            log.warning("bag recorder dropped %d messages in total", dropped)
+            self._dropped_logged = dropped
 
 
 def record_params(path: str | Path, fmt: str = "mcap", **overrides: Any) -> RecorderParams:

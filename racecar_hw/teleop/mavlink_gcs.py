@@ -97,6 +97,8 @@ from racecar_hw.teleop.mavlink_rx import MavlinkRx
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported anywhere: the MAVLink 2 dialects
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from racecar_hw.base.topics import TELEOP_TOPIC
+
 log = logging.getLogger(__name__)
 
 #: The HEARTBEAT autopilot: QGroundControl picks its ArduPilot Rover plugin, which names ArduPilot
@@ -127,7 +129,6 @@ SIGNING_EPOCH_S = 1_420_070_400
 OBSTACLE_BINS = 72
 UINT16_MAX = 65535
 INT16_MAX = 32767
-TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 #: Refusals of one wake-up of the reader: (sender address, counter name) -> count.
 Tally = dict[tuple[tuple[Any, ...], str], int]
 #: MAVLink signing time units per second (10 µs each).
