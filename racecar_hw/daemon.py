@@ -289,28 +289,26 @@ class Daemon:
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             self._remote_inputs[z.cmd_vel_topic] = self._remote_inputs[twist_input]
         urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
-        if z.enabled:
+        dds_on = d.enabled and cyclone_available()
+        if d.enabled and not dds_on:
+            log.warning("dds: the DDS interface is off: the cyclonedds package is not installed "
+                        "(pip install cyclonedds; docs/dds.md), or set dds.enabled: false")
+        if z.enabled or dds_on:
             self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
                                self._on_network_input, period_s=1.0 / config.mux.rate_hz,
                                estop_topic=config.mux.estop_topic,
                                release_topic=config.mux.estop_release_topic,
                                on_estop=self.network_estop, refusals=self.refusals)
+        if z.enabled:
             self.zenoh = ZenohBridge(self.bus, z, self.live_topics, urgent=urgent,
                                      early={config.safety.scan_topic},
                                      inbox=self.inbox, refusals=self.refusals, parameters=self.parameters)
             logins = zenoh_logins.installed()  # the command counts failed Zenoh logins: into our refusals
             if logins is not None:
                 logins.attach(self.refusals)
-        if d.enabled and not cyclone_available():
-            log.warning("dds: the DDS interface is off: the cyclonedds package is not installed "
-                        "(pip install cyclonedds; docs/dds.md), or set dds.enabled: false")
-        elif d.enabled:
-            # its own coalescing (KEEP_LAST 1 readers, a thread per command row, one hand-over per
-            # tick) and the daemon's network e-stop; not yet the shared inbox (docs/dds.md)
+        if dds_on:
             self.dds = DdsBridge(self.bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
-                                 on_input=self._on_remote_input, urgent=urgent, refusals=self.refusals,
-                                 on_estop=self.network_estop,
-                                 estop_topics={config.mux.estop_topic, config.mux.estop_release_topic},
+                                 urgent=urgent, refusals=self.refusals, inbox=self.inbox,
                                  period_s=1.0 / config.mux.rate_hz)
 
     def _on_network_input(self, topic: str, msg: Message, origin: str) -> None:

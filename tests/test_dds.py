@@ -262,7 +262,7 @@ def test_a_command_flood_is_handed_over_at_most_once_per_period_and_e_stops_neve
     car = _Car(rows, params)
     car.bridge = DdsBridge(car.bus, params, rows, on_input=car.inputs.append, period_s=0.05,
                            on_estop=lambda topic, msg, who: stops.append(msg.data),
-                           estop_topics={"/dds_test/estop"})
+                           estop_topic="/dds_test/estop")
     with car:
         got: list[Twist] = []
         car.bus.subscribe("/dds_test/cmd", got.append)
@@ -304,11 +304,11 @@ class _Reader:
 def test_the_command_decoder_survives_any_bytes(payloads, cls):
     """Hostile samples: whatever the bytes, the receive path drops and counts them or hands a
     finite message on; it never raises into Cyclone's thread."""
-    bridge = DdsBridge(Bus(), DdsParams(), [])
+    row = Topic("/x", cls, Direction.IN, DEFAULT)
+    bridge = DdsBridge(Bus(), DdsParams(), [row])
     loop = asyncio.new_event_loop()
-    bridge._loop = loop
+    bridge.inbox.bind(loop)
     try:
-        row = Topic("/x", cls, Direction.IN, DEFAULT)
         bridge._receiver(row)(_Reader(list(payloads)))
         s = bridge.stats
         assert s.received + s.malformed + s.non_finite == len(payloads)
@@ -319,7 +319,7 @@ def test_the_command_decoder_survives_any_bytes(payloads, cls):
 def test_a_refusing_bridge_counts_and_drops_every_command():
     bridge = DdsBridge(Bus(), DdsParams(interface="10.0.0.1"), [])
     loop = asyncio.new_event_loop()
-    bridge._loop = loop
+    bridge.inbox.bind(loop)
     try:
         good = ros2_types().serialize(Bool(True))
         bridge._receiver(Topic("/estop", Bool, Direction.IN, DEFAULT))(_Reader([good, good]))

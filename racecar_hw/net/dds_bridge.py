@@ -14,13 +14,14 @@ The same topic table as the Zenoh bridge (:mod:`racecar_hw.net.topics`: profile,
   reader matches the writer (Cyclone's publication-matched status, kept by a listener); the
   sender thread serializes and writes. Latched rows are always queued, and Cyclone's writer
   history (transient local) gives late joiners the last ``depth`` samples.
-* **In**: a command row's reader keeps only its newest sample (KEEP_LAST 1, in Cyclone's C code,
-  without the GIL); a thread per row waits for it in C, takes it, decodes and checks it (a
-  well-formed CDR payload, every number finite) and hands it to the event loop with
-  ``call_soon_threadsafe``, then rests one control period (``period_s``): a flood of ``/cmd_vel``
-  costs the loop at most one hand-over per row per tick. The e-stop and its release are never
-  coalesced: Cyclone calls their readers' listeners for every sample, in order, and they go to
-  ``on_estop`` (the daemon's network e-stop). On a
+* **In**: the same hand-over as the Zenoh bridge's, the daemon's shared
+  :class:`~racecar_hw.net.inbox.Inbox` (decoded and checked there: well-formed CDR, every number
+  finite; one hand-over per input per control tick, the newest; e-stops in order and first). A
+  command row's reader keeps only its newest sample (KEEP_LAST 1, in Cyclone's C code, without the
+  GIL) and a thread per row takes it at most once per control period (``period_s``), so a flood
+  of ``/cmd_vel`` costs no Python work per message. The e-stop and its release are never
+  coalesced: Cyclone calls their readers' listeners for every sample, in order, and each goes to
+  the inbox's e-stop queue. On a
   non-loopback interface without ``accept_unauthenticated_commands`` every command is refused and
   counted (:class:`~racecar_hw.runtime.refusals.Refusals`, surface ``dds``).
 * **Graph**: ``ros_discovery_info`` names the participant's node (``/<namespace>/<node_name>``) and
@@ -43,9 +44,9 @@ from racecar_hw.base.messages import Message
 from racecar_hw.net import dds_graph, rmw
 from racecar_hw.net.dds_config import DdsParams, cyclone_xml
 from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
+from racecar_hw.net.inbox import MALFORMED, NON_FINITE, Inbox
 from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
-from racecar_hw.net.zenoh_bridge import all_finite
 from racecar_hw.rosmsg.typestore import ros2_types
 from racecar_hw.runtime.refusals import Refusals
 
@@ -67,10 +68,10 @@ class DdsStats:
     published: int = 0       #: samples written
     skipped: int = 0         #: outgoing messages not queued: no reader matched
     publish_errors: int = 0  #: serialization or write failures
-    received: int = 0        #: incoming samples handed to the bus
+    received: int = 0        #: incoming samples taken in by the inbox
     malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
-    refused: int = 0         #: incoming commands refused: unauthenticated interface
+    refused: int = 0         #: incoming commands refused: unauthenticated interface, not an input
 
 
 class _Out:
@@ -103,19 +104,21 @@ def qos_of(qos: Qos, user_data: bytes = b"") -> Any:
 class DdsBridge:
     """The bus's network rows on DDS. Build, ``open()`` (blocking, from any thread), ``close()``.
 
-    ``names``: the zenoh section's naming (namespace, node name): one table, two wires.
-    ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
-    the bus; messages on ``urgent`` bus topics wake the publisher thread at once. Messages on
-    ``estop_topics`` go to ``on_estop(topic, msg, "dds")`` in the event loop instead of the bus
-    (the daemon's network e-stop: it may engage, and release only what the e-stop topic engaged).
+    ``namespace``, ``node_name``: the zenoh section's naming: one table, two wires.
+    Incoming messages go to ``inbox`` (the daemon's, shared with the Zenoh bridge, which knows the
+    e-stop topics and hands over in the event loop). Without one the bridge makes its own, whose
+    hand-over publishes on the bus then calls ``on_input(bus_topic)``, with ``estop_topic`` and
+    ``release_topic`` going to ``on_estop(topic, msg, "dds")`` instead. Messages on ``urgent`` bus
+    topics wake the publisher thread at once.
     """
 
     def __init__(self, bus: Bus, params: DdsParams, rows: list[Topic], *, namespace: str = "",
                  node_name: str = "racecar_hw", on_input: Callable[[str], None] | None = None,
                  urgent: frozenset[str] | set[str] = frozenset(),
                  refusals: Refusals | None = None,
+                 inbox: Inbox | None = None,
                  on_estop: Callable[[str, Message, str], None] | None = None,
-                 estop_topics: frozenset[str] | set[str] = frozenset(),
+                 estop_topic: str | None = None, release_topic: str | None = None,
                  period_s: float = 0.02) -> None:
         self.bus = bus
         self.params = params
@@ -125,9 +128,12 @@ class DdsBridge:
         self.node_name = node_name
         self.domain_id = params.resolved_domain_id()
         self.refusals = refusals if refusals is not None else Refusals()
-        self.on_estop = on_estop
-        self.estop_topics = frozenset(estop_topics)
-        self.period_s = period_s
+        self._own_inbox = inbox is None
+        self.inbox = inbox if inbox is not None else Inbox(
+            [r.bus for r in rows if r.direction is Direction.IN], self._deliver, period_s=period_s,
+            estop_topic=estop_topic, release_topic=release_topic, on_estop=on_estop,
+            refusals=self.refusals)
+        self.period_s = self.inbox.period_ns / 1e9
         self._pumps: list[threading.Thread] = []
         self._stopping = threading.Event()
         self.stats = DdsStats()
@@ -164,6 +170,7 @@ class DdsBridge:
         from cyclonedds.topic import Topic as DdsTopic  # noqa: PLC0415
 
         self._loop = loop
+        self.inbox.bind(loop)
         p = self.params
         try:
             self._domain = Domain(self.domain_id, cyclone_xml(p))
@@ -189,7 +196,7 @@ class DdsBridge:
                                         listener=Listener(on_publication_matched=matched))
                 self._outs.append(out)
                 writer_gids.append(out.writer.guid.bytes)
-            elif row.bus in self.estop_topics or row.qos.latched:
+            elif row.bus in self.inbox.stop_topics or row.qos.latched:
                 # every e-stop message, in order, from Cyclone's thread: never coalesced
                 reader = DataReader(self.participant, topic, qos,
                                     listener=Listener(on_data_available=self._receiver(row)))
@@ -245,6 +252,8 @@ class DdsBridge:
         self._bus_subs.clear()
         self.outbox.stop(5.0)
         self._stopping.set()
+        if self._own_inbox:
+            self.inbox.close()
         for pump in self._pumps:  # each wakes within PUMP_WAIT_S
             if pump.is_alive():
                 pump.join(5.0)
@@ -313,16 +322,11 @@ class DdsBridge:
             self._stopping.wait(self.period_s)
 
     def _receiver(self, row: Topic) -> Callable[[Any], None]:
-        types = self._types
         cls, topic = row.msgtype, row.bus
-        stats, lock = self.stats, self._lock
+        stats, lock, inbox = self.stats, self._lock, self.inbox
         accept = self.params.accepts_commands
         refusals, name = self.refusals, self.ros_name(row)
-
-        def count(field: str) -> None:
-            with lock:
-                setattr(stats, field, getattr(stats, field) + 1)
-            refusals.note(SURFACE, name, field.replace("_", " "))
+        outcome = {None: "received", MALFORMED: "malformed", NON_FINITE: "non_finite"}
 
         def receive(reader: Any) -> None:
             try:
@@ -339,31 +343,15 @@ class DdsBridge:
                     refusals.note(SURFACE, name, "unauthenticated interface (dds.interface is not "
                                                  "loopback; see dds.accept_unauthenticated_commands)")
                     continue
-                try:
-                    msg = types.deserialize(data, cls)
-                except Exception:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
-                    count("malformed")
-                    continue
-                if not all_finite(msg):
-                    count("non_finite")
-                    continue
-                loop = self._loop
-                if loop is None or loop.is_closed():
-                    return
+                field = outcome.get(inbox.offer_cdr(SURFACE, topic, cls, data), "refused")
                 with lock:
-                    stats.received += 1
-                try:
-                    loop.call_soon_threadsafe(self._deliver, topic, msg)
-                except RuntimeError:  # the loop closed meanwhile
-                    return
+                    setattr(stats, field, getattr(stats, field) + 1)
 
         return receive
 
-    def _deliver(self, topic: str, msg: Message) -> None:
+    def _deliver(self, topic: str, msg: Message, origin: str) -> None:
+        """The own inbox's hand-over, in the event loop: on the bus, then ``on_input``."""
         if not self._open:
-            return
-        if self.on_estop is not None and topic in self.estop_topics:
-            self.on_estop(topic, msg, SURFACE)  # the e-stop and its release, with their origin
             return
         self.bus.publish(topic, msg)
         if self.on_input is not None:
