@@ -24,7 +24,7 @@ import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
 from table import print_rows
 
-from racecar_hw.bags.follow import NAV0_TOPIC, TELEOP_TOPIC, BagFollower, FollowerParams
+from racecar_hw.bags.follow import BagFollower, FollowerParams
 from racecar_hw.bags.record import Recorder, record_params
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
@@ -56,6 +56,7 @@ from racecar_hw.base.messages import (
     VescState,
     VescStateStamped,
 )
+from racecar_hw.base.topics import NAV0_TOPIC, TELEOP_TOPIC
 from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
 
 FORMATS = ("mcap", "sqlite3", "ros1")
@@ -178,9 +179,9 @@ def writer_thread_cpu_at_nominal_load(fmt: str = "mcap", seconds: float = 8.0,
         bus = Bus()
         rec = Recorder(bus, record_params(tmp, fmt, name="bench"))
         rec.start()
-        assert rec._thread is not None and rec._thread.native_id is not None
+        assert rec._outbox._thread is not None and rec._outbox._thread.native_id is not None
         try:
-            return asyncio.run(main(rec, bus, rec._thread.native_id))
+            return asyncio.run(main(rec, bus, rec._outbox._thread.native_id))
         finally:
             rec.stop()
             sys.setswitchinterval(interval)

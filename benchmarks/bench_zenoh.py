@@ -132,6 +132,7 @@ def _callback_cost(n: int = 20000) -> list[dict]:
     from mux.params import MuxParams
     from racecar_hw.base.bus import Bus
     from racecar_hw.base.messages import LaserScan
+    from racecar_hw.net.rmw import SampleStamps
     from racecar_hw.net.topics import topic_table
     from racecar_hw.net.zenoh_bridge import ZenohBridge, _Out
     from racecar_hw.net.zenoh_config import ZenohParams
@@ -139,7 +140,7 @@ def _callback_cost(n: int = 20000) -> list[dict]:
 
     rows = topic_table(MuxParams(), SafetyParams())
     bridge = ZenohBridge(Bus(), ZenohParams(), rows)
-    out = _Out(rows[0], None, bytes(16), latched=False)
+    out = _Out(rows[0], None, SampleStamps(bytes(16)), latched=False)
     enqueue = bridge._enqueuer(out)
     scan = LaserScan()
     result = []

@@ -16,7 +16,7 @@ import asyncio
 import logging
 import math
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -29,6 +29,7 @@ from racecar_hw.base.clock import monotonic_ns
 from racecar_hw.base.errors import DeviceError, DeviceIOError, DeviceTimeout
 from racecar_hw.base.link import Link
 from racecar_hw.base.messages import LaserScan
+from racecar_hw.runtime.reconnect import ReconnectingDevice
 
 log = logging.getLogger(__name__)
 
@@ -145,22 +146,27 @@ def summarize(scan: LaserScan) -> ScanSummary:
                        float(r[hi]), float(scan.angle_min + scan.angle_increment * hi), n)
 
 
-class LidarDriver(ABC):
+class LidarDriver(ReconnectingDevice):
     """One lidar: connect, configure, stream scans to the bus, reconnect forever.
 
     Subclasses implement :meth:`_session`, one connection's life: open the link, read the
     device's geometry, stream, and return or raise :class:`~racecar_hw.base.errors.DeviceError` when the
-    link is lost. :meth:`run` owns the reconnect loop with backoff, statistics and logging.
+    link is lost. :meth:`run` is :class:`~racecar_hw.runtime.reconnect.ReconnectingDevice`'s
+    reconnect loop: the lidar proves itself by streaming, so every session is followed by the
+    backoff, which doubles after each failed session.
     """
 
+    OPEN_PROVES_DEVICE = False
+
     def __init__(self, bus: Bus, params: LidarParams) -> None:
+        super().__init__(params.reconnect_backoff_min_s, params.reconnect_backoff_max_s)
         self.bus = bus
         self.params = params
         self.stats = LidarStats()
         self.geometry: ScanGeometry | None = None
         self.info: dict[str, str] = {}
         self.connected = False
-        self.last_error: str | None = None
+        self._attempted = False  # a session was attempted before: the next one is a reconnect
         #: monotonic ns when the latest read from the device returned (see :meth:`_stamp_rx`)
         self.rx_ns = 0
         #: the reading thread's CPU time (ns) when that read returned
@@ -175,35 +181,32 @@ class LidarDriver(ABC):
         self._previous_error: str | None = None  # last_error when the current session began
         self._ended: asyncio.Future[None] | None = None
 
-    async def run(self) -> None:
-        """Stream scans until cancelled, reconnecting with backoff after any device error."""
-        backoff = self.params.reconnect_backoff_min_s
-        first = True
-        while True:
-            try:
-                if not first:
-                    self.stats.reconnects += 1
-                first = False
-                self._session_scans, self._previous_error = 0, self.last_error
-                await self._session()
-                backoff = self.params.reconnect_backoff_min_s
-            except DeviceError as err:
-                self.stats.device_errors += 1
-                if self.last_error != str(err):
-                    log.warning("lidar %s: %s; reconnecting", self.params.model, err)
-                self.last_error = str(err)
-            finally:
-                self.connected = False
-                await self._close()
-            await asyncio.sleep(backoff)
-            backoff = min(backoff * 2, self.params.reconnect_backoff_max_s)
+    @property
+    def device_name(self) -> str:  # type: ignore[override]
+        return f"lidar {self.params.model}"
+
+    async def _open(self) -> None:
+        """Count a reconnect and start the session's bookkeeping (the session opens the link)."""
+        if self._attempted:
+            self.stats.reconnects += 1
+        self._attempted = True
+        self._session_scans, self._previous_error = 0, self.last_error
+
+    def _on_opened(self) -> None:
+        """The error that ended the last session stands until this one publishes a scan."""
+
+    def _on_session_lost(self, err: DeviceError) -> None:
+        self.stats.device_errors += 1
+        if self.last_error != str(err):
+            log.warning("lidar %s: %s; reconnecting", self.params.model, err)
+        self.last_error = str(err)
+
+    def _on_session_end(self) -> None:
+        self.connected = False
 
     @abstractmethod
     async def _session(self) -> None:
         """One connection: open, configure, stream. Set ``connected`` once streaming."""
-
-    async def _close(self) -> None:  # noqa: B027 - optional hook
-        """Close the link after a session (called even when it failed)."""
 
     def _stamp_rx(self) -> None:
         """Note that a read from the device has just returned (subclasses call it first thing)."""

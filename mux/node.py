@@ -24,7 +24,6 @@ Times are monotonic integer nanoseconds from the injected ``clock``; output stam
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -46,7 +45,7 @@ from mux.estop import DAEMON, DAEMON_ORIGIN, EstopRecord, Origin, release_refusa
 from mux.limiter import RateLimiter
 from mux.params import MuxParams
 from racecar_hw.base.bus import Bus, Subscription
-from racecar_hw.base.clock import NS_PER_S, monotonic_ns, nanoseconds, wall_ns
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
@@ -69,22 +68,12 @@ OUTPUT_FRAME = "base_link"
 _MAX_SWITCHES = 10_000
 
 
-def next_deadline(deadline_ns: int, now_ns: int, period_ns: int) -> tuple[int, int]:
-    """The first deadline after ``deadline_ns`` on its fixed grid that is not behind ``now_ns``.
-
-    Returns (deadline, periods): ``periods`` is 1 when on time, and k > 1 when the loop fell
-    behind and k - 1 deadlines are skipped (never run in a burst).
-    """
-    behind = now_ns - deadline_ns
-    periods = max(1, -(-behind // period_ns))
-    return deadline_ns + periods * period_ns, periods
-
-
 class CommandMux:
     """The priority Ackermann command mux bound to ``bus``; see :mod:`mux.arbiter` for the rules.
 
     Use from the bus's event loop thread only. ``clock`` gives monotonic ns (message arrival,
-    ages, the run loop's deadlines), ``wall_clock`` the output stamps.
+    ages), ``wall_clock`` the output stamps. The daemon's control loop
+    (:class:`~racecar_hw.runtime.ticker.PeriodicTimer`) calls :meth:`step` at ``rate_hz``.
     """
 
     def __init__(self, bus: Bus, params: MuxParams | None = None, *,
@@ -111,7 +100,6 @@ class CommandMux:
         if params.start_estopped:
             self.engage_estop("start_estopped", Origin(DAEMON, "mux.start_estopped"))
         self._start_ns = clock()
-        self._period_ns = nanoseconds(1.0 / params.rate_hz)
         n, m = len(self.table.inputs), len(self.table.locks)
         self._drives: list[AckermannDrive | None] = [None] * n
         self._received: list[int | None] = [None] * n
@@ -348,9 +336,11 @@ class CommandMux:
         """One output tick: arbitrate, filter, limit, publish on ``output_topic``; returns it.
 
         ``periods`` is how many output periods passed since the previous tick (more than 1 only
-        when the run loop skipped deadlines); the limiter advances by that many fixed periods.
+        when the control loop skipped deadlines, counted in :attr:`overruns`); the limiter advances
+        by that many fixed periods.
         """
         now = self._clock() if now_ns is None else now_ns
+        self.overruns += periods - 1
         return self._output(now, self.arbitrate(now), filters, periods, commit=True)
 
     def step_early(self, source: str, now_ns: int | None = None,
@@ -464,42 +454,6 @@ class CommandMux:
             self.bus.publish(self.params.diagnostics_topic, self.diagnostics(now_ns))
         except Exception as err:
             self._fail("diagnostics", err)
-
-    # --- the fixed-rate loop ---------------------------------------------------------------
-
-    async def run(self, filters: Sequence[Filter] = ()) -> None:
-        """Tick at ``rate_hz`` on absolute deadlines until cancelled; publish one stop on exit.
-
-        Deadlines sit on the fixed grid of whole periods of the clock (as those of
-        :class:`~racecar_hw.runtime.ticker.PeriodicTimer`), so the rate does not drift; a loop that
-        falls behind skips to the next deadline on the grid (counted in :attr:`overruns`) instead
-        of publishing a burst, and tells the limiter how many periods passed.
-        """
-        filters = tuple(filters)
-        period = self._period_ns
-        diag_every = max(1, round(self.params.rate_hz / self.params.diagnostics_rate_hz))
-        now = self._clock()
-        deadline = now - now % period
-        periods = 1
-        tick = 0
-        try:
-            while True:
-                now = self._clock()
-                self.step(now, filters, periods)
-                if tick % diag_every == 0:
-                    self.publish_diagnostics(now)
-                tick += 1
-                deadline, periods = next_deadline(deadline, self._clock(), period)
-                self.overruns += periods - 1
-                await asyncio.sleep(max(0, deadline - self._clock()) / NS_PER_S)
-        finally:
-            self.limiter.reset()
-            try:
-                stop = AckermannDriveStamped(stamp_now(OUTPUT_FRAME, self._wall_clock()), AckermannDrive())
-                self.last_output = stop
-                self.bus.publish(self.params.output_topic, stop)
-            except Exception:
-                log.exception("mux could not publish its final stop")
 
 
 #: The name the daemon wiring uses for the mux node; the same class.

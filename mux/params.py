@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 from mux.estop import OPERATORS, RELEASE_SOURCES
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import MUX_ACTIVE_TOPIC, MUX_HIGH, MUX_LOW
 
 #: Source names the mux uses for itself; an input may not take one of them.
 RESERVED_SOURCES: tuple[str, ...] = ("idle", "estop", "fault")
 
-_LOW = "/vesc/low_level/ackermann_cmd_mux"
-_HIGH = "/vesc/high_level/ackermann_cmd_mux"
+_LOW, _HIGH = MUX_LOW, MUX_HIGH
 
 
 @dataclass
@@ -86,7 +86,7 @@ class MuxParams:
     rate_hz: float = param(50.0, "output rate; also the limiter's fixed step", unit="Hz",
                            min=1.0, max=1000.0)
     output_topic: str = param(f"{_LOW}/output", "AckermannDriveStamped output, frame base_link")
-    active_topic: str = param(f"{_LOW}/active",
+    active_topic: str = param(MUX_ACTIVE_TOPIC,
                               "std_msgs/String naming the active source, published on switches")
     hold_steering_when_idle: bool = param(
         False, "when no input is fresh keep the last steering angle (speed is still zero)")

@@ -65,6 +65,7 @@ from racecar_hw.base.messages import (
     Vector3,
     stamp_now,
 )
+from racecar_hw.base.topics import CMD_VEL_BUS_TOPIC
 from racecar_hw.net import rmw
 from racecar_hw.net.topics import (
     CMD_VEL_INPUT,
@@ -77,6 +78,7 @@ from racecar_hw.net.topics import (
     topic_table,
 )
 from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, PROFILES, ZenohAuthParams, session_config
+from racecar_hw.net.zenoh_node import ZenohNode
 from racecar_hw.net.zenoh_security import check_credentials, zenoh_error_text
 from racecar_hw.rosmsg.typestore import ros2_types
 from safety.params import SafetyParams
@@ -85,8 +87,6 @@ T = TypeVar("T")
 #: Where the lidar sits on the car in the shipped configs (``static_transforms`` base_link ->
 #: laser): x forward, y left, z up (m) and yaw (rad) in ``base_link`` (the rear axle's centre).
 LASER_IN_BASE_LINK = (0.265, 0.0, 0.1, 0.0)
-#: The mux input of /cmd_vel Twists on the daemon's bus (racecar_hw.config.CMD_VEL_BUS_TOPIC).
-CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
 
 
 class ClientError(RacecarError):
@@ -308,7 +308,71 @@ class _Stream(Generic[T]):
                 seen = self.count  # only samples that did not decode since: wait for the next
 
 
-class Car:
+class _EstopControls:
+    """The e-stop part of :class:`Car`: engage, read the mux's state, release (as an operator may)."""
+
+    mux: MuxParams
+    mux_stream: _Stream[MuxStatus] | None
+    _lock: threading.Lock
+
+    def publish(self, bus_topic: str, msg: Message) -> None:
+        raise NotImplementedError
+
+    def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
+                   qos: Qos, shared: bool = False) -> _Stream[T]:
+        raise NotImplementedError
+
+    def estop(self) -> None:
+        """Engage the daemon's latched e-stop."""
+        self.publish(self.mux.estop_topic, Bool(True))
+
+    def mux_status(self, timeout: float | None = 5.0) -> MuxStatus:
+        """The mux's state from its next ``/diagnostics`` (2 Hz); ClientError after ``timeout`` s."""
+        with self._lock:
+            if self.mux_stream is None:
+                self.mux_stream = self._subscribe(self.mux.diagnostics_topic, DiagnosticArray,
+                                                  _mux_status, DEFAULT, shared=True)
+            stream = self.mux_stream
+        value, _ = stream.wait_newer(stream.count, timeout)
+        return value
+
+    def release_estop(self, timeout: float = 5.0) -> None:
+        """Release the daemon's e-stop, if the daemon lets this client: returns once the mux runs.
+
+        Stop is for anyone, release is for an operator: the release topic this sends on releases
+        only an e-stop that the e-stop topic alone engaged (this client's :meth:`estop`, another
+        network node), and only where the daemon's ``mux.estop_release_sources`` names ``network``.
+        An e-stop latched on the status page, in Foxglove or by ``start_estopped`` is released there.
+        Raises :class:`ClientError` saying why when the daemon refuses (read back from the mux's
+        ``/diagnostics``), or when the mux does not answer within ``timeout`` s. Returns at once
+        when the e-stop is not engaged.
+        """
+        deadline = time.monotonic() + timeout
+        before = self.mux_status(timeout)
+        if before.state == "running":
+            return
+        self.publish(self.mux.estop_topic, Bool(False))
+        self.publish(self.mux.estop_release_topic, Bool(True))
+        retried = False
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ClientError(f"the e-stop was not released within {timeout} s ({before.estop})")
+            status = self.mux_status(left)
+            if status.state == "running":
+                return
+            if status.release_refusals > before.release_refusals:
+                if not retried and status.last_refusal.endswith(REFUSED_ASSERTED):
+                    # the release overtook our own "false" (two topics, two of Zenoh's threads):
+                    # once more, now that the false is in
+                    retried, before = True, status
+                    self.publish(self.mux.estop_release_topic, Bool(True))
+                    continue
+                raise ClientError(f"the daemon refused the release: {status.last_refusal} "
+                                  f"(the e-stop was {status.estop})")
+
+
+class Car(_EstopControls):
     """A connection to one car. See the module documentation.
 
     ``connect``: Zenoh endpoints of the daemon (or of a router it is connected to); ``mode``:
@@ -360,13 +424,10 @@ class Car:
                 "is the daemon running, and does it want a user and password?")
             raise ClientError(f"cannot connect to {', '.join(self.endpoints)} ({mode} mode): {hint} "
                               f"(Zenoh: {zenoh_error_text(err)})") from None
-        self.zid = str(self.session.zid())
-        self._node = node_name or f"racecar_client_{os.getpid()}"
-        self._next_entity = 1
-        self._tokens: list[Any] = [self.session.liveliness().declare_token(
-            rmw.Entity(self.domain_id, self.zid, 0, 0, rmw.NODE, "", self.namespace, self._node).token())]
-        self._subs: list[Any] = []
-        self._pubs: dict[str, tuple[Any, bytes, list[int]]] = {}
+        self.node = ZenohNode(self.session, rmw.NodeNames(
+            self.domain_id, self.namespace, node_name or f"racecar_client_{os.getpid()}", ros_distro))
+        self.zid = self.node.names.zid
+        self._pubs: dict[str, tuple[Any, rmw.SampleStamps]] = {}
         self._lock = threading.Lock()
         self._closed = False
         self.scan_stream: _Stream[Scan] = self._subscribe("/scan", LaserScan, _scan, SENSOR_DATA)
@@ -389,16 +450,6 @@ class Car:
         except KeyError:
             raise ClientError(f"no mux input {name!r}; inputs: {', '.join(self._inputs)}") from None
 
-    def _entity(self, kind: str, topic: str, msgtype: type[Message], qos: Qos) -> rmw.Entity:
-        entity_id, self._next_entity = self._next_entity, self._next_entity + 1
-        return rmw.Entity(self.domain_id, self.zid, 0, entity_id, kind, "", self.namespace, self._node,
-                          topic, rmw.dds_type(msgtype.ROS_TYPE),
-                          rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro), rmw.RmwQos.from_qos(qos))
-
-    def _key(self, topic: str, msgtype: type[Message]) -> str:
-        return rmw.topic_key(self.domain_id, topic, msgtype.ROS_TYPE,
-                             rmw.wire_type_hash(msgtype.ROS_TYPE, self.ros_distro))
-
     # --- subscriptions ------------------------------------------------------------------------
 
     def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
@@ -409,14 +460,11 @@ class Car:
             return convert(deserialize(raw, msgtype))
 
         stream: _Stream[T] = _Stream(decode, shared)
-        topic = self.ros_name(bus_topic)
 
         def on_sample(sample: Any) -> None:
             stream.push_raw(sample.payload.to_bytes())
 
-        self._subs.append(self.session.declare_subscriber(self._key(topic, msgtype), on_sample))
-        token = self._entity(rmw.SUBSCRIPTION, topic, msgtype, qos).token()
-        self._tokens.append(self.session.liveliness().declare_token(token))
+        self.node.subscriber(self.ros_name(bus_topic), msgtype, qos, on_sample)
         return stream
 
     @staticmethod
@@ -491,14 +539,9 @@ class Car:
                 raise ClientError("the client is closed")
             entry = self._pubs.get(topic)
             if entry is None:
-                entity = self._entity(rmw.PUBLISHER, topic, type(msg), DEFAULT)
-                publisher = self.session.declare_publisher(self._key(topic, type(msg)))
-                self._tokens.append(self.session.liveliness().declare_token(entity.token()))
-                entry = self._pubs[topic] = (publisher, entity.gid(), [0])
-            publisher, gid, sequence = entry
-            sequence[0] += 1
-            attachment = rmw.encode_attachment(sequence[0], time.time_ns(), gid)
-            publisher.put(ros2_types().serialize(msg), attachment=attachment)
+                entry = self._pubs[topic] = self.node.publisher(topic, type(msg), DEFAULT)
+            publisher, stamps = entry
+            publisher.put(ros2_types().serialize(msg), attachment=stamps.next(time.time_ns()))
 
     def drive(self, speed: float, steering: float, input: str | None = None) -> None:  # noqa: A002
         """Command ``speed`` (m/s, + forward) and ``steering`` (rad, + left) on a mux input.
@@ -519,55 +562,6 @@ class Car:
         """Command zero speed, centred steering on the input (the mux then times it out)."""
         self.drive(0.0, 0.0, input)
 
-    def estop(self) -> None:
-        """Engage the daemon's latched e-stop."""
-        self.publish(self.mux.estop_topic, Bool(True))
-
-    def mux_status(self, timeout: float | None = 5.0) -> MuxStatus:
-        """The mux's state from its next ``/diagnostics`` (2 Hz); ClientError after ``timeout`` s."""
-        with self._lock:
-            if self.mux_stream is None:
-                self.mux_stream = self._subscribe(self.mux.diagnostics_topic, DiagnosticArray,
-                                                  _mux_status, DEFAULT, shared=True)
-            stream = self.mux_stream
-        value, _ = stream.wait_newer(stream.count, timeout)
-        return value
-
-    def release_estop(self, timeout: float = 5.0) -> None:
-        """Release the daemon's e-stop, if the daemon lets this client: returns once the mux runs.
-
-        Stop is for anyone, release is for an operator: the release topic this sends on releases
-        only an e-stop that the e-stop topic alone engaged (this client's :meth:`estop`, another
-        network node), and only where the daemon's ``mux.estop_release_sources`` names ``network``.
-        An e-stop latched on the status page, in Foxglove or by ``start_estopped`` is released there.
-        Raises :class:`ClientError` saying why when the daemon refuses (read back from the mux's
-        ``/diagnostics``), or when the mux does not answer within ``timeout`` s. Returns at once
-        when the e-stop is not engaged.
-        """
-        deadline = time.monotonic() + timeout
-        before = self.mux_status(timeout)
-        if before.state == "running":
-            return
-        self.publish(self.mux.estop_topic, Bool(False))
-        self.publish(self.mux.estop_release_topic, Bool(True))
-        retried = False
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise ClientError(f"the e-stop was not released within {timeout} s ({before.estop})")
-            status = self.mux_status(left)
-            if status.state == "running":
-                return
-            if status.release_refusals > before.release_refusals:
-                if not retried and status.last_refusal.endswith(REFUSED_ASSERTED):
-                    # the release overtook our own "false" (two topics, two of Zenoh's threads):
-                    # once more, now that the false is in
-                    retried, before = True, status
-                    self.publish(self.mux.estop_release_topic, Bool(True))
-                    continue
-                raise ClientError(f"the daemon refused the release: {status.last_refusal} "
-                                  f"(the e-stop was {status.estop})")
-
     # --- life cycle ---------------------------------------------------------------------------
 
     def close(self) -> None:
@@ -576,9 +570,7 @@ class Car:
             if self._closed:
                 return
             self._closed = True
-        for entity in (*self._tokens, *self._subs, *(p for p, _, _ in self._pubs.values())):
-            with contextlib.suppress(Exception):
-                entity.undeclare()
+        self.node.close()
         if self._own_session:
             with contextlib.suppress(Exception):
                 self.session.close()

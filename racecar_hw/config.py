@@ -27,6 +27,7 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import apply_override, key_lines, key_path, load_yaml, merge, remove_key
 from racecar_hw.base.params import build, describe, param, to_dict, unknown_key
 from racecar_hw.base.resources import config_file
+from racecar_hw.base.topics import CMD_VEL_BUS_TOPIC, FOXGLOVE_INPUT_TOPIC
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.dds_config import DdsParams
 from racecar_hw.net.foxglove_server import FoxgloveParams
@@ -145,7 +146,6 @@ _SECTIONS: dict[str, type] = {
 
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
 FOXGLOVE_INPUT = "foxglove"
-FOXGLOVE_INPUT_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/foxglove"
 
 
 def build_config(data: dict[str, Any]) -> Config:
@@ -184,8 +184,6 @@ def build_config(data: dict[str, Any]) -> Config:
     return config
 
 
-#: The bus topic of the mux input that ROS 2 velocity commands (/cmd_vel) drive.
-CMD_VEL_BUS_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/cmd_vel"
 #: The timeout (s) of the mux input ``cmd_vel``: a ROS 2 node's velocity commands, as nav_0's.
 CMD_VEL_TIMEOUT_S = 0.2
 

@@ -11,9 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from racecar_hw.base.params import param
-
-#: The mux input the seeds' safety node publishes on; it has top priority (CSE490R lab 0, MuSHR).
-MUX_SAFETY_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/safety"
+from racecar_hw.base.topics import MUX_SAFETY_TOPIC
 
 MODES = ("arc", "cone", "off")
 

@@ -609,11 +609,10 @@ def write_bag(path: Path, fmt: str, commands: Sequence[tuple[int, float, float]]
     """An Ackermann bag of ``commands`` (t_ns, speed m/s, steering rad) on ``topic``, written with
     rosbags: AckermannDriveStamped, or AckermannDrive if not ``stamped``. ``chunked``: ROS 1 with
     bz2 chunks of a few messages, so a file holds several chunks. MCAP as the recorder writes it
-    (chunks with their CRC-32: :class:`racecar_hw.bags.writers.Ros2Writer`)."""
+    (chunks with their CRC-32: :class:`racecar_hw.bags.writers.Ros2Bag`)."""
     from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin
 
-    from racecar_hw.bags.writers import Ros2Writer as Writer2
+    from racecar_hw.bags.writers import Ros2Bag
     from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
     from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
 
@@ -634,11 +633,10 @@ def write_bag(path: Path, fmt: str, commands: Sequence[tuple[int, float, float]]
                 w1.write(conn, t, types.serialize(msg(speed, steer)))
         return path
     types = ros2_types()
-    plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-    with Writer2(path, version=9, storage_plugin=plugin) as w2:
-        conn = w2.add_connection(topic, ros_type, typestore=types.store)
+    with Ros2Bag(path, fmt) as w2:
+        cid = w2.add_connection(topic, ros_type, types.msgdef(ros_type), types.digest(ros_type), "")
         for t, speed, steer in commands:
-            w2.write(conn, t, types.serialize(msg(speed, steer)))
+            w2.write(cid, t, types.serialize(msg(speed, steer)))
     return path
 
 

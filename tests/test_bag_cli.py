@@ -89,11 +89,10 @@ def write_killed_split_set(tmp_path: Path, fmt: str, last: str) -> list[Path]:
         bag.close(last=False)
     opened = BagFile(paths[3], fmt, "none", types, meta)
     if last == "header":  # the header pushed to the file, no message yet
-        storage = getattr(opened._writer, "storage", None)
         if fmt == "ros1":
-            opened._writer.bio.flush()
+            opened._ros1._fh.flush()  # noqa: SLF001 - the file as the OS has it
         elif fmt == "mcap":
-            storage.bio.flush()
+            opened._storage._fh.flush()  # noqa: SLF001
     snapshot = tmp_path / "killed"
     shutil.copytree(work, snapshot)  # what is on disk at the kill (the writer's buffers are lost)
     opened.abort()

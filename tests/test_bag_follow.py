@@ -15,8 +15,6 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bags.follow import (
-    NAV0_TOPIC,
-    TELEOP_TOPIC,
     BagFollower,
     Command,
     CommandSync,
@@ -36,6 +34,7 @@ from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, ScanRange, Time
+from racecar_hw.base.topics import NAV0_TOPIC, TELEOP_TOPIC
 from racecar_hw.rosmsg.typestore import ros2_types
 
 T0 = 1_700_000_000 * NS_PER_S

@@ -21,11 +21,13 @@ from conftest import wait_for
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bags.follow import load_commands, summarize_bag
 from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, offered_qos, record_params
 from racecar_hw.bags.recover import inspect_bag, recover_bag, scan_mcap
-from racecar_hw.bags.writers import ROS1_FILE_HEADER_RECORD, ROS2_METADATA_VERSION, Ros2Writer
+from racecar_hw.bags.validate import mcap_chunk_crc_error
+from racecar_hw.bags.writers import MCAP_CHUNK_CRC_OFFSET, ROS1_FILE_HEADER_RECORD, ROS2_METADATA_VERSION
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
@@ -317,18 +319,22 @@ def test_recover_leaves_complete_bags_alone(tmp_path: Path) -> None:
         recover_bag(tmp_path / "nope")
 
 
-def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
+def test_mcap_written_with_the_mcap_library_holds_what_rosbags_writes(tmp_path: Path) -> None:
+    """The recorder's MCAP (the ``mcap`` library's writer) against rosbags' own rosbag2 writer fed
+    the same messages: the same messages, schemas, channels and QoS metadata, read back by the
+    ``mcap`` reader (CRCs checked) and by rosbags; rosbags' metadata.yaml but for custom_data;
+    the ros2 profile, encodings and the ``rosbag2`` metadata record rosbag2 writes."""
+    from mcap.reader import make_reader
+
     types = ros2_types()
     tf = TFMessage([TransformStamped(Header(Time(1, 2), "odom"), "base_link")])
     msgs: list[tuple[str, Message]] = []
-    for i in range(160):  # 160 scans cross rosbags' 1 MiB chunk limit
+    for i in range(160):  # 160 scans cross the 1 MiB chunk size
         msgs += [("/scan", scan(i)), (CMD, cmd(i)), ("/tf", tf)]
     (tmp_path / "ours").mkdir()
     (tmp_path / "ref").mkdir()
     ours = BagFile(tmp_path / "ours" / "bag" / "bag", "mcap", "none", types)
-    assert ours._mcap is not None  # the lean path is in use with this rosbags
-    ref = Ros2Writer(tmp_path / "ref" / "bag", version=ROS2_METADATA_VERSION,
-                     storage_plugin=StoragePlugin.MCAP)
+    ref = Writer2(tmp_path / "ref" / "bag", version=ROS2_METADATA_VERSION, storage_plugin=StoragePlugin.MCAP)
     ref.open()
     conns: dict[str, Connection] = {}
     for i, (topic, msg) in enumerate(msgs):
@@ -338,14 +344,41 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
             conns[topic] = ref.add_connection(topic, msg.ROS_TYPE, typestore=types.store,
                                               offered_qos_profiles=offered_qos(topic, type(msg)))
         ref.write(conns[topic], t_ns, types.serialize_generic(msg))
-        if i == 100:  # a flush closes the pending chunk on both
+        if i == 100:
             ours.flush()
-            storage: Any = ref.storage
-            storage.close_chunk()
     ours.close()
     ref.close()
+
+    def content(path: Path) -> tuple[Any, ...]:
+        with path.open("rb") as fh:
+            reader = make_reader(fh, validate_crcs=True)
+            header = reader.get_header()
+            summary = reader.get_summary()
+            assert summary is not None
+            schemas = sorted((s.name, s.encoding, s.data) for s in summary.schemas.values())
+            channels = sorted((c.topic, c.message_encoding, summary.schemas[c.schema_id].name,
+                               tuple(sorted(c.metadata.items()))) for c in summary.channels.values())
+            messages = [(c.topic, m.log_time, m.publish_time, m.data)
+                        for _s, c, m in reader.iter_messages(log_time_order=False)]
+            metadata = [(r.name, sorted(r.metadata)) for r in reader.iter_metadata()]
+            return header.profile, schemas, channels, sorted(messages), metadata, summary.statistics
+
+    mine = content(tmp_path / "ours" / "bag" / "bag.mcap")
+    theirs = content(tmp_path / "ref" / "bag" / "bag.mcap")
+    assert mine[:5] == theirs[:5]
+    assert mine[0] == "ros2" and mine[4] == [("rosbag2", ["serialized_metadata"])]
+    assert {enc for _n, enc, _d in mine[1]} == {"ros2msg"} and {c[1] for c in mine[2]} == {"cdr"}
+    assert mine[5].message_count == len(msgs) and mine[5].chunk_count >= 2  # the flush
+    with (tmp_path / "ours" / "bag" / "bag.mcap").open("rb") as fh:  # every chunk has its CRC-32
+        summary = make_reader(fh).get_summary()
+        assert summary is not None and summary.chunk_indexes
     mcap = (tmp_path / "ours" / "bag" / "bag.mcap").read_bytes()
-    assert mcap == (tmp_path / "ref" / "bag" / "bag.mcap").read_bytes()
+    crc_at = [ci.chunk_start_offset + MCAP_CHUNK_CRC_OFFSET for ci in summary.chunk_indexes]
+    assert all(mcap[at:at + 4] != bytes(4) for at in crc_at)
+    assert mcap_chunk_crc_error(tmp_path / "ours" / "bag" / "bag.mcap") is None
+    with AnyReader([tmp_path / "ours" / "bag"]) as reader:
+        got = [(c.topic, t, bytes(d)) for c, t, d in reader.messages()]
+    assert sorted(got) == sorted((topic, t, d) for topic, t, _p, d in mine[3])
     meta = yaml.safe_load((tmp_path / "ours" / "bag" / "metadata.yaml").read_text())
     ref_meta = yaml.safe_load((tmp_path / "ref" / "bag" / "metadata.yaml").read_text())
     # rosbags' metadata for one file, but for custom_data (ours says the recording was closed)
@@ -353,6 +386,26 @@ def test_mcap_fast_path_writes_the_bytes_rosbags_writes(tmp_path: Path) -> None:
     assert ref_meta["rosbag2_bagfile_information"].pop("custom_data") is None
     assert meta == ref_meta
     assert scan_mcap(mcap).complete
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3", "ros1"])
+def test_a_message_the_serializer_refuses_is_dropped_and_counted_and_recording_goes_on(
+        tmp_path: Path, fmt: str, caplog: pytest.LogCaptureFixture) -> None:
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, fmt, name="bad"))
+    rec.start()
+    bad = cmd(1)
+    bad.header.stamp.sec = 1.5  # type: ignore[assignment]  # a float in an integer field
+    bus.publish(CMD, cmd(0))
+    bus.publish(CMD, bad)
+    bus.publish(CMD, bad)
+    bus.publish(CMD, cmd(2))
+    stats = rec.stop()
+    assert (stats.written, stats.dropped, stats.error) == (2, 2, None)
+    assert [c.drive.speed for c in load_commands(stats.files[0], CMD)] == [0.0, 1.0]
+    assert inspect_bag(stats.files[0]).complete
+    said = [r.getMessage() for r in caplog.records if "cannot be serialized" in r.getMessage()]
+    assert len(said) == 1 and "AckermannDriveStamped" in said[0] and CMD in said[0]
 
 
 def test_writer_drains_the_queue_on_its_own(tmp_path: Path) -> None:
@@ -372,11 +425,11 @@ def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monke
     bus = Bus()
     rec = Recorder(bus, record_params(tmp_path, name="idle", flush_interval_s=3600.0))
     rec.start()
-    wait_for(lambda: rec._drain_due < math.inf)  # noqa: SLF001 - the writer set its first due time
+    wait_for(lambda: rec._outbox._drain_due < math.inf)  # noqa: SLF001 - the writer set its first due time
     bus.publish(CMD, cmd(1))
     rec.control_idle()  # not due yet: the message waits for its batch
     assert rec.stats.written == 0 and rec.stats.queued == 1
-    rec._drain_due = 0.0  # noqa: SLF001 - as if BATCH_S had passed
+    rec._outbox._drain_due = 0.0  # noqa: SLF001 - as if BATCH_S had passed
     rec.control_idle()
     wait_for(lambda: rec.stats.written == 1)
     assert rec.stop().written == 1

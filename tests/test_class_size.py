@@ -18,8 +18,6 @@ MAX_LINES = 250
 #: list cannot go stale.
 PENDING = {
     "racecar_hw/daemon.py::Daemon",
-    "racecar_hw/net/zenoh_bridge.py::ZenohBridge",
-    "racecar_hw/client.py::Car",
 }
 
 

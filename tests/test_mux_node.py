@@ -13,7 +13,7 @@ import pytest
 from conftest import async_wait_for
 
 from mux.arbiter import MuxState
-from mux.node import CommandMux, MuxNode, next_deadline
+from mux.node import CommandMux, Filter, MuxNode
 from mux.params import LockParams, MuxParams
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import monotonic_ns, nanoseconds
@@ -27,6 +27,7 @@ from racecar_hw.base.messages import (
     String,
     Time,
 )
+from racecar_hw.runtime.ticker import PeriodicTimer
 
 LOW = "/vesc/low_level/ackermann_cmd_mux"
 HIGH = "/vesc/high_level/ackermann_cmd_mux"
@@ -351,12 +352,18 @@ def test_close_unsubscribes_and_is_safe_twice():
     assert mux.arbitrate().source == "idle"
 
 
-def test_next_deadline_stays_on_the_grid_and_skips_instead_of_bursting():
-    assert next_deadline(0, 5, 20) == (20, 1)
-    assert next_deadline(0, 20, 20) == (20, 1)  # exactly due: run now
-    assert next_deadline(0, 21, 20) == (40, 2)  # one deadline skipped
-    assert next_deadline(0, 105, 20) == (120, 6)
-    assert next_deadline(100, 90, 20) == (120, 1)  # woke early: the next grid point
+def _control_loop(mux: CommandMux, filters: list[Filter] | tuple[()] = ()) -> PeriodicTimer:
+    """The daemon's control loop around ``mux``: a :class:`PeriodicTimer` at ``rate_hz`` calling
+    :meth:`CommandMux.step`, diagnostics every ``rate_hz / diagnostics_rate_hz`` ticks."""
+    every = max(1, round(mux.params.rate_hz / mux.params.diagnostics_rate_hz))
+
+    def tick(due: int, periods: int) -> None:
+        mux.step(due, filters, periods)
+        if timer.count % every == 1:
+            mux.publish_diagnostics(due)
+
+    timer = PeriodicTimer(mux.params.rate_hz, tick)
+    return timer
 
 
 def test_node_at_50hz_keeps_publishing_while_inputs_are_silent():
@@ -368,7 +375,8 @@ def test_node_at_50hz_keeps_publishing_while_inputs_are_silent():
         bus.subscribe(OUTPUT, lambda msg: outputs.append((monotonic_ns(), msg)))
         bus.subscribe("/diagnostics", diagnostics.append)
         start = monotonic_ns()
-        task = asyncio.create_task(mux.run())
+        loop = _control_loop(mux)
+        loop.start()
         try:
             await async_wait_for(lambda: len(outputs) >= 3, timeout=20)
 
@@ -384,16 +392,13 @@ def test_node_at_50hz_keeps_publishing_while_inputs_are_silent():
             await async_wait_for(lambda: len(outputs) >= silent_from + 25, timeout=30)
             elapsed = monotonic_ns() - start
         finally:
-            task.cancel()
-            with pytest.raises(asyncio.CancelledError):
-                await task
+            loop.cancel()
         count = len(outputs)
-        # never more than one message per 20 ms deadline (no bursts), plus the final stop
-        assert count <= elapsed / nanoseconds(0.02) + 3
+        # never more than one message per 20 ms deadline (no bursts)
+        assert count <= elapsed / nanoseconds(0.02) + 2
         tail = [m for _t, m in outputs[silent_from:]]
-        assert tail[-1].drive == AckermannDrive()  # the stop published on cancellation
         assert all(m.header.frame_id == "base_link" for m in tail)
-        assert tail[-2].drive.speed == pytest.approx(0.0, abs=1e-9)  # braked to zero while silent
+        assert tail[-1].drive.speed == pytest.approx(0.0, abs=1e-9)  # braked to zero while silent
         assert diagnostics, "diagnostics at ~2 Hz"
         assert mux.state is MuxState.RUNNING
 
@@ -412,14 +417,13 @@ def test_node_that_falls_behind_skips_deadlines():
                 time.sleep(0.1)  # the loop falls behind by about 5 periods
             return drive
 
-        task = asyncio.create_task(mux.run(filters=[stall_once]))
+        loop = _control_loop(mux, [stall_once])
+        loop.start()
         try:
             await async_wait_for(lambda: len(ticks) >= 15, timeout=30)
         finally:
-            task.cancel()
-            with pytest.raises(asyncio.CancelledError):
-                await task
-        assert mux.overruns >= 3
+            loop.cancel()
+        assert mux.overruns >= 3 and mux.overruns == loop.missed
         assert mux.state is MuxState.RUNNING
         # a catch-up burst would run the next 5 ticks back to back; on the grid each waits for its
         # own deadline, so 5 ticks span at least 3 whole periods

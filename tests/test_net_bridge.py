@@ -349,7 +349,7 @@ def test_any_bytes_from_the_network_are_counted_never_raised(payload, attachment
     loop = asyncio.new_event_loop()  # not running: a hand-over only queues
     bridge.inbox.bind(loop)
     try:
-        bridge._receiver(rows[topic])(_Sample(payload, attachment))
+        bridge.inputs.receiver(rows[topic])(_Sample(payload, attachment))
     finally:
         loop.close()
     s = bridge.stats

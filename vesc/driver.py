@@ -66,6 +66,8 @@ from racecar_hw.base.messages import (
     VescState,
     VescStateStamped,
 )
+from racecar_hw.base.topics import TOPIC_CORE, TOPIC_IMU, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF
+from racecar_hw.runtime.reconnect import ReconnectingDevice
 from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
@@ -104,11 +106,6 @@ PLAUSIBLE_V_IN = (0.0, 100.0)
 #: Largest |duty cycle| a reply can carry (the firmware clamps to 0.95).
 PLAUSIBLE_DUTY = 1.0
 
-TOPIC_CORE = "/vesc/sensors/core"
-TOPIC_SERVO = "/vesc/sensors/servo_position_command"
-TOPIC_ODOM = "/odom"
-TOPIC_TF = "/tf"
-TOPIC_IMU = "/imu"
 #: IMU replies older than this many poll periods are not used for odometry's yaw rate.
 IMU_STALE_POLLS = 3
 
@@ -154,12 +151,19 @@ def values_to_state(v: Values) -> VescState:
         ntc_temp_mos3=v.temp_mos3, avg_vd=v.avg_vd, avg_vq=v.avg_vq)
 
 
-class VescDriver:
-    """One VESC on a serial port, publishing on ``bus``. An async context manager running :meth:`run`."""
+class VescDriver(ReconnectingDevice):
+    """One VESC on a serial port, publishing on ``bus``. An async context manager running :meth:`run`.
+
+    The reconnect loop is :class:`~racecar_hw.runtime.reconnect.ReconnectingDevice`'s: a port that
+    opens proves the VESC, so the backoff restarts then and a lost link is reopened at once.
+    """
+
+    device_name = "VESC"
 
     def __init__(self, bus: Bus, params: VescParams | None = None) -> None:
         self.bus = bus
         self.params = params or VescParams()
+        super().__init__(self.params.reconnect_backoff_min_s, self.params.reconnect_backoff_max_s)
         self.conversion = AckermannConversion.from_params(self.params)
         self.odometry = OdometryIntegrator.from_params(self.params)
         self.stats = VescLinkStats()
@@ -180,12 +184,8 @@ class VescDriver:
         self._failsafe_timer: asyncio.TimerHandle | None = None
         self._failsafe_loop: asyncio.AbstractEventLoop | None = None
         self._frames: dict[Packet, bytes] = {}
-        self._stop = asyncio.Event()
         self._closed = False
         self._run_task: asyncio.Task[None] | None = None
-        self._ever_connected = False
-        #: why the port last failed to open, for the operator; None once it opened
-        self.last_error: str | None = None
         self._timeout_ns = nanoseconds(self.params.command_timeout_s)
         self._alive_ns = nanoseconds(self.params.alive_interval_s)
         # A poll is due 0.9 poll periods after the last one: a command going out then carries it, so
@@ -209,11 +209,6 @@ class VescDriver:
     def connected(self) -> bool:
         """Whether the port is open and the VESC answered FW_VERSION on it."""
         return self._link is not None and self._link.is_open and self._firmware is not None
-
-    @property
-    def ever_connected(self) -> bool:
-        """Whether the port ever opened in this driver's life."""
-        return self._ever_connected
 
     @property
     def last_motor_write_ns(self) -> int:
@@ -296,51 +291,28 @@ class VescDriver:
     async def run(self) -> None:
         """Connect, handshake, poll and reconnect until :meth:`shutdown` (or cancellation)."""
         self._run_task = asyncio.current_task()
-        backoff = self.params.reconnect_backoff_min_s
-        failures = 0
         try:
-            while not self._stop.is_set():
-                try:
-                    await self._open()
-                except DeviceError as err:
-                    failures += 1
-                    self.last_error = str(err)
-                    (log.warning if failures == 1 else log.debug)("VESC not available: %s", err)
-                    await self._pause(backoff)
-                    backoff = min(backoff * 2.0, self.params.reconnect_backoff_max_s)
-                    continue
-                except Exception:
-                    log.exception("unexpected error opening the VESC port")
-                    await self._pause(backoff)
-                    backoff = min(backoff * 2.0, self.params.reconnect_backoff_max_s)
-                    continue
-                if self._ever_connected:
-                    self.stats.reconnects += 1
-                self._ever_connected = True
-                self.last_error = None
-                failures = 0
-                backoff = self.params.reconnect_backoff_min_s
-                try:
-                    await self._session()
-                except asyncio.CancelledError:
-                    self.brake_and_centre()  # leave the car braked
-                    raise
-                except DeviceError as err:
-                    if not self._stop.is_set():
-                        log.warning("VESC link lost: %s", err)
-                except Exception:
-                    log.exception("VESC session failed; reconnecting")
-                finally:
-                    self._close_link()
+            await super().run()
         finally:
             self._close_link()
+
+    def _on_opened(self) -> None:
+        if self.ever_connected:
+            self.stats.reconnects += 1
+        super()._on_opened()
+
+    def _on_cancelled(self) -> None:
+        self.brake_and_centre()  # leave the car braked
+
+    async def _close(self) -> None:
+        self._close_link()
 
     async def shutdown(self) -> None:
         """Brake, centre the servo, close the port and stop :meth:`run`. Safe twice."""
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
+        self.stop_reconnecting()
         self._moving = False
         if self._failsafe_timer is not None:
             self._failsafe_timer.cancel()
@@ -389,10 +361,6 @@ class VescDriver:
         self._firmware = None
         if link is not None:
             link.close()
-
-    async def _pause(self, delay_s: float) -> None:
-        with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._stop.wait(), delay_s)
 
     async def _session(self) -> None:
         link = self._link

@@ -58,12 +58,11 @@ from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import NAV0_TOPIC
 from racecar_hw.rosmsg.typestore import ros2_types
 
 log = logging.getLogger(__name__)
 
-TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
-NAV0_TOPIC = "/vesc/high_level/ackermann_cmd_mux/input/nav_0"
 ACKERMANN_TYPES = ("ackermann_msgs/msg/AckermannDriveStamped", "ackermann_msgs/msg/AckermannDrive")
 TWIST_TYPES = ("geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped")
 ACCEPTED_TYPES = ACKERMANN_TYPES + TWIST_TYPES

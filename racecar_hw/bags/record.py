@@ -1,15 +1,16 @@
 """Record bus topics into ROS 2 (MCAP or sqlite3) or ROS 1 bags, without ever delaying the bus.
 
 :class:`Recorder` is a bus listener. Its callback runs in the bus's event-loop thread and only
-appends ``(topic, message, receive time)`` to a bounded queue; a writer thread serializes and writes.
+queues ``(topic, message, receive time)`` in an :class:`~racecar_hw.runtime.outbox.Outbox` (the
+queue and thread the network publishers use too); its writer thread serializes and writes.
 The writer is not woken per message: it drains the queue every :data:`BATCH_S`, or at once when
 :data:`WAKE_AT` messages (or a quarter of ``queue_size``) wait. A control loop that has idle
 moments says so with :meth:`Recorder.control_idle`: the daemon calls it when a scan's motor command
 is out, and a drain that is due then runs in the gap before the next scan instead of competing
 with the scan path for the interpreter (the writer then waits at most ``2 * BATCH_S`` on its own).
-Serialization uses the direct serializers of :mod:`racecar_hw.rosmsg.serde`, MCAP writes the lean
-path of :mod:`racecar_hw.bags.mcap_appender`;
-both give the bytes rosbags gives. When the queue is full the message is dropped and counted
+Serialization uses the generated serializers of :mod:`racecar_hw.rosmsg.serde` (rosbags' bytes);
+the files are written by :mod:`racecar_hw.bags.writers` (MCAP with the ``mcap`` library, sqlite3)
+and :mod:`racecar_hw.bags.ros1_writer`. When the queue is full the message is dropped and counted
 (``stats.dropped``, and a warning at most once per flush interval): never silently, never by
 blocking the control loop.
 
@@ -40,12 +41,9 @@ before recording began. ROS 2 topics are offered with the QoS a ROS 2 publisher 
 
 from __future__ import annotations
 
-import collections
 import logging
-import math
 import os
 import re
-import threading
 import time
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -54,7 +52,6 @@ from typing import Any
 
 import yaml
 from rosbags.interfaces import (
-    Connection,
     Qos,
     QosDurability,
     QosHistory,
@@ -62,25 +59,17 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.metadata import dump_qos_v8
 
-from racecar_hw.bags.mcap_appender import McapAppender
-from racecar_hw.bags.writers import (
-    RECORDING_CLOSED,
-    RECORDING_OPEN,
-    ROS2_METADATA_VERSION,
-    Ros1Writer,
-    Ros2FileWriter,
-)
+from racecar_hw.bags.ros1_writer import Ros1Writer
+from racecar_hw.bags.writers import Storage, bag_info, open_storage
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, wall_ns
 from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
 from racecar_hw.rosmsg.typestore import BagTypes, types_for
+from racecar_hw.runtime.outbox import Outbox
 
 log = logging.getLogger(__name__)
 
@@ -94,19 +83,9 @@ LZ4_REFUSAL = (
     "read the LZ4 chunks rosbags writes; use compression 'bz2' or 'none'"
 )
 
-
 #: Niceness the writer thread gives itself (Linux: per thread): disk work yields the CPU to the
 #: control path whenever both want it. Lowering one's own priority needs no privilege.
 WRITER_NICE = 10
-
-
-def _lower_thread_priority(nice: int) -> None:
-    """Make the calling thread nicer by ``nice`` where the OS supports per-thread priorities."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
-    except (AttributeError, OSError):
-        log.debug("cannot lower the bag writer's priority on this system")
 
 
 @dataclass
@@ -203,11 +182,10 @@ class Ros2BagMetadata:
         self.complete = False
         self._template: tuple[tuple[int, int, bool], list[str], list[int]] | None = None
 
-    def add_topic(self, topic: str, conn: Connection) -> None:
-        """Note a topic the first time any file of the bag writes it."""
+    def add_topic(self, topic: str, msgtype: str, qos: str, digest: str) -> None:
+        """Note a topic the first time any file of the bag writes it (``qos``: metadata.yaml text)."""
         if topic not in self.topics:
-            qos = dump_qos_v8(conn.ext.offered_qos_profiles)  # type: ignore[union-attr]
-            self.topics[topic] = _TopicInfo(conn.msgtype, qos, conn.digest)
+            self.topics[topic] = _TopicInfo(msgtype, qos, digest)
 
     def file_closed(self, bag: BagFile) -> None:
         """Fold a finished file's numbers into the bag's."""
@@ -240,30 +218,12 @@ class Ros2BagMetadata:
         duration, start, count = numbers[:3]
         counts = numbers[3:3 + len(self.topics)]
         per_file = numbers[3 + len(self.topics):]
-        topics = [{"topic_metadata": {"name": topic, "type": info.msgtype,
-                                      "serialization_format": "cdr",
-                                      "offered_qos_profiles": info.qos,
-                                      "type_description_hash": info.digest},
-                   "message_count": n}
+        topics = [(topic, info.msgtype, info.qos, info.digest, n)
                   for (topic, info), n in zip(self.topics.items(), counts, strict=True)]
-        files = [{"path": name, "starting_time": {"nanoseconds_since_epoch": per_file[3 * i]},
-                  "duration": {"nanoseconds": per_file[3 * i + 1]},
-                  "message_count": per_file[3 * i + 2]}
+        files = [(name, per_file[3 * i], per_file[3 * i + 1], per_file[3 * i + 2])
                  for i, name in enumerate(names)]
-        return {
-            "version": ROS2_METADATA_VERSION,
-            "storage_identifier": self.storage_identifier,
-            "relative_file_paths": list(names),
-            "duration": {"nanoseconds": duration},
-            "starting_time": {"nanoseconds_since_epoch": start},
-            "message_count": count,
-            "topics_with_message_count": topics,
-            "compression_format": "",
-            "compression_mode": "",
-            "files": files,
-            "custom_data": {"racecar_hw": RECORDING_CLOSED if self.complete else RECORDING_OPEN},
-            "ros_distro": "rosbags",
-        }
+        return bag_info(self.storage_identifier, duration=duration, start=start, count=count,
+                        files=files, topics=topics, complete=self.complete)
 
     def text(self, current: BagFile | None) -> str:
         """``metadata.yaml``: the text ``yaml.safe_dump`` gives for :meth:`info`, from a template.
@@ -302,6 +262,11 @@ class Ros2BagMetadata:
         tmp.replace(meta)
 
 
+class UnserializableMessage(BagError):
+    """A message the serializer refuses (a value that does not fit its field): that message is
+    dropped and counted, the recording goes on."""
+
+
 class BagFile:
     """One file being written (one split): connections by topic, flush to disk, close.
 
@@ -319,42 +284,40 @@ class BagFile:
         self.count = 0
         self.first_ns: int | None = None
         self.last_ns = 0
-        self._conns: dict[str, Connection] = {}
+        self._conns: dict[str, Any] = {}  # topic -> connection id (ROS 2) or Ros1Connection
         self.topic_counts: dict[str, int] = {}
         self._seq: dict[str, int] = {}
-        self._writer: Ros1Writer | Ros2FileWriter
         if fmt != "ros1" and meta is None:
             meta = Ros2BagMetadata(path.parent, fmt)
         self.meta = meta
-        try:
-            if fmt == "ros1":
-                w1 = Ros1Writer(path)
-                if compression == "bz2":
-                    w1.set_compression(Writer1.CompressionFormat.BZ2)
-                self._writer = w1
-            else:
-                plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-                self._writer = Ros2FileWriter(path.parent, path.name, storage_plugin=plugin)
-            self._writer.open()
-        except Exception as err:
-            raise BagError(f"cannot create bag {path}: {err}") from err
-        self._mcap = McapAppender.attach(self._writer) if isinstance(self._writer, Writer2) else None
-        storage: Any = getattr(self._writer, "storage", None)
-        self.file_name = Path(storage.path).name if storage is not None else path.name
+        self._ros1: Ros1Writer | None = None
+        self._storage: Storage | None = None
+        if fmt == "ros1":
+            self._ros1 = Ros1Writer(path, compression)
+            self.file_name = path.name
+        else:
+            self._storage = open_storage(path.parent, path.name, fmt)
+            self.file_name = self._storage.path.name
         if self.meta is not None:
             self.meta.write(self)
 
     def write(self, topic: str, msg: Message, t_ns: int) -> int:
         """Serialize and append ``msg``; returns the payload size in bytes."""
+        seq = self._seq.get(topic, 0) + 1
+        try:
+            data = self.types.serialize(msg, seq)
+        except Exception as err:
+            raise UnserializableMessage(f"{topic}: a {type(msg).__name__} that cannot be serialized: "
+                                        f"{type(err).__name__}: {err}") from err
         conn = self._conns.get(topic)
         if conn is None:
             conn = self._add_connection(topic, type(msg))
-        seq = self._seq[topic] = self._seq[topic] + 1
-        data = self.types.serialize(msg, seq)
-        if self._mcap is not None:
-            self._mcap.write(conn.id, t_ns, data)
+        self._seq[topic] = seq
+        if self._storage is not None:
+            self._storage.write(conn, t_ns, data)
         else:
-            self._writer.write(conn, t_ns, data)
+            assert self._ros1 is not None
+            self._ros1.write(conn, t_ns, data)
         self.topic_counts[topic] += 1
         self.count += 1
         size = len(data)
@@ -367,23 +330,11 @@ class BagFile:
 
     def flush(self) -> None:
         """Push buffered messages into the file and fsync: a crash keeps everything up to here."""
-        w = self._writer
-        if isinstance(w, Writer1):
-            if w.bio is None:
-                return
-            w.write_chunk(w.chunks[-1])
-            _sync(w.bio)
+        if self._ros1 is not None:
+            self._ros1.flush()
             return
-        storage: Any = w.storage
-        if storage is None:
-            return
-        if self.format == "mcap":
-            if storage.chunk.bio.tell():
-                storage.close_chunk()
-            _sync(storage.bio)
-        else:
-            storage.conn.commit()
-        assert self.meta is not None
+        assert self._storage is not None and self.meta is not None
+        self._storage.flush()
         self.meta.write(self)
 
     def close(self, last: bool = True) -> None:
@@ -391,31 +342,38 @@ class BagFile:
 
         ``last``: no further split of this bag follows, so the bag is complete too.
         """
-        self._writer.close()
-        if self.meta is not None:
-            self.meta.file_closed(self)
-            self.meta.complete = last
-            self.meta.write(None)
+        if self._ros1 is not None:
+            self._ros1.close()
+            return
+        assert self._storage is not None and self.meta is not None
+        self.meta.file_closed(self)
+        self.meta.complete = last
+        self._storage.close(self.meta.text(None))
+        self.meta.write(None)
 
     def abort(self) -> None:
         """Close without finishing (after a write error)."""
         try:
-            self._writer.abort()
+            if self._ros1 is not None:
+                self._ros1.abort()
+            elif self._storage is not None:
+                self._storage.abort()
         except Exception:
             log.exception("aborting bag %s failed", self.path)
 
-    def _add_connection(self, topic: str, cls: type[Message]) -> Connection:
+    def _add_connection(self, topic: str, cls: type[Message]) -> Any:
         typename = cls.ROS_TYPE
-        w = self._writer
-        if isinstance(w, Writer1):
-            conn = w.add_connection(topic, typename, typestore=self.types.store,
-                                    callerid="/racecar_hw",
-                                    latching=1 if topic in LATCHED_TOPICS else None)
+        msgdef, digest = self.types.msgdef(typename), self.types.digest(typename)
+        if self._ros1 is not None:
+            pkg, _, name = typename.partition("/msg/")
+            conn: Any = self._ros1.add_connection(topic, f"{pkg}/{name}", digest, msgdef,
+                                                  callerid="/racecar_hw",
+                                                  latching=1 if topic in LATCHED_TOPICS else None)
         else:
-            conn = w.add_connection(topic, typename, typestore=self.types.store,
-                                    offered_qos_profiles=offered_qos(topic, cls))
-            assert self.meta is not None
-            self.meta.add_topic(topic, conn)
+            assert self._storage is not None and self.meta is not None
+            qos = dump_qos_v8(offered_qos(topic, cls))
+            conn = self._storage.add_connection(topic, typename, msgdef, digest, qos)
+            self.meta.add_topic(topic, typename, qos, digest)
         self._conns[topic] = conn
         self.topic_counts[topic] = 0
         self._seq[topic] = 0
@@ -442,22 +400,22 @@ class Recorder:
         self.bus = bus
         self.params = params
         self.types = types_for(1 if params.format == "ros1" else 2)
-        self._queue: collections.deque[tuple[str, Message, int]] = collections.deque()
-        self._wake = threading.Event()
         # The writer drains every BATCH_S; a queue this long wakes it at once (well before drops).
-        self._wake_at = max(1, min(WAKE_AT, params.queue_size // 4))
-        self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the writer
-        self._stopping = False
-        self._thread: threading.Thread | None = None
+        # A full queue drops the new message: the bag keeps what it has queued.
+        self._outbox = Outbox("bag-writer", params.queue_size, WRITER_NICE, batch_s=BATCH_S,
+                              wake_at=min(WAKE_AT, params.queue_size // 4), drop="newest",
+                              on_batch=self._flush_if_due, on_stop=self._close)
         self._sub: Subscription | None = None
         self._wanted: dict[str, bool] = {}
         self._static: dict[str, Message] = {}
         self._file: BagFile | None = None
         self._split_index = 0
         self._base = ""
+        self._next_flush = 0.0
         self._written = 0
-        self._dropped = 0
+        self._dropped = 0  # after a write error (the outbox counts those of a full queue)
         self._dropped_logged = 0
+        self._unserializable: set[str] = set()  # topics that had a message the serializer refused
         self._bytes = 0
         self._flushed = 0
         self._files: list[Path] = []
@@ -468,20 +426,24 @@ class Recorder:
     @property
     def stats(self) -> RecorderStats:
         """Counts so far (written, dropped, payload bytes, waiting) and the bags created."""
-        return RecorderStats(self._written, self._dropped, self._bytes, len(self._queue),
+        return RecorderStats(self._written, self._all_dropped, self._bytes, len(self._outbox),
                              self._flushed, list(self._files), self._error)
+
+    @property
+    def _all_dropped(self) -> int:
+        return self._dropped + self._outbox.dropped
 
     @property
     def running(self) -> bool:
         """Whether the writer thread is running."""
-        return self._thread is not None and self._thread.is_alive()
+        return self._outbox.running
 
     def start(self) -> None:
         """Open the first bag, queue the latched topics already published, and subscribe."""
         if not self.params.enabled:
             log.info("bag recording disabled")
             return
-        if self._thread is not None:
+        if self.running:
             return
         out = Path(self.params.path).expanduser()
         out.mkdir(parents=True, exist_ok=True)
@@ -491,17 +453,15 @@ class Recorder:
         for topic in LATCHED_TOPICS:
             latest = self.bus.latest(topic)
             if latest is not None and self._is_wanted(topic):
-                self._queue.append((topic, latest, now))
+                self._outbox.put(self._write, topic, latest, now)
         # The writer thread opens the bag: sqlite3 connections belong to the thread that made them.
-        opened = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(opened,), name="bag-writer",
-                                        daemon=True)
-        self._thread.start()
-        opened.wait()
-        if self._file is None:
-            self._thread.join()
-            self._thread = None
-            raise BagError(self._error or "bag writer did not start")
+        try:
+            self._outbox.start(setup=self._open_first)
+        except BagError as err:
+            self._error = str(err)
+            self._outbox.clear()
+            raise
+        assert self._file is not None
         self._sub = self.bus.subscribe_all(self._on_message)
         log.info("recording %s to %s", ", ".join(self.params.topics) or "all topics",
                  self._file.path)
@@ -511,12 +471,8 @@ class Recorder:
         if self._sub is not None:
             self._sub.close()
             self._sub = None
-        thread = self._thread
-        if thread is not None:
-            self._stopping = True
-            self._wake.set()
-            thread.join()
-            self._thread = None
+        if self.running:
+            self._outbox.stop(timeout_s=None)  # every recorded message reaches the file
             stats = self.stats
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
@@ -537,18 +493,14 @@ class Recorder:
             wanted = self._is_wanted(topic)
         if not wanted:
             return
-        if len(self._queue) >= self.params.queue_size or self._error is not None:
+        if self._error is not None:
             self._dropped += 1
             return
-        queue = self._queue
-        queue.append((topic, msg, wall_ns()))
-        if len(queue) >= self._wake_at:
-            self._wake.set()
+        self._outbox.put(self._write, topic, msg, wall_ns())
 
     def control_idle(self) -> None:
         """The control path is idle until its next event: wake the writer if a drain is due."""
-        if self._queue and time.monotonic() >= self._drain_due and not self._wake.is_set():
-            self._wake.set()
+        self._outbox.control_idle()
 
     def _is_wanted(self, topic: str) -> bool:
         p = self.params
@@ -559,39 +511,32 @@ class Recorder:
 
     # --- writer thread ------------------------------------------------------------------------
 
-    def _run(self, opened: threading.Event) -> None:
-        _lower_thread_priority(WRITER_NICE)
-        try:
-            self._file = self._open_split()
-        except BagError as err:
-            self._error = str(err)
-            return
-        finally:
-            opened.set()
-        interval = self.params.flush_interval_s
-        next_flush = time.monotonic() + interval
-        while True:
-            now = time.monotonic()
-            self._drain_due = now + BATCH_S
-            self._wake.wait(timeout=min(2 * BATCH_S, max(0.0, next_flush - now)))
-            self._wake.clear()
-            stopping = self._stopping
+    def _open_first(self) -> None:
+        self._file = self._open_split()
+        self._next_flush = time.monotonic() + self.params.flush_interval_s
+
+    def _flush_if_due(self) -> float:
+        """After every batch: flush when the interval is up; returns the seconds to the next flush."""
+        now = time.monotonic()
+        if now >= self._next_flush:
+            self._next_flush = now + self.params.flush_interval_s
             try:
-                while self._queue:
-                    self._write(*self._queue.popleft())
-                if time.monotonic() >= next_flush:
-                    next_flush = time.monotonic() + interval
-                    self._flush()
+                self._flush()
             except Exception as err:
                 self._fail(err)
-            if stopping and not self._queue:
-                break
-        self._close()
+        return self._next_flush - time.monotonic()
 
     def _write(self, topic: str, msg: Message, t_ns: int) -> None:
         if self._file is None:
             self._dropped += 1
             return
+        try:
+            self._write_file(topic, msg, t_ns)
+        except Exception as err:
+            self._fail(err)
+
+    def _write_file(self, topic: str, msg: Message, t_ns: int) -> None:
+        assert self._file is not None
         if topic in LATCHED_TOPICS:
             self._static[topic] = msg
         if self._should_split(t_ns):
@@ -600,9 +545,16 @@ class Recorder:
             for static_topic, static_msg in self._static.items():
                 if static_topic != topic:
                     self._bytes += self._file.write(static_topic, static_msg, t_ns)
-        self._bytes += self._file.write(topic, msg, t_ns)
+        try:
+            self._bytes += self._file.write(topic, msg, t_ns)
+        except UnserializableMessage as err:  # the message's fault, not the bag's: drop it, go on
+            self._dropped += 1
+            if topic not in self._unserializable:
+                self._unserializable.add(topic)
+                log.warning("bag: dropped %s (and any further such message on this topic, counted as "
+                            "dropped)", err)
+            return
         self._written += 1
-
     def _should_split(self, t_ns: int) -> bool:
         f = self._file
         assert f is not None
@@ -636,17 +588,17 @@ class Recorder:
         if self._file is not None:
             self._file.flush()
             self._flushed = self._written
-        if self._dropped > self._dropped_logged:
+        dropped = self._all_dropped
+        if dropped > self._dropped_logged:
             log.warning("bag writer is behind: dropped %d messages so far (queue_size %d)",
-                        self._dropped, self.params.queue_size)
-            self._dropped_logged = self._dropped
+                        dropped, self.params.queue_size)
+            self._dropped_logged = dropped
 
     def _fail(self, err: Exception) -> None:
         self._error = f"{type(err).__name__}: {err}"
         log.error("bag writing failed, recording stops (messages now count as dropped): %s",
                   self._error)
-        self._dropped += len(self._queue)
-        self._queue.clear()
+        self._dropped += self._outbox.clear()
         if self._file is not None:
             self._file.abort()
             self._file = None
@@ -660,9 +612,10 @@ class Recorder:
         except Exception as err:
             self._fail(err)
         self._file = None
-        if self._dropped > self._dropped_logged:
-            log.warning("bag recorder dropped %d messages in total", self._dropped)
-            self._dropped_logged = self._dropped
+        dropped = self._all_dropped
+        if dropped > self._dropped_logged:
+            log.warning("bag recorder dropped %d messages in total", dropped)
+            self._dropped_logged = dropped
 
 
 def record_params(path: str | Path, fmt: str = "mcap", **overrides: Any) -> RecorderParams:

@@ -36,10 +36,10 @@ from pathlib import Path
 
 import yaml
 from rosbags.interfaces import Qos
-from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import dump_qos_v8, parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from racecar_hw.bags.ros1_writer import Ros1Writer
 from racecar_hw.bags.validate import (
     DEFAULT_MAX_MESSAGE_BYTES,
     crc_mismatch,
@@ -52,8 +52,7 @@ from racecar_hw.bags.writers import (
     RECORDING_OPEN,
     ROS1_MAGIC,
     ROS2_METADATA_VERSION,
-    Ros1Writer,
-    Ros2Writer,
+    Ros2Bag,
 )
 from racecar_hw.base.errors import BagError
 
@@ -211,7 +210,7 @@ def _mcap_record(op: int, body: bytes, scan: McapScan) -> None:
 def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
     scans = [scan_mcap(f.read_bytes()) for f in files]
     store = get_typestore(Stores.EMPTY)
-    with Ros2Writer(out, version=ROS2_METADATA_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+    with Ros2Bag(out, "mcap") as writer:
         conns = {}  # (topic, type, qos) -> connection, over every file
         count = 0
         for scan in scans:
@@ -224,9 +223,8 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
                 qos = scan.qos.get(cid, "")
                 key = (topic, name, qos)
                 if key not in conns:
-                    conns[key] = writer.add_connection(topic, name, msgdef=text.decode(),
-                                                       rihs01=store.hash_rihs01(name),
-                                                       offered_qos_profiles=_qos(qos))
+                    conns[key] = writer.add_connection(topic, name, text.decode(), store.hash_rihs01(name),
+                                                       dump_qos_v8(_qos(qos)))
                 mine[cid] = conns[key]
             for cid, t_ns, payload in scan.messages:
                 if cid in mine:
@@ -461,11 +459,6 @@ def check_ros1_index(data: bytes, scan: Ros1Scan) -> str:
     return ""
 
 
-def _ros2_name(ros1_type: str) -> str:
-    pkg, _, name = ros1_type.partition("/")
-    return f"{pkg}/msg/{name}"
-
-
 def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
     data = file.read_bytes()
     scan = scan_ros1(data)
@@ -476,8 +469,8 @@ def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
         for cid, f in scan.connections.items():
             latching = f.get("latching")
             conns[cid] = writer.add_connection(
-                f["topic"].decode(), _ros2_name(f["type"].decode()),
-                msgdef=f["message_definition"].decode(), md5sum=f["md5sum"].decode(),
+                f["topic"].decode(), f["type"].decode(), f["md5sum"].decode(),
+                f["message_definition"].decode(),
                 callerid=f["callerid"].decode() if "callerid" in f else None,
                 latching=int(latching) if latching else None)
         count = 0

@@ -1,38 +1,47 @@
-"""rosbags' bag writers, adjusted so the files are what the real ROS tools write and read.
+"""The storage files of rosbag2 bags (MCAP with the ``mcap`` library, sqlite3 with ``sqlite3``)
+and the layout facts ROS 1 bags share with the real ``rosbag``.
 
-* :class:`Ros1Writer`: the ROS 1 file-header record laid out as ``rosbag`` (ROS Noetic,
-  ``rosbag/bag.py``) lays it out. The format pads the header record to 4096 bytes; the real tool
-  pads the *header* to 4096 bytes and then writes the padding as the record's data, with its own
-  4-byte length, so the whole record is 4 + 4096 + 4 = 4104 bytes (``_write_record(...,
-  padded_size=_FILE_HEADER_LENGTH)``: data = 4096 - len(header) spaces). rosbags makes the whole
-  record 4096 bytes. Every tool reads either, but ``rosbag reindex``, ``rosbag fix`` and append
-  mode *rewrite* the header in place with their layout: on a 4096-byte record that overwrites the
-  first 8 bytes of the first chunk and the bag becomes unreadable. With the real layout they
-  rewrite exactly the bytes that were there.
-* :class:`Ros2FileWriter`: one storage file (``<stem>.mcap`` or ``<stem>.db3``) inside a bag
-  directory that may already hold others, so the splits of a recording are one rosbag2 bag with
-  several files, as ``ros2 bag record --max-bag-size`` makes them. ``metadata.yaml`` is the
-  caller's (it describes every file); rosbags' own is written aside and removed.
-* :class:`McapCrcWriter`: rosbags' MCAP storage writer, but every chunk record carries the CRC-32
-  of its uncompressed records (rosbags writes 0, "not computed", so a flipped bit went unseen).
-  :class:`Ros2Writer` and :class:`Ros2FileWriter` use it; the follower, ``bag info`` and
-  ``bag recover`` verify it (docs/bags.md, "Checksums").
+Nothing here reaches into rosbags: it reads bags, and its typestores give the definitions and
+hashes; writing is ours (MCAP through the ``mcap`` library's public ``Writer``, sqlite3 through the
+standard library, ROS 1 in :mod:`racecar_hw.bags.ros1_writer`).
 
-:data:`ROS2_METADATA_VERSION` is the metadata version written; see its comment.
+* :class:`McapStorage`: one ``<stem>.mcap`` file of a rosbag2 bag as ``rosbag2_storage_mcap``
+  writes it: profile ``ros2``, schemas ``ros2msg`` (the concatenated ``.msg`` definitions),
+  messages ``cdr``, each channel's ``offered_qos_profiles`` in its metadata, and at close a
+  ``rosbag2`` metadata record whose ``serialized_metadata`` is the bag's ``metadata.yaml``.
+  Chunks (1 MiB) carry the CRC-32 of their uncompressed records (issue 24; the follower,
+  ``bag info`` and ``bag recover`` verify it, docs/bags.md "Checksums"); schemas and channels are
+  written into the chunk that first uses them, so a file cut off before its summary still says
+  what its messages are.
+* :class:`Sqlite3Storage`: one ``<stem>.db3`` file with rosbag2's sqlite3 schema (version 4).
+* :class:`Ros2Bag`: a bag directory with one storage file and its ``metadata.yaml`` (the
+  recovery's output; the recorder writes its splits' metadata itself).
+* ROS 1: the file-header record laid out as ``rosbag`` (ROS Noetic, ``rosbag/bag.py``) lays it
+  out. The format pads the header record to 4096 bytes; the real tool pads the *header* to 4096
+  bytes and then writes the padding as the record's data, with its own 4-byte length, so the whole
+  record is 4 + 4096 + 4 = 4104 bytes (``_write_record(..., padded_size=_FILE_HEADER_LENGTH)``:
+  data = 4096 - len(header) spaces). ``rosbag reindex``, ``rosbag fix`` and append mode *rewrite*
+  the header in place with their layout, so a writer must use it: :func:`ros1_file_header`.
+
+A storage file is written by one thread (the sqlite3 connection is bound to the thread that opens
+it, as rosbag2's is). :data:`ROS2_METADATA_VERSION` is the metadata version written; see its
+comment.
 """
 
 from __future__ import annotations
 
-import contextlib
+import os
+import sqlite3
 import struct
-from binascii import crc32
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.rosbag2.storage_mcap import McapWriter
+import yaml
+from mcap import __version__ as MCAP_VERSION
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+
+from racecar_hw.base.errors import BagError
 
 #: rosbag2 metadata version written. Humble (rosbag2 0.15, ``rosbag2_storage/src/rosbag2_storage/
 #: metadata_io.cpp``) decodes any version without an upper bound, but reads each topic's
@@ -70,117 +79,237 @@ def ros1_file_header(index_pos: int, conn_count: int, chunk_count: int) -> bytes
     return struct.pack("<I", len(header)) + header + struct.pack("<I", len(padding)) + padding
 
 
-#: Size of the file-header record ``rosbag`` writes (and :class:`Ros1Writer` reserves).
+#: Size of the file-header record ``rosbag`` writes (and the ROS 1 writer reserves).
 ROS1_FILE_HEADER_RECORD = len(ros1_file_header(0, 0, 0))
 
 
-class Ros1Writer(Writer1):
-    """rosbags' ROS 1 writer with the file header of the real ``rosbag`` (see the module doc)."""
 
-    def open(self) -> None:
-        """Create the file: magic and an empty file header (index_pos 0: not yet indexed)."""
-        super().open()
-        assert self.bio is not None
-        self.bio.seek(len(ROS1_MAGIC))
-        self.bio.truncate()
-        self.bio.write(ros1_file_header(0, 0, 0))
-
-    def close(self) -> None:
-        """Write the index (rosbags), then the file header again in rosbag's layout."""
-        bio = self.bio
-        assert bio is not None
-        super().close()  # writes a 4096-byte header record inside our 4104 bytes, then closes
-        with self.path.open("r+b") as fh:
-            fh.seek(len(ROS1_MAGIC))
-            fields = _read_header_fields(fh.read(ROS1_FILE_HEADER_RECORD))
-            fh.seek(len(ROS1_MAGIC))
-            fh.write(ros1_file_header(struct.unpack("<Q", fields[b"index_pos"])[0],
-                                      struct.unpack("<I", fields[b"conn_count"])[0],
-                                      struct.unpack("<I", fields[b"chunk_count"])[0]))
-
-
-def _read_header_fields(record: bytes) -> dict[bytes, bytes]:
-    (hlen,) = struct.unpack_from("<I", record, 0)
-    header = record[4:4 + hlen]
-    fields: dict[bytes, bytes] = {}
-    pos = 0
-    while pos + 4 <= len(header):
-        (n,) = struct.unpack_from("<I", header, pos)
-        name, _, value = header[pos + 4:pos + 4 + n].partition(b"=")
-        fields[name] = value
-        pos += 4 + n
-    return fields
 
 
 #: Where a chunk record's ``uncompressed_crc`` is, from the record's start: opcode (1), length (8),
 #: message_start_time, message_end_time, uncompressed_size (8 each).
 MCAP_CHUNK_CRC_OFFSET = 1 + 8 + 8 + 8 + 8
-_CRC = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
 
 
-class McapCrcWriter(McapWriter):
-    """rosbags' MCAP writer whose chunks carry their CRC-32 (of the uncompressed records).
+#: Chunk size of MCAP files (uncompressed records), as rosbags and rosbag2's default.
+MCAP_CHUNK_SIZE = 2**20
+#: MCAP chunk compression by option name (the recorder offers "none"; recovery keeps none).
+MCAP_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
-    rosbags' ``close_chunk`` writes the chunk with CRC 0 and keeps its chunk index (whose third
-    u64 is the chunk's file offset); the CRC is then written over the 0 in the file. One seek per
-    chunk (1 MiB): the cost is the CRC itself (``benchmarks/bench_bags.py``).
+
+def _sync(fh: Any) -> None:
+    fh.flush()
+    os.fsync(fh.fileno())
+
+
+class Storage(Protocol):
+    """One storage file of a rosbag2 bag, written by one thread."""
+
+    path: Path
+
+    def add_connection(self, topic: str, msgtype: str, msgdef: str, digest: str, qos: str) -> int:
+        """Register ``topic`` (``msgtype`` ``pkg/msg/Type``, its ROS 2 definition and RIHS01 hash,
+        its offered QoS as metadata.yaml text); returns the id :meth:`write` takes."""
+
+    def write(self, cid: int, t_ns: int, data: bytes) -> None:
+        """Append the CDR bytes ``data`` on connection ``cid`` at bag time ``t_ns`` (ns)."""
+
+    def flush(self) -> None:
+        """Push everything written so far into the file and fsync it (the crash-safe point)."""
+
+    def close(self, metadata: str) -> None:
+        """Finish the file (summary, index); ``metadata`` is the bag's metadata.yaml text."""
+
+    def abort(self) -> None:
+        """Close without finishing."""
+
+
+class McapStorage:
+    """One rosbag2 MCAP storage file, written with the ``mcap`` library (see the module doc)."""
+
+    def __init__(self, path: Path, compression: str = "none") -> None:
+        self.path = path
+        self._fh = path.open("xb")
+        self._writer = McapWriter(self._fh, chunk_size=MCAP_CHUNK_SIZE,
+                                  compression=MCAP_COMPRESSION[compression], enable_crcs=True)
+        self._writer.start(profile="ros2", library=f"racecar-hw (mcap {MCAP_VERSION})")
+        self._schemas: dict[str, int] = {}
+
+    def add_connection(self, topic: str, msgtype: str, msgdef: str, digest: str, qos: str) -> int:
+        sid = self._schemas.get(msgtype)
+        if sid is None:
+            sid = self._schemas[msgtype] = self._writer.register_schema(msgtype, "ros2msg", msgdef.encode())
+        return self._writer.register_channel(topic, "cdr", sid, {"offered_qos_profiles": qos})
+
+    def write(self, cid: int, t_ns: int, data: bytes) -> None:
+        self._writer.add_message(cid, t_ns, data, t_ns)
+
+    def flush(self) -> None:
+        self._writer.flush()  # closes the pending chunk (with its CRC) and writes it out
+        _sync(self._fh)
+
+    def close(self, metadata: str) -> None:
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": metadata})
+        self._writer.finish()
+        _sync(self._fh)
+        self._fh.close()
+
+    def abort(self) -> None:
+        self._fh.close()
+
+
+class Sqlite3Storage:
+    """One rosbag2 sqlite3 storage file (schema version 4, as rosbag2 Humble and rosbags write)."""
+
+    SCHEMA = """
+    CREATE TABLE schema(schema_version INTEGER PRIMARY KEY, ros_distro TEXT NOT NULL);
+    CREATE TABLE metadata(id INTEGER PRIMARY KEY, metadata_version INTEGER NOT NULL,
+      metadata TEXT NOT NULL);
+    CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL,
+      serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL,
+      type_description_hash TEXT NOT NULL);
+    CREATE TABLE message_definitions(id INTEGER PRIMARY KEY, topic_type TEXT NOT NULL,
+      encoding TEXT NOT NULL, encoded_message_definition TEXT NOT NULL,
+      type_description_hash TEXT NOT NULL);
+    CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp INTEGER NOT NULL,
+      data BLOB NOT NULL);
+    CREATE INDEX timestamp_idx ON messages (timestamp ASC);
+    INSERT INTO schema(schema_version, ros_distro) VALUES (4, 'racecar_hw');
     """
 
-    def close_chunk(self) -> None:
-        """Close the pending chunk as rosbags does, with the chunk's CRC in its record."""
-        crc = crc32(self.chunk.bio.getbuffer())
-        super().close_chunk()
-        (start,) = _U64.unpack_from(self.chunks[-1].getbuffer(), 16)
-        end = self.bio.tell()
-        self.bio.seek(start + MCAP_CHUNK_CRC_OFFSET)
-        self.bio.write(_CRC.pack(crc))
-        self.bio.seek(end)
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        if path.exists():
+            raise BagError(f"{path} exists already, not overwriting")
+        self._conn = sqlite3.connect(path)
+        self._conn.executescript(self.SCHEMA)
+        self._types: set[str] = set()
+        self._topics = 0
+
+    def add_connection(self, topic: str, msgtype: str, msgdef: str, digest: str, qos: str) -> int:
+        if msgtype not in self._types:
+            self._types.add(msgtype)
+            self._conn.execute("INSERT INTO message_definitions (topic_type, encoding,"
+                               " encoded_message_definition, type_description_hash) VALUES (?, ?, ?, ?)",
+                               (msgtype, "ros2msg", msgdef, digest))
+        self._topics += 1
+        self._conn.execute("INSERT INTO topics VALUES (?, ?, ?, ?, ?, ?)",
+                           (self._topics, topic, msgtype, "cdr", qos, digest))
+        return self._topics
+
+    def write(self, cid: int, t_ns: int, data: bytes) -> None:
+        self._conn.execute("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)",
+                           (cid, t_ns, data))
+
+    def flush(self) -> None:
+        self._conn.commit()
+
+    def close(self, metadata: str) -> None:
+        self._conn.execute("INSERT INTO metadata (metadata_version, metadata) VALUES (?, ?)",
+                           (ROS2_METADATA_VERSION, metadata))
+        self._conn.commit()
+        self._conn.execute("PRAGMA optimize")
+        self._conn.close()
+
+    def abort(self) -> None:
+        try:
+            self._conn.rollback()
+        finally:
+            self._conn.close()
 
 
-_PLUGINS = {**Writer2.STORAGE_PLUGINS, StoragePlugin.MCAP: McapCrcWriter}
+def open_storage(bagdir: Path, stem: str, fmt: str, compression: str = "none") -> Storage:
+    """A new storage file ``<bagdir>/<stem>.mcap`` (``fmt`` "mcap") or ``.db3`` ("sqlite3"); the
+    directory is created if needed. Raises :class:`BagError` if it cannot be created."""
+    try:
+        bagdir.mkdir(mode=0o755, parents=True, exist_ok=True)
+        if fmt == "mcap":
+            return McapStorage(bagdir / f"{stem}.mcap", compression)
+        if fmt == "sqlite3":
+            return Sqlite3Storage(bagdir / f"{stem}.db3")
+    except (OSError, sqlite3.Error) as err:
+        raise BagError(f"cannot create bag storage {bagdir / stem}: {err}") from err
+    raise BagError(f"no rosbag2 storage {fmt!r} (mcap or sqlite3)")
 
 
-class Ros2Writer(Writer2):
-    """rosbags' rosbag2 writer with :class:`McapCrcWriter` for MCAP storage (checksummed chunks)."""
+def bag_info(storage_identifier: str, *, duration: int, start: int, count: int,
+             files: list[tuple[str, int, int, int]], topics: list[tuple[str, str, str, str, int]],
+             complete: bool) -> dict[str, Any]:
+    """The ``rosbag2_bagfile_information`` of metadata.yaml (version :data:`ROS2_METADATA_VERSION`).
 
-    STORAGE_PLUGINS = _PLUGINS
-
-
-class _StorageDir:
-    """Stands in for the bag path rosbags' storage plugins get: they create ``path / f"{path.name}.<ext>"``,
-    and this makes that ``bagdir / f"{stem}.<ext>"``."""
-
-    def __init__(self, bagdir: Path, stem: str) -> None:
-        self.bagdir = bagdir
-        self.name = stem
-
-    def __truediv__(self, other: str) -> Path:
-        return self.bagdir / other
-
-
-class Ros2FileWriter(Ros2Writer):
-    """rosbags' rosbag2 writer for one storage file ``<stem>.<ext>`` in the bag directory ``bagdir``.
-
-    The directory may exist and hold other files of the same bag. rosbags' ``metadata.yaml`` for
-    this file alone goes to a hidden file that :meth:`close` removes: the caller writes the bag's.
+    ``duration``, ``start`` (ns) and ``count`` are the bag's; ``files``: (name, start ns, duration
+    ns, message count); ``topics``: (name, type, offered QoS text, RIHS01 hash, message count).
     """
+    return {
+        "version": ROS2_METADATA_VERSION,
+        "storage_identifier": storage_identifier,
+        "relative_file_paths": [n for n, *_x in files],
+        "duration": {"nanoseconds": duration},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": count,
+        "topics_with_message_count": [
+            {"topic_metadata": {"name": name, "type": msgtype, "serialization_format": "cdr",
+                                "offered_qos_profiles": qos, "type_description_hash": digest},
+             "message_count": n}
+            for name, msgtype, qos, digest, n in topics],
+        "compression_format": "",
+        "compression_mode": "",
+        "files": [{"path": n, "starting_time": {"nanoseconds_since_epoch": s},
+                   "duration": {"nanoseconds": d}, "message_count": c} for n, s, d, c in files],
+        "custom_data": {"racecar_hw": RECORDING_CLOSED if complete else RECORDING_OPEN},
+        "ros_distro": "rosbags",
+    }
 
-    def __init__(self, bagdir: Path, stem: str, *, storage_plugin: StoragePlugin,
-                 version: Any = ROS2_METADATA_VERSION) -> None:
-        super().__init__(bagdir / stem, version=version, storage_plugin=storage_plugin)
-        self.bagdir = bagdir
-        self.stem = stem
-        self.metapath = bagdir / f".{stem}.metadata.yaml"
 
-    def open(self) -> None:
-        """Create the bag directory if needed and the storage file in it."""
-        self.bagdir.mkdir(mode=0o755, parents=True, exist_ok=True)
-        place: Any = _StorageDir(self.bagdir, self.stem)
-        self.storage = self.STORAGE_PLUGINS[self.storage_plugin](place, self.compression_mode)
+class Ros2Bag:
+    """A rosbag2 bag directory ``path`` with one storage file ``<path.name>.<ext>`` and its
+    ``metadata.yaml``, written at :meth:`close` (a context manager: closes on success, aborts on
+    an error). The recovery writes its output with it."""
+
+    def __init__(self, path: Path, fmt: str = "mcap") -> None:
+        if path.exists():
+            raise BagError(f"{path} exists already, not overwriting")
+        self.path = path
+        self.format = fmt
+        self.storage = open_storage(path, path.name, fmt)
+        self._topics: dict[int, list[Any]] = {}
+        self._first: int | None = None
+        self._last = 0
+
+    def add_connection(self, topic: str, msgtype: str, msgdef: str, digest: str, qos: str) -> int:
+        """As :meth:`Storage.add_connection`."""
+        cid = self.storage.add_connection(topic, msgtype, msgdef, digest, qos)
+        self._topics[cid] = [topic, msgtype, qos, digest, 0]
+        return cid
+
+    def write(self, cid: int, t_ns: int, data: bytes) -> None:
+        """As :meth:`Storage.write`."""
+        self.storage.write(cid, t_ns, data)
+        self._topics[cid][4] += 1
+        self._first = t_ns if self._first is None else min(self._first, t_ns)
+        self._last = max(self._last, t_ns)
+
+    def metadata(self) -> str:
+        """The bag's metadata.yaml text."""
+        count = sum(t[4] for t in self._topics.values())
+        start = self._first or 0
+        duration = self._last - start if count else 0
+        info = bag_info(self.format, duration=duration, start=start, count=count,
+                        files=[(self.storage.path.name, start, duration, count)],
+                        topics=[tuple(t) for t in self._topics.values()], complete=True)  # type: ignore[misc]
+        return yaml.dump({"rosbag2_bagfile_information": info}, Dumper=yaml.SafeDumper, sort_keys=False)
 
     def close(self) -> None:
-        """Finish the storage file (summary, index); the bag's metadata.yaml is the caller's."""
-        super().close()
-        with contextlib.suppress(FileNotFoundError):
-            self.metapath.unlink()
+        """Finish the storage file and write metadata.yaml."""
+        text = self.metadata()
+        self.storage.close(text)
+        (self.path / "metadata.yaml").write_text(text, encoding="utf8")
+
+    def __enter__(self) -> Ros2Bag:
+        return self
+
+    def __exit__(self, exc_type: Any, *_args: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.storage.abort()

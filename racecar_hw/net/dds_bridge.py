@@ -10,7 +10,7 @@ The same topic table as the Zenoh bridge (:mod:`racecar_hw.net.topics`: profile,
   effort depth 5 for ``/scan``, transient local depth 1 for ``/tf_static`` and the mux's active
   source, reliable depth 10 otherwise) and ``typehash=RIHS01_...;`` in its USER_DATA (Iron+).
 * **Out**: exactly as the Zenoh bridge: the bus callback only queues ``(row, message, wall ns)`` in
-  an :class:`~racecar_hw.net.outbox.Outbox` (bounded, drop-oldest), and nothing at all while no
+  an :class:`~racecar_hw.runtime.outbox.Outbox` (bounded, drop-oldest), and nothing at all while no
   reader matches the writer (Cyclone's publication-matched status, kept by a listener); the
   sender thread serializes and writes. Latched rows are always queued, and Cyclone's writer
   history (transient local) gives late joiners the last ``depth`` samples.
@@ -45,9 +45,9 @@ from racecar_hw.net.dds_config import DdsParams, cyclone_xml
 from racecar_hw.net.dds_inbound import DdsReceiver
 from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
 from racecar_hw.net.inbox import Inbox
-from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.outbox import Outbox
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)

@@ -19,7 +19,7 @@ What it serves:
 Clients reach it through :mod:`racecar_hw.net.relay` (the token off loopback, the browser's Origin on an
 open loopback port); the SDK's own server listens behind it, on loopback with TLS only the relay trusts.
 
-Threads: bus callbacks run in the event loop and only queue jobs (:class:`~racecar_hw.net.outbox.Outbox`,
+Threads: bus callbacks run in the event loop and only queue jobs (:class:`~racecar_hw.runtime.outbox.Outbox`,
 drop oldest) while a client subscribes to the channel; the outbox thread serializes and hands the bytes
 to the SDK, whose own threads send them. The SDK calls the listener and the service handlers from its
 threads; they hand work to the event loop (``call_soon_threadsafe``), and a service waits for its answer.
@@ -48,6 +48,7 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import FOXGLOVE_TELEOP_TOPIC
 from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.foxglove_services import (
     SERVICE_PREFIX,
@@ -64,12 +65,12 @@ from racecar_hw.net.foxglove_teleop import (
 )
 from racecar_hw.net.gate import ConnectionLimits
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
-from racecar_hw.net.outbox import Outbox
 from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.outbox import Outbox
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
@@ -112,7 +113,7 @@ class FoxgloveParams:
                                        "pages served by this machine and desktop apps); 'null' admits "
                                        "every opaque origin, including any site's sandboxed frames")
     teleop: bool = param(True, "let Foxglove's Teleop panel drive through the mux input 'foxglove'")
-    teleop_topic: str = param("/foxglove/cmd_vel", "geometry_msgs/Twist topic the Teleop panel publishes")
+    teleop_topic: str = param(FOXGLOVE_TELEOP_TOPIC, "geometry_msgs/Twist topic the Teleop panel publishes")
     teleop_priority: int = param(85, "priority of the mux input 'foxglove' (below teleop's 90)",
                                  min=0, max=255)
     teleop_timeout_s: float = param(0.3, "the car stops this long after the last Twist (a closed tab, "

@@ -20,10 +20,9 @@ from typing import Any
 
 import foxglove.layouts as fl
 
+from racecar_hw.base.topics import FOXGLOVE_TELEOP_TOPIC, MUX_ACTIVE_TOPIC
 from racecar_hw.net.foxglove_server import LOG_TOPIC, SCENE_TOPIC, SERVICE_PREFIX, SPEEDS_TOPIC
 
-ACTIVE_TOPIC = "/vesc/low_level/ackermann_cmd_mux/active"
-TELEOP_TOPIC = "/foxglove/cmd_vel"
 TELEOP_RATE_HZ = 10.0
 FILES = ("racecar.json", "racecar-lichtblick.json")
 #: Panel type names that differ in the older layout format (Lichtblick, Foxglove Studio 1.x).
@@ -59,7 +58,7 @@ def build_layout(teleop_speed_mps: float = 0.5, teleop_yaw_rate: float = 1.0) ->
     steering = fl.PlotPanel(title="steering (rad)", config=fl.PlotConfig(paths=[
         _speed("steering", "steering", "#9467bd")], time_window_mode="sliding", following_view_width=20.0))
     source = fl.StateTransitionsPanel(title="active source", config=fl.StateTransitionsConfig(
-        paths=[fl.StateTransitionsSeries(value=f"{ACTIVE_TOPIC}.data", label="mux",
+        paths=[fl.StateTransitionsSeries(value=f"{MUX_ACTIVE_TOPIC}.data", label="mux",
                                          timestamp_method="receiveTime", enabled=True)]))
     diagnostics = fl.DiagnosticsSummaryPanel(title="diagnostics",
                                              config=fl.DiagnosticsSummaryConfig(topic_to_render="/diagnostics"))
@@ -68,7 +67,7 @@ def build_layout(teleop_speed_mps: float = 0.5, teleop_yaw_rate: float = 1.0) ->
     logs = fl.LogPanel(title="log", config=fl.LogConfig(topic_to_render=LOG_TOPIC))
     v, w = teleop_speed_mps, teleop_yaw_rate
     teleop = fl.TeleopPanel(title="drive", config=fl.TeleopConfig(
-        topic=TELEOP_TOPIC, publish_rate=TELEOP_RATE_HZ,
+        topic=FOXGLOVE_TELEOP_TOPIC, publish_rate=TELEOP_RATE_HZ,
         up_button=fl.TeleopButton(field="linear-x", value=v),
         down_button=fl.TeleopButton(field="linear-x", value=-v),
         left_button=fl.TeleopButton(field="angular-z", value=w),

@@ -51,7 +51,7 @@ from racecar_hw.base.loopback import is_loopback
 from racecar_hw.net.auth import bearer, browser_origin_allowed, token_ok
 from racecar_hw.net.gate import ConnectionGate, ConnectionLimits, quiet_accept_errors
 from racecar_hw.net.loopback_tls import LOOPBACK, pinned_context
-from racecar_hw.net.outbox import SENDER_NICE
+from racecar_hw.runtime.outbox import SENDER_NICE
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)

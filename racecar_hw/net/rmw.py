@@ -36,7 +36,7 @@ from __future__ import annotations
 import functools
 import re
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import xxhash
 
@@ -326,6 +326,43 @@ def parse_token(token: str) -> Entity:
                   backends=parts[13] if len(parts) == 14 else "")
 
 
+@dataclass
+class NodeNames:
+    """One ROS node on rmw_zenoh, without I/O: the ids, tokens and keys of its entities.
+
+    The daemon's bridge and the Python client are both such a node. ``zid`` is the Zenoh session's
+    id (set once the session is open); ``distro`` the peers' distribution family
+    (:data:`ROS_DISTROS`), which picks the type hash of keys and tokens. Endpoint ids count from 1
+    in the order of :meth:`endpoint` calls (the node itself is entity 0), as rmw_zenoh numbers them.
+    """
+
+    domain_id: int
+    namespace: str
+    name: str
+    distro: str = "jazzy"
+    zid: str = ""
+    _next_entity: int = field(default=1, repr=False)
+
+    def type_hash(self, ros_type_name: str) -> str:
+        """The type hash field of keys and tokens for the peers' distribution."""
+        return wire_type_hash(ros_type_name, self.distro)
+
+    def key(self, topic: str, ros_type_name: str) -> str:
+        """The Zenoh key of the samples of ``topic`` (a full ROS name) of type ``ros_type_name``."""
+        return topic_key(self.domain_id, topic, ros_type_name, self.type_hash(ros_type_name))
+
+    def node(self) -> Entity:
+        """The node itself (its token makes ``ros2 node list`` show it)."""
+        return Entity(self.domain_id, self.zid, 0, 0, NODE, "", self.namespace, self.name)
+
+    def endpoint(self, kind: str, topic: str, ros_type_name: str, qos: RmwQos | Qos) -> Entity:
+        """A new publisher, subscription, service or client of the node (the next entity id)."""
+        entity_id, self._next_entity = self._next_entity, self._next_entity + 1
+        rmw_qos = RmwQos.from_qos(qos) if isinstance(qos, Qos) else qos
+        return Entity(self.domain_id, self.zid, 0, entity_id, kind, "", self.namespace, self.name, topic,
+                      dds_type(ros_type_name), self.type_hash(ros_type_name), rmw_qos)
+
+
 def liveliness_pattern(domain_id: int) -> str:
     """The key expression every liveliness token of a domain matches."""
     return f"{ADMIN_SPACE}/{domain_id}/**"
@@ -372,3 +409,18 @@ def is_old_attachment(data: bytes | bytearray | memoryview) -> bool:
 def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:
     """The attachment bytes for one sample (the publisher thread's fast path)."""
     return _ATTACHMENT.pack(sequence_number, source_timestamp_ns, GID_SIZE, gid)
+
+
+class SampleStamps:
+    """One publisher's attachments: its GID and the sequence numbers of its samples (from 1)."""
+
+    __slots__ = ("gid", "sequence")
+
+    def __init__(self, gid: bytes) -> None:
+        self.gid = gid
+        self.sequence = 0
+
+    def next(self, source_timestamp_ns: int) -> bytes:
+        """The attachment of the publisher's next sample, stamped ``source_timestamp_ns`` (wall ns)."""
+        self.sequence += 1
+        return _ATTACHMENT.pack(self.sequence, source_timestamp_ns, GID_SIZE, self.gid)

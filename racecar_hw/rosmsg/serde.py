@@ -16,12 +16,13 @@ every class in :mod:`racecar_hw.base.messages`, CDR and ROS 1):
 * ROS 1: no alignment, strings without NUL, a top-level ``header.seq`` from the ``seq`` argument
   (nested headers get 0, as rosbags' converter in :mod:`racecar_hw.rosmsg.typestore` does).
 
-Values are packed as the generic path packs them after its ``float()``/``int()``/``bool()``
-conversions; anything a serializer cannot pack as is (a wrong type, a wrong array length, an
-unencodable string) raises, and :meth:`racecar_hw.rosmsg.typestore.BagTypes.serialize` then falls back to
-the generic path, which produces the same bytes or the same error as before. Shapes the generator
-does not handle (string arrays, fixed arrays of messages, 8-byte element sequences, big-endian
-hosts) are never generated: those classes always take the generic path.
+Values are packed as declared: anything a serializer cannot pack as is (a float in an integer
+field, a wrong array length, an unencodable string, a number out of range) raises, and that is
+the error :meth:`racecar_hw.rosmsg.typestore.BagTypes.serialize` raises: there is no fallback.
+Shapes the generator does not handle (string arrays, fixed arrays of messages, 8-byte element
+sequences, big-endian hosts) raise :class:`Unsupported` when it is asked for them: no stream type
+has one (``tests/test_bag_serde.py``), and the parameter services' types, which do, are
+serialized by rosbags by design (:func:`racecar_hw.rosmsg.typestore.uses_rosbags_serde`).
 """
 
 from __future__ import annotations
@@ -56,11 +57,11 @@ CDR_HEADER = b"\x00\x01\x00\x00"
 
 
 class Unsupported(Exception):
-    """A message shape the generator does not handle; the class keeps the generic path."""
+    """A message shape the generator does not handle."""
 
 
 class ShapeMismatch(ValueError):
-    """An array field of the wrong length or rank (the generic path reports the real error)."""
+    """An array field of the wrong length or rank."""
 
 
 def _array(value: Any, dtype: Any, length: int) -> np.ndarray:
@@ -269,8 +270,9 @@ def generate(store: Typestore, classes: dict[str, type], typename: str, *, cdr: 
 Deserializer = Callable[[bytes], Any]
 
 
-class _Truncated(ValueError):
-    """The bytes end before the message does."""
+class Malformed(ValueError):
+    """Bytes that are not a CDR message of the type: they end early, a string lacks its NUL,
+    bytes follow the message, another encapsulation."""
 
 
 def _string(raw: bytes, p: int) -> tuple[str, int]:
@@ -279,7 +281,7 @@ def _string(raw: bytes, p: int) -> tuple[str, int]:
     (n,) = _U32.unpack_from(raw, p)
     end = p + 4 + n
     if n < 1 or end > len(raw) or raw[end - 1] != 0:
-        raise _Truncated("string")
+        raise Malformed("string")
     return str(raw[p + 4:end - 1], "utf-8"), end
 
 
@@ -291,7 +293,7 @@ def _count(raw: bytes, p: int, size: int) -> tuple[int, int]:
     if size > 1:
         p += -(p - 4) & (size - 1)
     if p + n * size > len(raw):
-        raise _Truncated("sequence")
+        raise Malformed("sequence")
     return n, p
 
 
@@ -308,7 +310,7 @@ class _Reader:
         self.store = store
         self.classes = classes
         self.lines: list[str] = []
-        self.env: dict[str, Any] = {"_string": _string, "_count": _count, "_np": np, "_T": _Truncated}
+        self.env: dict[str, Any] = {"_string": _string, "_count": _count, "_np": np, "_T": Malformed}
         self.indent = "    "
         self.counter = 0
         self.mod, self.res = 8, 0
@@ -458,8 +460,8 @@ def generate_reader(store: Typestore, classes: dict[str, type], typename: str) -
 
     It reads what rosbags' ``deserialize_cdr`` reads and builds our dataclass directly; numeric
     arrays are read-only ``numpy`` views of ``raw`` (no copy). Bytes that end early, a string
-    without its NUL, more than 3 bytes after the message, or another encapsulation raise; the
-    caller then takes the generic path.
+    without its NUL, more than 3 bytes after the message, or another encapsulation raise
+    :class:`Malformed` (or the ``struct``/UTF-8 error).
     Raises :class:`Unsupported` for shapes it does not generate (as :func:`generate`).
     """
     if sys.byteorder != "little":

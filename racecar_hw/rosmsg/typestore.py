@@ -15,8 +15,10 @@ types of the parameter services (:mod:`racecar_hw.base.parameter_messages`), und
 (``rcl_interfaces/srv/ListParameters_Request``), and :meth:`BagTypes.digest` knows their service
 types' RIHS01 hashes.
 
-:meth:`BagTypes.serialize` packs our dataclasses directly (:mod:`racecar_hw.rosmsg.serde`); the
-conversion below is its reference and fallback, and serves reading. Conversion is generic over
+:meth:`BagTypes.serialize` packs the stream types' dataclasses directly (:mod:`racecar_hw.rosmsg.serde`,
+generated from this store's definitions); the conversion below is the reference the tests compare
+it with byte for byte, the path of the parameter services' types, and serves reading ROS 1 and
+other stores' objects. Neither path falls back to the other. Conversion is generic over
 dataclass fields, driven by the store's field definitions and cached
 per type: nested messages recurse, numeric arrays become numpy arrays of the ROS element type,
 fields our dataclasses lack (the ROS 1 ``header.seq``) are filled with zero on the way out and
@@ -52,6 +54,15 @@ MESSAGE_CLASSES: dict[str, type[Message]] = {
     for _, cls in inspect.getmembers(messages, inspect.isclass)
     if issubclass(cls, Message) and cls is not Message and cls.ROS_TYPE
 }
+
+
+def uses_rosbags_serde(cls: type[Message]) -> bool:
+    """Whether ``cls`` is serialized and read by rosbags rather than a generated serializer: the
+    parameter services' request and response types (:mod:`racecar_hw.base.parameter_messages`),
+    a few messages a minute, some with shapes the generator does not handle (string arrays,
+    sequences of 8-byte numbers). Every stream type (:data:`MESSAGE_CLASSES`) is generated."""
+    return PARAMETER_CLASSES.get(cls.ROS_TYPE) is cls
+
 
 _NODE_BASE, _NODE_NAME, _NODE_ARRAY, _NODE_SEQUENCE = 1, 2, 3, 4
 
@@ -140,31 +151,38 @@ class BagTypes:
     def serialize(self, msg: Message, seq: int = 0) -> bytes:
         """``msg`` serialized for a bag of this store: ROS 1 bytes or CDR (with its header).
 
-        Uses the class's direct serializer (:mod:`racecar_hw.rosmsg.serde`) when it has one and it
-        accepts ``msg``; otherwise the generic rosbags path, which gives the same bytes.
+        Stream types (:data:`MESSAGE_CLASSES`) use their generated serializer
+        (:mod:`racecar_hw.rosmsg.serde`), which gives rosbags' bytes (``tests/test_bag_serde.py``);
+        whatever it raises is the error: there is no second try. The parameter services' request
+        and response types (a handful per minute) always take rosbags' serializer
+        (:meth:`serialize_generic`).
         """
         try:
             fast = self._fast[type(msg)]
         except KeyError:
             fast = self.fast_serializer(type(msg))
-        if fast is not None:
-            try:
-                return fast(msg, seq)
-            except Exception:  # noqa: BLE001 - the generic path gives the real result or error
-                pass
-        return self.serialize_generic(msg, seq)
+        if fast is None:
+            return self.serialize_generic(msg, seq)
+        return fast(msg, seq)
 
     def fast_serializer(self, cls: type[Message]) -> serde.Serializer | None:
-        """The direct serializer of ``cls`` for this store (built once), or None if it has none."""
+        """The generated serializer of ``cls`` for this store (built once).
+
+        None for the types that use rosbags' serializer by design (:func:`uses_rosbags_serde`).
+        A stream type the generator cannot handle raises :class:`BagError`: a generator failure
+        is an error, never a silent switch to the slow path.
+        """
         if cls in self._fast:
             return self._fast[cls]
         fast: serde.Serializer | None = None
-        if cls.ROS_TYPE in self.store.fielddefs:
-            classes: dict[str, type] = {**MESSAGE_CLASSES, **PARAMETER_CLASSES, cls.ROS_TYPE: cls}
+        if not uses_rosbags_serde(cls):
+            if cls.ROS_TYPE not in self.store.fielddefs:
+                raise BagError(f"type {cls.ROS_TYPE} is not in the {self.store} typestore")
+            classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
             try:
                 fast = serde.generate(self.store, classes, cls.ROS_TYPE, cdr=self.ros_version == 2)
-            except serde.Unsupported:
-                fast = None
+            except serde.Unsupported as err:
+                raise BagError(f"no serializer for {cls.ROS_TYPE}: {err}") from err
         self._fast[cls] = fast
         return fast
 
@@ -178,9 +196,11 @@ class BagTypes:
     def deserialize(self, raw: bytes | memoryview, cls: type[Message]) -> Message:
         """Bytes of ``cls.ROS_TYPE`` (ROS 1 or CDR, per this store) as our dataclass.
 
-        CDR is read by the class's direct reader (:func:`racecar_hw.rosmsg.serde.generate_reader`)
-        when it has one and it accepts the bytes; its numeric arrays are then read-only views of
-        ``raw``. Otherwise, and for ROS 1, the generic rosbags path gives the result or the error.
+        CDR of a stream type is read by its generated reader
+        (:func:`racecar_hw.rosmsg.serde.generate_reader`); its numeric arrays are then read-only
+        views of ``raw``. Bytes it refuses raise (:class:`racecar_hw.rosmsg.serde.Malformed`, or
+        the ``struct``/UTF-8 error): no second try. ROS 1 bytes and the parameter services' types
+        are read by rosbags (:meth:`deserialize_generic`).
         """
         if self.ros_version == 2:
             try:
@@ -188,23 +208,24 @@ class BagTypes:
             except KeyError:
                 reader = self.fast_reader(cls)
             if reader is not None:
-                try:
-                    return reader(raw)
-                except Exception:  # noqa: BLE001 - the generic path gives the real result or error
-                    pass
+                return reader(raw)
         return self.deserialize_generic(raw, cls)
 
     def fast_reader(self, cls: type[Message]) -> serde.Deserializer | None:
-        """The direct CDR reader of ``cls`` (built once; ROS 2 stores only), or None if it has none."""
+        """The generated CDR reader of ``cls`` (built once; ROS 2 stores only), or None where rosbags
+        reads (ROS 1, :func:`uses_rosbags_serde`). A stream type the generator cannot handle raises
+        :class:`BagError`."""
         if cls in self._readers:
             return self._readers[cls]
         reader: serde.Deserializer | None = None
-        if self.ros_version == 2 and cls.ROS_TYPE in self.store.fielddefs:
+        if self.ros_version == 2 and not uses_rosbags_serde(cls):
+            if cls.ROS_TYPE not in self.store.fielddefs:
+                raise BagError(f"type {cls.ROS_TYPE} is not in the {self.store} typestore")
+            classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
             try:
-                classes: dict[str, type] = {**MESSAGE_CLASSES, cls.ROS_TYPE: cls}
                 reader = serde.generate_reader(self.store, classes, cls.ROS_TYPE)
-            except serde.Unsupported:
-                reader = None
+            except serde.Unsupported as err:
+                raise BagError(f"no CDR reader for {cls.ROS_TYPE}: {err}") from err
         self._readers[cls] = reader
         return reader
 

@@ -42,6 +42,7 @@ from racecar_hw.base.messages import (
     stamp_now,
 )
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import TOPIC_CORE, TOPIC_IMU, TOPIC_SERVO
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.sources.calibration_fit import (
     Estimate,
@@ -52,10 +53,6 @@ from racecar_hw.sources.calibration_fit import (
     fit_wall,
 )
 
-#: What the procedure reads from the bus.
-TOPIC_IMU = "/imu"
-TOPIC_CORE = "/vesc/sensors/core"
-TOPIC_SERVO = "/vesc/sensors/servo_position_command"
 #: Sensors silent for this long abort the procedure (s).
 SILENT_S = 0.5
 

@@ -42,6 +42,7 @@ from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.errors import ConfigError, DeviceNotFound, RemoteProtocolError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Bool, stamp_now
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import TELEOP_TOPIC
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad_estop import EstopButtons
@@ -531,8 +532,6 @@ def read_device_state(fd: int, codes: list[int]) -> tuple[set[int], dict[int, in
 
 
 # --- the asyncio shell -------------------------------------------------------------------------
-
-TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 
 
 @dataclass

@@ -36,11 +36,10 @@ from racecar_hw.base.clock import monotonic_ns, nanoseconds, wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import TELEOP_TOPIC
 from racecar_hw.runtime.ticker import Ticker
 
 log = logging.getLogger(__name__)
-
-TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 
 
 class Key(enum.Enum):

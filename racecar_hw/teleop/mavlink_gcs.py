@@ -71,6 +71,7 @@ from racecar_hw.base.messages import (
     stamp_now,
 )
 from racecar_hw.base.params import param
+from racecar_hw.base.topics import TELEOP_TOPIC
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.status import StatusSnapshot
 from racecar_hw.runtime.ticker import Ticker
@@ -94,8 +95,6 @@ from racecar_hw.teleop.mavlink_sticks import ManualInput, Sticks
 from racecar_hw.teleop.mavlink_telemetry import Telemetry, obstacle_bins, odom_to_ned, quaternion_matrix
 
 log = logging.getLogger(__name__)
-
-TELEOP_TOPIC = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 def parse_address(text: str, key: str) -> tuple[str, int]:
     """``host:port`` to (host, port); ConfigError naming ``key`` otherwise."""
     host, sep, port = text.rpartition(":")

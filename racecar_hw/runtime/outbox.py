@@ -1,0 +1,218 @@
+"""A bounded queue of work for a thread of its own, off the control path: the one sender/writer
+thread of the network publishers (Foxglove, Zenoh, DDS) and of the bag recorder.
+
+Bus callbacks run in the daemon's event-loop thread, on the way from a scan to its motor command.
+For work that may take long (serialize and send a message to a remote client, serialize and write
+it into a bag) they only :meth:`Outbox.put` a small job (a function and its arguments); a thread
+of its own runs the jobs. When the queue is full a job is dropped and counted (:attr:`Outbox.dropped`):
+the oldest (``drop="oldest"``: a network client wants the latest data) or the new one
+(``drop="newest"``: a bag keeps what it has queued). Never by blocking the control path.
+
+Idle behaviour. The thread is not woken per job: it runs what is queued every ``batch_s``
+(:data:`BATCH_S`), at once when ``wake_at`` (:data:`WAKE_AT`) jobs wait, or when the control path
+says it is idle (:meth:`Outbox.control_idle`, called by the daemon once a scan's command is out),
+so its work lands in the gap before the next scan; on its own it waits at most ``2 * batch_s``.
+A job queued with ``urgent=True`` wakes it at once: for a message queued in that gap whose
+latency matters (the scan itself, queued after its motor command, for remote navigation code).
+
+Hooks for a writer that owns a resource in its thread (the recorder's bag: sqlite3 connections
+belong to the thread that made them): ``start(setup)`` runs ``setup`` in the thread first and
+re-raises what it raises; ``on_batch`` runs when the thread starts and after every batch, and
+says in how many seconds it wants to run again (a periodic flush: the thread wakes for it);
+``on_stop`` runs last, after :meth:`Outbox.stop` has run everything queued.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from racecar_hw.base.clock import wall_ns
+
+log = logging.getLogger(__name__)
+
+#: The thread runs the queue at least this often (seconds), unless told otherwise.
+BATCH_S = 0.02
+#: ... or as soon as this many jobs wait.
+WAKE_AT = 16
+#: The sender thread's niceness relative to the daemon (Linux: per thread).
+SENDER_NICE = 5
+#: What goes when the queue is full.
+DROP_POLICIES = ("oldest", "newest")
+
+Job = tuple[Callable[..., None], tuple[Any, ...]]
+
+
+def lower_thread_priority(nice: int) -> None:
+    """Make the calling thread nicer by ``nice`` where the OS has per-thread priorities (Linux).
+
+    Disk and network work then yields the CPU to the control path whenever both want it; lowering
+    one's own priority needs no privilege.
+    """
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+    except (AttributeError, OSError):
+        log.debug("cannot lower a thread's priority on this system")
+
+
+class Outbox:
+    """Jobs for one thread; :meth:`put` from any thread, never blocks."""
+
+    def __init__(self, name: str, size: int = 1000, nice: int = SENDER_NICE, *,
+                 batch_s: float = BATCH_S, wake_at: int = WAKE_AT, drop: str = "oldest",
+                 on_batch: Callable[[], float | None] | None = None,
+                 on_stop: Callable[[], None] | None = None) -> None:
+        """``nice``: the thread's niceness relative to the daemon (0: the same priority);
+        ``batch_s`` (s) and ``wake_at`` (jobs): when the thread runs the queue; ``drop``: which job
+        goes when the queue is full (:data:`DROP_POLICIES`); ``on_batch`` and ``on_stop``: see the
+        module docstring."""
+        if size < 1:
+            raise ValueError(f"size must be at least 1, got {size}")
+        if drop not in DROP_POLICIES:
+            raise ValueError(f"drop must be one of {DROP_POLICIES}, got {drop!r}")
+        self.name = name
+        self.size = size
+        self.nice = nice
+        self.batch_s = batch_s
+        self.wake_at = max(1, wake_at)
+        self._drop_newest = drop == "newest"
+        self._on_batch = on_batch
+        self._on_stop = on_stop
+        self._queue: collections.deque[Job] = collections.deque(
+            maxlen=None if self._drop_newest else size)
+        self._wake = threading.Event()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the thread
+        #: jobs dropped because the queue was full
+        self.dropped = 0
+        #: jobs run, and jobs that raised
+        self.done = 0
+        self.failed = 0
+
+    @property
+    def running(self) -> bool:
+        """Whether the thread is running."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self, setup: Callable[[], None] | None = None) -> None:
+        """Start the thread (idempotent). ``setup`` runs in it first; what it raises is raised here
+        (and the thread is gone)."""
+        if self._thread is not None:
+            return
+        self._stopping = False
+        ready = threading.Event()
+        failure: list[BaseException] = []
+        self._thread = threading.Thread(target=self._run, args=(setup, ready, failure),
+                                        name=self.name, daemon=True)
+        self._thread.start()
+        ready.wait()
+        if failure:
+            self._thread.join()
+            self._thread = None
+            raise failure[0]
+
+    def stop(self, timeout_s: float | None = 2.0) -> None:
+        """Run what is queued (then ``on_stop``), and stop the thread; safe to call twice.
+
+        ``timeout_s``: how long to wait for that (None: as long as it takes); a thread still busy
+        then is left behind, with a warning.
+        """
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        self._stopping = True
+        self._wake.set()
+        thread.join(timeout_s)
+        if thread.is_alive():
+            log.warning("%s: thread still busy after %.1f s; left behind", self.name, timeout_s)
+
+    def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False) -> None:
+        """Queue ``fn(*args)`` for the thread; when full, a job is dropped (see ``drop``).
+
+        ``urgent``: wake the thread now rather than at the next batch.
+        """
+        queue = self._queue
+        if len(queue) >= self.size:
+            self.dropped += 1
+            if self._drop_newest:
+                return
+        queue.append((fn, args))
+        if (urgent or len(queue) >= self.wake_at) and not self._wake.is_set():
+            self._wake.set()
+
+    def clear(self) -> int:
+        """Drop every queued job (not counted in :attr:`dropped`); returns how many."""
+        n = len(self._queue)
+        self._queue.clear()
+        return n
+
+    def enqueuer(self, publish: Callable[[Any, Any, int], None], out: Any, stats: Any,
+                 urgent: bool = False) -> Callable[[Any], None]:
+        """A bus callback for one outgoing row of a network bridge: queue ``publish(out, msg, wall
+        ns)``, or, while nobody subscribes (``out.matching`` false), count ``stats.skipped`` and
+        serialize nothing."""
+        put = self.put
+
+        def enqueue(msg: Any) -> None:
+            if not out.matching:
+                stats.skipped += 1
+                return
+            put(publish, out, msg, wall_ns(), urgent=urgent)
+
+        return enqueue
+
+    def __len__(self) -> int:
+        return len(self._queue)
+
+    def control_idle(self) -> None:
+        """The control path is idle until its next event: run the queue now if a run is due."""
+        if self._queue and time.monotonic() >= self._drain_due and not self._wake.is_set():
+            self._wake.set()
+
+    def _run(self, setup: Callable[[], None] | None, ready: threading.Event,
+             failure: list[BaseException]) -> None:
+        if self.nice:
+            lower_thread_priority(self.nice)
+        try:
+            if setup is not None:
+                setup()
+        except BaseException as err:
+            failure.append(err)
+            return
+        finally:
+            ready.set()
+        queue = self._queue
+        while True:
+            wait_s = 2 * self.batch_s
+            if self._on_batch is not None:  # at the start, then after every batch
+                next_s = self._on_batch()
+                if next_s is not None:
+                    wait_s = min(wait_s, max(0.0, next_s))
+            self._drain_due = time.monotonic() + self.batch_s
+            self._wake.wait(wait_s)
+            self._wake.clear()
+            stopping = self._stopping
+            while queue:
+                try:
+                    fn, args = queue.popleft()
+                except IndexError:
+                    break
+                try:
+                    fn(*args)
+                    self.done += 1
+                except Exception:
+                    self.failed += 1
+                    if self.failed == 1 or self.failed % 1000 == 0:
+                        log.exception("%s: a job failed (%d so far)", self.name, self.failed)
+            if stopping:
+                if self._on_stop is not None:
+                    self._on_stop()
+                return
