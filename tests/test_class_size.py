@@ -16,9 +16,7 @@ MAX_LINES = 250
 #: "path relative to the repository::ClassName". The lead empties this set once those branches are
 #: merged; a class listed here that is already within the limit (or gone) fails the test, so the
 #: list cannot go stale.
-PENDING = {
-    "racecar_hw/daemon.py::Daemon",
-}
+PENDING: set[str] = set()  # the daemon was the last (fix/controlpath: wiring, 239 lines)
 
 
 def class_sizes(root: Path = ROOT, package: str = "racecar_hw") -> dict[str, int]:

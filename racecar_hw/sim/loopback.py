@@ -171,7 +171,7 @@ class Loopback:
             created_ns = monotonic_ns()
             daemon = self.daemon = Daemon(self.config, status=self.status)
             self.clock.daemon = daemon
-            daemon.extra_status = lambda: {
+            daemon.state.extra_status = lambda: {
                 "sim_time_s": world.sim_time, "sim_pose": tuple(world.pose),
                 "clearance_m": world.clearance()}
             # world time at which the mux started counting (its switch times are relative to it)
