@@ -176,6 +176,9 @@ class LidarDriver(ReconnectingDevice):
         #: the reading thread's CPU time (ns) then: what the scan path has used of the CPU since is
         #: ``time.thread_time_ns() - frame_arrival_cpu_ns`` (in the same thread)
         self.frame_arrival_cpu_ns = 0
+        #: who takes each finished scan first: None publishes it on the bus (``params.topic``);
+        #: the daemon's control path takes it, writes its motor command and then publishes it
+        self.scan_sink: Callable[[LaserScan], None] | None = None
         self._last_scan_s = 0.0  # time.monotonic() of the latest published scan
         self._session_scans = 0  # scans published by the current session
         self._previous_error: str | None = None  # last_error when the current session began
@@ -223,7 +226,11 @@ class LidarDriver(ReconnectingDevice):
         self.frame_arrival_ns = self.rx_ns
         self.frame_arrival_cpu_ns = self.rx_cpu_ns
         self._last_scan_s = time.monotonic()
-        self.bus.publish(self.params.topic, scan)
+        sink = self.scan_sink
+        if sink is not None:
+            sink(scan)
+        else:
+            self.bus.publish(self.params.topic, scan)
 
     async def _stream_from(self, link: Link, on_bytes: Callable[[bytes], None],
                            timeout_s: Callable[[], float],

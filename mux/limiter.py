@@ -15,7 +15,9 @@ ROS 1's throttle_interpolator ran its speed timer at ``1 / max_delta_rpm`` inste
 configured 3.5 on the MIT car); here the step size and the step period come from the same
 ``rate_hz`` (``tests/test_mux_limiter.py`` checks the realized acceleration).
 
-A non-finite target (NaN, inf) is replaced by zero speed or centred steering.
+Targets are finite: the mux turns a non-finite command on one of its inputs into a stop before
+arbitration (the one check on the way, docs/architecture.md "Finite commands"); the VESC
+conversion refuses NaN/inf as the last guard before the hardware.
 """
 
 from __future__ import annotations
@@ -54,13 +56,18 @@ class RateLimiter:
 
     def reset(self, speed: float = 0.0, steering_angle: float = 0.0) -> None:
         """Forget the past output: the next step starts from ``speed`` and ``steering_angle``."""
-        self.speed = _finite_or_zero(speed)
-        self.steering_angle = _finite_or_zero(steering_angle)
+        self.speed = float(speed)
+        self.steering_angle = float(steering_angle)
+
+    def clamp(self, speed: float) -> None:
+        """Lower the held speed to at most ``|speed|`` (m/s), keeping its direction: a safety cut
+        between steps. The next steps start from there, so they cannot raise the speed again faster
+        than ``max_accel_mps2``. A held speed already at or below ``|speed|`` is unchanged."""
+        self.speed = math.copysign(min(abs(self.speed), abs(speed)), self.speed)
 
     def step(self, speed: float, steering_angle: float, periods: int = 1) -> tuple[float, float]:
         """Move toward the target over ``periods`` fixed periods; returns (speed, steering)."""
-        speed = _finite_or_zero(speed)
-        steering_angle = _finite_or_zero(steering_angle)
+        speed, steering_angle = float(speed), float(steering_angle)
         if self.enabled:
             dt = self.period_s * max(1, periods)
             speed = self._speed_toward(speed, dt)
@@ -106,7 +113,3 @@ def _toward(value: float, target: float, max_change: float) -> float:
         return min(target, value + max_change)
     return max(target, value - max_change)
 
-
-def _finite_or_zero(x: float) -> float:
-    x = float(x)
-    return x if math.isfinite(x) else 0.0

@@ -107,6 +107,7 @@ class CommandMux:
         self._lock_received: list[int | None] = [None] * m
         self._held_steering = 0.0
         self._estop_asserted = False
+        self._unannounced: str | None = None  # a source switched to, not yet on active_topic
         #: (seconds since the mux was created, new source), for reports; the first entry is
         #: the first arbitration's source. Oldest entries are dropped past 10 000.
         self.switches: list[tuple[float, str]] = []
@@ -301,8 +302,15 @@ class CommandMux:
     # --- arbitration and output ------------------------------------------------------------
 
     def arbitrate(self, now_ns: int | None = None) -> Arbitration:
-        """The winning command at ``now_ns`` (default: the clock); records source switches."""
-        now = self._clock() if now_ns is None else now_ns
+        """The winning command at ``now_ns`` (default: the clock); records source switches and
+        announces them on ``active_topic``."""
+        arb = self._arbitrate(self._clock() if now_ns is None else now_ns)
+        self._announce_switch()
+        return arb
+
+    def _arbitrate(self, now: int) -> Arbitration:
+        """The winning command at ``now``; a source switch is recorded and logged, and announced
+        on ``active_topic`` by the next :meth:`_announce_switch`."""
         try:
             arb = arbitrate(self.table, self.machine.state, self._drives, self._received,
                             self._lock_values, self._lock_received, now, self._held_steering)
@@ -329,7 +337,14 @@ class CommandMux:
         t = (now_ns - self._start_ns) / NS_PER_S
         self.switches.append((t, arb.source))
         log.info("mux source %s -> %s at %.3f s; %s", previous, arb.source, t, self.summary(arb))
-        self.bus.publish(self.params.active_topic, String(arb.source))
+        self._unannounced = arb.source
+
+    def _announce_switch(self) -> None:
+        """Publish the source switched to since the last announcement on ``active_topic``."""
+        source = self._unannounced
+        if source is not None:
+            self._unannounced = None
+            self.bus.publish(self.params.active_topic, String(source))
 
     def step(self, now_ns: int | None = None, filters: Sequence[Filter] = (),
              periods: int = 1) -> AckermannDriveStamped:
@@ -337,11 +352,21 @@ class CommandMux:
 
         ``periods`` is how many output periods passed since the previous tick (more than 1 only
         when the control loop skipped deadlines, counted in :attr:`overruns`); the limiter advances
-        by that many fixed periods.
+        by that many fixed periods. :meth:`decide` and :meth:`publish_output` are its two halves,
+        for a caller that writes the command to the motor in between.
         """
+        msg = self.decide(now_ns, filters, periods)
+        self.publish_output(msg)
+        return msg
+
+    def decide(self, now_ns: int | None = None, filters: Sequence[Filter] = (),
+               periods: int = 1) -> AckermannDriveStamped:
+        """The output :meth:`step` publishes, taken (the limiter steps, :attr:`last_output` is set)
+        but not yet published: no bus publication happens until :meth:`publish_output`."""
         now = self._clock() if now_ns is None else now_ns
         self.overruns += periods - 1
-        return self._output(now, self.arbitrate(now), filters, periods, commit=True)
+        arb = self._arbitrate(now)
+        return self._output(now, arb.drive, arb.source, filters, periods, commit=True)
 
     def step_early(self, source: str, now_ns: int | None = None,
                    filters: Sequence[Filter] = ()) -> AckermannDriveStamped | None:
@@ -352,20 +377,47 @@ class CommandMux:
         taking it, so the next tick takes the same step and the limits hold; the output is at most
         one step ahead of the limiter, as if that tick had come early.
         """
+        msg = self.decide_early(source, now_ns, filters)
+        if msg is not None:
+            self.publish_output(msg)
+        return msg
+
+    def decide_early(self, source: str, now_ns: int | None = None,
+                     filters: Sequence[Filter] = ()) -> AckermannDriveStamped | None:
+        """What :meth:`step_early` publishes (or None), not yet published (:meth:`publish_output`)."""
         now = self._clock() if now_ns is None else now_ns
-        arb = self.arbitrate(now)
+        arb = self._arbitrate(now)
         if arb.source != source or self.machine.state is not MuxState.RUNNING:
             return None
-        return self._output(now, arb, filters, 1, commit=False)
+        return self._output(now, arb.drive, arb.source, filters, 1, commit=False)
 
-    def _output(self, now: int, arb: Arbitration, filters: Sequence[Filter], periods: int,
-                commit: bool) -> AckermannDriveStamped:
+    def cut(self, drive: AckermannDrive, now_ns: int | None = None) -> AckermannDriveStamped:
+        """A safety cut between ticks: ``drive``, slower than :attr:`last_output`, as the output now.
+
+        Past arbitration and the filters (the safety controller decided ``drive`` from the last
+        output); the limiter is clamped to its speed (:meth:`RateLimiter.clamp`), so the next ticks
+        cannot raise it again faster than the acceleration limit. Not yet published
+        (:meth:`publish_output`). In e-stop or fault the output is the brake, as on every tick.
+        """
+        now = self._clock() if now_ns is None else now_ns
+        self.limiter.clamp(drive.speed)
+        return self._output(now, drive, self.source or "idle", (), 1, commit=True)
+
+    def publish_output(self, msg: AckermannDriveStamped) -> None:
+        """Publish a source switch on ``active_topic`` and then ``msg`` on ``output_topic``."""
+        try:
+            self._announce_switch()
+            self.bus.publish(self.params.output_topic, msg)
+        except Exception as err:
+            self._fail("output publish", err)
+
+    def _output(self, now: int, drive: AckermannDrive, source: str, filters: Sequence[Filter],
+                periods: int, commit: bool) -> AckermannDriveStamped:
         out: AckermannDrive | None = None
         if self.machine.state is not MuxState.FAULT:
             try:
-                drive = arb.drive
                 for f in filters:
-                    drive = f(drive, arb.source, now)
+                    drive = f(drive, source, now)
                 if self.machine.state is MuxState.RUNNING:
                     limit = self.limiter.limit if commit else self.limiter.preview
                     out = limit(drive, periods)
@@ -379,10 +431,6 @@ class CommandMux:
         msg = AckermannDriveStamped(stamp_now(OUTPUT_FRAME, self._wall_clock()), out)
         self.last_output = msg
         self.outputs += 1
-        try:
-            self.bus.publish(self.params.output_topic, msg)
-        except Exception as err:
-            self._fail("output publish", err)
         return msg
 
     # --- diagnostics -----------------------------------------------------------------------

@@ -233,8 +233,6 @@ class SafetyController:
         self.interventions = 0
         #: interventions started, by reason (obstacle, stale_scan, no_scan, bad_scan, reverse_cap)
         self.interventions_by_reason: dict[str, int] = {}
-        self.rejected_commands = 0
-        self._rejecting = False
         self.state = SafetyState(0.0, math.nan, None, "no_scan", False)
         #: the latest interventions, oldest first: an entry when one starts, and one more when one
         #: that started for another reason becomes a stop for an obstacle (``continues``)
@@ -358,18 +356,10 @@ class SafetyController:
 
         ``source`` is the mux source that produced the command; ``measured_speed_mps`` the
         odometry speed (m/s, negative in reverse; 0 when unknown); ``now_ns`` monotonic time.
+        ``drive`` is finite: a command is checked once, where it enters the mux (docs/architecture.md,
+        "Finite commands").
         """
         speed, steering = float(drive.speed), float(drive.steering_angle)
-        finite = math.isfinite(speed) and math.isfinite(steering)
-        if not finite:
-            self.rejected_commands += 1
-            if not self._rejecting:  # once per run of bad commands, not at the command rate
-                log.warning("safety: non-finite command from %s (speed %r, steering %r): braking",
-                            source, drive.speed, drive.steering_angle)
-            speed = 0.0
-            steering = steering if math.isfinite(steering) else 0.0
-            drive = dataclasses.replace(drive, speed=0.0, steering_angle=steering)
-        self._rejecting = not finite
         if not math.isfinite(measured_speed_mps):
             measured_speed_mps = 0.0
         mode = self.params.mode

@@ -59,10 +59,12 @@ class SafetyNode:
 
     def __init__(self, bus: Bus, params: SafetyParams, laser_to_base: LaserTransform | None = None,
                  clock: Callable[[], int] = monotonic_ns, defer_memory: bool = False,
-                 steering_limit_rad: float = math.inf) -> None:
+                 steering_limit_rad: float = math.inf, scans_from_bus: bool = True) -> None:
         """``defer_memory``: leave the memory update of each scan to :meth:`remember` (the daemon
         calls it after the scan's motor command is written); otherwise it follows each scan.
-        ``steering_limit_rad``: the steering the car can drive (see :class:`SafetyController`)."""
+        ``steering_limit_rad``: the steering the car can drive (see :class:`SafetyController`).
+        ``scans_from_bus``: take scans from ``scan_topic`` on the bus; False: the caller hands each
+        scan to :meth:`take_scan` (the daemon's control path, before the scan is on the bus)."""
         self.bus = bus
         self.params = params
         self.clock = clock
@@ -82,10 +84,9 @@ class SafetyNode:
         self._commanded = 0.0
         self._output = 0.0
         bus.declare(params.state_topic, DiagnosticArray)
-        self._subs: list[Subscription] = [
-            bus.subscribe(params.scan_topic, self._on_scan),
-            bus.subscribe(params.odom_topic, self._on_odom),
-        ]
+        self._subs: list[Subscription] = [bus.subscribe(params.odom_topic, self._on_odom)]
+        if scans_from_bus:
+            self._subs.append(bus.subscribe(params.scan_topic, self.take_scan))
 
     @property
     def state(self) -> SafetyState:
@@ -99,7 +100,8 @@ class SafetyNode:
         """How many interventions have started."""
         return self.controller.interventions
 
-    def _on_scan(self, scan: LaserScan) -> None:
+    def take_scan(self, scan: LaserScan) -> None:
+        """Judge the next commands against ``scan`` (never raises: a failure latches a fault)."""
         now = self.clock()
         try:
             self.controller.on_scan(scan, now, self.pose_at(now))
@@ -239,7 +241,6 @@ class SafetyNode:
             "commanded_speed": f"{self._commanded:.3f}",
             "output_speed": f"{self._output:.3f}",
             "interventions": str(self.controller.interventions),
-            "rejected_commands": str(self.controller.rejected_commands),
             "fault": self.fault or "",
         }
         if self.cone is not None:
@@ -260,7 +261,8 @@ class SafetyNode:
 
 
 def _finite_or_zero(value: object) -> float:
-    """``value`` as a finite float, or 0.0 when it is not a finite number."""
+    """``value`` as a finite float, or 0.0 when it is not a finite number (the node never raises,
+    whatever a caller hands it; behind the mux every command is finite already)."""
     try:
         number = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):

@@ -18,7 +18,7 @@ from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.config import load_config
-from racecar_hw.daemon import ControlStats
+from racecar_hw.control.stats import ControlStats
 from vesc.codec import SetCurrentBrake, SetRpm, SetServoPosition
 from vesc.fake import FakeVesc
 

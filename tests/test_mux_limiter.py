@@ -138,14 +138,6 @@ def test_disabled_limiter_passes_targets_through():
     assert lim.step(-5.0, -0.3) == (-5.0, -0.3)
 
 
-def test_non_finite_targets_become_zero():
-    for enabled in (True, False):
-        lim = _limiter(enabled=enabled)
-        lim.reset(speed=0.01, steering_angle=0.01)
-        assert lim.step(math.nan, math.inf) == (0.0, 0.0)
-        assert lim.step(-math.inf, math.nan) == (0.0, 0.0)
-
-
 def test_limit_returns_a_new_command_and_copies_other_fields():
     lim = _limiter()
     drive = AckermannDrive(steering_angle=0.3, steering_angle_velocity=1.0, speed=4.0,
@@ -183,3 +175,18 @@ def test_every_step_respects_the_limits(targets):
         if target == 0.0:
             # a stop is never slowed beyond the configured deceleration
             assert abs(v) == pytest.approx(max(0.0, abs(v0) - decel * dt), abs=TOL)
+
+
+def test_clamp_lowers_the_held_speed_keeping_its_direction_and_the_next_steps_ramp_from_there():
+    for sign in (1.0, -1.0):
+        lim = _limiter(accel=2.5, rate=50.0)
+        lim.reset(speed=sign * 2.0, steering_angle=0.1)
+        lim.clamp(0.5)  # a safety cut to 0.5 m/s (its sign does not matter: the magnitude is held)
+        assert lim.speed == sign * 0.5 and lim.steering_angle == 0.1
+        lim.clamp(sign * 1.5)  # never raises the held speed
+        assert lim.speed == sign * 0.5
+        speed, _ = lim.step(sign * 2.0, 0.1)  # back up at the acceleration limit, not at once
+        assert speed == pytest.approx(sign * (0.5 + 2.5 / 50.0), abs=TOL)
+    lim = _limiter()
+    lim.clamp(0.0)
+    assert lim.speed == 0.0

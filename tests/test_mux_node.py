@@ -453,3 +453,31 @@ def test_an_early_step_sends_the_next_ticks_output_now_without_taking_the_limite
     assert mux.step_early("nav_0") is None                          # nav_0 no longer wins
     mux.engage_estop("test")
     assert mux.step_early("teleop") is None                         # never while e-stopped
+
+
+def test_decide_publishes_nothing_until_publish_output_which_announces_the_switch_first():
+    bus, mux, _clock = _mux(limiter_enabled=False)
+    seen: list[str] = []
+    bus.subscribe(f"{LOW}/active", lambda msg: seen.append(f"active {msg.data}"))
+    bus.subscribe(OUTPUT, lambda msg: seen.append(f"output {msg.drive.speed}"))
+    bus.publish(TELEOP, _cmd(1.5))
+    msg = mux.decide()
+    assert msg.drive.speed == 1.5 and mux.last_output is msg and mux.source == "teleop"
+    assert seen == []  # taken (the switch recorded, the limiter stepped), nothing on the bus yet
+    mux.publish_output(msg)
+    assert seen == ["active teleop", "output 1.5"]
+    assert mux.decide_early("nav_0") is None  # not the winner: nothing decided
+    early = mux.decide_early("teleop")
+    assert early is not None and early.drive.speed == 1.5 and seen == ["active teleop", "output 1.5"]
+
+
+def test_cut_outputs_the_slower_command_past_arbitration_and_clamps_the_limiter():
+    bus, mux, _clock = _mux()
+    out: list[float] = []
+    bus.subscribe(OUTPUT, lambda msg: out.append(msg.drive.speed))
+    mux.limiter.reset(speed=2.0, steering_angle=0.2)
+    cut = mux.cut(AckermannDrive(steering_angle=0.2, speed=0.4))
+    assert cut.drive.speed == 0.4 and cut.drive.steering_angle == 0.2 and mux.limiter.speed == 0.4
+    assert out == [] and mux.last_output is cut  # published by publish_output, after the write
+    mux.engage_estop("test")
+    assert mux.cut(AckermannDrive(speed=0.2)).drive == AckermannDrive()  # the e-stop still brakes

@@ -277,8 +277,8 @@ def test_all_finite_looks_into_nested_messages_and_arrays():
 
 
 def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command():
-    """The scan reaches the bridge's queue from the daemon's scan path, right after the motor write
-    (and before the bookkeeping and the later subscribers), and wakes the publisher at once; the
+    """The scan reaches the bridge's queue from the daemon's control path, right after the motor write
+    (and before the bookkeeping and the bus's subscribers), and wakes the publisher at once; the
     bridge does not subscribe to the scan on the bus."""
     from racecar_hw.base.clock import monotonic_ns
     from racecar_hw.daemon import Daemon
@@ -304,15 +304,15 @@ def test_the_bridge_takes_a_scan_only_after_the_daemon_wrote_its_motor_command()
         daemon.zenoh.outbox.put = lambda fn, *args, urgent=False: events.append(("queued", urgent))
         await loop.run_in_executor(None, daemon.zenoh.open, loop)
         try:
-            callbacks = [s.callback for s in daemon.bus._subs["/scan"]]
+            callbacks = [s.callback for s in daemon.bus._subs.get("/scan", [])]
             scan_out = next(o for o in daemon.zenoh._outs if o.row.bus == "/scan")
             scan_out.matching = True  # as if a remote node subscribed
-            daemon.vesc = Motor()  # type: ignore[assignment]
+            daemon.control._write = Motor().command
             daemon.safety.remember = remembered  # type: ignore[method-assign]
             daemon.mux.last_output = AckermannDriveStamped()
             daemon.stats.ticks, daemon.stats.last_tick_ns = 1, monotonic_ns()
-            daemon.bus.publish("/scan", LaserScan(angle_min=-1.0, angle_increment=0.01,
-                                                  ranges=np.full(201, 5.0, dtype=np.float32)))
+            daemon.control.take_scan(LaserScan(angle_min=-1.0, angle_increment=0.01,
+                                               ranges=np.full(201, 5.0, dtype=np.float32)))
             return callbacks
         finally:
             daemon.zenoh.close()
@@ -360,8 +360,9 @@ def test_without_cyclonedds_the_daemon_runs_without_dds_and_says_so(monkeypatch,
     """cyclonedds is a dependency on x86_64 only: elsewhere, unless installed, DDS is off, with a
     warning that names the package and the key."""
     import racecar_hw.daemon as daemon_module
+    import racecar_hw.interfaces as interfaces_module
 
-    monkeypatch.setattr(daemon_module, "cyclone_available", lambda: False)
+    monkeypatch.setattr(interfaces_module, "cyclone_available", lambda: False)
     config = load_config(None, [f"vesc.port={tmp_path / 'no-vesc'}", "lidar.enabled=false",
                                 "gamepad.enabled=false", "status.enabled=false", "safety.mode=off",
                                 "zenoh.enabled=false", "foxglove.enabled=false", "web.enabled=false"])

@@ -33,7 +33,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -43,8 +42,9 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import dds_graph, rmw
 from racecar_hw.net.dds_config import DdsParams, cyclone_xml
+from racecar_hw.net.dds_inbound import DdsReceiver
 from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
-from racecar_hw.net.inbox import MALFORMED, NON_FINITE, Inbox
+from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
 from racecar_hw.runtime.outbox import Outbox
@@ -52,13 +52,8 @@ from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
-SURFACE = "dds"
 #: How long a reliable writer may block when its history is full (ns); never reached with KEEP_LAST.
 MAX_BLOCKING_NS = 100_000_000
-#: Samples taken from a reader per call.
-TAKE_N = 64
-#: How long a command row's thread waits for a sample before it looks whether to stop (ns).
-PUMP_WAIT_NS = 200_000_000
 
 
 @dataclass
@@ -134,14 +129,14 @@ class DdsBridge:
             estop_topic=estop_topic, release_topic=release_topic, on_estop=on_estop,
             refusals=self.refusals)
         self.period_s = self.inbox.period_ns / 1e9
-        self._pumps: list[threading.Thread] = []
-        self._stopping = threading.Event()
         self.stats = DdsStats()
+        #: the readers' samples into the inbox (a thread per command row)
+        self.receiver = DdsReceiver(self.inbox, self.stats, self.refusals,
+                                    accepts_commands=params.accepts_commands, period_s=self.period_s)
         self.urgent = frozenset(urgent)
         self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
         self.factory: TypeFactory = ros2_factory()
         self._types = ros2_types()
-        self._lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._domain: Any = None
         self.participant: Any = None
@@ -210,13 +205,10 @@ class DdsBridge:
                 reader = DataReader(self.participant, topic, newest)
                 self._readers.append(reader)
                 reader_gids.append(reader.guid.bytes)
-                self._pumps.append(threading.Thread(target=self._pump, args=(row, reader), daemon=True,
-                                                    name=f"dds-in {row.ros}"))
+                self.receiver.add_pump(self.participant, row, self.ros_name(row), reader)
         self._publish_graph(reader_gids, writer_gids, DdsTopic, DataWriter)
         self.outbox.start()
-        self._stopping.clear()
-        for pump in self._pumps:
-            pump.start()
+        self.receiver.start()
         for out in self._outs:
             self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
             latest = self.bus.latest(out.row.bus)
@@ -251,13 +243,9 @@ class DdsBridge:
             sub.close()
         self._bus_subs.clear()
         self.outbox.stop(5.0)
-        self._stopping.set()
         if self._own_inbox:
             self.inbox.close()
-        for pump in self._pumps:  # each wakes within PUMP_WAIT_S
-            if pump.is_alive():
-                pump.join(5.0)
-        self._pumps.clear()
+        self.receiver.stop()
         if not self._open:
             return
         self._open = False
@@ -303,51 +291,11 @@ class DdsBridge:
                 log.warning("dds: could not publish %s (%d so far): %r", out.row.ros,
                             self.stats.publish_errors, err)
 
-    # --- in: Cyclone's receive thread, then the event loop ------------------------------------
-
-    def _pump(self, row: Topic, reader: Any) -> None:
-        """A command row's thread: wait (in C) for a sample, take the newest, rest one period."""
-        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: PLC0415
-
-        receive = self._receiver(row)
-        waitset = WaitSet(self.participant)
-        waitset.attach(ReadCondition(reader, SampleState.NotRead | ViewState.Any | InstanceState.Any))
-        while not self._stopping.is_set():
-            try:
-                if waitset.wait(PUMP_WAIT_NS) <= 0:
-                    continue
-            except Exception:  # noqa: BLE001 - the participant is gone: the thread ends
-                return
-            receive(reader)
-            self._stopping.wait(self.period_s)
+    # --- in: Cyclone's receive thread (see DdsReceiver), then the event loop ----------------
 
     def _receiver(self, row: Topic) -> Callable[[Any], None]:
-        cls, topic = row.msgtype, row.bus
-        stats, lock, inbox = self.stats, self._lock, self.inbox
-        accept = self.params.accepts_commands
-        refusals, name = self.refusals, self.ros_name(row)
-        outcome = {None: "received", MALFORMED: "malformed", NON_FINITE: "non_finite"}
-
-        def receive(reader: Any) -> None:
-            try:
-                samples = reader.take(TAKE_N)
-            except Exception:  # noqa: BLE001 - a reader being deleted at shutdown
-                return
-            for sample in samples:
-                data = getattr(sample, "data", None)
-                if data is None:  # an instance state change (a writer went away), no data
-                    continue
-                if not accept:
-                    with lock:
-                        stats.refused += 1
-                    refusals.note(SURFACE, name, "unauthenticated interface (dds.interface is not "
-                                                 "loopback; see dds.accept_unauthenticated_commands)")
-                    continue
-                field = outcome.get(inbox.offer_cdr(SURFACE, topic, cls, data), "refused")
-                with lock:
-                    setattr(stats, field, getattr(stats, field) + 1)
-
-        return receive
+        """What takes ``row``'s samples from a reader into the inbox."""
+        return self.receiver.receiver(row, self.ros_name(row))
 
     def _deliver(self, topic: str, msg: Message, origin: str) -> None:
         """The own inbox's hand-over, in the event loop: on the bus, then ``on_input``."""

@@ -28,7 +28,6 @@ threads; they hand work to the event loop (``call_soon_threadsafe``), and a serv
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import json
 import logging
 import math
@@ -38,16 +37,28 @@ from dataclasses import dataclass
 from typing import Any
 
 import foxglove
-from foxglove import Capability, MessageSchema, Parameter, Schema, Service, ServiceRequest, ServiceSchema
+from foxglove import Capability, Parameter, Schema
 from foxglove.channels import LogChannel, SceneUpdateChannel
 from foxglove.messages import Log, LogLevel, Timestamp
 
-from mux.estop import Origin
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Message, Twist, stamp_now
+from racecar_hw.base.messages import Message
 from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.foxglove_params import FoxgloveParams
+from racecar_hw.net.foxglove_services import (
+    SERVICE_PREFIX,
+    SERVICE_TIMEOUT_S,
+    TriggerServices,
+    trigger_response,
+)
+from racecar_hw.net.foxglove_teleop import (
+    MIN_TWIST_INTERVAL_NS,
+    TWIST_TYPES,
+    TwistTeleop,
+    decode_twist,
+    twist_to_drive,
+)
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
 from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
@@ -62,13 +73,6 @@ log = logging.getLogger(__name__)
 SCENE_TOPIC = "/safety/scene"
 SPEEDS_TOPIC = "/safety/speeds"
 LOG_TOPIC = "/log"
-SERVICE_PREFIX = "/racecar/"
-TWIST_TYPES = ("geometry_msgs/msg/Twist", "geometry_msgs/Twist")
-#: How long a service call waits for the event loop (s).
-SERVICE_TIMEOUT_S = 2.0
-#: Twists closer together than this (per client channel) are dropped: a flooding client cannot load
-#: the control loop (the Teleop panel sends 10 Hz, at most tens).
-MIN_TWIST_INTERVAL_NS = 5_000_000
 
 _SPEEDS_SCHEMA = {
     "title": "racecar_hw.SafetySpeeds", "type": "object",
@@ -86,25 +90,6 @@ _SPEEDS_SCHEMA = {
         "source": {"type": "string", "description": "the mux's active source"},
     },
 }
-_TRIGGER_RESPONSE = "bool success\nstring message\n"
-def twist_to_drive(twist: Twist, wheelbase_m: float, max_speed_mps: float,
-                   max_steering_rad: float) -> AckermannDrive:
-    """A Twist (m/s forward, rad/s yaw rate) as an Ackermann command for a car of ``wheelbase_m``.
-
-    ``steering = atan(wheelbase * yaw_rate / speed)``, so the car turns at the asked yaw rate; with no
-    speed a yaw rate points the wheels fully to its side. Non-finite values become a stop; speed and
-    steering are clamped to the limits.
-    """
-    v, w = float(twist.linear.x), float(twist.angular.z)
-    if not (math.isfinite(v) and math.isfinite(w)):
-        return AckermannDrive()
-    v = max(-max_speed_mps, min(max_speed_mps, v))
-    if abs(v) < 1e-3:
-        steering = math.copysign(max_steering_rad, w) if w else 0.0
-    else:
-        steering = math.atan(wheelbase_m * w / v)
-    steering = max(-max_steering_rad, min(max_steering_rad, steering))
-    return AckermannDrive(steering_angle=steering, speed=v)
 
 
 @dataclass
@@ -134,9 +119,10 @@ class FoxgloveServer:
         self._rows = topics  # read at start(): the simulator adds its rows after building the daemon
         self.topics: list[Topic] = []
         self.parameters = flatten_parameters(parameters or {})
-        self.teleop_input = teleop_input if params.teleop else None
-        self.wheelbase_m = wheelbase_m
-        self.max_steering_rad = max_steering_rad
+        #: the clients' Teleop panels (their Twists, refused ones counted)
+        self.teleop = TwistTeleop(bus, params.teleop_topic, teleop_input if params.teleop else None,
+                                  wheelbase_m=wheelbase_m, max_speed_mps=params.teleop_max_speed_mps,
+                                  max_steering_rad=max_steering_rad)
         self.name = name
         self.outbox = Outbox("foxglove-sender", params.queue_size)
         self.server: Any = None
@@ -152,12 +138,7 @@ class FoxgloveServer:
         self._special: dict[int, int] = {}  # SDK channel id -> subscribers, for scene/speeds/log
         self._scene_id = self._speeds_id = self._log_id = -1
         self._next_scene_ns = 0
-        self._teleop_channels: dict[tuple[int, int], str] = {}  # (client, channel) -> encoding
-        self._last_twist_ns: dict[tuple[int, int], int] = {}
         self._log_handler: _LogHandler | None = None
-        #: Twist messages turned into commands, and refused ones
-        self.twists = 0
-        self.refused = 0
 
     # --- life cycle -----------------------------------------------------------------------------
 
@@ -168,7 +149,7 @@ class FoxgloveServer:
 
     def start(self) -> bool:
         """Create the channels and start listening; False (logged) when the port cannot be had."""
-        self._loop = asyncio.get_running_loop()
+        self._loop = self.teleop.loop = asyncio.get_running_loop()
         ctx = self._context = foxglove.Context()
         types = ros2_types()
         self.topics = [t for t in self._rows if t.direction is Direction.OUT]
@@ -187,7 +168,7 @@ class FoxgloveServer:
             c.id() for c in (self._scene, self._speeds, self._log))
         self._special = dict.fromkeys((self._scene_id, self._speeds_id, self._log_id), 0)
         capabilities = [Capability.Services, Capability.Parameters]
-        if self.teleop_input is not None:
+        if self.teleop.teleop_input is not None:
             capabilities.append(Capability.ClientPublish)
         # the SDK behind the relay, on loopback with TLS only the relay trusts (see net.relay)
         cert = make_loopback_cert()
@@ -195,7 +176,8 @@ class FoxgloveServer:
             self.server = foxglove.start_server(
                 name=self.name, host=LOOPBACK, port=0, capabilities=capabilities,
                 server_listener=_Listener(self), supported_encodings=["cdr", "json"],
-                services=self._services(), context=ctx, tls_cert=cert.cert_pem, tls_key=cert.key_pem)
+                services=TriggerServices(self.control, self._loop).services(), context=ctx,
+                tls_cert=cert.cert_pem, tls_key=cert.key_pem)
         except RuntimeError as err:
             log.error("foxglove: cannot start the Foxglove server (%s); the Foxglove live view is off", err)
             return False
@@ -305,116 +287,9 @@ class FoxgloveServer:
             if latest is not None:
                 self.outbox.put(self._send, entry, latest, wall_ns())
 
-    def advertised(self, client_id: int, channel: Any) -> None:
-        if channel.topic != self.params.teleop_topic or self.teleop_input is None:
-            log.info("foxglove: client %d advertised %s (%s); only %s is taken", client_id, channel.topic,
-                     channel.schema_name, self.params.teleop_topic)
-            return
-        if channel.schema_name not in TWIST_TYPES or channel.encoding not in ("cdr", "json"):
-            log.warning("foxglove: %s must carry geometry_msgs/msg/Twist as cdr or json, not %s as %s",
-                        channel.topic, channel.schema_name, channel.encoding)
-            return
-        self._teleop_channels[(client_id, channel.id)] = channel.encoding
-        log.info("foxglove: client %d drives through the mux input on %s", client_id, self.teleop_input)
-
-    def unadvertised(self, client_id: int, channel_id: int) -> None:
-        self._last_twist_ns.pop((client_id, channel_id), None)
-        if self._teleop_channels.pop((client_id, channel_id), None) is not None and self._loop is not None:
-            self._loop.call_soon_threadsafe(self._drive, AckermannDrive())  # stop now, not at the timeout
-
-    def message(self, client_id: int, channel_id: int, data: bytes) -> None:
-        key = (client_id, channel_id)
-        encoding = self._teleop_channels.get(key)
-        if encoding is None or self._loop is None:
-            return
-        now = monotonic_ns()
-        if now - self._last_twist_ns.get(key, 0) < MIN_TWIST_INTERVAL_NS:
-            self.refused += 1
-            return
-        self._last_twist_ns[key] = now
-        try:
-            twist = decode_twist(data, encoding)
-        except Exception as err:  # noqa: BLE001 - a client's bad bytes: refused, counted, logged
-            self.refused += 1
-            if self.refused == 1 or self.refused % 100 == 0:
-                log.warning("foxglove: refused a Twist from client %d (%s; %d so far)", client_id, err,
-                            self.refused)
-            return
-        drive = twist_to_drive(twist, self.wheelbase_m, self.params.teleop_max_speed_mps,
-                               self.max_steering_rad)
-        self.twists += 1
-        self._loop.call_soon_threadsafe(self._drive, drive)
-
-    def _drive(self, drive: AckermannDrive) -> None:
-        if self.teleop_input is not None:
-            msg = AckermannDriveStamped(stamp_now("base_link", wall_ns()), drive)
-            self.bus.publish(self.teleop_input, msg)
-
     def get_parameters(self, names: list[str]) -> list[Parameter]:
         wanted = names or list(self.parameters)
         return [Parameter(name, value=self.parameters[name]) for name in wanted if name in self.parameters]
-
-    # --- services -------------------------------------------------------------------------------
-
-    def _services(self) -> list[Service]:
-        control = self.control
-        actions: dict[str, tuple[str, Callable[[str], tuple[bool, str]]]] = {
-            "estop": ("latch the mux e-stop: the car brakes and stays braked until release",
-                      lambda who: (True, control.engage_estop(Origin("foxglove", who)))),
-            "release": ("release the latched e-stop",
-                        lambda who: control.release_estop(Origin("foxglove", who))),
-            "arm": ("arm the car", control.arm),
-            "disarm": ("disarm the car: every source is stopped", control.disarm),
-        }
-        schema = ServiceSchema(
-            "std_srvs/srv/Trigger",
-            request=MessageSchema(encoding="cdr", schema=Schema(name="std_srvs/srv/Trigger_Request",
-                                                                 encoding="ros2msg", data=b"")),
-            response=MessageSchema(encoding="cdr", schema=Schema(
-                name="std_srvs/srv/Trigger_Response", encoding="ros2msg", data=_TRIGGER_RESPONSE.encode())))
-        return [Service(SERVICE_PREFIX + name, schema=schema, handler=self._handler(name, action))
-                for name, (_, action) in actions.items()]
-
-    def _handler(self, name: str,
-                 action: Callable[[str], tuple[bool, str]]) -> Callable[[ServiceRequest], bytes]:
-        def handle(request: ServiceRequest) -> bytes:
-            assert self._loop is not None
-            done: concurrent.futures.Future[tuple[bool, str]] = concurrent.futures.Future()
-            who = f"foxglove client {request.client_id}"
-
-            def run() -> None:
-                try:
-                    done.set_result(action(who))
-                except Exception as err:  # noqa: BLE001 - reported to the caller
-                    done.set_exception(err)
-
-            self._loop.call_soon_threadsafe(run)
-            success, message = done.result(SERVICE_TIMEOUT_S)
-            log.info("foxglove: %s%s from %s: %s", SERVICE_PREFIX, name, who, message)
-            if request.encoding == "json":
-                return json.dumps({"success": success, "message": message}).encode()
-            return trigger_response(success, message)
-        return handle
-
-
-def trigger_response(success: bool, message: str) -> bytes:
-    """``std_srvs/srv/Trigger_Response`` in CDR (little endian, with the encapsulation header)."""
-    text = message.encode()
-    return (b"\x00\x01\x00\x00" + bytes([1 if success else 0]) + b"\x00\x00\x00"
-            + (len(text) + 1).to_bytes(4, "little") + text + b"\x00")
-
-
-def decode_twist(data: bytes, encoding: str) -> Twist:
-    """A client's Twist (``cdr`` or ``json``); raises on anything that is not one."""
-    if encoding == "json":
-        obj = json.loads(data)
-        lin, ang = obj.get("linear", {}), obj.get("angular", {})
-        twist = Twist()
-        twist.linear.x, twist.angular.z = float(lin.get("x", 0.0)), float(ang.get("z", 0.0))
-        return twist
-    msg = ros2_types().deserialize(data, Twist)
-    assert isinstance(msg, Twist)
-    return msg
 
 
 
@@ -469,13 +344,13 @@ class _Listener:
             self.server.subscribed(channel.id, -1)
 
     def on_client_advertise(self, client: Any, channel: Any) -> None:
-        self.server.advertised(client.id, channel)
+        self.server.teleop.advertised(client.id, channel)
 
     def on_client_unadvertise(self, client: Any, client_channel_id: int) -> None:
-        self.server.unadvertised(client.id, client_channel_id)
+        self.server.teleop.unadvertised(client.id, client_channel_id)
 
     def on_message_data(self, client: Any, client_channel_id: int, data: bytes) -> None:
-        self.server.message(client.id, client_channel_id, data)
+        self.server.teleop.message(client.id, client_channel_id, data)
 
     def on_get_parameters(self, client: Any, param_names: list[str],
                           request_id: str | None = None) -> list[Parameter]:
@@ -492,3 +367,8 @@ class _Listener:
         log.warning("foxglove: client %d tried to set parameters; they are read-only (edit the config "
                     "file and restart)", client.id)
         return self.server.get_parameters([p.name for p in parameters])
+
+
+__all__ = ["LOG_TOPIC", "MIN_TWIST_INTERVAL_NS", "SCENE_TOPIC", "SERVICE_PREFIX", "SERVICE_TIMEOUT_S",
+           "SPEEDS_TOPIC", "TWIST_TYPES", "FoxgloveParams", "FoxgloveServer", "decode_twist",
+           "flatten_parameters", "trigger_response", "twist_to_drive"]

@@ -45,7 +45,6 @@ import dataclasses
 import logging
 import math
 import threading
-from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -54,6 +53,7 @@ import numpy as np
 
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.messages import DiagnosticStatus, KeyValue, Message
+from racecar_hw.net.inbox_stops import StopQueue
 from racecar_hw.rosmsg.typestore import ros2_types
 from racecar_hw.runtime.refusals import Refusals
 
@@ -62,8 +62,6 @@ log = logging.getLogger(__name__)
 #: ``deliver(topic, msg, origin)`` / ``on_estop(topic, msg, origin)``, called in the event loop.
 Handover = Callable[[str, Message, str], None]
 
-#: The most e-stop messages waiting at once; beyond it the oldest that cannot engage goes.
-MAX_STOPS = 32
 #: Superseded messages of one input that make one "flood" note in the refusals (a line at most
 #: once per the refusals' interval): below it a client a little faster than the tick is no news.
 FLOOD_NOTE = 100
@@ -135,9 +133,7 @@ class Inbox:
         self._lock = threading.Lock()
         self._slots: dict[str, _Slot] = {t: _Slot(t) for t in {*topics, *self.stop_topics}}
         self._dirty: list[_Slot] = []            #: slots holding a message
-        self._stops: deque[tuple[str, Message, str]] = deque()
-        self._stops_engage = False               #: an engaging message waits: hand over at once
-        self._stops_next_ns = 0
+        self._stops = StopQueue(estop_topic, self.period_ns, self._superseded)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._soon = False                       #: a call_soon_threadsafe(drain) is pending
         self._timer: asyncio.TimerHandle | None = None
@@ -203,7 +199,7 @@ class Inbox:
             slot.counts.superseded += superseded
             slot.unreported += superseded
             if topic in self.stop_topics:
-                wake, replaced = self._queue_stop(topic, msg, origin, now)
+                wake, replaced = self._stops.queue(topic, msg, origin, now, self._timer_ns)
                 slot.origin = origin
             else:
                 replaced = slot.msg is not None
@@ -231,39 +227,9 @@ class Inbox:
             self.refusals.note(origin, topic, "flood: superseded before the loop took them", flood)
         return None
 
-    def _engages(self, topic: str, msg: Message) -> bool:
-        return topic == self.estop_topic and bool(getattr(msg, "data", False))
-
-    def _queue_stop(self, topic: str, msg: Message, origin: str, now: int) -> tuple[bool, bool]:
-        """Queue an e-stop message (lock held): (wake the loop now?, was a message dropped?)."""
-        stops = self._stops
-        engages = self._engages(topic, msg)
-        if engages:
-            # merged into an e-stop from the same surface already waiting with only e-stops
-            # behind it: handing over both would engage twice in a row, nothing in between
-            for t, m, o in reversed(stops):
-                if not self._engages(t, m):
-                    break
-                if o == origin:
-                    self._slots[topic].counts.superseded += 1
-                    return True, True
-            stops.append((topic, msg, origin))
-            self._stops_engage = True
-            return True, False
-        dropped = False
-        if stops and stops[-1][0] == topic and not self._engages(*stops[-1][:2]):
-            stops.pop()  # a release or a false replaced by a newer one on its topic
-            dropped = True
-        elif len(stops) >= MAX_STOPS:
-            victim = next((i for i, (t, m, _) in enumerate(stops) if not self._engages(t, m)), None)
-            if victim is not None:
-                self._slots[stops[victim][0]].counts.superseded += 1
-                del stops[victim]
-        if dropped:
-            self._slots[topic].counts.superseded += 1
-        stops.append((topic, msg, origin))
-        due = self._stops_engage or now >= self._stops_next_ns
-        return due or self._timer_ns is None or self._timer_ns > self._stops_next_ns, dropped
+    def _superseded(self, topic: str) -> None:
+        """A message for ``topic`` was merged or dropped (lock held)."""
+        self._slots[topic].counts.superseded += 1
 
     def refuse(self, origin: str, topic: str, reason: str) -> None:
         """Count a message for ``topic`` from ``origin`` refused for ``reason`` (any thread)."""
@@ -287,13 +253,8 @@ class Inbox:
             loop = self._loop
             self._soon = False
             timer, self._timer, self._timer_ns = self._timer, None, None
-            stops: list[tuple[str, Message, str]] = []
-            if self._stops and (self._stops_engage or now >= self._stops_next_ns):
-                stops = list(self._stops)
-                self._stops.clear()
-                self._stops_engage = False
-                self._stops_next_ns = now + self.period_ns
-            wait_ns = self._stops_next_ns if self._stops else None
+            stops = self._stops.take(now)
+            wait_ns = self._stops.next_ns if self._stops else None
             ready: list[tuple[str, Message, str]] = []
             waiting: list[_Slot] = []
             for slot in self._dirty:

@@ -26,7 +26,8 @@ from racecar_hw.base.messages import (
     stamp_now,
 )
 from racecar_hw.base.transforms import StaticTransformParams
-from racecar_hw.daemon import Daemon, EstopRequest
+from racecar_hw.control.path import EstopRequest
+from racecar_hw.daemon import Daemon
 from racecar_hw.net.topics import DEFAULT, LATCHED, Direction, Topic
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.world import World

@@ -45,6 +45,7 @@ from racecar_hw.base.params import param
 from racecar_hw.base.topics import TELEOP_TOPIC
 from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.teleop.arming import Arming
+from racecar_hw.teleop.gamepad_estop import EstopButtons
 
 log = logging.getLogger(__name__)
 
@@ -608,13 +609,9 @@ class GamepadTeleop:
         self.params = params
         self.arming = arming
         self._clock = clock
-        #: called when B is pressed (the daemon latches the mux e-stop as the gamepad operator)
-        self.on_estop = on_estop
-        #: called once when B and START have been held together for ``estop_release_hold_s``
-        self.on_release = on_release
-        #: since when (monotonic ns) B and START are held together; None: not both
-        self._combo_since: int | None = None
-        self._combo_done = False
+        #: B latches the e-stop (``on_estop``: the daemon latches the mux e-stop as the gamepad
+        #: operator); B and START held for ``estop_release_hold_s`` release it (``on_release``)
+        self.estop_buttons = EstopButtons(params.estop_release_hold_s, clock, on_estop, on_release)
         self._layout = _LAYOUTS[params.layout]
         self.profile: GamepadProfile | None = PROFILES.get(params.profile)
         self.mapping: TeleopMapping | None = None
@@ -665,7 +662,7 @@ class GamepadTeleop:
                 log.warning("gamepad START ignored: centre the speed stick before arming")
             else:
                 self.arming.arm("gamepad", "START on the gamepad")
-        self._estop_buttons(profile, frame)
+        self.estop_buttons.frame(profile.estop, profile.arm, frame)
         if before.deadman and not self.command.deadman:
             self._publish_drive(AckermannDrive())
         elif self.command.deadman and not before.deadman:
@@ -673,32 +670,6 @@ class GamepadTeleop:
             self._publish_current()
         if before.autonomy != self.command.autonomy:
             self._publish_lock()
-
-    def _estop_buttons(self, profile: GamepadProfile, frame: PadFrame) -> None:
-        """B latches the e-stop; B and START held together start the release combination's clock."""
-        if profile.estop < 0:
-            return
-        if profile.estop in frame.pressed and self.on_estop is not None:
-            self.on_estop()
-        if profile.estop in frame.buttons and profile.arm in frame.buttons:
-            if self._combo_since is None:
-                self._combo_since = self._clock()
-                self._combo_done = False
-        else:
-            self._combo_since = None
-
-    def _check_release(self) -> None:
-        """Release once the combination has been held long enough (with the speed stick centred)."""
-        since = self._combo_since
-        if since is None or self._combo_done:
-            return
-        if self._clock() - since < int(self.params.estop_release_hold_s * NS_PER_S):
-            return
-        self._combo_done = True
-        if self.command.speed != 0.0:
-            log.warning("gamepad: e-stop release refused: centre the speed stick first")
-        elif self.on_release is not None:
-            self.on_release()
 
     def _publish_current(self) -> None:
         self._publish_drive(AckermannDrive(steering_angle=self.command.steering, speed=self.command.speed))
@@ -718,7 +689,7 @@ class GamepadTeleop:
         """One fixed-rate step: the current command while the deadman is held, and the lock."""
         if not self.connected:
             return
-        self._check_release()
+        self.estop_buttons.check_release(self.command.speed == 0.0)
         if self.command.deadman:
             self._publish_current()
         self._publish_lock()

@@ -1,0 +1,203 @@
+"""The report of a sim run: what happened, as JSON, with the trajectory CSV and the plot next to it.
+
+Positions are in the map frame (m), times in sim time (s) unless a key says otherwise; every
+float is rounded to 4 decimals and a non-finite one is null. See docs/sim.md for the keys.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from racecar_hw.sim.car import CLEARANCE_RANGE_M, footprint
+from racecar_hw.sim.obstacles import point_polygon_distance
+from racecar_hw.sim.plot import plot_run
+from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
+from racecar_hw.sim.world import compose
+
+if TYPE_CHECKING:
+    from racecar_hw.sim.loopback import Loopback
+
+
+@dataclass
+class SimResult:
+    """What a run produced: the report (also written as JSON) and the files next to it."""
+
+    report: dict[str, Any]
+    report_path: Path | None = None
+    trajectory_csv: Path | None = None
+    plot_png: Path | None = None
+    interventions_at: list[tuple[float, float]] = field(default_factory=list)
+
+
+def write_report(result: SimResult, path: str | Path) -> Path:
+    """Write the JSON report to ``path``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(result.report, indent=2) + "\n")
+    result.report_path = p
+    return p
+
+
+class RunReport:
+    """Reads a finished run of ``loopback`` (its world, daemon, drivers and observer) into a
+    :class:`SimResult`, writing the trajectory CSV and the plot into ``out_dir`` when it has one."""
+
+    def __init__(self, loopback: Loopback) -> None:
+        self.run = loopback
+
+    def result(self) -> SimResult:
+        run = self.run
+        assert run.world is not None and run.daemon is not None and run.vesc is not None
+        world, daemon = run.world, run.daemon
+        pose = world.pose
+        vstats = daemon.vesc.stats if daemon.vesc is not None else None
+        lstats = daemon.lidar.stats if daemon.lidar is not None else None
+        sim_time = world.sim_time
+        ready_at_s = run.ready_at_s
+        report: dict[str, Any] = {
+            "scenario": run.scenario.name,
+            "description": run.scenario.description,
+            "sim_time_s": round(sim_time, 3),
+            "interrupted": run.stop_reason != "duration",
+            "stop_reason": run.stop_reason,
+            "duration_s": round(run.duration_s, 3),
+            "follow": run.drivers.report() if run.drivers is not None else [],
+            "ready_at_s": None if ready_at_s is None else round(ready_at_s, 3),
+            "collided": world.collided,
+            "collisions": [[round(c.t, 3), round(c.x, 3), round(c.y, 3)] for c in world.collisions],
+            "min_clearance_m": _num(world.min_clearance),
+            "clearance_cap_m": CLEARANCE_RANGE_M,
+            "final_clearance_m": _num(world.clearance()),
+            "distance_m": _num(world.distance_travelled),
+            "final_pose": {"x": _num(pose.x), "y": _num(pose.y), "yaw": _num(pose.yaw)},
+            "final_speed_mps": _num(world.speed),
+            "max_speed_mps": _num(max((abs(s[4]) for s in world.trajectory), default=0.0)),
+            "safety_interventions": daemon.safety.interventions,
+            "safety_interventions_by_reason": dict(daemon.safety.controller.interventions_by_reason),
+            "mux_switches": [[round(t + run.mux_offset_s, 3), s] for t, s in daemon.mux.switches],
+            "faults": [[t, a] for t, a in run.fault_log],
+            "vesc": {
+                "frames_tx": vstats.frames_tx if vstats else 0,
+                "frames_rx": vstats.frames_rx if vstats else 0,
+                "crc_errors": vstats.crc_errors if vstats else 0,
+                "reconnects": vstats.reconnects if vstats else 0,
+                "firmware": run.scenario.firmware,
+            },
+            "lidar": {
+                "model": run.scenario.lidar.model,
+                "scans": lstats.scans if lstats else 0,
+                "rate_hz": _num(lstats.scans / sim_time if lstats and sim_time > 0 else 0.0),
+                "reconnects": lstats.reconnects if lstats else 0,
+            },
+            "control": {"ticks": daemon.stats.ticks, "missed_ticks": daemon.stats.missed_ticks,
+                        "scan_cuts": daemon.stats.scan_cuts},
+            "interventions": self._interventions(),
+            "safety_memory": daemon.config.safety.memory.enabled,
+            "odometry_error_m": self._odometry_error(),
+            "trajectory_csv": None,
+            "plot_png": None,
+            # the bags --record wrote (ROS 2: the bag directory)
+            "bags": ([str(f) for f in daemon.recorder.stats.files] if daemon.recorder is not None
+                     else []),
+            # where the live view and the status page listened during the run
+            "live": dict(daemon.started_live),
+        }
+        result = SimResult(report, interventions_at=list(run.interventions_at))
+        if run.out_dir is not None:
+            run.out_dir.mkdir(parents=True, exist_ok=True)
+            stem = run.scenario.name or "sim"
+            csv_path = run.out_dir / f"{stem}-trajectory.csv"
+            write_csv(csv_path, world.samples)
+            png_path = run.out_dir / f"{stem}.png"
+            plot_run(png_path, run.map, world.trajectory, run.intervention_marks, world.collisions,
+                     world.obstacles.values(), title=stem, series=run.control_samples,
+                     switches=report["mux_switches"])
+            report["trajectory_csv"] = str(csv_path)
+            report["plot_png"] = str(png_path)
+            result.trajectory_csv, result.plot_png = csv_path, png_path
+        return result
+
+    def _odometry_error(self) -> float | None:
+        """How far the car truly is (m) from where its odometry says at the end, the odom frame
+        being the start pose in the map (what the map -> odom transform says); None without odometry."""
+        run = self.run
+        assert run.world is not None and run.daemon is not None
+        odom = run.daemon.bus.latest(run.daemon.config.safety.odom_topic)
+        if odom is None:
+            return None
+        x0, y0, yaw0 = run.scenario.start
+        ox, oy = float(odom.pose.pose.position.x), float(odom.pose.pose.position.y)
+        mx = x0 + math.cos(yaw0) * ox - math.sin(yaw0) * oy
+        my = y0 + math.sin(yaw0) * ox + math.cos(yaw0) * oy
+        pose = run.world.pose
+        return _num(math.hypot(pose.x - mx, pose.y - my))
+
+    def _interventions(self) -> list[dict[str, Any]]:
+        """Each intervention: when (world time), why, what caused it and where the car stopped.
+
+        An intervention that started for something else (a late scan, the reverse cap) and then
+        became a stop for an obstacle has a second entry from that moment, with ``continues`` true
+        (the first then ends there): what the car stopped for, and how far from it, are in that one.
+
+        ``source``: the live scan or the obstacle memory (None without an obstacle, e.g. a stale
+        scan). ``obstacle``: the limiting point in the map frame; ``object``: what the world has
+        there (``map``, a scenario obstacle's name, or None: nothing, a remembered point of
+        something that has gone). ``ended_at_s``: when the controller let go (None: at the end of
+        the run). ``stopped_at_s``: when the car came to rest before that (:func:`rest_time`: a car
+        that stood at the start and then drove stopped where it came to rest again; None: it only
+        slowed down); ``stopping_distance_m``: path driven until then; ``distance_left_m``: the gap
+        between the car's footprint and that object at standstill, or when the intervention ended
+        if the car only slowed (for the map or nothing: the gap to the point).
+        """
+        assert self.run.world is not None and self.run.daemon is not None
+        world = self.run.world
+        samples = world.samples
+        out = []
+        for event in self.run.daemon.safety.controller.events:
+            t = world.sim_time_at(event.t_ns)
+            end = world.sim_time_at(event.end_ns) if event.end_ns is not None else None
+            entry: dict[str, Any] = {
+                "t_s": round(t, 3), "reason": event.reason, "continues": event.continues,
+                "source": None, "obstacle": None, "object": None, "speed_mps": _num(_speed_at(samples, t)),
+                "allowed_mps": _num(event.allowed_speed),
+                "ended_at_s": None if end is None else round(end, 3), "stopped_at_s": None,
+                "stopping_distance_m": None, "distance_left_m": None,
+            }
+            point = None
+            if event.obstacle is not None and event.scan_ns is not None:
+                o = event.obstacle
+                scan_t = world.sim_time_at(event.scan_ns)
+                point = compose(world.pose_at(event.scan_ns), (o.x, o.y, 0.0))
+                entry["source"] = o.source
+                entry["obstacle"] = {"x": _num(point.x), "y": _num(point.y)}
+                entry["object"] = world.what_is_at(point.x, point.y, scan_t)
+            stopped = rest_time(samples, t, end)
+            if stopped is not None:
+                entry["stopped_at_s"] = round(stopped, 3)
+                entry["stopping_distance_m"] = _num(stopping_distance(samples, t, stopped) or 0.0)
+            when = stopped if stopped is not None else end
+            if point is not None and when is not None:
+                at = next((s for s in samples if s.t >= when), samples[-1])
+                corners = footprint((at.x, at.y, at.yaw), world.params)
+                gap = next((shape.distance_to(corners) for label, shape in world.obstacles_at(when)
+                            if label == entry["object"]),
+                           point_polygon_distance(point.x, point.y, corners))
+                entry["distance_left_m"] = _num(gap)
+            out.append(entry)
+        return out
+
+
+def _speed_at(samples: list[TrajectorySample], t: float) -> float:
+    """The car's speed (m/s) at the first sample at or after sim time ``t`` (0 past the end)."""
+    return next((s.speed for s in samples if s.t >= t), 0.0)
+
+
+def _num(x: float) -> float | None:
+    return round(float(x), 4) if math.isfinite(x) else None
+
+
+__all__ = ["RunReport", "SimResult", "write_report"]

@@ -1,0 +1,58 @@
+"""The daemon's shutdown is its start-up in reverse (one exit stack), and safe to call twice."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from conftest import QUIET_NET
+
+from racecar_hw.config import load_config
+from racecar_hw.daemon import Daemon
+
+
+def _spy(events: list[str], obj: Any, method: str, name: str) -> None:
+    """Note ``name`` in ``events`` whenever ``obj.method`` is called, then call it."""
+    real = getattr(obj, method)
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        events.append(name)
+        return real(*args, **kwargs)
+
+    setattr(obj, method, call)
+
+
+def test_shutdown_undoes_start_up_in_reverse_and_closes_what_was_built(tmp_path):
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "foxglove.enabled=false", "safety.mode=off",
+                                "recorder.enabled=true", f"recorder.path={tmp_path / 'bags'}",
+                                "scan_summary.enabled=true", *QUIET_NET])
+    daemon = Daemon(config)
+    events: list[str] = []
+    assert daemon.recorder is not None and daemon.scan_summary is not None and daemon.net.web is not None
+    for obj, method, name in [
+            (daemon.recorder, "start", "start recorder"), (daemon.recorder, "stop", "stop recorder"),
+            (daemon.scan_summary, "start", "start scan summary"),
+            (daemon.scan_summary, "close", "stop scan summary"),
+            (daemon.net.web, "start", "start web"), (daemon.net.web, "stop", "stop web"),
+            (daemon.notifier, "ready", "start notifier"), (daemon.notifier, "stopping", "stop notifier")]:
+        _spy(events, obj, method, name)
+
+    async def scenario() -> None:
+        stop = asyncio.Event()
+        task = asyncio.create_task(daemon.run(stop))
+        while "start notifier" not in events and not task.done():
+            await asyncio.sleep(0.01)
+        assert not task.done()
+        stop.set()
+        await asyncio.wait_for(task, 30)
+        await daemon.shutdown()  # a second time: nothing left to undo
+
+    asyncio.run(scenario())
+    starts = [e.split(" ", 1)[1] for e in events if e.startswith("start ")]
+    stops = [e.split(" ", 1)[1] for e in events if e.startswith("stop ")]
+    assert starts == ["recorder", "scan summary", "web", "notifier"]
+    assert stops == list(reversed(starts))
+    # what __init__ built is closed too (its closing was pushed first, so it runs last)
+    assert daemon.mux._subs == [] and daemon.safety._subs == []
+    assert events.count("stop recorder") == 1  # the second shutdown() undid nothing again
