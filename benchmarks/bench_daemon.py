@@ -4,7 +4,8 @@ Load: a UST-10LX streaming 1081-beam scans at 40 Hz over TCP, the VESC polled at
 command stream at 50 Hz, the safety controller on, the recorder writing every topic to MCAP, and
 a navigation source (figure-8 driver) at 20 Hz. The fake devices run in this process; the daemon
 runs alone in a ``racecar-hw run`` subprocess, so its CPU time (utime + stime) and peak RSS (VmHWM)
-are its own.
+are its own; so is its PSS at the end of the measurement (smaps_rollup: its private memory plus its
+share of the pages it shares with other processes, smem's measure).
 
 Latency, two ways:
 
@@ -27,8 +28,10 @@ memory off and then on (the default), so that what the memory adds to the CPU sh
 scan-to-command latency is measured in one run; ``--memory on|off`` runs only one. ``run()`` (for
 run_all.py and the other daemon benchmarks) runs once with the shipped default unless asked.
 
-Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder] [--memory on|off | --imu]``
-(``--imu``: four runs, the VESC's IMU off, on, on, off); ``run()``
+Run ``python benchmarks/bench_daemon.py [SECONDS] [--no-recorder] [--memory on|off | --imu |
+--all-interfaces]`` (``--imu``: four runs, the VESC's IMU off, on, on, off; ``--all-interfaces``:
+one run with Zenoh and DDS on as well as the Foxglove live view and the status page, nobody
+connected, as the car runs by default); ``run()``
 returns the rows for run_all.py. ``BENCH_VERBOSE=1`` also prints round-trip percentiles, the CPU
 share of each daemon thread and of the benchmark's own fakes; ``BENCH_PROFILE=PATH`` runs the
 daemon under cProfile.
@@ -38,6 +41,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 import subprocess
 import sys
 import tempfile
@@ -59,6 +63,7 @@ from vesc.fake import FakeVesc
 
 CPU_TARGET = 10.0   # percent of one core
 RSS_TARGET = 150.0  # MB
+PSS_TARGET = 90.0  # MB, with every interface on (issue 26)
 LATENCY_P99_TARGET = 2.0  # ms
 
 
@@ -92,6 +97,26 @@ def _host_ticks() -> tuple[int, int]:
 def _peak_rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+#: With ``--all-interfaces``, besides Zenoh on a free port: DDS on a domain of its own, and the
+#: Foxglove live view and the status page (on by default; here on free ports); nobody connected.
+ALL_INTERFACES = {"dds": {"enabled": True, "domain_id": 177}}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _pss_mb(pid: int) -> float:
+    """The process's proportional set size (MB): its private pages plus its share of each page it
+    shares with other processes (shared libraries), as smem reports it; /proc/PID/smaps_rollup."""
+    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+        if line.startswith("Pss:"):
             return int(line.split()[1]) / 1024.0
     return float("nan")
 
@@ -204,6 +229,7 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             threads1 = _thread_cpu_s(proc.pid)
             helper_threads = [(o.args, t0_, _thread_cpu_s(o.pid)) for o, t0_ in helper_threads0]
             rss = _peak_rss_mb(proc.pid)
+            pss = _pss_mb(proc.pid)
             sent = np.array(lidar.frames_sent_ns, dtype=np.int64)
             commands = list(vesc.commands)
             motor = np.array([c.t_ns for c in commands
@@ -249,6 +275,8 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
         {"name": "helpers' CPU share of one core", "value": 100.0 * (helpers1 - helpers0) / (t1 - t0),
          "unit": "%", "target": None},
         {"name": "daemon peak RSS", "value": rss, "unit": "MB", "target": RSS_TARGET},
+        {"name": "daemon PSS at the end of the measurement", "value": pss, "unit": "MB",
+         "target": PSS_TARGET},
         {"name": "scans during measurement", "value": scans, "unit": "scans", "target": None},
         {"name": "scan rate", "value": scans / (t1 - t0), "unit": "Hz", "target": None},
         {"name": "scan to VESC command p50 (in daemon)", "value": summary["p50"], "unit": "ms",
@@ -309,6 +337,10 @@ def main() -> None:
             for row in run(seconds, recorder="--no-recorder" not in args, config_extra={"vesc": {"imu": on}}):
                 rows.append({**row, "name": f"{row['name']}, imu {'on' if on else 'off'}"})
         print_rows(rows)
+        return
+    if "--all-interfaces" in args:  # issue 26: the memory with every network interface on
+        print_rows(run(seconds, recorder="--no-recorder" not in args, zenoh_port=_free_port(),
+                       config_extra=ALL_INTERFACES))
         return
     rows = run(seconds, recorder="--no-recorder" not in args, memory=memory)
     print_rows(rows)

@@ -18,7 +18,8 @@ from table import print_rows
 
 from racecar_hw.daemon import LINK_POLL_S
 from racecar_hw.runtime.links import LinkWatch
-from racecar_hw.runtime.status import StatusSnapshot, render
+from racecar_hw.runtime.panel import render
+from racecar_hw.runtime.status import StatusSnapshot
 
 SNAPSHOT = StatusSnapshot(speed_mps=1.25, steering_rad=-0.15, mux_source="nav_0", battery_v=11.8,
                           scan_rate_hz=39.9, safety_state="clear", vesc_crc_errors=0, armed=True,

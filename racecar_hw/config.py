@@ -30,7 +30,7 @@ from racecar_hw.base.resources import config_file
 from racecar_hw.base.topics import CMD_VEL_BUS_TOPIC, FOXGLOVE_INPUT_TOPIC
 from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
 from racecar_hw.net.dds_config import DdsParams
-from racecar_hw.net.foxglove_server import FoxgloveParams
+from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.ports import Listener, free_port, port_taken
 from racecar_hw.net.rosout import RosoutParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
@@ -42,7 +42,7 @@ from racecar_hw.sources.setpoint import SetpointParams
 from racecar_hw.teleop.arming import ArmingParams
 from racecar_hw.teleop.gamepad import GamepadParams
 from racecar_hw.teleop.keyboard import KeyboardParams
-from racecar_hw.teleop.mavlink_gcs import MavlinkParams
+from racecar_hw.teleop.mavlink_params import MavlinkParams
 from safety.params import SafetyParams
 from vesc.params import VescParams
 

@@ -25,7 +25,7 @@ import gc
 import logging
 import sys
 from collections.abc import Coroutine
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lidar_drivers.base import LidarDriver
 from lidar_drivers.registry import make_driver
@@ -44,12 +44,12 @@ from racecar_hw.control.path import ControlPath
 from racecar_hw.control.state import CarState, car_shape
 from racecar_hw.interfaces import Interfaces
 from racecar_hw.net.gate import quiet_accept_errors
+from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.fdlimit import raise_open_file_limit
 from racecar_hw.runtime.links import LinkWatch
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.sdnotify import Notifier
 from racecar_hw.runtime.security_status import SecurityStatus
-from racecar_hw.runtime.status import StatusPanel
 from racecar_hw.runtime.teardown import quietly
 from racecar_hw.sources.figure8 import Figure8Driver
 from racecar_hw.sources.scan_summary import ScanSummaryPublisher
@@ -57,9 +57,12 @@ from racecar_hw.sources.setpoint import SetpointRelay
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad import GamepadTeleop
 from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
-from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 from safety.node import SafetyNode
 from vesc.driver import VescDriver
+
+if TYPE_CHECKING:  # imported where switched on: rich (a panel), the mavlink extra
+    from racecar_hw.runtime.panel import StatusPanel
+    from racecar_hw.teleop.mavlink_gcs import MavlinkGcs
 
 log = logging.getLogger(__name__)
 
@@ -143,9 +146,13 @@ class Daemon:
         self.keyboard = (KeyboardTeleop(bus, config.keyboard, on_estop=lambda: self.engage_estop(keys),
                                         on_release=lambda: self._log_release(keys))
                          if config.keyboard.enabled else None)
-        self.mavlink = (MavlinkGcs(bus, config.mavlink, self.arming, status_source=lambda: self.snapshot(),
-                                   refusals=self.refusals)
-                        if config.mavlink.enabled else None)
+        self.mavlink: MavlinkGcs | None = None
+        if config.mavlink.enabled:
+            require_extra("mavlink", "the MAVLink ground-station link", "mavlink.enabled")
+            from racecar_hw.teleop.mavlink_gcs import MavlinkGcs  # noqa: PLC0415 - needs the extra
+
+            self.mavlink = MavlinkGcs(bus, config.mavlink, self.arming, status_source=lambda: self.snapshot(),
+                                      refusals=self.refusals)
         if self.mavlink is not None:
             stack.callback(self.mavlink.close)
         hold = (self.mavlink.filter,) if self.mavlink is not None else ()

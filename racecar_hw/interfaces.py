@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+from typing import TYPE_CHECKING
 
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
@@ -26,7 +27,6 @@ from racecar_hw.net import zenoh_logins
 from racecar_hw.net.control import CarControl
 from racecar_hw.net.dds_bridge import DdsBridge
 from racecar_hw.net.dds_config import cyclone_available
-from racecar_hw.net.foxglove_server import FoxgloveServer
 from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.ports import port_taken, taken_message
@@ -34,10 +34,14 @@ from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Direction, Topic
 from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
+from racecar_hw.runtime.extras import missing_extra
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.runtime.teardown import quietly, quietly_sync
 from racecar_hw.sources.cmd_vel import CmdVelConverter, CmdVelParams
 from vesc.driver import TOPIC_ODOM, TOPIC_TF
+
+if TYPE_CHECKING:  # imported where foxglove.enabled: the SDK comes with the foxglove extra
+    from racecar_hw.net.foxglove_server import FoxgloveServer
 
 log = logging.getLogger(__name__)
 
@@ -58,11 +62,17 @@ class Interfaces:
         #: the read-only parameter services' answers: the effective configuration
         self.parameters = ParameterService(to_dict(config), {name: doc for name, _, doc in describe(Config)})
         teleop = next((i.topic for i in mux.inputs if i.name == FOXGLOVE_INPUT), None)
-        self.foxglove = (FoxgloveServer(bus, config.foxglove, car, self.live_topics,
-                                        parameters=to_dict(config), teleop_input=teleop,
-                                        wheelbase_m=config.vesc.wheelbase_m,
-                                        max_steering_rad=config.vesc.steering_max_rad, refusals=refusals)
-                         if config.foxglove.enabled else None)
+        self.foxglove: FoxgloveServer | None = None
+        absent = missing_extra("foxglove", "the Foxglove live view") if config.foxglove.enabled else None
+        if absent is not None:  # on by default: a car whose config predates the extra still drives
+            log.warning("foxglove: the live view is off: %s; or set foxglove.enabled: false", absent)
+        elif config.foxglove.enabled:
+            from racecar_hw.net.foxglove_server import FoxgloveServer  # noqa: PLC0415 - needs the extra
+
+            self.foxglove = FoxgloveServer(bus, config.foxglove, car, self.live_topics,
+                                           parameters=to_dict(config), teleop_input=teleop,
+                                           wheelbase_m=config.vesc.wheelbase_m,
+                                           max_steering_rad=config.vesc.steering_max_rad, refusals=refusals)
         self.web = (WebServer(bus, config.web, car, scan_topic=config.safety.scan_topic, refusals=refusals)
                     if config.web.enabled else None)
         self.cmd_vel: CmdVelConverter | None = None

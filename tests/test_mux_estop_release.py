@@ -209,7 +209,8 @@ def test_the_panel_says_who_latched_the_estop_on_a_line_of_its_own():
 
     from rich.console import Console
 
-    from racecar_hw.runtime.status import StatusSnapshot, plain_line, render
+    from racecar_hw.runtime.panel import render
+    from racecar_hw.runtime.status import StatusSnapshot, plain_line
 
     _bus, mux = _mux()
     mux.engage_estop("e-stop from web page", WEB)

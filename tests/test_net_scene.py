@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from racecar_hw.net.band import band_polygon, body_corners, swept_band
 from racecar_hw.net.control import CLEAR, LIMITING, STOPPED, CarShape, LiveState
-from racecar_hw.net.scene import band_polygon, body_corners, label, scene_update, swept_band
+from racecar_hw.net.scene import label, scene_update
 from safety.arc import SweptFootprint, free_distance, path_lengths
 
 SHAPE = CarShape(front_m=0.45, rear_m=0.10, half_width_m=0.2, wheelbase_m=0.25, latency_s=0.055,

@@ -41,7 +41,8 @@ def _sets(zenoh: int, foxglove: int, web: int) -> list[str]:
 
 def test_taken_ports_are_found_and_moved_for_all_three_interfaces():
     with held_ports(3) as (z, f, w):
-        config = load_config(None, _sets(z, f, w))
+        # the car config leaves the live view off (its extra): switched on here
+        config = load_config(None, [*_sets(z, f, w), "foxglove.enabled=true"])
         assert [t.key for t in taken_listeners(config)] == ["zenoh.listen[0]", "foxglove.port", "web.port"]
         moved = move_to_free_ports(config)
         assert [m.key for m, _ in moved] == ["zenoh.listen[0]", "foxglove.port", "web.port"]

@@ -240,7 +240,7 @@ def test_the_panel_names_the_live_view_the_page_and_with_keyboard_the_keys(monke
     from racecar_hw.teleop.keyboard import KEY_HINTS
 
     base = ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false", "status.enabled=false",
-            *QUIET_NET]
+            "foxglove.enabled=true", *QUIET_NET]  # the live view, off in the car config
     assert Daemon(load_config(None, base)).snapshot().keys is None
     with (tmp_path / "keys").open("w+") as keys:  # the keyboard's stdin (pytest's has no descriptor)
         monkeypatch.setattr("sys.stdin", keys)

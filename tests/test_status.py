@@ -10,7 +10,8 @@ import pytest
 from conftest import async_wait_for
 from rich.console import Console
 
-from racecar_hw.runtime.status import StatusPanel, StatusSnapshot, plain_line, render, status_fields
+from racecar_hw.runtime.panel import StatusPanel, render
+from racecar_hw.runtime.status import StatusSnapshot, plain_line, status_fields
 from racecar_hw.teleop.keyboard import KEY_HINTS
 
 FULL = StatusSnapshot(speed_mps=1.25, steering_rad=-0.15, mux_source="nav_0", battery_v=11.8,

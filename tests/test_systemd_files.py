@@ -59,7 +59,7 @@ def test_unit_settings() -> None:
 
 
 def test_unit_sets_the_open_file_limit_above_what_network_clients_may_hold() -> None:
-    from racecar_hw.net.foxglove_server import FoxgloveParams
+    from racecar_hw.net.foxglove_params import FoxgloveParams
     from racecar_hw.net.web import WebParams
 
     (value,) = unit_values("Service", "LimitNOFILE")

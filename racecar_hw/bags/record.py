@@ -69,6 +69,7 @@ from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
 from racecar_hw.rosmsg.typestore import BagTypes, types_for
+from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.outbox import Outbox
 
 log = logging.getLogger(__name__)
@@ -111,6 +112,8 @@ class RecorderParams:
                                     unit="s", min=0.0)
 
     def __post_init__(self) -> None:
+        if self.enabled and self.format == "mcap":  # refused at start, not when the first bag opens
+            require_extra("mcap", "recording MCAP bags (or format: sqlite3 or ros1)", "recorder.format")
         if self.compression == "lz4":
             raise ConfigError("compression", LZ4_REFUSAL)
         if self.compression == "bz2" and self.format != "ros1":

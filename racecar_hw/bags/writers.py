@@ -37,11 +37,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import yaml
-from mcap import __version__ as MCAP_VERSION
-from mcap.writer import CompressionType
-from mcap.writer import Writer as McapWriter
 
 from racecar_hw.base.errors import BagError
+from racecar_hw.runtime.extras import require_extra
 
 #: rosbag2 metadata version written. Humble (rosbag2 0.15, ``rosbag2_storage/src/rosbag2_storage/
 #: metadata_io.cpp``) decodes any version without an upper bound, but reads each topic's
@@ -93,8 +91,6 @@ MCAP_CHUNK_CRC_OFFSET = 1 + 8 + 8 + 8 + 8
 
 #: Chunk size of MCAP files (uncompressed records), as rosbags and rosbag2's default.
 MCAP_CHUNK_SIZE = 2**20
-#: MCAP chunk compression by option name (the recorder offers "none"; recovery keeps none).
-MCAP_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
 
 def _sync(fh: Any) -> None:
@@ -128,10 +124,17 @@ class McapStorage:
     """One rosbag2 MCAP storage file, written with the ``mcap`` library (see the module doc)."""
 
     def __init__(self, path: Path, compression: str = "none") -> None:
+        # the mcap library (with zstandard, 23 MB) is the mcap extra: a car that records no MCAP
+        # bag does without it (docs/install.md, "Extras")
+        require_extra("mcap", "writing an MCAP bag", "recorder.format")
+        from mcap import __version__ as MCAP_VERSION  # noqa: PLC0415
+        from mcap.writer import CompressionType  # noqa: PLC0415
+        from mcap.writer import Writer as McapWriter  # noqa: PLC0415
+
         self.path = path
         self._fh = path.open("xb")
         self._writer = McapWriter(self._fh, chunk_size=MCAP_CHUNK_SIZE,
-                                  compression=MCAP_COMPRESSION[compression], enable_crcs=True)
+                                  compression=CompressionType[compression.upper()], enable_crcs=True)
         self._writer.start(profile="ros2", library=f"racecar-hw (mcap {MCAP_VERSION})")
         self._schemas: dict[str, int] = {}
 

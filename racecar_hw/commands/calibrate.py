@@ -19,6 +19,7 @@ from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.config import Config, load_config
 from racecar_hw.daemon import Daemon
+from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.signals import StopSignals, add_stop_handlers
 from racecar_hw.sources.calibration import (
     CalibrationAborted,
@@ -160,6 +161,7 @@ async def _calibrate(procedure: CalibrationProcedure, outcome: list[CalibrationR
 
 
 def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]:
+    require_extra("sim", "calibrate --sim (the simulator)")
     from racecar_hw.sim.loopback import Loopback  # noqa: PLC0415 - only the sim needs the world
     from racecar_hw.sim.scenario import load_scenario  # noqa: PLC0415
 

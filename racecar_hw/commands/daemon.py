@@ -14,7 +14,6 @@ from racecar_hw.config import check_config, describe_config, dump_config, load_c
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
-from racecar_hw.runtime.status import StatusPanel
 
 
 def add_config_options(parser: argparse.ArgumentParser, default: str = "the shipped car config") -> None:
@@ -84,8 +83,11 @@ def yaml_value(value: object) -> str:
 def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
     install_for(config.zenoh)  # before the panel: it takes Python's standard output as it is then
-    status = (StatusPanel(refresh_hz=config.status.refresh_hz)
-              if config.status.enabled and not args.no_status else None)
+    status = None
+    if config.status.enabled and not args.no_status:
+        from racecar_hw.runtime.panel import StatusPanel  # noqa: PLC0415 - rich, only for a panel
+
+        status = StatusPanel(refresh_hz=config.status.refresh_hz)
     daemon = Daemon(config, status=status)
     if daemon.follower is not None:
         daemon.follower.load()  # a damaged bag is a one-line error before the car is touched

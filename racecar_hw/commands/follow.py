@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
@@ -64,6 +62,9 @@ def cmd_follow(args: argparse.Namespace) -> int:
         raise ConfigError("arming.start_armed", "the car starts disarmed, so it would stand still "
                           "while the bag plays; give --arm to follow armed (the gamepad's BACK "
                           "still disarms it)")
+    # here, not at the top: every command's module is imported to build the parser, the daemon's too
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn  # noqa: PLC0415
+
     with Progress(TextColumn("following"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeRemainingColumn()) as bar:
         task = bar.add_task("bag", total=1.0)

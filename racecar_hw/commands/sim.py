@@ -8,17 +8,19 @@ import json
 import math
 import signal
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.commands.daemon import add_config_options
 from racecar_hw.config import load_config
 from racecar_hw.net.zenoh_logins import install_for
+from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.interrupts import INTERRUPTED
 from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
-from racecar_hw.runtime.status import StatusPanel
-from racecar_hw.sim.loopback import Loopback, SimResult, write_report
-from racecar_hw.sim.scenario import Scenario, load_scenario, scenario_names
+
+if TYPE_CHECKING:  # the simulator is imported when the command runs: it needs the sim extra
+    from racecar_hw.sim.loopback import Loopback, SimResult
+    from racecar_hw.sim.scenario import Scenario
 
 DEFAULT_SCENARIO = "figure8"
 
@@ -66,6 +68,8 @@ def _seconds(text: str) -> float:
 
 def build_scenario(args: argparse.Namespace) -> Scenario:
     """The scenario to run: ``--scenario`` with ``--follow``'s driver, then ``--scenario-set``."""
+    from racecar_hw.sim.scenario import load_scenario  # noqa: PLC0415 - with the command
+
     scenario_overrides: list[str] = []
     if args.follow:
         # first, so that --scenario-set drivers.0.rate_hz=10 (or use_timestamps) applies to it
@@ -91,10 +95,16 @@ def _count_zenoh_logins(config_path: str | None, overrides: list[str]) -> None:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    from racecar_hw.sim.scenario import load_scenario, scenario_names  # noqa: PLC0415
+
     if args.list:
         for name in scenario_names():
             print(f"{name:18} {load_scenario(name).description}")
         return 0
+    require_extra("sim", "the simulator (its maps and plot)")
+    from racecar_hw.runtime.panel import StatusPanel  # noqa: PLC0415 - rich, with the command
+    from racecar_hw.sim.loopback import Loopback, write_report  # noqa: PLC0415 - needs the extra
+
     scenario = build_scenario(args)
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]

@@ -35,7 +35,6 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import urlsplit
 
 import foxglove
 from foxglove import Capability, Parameter, Schema
@@ -44,12 +43,9 @@ from foxglove.messages import Log, LogLevel, Timestamp
 
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
-from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import Message
-from racecar_hw.base.params import param
-from racecar_hw.base.topics import FOXGLOVE_TELEOP_TOPIC
 from racecar_hw.net.control import CarControl, LiveState
+from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.foxglove_services import (
     SERVICE_PREFIX,
     SERVICE_TIMEOUT_S,
@@ -63,7 +59,6 @@ from racecar_hw.net.foxglove_teleop import (
     decode_twist,
     twist_to_drive,
 )
-from racecar_hw.net.gate import ConnectionLimits
 from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
 from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
@@ -95,76 +90,6 @@ _SPEEDS_SCHEMA = {
         "source": {"type": "string", "description": "the mux's active source"},
     },
 }
-#: Foxglove's web app (and its older and embedded addresses): pages that may connect without a token.
-DEFAULT_ORIGINS = ("https://app.foxglove.dev", "https://studio.foxglove.dev", "https://embed.foxglove.dev")
-
-
-@dataclass
-class FoxgloveParams:
-    """The Foxglove live-view server."""
-
-    enabled: bool = param(True, "serve the live view to Foxglove and Lichtblick (WebSocket)")
-    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs token")
-    port: int = param(8765, "TCP port (0: any free port, logged at start)", min=0, max=65535)
-    token: str = param("", "required in the URL (ws://car:8765/?token=...) when host is not loopback; "
-                           "optional on loopback")
-    allowed_origins: list[str] = param(list(DEFAULT_ORIGINS),
-                                       "web origins whose pages may connect without a token (besides "
-                                       "pages served by this machine and desktop apps); 'null' admits "
-                                       "every opaque origin, including any site's sandboxed frames")
-    teleop: bool = param(True, "let Foxglove's Teleop panel drive through the mux input 'foxglove'")
-    teleop_topic: str = param(FOXGLOVE_TELEOP_TOPIC, "geometry_msgs/Twist topic the Teleop panel publishes")
-    teleop_priority: int = param(85, "priority of the mux input 'foxglove' (below teleop's 90)",
-                                 min=0, max=255)
-    teleop_timeout_s: float = param(0.3, "the car stops this long after the last Twist (a closed tab, "
-                                         "dropped Wi-Fi); the shipped layout publishes at 10 Hz",
-                                    unit="s", min=0.05, max=2.0)
-    teleop_max_speed_mps: float = param(1.0, "largest speed a Twist may ask for", unit="m/s",
-                                        min=0.0, max=10.0)
-    scene_rate_hz: float = param(10.0, "rate of /safety/scene and /safety/speeds", unit="Hz",
-                                 min=0.5, max=50.0)
-    queue_size: int = param(1000, "messages waiting for the sender thread before the oldest are dropped",
-                            min=10, max=100_000)
-    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
-                                     "not finished its request is closed, else the new one",
-                                 min=1, max=1000)
-    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
-                                  unit="s", min=0.5, max=60.0)
-    idle_timeout_s: float = param(60.0, "a connection on which nothing moves either way for this long is "
-                                        "closed (a viewer with no channel subscribed reconnects)",
-                                  unit="s", min=10.0, max=3600.0)
-
-    def __post_init__(self) -> None:
-        origins = []
-        for i, origin in enumerate(self.allowed_origins):
-            if not isinstance(origin, str) or not _is_origin(origin):
-                raise ConfigError(f"foxglove.allowed_origins[{i}]",
-                                  f"{origin!r} is not an origin: scheme://host[:port] with no path "
-                                  "(https://lichtblick.example.org), or null")
-            origins.append(origin.strip().lower().rstrip("/"))
-        self.allowed_origins = origins
-        if self.enabled and not is_loopback(self.host) and not self.token:
-            raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
-                                                "foxglove.token (clients add ?token=... to the URL), or "
-                                                "keep host 127.0.0.1 and reach it over ssh -L")
-
-
-    def limits(self) -> ConnectionLimits:
-        """The relay's connection cap and timeouts."""
-        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
-
-
-def _is_origin(text: str) -> bool:
-    text = text.strip().rstrip("/")
-    if text.lower() == "null":
-        return True
-    parts = urlsplit(text)
-    try:
-        parts.port  # noqa: B018 - raises on a bad port
-    except ValueError:
-        return False
-    return bool(parts.scheme and parts.hostname) and not (parts.path or parts.query or parts.fragment
-                                                          or parts.username or parts.password)
 
 
 @dataclass

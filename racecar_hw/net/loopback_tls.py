@@ -7,21 +7,26 @@ certificate nobody trusts but the relay, it cannot: a browser refuses ``wss://``
 certificate without asking anyone, and plain ``ws://`` gets no answer from a TLS server.
 
 :func:`make_loopback_cert` makes a new self-signed certificate for ``127.0.0.1`` (ECDSA P-256) at each
-start; the private key never leaves memory. :func:`pinned_context` is the client side that trusts
-exactly that certificate.
+start; the private key is never written to disk. :func:`pinned_context` is the client side that
+trusts exactly that certificate.
+
+The certificate is made by a short-lived child process (``python -m racecar_hw.net.loopback_tls``,
+about a quarter of a second once at start) that hands the two PEM blocks back over a pipe: the
+``cryptography`` library it needs would otherwise stay in the daemon for good, about 10 MB of its
+memory (PSS) for one certificate (docs/install.md, "Memory").
 """
 
 from __future__ import annotations
 
 import datetime
 import ipaddress
+import json
 import ssl
+import subprocess
+import sys
 from dataclasses import dataclass
 
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from racecar_hw.base.errors import RacecarError
 
 #: The address the certificate names (and the only one the server listens on).
 LOOPBACK = "127.0.0.1"
@@ -35,8 +40,40 @@ class LoopbackCert:
     key_pem: bytes
 
 
+#: Python 3.11's -P: the child does not put its working directory first on sys.path, where a
+#: stray ``cryptography`` folder would be imported instead of the library.
+SAFE_PATH = ("-P",) if sys.version_info >= (3, 11) else ()
+#: How long the child process may take to make the certificate (s): a loaded small computer.
+MAKE_TIMEOUT_S = 30.0
+
+
+class CertificateError(RacecarError):
+    """The loopback certificate could not be made."""
+
+
 def make_loopback_cert(valid_days: int = 3650) -> LoopbackCert:
-    """A new self-signed server certificate for :data:`LOOPBACK`, valid from a minute ago."""
+    """A new self-signed server certificate for :data:`LOOPBACK`, valid from a minute ago, made in a
+    child process (:class:`CertificateError` if that fails)."""
+    try:
+        done = subprocess.run([sys.executable, *SAFE_PATH, "-m", __name__, str(valid_days)],
+                              capture_output=True, timeout=MAKE_TIMEOUT_S, check=False,
+                              stdin=subprocess.DEVNULL)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        raise CertificateError(f"cannot make the loopback certificate: {err}") from err
+    if done.returncode != 0:
+        last = (done.stderr.decode(errors="replace").strip().splitlines() or ["no output"])[-1]
+        raise CertificateError(f"cannot make the loopback certificate: {last}")
+    pems = json.loads(done.stdout)
+    return LoopbackCert(pems["cert"].encode(), pems["key"].encode())
+
+
+def _generate(valid_days: int) -> LoopbackCert:
+    """The certificate, made here (in the child process: it imports ``cryptography``)."""
+    from cryptography import x509  # noqa: PLC0415 - only the child process needs it
+    from cryptography.hazmat.primitives import hashes, serialization  # noqa: PLC0415
+    from cryptography.hazmat.primitives.asymmetric import ec  # noqa: PLC0415
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: PLC0415
+
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "racecar-hw loopback")])
     now = datetime.datetime.now(datetime.timezone.utc)
@@ -61,3 +98,8 @@ def pinned_context(cert_pem: bytes) -> ssl.SSLContext:
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     context.load_verify_locations(cadata=cert_pem.decode())
     return context
+
+
+if __name__ == "__main__":  # the child process of make_loopback_cert: both PEM blocks as JSON on stdout
+    made = _generate(int(sys.argv[1]))
+    json.dump({"cert": made.cert_pem.decode(), "key": made.key_pem.decode()}, sys.stdout)

@@ -47,9 +47,9 @@ from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import LaserScan
 from racecar_hw.base.params import param
 from racecar_hw.net.auth import bearer, local_host_header, new_token, same_origin, token_ok
+from racecar_hw.net.band import band_polygon, body_corners, swept_band
 from racecar_hw.net.control import CarControl, LiveState
 from racecar_hw.net.gate import ConnectionGate, ConnectionLimits
-from racecar_hw.net.scene import band_polygon, body_corners, swept_band
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)

@@ -30,7 +30,7 @@ from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.ports import Listener
-from racecar_hw.runtime.status import StatusPanel
+from racecar_hw.runtime.panel import StatusPanel
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.drivers import REPLAY_LATE_MAX_S, REPLAY_SETTLE_S, ScenarioDrivers
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, publish_truth

@@ -20,7 +20,7 @@ from racecar_hw.teleop.mavlink_sticks import Sticks
 from racecar_hw.teleop.mavlink_telemetry import Telemetry
 
 if TYPE_CHECKING:
-    from racecar_hw.teleop.mavlink_gcs import MavlinkParams
+    from racecar_hw.teleop.mavlink_params import MavlinkParams
 
 log = logging.getLogger(__name__)
 

@@ -12,14 +12,13 @@ import os
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported anywhere: the MAVLink 2 dialects
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from racecar_hw.teleop.mavlink_params import MODE_NAMES, MODES  # noqa: E402, F401 - with the dialect
+
 #: The HEARTBEAT autopilot: QGroundControl picks its ArduPilot Rover plugin, which names ArduPilot
 #: Rover's custom modes, only for ARDUPILOTMEGA (src/FirmwarePlugin/APM/APMFirmwarePluginFactory.cc);
 #: MAVProxy names them from the vehicle type for any autopilot but PX4 (pymavlink's
 #: mavutil.mode_string_v10 and mode_mapping_rover).
 AUTOPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
-#: ArduPilot Rover's custom mode numbers.
-MODES: dict[str, int] = {"MANUAL": 0, "HOLD": 4, "GUIDED": 15}
-MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
 UINT16_MAX = 65535
 INT16_MAX = 32767
 

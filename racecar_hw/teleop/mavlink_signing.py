@@ -24,6 +24,7 @@ from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.runtime.refusals import Refusals
+from racecar_hw.teleop.mavlink_params import NEEDS_SIGNING
 from racecar_hw.teleop.mavlink_rx import MavlinkRx
 
 log = logging.getLogger(__name__)
@@ -46,8 +47,6 @@ REFUSAL_REASONS = {
     "future_timestamp": "signing timestamp too far ahead of our clock",
     "other_sender": "not the ground station's system id",
 }
-NEEDS_SIGNING = ("the ground station {} is not on loopback: MAVLink 2 signing is required; set "
-                 "signing_key_file to a key file")
 
 
 def load_signing_key(path: str, key: str = "mavlink.signing_key_file") -> bytes:

@@ -19,7 +19,7 @@ from racecar_hw.base.messages import AckermannDrive
 from racecar_hw.teleop.mavlink_dialect import INT16_MAX, UINT16_MAX
 
 if TYPE_CHECKING:
-    from racecar_hw.teleop.mavlink_gcs import MavlinkParams
+    from racecar_hw.teleop.mavlink_params import MavlinkParams
 
 
 @dataclass
