@@ -435,6 +435,22 @@ def test_a_due_drain_waits_for_the_control_loop_to_be_idle(tmp_path: Path, monke
     assert rec.stop().written == 1
 
 
+def test_qos_yaml_is_what_rosbags_writes() -> None:
+    """Our offered_qos_profiles text (written without importing rosbags.rosbag2) is rosbags' own."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.rosbag2.metadata import dump_qos_v8 as rosbags_dump
+
+    from racecar_hw.bags.qos import dump_qos_v8
+
+    odd = Qos(QosHistory.KEEP_ALL, 0, QosReliability.SYSTEM_DEFAULT, QosDurability.UNKNOWN,
+              QosTime(2**31 - 1, 999_999_999), QosTime(1, 2), QosLiveliness.MANUAL_BY_TOPIC,
+              QosTime(3, 4), True)
+    profiles = [offered_qos(topic, type(msg)) for topic, msg in (("/tf_static", static_tf()), (CMD, cmd(1)))]
+    for qos in [[], *profiles, [odd], [*profiles[0], odd, *profiles[1]]]:
+        assert dump_qos_v8(qos) == rosbags_dump(qos)
+    assert dump_qos_v8([]) == ""
+
+
 @pytest.mark.parametrize("fmt", ["mcap", "sqlite3"])
 def test_metadata_template_gives_the_yaml_of_a_full_dump(tmp_path: Path, fmt: str) -> None:
     bag = BagFile(tmp_path / "meta" / "meta_0", fmt, "none", ros2_types())

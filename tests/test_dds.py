@@ -12,6 +12,7 @@ import asyncio
 import math
 import random
 import subprocess
+import threading
 import time
 
 import pytest
@@ -286,6 +287,39 @@ def test_a_command_flood_is_handed_over_at_most_once_per_period_and_e_stops_neve
     assert stops == [True, False, True]
     # one hand-over per period at most (its count bounded by the time it all took, however slow)
     assert len(got) <= took / 0.05 + 2, (len(got), took)
+
+
+def test_one_thread_takes_every_command_row_each_at_most_once_per_period():
+    """Two command rows, one flooded: one pump thread serves both; the quiet row's one message is
+    handed over while the other row rests, and each row's newest message arrives."""
+    domain_id = _domain()
+    params = DdsParams(domain_id=domain_id)
+    rows = [Topic("/dds_test/cmd", Twist, Direction.IN, DEFAULT),
+            Topic("/dds_test/nav", Twist, Direction.IN, DEFAULT)]
+    car = _Car(rows, params)
+    car.bridge = DdsBridge(car.bus, params, rows, on_input=car.inputs.append, period_s=0.05)
+    with car:
+        assert [t.name for t in threading.enumerate()].count("dds-in") == 1
+        flood: list[Twist] = []
+        quiet: list[Twist] = []
+        car.bus.subscribe("/dds_test/cmd", flood.append)
+        car.bus.subscribe("/dds_test/nav", quiet.append)
+        peer = DomainParticipant(domain_id)
+        twist_type = ros2_factory().topic_type("geometry_msgs/msg/Twist")
+        cmds = DataWriter(peer, DdsTopic(peer, "rt/dds_test/cmd", twist_type), qos_of(DEFAULT))
+        navs = DataWriter(peer, DdsTopic(peer, "rt/dds_test/nav", twist_type), qos_of(DEFAULT))
+        wait_for(lambda: cmds.get_publication_matched_status().current_count > 0
+                 and navs.get_publication_matched_status().current_count > 0, timeout=30)
+        types = ros2_types()
+        start = time.monotonic()
+        for i in range(5000):
+            cmds.write(raw_sample(twist_type, types.serialize(Twist(Vector3(i / 1e4, 0.0, 0.0), Vector3()))))
+            if i == 2500:
+                navs.write(raw_sample(twist_type, types.serialize(Twist(Vector3(0.25, 0.0, 0.0), Vector3()))))
+        wait_for(lambda: flood and flood[-1].linear.x == 0.4999 and quiet, timeout=30)
+        took = time.monotonic() - start
+    assert [m.linear.x for m in quiet] == [0.25]
+    assert len(flood) <= took / 0.05 + 2, (len(flood), took)
 
 
 class _Reader:

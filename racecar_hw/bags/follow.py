@@ -40,9 +40,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 
 from racecar_hw.bags.validate import (
@@ -60,6 +59,9 @@ from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stam
 from racecar_hw.base.params import param
 from racecar_hw.base.topics import NAV0_TOPIC
 from racecar_hw.rosmsg.typestore import ros2_types
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +138,10 @@ def _open_reader(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> AnyR
         if files and all(p.stat().st_size == 0 for p in files):
             raise BagError(f"{path}: its storage file is empty (0 bytes)")
     check_storage(path, max_bytes)
+    # imported here, where a bag is read: rosbags' readers and their storage plug-ins are a few MB
+    # a daemon that does not follow a bag never needs (docs/install.md, "Memory")
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
     reader = AnyReader([path], default_typestore=ros2_types().store)
     try:
         reader.open()

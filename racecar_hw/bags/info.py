@@ -12,8 +12,6 @@ import datetime
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rosbags.highlevel import AnyReader
-
 from racecar_hw.bags.recover import BagState, inspect_bag, read_db, scan_mcap, scan_ros1
 from racecar_hw.bags.validate import guarded
 from racecar_hw.base.clock import NS_PER_S
@@ -110,6 +108,8 @@ def _from_databases(state: BagState) -> BagInfo:
 
 
 def _from_reader(state: BagState) -> BagInfo:
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415 - rosbags' readers, only where a bag is read
+
     target = state.path
     try:
         with AnyReader([target], default_typestore=ros2_types().store) as reader:

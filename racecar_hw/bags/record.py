@@ -59,8 +59,8 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2.metadata import dump_qos_v8
 
+from racecar_hw.bags.qos import dump_qos_v8
 from racecar_hw.bags.ros1_writer import Ros1Writer
 from racecar_hw.bags.writers import Storage, bag_info, open_storage
 from racecar_hw.base.bus import Bus, Subscription

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import yaml
 from rosbags.interfaces import Qos
-from rosbags.rosbag2.metadata import dump_qos_v8, parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from racecar_hw.bags.qos import dump_qos_v8
 from racecar_hw.bags.ros1_writer import Ros1Writer
 from racecar_hw.bags.validate import (
     DEFAULT_MAX_MESSAGE_BYTES,
@@ -235,6 +235,8 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
 
 
 def _qos(text: str) -> list[Qos]:
+    from rosbags.rosbag2.metadata import parse_qos  # noqa: PLC0415 - rosbags' bag package, for reading only
+
     try:
         return parse_qos(text)
     except Exception:  # a profile we cannot parse: the message data matters more than its QoS

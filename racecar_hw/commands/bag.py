@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from racecar_hw.bags.info import bag_info, format_info
-from racecar_hw.bags.recover import recover_bag
+# The bag modules are imported by the verbs that use them: every command's module is imported to
+# build the parser, and a daemon (``racecar-hw run``) has no use for them (docs/install.md, "Memory").
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,11 +32,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    from racecar_hw.bags.info import bag_info, format_info  # noqa: PLC0415
+
     print(format_info(bag_info(args.bag)))
     return 0
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
+    from racecar_hw.bags.recover import recover_bag  # noqa: PLC0415
+
     result = recover_bag(args.bag, args.output)
     if result.was_complete:
         print(f"{result.path} is complete ({result.messages} messages): nothing to recover")

@@ -10,7 +10,6 @@ import sys
 from racecar_hw.runtime.signals import run_until_stop_signal
 from vesc.codec import KNOWN_MAJORS, values_layout
 from vesc.driver import probe
-from vesc.fake import FakeVesc
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -50,6 +49,8 @@ def fake_vesc(args: argparse.Namespace) -> int:
     end (exit 0, the link removed). Printed before them, a signal in between interrupted the
     start-up instead (exit 130), though the banner said the fake VESC was serving.
     """
+    from vesc.fake import FakeVesc  # noqa: PLC0415 - here, not in every daemon that builds the parser
+
     fake = FakeVesc(args.link, firmware=args.firmware)
     major, minor = args.firmware
 

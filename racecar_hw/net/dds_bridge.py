@@ -199,7 +199,7 @@ class DdsBridge:
                 reader_gids.append(reader.guid.bytes)
             else:
                 # a command: the reader keeps only the newest sample (in C, without the GIL) until
-                # this row's thread takes it, at most once per control tick
+                # the pump thread takes it, at most once per control tick
                 newest = qos_of(dataclasses.replace(row.qos, depth=1), dds_graph.user_data(
                     rmw.type_hash(ros_type) if hashes else None))
                 reader = DataReader(self.participant, topic, newest)

@@ -1,8 +1,12 @@
 """The DDS interface's inbound side: samples from Cyclone's readers into the daemon's inbox.
 
 A command row's reader keeps only its newest sample (KEEP_LAST 1, in Cyclone's C code, without the
-GIL) and a thread per row (a *pump*) takes it at most once per control period (``period_s``, s),
-so a flood of ``/cmd_vel`` costs no Python work per message. The e-stop and its release are never
+GIL) and one thread for all command rows (the *pump*) takes it at most once per control period
+(``period_s``, s) per row, so a flood of ``/cmd_vel`` costs no Python work per message. The pump
+waits (in C) on one WaitSet holding every command reader's ReadCondition and a guard condition
+that :meth:`DdsReceiver.stop` sets; a row whose sample it has just taken is detached from the
+WaitSet for one period (its rest), so the other rows are still taken as soon as a sample arrives
+and an idle interface costs nothing. The e-stop and its release are never
 coalesced: Cyclone calls their readers' listeners for every sample, in order. Every sample's CDR
 payload is decoded and checked by the :class:`~racecar_hw.net.inbox.Inbox`; without
 ``accepts_commands`` (a non-loopback interface) each is refused and counted instead.
@@ -11,6 +15,7 @@ payload is decoded and checked by the :class:`~racecar_hw.net.inbox.Inbox`; with
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -24,7 +29,7 @@ if TYPE_CHECKING:
 SURFACE = "dds"
 #: Samples taken from a reader per call.
 TAKE_N = 64
-#: How long a command row's thread waits for a sample before it looks whether to stop (ns).
+#: The longest the pump waits for a sample before it looks whether to stop (ns; stop also wakes it).
 PUMP_WAIT_NS = 200_000_000
 _UNAUTHENTICATED = ("unauthenticated interface (dds.interface is not loopback; see "
                     "dds.accept_unauthenticated_commands)")
@@ -41,7 +46,10 @@ class DdsReceiver:
         self.accepts_commands = accepts_commands
         self.period_s = period_s
         self.lock = threading.Lock()
-        self._pumps: list[threading.Thread] = []
+        self._participant: Any = None
+        self._rows: list[tuple[Topic, str, Any]] = []
+        self._pump_thread: threading.Thread | None = None
+        self._wake: Any = None  # the pump's GuardCondition, once it runs
         self._stopping = threading.Event()
 
     def receiver(self, row: Topic, name: str) -> Callable[[Any], None]:
@@ -74,38 +82,79 @@ class DdsReceiver:
         return receive
 
     def add_pump(self, participant: Any, row: Topic, name: str, reader: Any) -> None:
-        """A thread for a command row's ``reader`` (started by :meth:`start`)."""
-        self._pumps.append(threading.Thread(target=self._pump, args=(participant, row, name, reader),
-                                            daemon=True, name=f"dds-in {row.ros}"))
+        """Have the pump (started by :meth:`start`) take a command row's ``reader``."""
+        self._participant = participant
+        self._rows.append((row, name, reader))
 
     def start(self) -> None:
         self._stopping.clear()
-        for pump in self._pumps:
-            pump.start()
+        if self._rows and self._pump_thread is None:
+            rows = list(self._rows)
+            self._pump_thread = threading.Thread(target=self._pump, args=(self._participant, rows),
+                                                 daemon=True, name="dds-in")
+            self._pump_thread.start()
 
     def stop(self) -> None:
-        """Stop every pump (each wakes within PUMP_WAIT_NS) and forget them."""
+        """Stop the pump (woken at once by its guard condition) and forget the rows."""
         self._stopping.set()
-        for pump in self._pumps:
-            if pump.is_alive():
-                pump.join(5.0)
-        self._pumps.clear()
+        wake = self._wake
+        if wake is not None:
+            try:
+                wake.set(True)
+            except Exception:  # noqa: BLE001 - the participant is gone already: the pump has ended
+                pass
+        if self._pump_thread is not None and self._pump_thread.is_alive():
+            self._pump_thread.join(5.0)
+        self._pump_thread = None
+        self._wake = None
+        self._rows.clear()
 
-    def _pump(self, participant: Any, row: Topic, name: str, reader: Any) -> None:
-        """A command row's thread: wait (in C) for a sample, take the newest, rest one period."""
-        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: PLC0415
+    def _pump(self, participant: Any, rows: list[tuple[Topic, str, Any]]) -> None:
+        """The command rows' thread: wait (in C) for a sample on any row, take the newest of each
+        row that has one, and rest each such row one period."""
+        from cyclonedds.core import (  # noqa: PLC0415
+            GuardCondition,
+            InstanceState,
+            ReadCondition,
+            SampleState,
+            ViewState,
+            WaitSet,
+        )
 
-        receive = self.receiver(row, name)
-        waitset = WaitSet(participant)
-        waitset.attach(ReadCondition(reader, SampleState.NotRead | ViewState.Any | InstanceState.Any))
+        mask = SampleState.NotRead | ViewState.Any | InstanceState.Any
+        try:
+            waitset = WaitSet(participant)
+            self._wake = GuardCondition(participant)
+            waitset.attach(self._wake)
+            pumps = [(ReadCondition(reader, mask), self.receiver(row, name), reader)
+                     for row, name, reader in rows]
+            for condition, _, _ in pumps:
+                waitset.attach(condition)
+        except Exception:  # noqa: BLE001 - closed before the pump started
+            return
+        resting: dict[int, float] = {}  # row index -> monotonic time (s) it may be taken again
+        period_s = self.period_s
         while not self._stopping.is_set():
             try:
-                if waitset.wait(PUMP_WAIT_NS) <= 0:
+                timeout_ns = PUMP_WAIT_NS
+                if resting:
+                    now = time.monotonic()
+                    for i, due in list(resting.items()):
+                        if due <= now:
+                            waitset.attach(pumps[i][0])
+                            del resting[i]
+                    if resting:
+                        timeout_ns = min(timeout_ns, max(0, int((min(resting.values()) - now) * 1e9)))
+                if waitset.wait(timeout_ns) <= 0 or self._stopping.is_set():
                     continue
+                now = time.monotonic()
+                for i, (condition, receive, reader) in enumerate(pumps):
+                    if i not in resting and condition.triggered:
+                        receive(reader)
+                        waitset.detach(condition)
+                        resting[i] = now + period_s
             except Exception:  # noqa: BLE001 - the participant is gone: the thread ends
                 return
-            receive(reader)
-            self._stopping.wait(self.period_s)
 
 
 __all__ = ["PUMP_WAIT_NS", "SURFACE", "TAKE_N", "DdsReceiver"]

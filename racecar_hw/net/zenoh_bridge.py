@@ -226,7 +226,10 @@ class ZenohBridge:
             def on_matching(status: Any, out: _Out = out) -> None:
                 out.matching = bool(status.matching)
 
-            out.listener = node.track(publisher.declare_matching_listener(on_matching))
+            # called in Zenoh's own thread (not ``indirect``, which gives every callback a Python
+            # thread of its own): it only sets a flag, when a subscriber comes or goes
+            out.listener = node.track(publisher.declare_matching_listener(
+                zenoh.handlers.Callback(on_matching, indirect=False)))
         self._outs.append(out)
 
     def close(self) -> None:
