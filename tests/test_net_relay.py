@@ -346,3 +346,18 @@ def test_the_gate_sees_a_head_end_however_the_reads_split_it(pieces, cuts):
             assert HEAD_END in stream[:stop]
             break
     assert ended == (HEAD_END in stream)
+
+
+def test_a_certificate_child_that_answers_nothing_is_one_clear_error(tmp_path, monkeypatch):
+    """The child process runs whatever ``racecar_hw`` comes first on its path: an older tree there
+    (seen with PYTHONPATH set to another checkout) prints nothing. That is a CertificateError
+    naming the certificate, not a JSON traceback."""
+    from racecar_hw.net.loopback_tls import CertificateError  # noqa: PLC0415
+
+    package = tmp_path / "racecar_hw" / "net"
+    package.mkdir(parents=True)
+    for empty in ("__init__.py", "net/__init__.py", "net/loopback_tls.py"):
+        (tmp_path / "racecar_hw" / empty).write_text("")
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    with pytest.raises(CertificateError, match="loopback certificate: the child process answered b''"):
+        make_loopback_cert()

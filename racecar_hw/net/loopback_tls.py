@@ -63,8 +63,13 @@ def make_loopback_cert(valid_days: int = 3650) -> LoopbackCert:
     if done.returncode != 0:
         last = (done.stderr.decode(errors="replace").strip().splitlines() or ["no output"])[-1]
         raise CertificateError(f"cannot make the loopback certificate: {last}")
-    pems = json.loads(done.stdout)
-    return LoopbackCert(pems["cert"].encode(), pems["key"].encode())
+    try:
+        pems = json.loads(done.stdout)
+        return LoopbackCert(pems["cert"].encode(), pems["key"].encode())
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
+        # a child that ran other code (an older racecar_hw first on PYTHONPATH, say) answers nothing
+        raise CertificateError(f"cannot make the loopback certificate: the child process answered "
+                               f"{done.stdout[:60]!r} ({err})") from None
 
 
 def _generate(valid_days: int) -> LoopbackCert:
