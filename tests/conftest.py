@@ -13,7 +13,10 @@ from pathlib import Path
 
 import pytest
 
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.runtime.devicethread import DeviceThread
+from vesc.fake import FakeVesc
 
 # No test listens on a default port: the guard in tests/portguard fails such a bind, in this
 # process and (through PYTHONPATH) in every Python process a test starts.
@@ -69,6 +72,18 @@ def bag_fixtures() -> Path:
     if not BAGS.is_dir():
         pytest.skip(f"real bag fixtures not found at {BAGS} (../shared is absent in this clone)")
     return BAGS
+
+
+@pytest.fixture
+def fakes(device_thread, tmp_path):
+    """A fake VESC on a pty (``tmp_path/vesc``) and a fake UST-10LX on a free loopback TCP port,
+    seeing the shipped room, served by a device thread: ``(vesc, lidar)``."""
+    vesc = FakeVesc(str(tmp_path / "vesc"))
+    lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
+    device_thread.spawn(vesc.serve())
+    device_thread.spawn(lidar.serve())
+    assert lidar.ready.wait(10)
+    return vesc, lidar
 
 
 @pytest.fixture

@@ -14,8 +14,6 @@ import numpy as np
 import pytest
 from conftest import QUIET_NET, async_wait_for
 
-from lidar_drivers.base import RoomRangeSource
-from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import monotonic_ns
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
@@ -26,16 +24,6 @@ from vesc.fake import CommandRecord, FakeVesc
 
 TELEOP = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 OUTPUT = "/vesc/low_level/ackermann_cmd_mux/output"
-
-
-@pytest.fixture
-def fakes(device_thread, tmp_path):
-    vesc = FakeVesc(str(tmp_path / "vesc"))
-    lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
-    device_thread.spawn(vesc.serve())
-    device_thread.spawn(lidar.serve())
-    assert lidar.ready.wait(10)
-    return vesc, lidar
 
 
 def _received(fake: FakeVesc, frames: int, timeout: float = 10.0) -> list[CommandRecord]:

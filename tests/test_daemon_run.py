@@ -14,13 +14,10 @@ import pytest
 import yaml
 from conftest import QUIET_NET, wait_for
 
-from lidar_drivers.base import RoomRangeSource
-from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.config import load_config
 from racecar_hw.control.stats import ControlStats
 from vesc.codec import SetCurrentBrake, SetRpm, SetServoPosition
-from vesc.fake import FakeVesc
 
 
 def _notifications(sock: socket.socket, until: float) -> list[str]:
@@ -34,16 +31,6 @@ def _notifications(sock: socket.socket, until: float) -> list[str]:
         if any(line == "STOPPING=1" for line in got):
             break
     return got
-
-
-@pytest.fixture
-def fakes(device_thread, tmp_path):
-    vesc = FakeVesc(str(tmp_path / "vesc"))
-    lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
-    device_thread.spawn(vesc.serve())
-    device_thread.spawn(lidar.serve())
-    assert lidar.ready.wait(10)
-    return vesc, lidar
 
 
 def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_path):

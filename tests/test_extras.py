@@ -17,7 +17,6 @@ import tomllib
 from conftest import NO_DDS, reaped, wait_for
 from zenoh_util import free_port
 
-from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.cli import main
 from racecar_hw.runtime.extras import EXTRAS
@@ -41,16 +40,6 @@ WRAPPER = textwrap.dedent("""
         json.dump(sorted(sys.modules), f)
     sys.exit(code)
 """)
-
-
-@pytest.fixture
-def fakes(device_thread, tmp_path):
-    vesc = FakeVesc(str(tmp_path / "vesc"))
-    lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
-    device_thread.spawn(vesc.serve())
-    device_thread.spawn(lidar.serve())
-    assert lidar.ready.wait(10)
-    return vesc, lidar
 
 
 def run_car(vesc: FakeVesc, lidar: FakeHokuyo, tmp_path: Path, *sets: str,
