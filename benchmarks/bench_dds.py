@@ -13,8 +13,12 @@ safety, recorder), one run per setting:
     scan frame to its socket until the fake VESC reads the servo position that answers it
     (``bench_zenoh._round_trip``), next to the same through the Zenoh client.
 
-Each run uses a DDS domain of its own (``ROS_DOMAIN_ID`` for the rclpy node). ``python
-benchmarks/bench_dds.py [SECONDS]``; ``run()`` returns the rows.
+(a)'s settings run interleaved, ``ROUNDS`` times (default 3), each leading a round in turn
+(:mod:`rounds`); each row is the median over the rounds, and the round trip's p99 is taken over
+every scan of every round of a setting together (:func:`rounds.pooled_p99`), as in
+``bench_zenoh.py``: one run's p99 rests on its eight slowest scans. Each run uses a DDS domain of
+its own (``ROS_DOMAIN_ID`` for the rclpy node). ``python benchmarks/bench_dds.py [SECONDS
+[ROUNDS]]``; ``run()`` returns the rows.
 """
 
 from __future__ import annotations
@@ -24,8 +28,10 @@ import random
 import sys
 from pathlib import Path
 
+import numpy as np
 from bench_daemon import run as run_daemon
 from bench_zenoh import CLIENT, _free_port, _pick, _round_trip
+from rounds import interleaved, pooled_p99
 from table import print_rows
 
 ROS_PYTHON = str(Path(os.environ.get("RACECAR_ROS_VENV", Path(__file__).resolve().parents[1] / ".ros-venv"))
@@ -67,6 +73,7 @@ rclpy.spin(node)
 
 P99 = "scan to VESC command p99 (in daemon)"
 P50 = "scan to VESC command p50 (in daemon)"
+CPU_P99 = "  the daemon's CPU time in it, p99"
 CPU = "daemon CPU share of one core"
 
 
@@ -74,33 +81,49 @@ def _dds(domain: int) -> dict:
     return {"dds": {"enabled": True, "domain_id": domain}}
 
 
-def run(seconds: float = 20.0) -> list[dict]:
+def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
+    """(a)'s three settings interleaved for ``rounds`` rounds (:mod:`rounds`): medians over the
+    rounds, and the round trip's p99 over every scan of every round (:func:`rounds.pooled_p99`);
+    then (b) once per far side."""
     if not Path(ROS_PYTHON).exists():
         raise SystemExit(f"no ROS 2 environment at {ROS_PYTHON} (.ci/run makes it)")
     env_domain = random.randrange(100, 200)
     os.environ["ROS_DOMAIN_ID"] = str(env_domain)  # the rclpy helpers inherit it
-    off = run_daemon(seconds)
-    nobody = run_daemon(seconds, config_extra=_dds(env_domain))
-    one = run_daemon(seconds, config_extra=_dds(env_domain), helpers=[[ROS_PYTHON, "-c", SUBSCRIBER]])
+    every = "on, one rclpy subscriber of every topic"
+    results = interleaved({
+        "off": lambda: run_daemon(seconds),
+        "on, nobody": lambda: run_daemon(seconds, config_extra=_dds(env_domain)),
+        every: lambda: run_daemon(seconds, config_extra=_dds(env_domain),
+                                  helpers=[[ROS_PYTHON, "-c", SUBSCRIBER]]),
+    }, rounds)
     trip = run_daemon(seconds, config_extra=_dds(env_domain),
                       helpers=[[ROS_PYTHON, "-c", ANSWER, "--drives"]], on_results=_round_trip)
     port = _free_port()
     ztrip = run_daemon(seconds, zenoh_port=port,
                        helpers=[[sys.executable, "-c", CLIENT, str(port), "--drives"]],
                        on_results=_round_trip)
+
+    def median(label: str, name: str) -> float:
+        return float(np.median([_pick(r, name) for r in results[label]]))
+
     rows = []
-    every = "on, one rclpy subscriber of every topic"
-    for label, result in (("off", off), ("on, nobody", nobody), (every, one)):
-        rows.append({"name": f"DDS {label}: scan to VESC command p50", "value": _pick(result, P50),
-                     "unit": "ms", "target": None})
-        rows.append({"name": f"DDS {label}: scan to VESC command p99", "value": _pick(result, P99),
-                     "unit": "ms", "target": 2.0})
-        rows.append({"name": f"DDS {label}: daemon CPU share", "value": _pick(result, CPU), "unit": "%",
-                     "target": None})
-    for label, result in (("on, nobody", nobody), (every, one)):
-        rows.append({"name": f"(a) p99 added, DDS {label}", "value": _pick(result, P99) - _pick(off, P99),
+    for label in results:
+        for name, short, unit, target in ((P50, "scan to VESC command p50", "ms", None),
+                                          (P99, "scan to VESC command p99", "ms", 2.0),
+                                          (CPU_P99, "the daemon's CPU time in it, p99", "ms", None),
+                                          (CPU, "daemon CPU share", "%", None)):
+            rows.append({"name": f"DDS {label}: {short}", "value": median(label, name), "unit": unit,
+                         "target": target})
+        rows.append({"name": f"DDS {label}: round trip lidar to VESC, p99 of all rounds' scans",
+                     "value": pooled_p99(results[label]), "unit": "ms", "target": None})
+    for label in ("on, nobody", every):
+        rows.append({"name": f"(a) p99 added, DDS {label}", "value": median(label, P99) - median("off", P99),
                      "unit": "ms", "target": 0.05})
-        rows.append({"name": f"(a) CPU added, DDS {label}", "value": _pick(result, CPU) - _pick(off, CPU),
+        rows.append({"name": f"(a) CPU-time p99 added, DDS {label}", "unit": "ms", "target": 0.05,
+                     "value": median(label, CPU_P99) - median("off", CPU_P99)})
+        rows.append({"name": f"(a) round-trip p99 of all rounds added, DDS {label}", "unit": "ms",
+                     "target": 0.05, "value": pooled_p99(results[label]) - pooled_p99(results["off"])})
+        rows.append({"name": f"(a) CPU added, DDS {label}", "value": median(label, CPU) - median("off", CPU),
                      "unit": "% of a core", "target": None})
     for label, result in (("rclpy over DDS", trip), ("racecar_hw.client over Zenoh", ztrip)):
         for row in result:
@@ -108,11 +131,16 @@ def run(seconds: float = 20.0) -> list[dict]:
                 rows.append({**row, "name": row["name"].replace("(b)", f"(b) {label}:")})
         rows.append({"name": f"(b) {label}: daemon CPU share", "value": _pick(result, CPU), "unit": "%",
                      "target": None})
+    steal = "host: CPU time stolen by the hypervisor"
+    runs = [r for each in results.values() for r in each] + [trip, ztrip]
+    rows.append({"name": "host steal, all runs (max)", "unit": "% of busy",
+                 "value": max(_pick(r, steal) for r in runs), "target": None})
     return rows
 
 
 def main() -> None:
-    print_rows(run(float(sys.argv[1]) if len(sys.argv) > 1 else 20.0))
+    args = sys.argv[1:]
+    print_rows(run(float(args[0]) if args else 20.0, int(args[1]) if len(args) > 1 else 3))
 
 
 if __name__ == "__main__":
