@@ -311,16 +311,12 @@ class _Stream(Generic[T]):
 class _EstopControls:
     """The e-stop part of :class:`Car`: engage, read the mux's state, release (as an operator may)."""
 
+    # what :class:`Car` provides
     mux: MuxParams
     mux_stream: _Stream[MuxStatus] | None
     _lock: threading.Lock
-
-    def publish(self, bus_topic: str, msg: Message) -> None:
-        raise NotImplementedError
-
-    def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
-                   qos: Qos, shared: bool = False) -> _Stream[T]:
-        raise NotImplementedError
+    publish: Callable[[str, Message], None]
+    _subscribe: Callable[..., _Stream[Any]]
 
     def estop(self) -> None:
         """Engage the daemon's latched e-stop."""
