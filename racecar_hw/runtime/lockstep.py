@@ -1,0 +1,188 @@
+"""An asyncio event loop on virtual time: the daemon and its fakes in lockstep with the simulation.
+
+:class:`VirtualTimeLoop` is asyncio's selector loop whose clock (``loop.time()``) is a counter of
+virtual nanoseconds. The counter moves only when the loop has nothing left to do: no callback
+ready, no reply pending on a device link, no job handed to a thread, no queue to a writer thread
+still full. It then jumps to the next timer (``speed=None``: as fast as the machine allows) or
+waits for it on the real clock scaled by ``speed`` (``speed=1``: real time). Whatever a fake device
+sent is therefore consumed, in full, before the world moves on, and the same inputs give the same
+run on an idle or a loaded machine.
+
+Threads still work: a thread that hands the loop work (``call_soon_threadsafe``, a network
+callback) wakes it; time stands still while a job given to a thread
+(``run_in_executor``, ``asyncio.to_thread``) runs, and while any of :meth:`add_busy`'s predicates
+holds (a recorder's queue to its writer thread). Those are the only real-time waits.
+
+:func:`run` runs a coroutine on such a loop with the process's clock
+(:mod:`racecar_hw.base.clock`) switched to the loop's, as ``asyncio.run`` would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import selectors
+import time
+from collections.abc import Callable, Coroutine
+from typing import Any, TypeVar
+
+from racecar_hw.base.clock import NS_PER_S, SIM_EPOCH_NS, use_virtual_time
+
+T = TypeVar("T")
+
+#: How long (real s) the loop looks for thread work between checks while time stands still.
+BUSY_POLL_S = 0.002
+#: Paced runs that fall this far (real s) behind their schedule start it again from now instead
+#: of racing to catch up (a stall at start-up, a debugger).
+RESYNC_BEHIND_S = 0.25
+
+
+class VirtualTimeLoop(asyncio.SelectorEventLoop):
+    """A selector event loop whose time is virtual: see the module docstring.
+
+    ``speed``: None runs as fast as the machine allows; a positive number paces virtual time at
+    that multiple of real time. ``start_ns``: the virtual time at creation.
+    """
+
+    def __init__(self, speed: float | None = None, start_ns: int = SIM_EPOCH_NS) -> None:
+        if speed is not None and not (math.isfinite(speed) and speed > 0):
+            raise ValueError(f"speed must be positive or None (as fast as possible), got {speed}")
+        super().__init__()
+        self.speed = speed
+        self._now_ns = start_ns
+        self._jobs = 0
+        self._busy: list[Callable[[], bool]] = []
+        self._anchor: tuple[int, float] | None = None  # (virtual ns, real monotonic s) of the pace
+        #: real seconds the loop waited for threads while virtual time stood still
+        self.stood_still_s = 0.0
+        self._selector = _VirtualSelector(self._selector, self)  # type: ignore[has-type]
+
+    # --- the clock ----------------------------------------------------------------------------
+
+    def time(self) -> float:
+        return self._now_ns / NS_PER_S
+
+    def now_ns(self) -> int:
+        """Virtual time in ns (what :func:`racecar_hw.base.clock.monotonic_ns` returns in a run)."""
+        return self._now_ns
+
+    # --- what holds time still ----------------------------------------------------------------
+
+    def add_busy(self, predicate: Callable[[], bool]) -> Callable[[], None]:
+        """Hold virtual time while ``predicate()`` is true (checked from the loop); returns a remover."""
+        self._busy.append(predicate)
+
+        def remove() -> None:
+            if predicate in self._busy:
+                self._busy.remove(predicate)
+
+        return remove
+
+    def run_in_executor(self, executor: Any, func: Callable[..., T], *args: Any) -> asyncio.Future[T]:
+        fut = super().run_in_executor(executor, func, *args)
+        self._jobs += 1
+
+        def done(_: object) -> None:
+            self._jobs -= 1
+
+        fut.add_done_callback(done)
+        return fut
+
+    def _held(self) -> bool:
+        return self._jobs > 0 or any(p() for p in self._busy)
+
+    # --- advancing ----------------------------------------------------------------------------
+
+    def _next_timer_ns(self) -> int | None:
+        scheduled = self._scheduled  # type: ignore[attr-defined]  # asyncio drops cancelled heads first
+        if not scheduled:
+            return None
+        return max(self._now_ns, math.ceil(scheduled[0]._when * NS_PER_S))
+
+    def _select(self, select: Callable[[float | None], list[Any]],
+                timeout: float | None) -> list[Any]:
+        if timeout == 0:
+            return select(0)
+        if self._held():
+            started = time.monotonic()
+            events = select(BUSY_POLL_S if timeout is None else min(timeout, BUSY_POLL_S))
+            self.stood_still_s += time.monotonic() - started
+            self._anchor = None
+            return events
+        target = self._next_timer_ns() if timeout is not None else None
+        if target is None:  # no timer: only a thread can give the loop work
+            return select(None if timeout is None else BUSY_POLL_S)
+        if self.speed is None:
+            events = select(0)
+            if not events:
+                self._now_ns = target
+            return events
+        return self._paced(select, target)
+
+    def _paced(self, select: Callable[[float | None], list[Any]], target: int) -> list[Any]:
+        assert self.speed is not None
+        real = time.monotonic()
+        if self._anchor is None:
+            self._anchor = (self._now_ns, real)
+        v0, r0 = self._anchor
+        due = r0 + (target - v0) / NS_PER_S / self.speed
+        if due - real < -RESYNC_BEHIND_S:
+            self._anchor = (self._now_ns, real)
+            due = real + (target - self._now_ns) / NS_PER_S / self.speed
+        events = select(max(0.0, due - real))
+        if events:  # a thread woke the loop before the timer: time runs up to now (paced)
+            passed = round((time.monotonic() - r0) * self.speed * NS_PER_S)
+            self._now_ns = max(self._now_ns, min(target, v0 + passed))
+        else:
+            self._now_ns = target
+        return events
+
+
+class _VirtualSelector:
+    """The loop's selector with :meth:`select` routed through the loop's clock."""
+
+    def __init__(self, inner: selectors.BaseSelector, loop: VirtualTimeLoop) -> None:
+        self._inner = inner
+        self._loop = loop
+
+    def select(self, timeout: float | None = None) -> list[Any]:
+        return self._loop._select(self._inner.select, timeout)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+def run(main: Coroutine[Any, Any, T], speed: float | None = None, *,
+        start_ns: int = SIM_EPOCH_NS) -> T:
+    """Run ``main`` on a new :class:`VirtualTimeLoop` with the process's clock on it, as
+    ``asyncio.run`` does (the remaining tasks cancelled, async generators and the default
+    executor shut down, the loop closed)."""
+    loop = VirtualTimeLoop(speed, start_ns)
+    with use_virtual_time(loop.now_ns):
+        try:
+            asyncio.set_event_loop(loop)
+            return loop.run_until_complete(main)
+        finally:
+            try:
+                _cancel_all(loop)
+                loop.run_until_complete(loop.shutdown_asyncgens())
+                loop.run_until_complete(loop.shutdown_default_executor())
+            finally:
+                asyncio.set_event_loop(None)
+                loop.close()
+
+
+def _cancel_all(loop: asyncio.AbstractEventLoop) -> None:
+    tasks = asyncio.all_tasks(loop)
+    if not tasks:
+        return
+    for task in tasks:
+        task.cancel()
+    loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+    for task in tasks:
+        if not task.cancelled() and task.exception() is not None:
+            loop.call_exception_handler({"message": "unhandled exception during lockstep shutdown",
+                                         "exception": task.exception(), "task": task})
+
+
+__all__ = ["BUSY_POLL_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "run"]
