@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 from racecar_hw.base.clock import monotonic_ns, seconds
-from racecar_hw.runtime.fakepty import PtyPort
+from racecar_hw.runtime.fakepty import port_for
 from vesc.codec import (
     IMU_SINCE,
     TIMEOUT_RESETTING,
@@ -130,7 +130,7 @@ class FakeVesc:
         self.battery_resistance_ohm = battery_resistance_ohm
         self.timeout_s = timeout_s
         self.tick_s = tick_s
-        self.port = PtyPort(link)
+        self.port = port_for(link)
         self._codec = VescCodec(Role.DEVICE, firmware)
         self._state = MotorState(v_in=battery_v)
         self._lock = threading.Lock()
@@ -295,13 +295,13 @@ class FakeVesc:
         return asyncio.run_coroutine_threadsafe(call(), loop).result(10)
 
     def _attach(self) -> None:
-        if self._loop is not None and self.port.master_fd is not None and not self._reading:
-            self._loop.add_reader(self.port.master_fd, self._on_readable)
+        if self._loop is not None and self.port.plugged and not self._reading:
+            self.port.watch(self._loop, self._on_readable)
             self._reading = True
 
     def _detach(self) -> None:
-        if self._loop is not None and self.port.master_fd is not None and self._reading:
-            self._loop.remove_reader(self.port.master_fd)
+        if self._reading:
+            self.port.unwatch()
         self._reading = False
 
     def _unplug(self) -> None:
