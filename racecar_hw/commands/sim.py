@@ -51,6 +51,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "with several, its only mux input)")
     p.add_argument("--keyboard", action="store_true",
                    help="drive through the teleop input with the keyboard (arrows/WASD, space stops)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="run the daemon and the fakes on the simulation's clock through in-memory "
+                        "links: deterministic (see docs/sim.md); at real-time pace unless --speed")
+    p.add_argument("--speed", type=_speed, metavar="N|max",
+                   help="lockstep at N times real time, or max: as fast as the machine allows "
+                        "(implies --lockstep; the default is real time over ptys and TCP)")
     p.add_argument("--no-status", action="store_true", help="no live status panel")
     add_config_options(p, default="the shipped sim config, config/sim.yaml")
     p.set_defaults(func=cmd_sim)
@@ -63,6 +69,19 @@ def _seconds(text: str) -> float:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
+
+
+def _speed(text: str) -> float:
+    """``max`` (as fast as possible: math.inf) or a positive multiple of real time."""
+    if text.strip().lower() == "max":
+        return math.inf
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a positive number nor max")
     return value
 
 
@@ -115,11 +134,18 @@ def cmd_sim(args: argparse.Namespace) -> int:
     # --follow: the run lasts as long as the replay, unless a duration is given
     given = args.duration is not None or any(o.partition("=")[0].strip() == "duration_s"
                                              for o in args.scenario_overrides)
+    lockstep = args.lockstep or args.speed is not None
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration,
-                        until_replay_ends=bool(args.follow) and not given)
+                        until_replay_ends=bool(args.follow) and not given, lockstep=lockstep)
     with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
-        result = asyncio.run(_run(loopback, stops))
+        if lockstep:
+            from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the option
+
+            speed = args.speed if args.speed is not None else 1.0
+            result = virtual.run(_run(loopback, stops), None if math.isinf(speed) else speed)
+        else:
+            result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
         return INTERRUPTED
     report = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")

@@ -57,7 +57,8 @@ class Loopback:
                  overrides: tuple[str, ...] | list[str] = (), out_dir: str | Path | None = None,
                  status: StatusPanel | None = None, duration_s: float | None = None,
                  until_replay_ends: bool = False,
-                 setup: Callable[[Loopback], None] | None = None) -> None:
+                 setup: Callable[[Loopback], None] | None = None, lockstep: bool = False,
+                 car_name: str = "car") -> None:
         self.scenario = scenario
         self.duration_s = duration_s if duration_s is not None else scenario.duration_s
         #: run as long as the follow drivers' replays (stretched for the reverse cap) and
@@ -71,7 +72,10 @@ class Loopback:
         self.status = status
         self.setup = setup
         self.map = load_map(scenario.map_path())
-        self.rig = FakeRig(scenario, self.map, self.dev_dir)
+        #: the fakes in the daemon's loop behind in-memory links, on the loop's (virtual) clock
+        #: (run it with :func:`racecar_hw.runtime.lockstep.run`), instead of ptys and TCP in real time
+        self.lockstep = lockstep
+        self.rig = FakeRig(scenario, self.map, self.dev_dir, lockstep=lockstep, name=car_name)
         self.clock = ScenarioClock()
         self.observer = RunObserver()
         self.drivers: ScenarioDrivers | None = None
@@ -140,7 +144,7 @@ class Loopback:
         The lidar endpoint is filled in once the fake lidar listens (a TCP port is only known then).
         """
         extra = merge(self.scenario.config, {
-            "vesc": {"port": str(self.dev_dir / "vesc")},
+            "vesc": {"port": self.rig.device_path("vesc")},
             "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
         return load_config(self.config_path, self.overrides, extra=extra)
@@ -202,7 +206,7 @@ class Loopback:
             await self._settle()
             return RunReport(self).result()
         finally:
-            self.rig.stop()
+            await self.rig.aclose()
             self._tmp.cleanup()
 
     def request_stop(self, reason: str = "request") -> None:
