@@ -43,6 +43,7 @@ def _figure8(capsys, tmp_path, config) -> dict:
     return json.loads((out / "report.json").read_text())
 
 
+@pytest.mark.slow
 def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(tmp_path, capsys):
     config = tmp_path / "car.yaml"
     shutil.copy(ROOT / "config" / "sim.yaml", config)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
 import yaml
 
 
@@ -45,6 +46,7 @@ def test_a_good_file_prints_the_effective_config(tmp_path):
     assert yaml.safe_load(proc.stdout)["vesc"]["speed_to_erpm_gain"] == 4000.0
 
 
+@pytest.mark.slow
 def test_describe_prints_yaml_values_and_honours_a_section():
     proc = _check_config("--describe", "vesc")
     assert proc.returncode == 0, proc.stderr

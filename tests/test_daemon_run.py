@@ -33,6 +33,7 @@ def _notifications(sock: socket.socket, until: float) -> list[str]:
     return got
 
 
+@pytest.mark.slow
 def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_path):
     vesc, lidar = fakes
     host, port = lidar.tcp_address
@@ -164,6 +165,7 @@ def test_check_config_prints_the_effective_config():
     assert "safety.margin_m" in bad.stderr and "out of range" in bad.stderr
 
 
+@pytest.mark.slow
 def test_follow_command_refuses_a_disarmed_car_then_drives_a_twist_bag_with_arm(fakes, tmp_path):
     """A cmd_vel bag (geometry_msgs/Twist, as most public bags carry) on the car config, which
     starts disarmed: refused in one line, then followed with --arm; the topic is found alone."""

@@ -15,6 +15,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
+import pytest
 from conftest import QUIET_NET
 
 from racecar_hw.bags.follow import holes, load_commands
@@ -75,6 +76,7 @@ def _pose(report: dict) -> tuple[float, float, float]:
     return p["x"], p["y"], p["yaw"]
 
 
+@pytest.mark.slow
 def test_recorded_figure8_is_retraced_forwards_and_backwards(tmp_path):
     bags = tmp_path / "bags"
     with held_up():  # a recording with gaps, as a loaded machine makes them (the replays are not held up)

@@ -94,6 +94,7 @@ def _loopback(station: Station, script, *extra: str) -> Loopback:
     return Loopback(scenario, overrides=overrides, setup=setup)
 
 
+@pytest.mark.slow
 def test_ground_station_arms_drives_disarms_and_failsafes_the_sim_car():
     station = Station()
     checks: dict[str, Any] = {}
@@ -201,6 +202,7 @@ def _lines_naming(caplog: pytest.LogCaptureFixture, source: str) -> list[str]:
     return [r.getMessage() for r in caplog.records if source in r.getMessage()]
 
 
+@pytest.mark.slow
 def test_the_signed_operator_keeps_control_through_a_flood_and_a_frame_an_hour_ahead(tmp_path, caplog):
     """Another process sends forged datagrams (bad signatures, unsigned; the station's ids) as
     fast as it can for 10 s while the signed station drives forward, stops and reverses: its

@@ -118,6 +118,7 @@ def test_wall_head_on_never_touched_and_stopped_close(speed):
     assert r["safety_interventions_by_reason"] == {"obstacle": 1}  # the wall, once, and it held
 
 
+@pytest.mark.slow
 def test_wall_head_on_in_real_time_over_a_pty_and_tcp(tmp_path):
     """The same run on the wall clock: the fake VESC behind a real pty, the fake UST-10LX on a
     loopback TCP port, on a thread of their own beside the daemon's loop."""
@@ -133,6 +134,7 @@ def check_wall_head_on(r: dict, speed: float) -> None:
     assert r["safety_interventions"] >= 1
 
 
+@pytest.mark.slow
 def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     # in real time: the lidar's pty and the sweep's timing on the wall clock
     scenario = load_scenario("wall", ["lidar.model=a1", "lidar.transport=pty"])
