@@ -56,11 +56,18 @@ class Recorder:
         return self.got[topic][-1][1]
 
 
+#: the fakes' serving tasks (the loop keeps only weak references to tasks)
+SERVING: set[asyncio.Task[None]] = set()
+
+
 def memory_fake(name: str, **kw) -> FakeVesc:
     """A fake VESC served in the running loop behind the in-memory link ``mem://NAME/vesc`` (for
-    a driver and its fake in lockstep, :func:`racecar_hw.runtime.lockstep.run`)."""
+    a driver and its fake in lockstep, :func:`racecar_hw.runtime.lockstep.run`, which cancels the
+    task at its end)."""
     fake = FakeVesc(f"mem://{name}/vesc", **kw).open()
-    asyncio.ensure_future(fake.serve())
+    task = asyncio.ensure_future(fake.serve())
+    SERVING.add(task)
+    task.add_done_callback(SERVING.discard)
     return fake
 
 
