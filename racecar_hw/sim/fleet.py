@@ -35,6 +35,7 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, listeners, move_to_free_ports
 from racecar_hw.daemon import Daemon
+from racecar_hw.runtime.lockstep import VirtualTimeLoop
 from racecar_hw.sim.car import CarParams, Collider, Pose2D, footprint
 from racecar_hw.sim.car_state import compose
 from racecar_hw.sim.fleet_report import FleetReport, start_ns
@@ -232,6 +233,9 @@ class Fleet:
     async def run(self) -> SimResult:
         """Run every car for the scenario's duration; returns the fleet's report (written into
         ``out_dir`` with each car's CSV and plot, as the single-car run does)."""
+        if not isinstance(asyncio.get_running_loop(), VirtualTimeLoop):
+            raise RuntimeError("a fleet runs in lockstep: "
+                               "racecar_hw.runtime.lockstep.run(fleet.run(), speed)")
         self._check_starts()
         tasks = {name: asyncio.ensure_future(car.run()) for name, car in self.cars.items()}
         try:
@@ -286,7 +290,8 @@ class Fleet:
         world.on_collision = on_collision
         z = car.config.zenoh
         if z.enabled:
-            log.info("car %s: namespace %s, Zenoh on %s", car.name, z.namespace or "/", ", ".join(z.listen))
+            print(f"racecar-hw sim: car {car.name}: namespace {z.namespace or '/'}, Zenoh on "
+                  f"{', '.join(z.listen)}", file=sys.stderr, flush=True)
         if self.setup is not None:
             self.setup(car)
 
