@@ -13,15 +13,19 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import signal
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import QUIET_NET, wait_for
+from conftest import QUIET_NET, reaped, set_args, wait_for
 from zenoh_util import endpoint, free_port
 
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.cli import main
 from racecar_hw.runtime import lockstep
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.car_state import compose
@@ -283,3 +287,41 @@ def test_two_cars_driven_by_their_own_clients_see_each_other_and_the_follower_st
     assert follower_r["zenoh_listen"] == [endpoint(ports["follower"])]
     assert (leader_r["namespace"], follower_r["namespace"]) == ("/leader", "/follower")
     assert r["stop_reason"] == "test"
+
+
+# --- the command line ------------------------------------------------------------------------
+
+
+def test_the_command_line_runs_two_cars_and_ctrl_c_ends_both_with_the_report(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", "two-cars", "--speed", "max",
+         "--duration", "600", "--no-status", *set_args(*QUIET_NET), "--out", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        assert proc.stderr is not None
+        running = 0
+        for line in proc.stderr:  # both daemons run, then the follower stops behind the leader
+            running += "racecar-hw running" in line
+            if running == 2 and "safety: intervening (obstacle)" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    report = json.loads((tmp_path / "two-cars.json").read_text())
+    assert report["interrupted"] is True and report["stop_reason"] == "SIGINT"
+    assert set(report["cars"]) == {"leader", "follower"} and report["car_collisions"] == []
+    assert report["cars"]["follower"]["safety_interventions"] >= 1
+    for name in ("leader", "follower"):
+        assert Path(report["cars"][name]["plot_png"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"car {name} (namespace /{name}):" in out
+        assert f"two-cars-{name}: interrupted by SIGINT after" in out
+    assert "no car hit another" in out
+
+
+@pytest.mark.parametrize("option", [["--follow", "x.bag"], ["--keyboard"]], ids=["follow", "keyboard"])
+def test_the_command_line_refuses_to_drive_one_of_several_cars(capsys, option):
+    assert main(["sim", "--scenario", "two-cars", *option, *set_args(*QUIET_NET)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"racecar-hw sim: {option[0]}: scenario two-cars has several cars")
+    assert "\n" not in err

@@ -90,6 +90,8 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
     from racecar_hw.sim.scenario import load_scenario  # noqa: PLC0415 - with the command
 
     scenario_overrides: list[str] = []
+    if args.follow and load_scenario(args.scenario, args.scenario_overrides).cars:
+        raise ConfigError("--follow", f"scenario {args.scenario} has several cars; --follow drives one")
     if args.follow:
         # first, so that --scenario-set drivers.0.rate_hz=10 (or use_timestamps) applies to it
         bag = Path(args.follow).resolve()
@@ -164,11 +166,10 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
     from racecar_hw.sim.fleet import Fleet  # noqa: PLC0415 - needs the sim extra
     from racecar_hw.sim.report import write_report  # noqa: PLC0415
 
-    for given, option in ((args.follow, "--follow"), (args.keyboard, "--keyboard")):
-        if given:
-            raise ConfigError(option, f"scenario {scenario.name} has several cars; {option} drives one "
-                                      "(give each car its drivers in the scenario, or drive them over "
-                                      "Zenoh: docs/sim.md, \"Several cars\")")
+    if args.keyboard:
+        raise ConfigError("--keyboard", f"scenario {scenario.name} has several cars; --keyboard drives "
+                                        "one (give each car its drivers in the scenario, or drive them "
+                                        "over Zenoh: docs/sim.md, \"Several cars\")")
     _count_zenoh_logins(args.config, args.overrides)
     fleet = Fleet(scenario, config_path=args.config, overrides=args.overrides, out_dir=out,
                   duration_s=args.duration, record_dir=args.record)
