@@ -173,6 +173,8 @@ def test_a_follower_without_safety_hits_the_braking_leader_and_both_sections_say
         assert Path(car["trajectory_csv"]).name == f"two-cars-{name}-trajectory.csv"
         assert Path(car["plot_png"]).stat().st_size > 0
         assert car["namespace"] == f"/{name}"
+    assert Path(r["plot_png"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # every path in one picture
+    assert Path(r["plot_png"]).name == "two-cars.png"
     json.dumps(r)  # the report is JSON
 
 
@@ -312,6 +314,7 @@ def test_the_command_line_runs_two_cars_and_ctrl_c_ends_both_with_the_report(tmp
     assert report["interrupted"] is True and report["stop_reason"] == "SIGINT"
     assert set(report["cars"]) == {"leader", "follower"} and report["car_collisions"] == []
     assert report["cars"]["follower"]["safety_interventions"] >= 1
+    assert Path(report["plot_png"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for name in ("leader", "follower"):
         assert Path(report["cars"][name]["plot_png"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"car {name} (namespace /{name}):" in out

@@ -181,8 +181,11 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
     path = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
     print(fleet_summary(result.report))
     print(f"report:     {path}")
+    print(f"plot:       {result.report['plot_png']}")
     for name, car in result.report["cars"].items():
         print(f"{name + ':':11} plot {car['plot_png']}, trajectory {car['trajectory_csv']}")
+        for bag in car.get("bags") or []:
+            print(f"{'':11} bag {bag}")
     return 0
 
 

@@ -36,9 +36,8 @@ from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, listeners, move_to_free_ports
 from racecar_hw.daemon import Daemon
 from racecar_hw.runtime.lockstep import VirtualTimeLoop
-from racecar_hw.sim.car import CarParams, Collider, Pose2D, footprint
-from racecar_hw.sim.car_state import compose
-from racecar_hw.sim.fleet_report import FleetReport, start_ns
+from racecar_hw.sim.car import CarParams, Collider, footprint
+from racecar_hw.sim.fleet_report import FleetReport, footprint_box, start_ns
 from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.movers import Mover
 from racecar_hw.sim.obstacles import Box, Obstacle, polygon_distance
@@ -51,12 +50,6 @@ log = logging.getLogger(__name__)
 
 #: Two cars' worlds that find the same pair in contact this close in time (s) report one contact.
 SAME_CONTACT_S = 1.0
-
-
-def footprint_box(pose: Pose2D | tuple[float, float, float], params: CarParams) -> Box:
-    """The car's footprint at ``pose`` (rear axle, map frame) as a :class:`Box` obstacle."""
-    centre = compose(pose, (params.length / 2 - params.rear_overhang, 0.0, 0.0))
-    return Box(centre.x, centre.y, params.length, params.width, centre.yaw)
 
 
 class CarShadow(Mover):

@@ -16,13 +16,21 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from racecar_hw.base.clock import NS_PER_S
-from racecar_hw.sim.car import footprint
-from racecar_hw.sim.obstacles import polygon_distance
+from racecar_hw.sim.car import CarParams, Pose2D, footprint
+from racecar_hw.sim.car_state import compose
+from racecar_hw.sim.fleet_plot import plot_fleet
+from racecar_hw.sim.obstacles import Box, polygon_distance
 from racecar_hw.sim.report import SimResult
 from racecar_hw.sim.world import World
 
 if TYPE_CHECKING:
     from racecar_hw.sim.fleet import CarContact, Fleet
+
+
+def footprint_box(pose: Pose2D | tuple[float, float, float], params: CarParams) -> Box:
+    """The car's footprint at ``pose`` (rear axle, map frame) as a :class:`Box` obstacle."""
+    centre = compose(pose, (params.length / 2 - params.rear_overhang, 0.0, 0.0))
+    return Box(centre.x, centre.y, params.length, params.width, centre.yaw)
 
 
 def start_ns(world: World) -> int:
@@ -71,8 +79,19 @@ class FleetReport:
             "car_collisions": contacts,
             "gaps": gaps,
             "cars": cars,
+            "plot_png": None,
         }
-        return SimResult(report)
+        result = SimResult(report)
+        out = fleet.out_dir
+        if out is not None and ref is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            ends = {name: footprint_box(world.pose, world.params) for name, world in worlds.items()}
+            png = plot_fleet(out / f"{sc.name or 'sim'}.png", ref.map,
+                             {name: world.trajectory for name, world in worlds.items()}, ends,
+                             [(c["x"], c["y"]) for c in contacts], title=sc.name or None)
+            report["plot_png"] = str(png)
+            result.plot_png = png
+        return result
 
 
 def pair_gaps(a: str, world_a: World, b: str, world_b: World, offset_s: float = 0.0) -> dict[str, Any]:
@@ -102,4 +121,4 @@ def _num(x: float) -> float | None:
     return round(float(x), 4) if math.isfinite(x) else None
 
 
-__all__ = ["FleetReport", "pair_gaps", "start_ns"]
+__all__ = ["FleetReport", "footprint_box", "pair_gaps", "start_ns"]
