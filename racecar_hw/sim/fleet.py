@@ -154,6 +154,14 @@ class FleetCar(Loopback):
         self.name = name
         self.clock = FleetClock(fleet)
 
+    async def run(self) -> SimResult:
+        try:
+            return await super().run()
+        except ConfigError as err:  # say which car's config it is
+            named = ConfigError("", f"car {self.name}: {err}")
+            named.key = err.key
+            raise named from None
+
     def _take_free_ports(self, config: Config) -> None:
         namespaces = self.fleet.namespaces
         if config.zenoh.enabled or config.dds.enabled:
