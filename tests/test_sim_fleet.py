@@ -22,9 +22,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import QUIET_NET, reaped, set_args, wait_for
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from zenoh_util import endpoint, free_port
 
 from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.params import build
 from racecar_hw.cli import main
 from racecar_hw.runtime import lockstep
 from racecar_hw.sim.car import CarParams
@@ -32,7 +35,7 @@ from racecar_hw.sim.car_state import compose
 from racecar_hw.sim.fleet import CarShadow, Fleet, FleetCar
 from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.occupancy import load_shipped_map
-from racecar_hw.sim.scenario import load_scenario
+from racecar_hw.sim.scenario import Scenario, load_scenario
 from racecar_hw.sim.world import World
 
 P = CarParams()
@@ -113,6 +116,37 @@ def test_a_scenario_with_cars_refuses_what_belongs_to_each_car():
         Fleet(load_scenario("two-cars", ["cars.1.start=[3.3, 0.0, 0.0]"]))._check_starts()
     with pytest.raises(ConfigError, match="several cars: run it with"):
         Loopback(load_scenario("two-cars"))
+
+
+CAR_ENTRY = st.fixed_dictionaries(
+    {"name": st.one_of(st.sampled_from(["a", "b", "car_1"]), st.text(max_size=6))},
+    optional={"start": st.lists(st.floats(allow_nan=True), max_size=4),
+              "drivers": st.lists(st.fixed_dictionaries({"type": st.sampled_from(["constant", "nope"])}),
+                                  max_size=2),
+              "lidar": st.one_of(st.none(), st.fixed_dictionaries({"model": st.text(max_size=8)})),
+              "config": st.one_of(st.dictionaries(st.text(max_size=5), st.integers(), max_size=2),
+                                  st.integers()),
+              "bogus": st.integers()})
+SCENARIO_DATA = st.fixed_dictionaries(
+    {"cars": st.one_of(st.lists(CAR_ENTRY, max_size=4), st.text(max_size=3))},
+    optional={"drivers": st.lists(st.fixed_dictionaries({"type": st.just("constant")}), max_size=1),
+              "start": st.lists(st.floats(-5, 5), min_size=3, max_size=3),
+              "obstacles": st.lists(st.fixed_dictionaries({"name": st.sampled_from(["a", "box"])}),
+                                    max_size=1)})
+
+
+@settings(max_examples=300, deadline=None)
+@given(SCENARIO_DATA)
+def test_any_cars_section_is_a_scenario_or_refused_naming_the_key(data):
+    try:
+        scenario = build(Scenario, data, "scenario")
+    except ConfigError as err:
+        assert str(err).startswith("scenario"), err
+        return
+    names = [c.name for c in scenario.cars]
+    assert len(set(names)) == len(names) and all(n.isidentifier() for n in names)
+    assert not (scenario.cars and (scenario.drivers or scenario.start != (0.0, 0.0, 0.0)))
+    assert not {o.name for o in scenario.obstacles} & set(names)
 
 
 def test_each_car_gets_its_namespace_its_ports_and_its_scenario():
