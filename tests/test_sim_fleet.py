@@ -153,8 +153,7 @@ def test_each_car_gets_its_namespace_its_ports_and_its_scenario():
     scenario = load_scenario("two-cars")
     assert [c.name for c in scenario.cars] == ["leader", "follower"]
     port = free_port()
-    fleet = Fleet(scenario, overrides=[f'zenoh.listen=["{endpoint(port)}"]', "foxglove.port=0", "web.port=0",
-                                       "dds.enabled=false"])
+    fleet = Fleet(scenario, overrides=[f'zenoh.listen=["{endpoint(port)}"]', "foxglove.port=0", "web.port=0"])
     leader, follower = fleet.cars["leader"], fleet.cars["follower"]
     assert (leader.scenario.name, follower.scenario.name) == ("two-cars-leader", "two-cars-follower")
     assert leader.scenario.lidar.model == "a2m8" and follower.scenario.lidar.model == "ust-10lx"
@@ -164,6 +163,7 @@ def test_each_car_gets_its_namespace_its_ports_and_its_scenario():
         car._take_free_ports(config)
         configs.append(config)
     assert [c.zenoh.namespace for c in configs] == ["/leader", "/follower"]
+    assert [c.dds.enabled for c in configs] == [False, False]  # one Cyclone domain per process
     # the same --set for both: the follower's listener moves off the port promised to the leader
     assert configs[0].zenoh.listen == [endpoint(port)]
     assert configs[1].zenoh.listen != [endpoint(port)]
@@ -177,6 +177,12 @@ def test_each_car_gets_its_namespace_its_ports_and_its_scenario():
         else:
             with pytest.raises(ConfigError, match="zenoh.namespace: cars leader and follower both have /car"):
                 car._take_free_ports(config)
+    both = Fleet(scenario, overrides=["dds.enabled=true", f'zenoh.listen=["{endpoint(free_port())}"]',
+                                      "foxglove.port=0", "web.port=0"])
+    leader, follower = both.cars.values()
+    leader._take_free_ports(leader._build_config())
+    with pytest.raises(ConfigError, match="dds.enabled: cars leader and follower both have DDS"):
+        follower._take_free_ports(follower._build_config())
 
 
 # --- lockstep at full speed: a car-car collision ---------------------------------------------

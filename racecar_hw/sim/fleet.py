@@ -99,8 +99,10 @@ class CarContact:
 def car_scenario(scenario: Scenario, entry: ScenarioCar, index: int) -> Scenario:
     """The single-car scenario of car ``entry`` (the ``index``-th): the scenario's map, duration,
     world and obstacles with the car's start, lidar, drivers, faults, true gains and config (over the
-    scenario's, with the namespace /NAME unless the car's config gives a ``zenoh.namespace``)."""
-    config = merge(scenario.config, entry.config)
+    scenario's, with the namespace /NAME unless the car's config gives a ``zenoh.namespace``, and
+    DDS off unless a config turns it on)."""
+    # DDS off unless a config turns it on: Cyclone opens a domain once per process (docs/sim.md)
+    config = merge(merge({"dds": {"enabled": False}}, scenario.config), entry.config)
     if "namespace" not in (entry.config.get("zenoh") or {}):
         config = merge(config, {"zenoh": {"namespace": f"/{entry.name}"}})
     seed = scenario.world.seed
@@ -171,6 +173,12 @@ class FleetCar(Loopback):
                                   f"{config.zenoh.namespace or '/'}: each car needs its own (the "
                                   "default is /NAME; a --set applies to every car)")
             namespaces[config.zenoh.namespace] = self.name
+        if config.dds.enabled:
+            if self.fleet.dds_car is not None:
+                raise ConfigError("dds.enabled", f"cars {self.fleet.dds_car} and {self.name} both have "
+                                  "DDS: in a fleet (one process) one car at most can (it is off unless "
+                                  "a config turns it on; docs/sim.md, \"Several cars\")")
+            self.fleet.dds_car = self.name
         promised = self.fleet.promised_ports
         self.moved_ports = move_to_free_ports(config, avoid=set(promised))
         for listener, where in self.moved_ports:
@@ -205,6 +213,8 @@ class Fleet:
         self.promised_ports: dict[int, str] = {}
         #: namespace on the network interfaces -> the car whose daemon has it
         self.namespaces: dict[str, str] = {}
+        #: the car whose daemon has the DDS interface (one at most)
+        self.dds_car: str | None = None
         self.contacts: list[CarContact] = []
         self.cars: dict[str, FleetCar] = {}
         for k, entry in enumerate(scenario.cars):
