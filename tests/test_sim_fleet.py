@@ -218,6 +218,20 @@ def test_a_follower_without_safety_hits_the_braking_leader_and_both_sections_say
     json.dumps(r)  # the report is JSON
 
 
+def test_two_cars_head_on_without_safety_make_one_mutual_contact(tmp_path):
+    scenario = load_scenario("two-cars", [
+        "duration_s=3", "cars.0.start=[3.0, 0.0, 3.14159265]", "cars.0.config.safety.mode=off",
+        "cars.1.config={safety: {mode: 'off'}}", "cars.0.drivers.0.steps=[[0, 1.0, 0]]",
+        "cars.1.drivers.0.speed_mps=1.0"])
+    r = lockstep.run(Fleet(scenario, overrides=QUIET_NET).run(), None).report
+    (contact,) = r["car_collisions"]  # both worlds found it: one contact, mutual
+    assert contact["mutual"] is True and {contact["car"], contact["other"]} == {"leader", "follower"}
+    assert r["cars"]["leader"]["collided"] and r["cars"]["follower"]["collided"]
+    # they met halfway, bumper to bumper: 3.0 m between the rear axles less two 0.45 m noses
+    assert contact["x"] == pytest.approx(1.5, abs=0.1)
+    assert r["gaps"][0]["final_gap_m"] == pytest.approx(0.0, abs=0.03)
+
+
 # --- the acceptance: two clients over Zenoh ----------------------------------------------------
 
 
