@@ -80,6 +80,10 @@ class FleetReport:
             "gaps": gaps,
             "cars": cars,
             "plot_png": None,
+            # how time ran (every car's is the same loop's) and the longest car's real seconds
+            "clock": {**reports[0]["clock"],
+                      "real_time_s": max((r["clock"]["real_time_s"] or 0.0 for r in reports), default=0.0)}
+            if reports and "clock" in reports[0] else None,
         }
         result = SimResult(report)
         out = fleet.out_dir
