@@ -14,7 +14,11 @@ callback) wakes it; time stands still while a job given to a thread
 holds (a recorder's queue to its writer thread). Those are the only real-time waits.
 
 :func:`run` runs a coroutine on such a loop with the process's clock
-(:mod:`racecar_hw.base.clock`) switched to the loop's, as ``asyncio.run`` would.
+(:mod:`racecar_hw.base.clock`) switched to the loop's, as ``asyncio.run`` would. A caller that
+steps a simulation from outside the loop (:mod:`racecar_hw.sim.env`) uses
+:meth:`VirtualTimeLoop.run_until_time` (run until a virtual time, with everything due by then
+done), :meth:`VirtualTimeLoop.rewind` (the clock back to the start between two runs) and
+:func:`close`.
 """
 
 from __future__ import annotations
