@@ -11,10 +11,12 @@ import pytest
 
 from racecar_hw.base import clock
 from racecar_hw.base.clock import NS_PER_S, SIM_EPOCH_NS
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.runtime.lockstep import VirtualTimeLoop, close
 from racecar_hw.sim.env import RaceEnv
 from racecar_hw.sim.laps import LapProgress, infield_centre
 from racecar_hw.sim.occupancy import load_shipped_map
+from racecar_hw.sim.scenario import load_scenario
 
 STEERING_MAX_RAD = 0.26  # vesc.steering_max_rad in the sim config
 
@@ -152,6 +154,17 @@ def test_refusals():
         env.reset()
     with RaceEnv(mux_input="nav_9") as env, pytest.raises(ValueError, match="nav_9"):
         env.reset()
+
+
+def test_a_refused_scenario_says_why_and_the_env_starts_the_next(caplog):
+    broken = load_scenario("track", ["drivers=[{input: nav_9}]"])
+    with RaceEnv() as env:
+        with pytest.raises(ConfigError, match=r"scenario\.drivers\.0\.input.*nav_9"):
+            env.reset(broken)
+        obs, info = env.reset()  # nothing of the refused one in the way
+        assert obs["scan"].size and info["steps"] == 0
+        assert env.step((0.5, 0.0))[4]["steps"] == 1
+    assert "failed" not in caplog.text
 
 
 def test_lap_progress_counts_turns_round_the_infield_from_the_start_line():

@@ -157,8 +157,13 @@ class RaceEnv:
                             lockstep=True, car_name=self.car_name, duration_s=math.inf)
         self.loopback = loopback
         task = self._task = self.loop.create_task(loopback.run())
-        self.loop.run_until_complete(self._until_ready(loopback, task))
-        if task.done():
+        try:
+            self.loop.run_until_complete(self._until_ready(loopback, task))
+        except BaseException:
+            self._end_episode()
+            raise
+        if task.done():  # refused or failed while starting: nothing of it is left running
+            self._task = self.loopback = None
             task.result()  # raises what refused the scenario (a ConfigError naming the key)
             raise RuntimeError(f"the scenario {sc.name or sc.map!r} ended while it started")
         config = loopback.config
