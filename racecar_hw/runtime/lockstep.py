@@ -49,9 +49,10 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """
 
     def __init__(self, speed: float | None = None, start_ns: int = SIM_EPOCH_NS) -> None:
-        if speed is not None and not (math.isfinite(speed) and speed > 0):
-            raise ValueError(f"speed must be positive or None (as fast as possible), got {speed}")
         super().__init__()
+        if speed is not None and not (math.isfinite(speed) and speed > 0):
+            self.close()
+            raise ValueError(f"speed must be positive or None (as fast as possible), got {speed}")
         self.speed = speed
         self._now_ns = start_ns
         self._jobs = 0
@@ -144,7 +145,11 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         scheduled = self._scheduled  # type: ignore[attr-defined]  # asyncio drops cancelled heads first
         if not scheduled:
             return None
-        return max(self._now_ns, math.ceil(scheduled[0]._when * NS_PER_S))
+        when = scheduled[0]._when
+        target = round(when * NS_PER_S)  # to the nearest ns: delays of whole ns stay exact
+        if target / NS_PER_S + self._clock_resolution <= when:  # (asyncio's test for "due")
+            target += 1
+        return max(self._now_ns, target)
 
     def _select(self, select: Callable[[float | None], list[Any]],
                 timeout: float | None) -> list[Any]:
