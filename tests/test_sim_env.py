@@ -100,7 +100,7 @@ def test_reset_starts_the_same_episode_again_and_a_fresh_env_runs_it_the_same():
         obs2, info2 = env.reset(seed=5)
         assert not tasks_of_first & asyncio.all_tasks(env.loop)  # the first episode is gone
         short = [env.step((1.0, 0.1)) for _ in range(100)]
-        obs3, _ = env.reset(seed=6)
+        obs3, _ = env.reset(seed=6, options={"scenario": "track"})  # Gymnasium's way to say it
     assert obs1["scan"].shape == (1081,) and np.array_equal(obs1["scan"], obs2["scan"])
     assert np.array_equal(obs1["odom"], obs2["odom"]) and obs1["safety"] == obs2["safety"]
     assert info1["steps"] == info2["steps"] == 0 and info1["time_s"] == info2["time_s"] == 0.0
@@ -113,6 +113,27 @@ def test_reset_starts_the_same_episode_again_and_a_fresh_env_runs_it_the_same():
     assert np.array_equal(short[-1][0]["odom"], again[-1][0]["odom"])
     assert np.array_equal(short[-1][4]["pose"], again[-1][4]["pose"])
     assert short[-1][4]["distance_m"] > 1.0
+
+
+def test_a_step_ends_with_everything_the_fakes_sent_consumed():
+    """Lockstep's guarantee at every step's end: each scan the fake lidar sent was decoded and is
+    the observation's, each VESC reply reached the driver, each command reached the fake VESC."""
+    with RaceEnv() as env:
+        obs, _ = env.reset(seed=2)
+        daemon, lidar, vesc = env.daemon, env.loopback.lidar, env.loopback.vesc
+        new_scans = 0
+        for k in range(150):
+            before = daemon.lidar.stats.scans
+            obs, *_ = env.step((1.0, 0.2 if k < 75 else -0.2))
+            assert daemon.lidar.stats.scans == lidar.scans_sent
+            assert daemon.vesc.stats.frames_rx == vesc.frames_tx
+            assert vesc.frames_rx == daemon.vesc.stats.frames_tx
+            if daemon.lidar.stats.scans > before:  # a new scan in this step: it is the observation
+                new_scans += 1
+                assert obs["scan_time_s"] <= env.time_s
+        latest = daemon.bus.latest(daemon.config.safety.scan_topic)
+        assert np.array_equal(obs["scan"], np.asarray(latest.ranges, dtype=np.float32))
+    assert 115 <= new_scans <= 125  # 40 Hz scans in 150 steps of 20 ms: 4 steps in 5 see one
 
 
 def test_a_collision_ends_the_episode():
@@ -147,6 +168,8 @@ def test_refusals():
         for bad in ((math.nan, 0.0), (1.0, math.inf), (1.0,), "fast"):
             with pytest.raises(ValueError, match="action"):
                 env.step(bad)
+        with pytest.raises(ValueError, match="poses"):
+            env.reset(options={"poses": [[0.0, 0.0, 0.0]]})
         assert clock.is_virtual()
     assert not clock.is_virtual()  # closed: the real clock is back
     env.close()  # twice is fine

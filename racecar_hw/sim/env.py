@@ -142,11 +142,18 @@ class RaceEnv:
     # --- the API --------------------------------------------------------------------------------
 
     def reset(self, scenario: str | Path | Scenario | None = None, *, seed: int | None = None,
-              ) -> tuple[dict[str, Any], dict[str, Any]]:
+              options: dict[str, Any] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
         """End the running episode (its daemon stopped, its fakes unplugged) and start ``scenario``
         (default: the env's) with the world's random seed ``seed`` (None: the scenario's
-        ``world.seed``); returns once the car is ready to drive: ``(observation, info)``."""
+        ``world.seed``); returns once the car is ready to drive: ``(observation, info)``.
+        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``."""
         self._check_open()
+        options = dict(options or {})
+        if scenario is None:
+            scenario = options.pop("scenario", None)
+        if set(options) - {"scenario"}:
+            raise ValueError(f"unknown reset options {sorted(set(options) - {'scenario'})}; "
+                             "the one option is 'scenario'")
         self._end_episode()
         self.loop.run_until_time(self.loop.now_ns())  # what the teardown left to do at this instant
         self.loop.rewind()  # every episode from the same virtual time: the same seed, the same run
