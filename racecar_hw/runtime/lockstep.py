@@ -116,7 +116,8 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
 
     def rewind(self, start_ns: int = SIM_EPOCH_NS) -> None:
         """Set virtual time back to ``start_ns`` between two runs in this loop, so each starts at the
-        same time and runs the same (float seconds of timers round differently at other times).
+        same time and runs the same (periodic timers on a grid of absolute time, and schedules in
+        float seconds, meet their events at other offsets or nanoseconds from another start).
         Refused (RuntimeError) while the loop runs or holds anything that a clock going back would
         confuse: a task, a callback, a timer."""
         if self.is_running():
