@@ -149,6 +149,14 @@ def test_a_collision_ends_the_episode():
         assert steps < 200
         # latched: stepping on stays terminated
         assert env.step((0.0, 0.0))[2]
+    # the same policy with the safety controller on (the sim config's): it stops the car short
+    with RaceEnv("track") as env:
+        env.reset(seed=1)
+        ends = [env.step((2.0, STEERING_MAX_RAD)) for _ in range(steps + 50)]
+        assert not any(terminated for _, _, terminated, _, _ in ends)
+        obs, _, _, _, info = ends[-1]
+        assert obs["safety"]["interventions"] >= 1 and not info["collided"]
+        assert abs(info["speed_mps"]) < 0.01 and info["command"][0] < 0.01  # held short of the wall
 
 
 def test_an_episode_is_truncated_at_its_length():
