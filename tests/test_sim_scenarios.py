@@ -222,7 +222,7 @@ def test_reversing_into_the_same_wall_without_the_memory_collides(tmp_path):
     assert r["final_pose"]["yaw"] == pytest.approx(0.0, abs=0.15)
 
 
-def test_a_person_crossing_at_1_5_mps_is_not_hit_at_2_mps(tmp_path):
+def test_a_person_crossing_at_1_mps_is_not_hit_at_2_mps(tmp_path):
     r = run("crossing-person", tmp_path).report
     assert not r["collided"], r["collisions"]
     assert r["max_speed_mps"] == pytest.approx(2.0, abs=0.05)

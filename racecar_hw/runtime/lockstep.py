@@ -209,6 +209,21 @@ class _VirtualSelector:
         return getattr(self._inner, name)
 
 
+def hold_while(predicate: Callable[[], bool]) -> Callable[[], None]:
+    """In a lockstep run (the running loop is a :class:`VirtualTimeLoop`), hold virtual time while
+    ``predicate()`` holds, e.g. while a writer thread is behind; elsewhere nothing. Returns the
+    undo."""
+    try:
+        loop = asyncio.get_running_loop()
+    except RuntimeError:
+        return _nothing
+    return loop.add_busy(predicate) if isinstance(loop, VirtualTimeLoop) else _nothing
+
+
+def _nothing() -> None:
+    pass
+
+
 def run(main: Coroutine[Any, Any, T], speed: float | None = None, *,
         start_ns: int = SIM_EPOCH_NS) -> T:
     """Run ``main`` on a new :class:`VirtualTimeLoop` with the process's clock on it, as
@@ -250,4 +265,4 @@ def _cancel_all(loop: asyncio.AbstractEventLoop) -> None:
                                          "exception": task.exception(), "task": task})
 
 
-__all__ = ["BUSY_POLL_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "close", "run"]
+__all__ = ["BUSY_POLL_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "close", "hold_while", "run"]

@@ -20,6 +20,7 @@ import asyncio
 import logging
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -83,6 +84,7 @@ class Loopback:
         self.config: Config | None = None
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
+        self._real_start: float | None = None  # real monotonic s when run() began
         #: why the run ended: "duration", or what interrupted it (request_stop)
         self.stop_reason = "duration"
         #: world time at which the mux started counting (its switch times are relative to it)
@@ -161,6 +163,7 @@ class Loopback:
 
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
+        self._real_start = time.monotonic()
         try:
             self.config = config = self._build_config()
             drivers = self.drivers = ScenarioDrivers(self.scenario, config, self.clock)
@@ -208,6 +211,15 @@ class Loopback:
         finally:
             await self.rig.aclose()
             self._tmp.cleanup()
+
+    def clock_report(self) -> dict[str, Any]:
+        """The report's ``clock`` section: how time ran, and the real seconds the run took."""
+        loop = asyncio.get_running_loop()
+        speed = getattr(loop, "speed", 1.0) if self.lockstep else 1.0
+        real = time.monotonic() - self._real_start if self._real_start is not None else None
+        return {"mode": "lockstep" if self.lockstep else "real time",
+                "speed": "max" if speed is None else speed,
+                "real_time_s": None if real is None else round(real, 3)}
 
     def request_stop(self, reason: str = "request") -> None:
         """End the run now (from the event loop), as if the duration had passed; the report says
