@@ -8,6 +8,7 @@ every core; and a lockstep run must drive as a real-time one does.
 from __future__ import annotations
 
 import json
+import random
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from conftest import QUIET_NET, ahead_of_other_load, reaped
+from zenoh_util import free_port
 
 from racecar_hw.runtime import lockstep
 from racecar_hw.sim.loopback import Loopback
@@ -92,8 +94,11 @@ def test_the_cli_at_max_speed_drives_as_real_time_does(tmp_path):
     reports = {}
     for mode, args in (("real", []), ("max", ["--speed", "max"])):
         out = tmp_path / mode
+        # on free ports and a DDS domain of its own: never a user's sim or another test's
+        own = ["--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "--set", "foxglove.port=0",
+               "--set", "web.port=0", "--set", f"dds.domain_id={random.randrange(100, 230)}"]
         cmd = [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "figure8", "--no-status",
-               "--out", str(out), *args]
+               "--out", str(out), *own, *args]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
                               preexec_fn=ahead_of_other_load if mode == "real" else None)
         assert proc.returncode == 0, proc.stderr
