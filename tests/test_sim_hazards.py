@@ -44,6 +44,7 @@ NOT_HAZARDS: dict[str, str] = {
     "miscalibrated": "the car stands for racecar-hw calibrate --sim",
     "miscalibrated-figure8": "odometry error of a miscalibrated car (docs/sim.md says why it "
                              "still brakes at a wall)",
+    "track": "nobody drives: the step API's track (tests/test_sim_env.py) and code over Zenoh",
 }
 
 #: The clearance (m) the shipped config keeps at least: the controller stops 0.25 m
