@@ -46,6 +46,7 @@ NOT_HAZARDS: dict[str, str] = {
                              "still brakes at a wall)",
     "two-cars": "several cars (a Fleet, not a Loopback): tests/test_sim_fleet.py runs it and its "
                 "control, the follower with safety off hitting the leader",
+    "track": "nobody drives: the step API's track (tests/test_sim_env.py) and code over Zenoh",
 }
 
 #: The clearance (m) the shipped config keeps at least: the controller stops 0.25 m
