@@ -14,6 +14,7 @@ import asyncio
 import json
 import math
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -249,6 +250,15 @@ class Driver(threading.Thread):
             self.car.drive(self.speed, 0.0)
 
 
+def listening(port: int) -> bool:
+    """Whether something accepts TCP connections on 127.0.0.1:``port``."""
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+    except OSError:
+        return False
+    return True
+
+
 def reading_at(scan, bearing: float) -> float:  # noqa: ANN001
     """The range of the beam nearest ``bearing`` (rad, laser frame)."""
     off = np.abs((scan.angles - bearing + math.pi) % (2 * math.pi) - math.pi)
@@ -292,6 +302,9 @@ def test_two_cars_driven_by_their_own_clients_see_each_other_and_the_follower_st
     drivers: list[Driver] = []
     try:
         wait_for(lambda: len(loops) == 2 or not runner.is_alive(), timeout=120)
+        assert "error" not in outcome, outcome
+        for port in ports.values():  # each daemon's Zenoh listener is up (it opens in daemon.run)
+            wait_for(lambda port=port: listening(port) or not runner.is_alive(), timeout=120)
         assert "error" not in outcome, outcome
         leader_world = fleet.cars["leader"].world
         follower_world = fleet.cars["follower"].world
