@@ -233,6 +233,21 @@ def test_two_cars_head_on_without_safety_make_one_mutual_contact(tmp_path):
     assert r["gaps"][0]["final_gap_m"] == pytest.approx(0.0, abs=0.03)
 
 
+def test_three_cars_each_with_a_section_and_every_pair_measured(tmp_path):
+    cars = [{"name": name, "start": [x, 0.0, 0.0],
+             "drivers": [{"type": "constant", "input": "nav_0", "speed_mps": speed}]}
+            for name, x, speed in (("a", 4.5, 0.3), ("b", 3.0, 1.0), ("c", 0.0, 1.0))]
+    scenario = load_scenario("two-cars", ["duration_s=3", f"cars={json.dumps(cars)}"])
+    r = lockstep.run(Fleet(scenario, overrides=QUIET_NET).run(), None).report
+    assert r["car_names"] == ["a", "b", "c"] and r["car_collisions"] == []
+    assert [g["cars"] for g in r["gaps"]] == [["a", "b"], ["a", "c"], ["b", "c"]]
+    assert [r["cars"][n]["namespace"] for n in "abc"] == ["/a", "/b", "/c"]
+    # b closes on the slower a and brakes for it: the car it stopped for is named
+    assert any(i["object"] == "a" for i in r["cars"]["b"]["interventions"]), r["cars"]["b"]["interventions"]
+    for gap in r["gaps"]:
+        assert gap["min_gap_m"] > 0.1
+
+
 # --- the acceptance: two clients over Zenoh ----------------------------------------------------
 
 
