@@ -165,6 +165,8 @@ class FleetCar(Loopback):
             raise named from None
 
     def _take_free_ports(self, config: Config) -> None:
+        """Between building the config and starting anything: claim this car's share of what the
+        cars of one process share (a namespace, the DDS interface, ports), refusing a clash."""
         namespaces = self.fleet.namespaces
         if config.zenoh.enabled or config.dds.enabled:
             holder = namespaces.get(config.zenoh.namespace)
