@@ -44,6 +44,8 @@ NOT_HAZARDS: dict[str, str] = {
     "miscalibrated": "the car stands for racecar-hw calibrate --sim",
     "miscalibrated-figure8": "odometry error of a miscalibrated car (docs/sim.md says why it "
                              "still brakes at a wall)",
+    "two-cars": "several cars (a Fleet, not a Loopback): tests/test_sim_fleet.py runs it and its "
+                "control, the follower with safety off hitting the leader",
     "track": "nobody drives: the step API's track (tests/test_sim_env.py) and code over Zenoh",
 }
 

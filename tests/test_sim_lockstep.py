@@ -20,6 +20,7 @@ from conftest import QUIET_NET, ahead_of_other_load, reaped
 from zenoh_util import free_port
 
 from racecar_hw.runtime import lockstep
+from racecar_hw.sim.fleet import Fleet
 from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.report import RUN_SPECIFIC, comparable
 from racecar_hw.sim.scenario import load_scenario, scenario_names
@@ -43,8 +44,14 @@ def cpu_burners(n: int = 1) -> Iterator[None]:
 
 
 def run(name: str, overrides: tuple[str, ...] = (), **kw) -> tuple[dict, list]:
-    """One lockstep run of the shipped scenario ``name``: its report and its trajectory."""
-    loopback = Loopback(load_scenario(name), overrides=[*NO_NET, *overrides], lockstep=True, **kw)
+    """One lockstep run of the shipped scenario ``name``: its report and its trajectory (with
+    several cars, racecar_hw.sim.fleet: every car's, one after the other)."""
+    scenario = load_scenario(name)
+    if scenario.cars:
+        fleet = Fleet(scenario, overrides=[*NO_NET, *overrides], **kw)
+        report = lockstep.run(fleet.run()).report
+        return report, [s for car in fleet.cars.values() if car.world for s in car.world.samples]
+    loopback = Loopback(scenario, overrides=[*NO_NET, *overrides], lockstep=True, **kw)
     result = lockstep.run(loopback.run())
     assert loopback.world is not None
     return result.report, list(loopback.world.samples)

@@ -47,10 +47,12 @@ def fault_time(report: dict, action: str) -> float:
 
 
 def test_every_shipped_scenario_is_covered():
-    # the two miscalibrated ones are run by tests/test_calibrate.py, track by tests/test_sim_env.py
+    # the two miscalibrated ones are run by tests/test_calibrate.py, track by tests/test_sim_env.py,
+    # two-cars by tests/test_sim_fleet.py
     assert set(scenario_names()) == {"figure8", "wall", "corridor", "teleop-override", "lidar-dropout",
                                      "vesc-replug", "obstacle", "reverse-wall", "crossing-person",
-                                     "sliding-box", "miscalibrated", "miscalibrated-figure8", "track"}
+                                     "sliding-box", "miscalibrated", "miscalibrated-figure8", "track",
+                                     "two-cars"}
 
 
 def test_figure8_returns_to_the_start(tmp_path):

@@ -27,6 +27,7 @@ from typing import Any
 
 from mux.estop import DAEMON, Origin
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon
@@ -60,6 +61,9 @@ class Loopback:
                  until_replay_ends: bool = False,
                  setup: Callable[[Loopback], None] | None = None, lockstep: bool = False,
                  car_name: str = "car") -> None:
+        if scenario.cars:
+            raise ConfigError("cars", f"scenario {scenario.name!r} has several cars: run it with "
+                                      "racecar_hw.sim.fleet.Fleet")
         self.scenario = scenario
         self.duration_s = duration_s if duration_s is not None else scenario.duration_s
         #: run as long as the follow drivers' replays (stretched for the reverse cap) and

@@ -30,12 +30,13 @@ RUN_SPECIFIC = ("trajectory_csv", "plot_png", "bags", "live", "clock.real_time_s
 def comparable(report: dict[str, Any]) -> dict[str, Any]:
     """``report`` without its :data:`RUN_SPECIFIC` keys (dotted: a key inside a section)."""
     out = json.loads(json.dumps(report))
-    for key in RUN_SPECIFIC:
-        *path, last = key.split(".")
-        section = out
-        for part in path:
-            section = section.get(part) or {}
-        section.pop(last, None)
+    for top in (out, *(out.get("cars") or {}).values()):  # a fleet's report: each car's section too
+        for key in RUN_SPECIFIC:
+            *path, last = key.split(".")
+            section = top
+            for part in path:
+                section = section.get(part) or {}
+            section.pop(last, None)
     return out
 
 
