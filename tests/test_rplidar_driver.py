@@ -1,4 +1,5 @@
-"""RplidarDriver against FakeRplidar over real ptys: sessions, conventions, faults, reconnects."""
+"""RplidarDriver against FakeRplidar over real ptys: sessions, conventions, faults, reconnects (every
+scan mode of every model in lockstep, over an in-memory link on virtual time)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.link import SerialLink
 from racecar_hw.base.messages import LaserScan
+from racecar_hw.runtime import lockstep
 
 ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned: no symmetry
 
@@ -38,17 +40,33 @@ ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)  # off-centre and turned
 def run_driver(device_thread, tmp_path, model: str,
                scenario: Callable[[RplidarDriver, FakeRplidar, list[LaserScan]], Awaitable[None]],
                firmware: tuple[int, int] | None = None,
-               device: Callable[[FakeRplidar], None] | None = None, **params: object) -> None:
+               device: Callable[[FakeRplidar], None] | None = None, in_lockstep: bool = False,
+               **params: object) -> None:
     """Run ``scenario`` against a driver streaming from a fake; what the scenario does before its
     first ``await`` happens before the driver's first step (set faults there). ``device`` changes
-    the fake before it serves (a device that behaves unlike its model)."""
-    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"), firmware=firmware)
+    the fake before it serves (a device that behaves unlike its model). ``in_lockstep``: the fake
+    and the driver in one loop on virtual time, through an in-memory link (exact timing on a
+    loaded machine), instead of a pty in real time."""
+    link = "mem://test/rplidar" if in_lockstep else str(tmp_path / "rplidar")
+    fake = FakeRplidar(model, ROOM, link, firmware=firmware)
     if device is not None:
         device(fake)
-    device_thread.spawn(fake.serve())
-    wait_for(lambda: fake.port.plugged)
+    if not in_lockstep:
+        device_thread.spawn(fake.serve())
+        wait_for(lambda: fake.port.plugged)
 
     async def main() -> None:
+        served = asyncio.create_task(fake.serve()) if in_lockstep else None
+        try:
+            if served is not None:
+                await async_wait_for(lambda: fake.port.plugged)
+            await drive()
+        finally:
+            if served is not None:
+                served.cancel()
+                await asyncio.gather(served, return_exceptions=True)
+
+    async def drive() -> None:
         bus = Bus()
         scans: list[LaserScan] = []
         bus.subscribe("/scan", scans.append)
@@ -61,7 +79,10 @@ def run_driver(device_thread, tmp_path, model: str,
             done, _ = await asyncio.wait({task}, timeout=10)
             assert done and task.cancelled()
 
-    asyncio.run(main())
+    if in_lockstep:
+        lockstep.run(main())
+    else:
+        asyncio.run(main())
 
 
 #: Range slack per answer type: standard nodes carry 1/4 mm, express and dense capsules 1 mm;
@@ -145,7 +166,9 @@ def test_every_scan_mode_of_every_model(device_thread, tmp_path, model, firmware
         assert driver.scan_modes == list(fake.spec.modes)  # ids, periods, ranges, answer types
         assert Command.GET_LIDAR_CONF in [r.command for r in fake.requests]
 
-    run_driver(device_thread, tmp_path, model, scenario, firmware=firmware, scan_mode=mode.lower())
+    # in lockstep: the stamps' spacing is checked, and a loaded machine stretched it over a pty
+    run_driver(device_thread, tmp_path, model, scenario, firmware=firmware, scan_mode=mode.lower(),
+               in_lockstep=True)
 
 
 @pytest.mark.parametrize(("model", "mode"), [(model, name) for model in ("a1", "a2m8", "a2m7", "a2m12", "a3")
