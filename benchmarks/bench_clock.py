@@ -15,7 +15,9 @@ divided by its wall time is the share of one core. Settings:
   the senders' urgent list).
 
 The settings are interleaved over the rounds (rounds.py), and the per-message cost is the
-difference of the medians divided by the messages per second.
+difference of the medians divided by the messages per second. The last row times the publisher
+alone in this process (an event loop with it against one without, the loop thread's CPU time),
+finer than the whole sim process's share can show.
 
 Run ``python benchmarks/bench_clock.py [SECONDS] [ROUNDS]`` (20 s, 3 rounds); ``run()`` returns
 the rows.
@@ -56,7 +58,7 @@ def _one(seconds: float, rate_hz: float, subscribe: bool) -> float:
     """The sim process's CPU share (% of one core) over ``seconds`` once running."""
     port = _free_port()
     with tempfile.TemporaryDirectory() as out:
-        command = [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall", "--no-status",
+        command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", "wall", "--no-status",
                    "--scenario-set", "drivers=[]", "--scenario-set", f"world.clock_rate_hz={rate_hz}",
                    "--duration", str(seconds + 30), "--out", out, "--set", "dds.enabled=false",
                    "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "--set", "foxglove.port=0",
@@ -64,10 +66,12 @@ def _one(seconds: float, rate_hz: float, subscribe: bool) -> float:
         proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                 cwd=ROOT)
         running = threading.Event()
+        lines: list[str] = []
 
-        def read() -> None:
+        def read() -> None:  # -v: the log says when the daemon runs
             assert proc.stderr is not None
             for line in proc.stderr:
+                lines.append(line)
                 if "racecar-hw running" in line:
                     running.set()
 
@@ -75,7 +79,7 @@ def _one(seconds: float, rate_hz: float, subscribe: bool) -> float:
         car = None
         try:
             if not running.wait(120):
-                raise RuntimeError("the sim did not start")
+                raise RuntimeError("the sim did not start: " + "".join(lines[-20:]))
             if subscribe:
                 from racecar_hw.client import Car  # noqa: PLC0415
 
@@ -97,6 +101,31 @@ def _one(seconds: float, rate_hz: float, subscribe: bool) -> float:
                 proc.wait()
 
 
+def _loop_cpu_s(seconds: float, rate_hz: float) -> float:
+    """This thread's CPU time (s) running an event loop for ``seconds`` with the ``/clock``
+    publisher at ``rate_hz`` (0: none) on a bus with one subscriber that skips, as a bridge with
+    nobody subscribed does: the publisher's own cost, its wake-ups included."""
+    import asyncio  # noqa: PLC0415
+
+    from racecar_hw.base.bus import Bus  # noqa: PLC0415
+    from racecar_hw.base.topics import CLOCK_TOPIC  # noqa: PLC0415
+    from racecar_hw.sim.clock_topic import publish_clock  # noqa: PLC0415
+
+    async def main() -> float:
+        bus = Bus()
+        skipped = [0]
+        bus.subscribe(CLOCK_TOPIC, lambda msg: skipped.__setitem__(0, skipped[0] + 1))
+        task = asyncio.ensure_future(publish_clock(bus, rate_hz)) if rate_hz else None
+        t0 = time.thread_time()
+        await asyncio.sleep(seconds)
+        spent = time.thread_time() - t0
+        if task is not None:
+            task.cancel()
+        return spent
+
+    return asyncio.run(main())
+
+
 def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     """The rows: CPU share per setting (median over the rounds) and the cost per message."""
     settings = {
@@ -112,7 +141,14 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
         per_msg_us = (med[label] - med["off"]) / 100.0 / RATE_HZ * 1e6
         rows.append({"name": f"CPU per /clock message, {label}", "value": per_msg_us, "unit": "us",
                      "target": None})
+    # the publisher alone, in this process: one loop thread, no other timers to share wake-ups with
+    alone = interleaved({"off": lambda: _loop_cpu_s(10.0, 0.0), "on": lambda: _loop_cpu_s(10.0, RATE_HZ)}, 4)
+    per_tick_us = (np.median(alone["on"]) - np.median(alone["off"])) / (10.0 * RATE_HZ) * 1e6
+    rows.append({"name": "event-loop CPU per /clock tick, publisher alone", "value": float(per_tick_us),
+                 "unit": "us", "target": None})
     if os.environ.get("BENCH_VERBOSE"):
+        print("publisher alone, CPU s per 10 s: " + ", ".join(
+            f"{label} {np.median(v):.4f}" for label, v in alone.items()))
         for label, values in results.items():
             print(f"{label}: " + ", ".join(f"{v:.2f}" for v in values))
     return rows

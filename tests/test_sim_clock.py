@@ -12,7 +12,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
+import socket
 import subprocess
 import sys
 import threading
@@ -20,14 +22,14 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import wait_for
 from netns import ROOT, NetNs, netns, ros_python
-from test_net_client import _wait_listening
 from zenoh_util import endpoint, free_port, start_sim
 
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Clock, Time
-from racecar_hw.client import Car, ClientError
+from racecar_hw.client import AsyncCar, Car, ClientError
 from racecar_hw.net import rmw
 from racecar_hw.net.topics import CLOCK_QOS, CLOCK_ROW, CLOCK_SUBSCRIPTION, Reliability
 from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
@@ -35,6 +37,18 @@ from racecar_hw.sim.clock_topic import clock_message
 from racecar_hw.sim.scenario import WorldSpec, load_scenario
 
 PEER = str(ROOT / "tests" / "ros2_clock_peer.py")
+
+
+def _listening(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=1.0):
+            return True
+    except OSError:
+        return False
+
+
+def _wait_listening(port: int) -> None:
+    wait_for(lambda: _listening(port), timeout=60.0, interval=0.1)
 SHARE = Path(sys.prefix) / "share"
 
 
@@ -190,6 +204,15 @@ def test_the_python_client_with_use_sim_time_follows_clock_over_zenoh(tmp_path):
             with pytest.raises(ClientError, match="use_sim_time"):
                 wall.on_clock(print)
             assert abs(wall.now() - time.time()) < 1.0
+
+        async def use() -> tuple[float, float]:  # the same for asyncio
+            async with AsyncCar(endpoint(port), namespace="car1", use_sim_time=True) as car:
+                first = await car.wait_clock(30)
+                await car.sleep(0.2)
+                return first, car.now()
+
+        first, after = asyncio.run(use())
+        assert after - first >= 0.2
     finally:
         sim.kill()
     assert ticks == sorted(ticks)
