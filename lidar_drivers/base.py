@@ -25,7 +25,7 @@ import numpy as np
 
 from lidar_drivers.params import LidarParams
 from racecar_hw.base.bus import Bus
-from racecar_hw.base.clock import monotonic_ns
+from racecar_hw.base.clock import monotonic, monotonic_ns
 from racecar_hw.base.errors import DeviceError, DeviceIOError, DeviceTimeout
 from racecar_hw.base.link import Link
 from racecar_hw.base.messages import LaserScan
@@ -179,7 +179,7 @@ class LidarDriver(ReconnectingDevice):
         #: who takes each finished scan first: None publishes it on the bus (``params.topic``);
         #: the daemon's control path takes it, writes its motor command and then publishes it
         self.scan_sink: Callable[[LaserScan], None] | None = None
-        self._last_scan_s = 0.0  # time.monotonic() of the latest published scan
+        self._last_scan_s = 0.0  # clock.monotonic() of the latest published scan
         self._session_scans = 0  # scans published by the current session
         self._previous_error: str | None = None  # last_error when the current session began
         self._ended: asyncio.Future[None] | None = None
@@ -225,7 +225,7 @@ class LidarDriver(ReconnectingDevice):
         self.stats.scans += 1
         self.frame_arrival_ns = self.rx_ns
         self.frame_arrival_cpu_ns = self.rx_cpu_ns
-        self._last_scan_s = time.monotonic()
+        self._last_scan_s = monotonic()
         sink = self.scan_sink
         if sink is not None:
             sink(scan)
@@ -248,13 +248,13 @@ class LidarDriver(ReconnectingDevice):
         loop = asyncio.get_running_loop()
         ended: asyncio.Future[None] = loop.create_future()
         self._ended = ended
-        self._last_scan_s = time.monotonic()
+        self._last_scan_s = monotonic()
 
         def check_overdue() -> None:
             nonlocal timer
             if ended.done():
                 return
-            left = self._last_scan_s + timeout_s() - time.monotonic()
+            left = self._last_scan_s + timeout_s() - monotonic()
             if left <= 0:
                 ended.set_exception(DeviceTimeout(f"{link.name}: no scan for {timeout_s():.2f} s"))
             else:

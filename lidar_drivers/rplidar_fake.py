@@ -71,7 +71,7 @@ from lidar_drivers.rplidar_codec import (
 )
 from lidar_drivers.rplidar_models import RplidarModel
 from racecar_hw.base.clock import monotonic_ns
-from racecar_hw.runtime.fakepty import PtyPort
+from racecar_hw.runtime.fakepty import port_for
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ class FakeRplidar:
         #: the model as a unit with this firmware reports it (its scan-mode table)
         self.spec = base.for_firmware(firmware or base.firmware)
         self.range_source = range_source
-        self.port = PtyPort(link)
+        self.port = port_for(link)
         major, minor = self.spec.firmware
         self.info = DeviceInfo(self.spec.model_id, major, minor, self.spec.hardware,
                                bytes(range(0x10, 0x20)))
@@ -185,13 +185,13 @@ class FakeRplidar:
             self.port.close()
 
     def _watch(self) -> None:
-        if self.port.master_fd is not None and self._loop is not None and not self._reading:
-            self._loop.add_reader(self.port.master_fd, self._on_readable)
+        if self.port.plugged and self._loop is not None and not self._reading:
+            self.port.watch(self._loop, self._on_readable)
             self._reading = True
 
     def _unwatch(self) -> None:
-        if self._reading and self.port.master_fd is not None and self._loop is not None:
-            self._loop.remove_reader(self.port.master_fd)
+        if self._reading:
+            self.port.unwatch()
         self._reading = False
 
     def _on_readable(self) -> None:

@@ -35,7 +35,6 @@ import asyncio
 import functools
 import logging
 import math
-import time
 
 import numpy as np
 
@@ -55,9 +54,10 @@ from lidar_drivers.scip import (
     is_hardware_fault,
 )
 from racecar_hw.base.bus import Bus
-from racecar_hw.base.clock import NS_PER_S, wall_ns
+from racecar_hw.base.clock import NS_PER_S, monotonic, wall_ns
 from racecar_hw.base.errors import ConfigError, DeviceError, DeviceTimeout, RemoteProtocolError
-from racecar_hw.base.link import Link, SerialLink, TcpLink, parse_host_port
+from racecar_hw.base.link import Link, SerialLink, TcpLink, open_link, parse_host_port
+from racecar_hw.base.memlink import MemoryLink, is_memory
 from racecar_hw.base.messages import Header, LaserScan, Time
 
 log = logging.getLogger(__name__)
@@ -133,6 +133,8 @@ class HokuyoDriver(LidarDriver):
 
     def _make_link(self) -> Link:
         p = self.params
+        if p.tcp and is_memory(p.tcp):  # a simulation in lockstep: stands for the Ethernet link
+            return MemoryLink(p.tcp, is_serial=False)
         if p.tcp:
             try:
                 host, port = parse_host_port(p.tcp, DEFAULT_TCP[1])
@@ -140,7 +142,7 @@ class HokuyoDriver(LidarDriver):
                 raise ConfigError("lidar.tcp", str(err)) from err
             return TcpLink(host, port)
         if p.port:
-            return SerialLink(p.port, self._baud)
+            return open_link(p.port, self._baud)
         if p.model in HOKUYO_USB_MODELS:
             return SerialLink(DEFAULT_SERIAL_PORT, self._baud)
         return TcpLink(*DEFAULT_TCP)
@@ -148,7 +150,7 @@ class HokuyoDriver(LidarDriver):
     @property
     def serial(self) -> bool:
         """Whether the link is a serial port (the transfer time then counts in the stamp)."""
-        return isinstance(self._link, SerialLink)
+        return self._link is not None and self._link.is_serial
 
     async def _close(self) -> None:
         link, self._link = self._link, None
@@ -171,7 +173,7 @@ class HokuyoDriver(LidarDriver):
             if event is not None:
                 self._count(event)
                 return event
-            remaining = deadline - time.monotonic()
+            remaining = deadline - monotonic()
             if remaining <= 0:
                 raise DeviceTimeout(f"{self._link.name}: {what}")
             try:
@@ -199,7 +201,7 @@ class HokuyoDriver(LidarDriver):
         """Send ``cmd`` and return its reply, skipping stale frames and noise."""
         assert self._link is not None
         self._link.write(cmd.encode())
-        deadline = time.monotonic() + timeout
+        deadline = monotonic() + timeout
         while True:
             event = await self._next_event(deadline, f"no reply to {cmd.line}")
             if isinstance(event, Reply) and event.echo == cmd.line:
@@ -258,7 +260,7 @@ class HokuyoDriver(LidarDriver):
         SCIP 1.1 (``QT``, ``E``: urg_c's test) or not at all (it may be in SCIP 1.1 anyway)."""
         assert self._link is not None
         self._link.write(Command("QT").encode())
-        deadline = time.monotonic() + 2 * REPLY_TIMEOUT_S
+        deadline = monotonic() + 2 * REPLY_TIMEOUT_S
         while True:
             try:
                 event = await self._next_event(deadline, "no reply to QT")

@@ -53,7 +53,8 @@ from lidar_drivers.scip import (
 )
 from lidar_drivers.scip_models import HokuyoModel, get_model
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
-from racecar_hw.runtime.fakepty import PtyPort
+from racecar_hw.base.memlink import MemoryPort
+from racecar_hw.runtime.fakepty import PtyPort, port_for
 
 TOO_NEAR = 2
 """Error code for a return closer than DMIN."""
@@ -267,7 +268,7 @@ class FakeHokuyo:
         #: monotonic ns of step 0 of each streamed frame's sweep (the time its stamp encodes)
         self.sweep_starts_ns: deque[int] = deque(maxlen=100_000)
         self.tcp_address: tuple[str, int] | None = None
-        self._pty: PtyPort | None = None
+        self._pty: PtyPort | MemoryPort | None = None
         self._pty_session: _Session | None = None
         self._server: asyncio.Server | None = None
         self._tcp_sessions: dict[asyncio.StreamWriter, _Session] = {}
@@ -372,13 +373,11 @@ class FakeHokuyo:
     def _open_pty(self) -> None:
         assert self._loop is not None
         self.scip1 = self.boots_scip1  # powered on: back to the protocol it boots in
-        self._pty = self._pty or PtyPort(self.link)
+        self._pty = self._pty or port_for(self.link)
         self._pty.open()
         port = self._pty
         self._pty_session = _Session(self, port.write, port.path)
-        fd = port.master_fd
-        assert fd is not None
-        self._loop.add_reader(fd, self._on_pty_readable)
+        port.watch(self._loop, self._on_pty_readable)
         self.unplugged = False
 
     def _on_pty_readable(self) -> None:
@@ -391,9 +390,7 @@ class FakeHokuyo:
     def _close_pty(self) -> None:
         if self._pty is None:
             return
-        if self._pty.master_fd is not None and self._loop is not None:
-            with contextlib.suppress(Exception):
-                self._loop.remove_reader(self._pty.master_fd)
+        self._pty.unwatch()
         if self._pty_session is not None:
             self._pty_session.close()
             self._pty_session = None

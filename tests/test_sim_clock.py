@@ -22,18 +22,22 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import wait_for
+from conftest import QUIET_NET, wait_for
 from netns import ROOT, NetNs, netns, ros_python
 from zenoh_util import endpoint, free_port, start_sim
 
-from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base import clock
+from racecar_hw.base.clock import NS_PER_S, SIM_EPOCH_NS
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Clock, Time
+from racecar_hw.base.topics import CLOCK_TOPIC, SCAN_TOPIC
 from racecar_hw.client import AsyncCar, Car, ClientError
 from racecar_hw.net import rmw
 from racecar_hw.net.topics import CLOCK_QOS, CLOCK_ROW, CLOCK_SUBSCRIPTION, Reliability
 from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
+from racecar_hw.runtime import lockstep
 from racecar_hw.sim.clock_topic import clock_message
+from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.scenario import WorldSpec, load_scenario
 
 PEER = str(ROOT / "tests" / "ros2_clock_peer.py")
@@ -90,6 +94,57 @@ def test_the_rate_is_a_scenario_parameter_and_zero_turns_clock_off():
     assert load_scenario("wall", ["world.clock_rate_hz=0"]).world.clock_rate_hz == 0.0
     with pytest.raises(ConfigError, match="clock_rate_hz"):
         load_scenario("wall", ["world.clock_rate_hz=-1"])
+
+
+# --- lockstep: /clock is the virtual clock ------------------------------------------------------
+
+
+def _lockstep_clock(tmp_path: Path, *sets: str) -> tuple[list[tuple[int, int]], list[int]]:
+    """A 2 s lockstep run of the wall scenario: (/clock ns, the process's clock at publish) for
+    every /clock, and every /scan stamp (ns)."""
+    clocks: list[tuple[int, int]] = []
+    scans: list[int] = []
+
+    def setup(loopback: Loopback) -> None:
+        assert loopback.daemon is not None
+        bus = loopback.daemon.bus
+        bus.subscribe(CLOCK_TOPIC, lambda msg: clocks.append((msg.clock.to_ns(), clock.monotonic_ns())))
+        bus.subscribe(SCAN_TOPIC, lambda msg: scans.append(msg.header.stamp.to_ns()))
+
+    scenario = load_scenario("wall", ["drivers=[]"])
+    overrides = [*QUIET_NET, "foxglove.enabled=false", "web.enabled=false", *sets]
+    loopback = Loopback(scenario, overrides=overrides, lockstep=True, setup=setup, duration_s=2.0,
+                        out_dir=tmp_path / "out")
+    lockstep.run(loopback.run())
+    return clocks, scans
+
+
+def test_in_lockstep_clock_carries_the_virtual_clock_every_10_ms_and_bags_record_it(tmp_path):
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415 - the test extra
+
+    bags = tmp_path / "bags"
+    clocks, scans = _lockstep_clock(tmp_path, "recorder.enabled=true", f"recorder.path={bags}")
+    values = [value for value, _ in clocks]
+    # sim time from the virtual epoch (1 s), not 1970; what every stamp uses, published at its tick
+    assert all(value == now for value, now in clocks)
+    assert SIM_EPOCH_NS <= values[0] < values[-1] < SIM_EPOCH_NS + 60 * NS_PER_S
+    assert scans[0] >= SIM_EPOCH_NS and scans[-1] <= values[-1] + 25_000_000
+    # 100 Hz of sim time, on the ticker's grid: exactly 10 ms apart, however loaded the machine
+    assert {b - a for a, b in zip(values, values[1:], strict=False)} == {10_000_000}
+    assert len(values) >= 200
+    (bag,) = [p for p in bags.iterdir() if p.is_dir()]
+    with AnyReader([bag]) as reader:
+        (connection,) = [c for c in reader.connections if c.topic == "/clock"]
+        assert connection.msgtype == "rosgraph_msgs/msg/Clock"
+        recorded = [reader.deserialize(raw, connection.msgtype).clock
+                    for _, _, raw in reader.messages(connections=[connection])]
+    assert [t.sec * NS_PER_S + t.nanosec for t in recorded] == values
+
+
+def test_nothing_publishes_clock_when_nothing_carries_it(tmp_path):
+    # the step API's episodes: every interface and the recorder off
+    clocks, scans = _lockstep_clock(tmp_path)
+    assert clocks == [] and len(scans) > 40
 
 
 # --- a real rclpy node on simulation time, over DDS ----------------------------------------------

@@ -54,7 +54,7 @@ from typing import TypeVar
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import monotonic_ns, nanoseconds, seconds, wall_ns
 from racecar_hw.base.errors import DeviceError, DeviceIOError, DeviceTimeout, LocalProtocolError
-from racecar_hw.base.link import SerialLink, find_serial_port
+from racecar_hw.base.link import Link, find_serial_port, open_link
 from racecar_hw.base.messages import (
     AckermannDrive,
     Float64,
@@ -168,7 +168,7 @@ class VescDriver(ReconnectingDevice):
         self.odometry = OdometryIntegrator.from_params(self.params)
         self.stats = VescLinkStats()
         self._codec = VescCodec(Role.HOST)
-        self._link: SerialLink | None = None
+        self._link: Link | None = None
         self._firmware: tuple[int, int] | None = None
         self._fw_reply: FwVersion | None = None
         self._fw_asked = False  # a FW_VERSION request went out on this connection
@@ -351,7 +351,7 @@ class VescDriver(ReconnectingDevice):
             url = self._resolve_port()
         except OSError as err:
             raise DeviceIOError(f"cannot list serial ports: {err}") from err
-        link = SerialLink(url, self.params.baudrate)
+        link = open_link(url, self.params.baudrate)
         await link.open()
         self._link = link
         log.info("VESC port %s open", url)
@@ -381,7 +381,7 @@ class VescDriver(ReconnectingDevice):
             with contextlib.suppress(asyncio.CancelledError):
                 await ticker
 
-    async def _tick_loop(self, link: SerialLink) -> None:
+    async def _tick_loop(self, link: Link) -> None:
         """FW_VERSION until the VESC answers, then GET_VALUES polls from a loop timer until the link closes.
 
         The polls run as :class:`~racecar_hw.runtime.ticker.PeriodicTimer` callbacks on absolute deadlines
@@ -623,7 +623,7 @@ async def probe(port: str, baudrate: int = 115200,
     may be wrong. (The driver ignores such a FW_VERSION reply, so it would not drive this VESC.)
     Raises DeviceNotFound, DeviceIOError, or DeviceTimeout when no reply comes within ``timeout_s``.
     """
-    link = SerialLink(port, baudrate)
+    link = open_link(port, baudrate)
     await link.open()
     codec = VescCodec(Role.HOST)
     try:
@@ -637,7 +637,7 @@ async def probe(port: str, baudrate: int = 115200,
         link.close()
 
 
-async def _ask(link: SerialLink, codec: VescCodec, request: Packet, reply_type: type[R],
+async def _ask(link: Link, codec: VescCodec, request: Packet, reply_type: type[R],
                timeout_s: float) -> R:
     deadline = monotonic_ns() + nanoseconds(timeout_s)
     while monotonic_ns() < deadline:

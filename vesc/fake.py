@@ -41,7 +41,8 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 from racecar_hw.base.clock import monotonic_ns, seconds
-from racecar_hw.runtime.fakepty import PtyPort
+from racecar_hw.runtime.fakepty import port_for
+from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.codec import (
     IMU_SINCE,
     TIMEOUT_RESETTING,
@@ -130,7 +131,7 @@ class FakeVesc:
         self.battery_resistance_ohm = battery_resistance_ohm
         self.timeout_s = timeout_s
         self.tick_s = tick_s
-        self.port = PtyPort(link)
+        self.port = port_for(link)
         self._codec = VescCodec(Role.DEVICE, firmware)
         self._state = MotorState(v_in=battery_v)
         self._lock = threading.Lock()
@@ -167,14 +168,23 @@ class FakeVesc:
         self.open()
         self._attach()
         writer = asyncio.create_task(self._write_loop())
+        last = monotonic_ns()
+
+        def tick(_due: int, _periods: int) -> None:
+            nonlocal last
+            now = monotonic_ns()
+            self._step(seconds(now - last), now)
+            last = now
+
+        failed: asyncio.Future[None] = self._loop.create_future()
+        # a loop timer on the tick's grid, not a sleeping task (cheaper, and in step with the world)
+        motor = PeriodicTimer(1.0 / self.tick_s, tick,
+                              on_error=lambda err: failed.done() or failed.set_exception(err))
+        motor.start()
         try:
-            last = monotonic_ns()
-            while True:
-                await asyncio.sleep(self.tick_s)
-                now = monotonic_ns()
-                self._step(seconds(now - last), now)
-                last = now
+            await failed
         finally:
+            motor.cancel()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await writer
@@ -295,13 +305,13 @@ class FakeVesc:
         return asyncio.run_coroutine_threadsafe(call(), loop).result(10)
 
     def _attach(self) -> None:
-        if self._loop is not None and self.port.master_fd is not None and not self._reading:
-            self._loop.add_reader(self.port.master_fd, self._on_readable)
+        if self._loop is not None and self.port.plugged and not self._reading:
+            self.port.watch(self._loop, self._on_readable)
             self._reading = True
 
     def _detach(self) -> None:
-        if self._loop is not None and self.port.master_fd is not None and self._reading:
-            self._loop.remove_reader(self.port.master_fd)
+        if self._reading:
+            self.port.unwatch()
         self._reading = False
 
     def _unplug(self) -> None:

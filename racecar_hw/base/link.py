@@ -7,6 +7,8 @@ take yet wait in a buffer drained by the loop); ``close()`` is safe twice. OS an
 become :class:`~racecar_hw.base.errors.DeviceNotFound` (nothing at that path or address) or
 :class:`~racecar_hw.base.errors.DeviceIOError` (it went away).
 
+A simulation in lockstep uses in-memory links instead (``mem://NAME``, :mod:`racecar_hw.base.memlink`).
+
 Serial ports open through ``serial.serial_for_url``, so a path, a pty symlink, ``spy:///dev/ttyACM0``
 (hexdump of the traffic) and ``socket://host:port`` all work. :func:`open_link` picks the link type
 from a spec: ``tcp://HOST:PORT`` or ``HOST:PORT`` with no slash means TCP, anything else serial.
@@ -35,6 +37,8 @@ class Link(ABC):
     """A byte stream to one device. Use it from one event loop; it is an async context manager."""
 
     name: str = ""
+    #: whether the link is a serial line (a USB device), not a network connection
+    is_serial: bool = False
 
     @abstractmethod
     async def open(self) -> None:
@@ -64,6 +68,11 @@ class Link(ABC):
     async def read_within(self, timeout_s: float) -> bytes:
         """:meth:`read`, or asyncio.TimeoutError after ``timeout_s`` seconds without a byte."""
         return await within(self.read(), timeout_s)
+
+    @property
+    def tx_pending(self) -> int:
+        """Bytes written but not yet taken by the OS (none where writes go straight through)."""
+        return 0
 
     def set_dtr(self, level: bool) -> None:  # noqa: B027 - optional capability
         """Set the serial DTR line (RPLIDAR A1 motor control). Links without DTR ignore it."""
@@ -177,6 +186,8 @@ class _ReceivingLink(Link):
 
 class SerialLink(_ReceivingLink):
     """A serial port through pyserial, read and written by the event loop without threads."""
+
+    is_serial = True
 
     def __init__(self, url: str, baudrate: int = 115200) -> None:
         super().__init__()
@@ -391,7 +402,12 @@ def parse_host_port(spec: str, default_port: int | None = None) -> tuple[str, in
 
 
 def open_link(spec: str, baudrate: int = 115200) -> Link:
-    """A link for ``spec``: ``tcp://HOST:PORT`` for TCP, otherwise a serial path or pyserial URL."""
+    """A link for ``spec``: ``tcp://HOST:PORT`` for TCP, ``mem://NAME`` for a simulation's
+    in-memory link (:mod:`racecar_hw.base.memlink`), otherwise a serial path or pyserial URL."""
+    if spec.startswith("mem://"):
+        from racecar_hw.base.memlink import MemoryLink  # noqa: PLC0415 - it builds on this module
+
+        return MemoryLink(spec)
     if spec.startswith("tcp://"):
         host, port = parse_host_port(spec)
         return TcpLink(host, port)

@@ -51,6 +51,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "with several, its only mux input)")
     p.add_argument("--keyboard", action="store_true",
                    help="drive through the teleop input with the keyboard (arrows/WASD, space stops)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="run the daemon and the fakes on the simulation's clock through in-memory "
+                        "links: deterministic (see docs/sim.md); at real-time pace unless --speed")
+    p.add_argument("--speed", type=_speed, metavar="N|max",
+                   help="lockstep at N times real time, or max: as fast as the machine allows "
+                        "(implies --lockstep; the default is real time over ptys and TCP)")
     p.add_argument("--no-status", action="store_true", help="no live status panel")
     add_config_options(p, default="the shipped sim config, config/sim.yaml")
     p.set_defaults(func=cmd_sim)
@@ -66,11 +72,26 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _speed(text: str) -> float:
+    """``max`` (as fast as possible: math.inf) or a positive multiple of real time."""
+    if text.strip().lower() == "max":
+        return math.inf
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a positive number nor max")
+    return value
+
+
 def build_scenario(args: argparse.Namespace) -> Scenario:
     """The scenario to run: ``--scenario`` with ``--follow``'s driver, then ``--scenario-set``."""
     from racecar_hw.sim.scenario import load_scenario  # noqa: PLC0415 - with the command
 
     scenario_overrides: list[str] = []
+    if args.follow and load_scenario(args.scenario, args.scenario_overrides).cars:
+        raise ConfigError("--follow", f"scenario {args.scenario} has several cars; --follow drives one")
     if args.follow:
         # first, so that --scenario-set drivers.0.rate_hz=10 (or use_timestamps) applies to it
         bag = Path(args.follow).resolve()
@@ -107,6 +128,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     scenario = build_scenario(args)
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
+    if scenario.cars:
+        return cmd_fleet(args, scenario, out)
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
     if args.record:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
@@ -115,11 +138,18 @@ def cmd_sim(args: argparse.Namespace) -> int:
     # --follow: the run lasts as long as the replay, unless a duration is given
     given = args.duration is not None or any(o.partition("=")[0].strip() == "duration_s"
                                              for o in args.scenario_overrides)
+    lockstep = args.lockstep or args.speed is not None
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration,
-                        until_replay_ends=bool(args.follow) and not given)
+                        until_replay_ends=bool(args.follow) and not given, lockstep=lockstep)
     with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
-        result = asyncio.run(_run(loopback, stops))
+        if lockstep:
+            from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the option
+
+            speed = args.speed if args.speed is not None else 1.0
+            result = virtual.run(_run(loopback, stops), None if math.isinf(speed) else speed)
+        else:
+            result = asyncio.run(_run(loopback, stops))
     if result is None:  # a second signal: stopped at once, nothing written
         return INTERRUPTED
     report = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
@@ -127,6 +157,70 @@ def cmd_sim(args: argparse.Namespace) -> int:
     print(summary(result.report))
     print(outputs(result.report, report))
     return 0
+
+
+def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
+    """A scenario with several cars: one daemon per car, all in one lockstep loop (paced at real
+    time unless ``--speed``), no status panel; the report has a section per car."""
+    from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the command
+    from racecar_hw.sim.fleet import Fleet  # noqa: PLC0415 - needs the sim extra
+    from racecar_hw.sim.report import write_report  # noqa: PLC0415
+
+    if args.keyboard:
+        raise ConfigError("--keyboard", f"scenario {scenario.name} has several cars; --keyboard drives "
+                                        "one (give each car its drivers in the scenario, or drive them "
+                                        "over Zenoh: docs/sim.md, \"Several cars\")")
+    _count_zenoh_logins(args.config, args.overrides)
+    fleet = Fleet(scenario, config_path=args.config, overrides=args.overrides, out_dir=out,
+                  duration_s=args.duration, record_dir=args.record)
+    speed = args.speed if args.speed is not None else 1.0
+    with StopSignals() as stops:
+        result = virtual.run(_run_fleet(fleet, stops), None if math.isinf(speed) else speed)
+    if result is None:
+        return INTERRUPTED
+    path = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
+    print(fleet_summary(result.report))
+    print(f"report:     {path}")
+    print(f"plot:       {result.report['plot_png']}")
+    for name, car in result.report["cars"].items():
+        print(f"{name + ':':11} plot {car['plot_png']}, trajectory {car['trajectory_csv']}")
+        for bag in car.get("bags") or []:
+            print(f"{'':11} bag {bag}")
+    return 0
+
+
+def fleet_summary(report: dict[str, Any]) -> str:
+    """Each car's headline numbers, then the contacts between cars."""
+    lines = []
+    for name, car in report["cars"].items():
+        lines.append(f"car {name} (namespace {car['namespace']}):")
+        lines += ["  " + line for line in summary(car).splitlines()]
+    contacts = report["car_collisions"]
+    lines.append("cars collided: " + "; ".join(f"{c['car']} hit {c['other']} at {c['t_s']:.2f} s"
+                                               for c in contacts) if contacts else "no car hit another")
+    return "\n".join(lines)
+
+
+async def _run_fleet(fleet: Any, stops: StopSignals) -> SimResult | None:
+    """As :func:`_run`, for every car of ``fleet``."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.ensure_future(fleet.run())
+
+    def on_signal(sig: int) -> None:
+        if fleet.stop_reason == "duration":
+            fleet.request_stop(signal.Signals(sig).name)
+        else:
+            task.cancel()
+
+    remove = add_stop_handlers(loop, on_signal, noted=stops)
+    try:
+        return await task
+    except asyncio.CancelledError:
+        if task.cancelled():
+            return None
+        raise
+    finally:
+        remove()
 
 
 def outputs(report: dict[str, Any], report_path: Path) -> str:

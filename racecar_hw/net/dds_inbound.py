@@ -15,10 +15,10 @@ payload is decoded and checked by the :class:`~racecar_hw.net.inbox.Inbox`; with
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from racecar_hw.base.clock import monotonic
 from racecar_hw.net.inbox import MALFORMED, NON_FINITE, Inbox
 from racecar_hw.net.topics import Topic
 from racecar_hw.runtime.refusals import Refusals
@@ -138,7 +138,7 @@ class DdsReceiver:
             try:
                 timeout_ns = PUMP_WAIT_NS
                 if resting:
-                    now = time.monotonic()
+                    now = monotonic()
                     for i, due in list(resting.items()):
                         if due <= now:
                             waitset.attach(pumps[i][0])
@@ -147,7 +147,7 @@ class DdsReceiver:
                         timeout_ns = min(timeout_ns, max(0, int((min(resting.values()) - now) * 1e9)))
                 if waitset.wait(timeout_ns) <= 0 or self._stopping.is_set():
                     continue
-                now = time.monotonic()
+                now = monotonic()
                 for i, (condition, receive, reader) in enumerate(pumps):
                     if i not in resting and condition.triggered:
                         receive(reader)

@@ -10,9 +10,13 @@ real serial line, and counted in ``dropped_bytes``.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import tty
+from collections.abc import Callable
+
+from racecar_hw.base.memlink import MemoryPort, is_memory
 
 
 class PtyPort:
@@ -24,6 +28,7 @@ class PtyPort:
         self._slave_fd: int | None = None
         self.slave_path = ""
         self.dropped_bytes = 0
+        self._watching: asyncio.AbstractEventLoop | None = None
 
     @property
     def path(self) -> str:
@@ -51,6 +56,19 @@ class PtyPort:
         self._slave_fd, self.master_fd = slave, master
         return self
 
+    def watch(self, loop: asyncio.AbstractEventLoop, on_data: Callable[[], None]) -> None:
+        """Call ``on_data()`` from ``loop`` when the client wrote (then :meth:`read` the bytes)."""
+        if self.master_fd is not None:
+            loop.add_reader(self.master_fd, on_data)
+            self._watching = loop
+
+    def unwatch(self) -> None:
+        """Stop :meth:`watch`."""
+        loop, self._watching = self._watching, None
+        if loop is not None and self.master_fd is not None:
+            with contextlib.suppress(Exception):
+                loop.remove_reader(self.master_fd)
+
     def read(self) -> bytes:
         """Bytes the client wrote, or b"" when there are none (never blocks)."""
         if self.master_fd is None:
@@ -77,6 +95,7 @@ class PtyPort:
 
     def unplug(self) -> None:
         """Remove the device: close the pty and delete the symlink."""
+        self.unwatch()
         if self.link:
             with contextlib.suppress(FileNotFoundError):
                 if os.path.islink(self.link) and os.readlink(self.link) == self.slave_path:
@@ -101,3 +120,11 @@ class PtyPort:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def port_for(link: str | None) -> PtyPort | MemoryPort:
+    """The device end a fake serves ``link`` on: an in-memory port for ``mem://NAME`` (a simulation
+    in lockstep), otherwise a pty with a symlink at ``link``."""
+    if link is not None and is_memory(link):
+        return MemoryPort(link)
+    return PtyPort(link)

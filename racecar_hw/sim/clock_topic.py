@@ -6,6 +6,8 @@ carrying :func:`racecar_hw.base.clock.wall_ns` at that moment: the time base of 
 daemon writes. In the real-time simulation that is Unix time (so a node on sim time and one on the
 wall clock agree); in lockstep it is the virtual clock, and nodes on sim time run as fast or as slow
 as the simulation. The rate is the scenario's ``world.clock_rate_hz`` (100 Hz; 0: no ``/clock``).
+In a fleet (several cars in one process) every car's daemon publishes it on its own interfaces: a
+client connected to one car gets that car's, and all carry the one virtual clock.
 
 How ROS does it, and what is kept here (docs/sim.md, "/clock"):
 
@@ -23,10 +25,11 @@ How ROS does it, and what is kept here (docs/sim.md, "/clock"):
 
 from __future__ import annotations
 
-from racecar_hw.base import clock
 from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.messages import Clock, Time
 from racecar_hw.base.topics import CLOCK_TOPIC
+from racecar_hw.config import Config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.topics import CLOCK_ROW
 from racecar_hw.runtime.ticker import Ticker
@@ -39,22 +42,28 @@ def clock_message(now_ns: int) -> Clock:
 
 async def publish_clock(bus: Bus, rate_hz: float) -> None:
     """Publish ``/clock`` at ``rate_hz`` (simulation time) until cancelled, the first at once."""
-    # the clock module's functions are looked up at each call: lockstep swaps them for the virtual clock
-    ticker = Ticker(rate_hz, clock=lambda: clock.monotonic_ns())
+    ticker = Ticker(rate_hz)  # on the process's clock: the virtual one in lockstep
     while True:
         await ticker.tick()
-        bus.publish(CLOCK_TOPIC, clock_message(clock.wall_ns()))
+        bus.publish(CLOCK_TOPIC, clock_message(wall_ns()))
+
+
+def carried(config: Config) -> bool:
+    """Whether anything would carry ``/clock``: a network interface (Zenoh, DDS, the live view) or
+    the recorder. The step API turns them all off: its episodes then have no publisher to run."""
+    return config.zenoh.enabled or config.dds.enabled or config.foxglove.enabled or config.recorder.enabled
 
 
 def add_clock(daemon: Daemon, rate_hz: float) -> None:
-    """Offer ``/clock`` on the daemon's network interfaces and publish it at ``rate_hz`` (0: neither).
+    """Offer ``/clock`` on the daemon's network interfaces and publish it at ``rate_hz`` (0, or
+    nothing to carry it: neither).
 
     Before the daemon runs: its interfaces read the topic table when they open.
     """
-    if rate_hz <= 0:
+    if rate_hz <= 0 or not carried(daemon.config):
         return
     daemon.live_topics.append(CLOCK_ROW)
     daemon.add_task(publish_clock(daemon.bus, rate_hz))
 
 
-__all__ = ["add_clock", "clock_message", "publish_clock"]
+__all__ = ["add_clock", "carried", "clock_message", "publish_clock"]

@@ -20,12 +20,14 @@ import asyncio
 import logging
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from mux.estop import DAEMON, Origin
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon
@@ -58,7 +60,11 @@ class Loopback:
                  overrides: tuple[str, ...] | list[str] = (), out_dir: str | Path | None = None,
                  status: StatusPanel | None = None, duration_s: float | None = None,
                  until_replay_ends: bool = False,
-                 setup: Callable[[Loopback], None] | None = None) -> None:
+                 setup: Callable[[Loopback], None] | None = None, lockstep: bool = False,
+                 car_name: str = "car") -> None:
+        if scenario.cars:
+            raise ConfigError("cars", f"scenario {scenario.name!r} has several cars: run it with "
+                                      "racecar_hw.sim.fleet.Fleet")
         self.scenario = scenario
         self.duration_s = duration_s if duration_s is not None else scenario.duration_s
         #: run as long as the follow drivers' replays (stretched for the reverse cap) and
@@ -72,7 +78,10 @@ class Loopback:
         self.status = status
         self.setup = setup
         self.map = load_map(scenario.map_path())
-        self.rig = FakeRig(scenario, self.map, self.dev_dir)
+        #: the fakes in the daemon's loop behind in-memory links, on the loop's (virtual) clock
+        #: (run it with :func:`racecar_hw.runtime.lockstep.run`), instead of ptys and TCP in real time
+        self.lockstep = lockstep
+        self.rig = FakeRig(scenario, self.map, self.dev_dir, lockstep=lockstep, name=car_name)
         self.clock = ScenarioClock()
         self.observer = RunObserver()
         self.drivers: ScenarioDrivers | None = None
@@ -80,6 +89,7 @@ class Loopback:
         self.config: Config | None = None
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
+        self._real_start: float | None = None  # real monotonic s when run() began
         #: why the run ended: "duration", or what interrupted it (request_stop)
         self.stop_reason = "duration"
         #: world time at which the mux started counting (its switch times are relative to it)
@@ -141,7 +151,7 @@ class Loopback:
         The lidar endpoint is filled in once the fake lidar listens (a TCP port is only known then).
         """
         extra = merge(self.scenario.config, {
-            "vesc": {"port": str(self.dev_dir / "vesc")},
+            "vesc": {"port": self.rig.device_path("vesc")},
             "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
         return load_config(self.config_path, self.overrides, extra=extra)
@@ -158,6 +168,7 @@ class Loopback:
 
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
+        self._real_start = time.monotonic()
         try:
             self.config = config = self._build_config()
             drivers = self.drivers = ScenarioDrivers(self.scenario, config, self.clock)
@@ -204,8 +215,17 @@ class Loopback:
             await self._settle()
             return RunReport(self).result()
         finally:
-            self.rig.stop()
+            await self.rig.aclose()
             self._tmp.cleanup()
+
+    def clock_report(self) -> dict[str, Any]:
+        """The report's ``clock`` section: how time ran, and the real seconds the run took."""
+        loop = asyncio.get_running_loop()
+        speed = getattr(loop, "speed", 1.0) if self.lockstep else 1.0
+        real = time.monotonic() - self._real_start if self._real_start is not None else None
+        return {"mode": "lockstep" if self.lockstep else "real time",
+                "speed": "max" if speed is None else speed,
+                "real_time_s": None if real is None else round(real, 3)}
 
     def request_stop(self, reason: str = "request") -> None:
         """End the run now (from the event loop), as if the duration had passed; the report says

@@ -151,9 +151,10 @@ def rectangle(x: float, y: float, yaw: float, x_min: float, x_max: float, y_min:
               y_max: float) -> np.ndarray:
     """Corners (CCW, shape (4, 2)) of the body-frame box [x_min, x_max] x [y_min, y_max] placed at
     pose (x, y, yaw)."""
-    local = np.array([[x_min, y_min], [x_max, y_min], [x_max, y_max], [x_min, y_max]])
     c, s = math.cos(yaw), math.sin(yaw)
-    return np.column_stack((x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1]))
+    # four points: plain arithmetic, then one array (numpy's per-call cost dominates at this size)
+    return np.array([(x + c * px - s * py, y + s * px + c * py)
+                     for px, py in ((x_min, y_min), (x_max, y_min), (x_max, y_max), (x_min, y_max))])
 
 
 def point_polygon_distance(px: float, py: float, polygon: np.ndarray) -> float:

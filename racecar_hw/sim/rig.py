@@ -1,7 +1,10 @@
 """The fake hardware of a sim run: a fake VESC, a fake lidar and the world that moves them.
 
-The fake VESC (a pty) and the fake lidar (TCP or a pty) run in a :class:`DeviceThread` with the
-:class:`~racecar_hw.sim.world.World`: the world reads the fake VESC's motor ERPM and servo
+In real time the fake VESC (a pty) and the fake lidar (TCP or a pty) run in a :class:`DeviceThread`
+with the :class:`~racecar_hw.sim.world.World`; in lockstep they run as tasks in the daemon's own
+event loop (on virtual time, :mod:`racecar_hw.runtime.lockstep`) behind in-memory links
+(``mem://CAR/vesc``, ``mem://CAR/lidar``: :mod:`racecar_hw.base.memlink`) carrying the same bytes.
+Either way the world reads the fake VESC's motor ERPM and servo
 position, moves the car, and the fake lidar ray-casts the map from the car's laser pose (x, y in
 metres and yaw in radians in base_link, from the config's static transforms). The daemon's config
 is pointed at the fakes' device paths and ports.
@@ -9,6 +12,7 @@ is pointed at the fakes' device paths and ports.
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 from typing import Any
 
@@ -35,13 +39,19 @@ DEVICE_FAULTS = frozenset(("lidar_unplug", "lidar_replug", "vesc_unplug", "vesc_
 
 
 class FakeRig:
-    """The fakes of one run in ``dev_dir``, on their own thread once :meth:`start` built them."""
+    """The fakes of one run: in ``dev_dir`` on their own thread once :meth:`start` built them, or,
+    with ``lockstep``, at ``mem://NAME/...`` in the running loop (``name``: the car's, unique in the
+    process)."""
 
-    def __init__(self, scenario: Scenario, occupancy: OccupancyMap, dev_dir: Path) -> None:
+    def __init__(self, scenario: Scenario, occupancy: OccupancyMap, dev_dir: Path, *,
+                 lockstep: bool = False, name: str = "car") -> None:
         self.scenario = scenario
         self.map = occupancy
         self.dev_dir = dev_dir
-        self.devices = DeviceThread("sim-devices")
+        self.lockstep = lockstep
+        self.name = name
+        self.devices: DeviceThread | None = None if lockstep else DeviceThread("sim-devices")
+        self._tasks: list[asyncio.Future[Any]] = []
         self.vesc: FakeVesc | None = None
         self.lidar: Any = None
         self.world: World | None = None
@@ -54,7 +64,7 @@ class FakeRig:
         if all(t.child_frame_id != "odom" for t in config.static_transforms):
             config.static_transforms.append(map_to_odom(sc.start))  # odometry drawn in the map
         laser = laser_pose(config)
-        vesc = self.vesc = FakeVesc(str(self.dev_dir / "vesc"), firmware=sc.firmware_version())
+        vesc = self.vesc = FakeVesc(self.device_path("vesc"), firmware=sc.firmware_version())
         self.car_params = car_params(config, sc.car)
         world = self.world = World(self.map, self.car_params, sc.start,
                                    erpm_source=lambda: vesc.erpm, servo_source=lambda: vesc.servo,
@@ -67,10 +77,22 @@ class FakeRig:
         # TCP only where the real device has it: an Ethernet Hokuyo (USB models and RPLIDARs: pty)
         use_tcp = sc.lidar.transport == "tcp" and family(model) == "hokuyo" \
             and model not in HOKUYO_USB_MODELS
-        if use_tcp:
+        lidar_path = self.device_path("lidar")
+        if use_tcp and not self.lockstep:
             self.lidar = make_fake(model, source, tcp=("127.0.0.1", 0))
         else:
-            self.lidar = make_fake(model, source, link=str(self.dev_dir / "lidar"))
+            self.lidar = make_fake(model, source, link=lidar_path)
+        config.vesc.port = vesc.path
+        if self.lockstep:  # the fakes first in the loop's queue: plugged in before a driver looks
+            vesc.open()
+            self._tasks = [asyncio.ensure_future(c) for c in
+                           (vesc.serve(), self.lidar.serve(), world.run(sc.world.rate_hz))]
+            if use_tcp:  # the Ethernet link, in memory
+                config.lidar.tcp, config.lidar.port = lidar_path, None
+            else:
+                config.lidar.port = lidar_path
+            return config
+        assert self.devices is not None
         self.devices.start()
         self.devices.spawn(vesc.serve())
         self.devices.spawn(self.lidar.serve())
@@ -82,12 +104,29 @@ class FakeRig:
             host, port = self.lidar.tcp_address
             config.lidar.tcp = f"{host}:{port}"
         else:
-            config.lidar.port = str(self.dev_dir / "lidar")
+            config.lidar.port = lidar_path
         return config
 
+    def device_path(self, device: str) -> str:
+        """Where the daemon finds ``device`` (vesc, lidar): a pty link in ``dev_dir``, or in
+        lockstep ``mem://NAME/DEVICE``."""
+        return f"mem://{self.name}/{device}" if self.lockstep else str(self.dev_dir / device)
+
     def stop(self) -> None:
-        """Stop the device thread (the fakes and the world with it)."""
-        self.devices.stop()
+        """Stop the device thread (the fakes and the world with it); in lockstep, cancel their
+        tasks (:meth:`aclose` also waits for them)."""
+        if self.devices is not None:
+            self.devices.stop()
+        for task in self._tasks:
+            task.cancel()
+
+    async def aclose(self) -> None:
+        """:meth:`stop`, and in lockstep wait until the fakes have unplugged."""
+        self.stop()
+        tasks, self._tasks = self._tasks, []
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if self.lockstep and self.vesc is not None:  # plugged in by start(), even if never served
+            self.vesc.port.close()
 
     def apply(self, fault: FaultSpec) -> None:
         """Act out a fault of :data:`DEVICE_FAULTS` on the fakes or the world."""
