@@ -34,6 +34,7 @@ from racecar_hw.daemon import Daemon
 from racecar_hw.net.ports import Listener
 from racecar_hw.runtime.panel import StatusPanel
 from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.clock_topic import add_clock
 from racecar_hw.sim.drivers import REPLAY_LATE_MAX_S, REPLAY_SETTLE_S, ScenarioDrivers
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, publish_truth
 from racecar_hw.sim.observer import MAX_SAMPLES, SAMPLE_PERIOD_S, RunObserver
@@ -199,6 +200,7 @@ class Loopback:
             daemon.add_task(self.observer.watch(daemon, world))
             daemon.live_topics.extend(SIM_TOPICS)
             daemon.add_task(publish_truth(daemon.bus, world, self.map))
+            add_clock(daemon, self.scenario.world.clock_rate_hz)
             assert self.vesc is not None
             daemon.add_task(log_estop_timing(daemon, self.vesc))
 
