@@ -19,6 +19,7 @@ from racecar_hw.runtime.interrupts import INTERRUPTED
 from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
 
 if TYPE_CHECKING:  # the simulator is imported when the command runs: it needs the sim extra
+    from racecar_hw.sim.fleet import Fleet
     from racecar_hw.sim.loopback import Loopback, SimResult
     from racecar_hw.sim.scenario import Scenario
 
@@ -175,7 +176,7 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
                   duration_s=args.duration, record_dir=args.record)
     speed = args.speed if args.speed is not None else 1.0
     with StopSignals() as stops:
-        result = virtual.run(_run_fleet(fleet, stops), None if math.isinf(speed) else speed)
+        result = virtual.run(_run(fleet, stops), None if math.isinf(speed) else speed)
     if result is None:
         return INTERRUPTED
     path = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
@@ -199,28 +200,6 @@ def fleet_summary(report: dict[str, Any]) -> str:
     lines.append("cars collided: " + "; ".join(f"{c['car']} hit {c['other']} at {c['t_s']:.2f} s"
                                                for c in contacts) if contacts else "no car hit another")
     return "\n".join(lines)
-
-
-async def _run_fleet(fleet: Any, stops: StopSignals) -> SimResult | None:
-    """As :func:`_run`, for every car of ``fleet``."""
-    loop = asyncio.get_running_loop()
-    task = asyncio.ensure_future(fleet.run())
-
-    def on_signal(sig: int) -> None:
-        if fleet.stop_reason == "duration":
-            fleet.request_stop(signal.Signals(sig).name)
-        else:
-            task.cancel()
-
-    remove = add_stop_handlers(loop, on_signal, noted=stops)
-    try:
-        return await task
-    except asyncio.CancelledError:
-        if task.cancelled():
-            return None
-        raise
-    finally:
-        remove()
 
 
 def outputs(report: dict[str, Any], report_path: Path) -> str:
@@ -280,10 +259,10 @@ def _clearance(report: dict[str, Any]) -> str:
     return f"{cap:g} m or more (measured up to {cap:g} m)" if value >= cap else f"{value:.2f} m"
 
 
-async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
-    """Run the scenario; the first SIGINT/SIGTERM (or one ``stops`` noted before the loop ran) ends
-    it as its duration would (brake, write the report for the time driven), a second one stops at
-    once (None)."""
+async def _run(loopback: Loopback | Fleet, stops: StopSignals) -> SimResult | None:
+    """Run the scenario (one car's loopback, or a fleet of them); the first SIGINT/SIGTERM (or one
+    ``stops`` noted before the loop ran) ends it as its duration would (brake, write the report for
+    the time driven), a second one stops at once (None)."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
 
@@ -294,9 +273,11 @@ async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
             task.cancel()
 
     def restart_signing() -> str:
-        if loopback.daemon is None:
+        cars = getattr(loopback, "cars", None)  # a fleet's
+        daemons = [car.daemon for car in cars.values()] if cars is not None else [loopback.daemon]
+        if any(d is None for d in daemons):
             return "the daemon is not running yet"
-        return loopback.daemon.restart_mavlink_signing()
+        return "; ".join(d.restart_mavlink_signing() for d in daemons if d is not None)
 
     remove = add_stop_handlers(loop, on_signal, noted=stops)
     remove_restart = add_restart_signing_handler(loop, restart_signing)
