@@ -30,6 +30,14 @@ shipped configs 0.265 m ahead of the rear axle and 0.10 m up, facing forward (``
 (``car.scans()``), or wait with ``car.next_scan()`` / ``car.next_odom()`` / :meth:`Car.wait_ready`,
 which raise :class:`ClientError` after their timeout instead of returning None.
 
+**Simulation time.** ``Car(use_sim_time=True)`` follows the simulator's ``/clock`` as a ROS 2 node
+with ``use_sim_time`` does: :meth:`Car.now` is the newest ``/clock`` (seconds; 0.0 until the
+first arrives, :meth:`Car.wait_clock` waits for it), :meth:`Car.sleep` and :meth:`Car.sleep_until`
+count simulation time, :meth:`Car.on_clock` calls back per ``/clock``, and commands are stamped
+with it. In the real-time simulation ``/clock`` is the wall clock (the stamps' time base); in
+lockstep it is the simulation's own clock, which runs as fast as the machine allows, so code that
+paces itself with ``car.sleep`` keeps step with the car. Without it, these use the wall clock.
+
 :class:`SafetyState`'s ``values`` hold numbers as numbers (``allowed_speed`` 0.5, ``interventions``
 3), ``true``/``false`` as bools, and the rest as text.
 """
@@ -51,12 +59,13 @@ import numpy as np
 
 from mux.estop import REFUSED_ASSERTED
 from mux.params import MuxParams
-from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.clock import NS_PER_S, nanoseconds
 from racecar_hw.base.errors import ConfigError, RacecarError
 from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
     Bool,
+    Clock,
     DiagnosticArray,
     LaserScan,
     Message,
@@ -65,9 +74,10 @@ from racecar_hw.base.messages import (
     Vector3,
     stamp_now,
 )
-from racecar_hw.base.topics import CMD_VEL_BUS_TOPIC
+from racecar_hw.base.topics import CLOCK_TOPIC, CMD_VEL_BUS_TOPIC
 from racecar_hw.net import rmw
 from racecar_hw.net.topics import (
+    CLOCK_SUBSCRIPTION,
     CMD_VEL_INPUT,
     DEFAULT,
     SENSOR_DATA,
@@ -368,7 +378,87 @@ class _EstopControls:
                                   f"(the e-stop was {status.estop})")
 
 
-class Car(_EstopControls):
+def _clock_ns(msg: Clock) -> int:
+    return msg.clock.to_ns()
+
+
+class _SimTime:
+    """The clock part of :class:`Car`: the simulation's ``/clock`` (``use_sim_time=True``), else the
+    wall clock. See "Simulation time" in the module's documentation."""
+
+    # what :class:`Car` provides
+    _subscribe: Callable[..., _Stream[Any]]
+    #: ``/clock`` in ns (``use_sim_time``), else None
+    clock_stream: _Stream[int] | None = None
+
+    def _follow_clock(self) -> None:
+        # /clock is absolute: ROS 2's time source reads it whatever the node's namespace
+        self.clock_stream = self._subscribe(CLOCK_TOPIC, Clock, _clock_ns, CLOCK_SUBSCRIPTION, absolute=True)
+
+    @property
+    def use_sim_time(self) -> bool:
+        """Whether this client follows ``/clock``."""
+        return self.clock_stream is not None
+
+    def now_ns(self) -> int:
+        """The time in ns: the newest ``/clock`` with ``use_sim_time`` (0 until the first arrives, as
+        on a ROS 2 node), else the wall clock (since the epoch)."""
+        if self.clock_stream is None:
+            return time.time_ns()
+        latest = self.clock_stream.latest
+        return 0 if latest is None else latest
+
+    def now(self) -> float:
+        """:meth:`now_ns` in seconds."""
+        return self.now_ns() / NS_PER_S
+
+    def wait_clock(self, timeout: float | None = 5.0) -> float:
+        """With ``use_sim_time``: wait for the first ``/clock`` and return :meth:`now` (at once when one
+        has arrived); ClientError when none comes within ``timeout`` wall-clock seconds."""
+        return self._wait_until_ns(0, timeout) / NS_PER_S
+
+    def sleep(self, seconds: float, timeout: float | None = 5.0) -> None:
+        """Sleep ``seconds`` of the client's time. With ``use_sim_time`` that is ``seconds`` of
+        simulation time, counted from the newest ``/clock`` (from the first, if none has arrived
+        yet); ClientError when ``/clock`` stops for ``timeout`` wall-clock seconds."""
+        if self.clock_stream is None:
+            time.sleep(max(0.0, seconds))
+            return
+        start = self._wait_until_ns(0, timeout)
+        self._wait_until_ns(start + nanoseconds(seconds), timeout)
+
+    def sleep_until(self, t: float, timeout: float | None = 5.0) -> None:
+        """Sleep until the client's time (:meth:`now`, seconds) reaches ``t``."""
+        if self.clock_stream is None:
+            time.sleep(max(0.0, t - time.time()))
+            return
+        self._wait_until_ns(nanoseconds(t), timeout)
+
+    def on_clock(self, callback: Callable[[float], None]) -> None:
+        """Call ``callback(now_s)`` for every ``/clock``, in Zenoh's thread (``use_sim_time`` only)."""
+        stream = self._sim_clock()
+        stream.callbacks.append(lambda ns: callback(ns / NS_PER_S))
+
+    def _sim_clock(self) -> _Stream[int]:
+        if self.clock_stream is None:
+            raise ClientError("this client follows the wall clock: make it with Car(use_sim_time=True)")
+        return self.clock_stream
+
+    def _wait_until_ns(self, target_ns: int, timeout: float | None) -> int:
+        """The first ``/clock`` (ns) at or after ``target_ns``; ClientError when ``/clock`` stops."""
+        stream = self._sim_clock()
+        seen = stream.count
+        value = stream.latest
+        while value is None or value < target_ns:
+            try:
+                value, seen = stream.wait_newer(seen, timeout)
+            except ClientError:
+                raise ClientError(f"no /clock for {timeout:g} s: is a simulation running, with /clock "
+                                  "on (world.clock_rate_hz)?") from None
+        return value
+
+
+class Car(_SimTime, _EstopControls):
     """A connection to one car. See the module documentation.
 
     ``connect``: Zenoh endpoints of the daemon (or of a router it is connected to); ``mode``:
@@ -379,7 +469,8 @@ class Car(_EstopControls):
     ``user``/``password`` when the daemon requires them; ``ros_distro``: the daemon's
     ``zenoh.ros_distro`` (``humble`` puts ``TypeHashNotSupported`` in keys where ``jazzy`` puts
     RIHS01); ``session``: an open Zenoh session to share (another :class:`Car`'s, to reach several
-    cars through one session; it is not closed here).
+    cars through one session; it is not closed here); ``use_sim_time``: follow the simulation's
+    ``/clock`` (:meth:`now`, :meth:`sleep`, command stamps), as a ROS 2 node with ``use_sim_time``.
     """
 
     def __init__(self, connect: str | list[str] = DEFAULT_ENDPOINT, *, namespace: str = "",
@@ -388,7 +479,7 @@ class Car(_EstopControls):
                  input: str = "nav_0", user: str = "", password: str = "",  # noqa: A002
                  node_name: str = "", mux: MuxParams | None = None,
                  safety: SafetyParams | None = None, session: Any = None,
-                 ros_distro: str = "jazzy") -> None:
+                 ros_distro: str = "jazzy", use_sim_time: bool = False) -> None:
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
 
         self.endpoints = [connect] if isinstance(connect, str) else list(connect)
@@ -432,6 +523,8 @@ class Car(_EstopControls):
                                                                    _safety, DEFAULT)
         #: the mux's state, subscribed on the first :meth:`release_estop` (``/diagnostics``)
         self.mux_stream: _Stream[MuxStatus] | None = None
+        if use_sim_time:
+            self._follow_clock()
 
     # --- names --------------------------------------------------------------------------------
 
@@ -449,7 +542,7 @@ class Car(_EstopControls):
     # --- subscriptions ------------------------------------------------------------------------
 
     def _subscribe(self, bus_topic: str, msgtype: type[Message], convert: Callable[[Any], T],
-                   qos: Qos, shared: bool = False) -> _Stream[T]:
+                   qos: Qos, shared: bool = False, absolute: bool = False) -> _Stream[T]:
         deserialize = ros2_types().deserialize
 
         def decode(raw: bytes) -> T:
@@ -460,7 +553,7 @@ class Car(_EstopControls):
         def on_sample(sample: Any) -> None:
             stream.push_raw(sample.payload.to_bytes())
 
-        self.node.subscriber(self.ros_name(bus_topic), msgtype, qos, on_sample)
+        self.node.subscriber(bus_topic if absolute else self.ros_name(bus_topic), msgtype, qos, on_sample)
         return stream
 
     @staticmethod
@@ -542,11 +635,12 @@ class Car(_EstopControls):
     def drive(self, speed: float, steering: float, input: str | None = None) -> None:  # noqa: A002
         """Command ``speed`` (m/s, + forward) and ``steering`` (rad, + left) on a mux input.
 
-        The command holds for the input's timeout (0.2 s by default): call this at 10-50 Hz.
+        The command holds for the input's timeout (0.2 s by default): call this at 10-50 Hz. It is
+        stamped with :meth:`now_ns` (simulation time with ``use_sim_time``).
         """
         if not (math.isfinite(speed) and math.isfinite(steering)):
             raise ValueError(f"speed and steering must be finite, got {speed!r}, {steering!r}")
-        msg = AckermannDriveStamped(stamp_now("base_link", time.time_ns()),
+        msg = AckermannDriveStamped(stamp_now("base_link", self.now_ns()),
                                     AckermannDrive(steering_angle=float(steering), speed=float(speed)))
         self.publish(self.input_topic(input or self.input), msg)
 
@@ -638,6 +732,17 @@ class AsyncCar:
     async def mux_status(self, timeout: float | None = 5.0) -> MuxStatus:
         """:meth:`Car.mux_status` without blocking the loop."""
         return await self._loop.run_in_executor(None, self.car.mux_status, timeout)
+
+    async def sleep(self, seconds: float, timeout: float | None = 5.0) -> None:
+        """:meth:`Car.sleep` (simulation time with ``use_sim_time``) without blocking the loop."""
+        if not self.car.use_sim_time:
+            await asyncio.sleep(max(0.0, seconds))
+            return
+        await self._loop.run_in_executor(None, self.car.sleep, seconds, timeout)
+
+    async def wait_clock(self, timeout: float | None = 5.0) -> float:
+        """:meth:`Car.wait_clock` without blocking the loop."""
+        return await self._loop.run_in_executor(None, self.car.wait_clock, timeout)
 
     async def close(self) -> None:
         """Close the connection without blocking the loop."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -255,12 +256,16 @@ def taken_listeners(config: Config) -> list[Listener]:
     return [item for item in listeners(config) if port_taken(item.host, item.port)]
 
 
-def move_to_free_ports(config: Config) -> list[tuple[Listener, str]]:
-    """Move every listener whose port is taken to a free port, in ``config``; returns each moved
-    one with where it listens now (an endpoint or URL to print). What ``racecar-hw sim`` does."""
+def move_to_free_ports(config: Config, avoid: Collection[int] = ()) -> list[tuple[Listener, str]]:
+    """Move every listener whose port is taken (or in ``avoid``: ports promised to another daemon of
+    this process that has not bound them yet) to a free port, in ``config``; returns each moved one
+    with where it listens now (an endpoint or URL to print). What ``racecar-hw sim`` does."""
     moved: list[tuple[Listener, str]] = []
-    for item in taken_listeners(config):
+    clashing = [item for item in listeners(config) if item.port in avoid]
+    for item in clashing + [item for item in taken_listeners(config) if item not in clashing]:
         port = free_port(item.host)
+        while port in avoid:  # free now, but promised: ask again
+            port = free_port(item.host)
         where = f"{item.host}:{port}"
         if item.key.startswith("zenoh.listen["):
             i = int(item.key[len("zenoh.listen["):-1])

@@ -2,7 +2,8 @@
 
 Thread model (see docs/architecture.md): the event loop thread runs the drivers, the mux, the
 safety controller and every publisher; the bag recorder writes from its own thread behind a bounded
-queue; in ``racecar-hw sim`` the fake devices and the world run in a separate device thread.
+queue; in ``racecar-hw sim`` the fake devices and the world run in a separate device thread in
+real time, or as tasks in the same loop in lockstep (:mod:`racecar_hw.runtime.lockstep`).
 
 What a command goes through, from arrival to the VESC write, is one object: the
 :class:`~racecar_hw.control.path.ControlPath` (the mux, arming and hold, the safety controller,

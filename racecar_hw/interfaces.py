@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import describe, to_dict
+from racecar_hw.base.topics import CLOCK_TOPIC
 from racecar_hw.config import FOXGLOVE_INPUT, Config, cmd_vel_input_topic, listeners, network_topics
 from racecar_hw.control.path import ControlPath
 from racecar_hw.net import zenoh_logins
@@ -92,7 +93,9 @@ class Interfaces:
             self.cmd_vel = CmdVelConverter(bus, CmdVelParams(
                 z.cmd_vel_topic, twist_input, config.vesc.wheelbase_m, config.vesc.steering_max_rad))
             remote[z.cmd_vel_topic] = remote[twist_input]
-        urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF}
+        # sent at once, not in the next batch: remote code waits for them; /clock (the simulator's,
+        # when it has one) so that a node on simulation time is not a batch behind the stamps
+        urgent = {config.safety.scan_topic, TOPIC_ODOM, TOPIC_TF, CLOCK_TOPIC}
         self.inbox = Inbox([t.bus for t in self.live_topics if t.direction is Direction.IN],
                            control.take_input, period_s=1.0 / mux.rate_hz, estop_topic=mux.estop_topic,
                            release_topic=mux.estop_release_topic, on_estop=control.network_estop,

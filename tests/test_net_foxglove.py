@@ -53,6 +53,7 @@ EXPECTED = {  # topic: schema name
     "/vesc/sensors/core": "vesc_msgs/msg/VescStateStamped",
     "/safety/state": "diagnostic_msgs/msg/DiagnosticArray",
     "/map": "nav_msgs/msg/OccupancyGrid", "/sim/pose": "geometry_msgs/msg/PoseStamped",
+    "/clock": "rosgraph_msgs/msg/Clock",
     "/safety/scene": "foxglove.SceneUpdate", "/log": "foxglove.Log",
 }
 
@@ -452,6 +453,24 @@ def test_the_mux_and_network_security_diagnostics_reach_a_subscriber(sim):
             assert values["state"] == "running" and "input foxglove (priority 85)" in values
             security = statuses["racecar_hw: network security"]
             assert security.values[0].key == "refused in all"
+        finally:
+            await client.close()
+
+    asyncio.run(main())
+
+
+def test_the_simulations_clock_reaches_a_subscriber(sim):
+    async def main() -> None:
+        client = await _client(sim.port("foxglove"))
+        try:
+            assert client.ros_type("/clock") == "rosgraph_msgs/msg/Clock"
+            sub = await client.subscribe("/clock")
+            first = client.decode("/clock", await client.next_message(sub)).clock
+            after = client.messages[sub][-1][0]
+            later = client.decode("/clock", await client.next_message(sub, after)).clock
+            # the real-time sim's clock: the wall clock, the stamps' time base; it advances
+            assert abs(first.sec - time.time()) < 60
+            assert (later.sec, later.nanosec) > (first.sec, first.nanosec)
         finally:
             await client.close()
 

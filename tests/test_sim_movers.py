@@ -111,7 +111,7 @@ def test_scenario_obstacles_are_validated_with_their_key() -> None:
 
 def test_shipped_scenarios_with_obstacles_load() -> None:
     names = scenario_names()
-    for name in ("crossing-person", "sliding-box"):
+    for name in ("crossing-person", "sliding-box", "lidar-dropout"):
         assert name in names
         scenario = load_scenario(name)
         (spec,) = scenario.obstacles

@@ -65,10 +65,12 @@ def fault_time(report: dict, action: str) -> float:
 
 
 def test_every_shipped_scenario_is_covered():
-    # the two miscalibrated ones are run by tests/test_calibrate.py
+    # the two miscalibrated ones are run by tests/test_calibrate.py, track by tests/test_sim_env.py,
+    # two-cars by tests/test_sim_fleet.py
     assert set(scenario_names()) == {"figure8", "wall", "corridor", "teleop-override", "lidar-dropout",
                                      "vesc-replug", "obstacle", "reverse-wall", "crossing-person",
-                                     "sliding-box", "miscalibrated", "miscalibrated-figure8"}
+                                     "sliding-box", "miscalibrated", "miscalibrated-figure8", "track",
+                                     "two-cars"}
 
 
 def test_figure8_returns_to_the_start():
@@ -247,7 +249,7 @@ def test_reversing_into_the_same_wall_without_the_memory_collides():
     assert r["final_pose"]["yaw"] == pytest.approx(0.0, abs=0.15)
 
 
-def test_a_person_crossing_at_1_5_mps_is_not_hit_at_2_mps():
+def test_a_person_crossing_at_1_mps_is_not_hit_at_2_mps():
     r, _ = run("crossing-person")
     assert not r["collided"], r["collisions"]
     assert r["max_speed_mps"] == pytest.approx(2.0, abs=0.05)

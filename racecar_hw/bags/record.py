@@ -45,6 +45,7 @@ import logging
 import os
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from pathlib import Path
@@ -70,6 +71,7 @@ from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
 from racecar_hw.rosmsg.typestore import BagTypes, types_for
 from racecar_hw.runtime.extras import require_extra
+from racecar_hw.runtime.lockstep import hold_while
 from racecar_hw.runtime.outbox import Outbox
 
 log = logging.getLogger(__name__)
@@ -416,6 +418,7 @@ class Recorder:
         self._base = ""
         self._next_flush = 0.0
         self._written = 0
+        self._release_hold: Callable[[], None] = lambda: None
         self._dropped = 0  # after a write error (the outbox counts those of a full queue)
         self._dropped_logged = 0
         self._unserializable: set[str] = set()  # topics that had a message the serializer refused
@@ -465,12 +468,16 @@ class Recorder:
             self._outbox.clear()
             raise
         assert self._file is not None
+        # in lockstep the sim's time waits for a writer that fell behind, instead of dropping
+        half = max(1, self.params.queue_size // 2)
+        self._release_hold = hold_while(lambda: len(self._outbox) >= half)
         self._sub = self.bus.subscribe_all(self._on_message)
         log.info("recording %s to %s", ", ".join(self.params.topics) or "all topics",
                  self._file.path)
 
     def stop(self) -> RecorderStats:
         """Unsubscribe, write what is queued, close the bag; returns the final stats."""
+        self._release_hold()
         if self._sub is not None:
             self._sub.close()
             self._sub = None

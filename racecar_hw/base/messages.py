@@ -557,6 +557,23 @@ class Log(Message):
     line: int = 0
 
 
+# --- rosgraph_msgs: the simulation's clock (/clock) ---------------------------------------------
+
+
+@dataclass
+class Clock(Message):
+    """rosgraph_msgs/Clock: the time ROS 2 nodes with ``use_sim_time`` follow, on ``/clock``.
+
+    ``clock`` is in the time base of every stamp the daemon writes (:func:`racecar_hw.base.clock.wall_ns`):
+    Unix time in the real-time simulation, the simulation's own time in lockstep.
+    """
+
+    ROS_TYPE: ClassVar[str] = "rosgraph_msgs/msg/Clock"
+    MSGDEF: ClassVar[str] = "builtin_interfaces/Time clock\n"
+
+    clock: Time = field(default_factory=Time)
+
+
 # --- racecar_msgs: the seeds' scan summaries --------------------------------------------------
 
 

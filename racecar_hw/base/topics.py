@@ -43,3 +43,5 @@ TOPIC_TF = "/tf"
 TOPIC_TF_STATIC = "/tf_static"
 #: sensor_msgs/Imu from the VESC's IMU (SI units, ``imu`` frame).
 TOPIC_IMU = "/imu"
+#: rosgraph_msgs/Clock, the simulation's time (ROS 2 ``use_sim_time``); outside any namespace.
+CLOCK_TOPIC = "/clock"

@@ -19,6 +19,7 @@ from racecar_hw.runtime.interrupts import INTERRUPTED
 from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler, add_stop_handlers
 
 if TYPE_CHECKING:  # the simulator is imported when the command runs: it needs the sim extra
+    from racecar_hw.sim.fleet import Fleet
     from racecar_hw.sim.loopback import Loopback, SimResult
     from racecar_hw.sim.scenario import Scenario
 
@@ -90,6 +91,8 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
     from racecar_hw.sim.scenario import load_scenario  # noqa: PLC0415 - with the command
 
     scenario_overrides: list[str] = []
+    if args.follow and load_scenario(args.scenario, args.scenario_overrides).cars:
+        raise ConfigError("--follow", f"scenario {args.scenario} has several cars; --follow drives one")
     if args.follow:
         # first, so that --scenario-set drivers.0.rate_hz=10 (or use_timestamps) applies to it
         bag = Path(args.follow).resolve()
@@ -126,6 +129,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     scenario = build_scenario(args)
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
+    if scenario.cars:
+        return cmd_fleet(args, scenario, out)
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
     if args.record:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
@@ -153,6 +158,48 @@ def cmd_sim(args: argparse.Namespace) -> int:
     print(summary(result.report))
     print(outputs(result.report, report))
     return 0
+
+
+def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
+    """A scenario with several cars: one daemon per car, all in one lockstep loop (paced at real
+    time unless ``--speed``), no status panel; the report has a section per car."""
+    from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the command
+    from racecar_hw.sim.fleet import Fleet  # noqa: PLC0415 - needs the sim extra
+    from racecar_hw.sim.report import write_report  # noqa: PLC0415
+
+    if args.keyboard:
+        raise ConfigError("--keyboard", f"scenario {scenario.name} has several cars; --keyboard drives "
+                                        "one (give each car its drivers in the scenario, or drive them "
+                                        "over Zenoh: docs/sim.md, \"Several cars\")")
+    _count_zenoh_logins(args.config, args.overrides)
+    fleet = Fleet(scenario, config_path=args.config, overrides=args.overrides, out_dir=out,
+                  duration_s=args.duration, record_dir=args.record)
+    speed = args.speed if args.speed is not None else 1.0
+    with StopSignals() as stops:
+        result = virtual.run(_run(fleet, stops), None if math.isinf(speed) else speed)
+    if result is None:
+        return INTERRUPTED
+    path = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
+    print(fleet_summary(result.report))
+    print(f"report:     {path}")
+    print(f"plot:       {result.report['plot_png']}")
+    for name, car in result.report["cars"].items():
+        print(f"{name + ':':11} plot {car['plot_png']}, trajectory {car['trajectory_csv']}")
+        for bag in car.get("bags") or []:
+            print(f"{'':11} bag {bag}")
+    return 0
+
+
+def fleet_summary(report: dict[str, Any]) -> str:
+    """Each car's headline numbers, then the contacts between cars."""
+    lines = []
+    for name, car in report["cars"].items():
+        lines.append(f"car {name} (namespace {car['namespace']}):")
+        lines += ["  " + line for line in summary(car).splitlines()]
+    contacts = report["car_collisions"]
+    lines.append("cars collided: " + "; ".join(f"{c['car']} hit {c['other']} at {c['t_s']:.2f} s"
+                                               for c in contacts) if contacts else "no car hit another")
+    return "\n".join(lines)
 
 
 def outputs(report: dict[str, Any], report_path: Path) -> str:
@@ -212,10 +259,10 @@ def _clearance(report: dict[str, Any]) -> str:
     return f"{cap:g} m or more (measured up to {cap:g} m)" if value >= cap else f"{value:.2f} m"
 
 
-async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
-    """Run the scenario; the first SIGINT/SIGTERM (or one ``stops`` noted before the loop ran) ends
-    it as its duration would (brake, write the report for the time driven), a second one stops at
-    once (None)."""
+async def _run(loopback: Loopback | Fleet, stops: StopSignals) -> SimResult | None:
+    """Run the scenario (one car's loopback, or a fleet of them); the first SIGINT/SIGTERM (or one
+    ``stops`` noted before the loop ran) ends it as its duration would (brake, write the report for
+    the time driven), a second one stops at once (None)."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
 
@@ -226,9 +273,11 @@ async def _run(loopback: Loopback, stops: StopSignals) -> SimResult | None:
             task.cancel()
 
     def restart_signing() -> str:
-        if loopback.daemon is None:
+        cars = getattr(loopback, "cars", None)  # a fleet's
+        daemons = [car.daemon for car in cars.values()] if cars is not None else [loopback.daemon]
+        if any(d is None for d in daemons):
             return "the daemon is not running yet"
-        return loopback.daemon.restart_mavlink_signing()
+        return "; ".join(d.restart_mavlink_signing() for d in daemons if d is not None)
 
     remove = add_stop_handlers(loop, on_signal, noted=stops)
     remove_restart = add_restart_signing_handler(loop, restart_signing)

@@ -14,20 +14,21 @@ bucket, bursts up to one second's worth) are dropped and counted, so a log storm
 through an interface that logs its own failures, cannot flood the loop or the network. Nothing
 happens on the scan path unless something logs there at the level.
 
-The Log fields: ``stamp`` the record's wall-clock time, ``level`` Python's level number (ROS's
-DEBUG 10, INFO 20, WARN 30, ERROR 40, FATAL 50 are the same numbers), ``name`` the node's logger
-name then the Python logger's (``racecar_hw.mux.node``; with a namespace ``car1.racecar_hw....``, as
-rcl names a namespaced node's logger), ``msg`` the formatted message, and where it was logged.
+The Log fields: ``stamp`` the record's wall-clock time (sim time in lockstep), ``level``
+Python's level number (ROS's DEBUG 10, INFO 20, WARN 30, ERROR 40, FATAL 50 are the same
+numbers), ``name`` the node's logger name then the Python logger's (``racecar_hw.mux.node``;
+with a namespace ``car1.racecar_hw....``, as rcl names a namespaced node's logger), ``msg`` the
+formatted message, and where it was logged.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-import time
 from dataclasses import dataclass
 
 from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import is_virtual, monotonic, wall_ns
 from racecar_hw.base.messages import Log, Time
 from racecar_hw.base.params import param
 from racecar_hw.net.topics import ROSOUT_TOPIC
@@ -54,7 +55,8 @@ def logger_name(namespace: str, node_name: str) -> str:
 
 def to_log(record: logging.LogRecord, node_logger: str) -> Log:
     """One log record as ``rcl_interfaces/msg/Log``."""
-    ns = int(record.created * 1e9)
+    # the process's clock: in lockstep a record is stamped in sim time, as every message is
+    ns = wall_ns() if is_virtual() else int(record.created * 1e9)
     text = record.getMessage()
     if record.exc_info and record.exc_info[1] is not None:
         text = f"{text}: {record.exc_info[1]!r}"
@@ -78,7 +80,7 @@ class RosoutHandler(logging.Handler):
         self.rate = params.max_rate_hz
         self.burst = max(1.0, params.max_rate_hz)
         self._tokens = self.burst
-        self._refilled = time.monotonic()
+        self._refilled = monotonic()
         self._lock = threading.Lock()
         #: records published, and dropped (over the rate, or no loop to hand them to)
         self.published = 0
@@ -88,7 +90,7 @@ class RosoutHandler(logging.Handler):
         """Queue the record for the bus (never raises, never blocks beyond a short lock)."""
         try:
             with self._lock:
-                now = time.monotonic()
+                now = monotonic()
                 self._tokens = min(self.burst, self._tokens + (now - self._refilled) * self.rate)
                 self._refilled = now
                 if self._tokens < 1.0:

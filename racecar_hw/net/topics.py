@@ -27,6 +27,7 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import (
     AckermannDriveStamped,
     Bool,
+    Clock,
     DiagnosticArray,
     Float64,
     Imu,
@@ -41,6 +42,7 @@ from racecar_hw.base.messages import (
     Twist,
     VescStateStamped,
 )
+from racecar_hw.base.topics import CLOCK_TOPIC
 from safety.params import SafetyParams
 from vesc.driver import TOPIC_CORE, TOPIC_IMU, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF
 
@@ -91,6 +93,12 @@ DEFAULT = Qos()
 ROSOUT = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1000)
 #: The bus topic (and ROS name) of the daemon's log (:mod:`racecar_hw.net.rosout`).
 ROSOUT_TOPIC = "/rosout"
+#: What the simulator offers ``/clock`` with: reliable, volatile, keep last 1. ROS 2 nodes read it
+#: with ``ClockQoS`` (:data:`CLOCK_SUBSCRIPTION`); a reliable writer matches best-effort readers and
+#: reliable ones alike (a best-effort writer only the former), and only the newest time matters.
+CLOCK_QOS = Qos(Reliability.RELIABLE, Durability.VOLATILE, 1)
+#: rclcpp's and rclpy's ``ClockQoS``, the QoS ROS 2's time source subscribes ``/clock`` with.
+CLOCK_SUBSCRIPTION = Qos(Reliability.BEST_EFFORT, Durability.VOLATILE, 1)
 
 
 @dataclass(frozen=True)
@@ -111,6 +119,12 @@ class Topic:
     def __post_init__(self) -> None:
         if not self.ros:
             object.__setattr__(self, "ros", self.bus)
+
+
+#: The simulator's ``/clock`` row (:mod:`racecar_hw.sim.clock_topic`): absolute, as ROS 2's time
+#: source subscribes ``/clock`` whatever the node's namespace.
+CLOCK_ROW = Topic(CLOCK_TOPIC, Clock, Direction.OUT, CLOCK_QOS,
+                  "simulation time (use_sim_time), in the time base of every stamp", absolute=True)
 
 
 def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/scan",

@@ -14,7 +14,11 @@ callback) wakes it; time stands still while a job given to a thread
 holds (a recorder's queue to its writer thread). Those are the only real-time waits.
 
 :func:`run` runs a coroutine on such a loop with the process's clock
-(:mod:`racecar_hw.base.clock`) switched to the loop's, as ``asyncio.run`` would.
+(:mod:`racecar_hw.base.clock`) switched to the loop's, as ``asyncio.run`` would. A caller that
+steps a simulation from outside the loop (:mod:`racecar_hw.sim.env`) uses
+:meth:`VirtualTimeLoop.run_until_time` (run until a virtual time, with everything due by then
+done), :meth:`VirtualTimeLoop.rewind` (the clock back to the start between two runs) and
+:func:`close`.
 """
 
 from __future__ import annotations
@@ -45,9 +49,10 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """
 
     def __init__(self, speed: float | None = None, start_ns: int = SIM_EPOCH_NS) -> None:
-        if speed is not None and not (math.isfinite(speed) and speed > 0):
-            raise ValueError(f"speed must be positive or None (as fast as possible), got {speed}")
         super().__init__()
+        if speed is not None and not (math.isfinite(speed) and speed > 0):
+            self.close()
+            raise ValueError(f"speed must be positive or None (as fast as possible), got {speed}")
         self.speed = speed
         self._now_ns = start_ns
         self._jobs = 0
@@ -55,6 +60,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         self._anchor: tuple[int, float] | None = None  # (virtual ns, real monotonic s) of the pace
         #: real seconds the loop waited for threads while virtual time stood still
         self.stood_still_s = 0.0
+        self._until_ns: int | None = None  # run_until_time's end: the loop stops instead of passing it
         self._selector = _VirtualSelector(self._selector, self)  # type: ignore[has-type]
 
     # --- the clock ----------------------------------------------------------------------------
@@ -100,13 +106,60 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     def _held(self) -> bool:
         return self._jobs > 0 or any(p() for p in self._busy)
 
+    # --- stepping from outside ----------------------------------------------------------------
+
+    def run_until_time(self, until_ns: int) -> None:
+        """Run the (not running) loop until virtual time is ``until_ns`` and nothing is left to do
+        at that instant: every timer due by then ran, and what they started ran to the point where
+        only a later timer could go on (what a fake device sent at ``until_ns`` is consumed), as
+        time would otherwise move on. The clock is then ``until_ns`` exactly. For callers that step
+        a simulation from outside the loop (:mod:`racecar_hw.sim.env`); an exception in a callback
+        goes to the loop's exception handler, as in ``run_forever``."""
+        if until_ns < self._now_ns:
+            raise ValueError(f"virtual time is {self._now_ns} ns already, past {until_ns} ns")
+        self._until_ns = until_ns
+        try:
+            self.run_forever()
+        finally:
+            self._until_ns = None
+
+    def rewind(self, start_ns: int = SIM_EPOCH_NS) -> None:
+        """Set virtual time back to ``start_ns`` between two runs in this loop, so each starts at the
+        same time and runs the same (periodic timers on a grid of absolute time, and schedules in
+        float seconds, meet their events at other offsets or nanoseconds from another start).
+        Refused (RuntimeError) while the loop runs or holds anything that a clock going back would
+        confuse: a task, a callback, a timer."""
+        if self.is_running():
+            raise RuntimeError("cannot rewind a running loop")
+        live = [h for h in self._scheduled if not h.cancelled()]  # type: ignore[attr-defined]
+        if live or self._ready or asyncio.all_tasks(self):  # type: ignore[attr-defined]
+            raise RuntimeError("cannot rewind virtual time while tasks, callbacks or timers remain")
+        self._scheduled.clear()  # type: ignore[attr-defined]  # cancelled timers only
+        self._timer_cancelled_count = 0
+        self._now_ns = start_ns
+        self._anchor = None
+
+    def _at_end(self, target: int | None) -> bool:
+        """In :meth:`run_until_time`: whether the loop is idle at its end (and so stopped)."""
+        until = self._until_ns
+        if until is None or (target is not None and target <= until):
+            return False
+        if self._now_ns < until:  # nothing due before the end: time jumps (or is paced) to it
+            return False
+        self.stop()
+        return True
+
     # --- advancing ----------------------------------------------------------------------------
 
     def _next_timer_ns(self) -> int | None:
         scheduled = self._scheduled  # type: ignore[attr-defined]  # asyncio drops cancelled heads first
         if not scheduled:
             return None
-        return max(self._now_ns, math.ceil(scheduled[0]._when * NS_PER_S))
+        when = scheduled[0]._when
+        target = round(when * NS_PER_S)  # to the nearest ns: delays of whole ns stay exact
+        if target / NS_PER_S + self._clock_resolution <= when:  # (asyncio's test for "due")
+            target += 1
+        return max(self._now_ns, target)
 
     def _select(self, select: Callable[[float | None], list[Any]],
                 timeout: float | None) -> list[Any]:
@@ -119,6 +172,10 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
             self._anchor = None
             return events
         target = self._next_timer_ns() if timeout is not None else None
+        if self._at_end(target):
+            return select(0)
+        if self._until_ns is not None and (target is None or target > self._until_ns):
+            target = self._until_ns  # the end of run_until_time, as if it were a timer
         if target is None:  # no timer: only a thread can give the loop work
             return select(None if timeout is None else BUSY_POLL_S)
         if self.speed is None:
@@ -161,6 +218,21 @@ class _VirtualSelector:
         return getattr(self._inner, name)
 
 
+def hold_while(predicate: Callable[[], bool]) -> Callable[[], None]:
+    """In a lockstep run (the running loop is a :class:`VirtualTimeLoop`), hold virtual time while
+    ``predicate()`` holds, e.g. while a writer thread is behind; elsewhere nothing. Returns the
+    undo."""
+    try:
+        loop = asyncio.get_running_loop()
+    except RuntimeError:
+        return _nothing
+    return loop.add_busy(predicate) if isinstance(loop, VirtualTimeLoop) else _nothing
+
+
+def _nothing() -> None:
+    pass
+
+
 def run(main: Coroutine[Any, Any, T], speed: float | None = None, *,
         start_ns: int = SIM_EPOCH_NS) -> T:
     """Run ``main`` on a new :class:`VirtualTimeLoop` with the process's clock on it, as
@@ -173,12 +245,20 @@ def run(main: Coroutine[Any, Any, T], speed: float | None = None, *,
             return loop.run_until_complete(main)
         finally:
             try:
-                _cancel_all(loop)
-                loop.run_until_complete(loop.shutdown_asyncgens())
-                loop.run_until_complete(loop.shutdown_default_executor())
+                close(loop)
             finally:
                 asyncio.set_event_loop(None)
-                loop.close()
+
+
+def close(loop: asyncio.AbstractEventLoop) -> None:
+    """End a loop as ``asyncio.run`` does: cancel the remaining tasks (and wait for them), shut the
+    async generators and the default executor down, close the loop."""
+    try:
+        _cancel_all(loop)
+        loop.run_until_complete(loop.shutdown_asyncgens())
+        loop.run_until_complete(loop.shutdown_default_executor())
+    finally:
+        loop.close()
 
 
 def _cancel_all(loop: asyncio.AbstractEventLoop) -> None:
@@ -194,4 +274,4 @@ def _cancel_all(loop: asyncio.AbstractEventLoop) -> None:
                                          "exception": task.exception(), "task": task})
 
 
-__all__ = ["BUSY_POLL_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "run"]
+__all__ = ["BUSY_POLL_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "close", "hold_while", "run"]

@@ -24,7 +24,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import sys
+import time
 from collections.abc import Callable
 
 from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
@@ -222,8 +224,13 @@ class StatusPanel:
         period = 1.0 / self.refresh_hz if self._live is not None else self.plain_interval_s
         loop = asyncio.get_running_loop()
         deadline = loop.time()
+        drawn = -math.inf
         while True:
-            self.draw()
+            # at most one redraw per period of real time: a person reads it, however fast a
+            # simulation in lockstep runs the loop's clock
+            if (real := time.monotonic()) - drawn >= 0.9 * period:
+                self.draw()
+                drawn = real
             deadline += period
             now = loop.time()
             if deadline < now:  # fell behind (loop busy): skip the missed redraws

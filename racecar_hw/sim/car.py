@@ -116,20 +116,34 @@ def footprint(pose: Pose2D | tuple[float, float, float], params: CarParams) -> n
 
 
 class Collider:
-    """Measures the gap between the car's footprint and the map's occupied cells and obstacles."""
+    """Measures the gap between the car's footprint and the map's occupied cells and obstacles.
+
+    The map does not move, so a gap measured once bounds the gaps nearby: from a footprint whose
+    gap to the map is ``g``, a footprint whose corners moved at most ``d`` has a gap of at least
+    ``g - d`` (a rigid motion moves no point of a rectangle further than its furthest corner).
+    :meth:`clearance` with ``exact_below`` and :meth:`collides` use that bound to skip the map
+    search where it cannot change the answer.
+    """
 
     def __init__(self, occ_map: OccupancyMap, params: CarParams) -> None:
         self.map = occ_map
         self.params = params
         self._occ = occ_map.occupied
+        #: the last exact map gap (capped at CLEARANCE_RANGE_M) and the footprint it was measured at
+        self._anchor: tuple[np.ndarray, float] | None = None
 
     def clearance(self, pose: Pose2D | tuple[float, float, float], obstacles: Iterable[Obstacle] = (),
-                  max_distance: float = CLEARANCE_RANGE_M) -> float:
+                  max_distance: float = CLEARANCE_RANGE_M, exact_below: float = math.inf) -> float:
         """Smallest gap (m) from the footprint at ``pose`` to any obstacle; 0 on contact. Gaps of
-        ``max_distance`` or more are reported as ``max_distance``."""
-        gap = min(self._map_clearance(pose, max_distance), max_distance)
+        ``max_distance`` or more are reported as ``max_distance``. With ``exact_below``, a gap
+        known to be at least ``exact_below`` may be reported as a lower bound that is itself at
+        least ``exact_below`` (enough for a running minimum)."""
+        corners = footprint(pose, self.params)
+        if max_distance == CLEARANCE_RANGE_M:
+            gap = self._map_gap(pose, corners, exact_below)
+        else:
+            gap = min(self._map_clearance(pose, max_distance), max_distance)
         if gap > 0:
-            corners = footprint(pose, self.params)
             for obstacle in obstacles:
                 gap = min(gap, obstacle.distance_to(corners))
         return gap
@@ -137,7 +151,27 @@ class Collider:
     def collides(self, pose: Pose2D | tuple[float, float, float],
                  obstacles: Iterable[Obstacle] = ()) -> bool:
         """Whether the footprint at ``pose`` touches an occupied cell or an obstacle."""
-        return self.clearance(pose, obstacles, max_distance=self.map.resolution) <= 0.0
+        corners = footprint(pose, self.params)
+        if self._map_bound(corners) <= 0.0 and self._map_clearance(pose, self.map.resolution) <= 0.0:
+            return True
+        return any(obstacle.distance_to(corners) <= 0.0 for obstacle in obstacles)
+
+    def _map_bound(self, corners: np.ndarray) -> float:
+        """A lower bound of the map gap of the footprint ``corners`` (-inf before any measure)."""
+        if self._anchor is None:
+            return -math.inf
+        at, gap = self._anchor
+        shift = float(np.sqrt(((corners - at) ** 2).sum(axis=1).max()))
+        return gap - shift
+
+    def _map_gap(self, pose: Pose2D | tuple[float, float, float], corners: np.ndarray,
+                 exact_below: float) -> float:
+        bound = self._map_bound(corners)
+        if bound >= exact_below:
+            return min(bound, CLEARANCE_RANGE_M)
+        gap = min(self._map_clearance(pose, CLEARANCE_RANGE_M), CLEARANCE_RANGE_M)
+        self._anchor = (corners, gap)
+        return gap
 
     def sweep(self, pose: Pose2D, speed: float, steering: float, dt: float,
               obstacles: Iterable[Obstacle] = ()) -> tuple[Pose2D, float, bool]:

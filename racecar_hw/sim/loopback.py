@@ -20,18 +20,21 @@ import asyncio
 import logging
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from mux.estop import DAEMON, Origin
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.ports import Listener
 from racecar_hw.runtime.panel import StatusPanel
 from racecar_hw.sim.car import CarParams
+from racecar_hw.sim.clock_topic import add_clock
 from racecar_hw.sim.drivers import REPLAY_LATE_MAX_S, REPLAY_SETTLE_S, ScenarioDrivers
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, publish_truth
 from racecar_hw.sim.observer import MAX_SAMPLES, SAMPLE_PERIOD_S, RunObserver
@@ -59,6 +62,9 @@ class Loopback:
                  until_replay_ends: bool = False,
                  setup: Callable[[Loopback], None] | None = None, lockstep: bool = False,
                  car_name: str = "car") -> None:
+        if scenario.cars:
+            raise ConfigError("cars", f"scenario {scenario.name!r} has several cars: run it with "
+                                      "racecar_hw.sim.fleet.Fleet")
         self.scenario = scenario
         self.duration_s = duration_s if duration_s is not None else scenario.duration_s
         #: run as long as the follow drivers' replays (stretched for the reverse cap) and
@@ -83,6 +89,7 @@ class Loopback:
         self.config: Config | None = None
         self.fault_log: list[tuple[float, str]] = []
         self._stop: asyncio.Event | None = None
+        self._real_start: float | None = None  # real monotonic s when run() began
         #: why the run ended: "duration", or what interrupted it (request_stop)
         self.stop_reason = "duration"
         #: world time at which the mux started counting (its switch times are relative to it)
@@ -161,6 +168,7 @@ class Loopback:
 
     async def run(self) -> SimResult:
         """Run the scenario for its duration; returns (and writes, with ``out_dir``) the report."""
+        self._real_start = time.monotonic()
         try:
             self.config = config = self._build_config()
             drivers = self.drivers = ScenarioDrivers(self.scenario, config, self.clock)
@@ -192,6 +200,7 @@ class Loopback:
             daemon.add_task(self.observer.watch(daemon, world))
             daemon.live_topics.extend(SIM_TOPICS)
             daemon.add_task(publish_truth(daemon.bus, world, self.map))
+            add_clock(daemon, self.scenario.world.clock_rate_hz)
             assert self.vesc is not None
             daemon.add_task(log_estop_timing(daemon, self.vesc))
 
@@ -208,6 +217,15 @@ class Loopback:
         finally:
             await self.rig.aclose()
             self._tmp.cleanup()
+
+    def clock_report(self) -> dict[str, Any]:
+        """The report's ``clock`` section: how time ran, and the real seconds the run took."""
+        loop = asyncio.get_running_loop()
+        speed = getattr(loop, "speed", 1.0) if self.lockstep else 1.0
+        real = time.monotonic() - self._real_start if self._real_start is not None else None
+        return {"mode": "lockstep" if self.lockstep else "real time",
+                "speed": "max" if speed is None else speed,
+                "real_time_s": None if real is None else round(real, 3)}
 
     def request_stop(self, reason: str = "request") -> None:
         """End the run now (from the event loop), as if the duration had passed; the report says

@@ -151,34 +151,50 @@ def rectangle(x: float, y: float, yaw: float, x_min: float, x_max: float, y_min:
               y_max: float) -> np.ndarray:
     """Corners (CCW, shape (4, 2)) of the body-frame box [x_min, x_max] x [y_min, y_max] placed at
     pose (x, y, yaw)."""
-    local = np.array([[x_min, y_min], [x_max, y_min], [x_max, y_max], [x_min, y_max]])
     c, s = math.cos(yaw), math.sin(yaw)
-    return np.column_stack((x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1]))
+    # four points: plain arithmetic, then one array (numpy's per-call cost dominates at this size)
+    return np.array([(x + c * px - s * py, y + s * px + c * py)
+                     for px, py in ((x_min, y_min), (x_max, y_min), (x_max, y_max), (x_min, y_max))])
 
 
-def point_polygon_distance(px: float, py: float, polygon: np.ndarray) -> float:
+def point_polygon_distance(px: float, py: float, polygon: np.ndarray | list[list[float]]) -> float:
     """Distance from a point to a convex CCW polygon; 0 inside."""
-    a = polygon
-    b = np.roll(polygon, -1, axis=0)
-    edge = b - a
-    rel = np.array([px, py]) - a
-    cross = edge[:, 0] * rel[:, 1] - edge[:, 1] * rel[:, 0]
-    if np.all(cross >= 0):
-        return 0.0
-    u = np.clip((rel * edge).sum(axis=1) / (edge * edge).sum(axis=1), 0.0, 1.0)
-    nearest = a + u[:, None] * edge
-    return float(np.min(np.hypot(px - nearest[:, 0], py - nearest[:, 1])))
+    # plain arithmetic over a handful of corners: numpy's per-call cost dominates at this size
+    pts = polygon.tolist() if isinstance(polygon, np.ndarray) else polygon
+    n = len(pts)
+    inside = True
+    best = math.inf
+    for i in range(n):
+        ax, ay = pts[i]
+        bx, by = pts[(i + 1) % n]
+        ex, ey = bx - ax, by - ay
+        rx, ry = px - ax, py - ay
+        if ex * ry - ey * rx < 0:
+            inside = False
+        u = min(max((rx * ex + ry * ey) / (ex * ex + ey * ey), 0.0), 1.0)
+        best = min(best, math.hypot(px - (ax + u * ex), py - (ay + u * ey)))
+    return 0.0 if inside else best
 
 
 def polygon_distance(p: np.ndarray, q: np.ndarray) -> float:
     """Distance between two convex CCW polygons; 0 when they overlap (separating-axis test)."""
-    for poly in (p, q):
-        edges = np.roll(poly, -1, axis=0) - poly
-        normals = np.column_stack((edges[:, 1], -edges[:, 0]))
-        pp, qq = p @ normals.T, q @ normals.T
-        if np.any((pp.max(axis=0) < qq.min(axis=0)) | (qq.max(axis=0) < pp.min(axis=0))):
-            break
-    else:
+    pts_p = p.tolist() if isinstance(p, np.ndarray) else p
+    pts_q = q.tolist() if isinstance(q, np.ndarray) else q
+    if not _separated(pts_p, pts_q) and not _separated(pts_q, pts_p):
         return 0.0
-    return min(min(point_polygon_distance(x, y, q) for x, y in p),
-               min(point_polygon_distance(x, y, p) for x, y in q))
+    return min(min(point_polygon_distance(x, y, pts_q) for x, y in pts_p),
+               min(point_polygon_distance(x, y, pts_p) for x, y in pts_q))
+
+
+def _separated(poly: list[list[float]], other: list[list[float]]) -> bool:
+    """Whether an edge normal of ``poly`` separates the two polygons."""
+    n = len(poly)
+    for i in range(n):
+        ax, ay = poly[i]
+        bx, by = poly[(i + 1) % n]
+        nx, ny = by - ay, ax - bx
+        pp = [x * nx + y * ny for x, y in poly]
+        qq = [x * nx + y * ny for x, y in other]
+        if max(pp) < min(qq) or max(qq) < min(pp):
+            return True
+    return False

@@ -21,6 +21,24 @@ from racecar_hw.sim.world import compose
 if TYPE_CHECKING:
     from racecar_hw.sim.loopback import Loopback
 
+#: The keys of a report that depend on where and when it ran, not on what the car did: output
+#: paths, the live interfaces' ports, and the real seconds the run took. Two lockstep runs of a
+#: scenario with the same seed agree on everything else (:func:`comparable`).
+RUN_SPECIFIC = ("trajectory_csv", "plot_png", "bags", "live", "clock.real_time_s")
+
+
+def comparable(report: dict[str, Any]) -> dict[str, Any]:
+    """``report`` without its :data:`RUN_SPECIFIC` keys (dotted: a key inside a section)."""
+    out = json.loads(json.dumps(report))
+    for top in (out, *(out.get("cars") or {}).values()):  # a fleet's report: each car's section too
+        for key in RUN_SPECIFIC:
+            *path, last = key.split(".")
+            section = top
+            for part in path:
+                section = section.get(part) or {}
+            section.pop(last, None)
+    return out
+
 
 @dataclass
 class SimResult:
@@ -105,6 +123,8 @@ class RunReport:
                      else []),
             # where the live view and the status page listened during the run
             "live": dict(daemon.started_live),
+            # lockstep (virtual time; speed: a multiple of real time, or "max") or real time
+            "clock": run.clock_report(),
         }
         result = SimResult(report, interventions_at=list(run.interventions_at))
         if run.out_dir is not None:

@@ -125,6 +125,8 @@ class FakeRig:
         self.stop()
         tasks, self._tasks = self._tasks, []
         await asyncio.gather(*tasks, return_exceptions=True)
+        if self.lockstep and self.vesc is not None:  # plugged in by start(), even if never served
+            self.vesc.port.close()
 
     def apply(self, fault: FaultSpec) -> None:
         """Act out a fault of :data:`DEVICE_FAULTS` on the fakes or the world."""

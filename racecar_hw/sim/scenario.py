@@ -150,6 +150,9 @@ class WorldSpec:
     rate_hz: float = param(200.0, "physics step rate", unit="Hz", min=20.0, max=2000.0)
     noise_std_m: float = param(0.01, "lidar range noise (standard deviation)", unit="m", min=0.0)
     seed: int | None = param(1, "random seed for the noise; none: different every run")
+    clock_rate_hz: float = param(100.0, "/clock publish rate in simulation time (rosgraph_msgs/Clock "
+                                 "for ROS 2 nodes with use_sim_time; docs/sim.md); 0: no /clock",
+                                 unit="Hz", min=0.0, max=1000.0)
 
 
 @dataclass
@@ -172,6 +175,29 @@ class CarSpec:
 
 
 @dataclass
+class ScenarioCar:
+    """One car of a scenario with several (``cars``): its own start, drivers, faults and daemon
+    config, on the scenario's map and clock (see docs/sim.md, "Several cars")."""
+
+    name: str = param("", "the car's name: unique, letters, digits and _; its default Zenoh/DDS "
+                          "namespace is /NAME and other cars' reports call it so")
+    start: tuple[float, float, float] = param((0.0, 0.0, 0.0), "start pose x, y, yaw in the map frame",
+                                              unit="m, m, rad")
+    lidar: LidarSpec | None = param(None, "its fake lidar; none: the scenario's")
+    drivers: list[DriverSpec] = param([], "who drives it (scenario drivers; clients over the network "
+                                          "need none)")
+    faults: list[FaultSpec] = param([], "what breaks on it, when")
+    config: dict[str, Any] = param({}, "overrides merged into its daemon's config, after the "
+                                       "scenario's config")
+    car: CarSpec = param(CarSpec(), "the simulated car's true gains where they differ from the config")
+
+    def __post_init__(self) -> None:
+        if not (self.name and self.name.isidentifier() and self.name.isascii()):
+            raise ValueError(f"name: {self.name!r}: a car's name is letters, digits and _ "
+                             "(not starting with a digit)")
+
+
+@dataclass
 class Scenario:
     """A whole scenario. See the module documentation for the file format."""
 
@@ -191,6 +217,26 @@ class Scenario:
     config: dict[str, Any] = param({}, "overrides merged into the daemon's sim config")
     car: CarSpec = param(CarSpec(), "the simulated car's true gains where they differ from the config")
     name: str = param("", "scenario name (default: the file name)")
+    cars: list[ScenarioCar] = param([], "several cars in one world, each with its own daemon (then "
+                                        "start, drivers, faults and car are each car's); none: one car")
+
+    def __post_init__(self) -> None:
+        if not self.cars:
+            return
+        names = [c.name for c in self.cars]
+        for k, name in enumerate(names):
+            if name in names[:k]:
+                raise ValueError(f"cars[{k}].name: {name!r}: two cars have this name")
+        for key in ("drivers", "faults"):
+            if getattr(self, key):
+                raise ValueError(f"{key}: with cars, each car has its own {key} (cars[N].{key})")
+        if self.start != (0.0, 0.0, 0.0):
+            raise ValueError("start: with cars, each car has its own start (cars[N].start)")
+        if self.car != CarSpec():
+            raise ValueError("car: with cars, each car has its own car (cars[N].car)")
+        for k, spec in enumerate(self.obstacles):
+            if spec.name in names:
+                raise ValueError(f"obstacles[{k}].name: {spec.name!r} is a car's name")
 
     def map_path(self) -> Path:
         """The map YAML: a shipped map by name, or a path relative to the scenario file."""

@@ -24,6 +24,7 @@ class Scene:
     def __init__(self, occ_map: OccupancyMap) -> None:
         self.map = occ_map
         self._raycaster = RayCaster(occ_map)
+        self._last_cast: tuple[tuple[float, float, float, float], np.ndarray, np.ndarray] | None = None
         self._lock = threading.Lock()
         self._obstacles: dict[int, Obstacle | Mover] = {}
         self._next_obstacle = 1
@@ -109,6 +110,16 @@ class Scene:
         disc = np.hypot(dx, dy) <= within + res / 2
         return "map" if bool(np.any(self.map.is_occupied(x + dx[disc], y + dy[disc]))) else None
 
+    def _walls(self, x: float, y: float, yaw: float, angles: np.ndarray, max_range: float) -> np.ndarray:
+        """The walls' ranges from the ray caster; the last cast again (a copy) when the laser has
+        not moved (a car at rest scans the same walls: only the noise and the obstacles change)."""
+        last = self._last_cast
+        if last is not None and last[0] == (x, y, yaw, max_range) and np.array_equal(last[1], angles):
+            return last[2].copy()
+        ranges = self._raycaster.cast(x, y, yaw, angles, max_range)
+        self._last_cast = ((x, y, yaw, max_range), angles.copy(), ranges.copy())
+        return ranges
+
     def ranges(self, laser_pose: tuple[float, float, float], angles: np.ndarray, max_range: float,
                t: float) -> np.ndarray:
         """Noise-free ranges (m) along ``angles`` (rad, laser frame) from ``laser_pose`` (x, y, yaw
@@ -116,7 +127,7 @@ class Scene:
         beyond ``max_range``."""
         x, y, yaw = laser_pose
         angles = np.asarray(angles, dtype=np.float64)
-        ranges = self._raycaster.cast(x, y, yaw, angles, max_range)
+        ranges = self._walls(x, y, yaw, angles, max_range)
         obstacles = self.shapes_at(t)
         if obstacles:
             theta = angles + yaw

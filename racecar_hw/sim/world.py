@@ -237,13 +237,15 @@ class World:
         steering = steering_from_servo(float(self._servo_source()), p)
         with self._lock:
             pose, collided, generation = self._car.pose, self._car.collided, self._generation
+            least = self._car.min_clearance
             obstacles_t = self._history.sim_time_at(self._history.time_ns + dt_ns)
         obstacles = self.scene.shapes_at(obstacles_t)  # where they will be at the step's end
         dt = dt_ns / NS_PER_S
         travelled, hit = 0.0, False
         if not collided and speed != 0.0 and dt > 0:
             pose, travelled, hit = self._collider.sweep(pose, speed, steering, dt, obstacles)
-        clearance = self._collider.clearance(pose, obstacles)
+        # (exact only where it could lower the minimum: the running minimum is all it feeds)
+        clearance = self._collider.clearance(pose, obstacles, exact_below=least)
         with self._lock:
             if self._generation != generation:  # reset while we computed: the reset pose wins
                 hit, pose, travelled, clearance = False, self._car.pose, 0.0, self._car.min_clearance

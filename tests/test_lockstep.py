@@ -1,0 +1,243 @@
+"""Lockstep: the virtual-time event loop, the in-memory device links, and the real drivers against
+the fakes through them (the same codecs, the same bytes), on virtual time."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import pytest
+
+from lidar_drivers.base import RoomRangeSource
+from lidar_drivers.params import LidarParams
+from lidar_drivers.registry import make_driver, make_fake
+from racecar_hw.base import clock
+from racecar_hw.base.bus import Bus
+from racecar_hw.base.errors import DeviceIOError, DeviceNotFound
+from racecar_hw.base.link import open_link
+from racecar_hw.base.memlink import MemoryLink, MemoryPort
+from racecar_hw.base.messages import AckermannDrive, LaserScan
+from racecar_hw.runtime import lockstep
+from racecar_hw.runtime.lockstep import VirtualTimeLoop
+from vesc.codec import SetRpm, SetServoPosition
+from vesc.driver import VescDriver
+from vesc.fake import FakeVesc
+from vesc.params import VescParams
+
+
+async def until(predicate, limit_s: float = 30.0, step_s: float = 0.001) -> None:
+    """Wait on virtual time until ``predicate()``; fails after ``limit_s`` virtual seconds."""
+    end = clock.monotonic() + limit_s
+    while not predicate():
+        assert clock.monotonic() < end, "condition not met within the virtual time limit"
+        await asyncio.sleep(step_s)
+
+
+# --- the loop -----------------------------------------------------------------------------------
+
+
+def test_virtual_time_runs_timers_in_order_without_waiting_and_switches_the_clock_back():
+    fired: list[tuple[str, int]] = []
+
+    async def main() -> tuple[int, int, bool]:
+        loop = asyncio.get_running_loop()
+        start = clock.monotonic_ns()
+        for name, delay in (("c", 3600.0), ("a", 0.25), ("b", 1.5)):
+            loop.call_later(delay, lambda n=name: fired.append((n, clock.monotonic_ns() - start)))
+        await asyncio.sleep(7200)
+        return start, clock.wall_ns(), clock.is_virtual()
+
+    real = time.monotonic()
+    start, wall, virtual = lockstep.run(main())
+    assert time.monotonic() - real < 60  # two hours of sleeping took no real hours
+    assert start == clock.SIM_EPOCH_NS and wall == start + 7200 * clock.NS_PER_S and virtual
+    assert fired == [("a", 250_000_000), ("b", 1_500_000_000), ("c", 3_600_000_000_000)]
+    assert not clock.is_virtual() and abs(clock.wall_ns() - time.time_ns()) < 10 * clock.NS_PER_S
+
+
+def test_time_stands_still_while_a_thread_works_for_the_loop():
+    async def main() -> tuple[int, float]:
+        loop = asyncio.get_running_loop()
+        ticks = 0
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.01)
+                ticks += 1
+
+        task = asyncio.create_task(ticker())
+        before = clock.monotonic_ns()
+        await loop.run_in_executor(None, time.sleep, 0.3)  # the ticker cannot run ahead meanwhile
+        await asyncio.to_thread(time.sleep, 0.1)
+        moved = clock.monotonic_ns() - before
+        task.cancel()
+        assert isinstance(loop, VirtualTimeLoop)
+        return moved, loop.stood_still_s
+
+    moved, stood = lockstep.run(main())
+    assert moved == 0
+    assert stood > 0.0
+
+
+def test_a_busy_predicate_holds_time_until_it_clears_and_a_thread_can_hand_work_in():
+    async def main() -> list[int]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, VirtualTimeLoop)
+        queue = [1, 2, 3]
+        remove = loop.add_busy(lambda: bool(queue))
+        seen: list[int] = []
+
+        def writer() -> None:  # a writer thread emptying its queue in real time
+            while queue:
+                time.sleep(0.02)
+                loop.call_soon_threadsafe(seen.append, clock.monotonic_ns())
+                queue.pop()
+
+        thread = threading.Thread(target=writer)
+        thread.start()
+        start = clock.monotonic_ns()
+        await asyncio.sleep(1.0)  # not before the queue is empty
+        thread.join()
+        remove()
+        return [t - start for t in seen]
+
+    assert lockstep.run(main()) == [0, 0, 0]
+
+
+def test_paced_virtual_time_keeps_at_least_the_real_time_it_stands_for():
+    async def main() -> int:
+        start = clock.monotonic_ns()
+        for _ in range(20):
+            await asyncio.sleep(0.05)
+        return clock.monotonic_ns() - start
+
+    real = time.monotonic()
+    assert lockstep.run(main(), speed=4.0) == 1_000_000_000
+    assert time.monotonic() - real >= 1.0 / 4.0  # never faster than asked (slower if loaded)
+
+
+@pytest.mark.parametrize("speed", [0.0, -1.0, float("nan"), float("inf")])
+def test_a_speed_must_be_positive_and_finite(speed):
+    with pytest.raises(ValueError, match="speed"):
+        VirtualTimeLoop(speed)
+
+
+def test_one_virtual_clock_per_process():
+    async def main() -> None:
+        with clock.use_virtual_time(lambda: 0):
+            pass
+
+    with pytest.raises(RuntimeError, match="one per process"):
+        lockstep.run(main())
+    assert not clock.is_virtual()
+
+
+# --- in-memory links ----------------------------------------------------------------------------
+
+
+def test_a_memory_link_carries_bytes_both_ways_and_sees_an_unplug_as_a_lost_device():
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        link = open_link("mem://t/dev")
+        assert isinstance(link, MemoryLink) and link.is_serial
+        with pytest.raises(DeviceNotFound, match="mem://t/dev"):
+            await link.open()
+        port = MemoryPort("mem://t/dev").open()
+        heard: list[bytes] = []
+        port.watch(loop, lambda: heard.append(port.read()))
+        assert port.write(b"lost") == 0 and port.dropped_bytes == 4  # nobody has it open
+        await link.open()
+        link.write(b"ping")
+        port.write(b"pong")
+        assert await link.read() == b"pong"
+        await until(lambda: heard)
+        assert heard == [b"ping"]
+        port.unplug()
+        with pytest.raises(DeviceIOError, match="unplugged"):
+            await link.read()
+        with pytest.raises(DeviceIOError):
+            link.write(b"x")
+        link.close()
+        with pytest.raises(DeviceNotFound):
+            await MemoryLink("mem://t/dev").open()
+        port.replug()
+        again = MemoryLink("mem://t/dev")
+        await again.open()
+        port.write(b"back")
+        assert await again.read() == b"back"
+        again.close()
+        port.close()
+
+    lockstep.run(main())
+
+
+def test_a_memory_port_name_is_checked_and_plugs_in_once():
+    with pytest.raises(ValueError, match="mem://"):
+        MemoryPort("/dev/ttyACM0")
+    port = MemoryPort("mem://t/once").open()
+    try:
+        with pytest.raises(RuntimeError, match="plugged in already"):
+            MemoryPort("mem://t/once").open()
+    finally:
+        port.close()
+
+
+# --- the real drivers against the fakes, in lockstep --------------------------------------------
+
+
+def test_the_vesc_driver_drives_the_fake_over_a_memory_link_and_comes_back_after_an_unplug():
+    async def main() -> None:
+        bus = Bus()
+        fake = FakeVesc("mem://t/vesc").open()
+        served = asyncio.create_task(fake.serve())
+        driver = VescDriver(bus, VescParams(port="mem://t/vesc"))
+        task = asyncio.create_task(driver.run())
+        try:
+            await until(lambda: driver.connected)
+            assert driver.firmware == (6, 2)
+            started = clock.monotonic_ns()
+            driver.command(AckermannDrive(speed=1.0, steering_angle=0.1))
+            await until(lambda: any(isinstance(c.packet, SetRpm) and c.packet.erpm > 0
+                                    for c in fake.commands))
+            got = next(c for c in fake.commands if isinstance(c.packet, SetRpm) and c.packet.erpm > 0)
+            assert got.t_ns == started  # no virtual time passes on the way: lockstep
+            assert any(isinstance(c.packet, SetServoPosition) for c in fake.commands)
+            fake.unplug()
+            await until(lambda: not driver.connected)
+            fake.replug()
+            await until(lambda: driver.connected)
+            assert driver.stats.reconnects >= 1
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            served.cancel()
+            await asyncio.gather(served, return_exceptions=True)
+
+    lockstep.run(main())
+
+
+@pytest.mark.parametrize(("model", "tcp"), [("ust-10lx", True), ("urg-04lx", False), ("a2m8", False)])
+def test_the_lidar_drivers_stream_scans_from_the_fakes_over_memory_links(model, tcp):
+    async def main() -> list[float]:
+        bus = Bus()
+        scans: list[float] = []
+        bus.subscribe("/scan", lambda m: scans.append(clock.monotonic()))
+        fake = make_fake(model, RoomRangeSource(), link=f"mem://t/{model}")
+        served = asyncio.create_task(fake.serve())
+        where = {"tcp": f"mem://t/{model}"} if tcp else {"port": f"mem://t/{model}"}
+        driver = make_driver(bus, LidarParams(model=model, **where))
+        task = asyncio.create_task(driver.run())
+        try:
+            await until(lambda: len(scans) >= 5)
+            assert driver.connected and isinstance(bus.latest("/scan"), LaserScan)
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            served.cancel()
+            await asyncio.gather(served, return_exceptions=True)
+        return scans
+
+    first = lockstep.run(main())
+    assert first == lockstep.run(main())  # the same arrival times, to the nanosecond

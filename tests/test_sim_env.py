@@ -1,0 +1,245 @@
+"""The step API (racecar_hw.sim.env): the real daemon on the fakes in lockstep, one control period a
+step, the same run for the same seed; and the loop's stepping and rewinding underneath it."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+
+from racecar_hw.base import clock
+from racecar_hw.base.clock import NS_PER_S, SIM_EPOCH_NS
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.runtime.lockstep import VirtualTimeLoop, close
+from racecar_hw.sim.env import RaceEnv
+from racecar_hw.sim.laps import LapProgress, infield_centre
+from racecar_hw.sim.occupancy import load_shipped_map
+from racecar_hw.sim.scenario import load_scenario
+
+STEERING_MAX_RAD = 0.26  # vesc.steering_max_rad in the sim config
+
+
+def range_at(ranges: np.ndarray, angles: np.ndarray, angle: float, width: float = 0.04) -> float:
+    """The median finite range within ``width`` rad of ``angle``, inf if none."""
+    values = ranges[np.abs(angles - angle) <= width]
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else math.inf
+
+
+def follow_right_wall(ranges: np.ndarray, angles: np.ndarray) -> tuple[float, float]:
+    """A trivial policy: keep 0.8 m from the right-hand wall (two beams, as examples/wall_follower.py
+    does, P only), turn left where a wall comes up ahead, slow down for it and for the steering."""
+    theta = math.radians(50.0)
+    b = range_at(ranges, angles, -math.pi / 2)
+    a = range_at(ranges, angles, -math.pi / 2 + theta)
+    front = range_at(ranges, angles, 0.0, 0.15)
+    b = b if math.isfinite(b) else 3.0
+    a = a if math.isfinite(a) else b / math.cos(theta)
+    alpha = math.atan2(a * math.cos(theta) - b, a * math.sin(theta))
+    distance = b * math.cos(alpha) + 0.6 * math.sin(alpha)
+    steering = 1.2 * (0.8 - distance)
+    if front < 2.5:
+        steering += 0.6 * (2.5 - front)
+    steering = max(-STEERING_MAX_RAD, min(STEERING_MAX_RAD, steering))
+    speed = min(2.0, max(0.6, 0.7 * (front - 0.8)))
+    return speed * (1.0 - 0.5 * abs(steering) / STEERING_MAX_RAD), steering
+
+
+def drive_track(env: RaceEnv, seed: int, steps: int) -> dict:
+    """One episode of the track scenario under :func:`follow_right_wall`: its final state."""
+    obs, info = env.reset("track", seed=seed)
+    angles = env.scan_angles
+    rewards, ends = [], []
+    for _ in range(steps):
+        obs, reward, terminated, truncated, info = env.step(follow_right_wall(obs["scan"], angles))
+        rewards.append(reward)
+        ends.append((terminated, truncated))
+    return {"obs": obs, "info": info, "rewards": rewards, "ends": ends,
+            "interventions": env.daemon.safety.interventions, "time_ns": env.loop.now_ns()}
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    """Exactly the same: pose, odometry, scan, safety, step count, time and every reward."""
+    assert np.array_equal(a["info"]["pose"], b["info"]["pose"])
+    assert np.array_equal(a["obs"]["odom"], b["obs"]["odom"])
+    assert np.array_equal(a["obs"]["scan"], b["obs"]["scan"])
+    assert a["obs"]["safety"] == b["obs"]["safety"]
+    assert a["info"]["steps"] == b["info"]["steps"]
+    assert a["info"]["time_s"] == b["info"]["time_s"] and a["time_ns"] == b["time_ns"]
+    assert a["info"]["speed_mps"] == b["info"]["speed_mps"]
+    assert a["info"]["distance_m"] == b["info"]["distance_m"]
+    assert a["rewards"] == b["rewards"] and a["ends"] == b["ends"]
+
+
+def test_a_thousand_track_steps_reach_the_same_state_for_the_same_seed_twice():
+    with RaceEnv("track") as env:
+        first = drive_track(env, seed=7, steps=1000)
+        assert env.period_s == 0.02  # the daemon's control period: mux.rate_hz 50
+        second = drive_track(env, seed=7, steps=1000)  # reset: a new daemon, new fakes, same loop
+    assert_same_state(first, second)
+    info = first["info"]
+    assert info["steps"] == 1000 and info["time_s"] == pytest.approx(20.0)
+    # the policy drove the car round the first two corners without touching a wall
+    assert not info["collided"] and first["ends"][-1] == (False, False)
+    assert 0.4 < info["lap_progress"] < 1.0 and info["laps"] == 0
+    assert sum(first["rewards"]) == pytest.approx(info["lap_progress"])
+    assert info["mux_source"] == "nav_0"
+    assert 25.0 < info["distance_m"] < 40.0
+    # odometry (odom frame, from the start) follows the true pose (map frame, start at the origin)
+    assert math.hypot(*(first["obs"]["odom"][:2] - info["pose"][:2])) < 2.0
+
+
+def test_reset_starts_the_same_episode_again_and_a_fresh_env_runs_it_the_same():
+    with RaceEnv() as env:
+        obs1, info1 = env.reset(seed=5)
+        tasks_of_first = set(asyncio.all_tasks(env.loop))
+        for _ in range(50):
+            env.step((1.0, 0.1))
+        obs2, info2 = env.reset(seed=5)
+        assert not tasks_of_first & asyncio.all_tasks(env.loop)  # the first episode is gone
+        short = [env.step((1.0, 0.1)) for _ in range(100)]
+        obs3, _ = env.reset(seed=6, options={"scenario": "track"})  # Gymnasium's way to say it
+    assert obs1["scan"].shape == (1081,) and np.array_equal(obs1["scan"], obs2["scan"])
+    assert np.array_equal(obs1["odom"], obs2["odom"]) and obs1["safety"] == obs2["safety"]
+    assert info1["steps"] == info2["steps"] == 0 and info1["time_s"] == info2["time_s"] == 0.0
+    assert np.array_equal(info1["pose"], np.zeros(3))
+    assert not np.array_equal(obs1["scan"], obs3["scan"])  # another seed: other lidar noise
+    with RaceEnv() as fresh:
+        obs4, _ = fresh.reset(seed=5)
+        again = [fresh.step((1.0, 0.1)) for _ in range(100)]
+    assert np.array_equal(obs1["scan"], obs4["scan"])
+    assert np.array_equal(short[-1][0]["odom"], again[-1][0]["odom"])
+    assert np.array_equal(short[-1][4]["pose"], again[-1][4]["pose"])
+    assert short[-1][4]["distance_m"] > 1.0
+
+
+def test_a_step_ends_with_everything_the_fakes_sent_consumed():
+    """Lockstep's guarantee at every step's end: each scan the fake lidar sent was decoded and is
+    the observation's, each VESC reply reached the driver, each command reached the fake VESC."""
+    with RaceEnv() as env:
+        obs, _ = env.reset(seed=2)
+        daemon, lidar, vesc = env.daemon, env.loopback.lidar, env.loopback.vesc
+        new_scans = 0
+        for k in range(150):
+            before = daemon.lidar.stats.scans
+            obs, *_ = env.step((1.0, 0.2 if k < 75 else -0.2))
+            assert daemon.lidar.stats.scans == lidar.scans_sent
+            assert daemon.vesc.stats.frames_rx == vesc.frames_tx
+            assert vesc.frames_rx == daemon.vesc.stats.frames_tx
+            if daemon.lidar.stats.scans > before:  # a new scan in this step: it is the observation
+                new_scans += 1
+                assert obs["scan_time_s"] <= env.time_s
+        latest = daemon.bus.latest(daemon.config.safety.scan_topic)
+        assert np.array_equal(obs["scan"], np.asarray(latest.ranges, dtype=np.float32))
+    assert 115 <= new_scans <= 125  # 40 Hz scans in 150 steps of 20 ms: 4 steps in 5 see one
+
+
+def test_a_collision_ends_the_episode():
+    # the safety controller off, so nothing stops the car before the inner wall 1 m to its left
+    with RaceEnv("track", overrides=["safety.mode=off"]) as env:
+        env.reset(seed=1)
+        steps, terminated = 0, False
+        while not terminated and steps < 500:
+            obs, _, terminated, truncated, info = env.step((2.0, STEERING_MAX_RAD))
+            steps += 1
+        assert terminated and not truncated and info["collided"]
+        assert env.world.collisions and obs["safety"]["interventions"] == 0
+        assert steps < 200
+        # latched: stepping on stays terminated
+        assert env.step((0.0, 0.0))[2]
+    # the same policy with the safety controller on (the sim config's): it stops the car short
+    with RaceEnv("track") as env:
+        env.reset(seed=1)
+        ends = [env.step((2.0, STEERING_MAX_RAD)) for _ in range(steps + 50)]
+        assert not any(terminated for _, _, terminated, _, _ in ends)
+        obs, _, _, _, info = ends[-1]
+        assert obs["safety"]["interventions"] >= 1 and not info["collided"]
+        assert abs(info["speed_mps"]) < 0.01 and info["command"][0] < 0.01  # held short of the wall
+
+
+def test_an_episode_is_truncated_at_its_length():
+    with RaceEnv(max_episode_s=0.1) as env:
+        env.reset()
+        ends = [env.step((0.5, 0.0))[2:4] for _ in range(6)]
+    assert ends == [(False, False)] * 4 + [(False, True)] * 2
+
+
+def test_refusals():
+    with RaceEnv() as env:
+        with pytest.raises(RuntimeError, match="reset"):
+            env.step((1.0, 0.0))
+        with pytest.raises(RuntimeError, match="virtual clock"):
+            RaceEnv()  # one per process: the clock is the process's
+        env.reset()
+        for bad in ((math.nan, 0.0), (1.0, math.inf), (1.0,), "fast"):
+            with pytest.raises(ValueError, match="action"):
+                env.step(bad)
+        with pytest.raises(ValueError, match="poses"):
+            env.reset(options={"poses": [[0.0, 0.0, 0.0]]})
+        assert clock.is_virtual()
+    assert not clock.is_virtual()  # closed: the real clock is back
+    env.close()  # twice is fine
+    with pytest.raises(RuntimeError, match="closed"):
+        env.reset()
+    with RaceEnv(mux_input="nav_9") as env, pytest.raises(ValueError, match="nav_9"):
+        env.reset()
+
+
+def test_a_refused_scenario_says_why_and_the_env_starts_the_next(caplog):
+    broken = load_scenario("track", ["drivers=[{input: nav_9}]"])
+    with RaceEnv() as env:
+        with pytest.raises(ConfigError, match=r"scenario\.drivers\.0\.input.*nav_9"):
+            env.reset(broken)
+        obs, info = env.reset()  # nothing of the refused one in the way
+        assert obs["scan"].size and info["steps"] == 0
+        assert env.step((0.5, 0.0))[4]["steps"] == 1
+    assert "failed" not in caplog.text
+
+
+def test_lap_progress_counts_turns_round_the_infield_from_the_start_line():
+    assert infield_centre(load_shipped_map("room")) is None  # an open room: no laps
+    centre = infield_centre(load_shipped_map("track"))
+    assert centre is not None and load_shipped_map("track").is_occupied(*centre)
+    # a car heading +x below the centre goes counter-clockwise: forwards
+    laps = LapProgress((0.0, 0.0), (0.0, -2.0, 0.0))
+    angles = np.linspace(-math.pi / 2, -math.pi / 2 + 2.5 * 2 * math.pi, 400)
+    progress = [laps.update(2 * math.cos(a), 2 * math.sin(a)) for a in angles]
+    assert progress[-1] == pytest.approx(2.5) and laps.laps == 2
+    assert all(b >= a for a, b in zip(progress, progress[1:], strict=False))
+    # started heading -x there: the same path is backwards
+    backwards = LapProgress((0.0, 0.0), (0.0, -2.0, math.pi))
+    for a in angles:
+        backwards.update(2 * math.cos(a), 2 * math.sin(a))
+    assert backwards.progress == pytest.approx(-2.5) and backwards.laps == 0
+
+
+def test_the_loop_runs_until_a_time_with_everything_due_by_then_done():
+    loop = VirtualTimeLoop()
+    seen: list[tuple[str, int]] = []
+    try:
+        def chain(n: int) -> None:  # work that a timer starts, handed on through the ready queue
+            seen.append((f"chain {n}", loop.now_ns()))
+            if n:
+                loop.call_soon(chain, n - 1)
+
+        start = loop.now_ns()
+        loop.call_later(0.02, chain, 5)     # exactly at the end
+        loop.call_later(0.0201, seen.append, ("later", 0))
+        loop.run_until_time(start + NS_PER_S // 50)
+        assert loop.now_ns() == start + NS_PER_S // 50
+        assert [name for name, _ in seen] == [f"chain {n}" for n in range(5, -1, -1)]
+        assert {t for _, t in seen} == {start + NS_PER_S // 50}
+        loop.run_until_time(start + NS_PER_S)  # no timer before the end: time jumps to it
+        assert loop.now_ns() == start + NS_PER_S and seen[-1] == ("later", 0)
+        with pytest.raises(ValueError):
+            loop.run_until_time(start)
+        handle = loop.call_later(1.0, seen.append, ("never", 0))
+        with pytest.raises(RuntimeError, match="rewind"):
+            loop.rewind()
+        handle.cancel()
+        loop.rewind()
+        assert loop.now_ns() == SIM_EPOCH_NS
+    finally:
+        close(loop)

@@ -1,0 +1,84 @@
+"""Every shipped hazard scenario against its control: without the safety controller the car
+collides, with the shipped config it does not.
+
+A hazard scenario is one whose point is that the safety controller prevents a collision
+(docs/sim.md, "Hazard scenarios and their controls"). Its "no collision" only means something if
+the same scenario with ``safety.mode=off`` (no limit at all: no braking for obstacles, no stop for a
+stale scan, no reverse cap) does collide, so each one is run twice. Both runs are lockstep
+(:mod:`racecar_hw.runtime.lockstep`): the daemon and the fakes on the simulation's virtual clock,
+as fast as the machine allows and the same on an idle or a loaded machine, so the outcomes are
+asserted exactly.
+
+Every shipped scenario is either in :data:`HAZARDS` or in :data:`NOT_HAZARDS` with the reason:
+a new scenario fails :func:`test_every_shipped_scenario_is_classified` until someone decides, and
+a new hazard scenario gets its control from the parametrized test.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import QUIET_NET
+
+from racecar_hw.runtime import lockstep
+from racecar_hw.sim.loopback import Loopback
+from racecar_hw.sim.scenario import load_scenario, scenario_names
+
+#: The hazard scenarios, each with the reason the shipped safety controller intervenes for.
+HAZARDS: dict[str, str] = {
+    "wall": "obstacle",             # the far wall, seen by the live scan
+    "obstacle": "obstacle",         # a disc dropped 1.5 m ahead of the bumper
+    "crossing-person": "obstacle",  # a person stepping into the path, timed to meet the car
+    "sliding-box": "obstacle",      # a box sliding into the path and staying there
+    "reverse-wall": "obstacle",     # a wall behind the car, known only to the obstacle memory
+    "lidar-dropout": "stale_scan",  # a person crossing while the lidar is unplugged
+}
+
+#: The other shipped scenarios, and why they are not hazard scenarios.
+NOT_HAZARDS: dict[str, str] = {
+    "corridor": "the opposite check: the safety controller must not brake (no false stop)",
+    "figure8": "open floor; it shows the car drives a figure-8",
+    "teleop-override": "open floor; it shows the mux's priorities",
+    "vesc-replug": "open floor; it shows the VESC driver reconnecting",
+    "miscalibrated": "the car stands for racecar-hw calibrate --sim",
+    "miscalibrated-figure8": "odometry error of a miscalibrated car (docs/sim.md says why it "
+                             "still brakes at a wall)",
+    "two-cars": "several cars (a Fleet, not a Loopback): tests/test_sim_fleet.py runs it and its "
+                "control, the follower with safety off hitting the leader",
+    "track": "nobody drives: the step API's track (tests/test_sim_env.py) and code over Zenoh",
+}
+
+#: The clearance (m) the shipped config keeps at least: the controller stops 0.25 m
+#: (``safety.margin_m``) short; less than 0.1 m would be a near miss, not a margin.
+CLEAR_MARGIN_M = 0.1
+
+
+def run_lockstep(name: str, tmp_path, *overrides: str) -> dict:
+    loopback = Loopback(load_scenario(name), out_dir=tmp_path, overrides=[*QUIET_NET, *overrides],
+                        lockstep=True)
+    report = lockstep.run(loopback.run()).report
+    # shown with a failure
+    print(name, overrides, json.dumps({k: report.get(k) for k in (
+        "collided", "collisions", "min_clearance_m", "final_pose", "distance_m",
+        "safety_interventions_by_reason", "interventions")}))
+    return report
+
+
+def test_every_shipped_scenario_is_classified():
+    assert not set(HAZARDS) & set(NOT_HAZARDS)
+    assert set(scenario_names()) == set(HAZARDS) | set(NOT_HAZARDS)
+
+
+@pytest.mark.parametrize("name", sorted(HAZARDS))
+def test_a_hazard_collides_without_the_safety_controller_and_not_with_it(tmp_path, name):
+    off = run_lockstep(name, tmp_path / "off", "safety.mode=off")
+    assert off["collided"] is True
+    assert off["safety_interventions"] == 0  # nothing limited the car
+    assert off["min_clearance_m"] == 0.0
+
+    shipped = run_lockstep(name, tmp_path / "shipped")
+    assert shipped["collided"] is False, shipped["collisions"]
+    assert shipped["min_clearance_m"] > CLEAR_MARGIN_M
+    # it was the controller, for the reason the scenario is about, that kept the car clear
+    assert shipped["safety_interventions_by_reason"] == {HAZARDS[name]: 1}

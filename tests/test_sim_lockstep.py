@@ -1,0 +1,118 @@
+"""Scenarios in lockstep: the real daemon and the fakes on virtual time, through in-memory links.
+
+Two runs of a scenario with the same seed must agree exactly (apart from the report's
+run-specific keys: paths, ports, real seconds), on an idle machine or beside processes that burn
+every core; and a lockstep run must drive as a real-time one does.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from conftest import QUIET_NET, ahead_of_other_load, reaped
+from zenoh_util import free_port
+
+from racecar_hw.runtime import lockstep
+from racecar_hw.sim.fleet import Fleet
+from racecar_hw.sim.loopback import Loopback
+from racecar_hw.sim.report import RUN_SPECIFIC, comparable
+from racecar_hw.sim.scenario import load_scenario, scenario_names
+
+#: The network interfaces off: scenarios do not need them (one test below keeps them on).
+NO_NET = (*QUIET_NET, "foxglove.enabled=false", "web.enabled=false")
+
+BURNER = "while True: pass"
+
+
+@contextmanager
+def cpu_burners(n: int = 1) -> Iterator[None]:
+    """``n`` processes that spin a core each (one busy core of a 2-core CI machine)."""
+    procs = [subprocess.Popen([sys.executable, "-c", BURNER]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for proc in procs:
+            with reaped(proc):
+                proc.kill()
+
+
+def run(name: str, overrides: tuple[str, ...] = (), **kw) -> tuple[dict, list]:
+    """One lockstep run of the shipped scenario ``name``: its report and its trajectory (with
+    several cars, racecar_hw.sim.fleet: every car's, one after the other)."""
+    scenario = load_scenario(name)
+    if scenario.cars:
+        fleet = Fleet(scenario, overrides=[*NO_NET, *overrides], **kw)
+        report = lockstep.run(fleet.run()).report
+        return report, [s for car in fleet.cars.values() if car.world for s in car.world.samples]
+    loopback = Loopback(scenario, overrides=[*NO_NET, *overrides], lockstep=True, **kw)
+    result = lockstep.run(loopback.run())
+    assert loopback.world is not None
+    return result.report, list(loopback.world.samples)
+
+
+@pytest.mark.parametrize("name", scenario_names())
+def test_two_lockstep_runs_agree_exactly_even_beside_cpu_burners(name):
+    first, first_path = run(name)
+    with cpu_burners():
+        second, second_path = run(name)
+    assert first["clock"]["mode"] == "lockstep" and first["clock"]["speed"] == "max"
+    assert comparable(first) == comparable(second)
+    assert first_path == second_path
+    assert len(first_path) > 100  # the world stepped all along
+
+
+def test_the_run_specific_keys_are_all_that_is_left_out():
+    report = {"scenario": "x", "trajectory_csv": "a", "plot_png": "b", "bags": [], "live": {},
+              "clock": {"mode": "lockstep", "speed": "max", "real_time_s": 1.5}}
+    assert comparable(report) == {"scenario": "x", "clock": {"mode": "lockstep", "speed": "max"}}
+    assert len(RUN_SPECIFIC) == 5
+
+
+def test_recorded_bags_of_two_lockstep_runs_hold_the_same_messages(tmp_path):
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415 - the test extra
+
+    def messages(folder: Path) -> list[tuple[str, int, bytes]]:
+        bags = sorted(p for p in folder.iterdir() if p.is_dir())
+        assert len(bags) == 1
+        with AnyReader([bags[0]]) as reader:
+            return [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages()]
+
+    got = []
+    for k in range(2):
+        out = tmp_path / f"bags{k}"
+        report, _ = run("obstacle", ("recorder.enabled=true", f"recorder.path={out}"))
+        assert report["bags"]
+        got.append(messages(out))
+    assert len(got[0]) > 1000
+    assert {topic for topic, _, _ in got[0]} >= {"/scan", "/odom", "/tf"}
+    assert got[0] == got[1]  # topics, receive times (sim time) and serialized bytes
+
+
+def test_the_cli_at_max_speed_drives_as_real_time_does(tmp_path):
+    """``racecar-hw sim --scenario figure8 --speed max``, every interface on as shipped, against the
+    same scenario in real time over ptys and TCP: the same path length within 1 %, no collision."""
+    reports = {}
+    for mode, args in (("real", []), ("max", ["--speed", "max"])):
+        out = tmp_path / mode
+        # on free ports and a DDS domain of its own: never a user's sim or another test's
+        own = ["--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "--set", "foxglove.port=0",
+               "--set", "web.port=0", "--set", f"dds.domain_id={random.randrange(100, 230)}"]
+        cmd = [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "figure8", "--no-status",
+               "--out", str(out), *own, *args]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
+                              preexec_fn=ahead_of_other_load if mode == "real" else None)
+        assert proc.returncode == 0, proc.stderr
+        reports[mode] = json.loads((out / "figure8.json").read_text())
+    real, fast = reports["real"], reports["max"]
+    assert fast["clock"]["mode"] == "lockstep" and real["clock"]["mode"] == "real time"
+    assert not real["collided"] and not fast["collided"]
+    assert fast["distance_m"] == pytest.approx(real["distance_m"], rel=0.01)
+    assert fast["safety_interventions"] == 0
+    assert fast["live"]  # the live interfaces were on
