@@ -121,3 +121,10 @@ def reaped(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked ``slow`` run first (in their collection order; every worker collects the same
+    order), so that with pytest-xdist's workers a long test does not start last and leave one
+    worker running alone at the end."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

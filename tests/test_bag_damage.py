@@ -546,6 +546,7 @@ def _sim_follow_refuses(path: Path, cause: str, tmp_path: Path, topic: str = "")
     return took
 
 
+@pytest.mark.slow
 def test_sim_follow_as_a_process_refuses_each_damaged_bag_before_anything_starts(tmp_path):
     (tmp_path / "bags").mkdir()
     bags = _damaged(tmp_path / "bags")

@@ -1,49 +1,56 @@
-"""``racecar-hw calibrate --sim`` as a user runs it: a real process, the real daemon on the fake
+"""``racecar-hw calibrate --sim`` as a user runs it: the command line, the real daemon on the fake
 hardware, a simulated car whose true gains differ from the config (scenario ``miscalibrated``).
 It must find them, write them, and then a figure-8 must end where odometry says; and it must stop
 the car and say why when the operator lets go, the safety controller steps in or the wall is not
-where it should be."""
+where it should be.
+
+The runs are in lockstep (``--speed max``: the daemon and the simulated car on the simulation's
+clock, in this process), so what is checked is the procedure against the simulated world, never
+the scheduling of a loaded machine; ``racecar-hw sim`` in real time is tested in
+tests/test_sim_scenarios.py and tests/test_sim_cli.py.
+"""
 
 from __future__ import annotations
 
 import json
 import re
 import shutil
-import subprocess
-import sys
 
 import pytest
-from conftest import QUIET_NET, ahead_of_other_load, set_args
+from conftest import set_args
+from lockstep_sim import OFFLINE
 from zenoh_util import ROOT
+
+from racecar_hw.cli import main
 
 VALUE = re.compile(r"^(\w+): (\S+) \(true: (\S+)\)", re.MULTILINE)
 
 
-def _calibrate(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "racecar_hw.cli", "calibrate", "--sim", *args,
-                           *set_args(*QUIET_NET)], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, preexec_fn=ahead_of_other_load)
+def _calibrate(capsys, *args: str) -> tuple[int, str, str]:
+    """``racecar-hw calibrate --sim --speed max ARGS``: its exit code, standard output and error."""
+    capsys.readouterr()
+    code = main(["calibrate", "--sim", "--speed", "max", *args, *set_args(*OFFLINE)])
+    out, err = capsys.readouterr()
+    return code, out, err
 
 
-def _figure8(tmp_path, config) -> dict:
+def _figure8(capsys, tmp_path, config) -> dict:
     out = tmp_path / f"fig8-{config.stem}"
-    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim",
-                           "--scenario", "miscalibrated-figure8",
-                           "--config", str(config), "--no-status", "--out", str(out),
-                           "--report", str(out / "report.json"), *set_args(*QUIET_NET)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT,
-                          preexec_fn=ahead_of_other_load)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    code = main(["sim", "--scenario", "miscalibrated-figure8", "--speed", "max", "--config", str(config),
+                 "--no-status", "--out", str(out), "--report", str(out / "report.json"),
+                 *set_args(*OFFLINE)])
+    assert code == 0, capsys.readouterr().err[-3000:]
     return json.loads((out / "report.json").read_text())
 
 
-def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(tmp_path):
+@pytest.mark.slow
+def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(tmp_path, capsys):
     config = tmp_path / "car.yaml"
     shutil.copy(ROOT / "config" / "sim.yaml", config)
     shipped = config.read_text()
-    proc = _calibrate("--config", str(config), "--write", str(config))
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    found = {name: (float(a), float(b)) for name, a, b in VALUE.findall(proc.stdout)}
+    code, stdout, stderr = _calibrate(capsys, "--config", str(config), "--write", str(config))
+    assert code == 0, stdout[-3000:] + stderr[-3000:]
+    found = {name: (float(a), float(b)) for name, a, b in VALUE.findall(stdout)}
     gain, offset, steer = (found[k] for k in ("speed_to_erpm_gain", "steering_angle_to_servo_offset",
                                               "steering_angle_to_servo_gain"))
     assert gain[0] == pytest.approx(gain[1], rel=0.02)
@@ -52,10 +59,10 @@ def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(
     # written into the file, its comments kept, and the diff shown
     written = config.read_text()
     assert "speed_to_erpm_gain" in written and written.startswith(shipped.splitlines()[0])
-    assert f"+++ {config}" in proc.stdout
+    assert f"+++ {config}" in stdout
     # before: the shipped config on the same car; after: the calibrated one (two figure-8s, ~25 m)
-    before = _figure8(tmp_path, ROOT / "config" / "sim.yaml")
-    after = _figure8(tmp_path, config)
+    before = _figure8(capsys, tmp_path, ROOT / "config" / "sim.yaml")
+    after = _figure8(capsys, tmp_path, config)
     assert not before["collided"] and not after["collided"]
     assert after["distance_m"] > 20.0
     assert after["odometry_error_m"] < 0.1, (before["odometry_error_m"], after["odometry_error_m"])
@@ -68,8 +75,14 @@ def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(
     (("--scenario-set", "faults=[{at_s: 5.5, action: obstacle_ahead, distance_m: 0.25}]"),
      "the safety controller intervened"),
 ])
-def test_calibrate_stops_the_car_and_says_why(args, why):
-    proc = _calibrate(*args, timeout=300)
-    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
-    assert why in proc.stderr, proc.stderr[-2000:]
-    assert "Traceback" not in proc.stderr
+def test_calibrate_stops_the_car_and_says_why(args, why, capsys):
+    code, stdout, stderr = _calibrate(capsys, *args)
+    assert code == 1, stdout[-2000:] + stderr[-2000:]
+    assert why in stderr, stderr[-2000:]
+    assert "Traceback" not in stderr
+
+
+def test_speed_is_for_the_simulated_car_only(capsys):
+    assert main(["calibrate", "--speed", "max", "--yes"]) == 1
+    assert capsys.readouterr().err == ("racecar-hw calibrate: --speed: the simulation's clock is for --sim; "
+                                       "a real car runs in real time\n")

@@ -1,20 +1,31 @@
 """``racecar-hw check-config`` as a user runs it: every error at once, with file, line and a close
-match; ``--describe`` in YAML, for one section."""
+match; ``--describe`` in YAML, for one section. The command line runs in this process (its exit
+code, standard output and error as a process gives them; tests/test_daemon_run.py runs
+check-config as a process of its own)."""
 
 from __future__ import annotations
 
 import subprocess
-import sys
 
+import pytest
 import yaml
 
-
-def _check_config(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "racecar_hw.cli", "check-config", *args],
-                          capture_output=True, text=True, timeout=120)
+from racecar_hw.cli import main
 
 
-def test_two_typos_in_a_file_are_both_reported_with_their_lines_and_suggestions(tmp_path):
+@pytest.fixture
+def check_config(capsys):
+    """``racecar-hw check-config ARGS``, as a completed process (exit code, stdout, stderr)."""
+    def run(*args: str) -> subprocess.CompletedProcess:
+        capsys.readouterr()
+        code = main(["check-config", *args])
+        out, err = capsys.readouterr()
+        return subprocess.CompletedProcess(["racecar-hw", "check-config", *args], code, out, err)
+
+    return run
+
+
+def test_two_typos_in_a_file_are_both_reported_with_their_lines_and_suggestions(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n"
                    "  port: /dev/vesc\n"
@@ -24,7 +35,7 @@ def test_two_typos_in_a_file_are_both_reported_with_their_lines_and_suggestions(
                    "  margn_m: 0.3\n"                  # line 6
                    "mux:\n"
                    "  rate_hz: -5\n")                  # line 8: a bad value too
-    proc = _check_config(str(cfg), "--set", "lidar.modle=ust-10lx")
+    proc = check_config(str(cfg), "--set", "lidar.modle=ust-10lx")
     assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
     lines = proc.stderr.splitlines()
     assert f"racecar-hw check-config: {cfg}:3: vesc.speed_to_erpm_gian: unknown key; did you mean " \
@@ -37,23 +48,23 @@ def test_two_typos_in_a_file_are_both_reported_with_their_lines_and_suggestions(
     assert not any("allowed keys" in line for line in lines)  # no dump of every key
 
 
-def test_a_good_file_prints_the_effective_config(tmp_path):
+def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")
-    proc = _check_config(str(cfg))
+    proc = check_config(str(cfg))
     assert proc.returncode == 0, proc.stderr
     assert yaml.safe_load(proc.stdout)["vesc"]["speed_to_erpm_gain"] == 4000.0
 
 
-def test_describe_prints_yaml_values_and_honours_a_section():
-    proc = _check_config("--describe", "vesc")
+def test_describe_prints_yaml_values_and_honours_a_section(check_config):
+    proc = check_config("--describe", "vesc")
     assert proc.returncode == 0, proc.stderr
     keys = [line for line in proc.stdout.splitlines() if not line.startswith(" ")]
     assert keys and all(line.startswith("vesc.") for line in keys)
     assert "vesc.usb_serial: null" in keys and "vesc.invert_motor: false" in keys
     assert not any("None" in line or "False" in line for line in keys)
-    everything = _check_config("--describe")
+    everything = check_config("--describe")
     assert "mux.rate_hz: 50.0" in everything.stdout and "safety.mode: arc" in everything.stdout
-    wrong = _check_config("--describe", "vsec")
+    wrong = check_config("--describe", "vsec")
     assert wrong.returncode == 1
     assert wrong.stderr == "racecar-hw check-config: vsec: unknown section; did you mean vesc?\n"

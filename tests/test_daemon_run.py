@@ -20,7 +20,8 @@ from racecar_hw.control.stats import ControlStats
 from vesc.codec import SetCurrentBrake, SetRpm, SetServoPosition
 
 
-def _notifications(sock: socket.socket, until: float) -> list[str]:
+def _notifications(sock: socket.socket, until: float, last: str = "STOPPING=1") -> list[str]:
+    """The notifications that arrive before ``until`` (monotonic s), or up to ``last``."""
     got: list[str] = []
     sock.settimeout(0.2)
     while time.monotonic() < until:
@@ -28,7 +29,7 @@ def _notifications(sock: socket.socket, until: float) -> list[str]:
             got.extend(sock.recv(4096).decode().split("\n"))
         except TimeoutError:
             continue
-        if any(line == "STOPPING=1" for line in got):
+        if any(line == last for line in got):
             break
     return got
 
@@ -53,7 +54,7 @@ def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_pat
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "-v", "run", "--config", str(cfg)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        got = _notifications(sock, time.monotonic() + 20)
+        got = _notifications(sock, time.monotonic() + 20, last="READY=1")
         assert "READY=1" in got
         wait_for(lambda: vesc.timed_out is False and len(vesc.commands) > 20, timeout=20)
         got = _notifications(sock, time.monotonic() + 1.0)
@@ -164,6 +165,7 @@ def test_check_config_prints_the_effective_config():
     assert "safety.margin_m" in bad.stderr and "out of range" in bad.stderr
 
 
+@pytest.mark.slow
 def test_follow_command_refuses_a_disarmed_car_then_drives_a_twist_bag_with_arm(fakes, tmp_path):
     """A cmd_vel bag (geometry_msgs/Twist, as most public bags carry) on the car config, which
     starts disarmed: refused in one line, then followed with --arm; the topic is found alone."""

@@ -77,6 +77,7 @@ class _Speeds:
             return self.samples[-1][1] if self.samples else float("nan")
 
 
+@pytest.mark.slow
 def test_a_page_estop_stays_latched_under_a_zenoh_release_flood_and_the_page_releases_it(tmp_path):
     zenoh_port = free_port()
     with _sim(tmp_path, zenoh_port) as sim:

@@ -36,6 +36,7 @@ def _wait_listening(port: int, timeout: float = 30.0) -> None:
             time.sleep(0.1)
 
 
+@pytest.mark.slow
 def test_the_wall_follower_example_drives_a_lap_of_the_track(tmp_path):
     port = free_port()
     # A lap takes about a minute; on a loaded 2-core machine it took over 180 s (the safety stop
@@ -78,6 +79,7 @@ def _drive_at_20_hz(stop: threading.Event, *commands: tuple[Car, float, float]) 
         stop.wait(0.05)
 
 
+@pytest.mark.slow
 def test_two_cars_behind_one_as_router_are_driven_independently(tmp_path):
     router_port = free_port()
     car1 = start_sim(tmp_path / "car1", router_port, "zenoh.mode=router", "zenoh.namespace=/car1",
@@ -119,6 +121,7 @@ def test_two_cars_behind_one_as_router_are_driven_independently(tmp_path):
     assert r2["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
 
 
+@pytest.mark.slow
 def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(tmp_path):
     users = tmp_path / "users.txt"
     users.write_text("driver:s3cret\n")
@@ -148,6 +151,7 @@ def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(t
     assert report["distance_m"] < 0.05
 
 
+@pytest.mark.slow
 def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
     port = free_port()
     sim = start_sim(tmp_path, port, duration=5.0)
@@ -176,6 +180,7 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
     assert math.isclose(report["final_speed_mps"], 0.0, abs_tol=0.02)
 
 
+@pytest.mark.slow
 def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_once(tmp_path):
     """The daemon uses F1TENTH names with /odom renamed, and its nav_0 input times out only after
     30 s: a car that stops after the ``with`` block, with nav_0 still the mux's source commanding

@@ -42,6 +42,7 @@ def _peer(port: int, *args: str, timeout: float = 150) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_ros2_tools_see_the_node_its_parameters_and_its_log(tmp_path):
     port = free_port()
     sim = start_sim(tmp_path, port, *QUIET, duration=120.0)
@@ -76,6 +77,7 @@ def _camel(service_path: str) -> str:
     return "".join(part.capitalize() for part in service_path.rsplit("/", 1)[1].split("_"))
 
 
+@pytest.mark.slow
 def test_a_humble_peer_reads_the_car_and_drives_it_when_the_daemon_is_set_for_humble(tmp_path):
     port = free_port()
     sim = start_sim(tmp_path, port, *QUIET, "zenoh.ros_distro=humble", duration=14.0)

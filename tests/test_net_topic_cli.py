@@ -6,6 +6,7 @@ import re
 import subprocess
 import sys
 
+import pytest
 import yaml
 from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
 
@@ -15,6 +16,7 @@ def _topic(port: int, *args: str, timeout: float = 60) -> subprocess.CompletedPr
                            *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
+@pytest.mark.slow
 def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     port = free_port()
     # ended by SIGINT once the tools are done, however long they take on a loaded machine
@@ -52,6 +54,7 @@ def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     assert unknown.returncode == 1 and "not in the ROS graph" in unknown.stderr
 
 
+@pytest.mark.slow
 def test_a_wrong_type_is_refused_by_topic_pub_and_counted_by_the_daemon(tmp_path):
     """``topic pub`` names the type the daemon takes and exits 1; a sample of the wrong type put
     straight on Zenoh (as a ROS 2 node would) is counted and logged by the daemon."""

@@ -14,6 +14,7 @@ import threading
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 
+import pytest
 import zenoh
 from conftest import wait_for
 from live_sim import SimProcess
@@ -131,6 +132,7 @@ def _wrong_login(port: int) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_100_failed_zenoh_logins_are_counted_in_diagnostics_with_a_handful_of_log_lines(tmp_path):
     users = tmp_path / "users.txt"
     users.write_text(f"{GOOD[0]}:{GOOD[1]}\n")

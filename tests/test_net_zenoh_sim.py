@@ -36,6 +36,7 @@ def _speed_near(samples, t: float) -> float:
     return min(samples, key=lambda s: abs(s.t - t)).speed
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("profile", "input_topic"), [
     ("racecar", "/vesc/high_level/ackermann_cmd_mux/input/nav_0"),
     ("f1tenth", "/drive"),
@@ -80,6 +81,7 @@ def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile,
     assert not report["collided"]
 
 
+@pytest.mark.slow
 def test_imu_over_zenoh_while_the_car_turns(tmp_path):
     """The figure-8 (1 m/s, steering 0.25 rad): /imu read by the independent peer has the yaw rate
     the kinematics give, v tan(delta) / L (the odometry's), gravity on z, SI units, its frame and

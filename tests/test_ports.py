@@ -13,6 +13,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
+import pytest
 import yaml
 from live_sim import SimProcess
 
@@ -53,6 +54,7 @@ def test_taken_ports_are_found_and_moved_for_all_three_interfaces():
         assert not taken_listeners(config)
 
 
+@pytest.mark.slow
 def test_a_sim_started_while_its_ports_are_held_runs_on_printed_free_ports():
     with held_ports(3) as (z, f, w):
         sim = SimProcess(["--duration", "60", "--set", "zenoh.enabled=true",
@@ -74,6 +76,7 @@ def test_a_sim_started_while_its_ports_are_held_runs_on_printed_free_ports():
             sim.stop()
 
 
+@pytest.mark.slow
 def test_run_refuses_a_taken_port_in_one_line_naming_the_key(tmp_path):
     for key in ("foxglove", "web"):
         with held_ports(1) as (held,):

@@ -179,6 +179,7 @@ def test_the_window_follows_the_car_and_forgets_what_it_leaves():
     assert near(memory, *POST) == 0
 
 
+@pytest.mark.slow
 def test_memory_stays_bounded_over_a_long_run():
     # a kilometre of driving down an endless corridor lined with posts, 10 minutes of scans at
     # 40 Hz would take long; 1 km at 10 m per second of scans shows the same bound

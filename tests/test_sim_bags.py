@@ -2,6 +2,9 @@
 
 Everything real: the daemon records through its recorder while the figure-8 drives the teleop
 input; the follower reads the bag back and drives nav_0 through the mux and safety controller.
+The recording is made in real time (over a pty and TCP, on a machine that holds the process up
+now and then: the gaps a loaded machine leaves in a bag); the replays run in lockstep
+(tests/lockstep_sim.py), as fast as the machine allows and never held up.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
+import pytest
 from conftest import QUIET_NET
+from lockstep_sim import run_lockstep
 
 from racecar_hw.bags.follow import holes, load_commands
 from racecar_hw.sim.loopback import Loopback
@@ -27,7 +32,8 @@ TELEOP = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 #: On a loaded machine the whole process, fake lidar included, can be held up for tens of
 #: milliseconds; a scan then ages past the default 0.1 s timeout and the safety controller rightly
 #: stops the car, at different moments in each run. Retracing is what this file tests (staleness is
-#: tested in test_safety_*), so its runs allow scans to be half a second old.
+#: tested in test_safety_*), so its real-time recording allows scans to be half a second old (the
+#: replays, in lockstep, keep the default timeout: no scan is ever late there).
 TOLERATE_STALLS = "safety.scan_timeout_s=0.5"
 
 
@@ -60,10 +66,22 @@ def held_up(hold_s: float = 0.13, every_s: float = 0.7) -> Iterator[None]:
 
 def _run(scenario_overrides: list[str], overrides: list[str] = (), *,
          until_replay_ends: bool = False) -> dict:
+    """The figure-8 scenario with ``scenario_overrides``, in real time."""
     scenario = load_scenario("figure8", scenario_overrides)
     loopback = Loopback(scenario, overrides=[TOLERATE_STALLS, *QUIET_NET, *overrides],
                         until_replay_ends=until_replay_ends)
     report = asyncio.run(loopback.run()).report
+    return _shown(report)
+
+
+def _replay(scenario_overrides: list[str]) -> dict:
+    """The figure-8 scenario with ``scenario_overrides`` in lockstep, for as long as its replay."""
+    report = run_lockstep("figure8", *scenario_overrides, until_replay_ends=True)[0].report
+    assert report["control"]["missed_ticks"] == 0 and report["safety_interventions"] == 0, report
+    return _shown(report)
+
+
+def _shown(report: dict) -> dict:
     print(json.dumps({k: report.get(k) for k in ("final_pose", "distance_m", "collided", "max_speed_mps",
                                                   "safety_interventions_by_reason", "control",
                                                   "duration_s", "sim_time_s", "follow")}))
@@ -75,6 +93,7 @@ def _pose(report: dict) -> tuple[float, float, float]:
     return p["x"], p["y"], p["yaw"]
 
 
+@pytest.mark.slow
 def test_recorded_figure8_is_retraced_forwards_and_backwards(tmp_path):
     bags = tmp_path / "bags"
     with held_up():  # a recording with gaps, as a loaded machine makes them (the replays are not held up)
@@ -94,7 +113,7 @@ def test_recorded_figure8_is_retraced_forwards_and_backwards(tmp_path):
     # the replay end late: a fixed duration could end it before the last command.
     follow = {"type": "follow", "input": "nav_0", "bag": str(bag), "topic": TELEOP,
               "use_timestamps": True}
-    forward = _run([f"drivers={json.dumps([follow])}"], until_replay_ends=True)
+    forward = _replay([f"drivers={json.dumps([follow])}"])
     fx, fy, fyaw = _pose(forward)
     assert forward["follow"][0]["complete"]
     assert math.hypot(fx - end[0], fy - end[1]) < 0.3, (end, _pose(forward))
@@ -107,8 +126,7 @@ def test_recorded_figure8_is_retraced_forwards_and_backwards(tmp_path):
     # the mux's 0.2 s timeout bridged (0.15 s) is bridged in the replay too instead of stopping the
     # car (0.3 s): without the repeats this run ended 1.1 to 1.5 m from the start.
     back = dict(follow, reverse=True)
-    backward = _run([f"drivers={json.dumps([back])}", f"start=[{fx}, {fy}, {fyaw}]"],
-                    until_replay_ends=True)
+    backward = _replay([f"drivers={json.dumps([back])}", f"start=[{fx}, {fy}, {fyaw}]"])
     bx, by, _ = _pose(backward)
     (replay,) = backward["follow"]
     assert replay["complete"] and replay["speed_scale"] == 0.5

@@ -1,7 +1,9 @@
 """A pymavlink ground station on 127.0.0.1 against ``racecar-hw sim`` (issue: MAVLink teleop).
 
 The ground station arms the simulated car and drives it with MANUAL_CONTROL through the real
-daemon, the real mux and safety controller, the fake VESC on a pty and the world simulation.
+daemon, the real mux and safety controller, the fake VESC and the world simulation (in lockstep:
+on the simulation's virtual clock, the fakes behind in-memory links, the ground station's UDP
+socket real; the tests with signing and floods run in real time over a pty).
 Issue 24: it keeps control while another process floods the port with forged datagrams
 (tests/mavlink_flood.py) and after a frame signed with its key but stamped an hour ahead; forged
 frames are counted per source and logged as a few summary lines.
@@ -28,6 +30,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from racecar_hw.base.clock import NS_PER_S, wall_ns  # noqa: E402
 from racecar_hw.base.messages import DiagnosticArray  # noqa: E402
+from racecar_hw.runtime import lockstep  # noqa: E402
 from racecar_hw.runtime.security_status import STATUS_NAME  # noqa: E402
 from racecar_hw.sim.loopback import Loopback  # noqa: E402
 from racecar_hw.sim.scenario import load_scenario  # noqa: E402
@@ -82,7 +85,7 @@ class Station:
             await asyncio.sleep(0.1)
 
 
-def _loopback(station: Station, script, *extra: str) -> Loopback:
+def _loopback(station: Station, script, *extra: str, lockstep: bool = False) -> Loopback:
     scenario = load_scenario("wall", ["drivers=[]", "duration_s=60"])
     overrides = ["mavlink.enabled=true", "mavlink.bind_port=0",
                  f"mavlink.gcs_address=127.0.0.1:{station.port}", "arming.start_armed=false", NO_ZENOH,
@@ -91,7 +94,7 @@ def _loopback(station: Station, script, *extra: str) -> Loopback:
     def setup(lb: Loopback) -> None:
         lb.daemon.add_task(script(lb))
 
-    return Loopback(scenario, overrides=overrides, setup=setup)
+    return Loopback(scenario, overrides=overrides, setup=setup, lockstep=lockstep)
 
 
 def test_ground_station_arms_drives_disarms_and_failsafes_the_sim_car():
@@ -133,7 +136,7 @@ def test_ground_station_arms_drives_disarms_and_failsafes_the_sim_car():
             beats.cancel()
             lb.request_stop()
 
-    asyncio.run(_loopback(station, script).run())
+    lockstep.run(_loopback(station, script, lockstep=True).run())
     assert checks["disarmed_at_start"]
     assert checks["still_when_disarmed"]
     assert checks["moving_when_armed"]
@@ -201,6 +204,7 @@ def _lines_naming(caplog: pytest.LogCaptureFixture, source: str) -> list[str]:
     return [r.getMessage() for r in caplog.records if source in r.getMessage()]
 
 
+@pytest.mark.slow
 def test_the_signed_operator_keeps_control_through_a_flood_and_a_frame_an_hour_ahead(tmp_path, caplog):
     """Another process sends forged datagrams (bad signatures, unsigned; the station's ids) as
     fast as it can for 10 s while the signed station drives forward, stops and reverses: its

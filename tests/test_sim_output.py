@@ -193,16 +193,12 @@ def test_the_allowed_speed_is_drawn_on_the_side_the_car_drives_and_holds_while_i
 
 
 def test_a_reverse_wall_run_plots_the_allowed_speed_on_the_measured_side(tmp_path: Path) -> None:
-    """The shipped reverse-wall scenario, run on the loopback: wherever the car reverses, the
-    plotted allowed speed is below zero too (read from the figure's data, not its pixels)."""
-    import asyncio
+    """The shipped reverse-wall scenario, run on the loopback (in lockstep): wherever the car
+    reverses, the plotted allowed speed is below zero too (read from the figure's data, not its
+    pixels)."""
+    from lockstep_sim import run_lockstep
 
-    from racecar_hw.sim.loopback import Loopback
-    from racecar_hw.sim.scenario import load_scenario
-
-    loopback = Loopback(load_scenario("reverse-wall"), out_dir=tmp_path,
-                        overrides=["zenoh.enabled=false", "foxglove.enabled=false", "web.enabled=false"])
-    result = asyncio.run(loopback.run())
+    result, loopback = run_lockstep("reverse-wall", out_dir=tmp_path)
     samples = loopback.control_samples
     fig = run_figure(loopback.map, [(0.0, 0.0, 0.0, 0.0, 0.0)], series=samples)
     _, allowed = _allowed_line(fig)

@@ -13,6 +13,7 @@ from conftest import async_wait_for
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.messages import AckermannDrive, Float64, Odometry, TFMessage, VescStateStamped
+from racecar_hw.runtime import lockstep
 from vesc.ackermann import AckermannConversion
 from vesc.codec import (
     Alive,
@@ -55,10 +56,26 @@ class Recorder:
         return self.got[topic][-1][1]
 
 
+#: the fakes' serving tasks (the loop keeps only weak references to tasks)
+SERVING: set[asyncio.Task[None]] = set()
+
+
+def memory_fake(name: str, **kw) -> FakeVesc:
+    """A fake VESC served in the running loop behind the in-memory link ``mem://NAME/vesc`` (for
+    a driver and its fake in lockstep, :func:`racecar_hw.runtime.lockstep.run`, which cancels the
+    task at its end)."""
+    fake = FakeVesc(f"mem://{name}/vesc", **kw).open()
+    task = asyncio.ensure_future(fake.serve())
+    SERVING.add(task)
+    task.add_done_callback(SERVING.discard)
+    return fake
+
+
 async def drive_for(driver: VescDriver, seconds: float, speed: float, steer: float = 0.0,
                     hz: float = 50.0) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
+    loop = asyncio.get_running_loop()  # its clock: the monotonic one, or virtual in lockstep
+    end = loop.time() + seconds
+    while loop.time() < end:
         driver.command(AckermannDrive(speed=speed, steering_angle=steer))
         await asyncio.sleep(1.0 / hz)
 
@@ -104,17 +121,19 @@ def test_handshake_and_telemetry_per_layout(tmp_path, device_thread, firmware):
     asyncio.run(scenario())
 
 
-def test_commands_arrive_with_exact_values(tmp_path, device_thread):
-    fake = start_fake(device_thread, tmp_path / "vesc")
-
+def test_commands_arrive_with_exact_values():
+    """In lockstep (the driver and the fake VESC on virtual time behind an in-memory link): the
+    same run on an idle or a loaded machine (over a pty, a loaded one once showed the fake a brake
+    of SetRpm(0) before the first command)."""
     async def scenario() -> None:
+        fake = memory_fake("exact")
         async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
             await async_wait_for(lambda: driver.connected)
             fake.clear_commands()
-            before, before_cpu = time.monotonic_ns(), time.thread_time_ns()
+            before, before_cpu = monotonic_ns(), time.thread_time_ns()
             driver.command(AckermannDrive(speed=1.5, steering_angle=-0.1))
             # written before command() returns, stamped on both of this thread's clocks
-            assert before <= driver.last_motor_write_ns <= time.monotonic_ns()
+            assert before == driver.last_motor_write_ns == monotonic_ns()  # no virtual time passed
             assert before_cpu <= driver.last_motor_write_cpu_ns <= time.thread_time_ns()
             driver.command(AckermannDrive(speed=-0.5, steering_angle=0.3))
             await async_wait_for(lambda: sum(isinstance(r.packet, SetServoPosition)
@@ -126,13 +145,14 @@ def test_commands_arrive_with_exact_values(tmp_path, device_thread):
             await async_wait_for(lambda: fake.erpm == -2307 and fake.servo == 0.215, timeout=5)
             keep_driving.cancel()
 
-    asyncio.run(scenario())
+    lockstep.run(scenario())
 
 
-def test_failsafe_brakes_and_centres_within_100ms(tmp_path, device_thread):
-    fake = start_fake(device_thread, tmp_path / "vesc")
-
+def test_failsafe_brakes_and_centres_within_100ms():
+    """In lockstep (the driver and the fake VESC on virtual time behind an in-memory link): the
+    brake and the centring come exactly the 50 ms command timeout after the last command."""
     async def scenario() -> None:
+        fake = memory_fake("failsafe")
         async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
             await async_wait_for(lambda: driver.connected)
             await drive_for(driver, 0.4, 2.0, 0.2)
@@ -145,59 +165,73 @@ def test_failsafe_brakes_and_centres_within_100ms(tmp_path, device_thread):
             after = [r for r in log if r.t_ns > last_motion or (r.t_ns == last_motion and is_brake(r.packet))]
             first_brake = next(r.t_ns for r in after if is_brake(r.packet))
             first_centre = next(r.t_ns for r in after if is_centre(r.packet))
-            assert first_brake - last_motion <= 100_000_000, (first_brake - last_motion) / 1e6
-            assert first_centre - last_motion <= 100_000_000, (first_centre - last_motion) / 1e6
+            assert first_brake - last_motion == 50_000_000, (first_brake - last_motion) / 1e6
+            assert first_centre - last_motion == 50_000_000, (first_centre - last_motion) / 1e6
             assert driver.stats.failsafes == 1
             await async_wait_for(lambda: fake.erpm == 0 and fake.servo == CENTRE_WIRE, timeout=5)
 
-    asyncio.run(scenario())
+    lockstep.run(scenario())
 
 
 def test_a_command_stream_leaves_the_failsafe_timer_until_it_is_half_due(tmp_path):
+    """On virtual time (lockstep), so that 30 ms is exactly past half of the 50 ms timeout and
+    never past all of it."""
     async def scenario() -> None:
+        loop = asyncio.get_running_loop()
         driver = VescDriver(Bus(), VescParams(port=str(tmp_path / "absent")))
         driver.command(AckermannDrive(speed=1.0))
         timer = driver._failsafe_timer  # noqa: SLF001
-        assert timer is not None
+        assert timer is not None and timer.when() == pytest.approx(loop.time() + 0.05, abs=1e-9)
         for _ in range(100):  # back to back: the timer is still due a whole timeout from now
             driver.command(AckermannDrive(speed=1.0))
         assert driver._failsafe_timer is timer  # noqa: SLF001
-        await asyncio.sleep(0.03)  # past half of the 50 ms timeout (or past all of it)
-        before = time.monotonic()
+        await asyncio.sleep(0.03)  # past half of the 50 ms timeout
+        assert driver.moving and driver.stats.failsafes == 0
+        before = loop.time()
         driver.command(AckermannDrive(speed=1.0))
-        assert driver._failsafe_timer is not timer  # noqa: SLF001 - moved, or fired and set anew
-        assert driver._failsafe_timer.when() >= before + 0.05 - 1e-6  # noqa: SLF001
+        moved = driver._failsafe_timer  # noqa: SLF001
+        assert moved is not timer and timer.cancelled()  # moved: a whole timeout from this command
+        assert moved.when() == pytest.approx(before + 0.05, abs=1e-9)
         await async_wait_for(lambda: not driver.moving, timeout=5)  # commands stop: it brakes
-        assert driver.stats.failsafes >= 1
+        assert driver.stats.failsafes == 1
 
-    asyncio.run(scenario())
+    lockstep.run(scenario())
 
 
-def test_a_held_up_process_brakes_only_if_the_next_command_was_not_due_first(tmp_path, device_thread):
+def test_a_held_up_process_brakes_only_if_the_next_command_was_not_due_first():
     """The whole process stalls past the failsafe deadline with a command due before it.
 
     Every overdue timer then runs in one pass, in deadline order: a poll tick (due first), the
     control tick's command, the failsafe timer. The car was never without a fresh command in that
-    order, so it must not brake; once commands really stop, it brakes.
+    order, so it must not brake; once commands really stop, it brakes, a timeout after the last.
+    The driver and the fake VESC run in lockstep behind an in-memory link, the hold-up is a stall
+    of the virtual clock, and every time is exact.
     """
-    fake = start_fake(device_thread, tmp_path / "vesc")
-
     async def scenario() -> None:
+        fake = memory_fake("held-up")
         params = VescParams(port=fake.path, poll_rate_hz=100.0)  # a poll tick every 10 ms
         async with VescDriver(Bus(), params) as driver:
             await async_wait_for(lambda: driver.connected)
             await async_wait_for(lambda: driver.last_state is not None)  # the poll ticks run
             loop = asyncio.get_running_loop()
+            assert isinstance(loop, lockstep.VirtualTimeLoop)
             driver.command(AckermannDrive(speed=1.0))
-            commanded = loop.time()
-            loop.call_at(commanded + 0.03, driver.command, AckermannDrive(speed=1.0))
-            time.sleep(0.09)  # the process held up: the 50 ms deadline passes with nothing running
+            commanded_ns = loop.now_ns()
+            loop.call_at(commanded_ns / NS_PER_S + 0.03, driver.command, AckermannDrive(speed=1.0))
+            loop.stall(0.09)  # the process held up: the 50 ms deadline passes with nothing running
             await asyncio.sleep(0.005)
             assert driver.stats.failsafes == 0 and driver.moving
             await async_wait_for(lambda: not driver.moving, timeout=5)
             assert driver.stats.failsafes == 1
+            # the command due at 30 ms ran at the end of the 90 ms hold-up: the brake came 50 ms later
 
-    asyncio.run(scenario())
+            def brakes() -> list[CommandRecord]:
+                return [r for r in fake.commands if r.t_ns > commanded_ns and is_brake(r.packet)]
+
+            await async_wait_for(brakes)  # read by the fake
+            assert brakes()[0].t_ns == commanded_ns + 90_000_000 + 50_000_000
+
+    lockstep.run(scenario())
 
 
 def _after_last_motion(fake: FakeVesc) -> list[CommandRecord]:

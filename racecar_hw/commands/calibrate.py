@@ -17,6 +17,7 @@ from pathlib import Path
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
+from racecar_hw.commands.sim import _speed
 from racecar_hw.config import Config, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.runtime.extras import require_extra
@@ -61,6 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --sim: the scenario (default miscalibrated)")
     p.add_argument("--scenario-set", dest="scenario_overrides", action="append", default=[],
                    metavar="KEY=VALUE", help="with --sim: override a scenario key")
+    p.add_argument("--speed", type=_speed, metavar="N|max",
+                   help="with --sim: run the daemon and the simulated car in lockstep on the "
+                        "simulation's clock (as racecar-hw sim --speed does) at N times real time, or "
+                        "max: as fast as the machine allows (default: real time over ptys and TCP)")
     p.add_argument("--wall-distance", type=float, default=3.0, metavar="M",
                    help="distance from the lidar to the wall ahead (default 3.0 m)")
     p.add_argument("--stop-distance", type=float, default=1.2, metavar="M",
@@ -86,6 +91,8 @@ class _Truth:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.write and not Path(args.write).is_file():
         raise ConfigError("--write", f"{args.write}: no such config file (copy config/car.yaml first)")
+    if args.speed is not None and not args.sim:
+        raise ConfigError("--speed", "the simulation's clock is for --sim; a real car runs in real time")
     if args.sim:
         result, truth = _run_sim(args)
     else:
@@ -181,8 +188,9 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
         daemon.add_task(_calibrate(procedure, outcome,
                                    then=lambda: loopback.request_stop("calibration ended")))
 
+    lockstep = args.speed is not None
     loopback = Loopback(scenario, config_path=args.config, overrides=args.overrides, duration_s=600.0,
-                        setup=setup)
+                        setup=setup, lockstep=lockstep)
 
     async def main() -> None:
         remove = add_stop_handlers(asyncio.get_running_loop(), lambda _sig: loopback.request_stop("signal"),
@@ -193,7 +201,12 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
             remove()
 
     with StopSignals() as stops:
-        asyncio.run(main())
+        if lockstep:
+            from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the option
+
+            virtual.run(main(), None if math.isinf(args.speed) else args.speed)
+        else:
+            asyncio.run(main())
     return (outcome[0] if outcome else "interrupted before the procedure ended"), truth[0]
 
 

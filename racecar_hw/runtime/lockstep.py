@@ -72,6 +72,15 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         """Virtual time in ns (what :func:`racecar_hw.base.clock.monotonic_ns` returns in a run)."""
         return self._now_ns
 
+    def stall(self, seconds: float) -> None:
+        """Move virtual time ``seconds`` ahead at once with nothing run: what a process held up (a
+        long blocking call, a descheduled CPU) does to the loop. Every timer that fell due meanwhile
+        then runs in one pass, in deadline order, as after a real hold-up. For tests of hold-ups."""
+        if not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"a stall lasts zero or more seconds, not {seconds}")
+        self._now_ns += round(seconds * NS_PER_S)
+        self._anchor = None
+
     # --- what holds time still ----------------------------------------------------------------
 
     def add_busy(self, predicate: Callable[[], bool]) -> Callable[[], None]:
