@@ -326,7 +326,7 @@ def test_a_loop_ending_with_a_client_still_connected_logs_no_traceback():
     async def main() -> None:
         asyncio.get_running_loop().set_exception_handler(lambda _loop, context: errors.append(context))
         fake = FakeHokuyo("ust-10lx", RoomRangeSource(8, 6), tcp=("127.0.0.1", 0))
-        asyncio.ensure_future(fake.serve())
+        serving = asyncio.ensure_future(fake.serve())  # held: the loop keeps only a weak reference
         assert await asyncio.to_thread(fake.ready.wait, 10)
         _, writer = await asyncio.open_connection(*fake.tcp_address)
         writer.write(b"VV\n")
@@ -334,7 +334,7 @@ def test_a_loop_ending_with_a_client_still_connected_logs_no_traceback():
         deadline = time.monotonic() + 10
         while not fake.received and time.monotonic() < deadline:
             await asyncio.sleep(0.01)
-        assert list(fake.received) == ["VV"]
+        assert list(fake.received) == ["VV"] and not serving.done()
         # returning here leaves serve() and the connection's handler for asyncio.run to cancel
 
     asyncio.run(main())
