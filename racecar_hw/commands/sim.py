@@ -63,27 +63,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_sim)
 
 
-def _seconds(text: str) -> float:
+def _positive(text: str, what: str) -> float:
     try:
         value = float(text)
     except ValueError:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}")
     return value
+
+
+def _seconds(text: str) -> float:
+    return _positive(text, "a positive number of seconds")
 
 
 def _speed(text: str) -> float:
     """``max`` (as fast as possible: math.inf) or a positive multiple of real time."""
     if text.strip().lower() == "max":
         return math.inf
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is neither a positive number nor max")
-    return value
+    return _positive(text, "max or a positive number")
 
 
 def build_scenario(args: argparse.Namespace) -> Scenario:
