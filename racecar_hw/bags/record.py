@@ -468,9 +468,10 @@ class Recorder:
             self._outbox.clear()
             raise
         assert self._file is not None
-        # in lockstep the sim's time waits for a writer that fell behind, instead of dropping
-        half = max(1, self.params.queue_size // 2)
-        self._release_hold = hold_while(lambda: len(self._outbox) >= half)
+        # in lockstep the sim's time waits for a writer that fell behind, instead of dropping (but
+        # not for a writer thread that is gone: its queue would never drain)
+        half, outbox = max(1, self.params.queue_size // 2), self._outbox
+        self._release_hold = hold_while(lambda: len(outbox) >= half and outbox.running)
         self._sub = self.bus.subscribe_all(self._on_message)
         log.info("recording %s to %s", ", ".join(self.params.topics) or "all topics",
                  self._file.path)
