@@ -16,6 +16,10 @@ def _topic(port: int, *args: str, timeout: float = 60) -> subprocess.CompletedPr
                            *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
+SCAN_LISTED = r"^/scan\s+\[sensor_msgs/msg/LaserScan\]\s+publishers: /racecar_hw"
+CMD_VEL_LISTED = r"^/cmd_vel\s+\[geometry_msgs/msg/Twist\].*subscribers: /racecar_hw"
+
+
 @pytest.mark.slow
 def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     port = free_port()
@@ -23,7 +27,9 @@ def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
     sim = start_sim(tmp_path, port, duration=180.0)
     try:
         listed = _topic(port, "list", "-v")
-        while "/scan" not in listed.stdout and sim.proc.poll() is None:  # the sim may still start
+        # the sim may still start: its publishers and its subscribers join the graph one by one
+        while sim.proc.poll() is None and not all(re.search(row, listed.stdout, re.M)
+                                                  for row in (SCAN_LISTED, CMD_VEL_LISTED)):
             listed = _topic(port, "list", "-v")
         unknown = _topic(port, "echo", "/no_such_topic", "-n", "1")
         odom = _topic(port, "echo", "/odom", "-n", "1")
@@ -38,8 +44,8 @@ def test_topic_list_echo_hz_and_pub_work_against_the_sim(tmp_path):
         sim.kill()
     assert listed.returncode == 0, listed.stderr
     out = listed.stdout
-    assert re.search(r"^/scan\s+\[sensor_msgs/msg/LaserScan\]\s+publishers: /racecar_hw", out, re.M)
-    assert re.search(r"^/cmd_vel\s+\[geometry_msgs/msg/Twist\].*subscribers: /racecar_hw", out, re.M)
+    assert re.search(SCAN_LISTED, out, re.M)
+    assert re.search(CMD_VEL_LISTED, out, re.M)
     assert odom.returncode == 0, odom.stderr
     first = yaml.safe_load(odom.stdout.split("---")[0])
     assert first["header"]["frame_id"] == "odom" and first["child_frame_id"] == "base_link"

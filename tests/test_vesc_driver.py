@@ -98,10 +98,16 @@ def test_handshake_and_telemetry_per_layout(tmp_path, device_thread, firmware):
         async with VescDriver(bus, VescParams(port=fake.path)) as driver:
             await async_wait_for(lambda: driver.connected)
             assert driver.firmware == firmware
-            await drive_for(driver, 0.6, 1.0, 0.1)
-            await async_wait_for(lambda: rec.count(TOPIC_CORE) >= 10)
-            driver.command(AckermannDrive(speed=1.0, steering_angle=0.1))
-            await async_wait_for(lambda: driver.last_state.state.speed == 4614, timeout=5)
+            # commands at 50 Hz throughout: a single one is let go by the 50 ms command timeout
+            # (brake, centre) before a loaded machine may show its telemetry
+            driving = asyncio.create_task(drive_for(driver, 60.0, 1.0, 0.1))
+            try:
+                await async_wait_for(lambda: rec.count(TOPIC_CORE) >= 10)
+                await async_wait_for(lambda: driver.last_state.state.speed == 4614 and rec.count(TOPIC_ODOM)
+                                     and rec.last(TOPIC_ODOM).twist.twist.angular.z > 0, timeout=5)
+            finally:
+                driving.cancel()
+                await asyncio.gather(driving, return_exceptions=True)
             state = driver.last_state
             assert isinstance(state, VescStateStamped)
             assert state.state.voltage_input == pytest.approx(16.8, abs=0.5)
@@ -110,7 +116,7 @@ def test_handshake_and_telemetry_per_layout(tmp_path, device_thread, firmware):
             assert (state.state.ntc_temp_mos1 == 31.5) is mos_temperature_present
             odom = rec.last(TOPIC_ODOM)
             assert isinstance(odom, Odometry) and odom.pose.pose.position.x > 0
-            assert odom.twist.twist.angular.z > 0  # left steering turns left
+            assert odom.twist.twist.angular.z > 0  # left steering turns left (waited for above)
             assert isinstance(rec.last(TOPIC_TF), TFMessage)
             servo = rec.last(TOPIC_SERVO)
             assert isinstance(servo, Float64)
