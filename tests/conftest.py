@@ -82,7 +82,7 @@ def fakes(device_thread, tmp_path):
     lidar = FakeHokuyo("ust-10lx", RoomRangeSource(), tcp=("127.0.0.1", 0))
     device_thread.spawn(vesc.serve())
     device_thread.spawn(lidar.serve())
-    assert lidar.ready.wait(10)
+    assert vesc.ready.wait(10) and lidar.ready.wait(10)
     return vesc, lidar
 
 

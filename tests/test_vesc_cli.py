@@ -26,6 +26,7 @@ def test_help(command, capsys):
 def test_vesc_info_against_the_fake(tmp_path, device_thread, capsys):
     fake = FakeVesc(str(tmp_path / "vesc"), firmware=(5, 2)).open()
     device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
     assert main(["vesc-info", "--port", fake.path]) == 0
     out = capsys.readouterr().out
     assert "firmware: 5.02" in out
@@ -40,6 +41,7 @@ def test_vesc_info_reports_an_unknown_firmware_as_unknown_and_decodes_no_telemet
     printed, and the exit status says the driver will not drive it."""
     fake = FakeVesc(str(tmp_path / "vesc"), firmware=firmware).open()
     device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
     assert main(["vesc-info", "--port", fake.path]) == 1
     out, err = capsys.readouterr()
     version = f"{firmware[0]}.{firmware[1]:02d}"
@@ -93,6 +95,7 @@ def test_vesc_info_into_a_closed_pipe_ends_quietly(tmp_path, device_thread):
     """``racecar-hw vesc-info --port X | head -1``: the reader leaves early; no BrokenPipeError."""
     fake = FakeVesc(str(tmp_path / "vesc"), firmware=(6, 2)).open()
     device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
     read, write = os.pipe()
     os.close(read)  # the reader is gone before anything is written
     proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "vesc-info", "--port", fake.path],

@@ -38,6 +38,7 @@ CENTRE_WIRE = round(CONV.servo_centre * 1000) / 1000  # the centre as the servo 
 def start_fake(device_thread, path, firmware=(6, 2), **kw) -> FakeVesc:
     fake = FakeVesc(str(path), firmware, **kw).open()
     device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
     return fake
 
 

@@ -59,6 +59,7 @@ def make(tmp_path, device_thread):
     def factory(firmware=(6, 2), **kw) -> tuple[FakeVesc, Client]:
         fake = FakeVesc(str(tmp_path / f"vesc{len(clients)}"), firmware, **kw).open()
         device_thread.spawn(fake.serve())
+        assert fake.ready.wait(10)
         client = Client(fake.path)
         clients.append(client)
         return fake, client

@@ -145,6 +145,8 @@ class FakeVesc:
         self._corrupt_next = False
         self._last_reset_ns = monotonic_ns()
         self._reading = False
+        #: set while :meth:`serve` answers on the port; unplug and replug wait for it in tests
+        self.ready = threading.Event()
         self.frames_rx = 0
         self.frames_tx = 0
 
@@ -181,9 +183,11 @@ class FakeVesc:
         motor = PeriodicTimer(1.0 / self.tick_s, tick,
                               on_error=lambda err: failed.done() or failed.set_exception(err))
         motor.start()
+        self.ready.set()
         try:
             await failed
         finally:
+            self.ready.clear()
             motor.cancel()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError):
