@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 from conftest import ahead_of_other_load, wait_for
-from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
+from zenoh_util import ROOT, endpoint, free_port, start_sim, switches, wait_standing, wait_until_stopped
 
 from racecar_hw.client import AsyncCar, Car, ClientError
 from racecar_hw.sim.trajectory import read_csv
@@ -82,32 +82,43 @@ def _drive_at_20_hz(stop: threading.Event, *commands: tuple[Car, float, float]) 
 @pytest.mark.slow
 def test_two_cars_behind_one_as_router_are_driven_independently(tmp_path):
     router_port = free_port()
+    # both sims are ended (SIGINT) once the cars stand still again, not after a fixed duration
     car1 = start_sim(tmp_path / "car1", router_port, "zenoh.mode=router", "zenoh.namespace=/car1",
-                     duration=12.0)
+                     duration=180.0)
     car2 = None
     try:
         _wait_listening(router_port)
         car2 = start_sim(tmp_path / "car2", None, "zenoh.mode=client", "zenoh.listen=[]",
                          f'zenoh.connect=["{endpoint(router_port)}"]', "zenoh.namespace=/car2",
-                         duration=10.0)
+                         duration=180.0)
         with Car(endpoint(router_port), namespace="/car1") as one:
             two = Car(namespace="/car2", session=one.session)  # one client session, both cars
             assert one.next_scan(timeout=30).ranges.size == 1081
             assert two.next_scan(timeout=30).ranges.size == 1081
             # 1.5 s at 20 Hz, and on while the odometry is read: read after the last command, a
-            # late read on a loaded machine saw the car braking (the commands' timeout)
+            # late read on a loaded machine saw the car braking (the commands' timeout). A loaded
+            # machine may also hold the driving thread up past the mux's 0.2 s timeout, and a car
+            # brakes until the next command: the odometry is read until it shows both cars driving.
             stop_driving = threading.Event()
             driver = threading.Thread(target=_drive_at_20_hz, daemon=True,
                                       args=(stop_driving, (one, 0.5, 0.0), (two, 1.0, 0.2)))
             driver.start()
             try:
-                time.sleep(1.5)
-                odom1, odom2 = one.next_odom(), two.next_odom()
+                driven = time.monotonic() + 1.5
+                deadline = driven + 30
+                while True:
+                    odom1, odom2 = one.next_odom(), two.next_odom()
+                    if time.monotonic() > driven and 0.3 < odom1.speed < 0.6 and 0.7 < odom2.speed < 1.1:
+                        break
+                    assert time.monotonic() < deadline, (odom1, odom2)
             finally:
                 stop_driving.set()
                 driver.join(timeout=30)
+            for car in (one, two):  # the mux's timeout, then the brakes
+                wait_standing(car)
             two.close()
-        r1, r2 = car1.report(), car2.report()
+        r2 = car2.interrupt()  # the client first: it would lose its router
+        r1 = car1.interrupt()
     finally:
         car1.kill()
         if car2 is not None:
@@ -126,7 +137,8 @@ def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(t
     users = tmp_path / "users.txt"
     users.write_text("driver:s3cret\n")
     port = free_port()
-    sim = start_sim(tmp_path / "sim", port, f"zenoh.auth.dictionary_file={users}", duration=8.0)
+    # ended (SIGINT) once the sessions are done, not after a fixed duration
+    sim = start_sim(tmp_path / "sim", port, f"zenoh.auth.dictionary_file={users}", duration=180.0)
     try:
         _wait_listening(port)
         with pytest.raises(ClientError, match="cannot connect"):
@@ -144,7 +156,7 @@ def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(t
             with pytest.raises(ClientError):
                 intruder.next_scan(timeout=0.5)
         intruder.close()
-        report = sim.report()
+        report = sim.interrupt()
     finally:
         sim.kill()
     assert "nav_0" not in switches(report)
@@ -154,7 +166,9 @@ def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(t
 @pytest.mark.slow
 def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
     port = free_port()
-    sim = start_sim(tmp_path, port, duration=5.0)
+    # ended (SIGINT) once the car stands still after the client's stop: a fixed duration could
+    # also end the run before a client held up on a loaded machine had its 30 scans
+    sim = start_sim(tmp_path, port, duration=180.0)
 
     async def use() -> tuple[int, float]:
         async with AsyncCar(endpoint(port)) as car:
@@ -172,7 +186,8 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
     try:
         _wait_listening(port)
         n, speed = asyncio.run(use())
-        report = sim.report()
+        wait_until_stopped(port)
+        report = sim.interrupt()
     finally:
         sim.kill()
     assert n == 30 and 0.05 < speed < 0.4
