@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import ahead_of_other_load
+from conftest import ahead_of_ordinary_load
 from zenoh_util import ROOT, free_port, start_sim, switch_times, switches, wait_until_stopped
 
 from racecar_hw.sim.trajectory import read_csv
@@ -37,12 +37,11 @@ QUIET = ("foxglove.enabled=false", "web.enabled=false")
 
 
 def _peer(port: int, *args: str, timeout: float = 150, ahead: bool = False) -> dict:
-    """``ahead``: run the peer ahead of the other load of a shared machine, for a peer that drives:
-    what is checked is the daemon's handling of its 20 Hz stream (the mux's 0.2 s timeout), not how
-    long another tenant of the machine holds the peer's process up. (Not for ``node``: it polls the
-    graph, and at real-time priority it kept its own Zenoh threads from answering.)"""
+    """``ahead``: run the peer ahead of the ordinary load of a shared machine, for a peer that
+    drives: what is checked is the daemon's handling of its 20 Hz stream (the mux's 0.2 s timeout),
+    not how long another tenant of the machine holds the peer's process up."""
     proc = subprocess.run([sys.executable, PEER, str(port), *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, preexec_fn=ahead_of_other_load if ahead else None)
+                          timeout=timeout, cwd=ROOT, preexec_fn=ahead_of_ordinary_load if ahead else None)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -87,7 +86,7 @@ def test_a_humble_peer_reads_the_car_and_drives_it_when_the_daemon_is_set_for_hu
     port = free_port()
     # ended (SIGINT) once the peer is done and the car stands still, not after a fixed duration
     sim = start_sim(tmp_path, port, *QUIET, "zenoh.ros_distro=humble", duration=180.0,
-                    preexec_fn=ahead_of_other_load)
+                    preexec_fn=ahead_of_ordinary_load)
     try:
         seen = _peer(port, "drive", "--humble", ahead=True)
         wait_until_stopped(port, ros_distro="humble")

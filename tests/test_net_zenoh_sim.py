@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import ahead_of_other_load
+from conftest import ahead_of_ordinary_load
 from zenoh_util import ROOT, free_port, start_sim, switch_times, switches, wait_until_stopped
 
 from racecar_hw.sim.trajectory import read_csv
@@ -27,12 +27,12 @@ PEER = str(ROOT / "tests" / "zenoh_peer.py")
 
 
 def _peer(port: int, *args: str, timeout: float = 60) -> dict:
-    """Run the peer ahead of the other load of a shared machine: what is checked is the daemon's
+    """Run the peer ahead of the ordinary load of a shared machine: what is checked is the daemon's
     handling of its streams (a 20 Hz stream, the mux's 0.2 s timeout), not how long another tenant
     of the machine holds the peer's process up."""
     proc = subprocess.run([sys.executable, PEER, str(port), *args], capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT,
-                          preexec_fn=ahead_of_other_load)
+                          preexec_fn=ahead_of_ordinary_load)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -52,7 +52,7 @@ def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile,
     port = free_port()
     # ended (SIGINT) once the peers are done and the car stands still, not after a fixed duration
     sim = start_sim(tmp_path, port, f"zenoh.profile={profile}", duration=180.0,
-                    preexec_fn=ahead_of_other_load)
+                    preexec_fn=ahead_of_ordinary_load)
     try:
         seen = _peer(port, "drive", "--input", input_topic)
         # /tf_static is latched (TRANSIENT_LOCAL): a subscriber starting now, long after the
