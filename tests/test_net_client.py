@@ -36,6 +36,19 @@ def _wait_listening(port: int, timeout: float = 30.0) -> None:
             time.sleep(0.1)
 
 
+def _connected(connect: str, timeout: float = 60.0, **car: object) -> Car:
+    """A :class:`Car` connected to ``connect``, trying again while the daemon's Zenoh session does not
+    answer yet: its port listens before the session accepts, and on a loaded machine one try (the
+    client's 3 s) can end first."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return Car(connect, **car)
+        except ClientError:
+            if time.monotonic() > deadline:
+                raise
+
+
 @pytest.mark.slow
 def test_the_wall_follower_example_drives_a_lap_of_the_track(tmp_path):
     port = free_port()
@@ -91,7 +104,7 @@ def test_two_cars_behind_one_as_router_are_driven_independently(tmp_path):
         car2 = start_sim(tmp_path / "car2", None, "zenoh.mode=client", "zenoh.listen=[]",
                          f'zenoh.connect=["{endpoint(router_port)}"]', "zenoh.namespace=/car2",
                          duration=180.0)
-        with Car(endpoint(router_port), namespace="/car1") as one:
+        with _connected(endpoint(router_port), namespace="/car1") as one:
             two = Car(namespace="/car2", session=one.session)  # one client session, both cars
             assert one.next_scan(timeout=30).ranges.size == 1081
             assert two.next_scan(timeout=30).ranges.size == 1081
@@ -147,7 +160,7 @@ def test_with_user_password_a_session_without_it_gets_nothing_and_cannot_drive(t
             Car(endpoint(port), user="driver", password="wrong")
         # a peer without credentials opens (it keeps retrying) but nothing flows either way
         intruder = Car(endpoint(port), mode="peer")
-        with Car(endpoint(port), user="driver", password="s3cret") as good:
+        with _connected(endpoint(port), user="driver", password="s3cret") as good:
             assert good.next_scan(timeout=30).ranges.size == 1081
             for _ in range(20):
                 intruder.drive(2.0, 0.2)
@@ -206,7 +219,7 @@ def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_o
                     "zenoh.remap={/odom: /wheel/odom}", duration=120.0)
     try:
         _wait_listening(port)
-        with Car(endpoint(port), profile="f1tenth", remap=remap) as watcher:
+        with _connected(endpoint(port), profile="f1tenth", remap=remap) as watcher:
             scans: list = []
             odoms: list = []
             states: list = []
