@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import ahead_of_other_load, wait_for
+from conftest import ahead_of_ordinary_load, wait_for
 from zenoh_util import ROOT, endpoint, free_port, start_sim, switches, wait_standing, wait_until_stopped
 
 from racecar_hw.client import AsyncCar, Car, ClientError
@@ -55,15 +55,17 @@ def test_the_wall_follower_example_drives_a_lap_of_the_track(tmp_path):
     # A lap takes about a minute; on a loaded 2-core machine it took over 180 s (the safety stop
     # brakes for each scan the example answers late), so the deadlines are generous: they bound a
     # stuck run, the lap itself is what is checked. The sim and the example run ahead of the other
-    # test worker's load: what is checked is the example's driving, not the machine's scheduling.
+    # test worker's load: what is checked is the example's driving, not the machine's scheduling;
+    # but below the sims of the flood tests, which measure missed ticks and run beside this lap
+    # (the slow tests start first, on both workers).
     sim = start_sim(tmp_path, port, scenario_sets=("map=track", "drivers=[]"), duration=600.0,
-                    preexec_fn=ahead_of_other_load)
+                    preexec_fn=ahead_of_ordinary_load)
     try:
         _wait_listening(port)  # the example connects once (client mode) and gives up after 3 s
         example = subprocess.run([sys.executable, str(ROOT / "examples" / "wall_follower.py"),
                                   "--connect", endpoint(port), "--laps", "1", "--timeout", "480"],
                                  capture_output=True, text=True, timeout=560, cwd=ROOT,
-                                 preexec_fn=ahead_of_other_load)
+                                 preexec_fn=ahead_of_ordinary_load)
         sim.proc.send_signal(signal.SIGINT)  # the sim ends early and still writes its report
         report = sim.report()
     finally:
