@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
@@ -26,6 +27,11 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
 _spec = importlib.util.spec_from_file_location("racecar_hw_portguard", PORTGUARD / "sitecustomize.py")
 assert _spec is not None and _spec.loader is not None
 _spec.loader.exec_module(importlib.util.module_from_spec(_spec))  # installs the guard here
+
+# No timed assertions in tests: hypothesis's 200 ms deadline per example (and its "too slow" data
+# check) fail on a loaded 2-core machine, so both are off for every property test.
+settings.register_profile("racecar-hw", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("racecar-hw")
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 BAGS = SHARED / "fixtures" / "bags"
