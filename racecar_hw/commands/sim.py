@@ -129,13 +129,18 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return cmd_fleet(args, scenario, out)
     from racecar_hw.sim.plot_worker import PlotWorker  # noqa: PLC0415 - with the command
 
-    # first: the plot's process imports matplotlib on the other core while this one starts and runs
+    if not (args.lockstep or args.speed is not None):
+        return _cmd_loopback(args, scenario, out, PlotWorker(None))
+    # lockstep: the plot's process imports matplotlib on the other core while this one starts and
+    # runs (in real time the plot is drawn here, as always: no second process competes with the
+    # run for the host, whose timing is the run's)
     with PlotWorker.start() as plotter:
         return _cmd_loopback(args, scenario, out, plotter)
 
 
 def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plotter: PlotWorker) -> int:
-    """One car: the daemon on the loopback, in real time or lockstep; the plot drawn by ``plotter``."""
+    """One car: the daemon on the loopback, in real time or lockstep; the plot drawn by ``plotter``
+    (``PlotWorker(None)``: in this process)."""
     from racecar_hw.runtime.panel import StatusPanel  # noqa: PLC0415 - rich, with the command
     from racecar_hw.sim.loopback import Loopback, write_report  # noqa: PLC0415 - needs the extra
 
