@@ -7,6 +7,7 @@ import contextlib
 import importlib.util
 import os
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -18,6 +19,12 @@ from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.runtime.devicethread import DeviceThread
 from vesc.fake import FakeVesc
+
+# Compiled modules are written and reused, Python's default, even where the environment turns that
+# off (PYTHONDONTWRITEBYTECODE): the tests start hundreds of Python processes (daemons, sims, CLI
+# tools, peers), and each would compile racecar-hw's modules and the rewritten tests from source again.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
 
 # No test listens on a default port: the guard in tests/portguard fails such a bind, in this
 # process and (through PYTHONPATH) in every Python process a test starts.
