@@ -86,6 +86,22 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
+def _thread_wakeups(pid: int) -> dict[str, int]:
+    """Voluntary context switches per thread of a process, by thread name: each is the thread
+    blocking (on a lock, a queue, epoll, a timer) and being woken again, a wake-up."""
+    out: dict[str, int] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            status = (task / "status").read_text()
+        except OSError:
+            continue
+        for line in status.splitlines():
+            if line.startswith("voluntary_ctxt_switches:"):
+                out[f"{name}[{task.name}]"] = int(line.split()[1])
+    return out
+
+
 def _host_ticks() -> tuple[int, int]:
     """(busy, stolen) clock ticks of all CPUs so far, from /proc/stat (steal: time the hypervisor
     gave this virtual machine's CPUs to others while they had work)."""
@@ -213,6 +229,7 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
             threads0 = _thread_cpu_s(proc.pid)
+            wakeups0 = _thread_wakeups(proc.pid)
             helper_threads0 = [(o, _thread_cpu_s(o.pid)) for o in others]
             fakes0 = time.process_time()
             host0 = _host_ticks()
@@ -227,6 +244,7 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             host1 = _host_ticks()
             fakes1 = time.process_time()
             threads1 = _thread_cpu_s(proc.pid)
+            wakeups1 = _thread_wakeups(proc.pid)
             helper_threads = [(o.args, t0_, _thread_cpu_s(o.pid)) for o, t0_ in helper_threads0]
             rss = _peak_rss_mb(proc.pid)
             pss = _pss_mb(proc.pid)
@@ -260,7 +278,8 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
               file=sys.stderr)
         for name, cpu in sorted(threads1.items()):
             share = 100.0 * (cpu - threads0.get(name, 0.0)) / (t1 - t0)
-            print(f"thread {name}: {share:.2f} % of a core", file=sys.stderr)
+            rate = (wakeups1.get(name, 0) - wakeups0.get(name, 0)) / (t1 - t0)
+            print(f"thread {name}: {share:.2f} % of a core, {rate:.1f} wake-ups/s", file=sys.stderr)
         for args, before, after in helper_threads:
             print(f"helper {' '.join(map(str, args))[-60:]!r}:", file=sys.stderr)
             for name, cpu in sorted(after.items()):
@@ -272,6 +291,8 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
     rows = [
         {"name": "daemon CPU share of one core", "value": 100.0 * (cpu1 - cpu0) / (t1 - t0),
          "unit": "%", "target": CPU_TARGET},
+        {"name": "daemon thread wake-ups per second", "unit": "/s", "target": None,
+         "value": sum(n - wakeups0.get(name, 0) for name, n in wakeups1.items()) / (t1 - t0)},
         {"name": "helpers' CPU share of one core", "value": 100.0 * (helpers1 - helpers0) / (t1 - t0),
          "unit": "%", "target": None},
         {"name": "daemon peak RSS", "value": rss, "unit": "MB", "target": RSS_TARGET},
