@@ -144,3 +144,45 @@ def wait_until(condition, timeout_s: float = DEADLINE_S) -> bool:
             return True
         time.sleep(0.005)
     return False
+
+
+def test_a_wake_up_asked_for_twice_before_the_thread_looks_wakes_it_once() -> None:
+    from racecar_hw.runtime.outbox import _Wake
+
+    wake = _Wake()
+    wake.set()
+    wake.set()  # a second set before the thread woke: still one pending wake-up
+    assert wake.is_set()
+    started = time.monotonic()
+    wake.wait(DEADLINE_S)  # returns at once
+    assert not wake.is_set()
+    assert time.monotonic() - started < DEADLINE_S
+    wake.wait(0.01)  # nothing pending: only the timeout ends the wait
+    assert not wake.is_set()
+
+    woken = threading.Event()
+
+    def sleeper() -> None:
+        wake.wait(None)
+        woken.set()
+
+    thread = threading.Thread(target=sleeper, daemon=True)
+    thread.start()
+    wake.set()  # from another thread
+    assert woken.wait(DEADLINE_S)
+    thread.join(DEADLINE_S)
+
+
+def test_the_thread_carries_its_name_at_the_os_where_the_os_names_threads() -> None:
+    import sys
+    from pathlib import Path
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("thread names at the OS are set on Linux only")
+    names: list[str] = []
+    outbox = Outbox("zenoh-publisher", size=10)
+    outbox.put(lambda: names.append(Path(f"/proc/self/task/{threading.get_native_id()}/comm")
+                                    .read_text().strip()))
+    outbox.start()
+    outbox.stop(DEADLINE_S)
+    assert names == ["zenoh-publisher"]

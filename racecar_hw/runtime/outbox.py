@@ -34,6 +34,7 @@ from collections.abc import Callable
 from typing import Any
 
 from racecar_hw.base.clock import wall_ns
+from racecar_hw.runtime.threadname import name_this_thread
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +63,44 @@ def lower_thread_priority(nice: int) -> None:
         log.debug("cannot lower a thread's priority on this system")
 
 
+class _Wake:
+    """A wake-up flag for one waiting thread: :meth:`set` from any thread, :meth:`wait` in the thread.
+
+    A bare lock held while nobody asked for a wake-up, released by :meth:`set`: waking the thread
+    is one futex call and it wakes once, where :class:`threading.Event` goes through a
+    :class:`threading.Condition` whose lock the woken thread must take again (the setter, which
+    holds the GIL, often still has it), so a wake-up through an Event costs more context switches.
+    """
+
+    __slots__ = ("_lock", "_set")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._lock.acquire()
+        self._set = False
+
+    def is_set(self) -> bool:
+        """Whether a wake-up is pending."""
+        return self._set
+
+    def set(self) -> None:
+        """Wake the thread (once, however often it is called before the thread wakes)."""
+        if not self._set:
+            self._set = True
+            try:
+                self._lock.release()
+            except RuntimeError:  # already released: a wake-up is pending
+                pass
+
+    def wait(self, timeout_s: float | None) -> None:
+        """Wait for a wake-up or ``timeout_s`` (None: no limit), then clear the flag.
+
+        Clears before the caller looks at its queue: a :meth:`set` after that wakes it again.
+        """
+        self._lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s))
+        self._set = False
+
+
 class Outbox:
     """Jobs for one thread; :meth:`put` from any thread, never blocks."""
 
@@ -87,7 +126,7 @@ class Outbox:
         self._on_stop = on_stop
         self._queue: collections.deque[Job] = collections.deque(
             maxlen=None if self._drop_newest else size)
-        self._wake = threading.Event()
+        self._wake = _Wake()
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the thread
@@ -179,6 +218,7 @@ class Outbox:
 
     def _run(self, setup: Callable[[], None] | None, ready: threading.Event,
              failure: list[BaseException]) -> None:
+        name_this_thread(self.name)
         if self.nice:
             lower_thread_priority(self.nice)
         try:
@@ -198,7 +238,6 @@ class Outbox:
                     wait_s = min(wait_s, max(0.0, next_s))
             self._drain_due = time.monotonic() + self.batch_s
             self._wake.wait(wait_s)
-            self._wake.clear()
             stopping = self._stopping
             while queue:
                 try:
