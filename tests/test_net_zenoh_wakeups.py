@@ -41,7 +41,8 @@ def _offline_bridge(monkeypatch, now: list[int]) -> tuple[ZenohBridge, _Out, _Ou
                                latched=False) for t in ("/scan", TOPIC_ODOM))
     scan_out.matching = odom_out.matching = True
     puts: list = []
-    bridge.outbox.put = lambda fn, out, msg, stamp, urgent=False: puts.append((out.row.bus, urgent))
+    bridge.outbox.put = lambda fn, out, msg, stamp, urgent=False, ride=False: puts.append(
+        (out.row.bus, urgent))
     bridge._early["/scan"] = [(scan_out, bridge._enqueuer(scan_out))]
     return bridge, scan_out, odom_out, puts
 

@@ -186,3 +186,56 @@ def test_the_thread_carries_its_name_at_the_os_where_the_os_names_threads() -> N
     outbox.start()
     outbox.stop(DEADLINE_S)
     assert names == ["zenoh-publisher"]
+
+
+def _wakeups(thread: threading.Thread) -> int:
+    from pathlib import Path
+
+    for line in Path(f"/proc/self/task/{thread.native_id}/status").read_text().splitlines():
+        if line.startswith("voluntary_ctxt_switches:"):
+            return int(line.split()[1])
+    raise AssertionError("no voluntary_ctxt_switches")
+
+
+def test_an_idle_thread_sleeps_until_a_job_comes_and_then_runs_it() -> None:
+    import sys
+
+    done: list[str] = []
+    outbox = Outbox("test", size=10, batch_s=0.01)
+    outbox.start()
+    try:
+        assert wait_until(lambda: outbox._idle)
+        if sys.platform.startswith("linux"):
+            thread = outbox._thread
+            assert thread is not None
+            before = _wakeups(thread)
+            time.sleep(0.5)  # on a timer it would have woken 25 times (every 2 * batch_s)
+            assert _wakeups(thread) - before <= 2
+        outbox.put(done.append, "plain")  # wakes the thread, which runs it after its batch
+        assert wait_until(lambda: done == ["plain"])
+        assert wait_until(lambda: outbox._idle)
+        outbox.put(done.append, "urgent", urgent=True)
+        assert wait_until(lambda: done == ["plain", "urgent"])
+    finally:
+        outbox.stop(DEADLINE_S)
+    assert not outbox.running
+
+
+def test_a_rider_wakes_nobody_and_still_runs_on_the_threads_timer() -> None:
+    done: list[str] = []
+    outbox = Outbox("test", size=10, batch_s=0.01)
+    outbox.start()
+    try:
+        assert wait_until(lambda: outbox._idle and outbox._untimed)
+        # asleep with no timer: the rider wakes it once, to sleep again with its timer
+        outbox.put(done.append, "first", ride=True)
+        assert wait_until(lambda: done == ["first"])
+        assert wait_until(lambda: outbox._idle and not outbox._untimed)
+        outbox.put(done.append, "second", ride=True)
+        assert not outbox._wake.is_set()  # riders are coming: the thread's timer takes it
+        assert wait_until(lambda: done == ["first", "second"])
+        outbox.put(done.append, "third", ride=True)
+        outbox.put(done.append, "scan", urgent=True)  # the wake-up it rode on
+        assert wait_until(lambda: done[2:] == ["third", "scan"])
+    finally:
+        outbox.stop(DEADLINE_S)

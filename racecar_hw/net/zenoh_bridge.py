@@ -312,7 +312,8 @@ class ZenohBridge:
                 return
             interval = self._early_interval_ns
             due_in = self._early_ns + interval - monotonic_ns()
-            put(publish, out, msg, wall_ns(), urgent=not (interval and 0 <= due_in <= ride_ns))
+            ride = bool(interval) and 0 <= due_in <= ride_ns
+            put(publish, out, msg, wall_ns(), urgent=not ride, ride=ride)
 
         return enqueue
 

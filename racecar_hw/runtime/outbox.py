@@ -14,6 +14,13 @@ says it is idle (:meth:`Outbox.control_idle`, called by the daemon once a scan's
 so its work lands in the gap before the next scan; on its own it waits at most ``2 * batch_s``.
 A job queued with ``urgent=True`` wakes it at once: for a message queued in that gap whose
 latency matters (the scan itself, queued after its motor command, for remote navigation code).
+With nothing queued (and no ``on_batch``) the thread sleeps until a job comes, not waking on a
+timer (a network interface nobody listens to costs no wake-ups); the first job into the empty
+queue wakes it, and unless it is urgent the thread then waits up to ``batch_s`` for more.
+A job queued with ``ride=True`` wakes nobody: it goes with the next wake-up, which the caller
+expects soon (odometry riding the next scan's, :mod:`racecar_hw.net.zenoh_bridge`); while such
+jobs come (for :data:`RIDE_KEEP_S` after the last), the thread's idle wait keeps its timer, so a
+rider waits at most ``2 * batch_s`` when the wake-up it expected does not come.
 
 Hooks for a writer that owns a resource in its thread (the recorder's bag: sqlite3 connections
 belong to the thread that made them): ``start(setup)`` runs ``setup`` in the thread first and
@@ -44,6 +51,8 @@ BATCH_S = 0.02
 WAKE_AT = 16
 #: The sender thread's niceness relative to the daemon (Linux: per thread).
 SENDER_NICE = 5
+#: How long after the last ``ride`` job the idle thread keeps waking on its timer (s).
+RIDE_KEEP_S = 1.0
 #: What goes when the queue is full.
 DROP_POLICIES = ("oldest", "newest")
 
@@ -128,6 +137,10 @@ class Outbox:
             maxlen=None if self._drop_newest else size)
         self._wake = _Wake()
         self._stopping = False
+        self._idle = False   # the thread sleeps until a job comes
+        self._untimed = False  # ... with no timer
+        self._ride_until = 0.0  # monotonic s: until then the idle thread keeps its timer (riders)
+        self._hurry = False  # an urgent job (or a full batch) is queued: no batch wait
         self._thread: threading.Thread | None = None
         self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the thread
         #: jobs dropped because the queue was full
@@ -173,10 +186,12 @@ class Outbox:
         if thread.is_alive():
             log.warning("%s: thread still busy after %.1f s; left behind", self.name, timeout_s)
 
-    def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False) -> None:
+    def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False, ride: bool = False) -> None:
         """Queue ``fn(*args)`` for the thread; when full, a job is dropped (see ``drop``).
 
-        ``urgent``: wake the thread now rather than at the next batch.
+        ``urgent``: wake the thread now rather than at the next batch. ``ride``: wake nobody, not
+        even an idle thread: the job goes with the next wake-up, which the caller expects soon (at
+        most ``2 * batch_s`` later, on the thread's timer).
         """
         queue = self._queue
         if len(queue) >= self.size:
@@ -184,8 +199,16 @@ class Outbox:
             if self._drop_newest:
                 return
         queue.append((fn, args))
-        if (urgent or len(queue) >= self.wake_at) and not self._wake.is_set():
-            self._wake.set()
+        if urgent or len(queue) >= self.wake_at:
+            self._hurry = True
+            if not self._wake.is_set():
+                self._wake.set()
+        elif ride:
+            self._ride_until = time.monotonic() + RIDE_KEEP_S
+            if self._untimed and not self._wake.is_set():
+                self._wake.set()  # asleep with no timer: it goes back to sleep with one
+        elif self._idle and not self._wake.is_set():
+            self._wake.set()  # the first job into an empty queue: the thread waits for its batch
 
     def clear(self) -> int:
         """Drop every queued job (not counted in :attr:`dropped`); returns how many."""
@@ -231,13 +254,30 @@ class Outbox:
             ready.set()
         queue = self._queue
         while True:
-            wait_s = 2 * self.batch_s
+            wait_s: float | None = 2 * self.batch_s
+            idle = False
             if self._on_batch is not None:  # at the start, then after every batch
                 next_s = self._on_batch()
                 if next_s is not None:
-                    wait_s = min(wait_s, max(0.0, next_s))
+                    wait_s = min(2 * self.batch_s, max(0.0, next_s))
+            else:
+                # before looking at the queue: a put after the look wakes us
+                self._untimed = untimed = time.monotonic() >= self._ride_until
+                self._idle = True
+                if queue:
+                    self._idle = self._untimed = False
+                else:
+                    idle = True
+                    if untimed:
+                        wait_s = None
             self._drain_due = time.monotonic() + self.batch_s
             self._wake.wait(wait_s)
+            if idle:
+                self._idle = self._untimed = False
+                if not self._hurry and not self._stopping:  # woken by a job that can wait its batch
+                    self._drain_due = time.monotonic() + self.batch_s
+                    self._wake.wait(self.batch_s)
+            self._hurry = False
             stopping = self._stopping
             while queue:
                 try:
