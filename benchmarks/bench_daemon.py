@@ -346,6 +346,41 @@ def _summary(log: str) -> dict[str, float]:
                     map(float, match.groups()), strict=True))
 
 
+def _against(seconds: float, before: str, rounds: int) -> list[dict]:
+    """The nominal-load daemon with Zenoh and DDS on and nobody listening, this code against the
+    source tree ``before`` (the daemon importing it), interleaved for ``rounds`` rounds; medians."""
+    from rounds import interleaved, pooled_p99  # noqa: PLC0415
+
+    def nominal() -> list[dict]:
+        return run(seconds, zenoh_port=_free_port(), config_extra=ALL_INTERFACES)
+
+    def there() -> list[dict]:
+        old = os.environ.get("PYTHONPATH")
+        os.environ["PYTHONPATH"] = before
+        try:
+            return nominal()
+        finally:
+            if old is None:
+                del os.environ["PYTHONPATH"]
+            else:
+                os.environ["PYTHONPATH"] = old
+
+    results = interleaved({"this code": nominal, "before": there}, rounds)
+    names = ("daemon CPU share of one core", "scan to VESC command p50 (in daemon)",
+             "scan to VESC command p99 (in daemon)", "  the daemon's CPU time in it, p99",
+             "daemon thread wake-ups per second", "host: CPU time stolen by the hypervisor")
+    rows = []
+    for label, runs in results.items():
+        for name in names:
+            values = [next(r["value"] for r in rows_ if r["name"] == name) for rows_ in runs]
+            rows.append({"name": f"{label}: {name.strip()} (median of {len(values)}; "
+                                 f"{min(values):.2f}-{max(values):.2f})",
+                         "value": float(np.median(values)), "unit": "", "target": None})
+        rows.append({"name": f"{label}: round trip lidar to VESC, p99 of all rounds' scans",
+                     "value": pooled_p99(runs), "unit": "ms", "target": None})
+    return rows
+
+
 def main() -> None:
     args = sys.argv[1:]
     seconds = float(args[0]) if args and not args[0].startswith("-") else 20.0
@@ -358,6 +393,10 @@ def main() -> None:
             for row in run(seconds, recorder="--no-recorder" not in args, config_extra={"vesc": {"imu": on}}):
                 rows.append({**row, "name": f"{row['name']}, imu {'on' if on else 'off'}"})
         print_rows(rows)
+        return
+    if "--before" in args:  # this code against another tree, every interface on, nobody listening
+        print_rows(_against(seconds, args[args.index("--before") + 1],
+                            int(args[args.index("--rounds") + 1]) if "--rounds" in args else 4))
         return
     if "--all-interfaces" in args:  # issue 26: the memory with every network interface on
         print_rows(run(seconds, recorder="--no-recorder" not in args, zenoh_port=_free_port(),
