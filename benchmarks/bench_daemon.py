@@ -209,11 +209,14 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
         cfg = Path(tmp) / "bench.yaml"
         cfg.write_text(yaml.safe_dump(config))
         profile = os.environ.get("BENCH_PROFILE")  # a path: run the daemon under cProfile
+        profile = os.path.abspath(profile) if profile else None  # the daemon runs in tmp
         prefix = ["-m", "cProfile", "-o", profile] if profile else []
         command = [sys.executable, *prefix, "-m", "racecar_hw.cli", "-v", "run", "--config", str(cfg)]
         log_path = Path(tmp) / "daemon.log"
         log_file = log_path.open("w")
-        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, text=True)
+        # started in the temporary directory: ``-m`` and ``-c`` put the working directory first on
+        # sys.path, which would shadow the tree PYTHONPATH names (the --before settings)
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, text=True, cwd=tmp)
         clients = ExitStack()
         others: list[subprocess.Popen] = []
         try:
@@ -224,7 +227,7 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
                 time.sleep(0.05)
             if attach is not None:
                 clients.enter_context(attach(log_path))
-            others = [subprocess.Popen(h, stdout=subprocess.DEVNULL) for h in helpers or []]
+            others = [subprocess.Popen(h, stdout=subprocess.DEVNULL, cwd=tmp) for h in helpers or []]
             time.sleep(4.0 if others else 2.0)  # warm up: caches, first bag chunk, helpers connected
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
