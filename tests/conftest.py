@@ -7,16 +7,24 @@ import contextlib
 import importlib.util
 import os
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.runtime.devicethread import DeviceThread
 from vesc.fake import FakeVesc
+
+# Compiled modules are written and reused, Python's default, even where the environment turns that
+# off (PYTHONDONTWRITEBYTECODE): the tests start hundreds of Python processes (daemons, sims, CLI
+# tools, peers), and each would compile racecar-hw's modules and the rewritten tests from source again.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
 
 # No test listens on a default port: the guard in tests/portguard fails such a bind, in this
 # process and (through PYTHONPATH) in every Python process a test starts.
@@ -26,6 +34,11 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
 _spec = importlib.util.spec_from_file_location("racecar_hw_portguard", PORTGUARD / "sitecustomize.py")
 assert _spec is not None and _spec.loader is not None
 _spec.loader.exec_module(importlib.util.module_from_spec(_spec))  # installs the guard here
+
+# No timed assertions in tests: hypothesis's 200 ms deadline per example (and its "too slow" data
+# check) fail on a loaded 2-core machine, so both are off for every property test.
+settings.register_profile("racecar-hw", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("racecar-hw")
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 BAGS = SHARED / "fixtures" / "bags"

@@ -27,6 +27,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from zenoh_util import endpoint, free_port
 
+from racecar_hw.base.clock import SIM_EPOCH_NS, use_virtual_time
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
 from racecar_hw.cli import main
@@ -62,9 +63,12 @@ class Motor:
 
 def two_worlds(lead_x: float, follow_speed: float) -> tuple[World, World, Motor]:
     lead_motor, follow_motor = Motor(), Motor(follow_speed)
-    lead = World(CORRIDOR, P, (lead_x, 0.0, 0.0), lambda: lead_motor.erpm, noise_std_m=0.0)
-    follow = World(CORRIDOR, P, (0.0, 0.0, 0.0), lambda: follow_motor.erpm, noise_std_m=0.0,
-                   on_collision=follow_motor.stall)
+    # one time zero for both worlds, as a fleet in lockstep has: built on the host's clock, a busy
+    # machine could put milliseconds between them, which the shadows would read as motion
+    with use_virtual_time(lambda: SIM_EPOCH_NS):
+        lead = World(CORRIDOR, P, (lead_x, 0.0, 0.0), lambda: lead_motor.erpm, noise_std_m=0.0)
+        follow = World(CORRIDOR, P, (0.0, 0.0, 0.0), lambda: follow_motor.erpm, noise_std_m=0.0,
+                       on_collision=follow_motor.stall)
     follow.add_mover(CarShadow("leader", lambda: follow, lambda: lead))
     lead.add_mover(CarShadow("follower", lambda: lead, lambda: follow))
     return lead, follow, follow_motor
