@@ -101,13 +101,15 @@ class _Wake:
             except RuntimeError:  # already released: a wake-up is pending
                 pass
 
-    def wait(self, timeout_s: float | None) -> None:
-        """Wait for a wake-up or ``timeout_s`` (None: no limit), then clear the flag.
+    def wait(self, timeout_s: float | None) -> bool:
+        """Wait for a wake-up or ``timeout_s`` (None: no limit), then clear the flag; whether it
+        was a wake-up.
 
         Clears before the caller looks at its queue: a :meth:`set` after that wakes it again.
         """
-        self._lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s))
+        woken = self._lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s))
         self._set = False
+        return woken
 
 
 class Outbox:
@@ -271,10 +273,11 @@ class Outbox:
                     if untimed:
                         wait_s = None
             self._drain_due = time.monotonic() + self.batch_s
-            self._wake.wait(wait_s)
+            woken = self._wake.wait(wait_s)
             if idle:
                 self._idle = self._untimed = False
-                if not self._hurry and not self._stopping:  # woken by a job that can wait its batch
+                # woken by a job that can wait for its batch (not by the timer: riders go now)
+                if woken and not self._hurry and not self._stopping:
                     self._drain_due = time.monotonic() + self.batch_s
                     self._wake.wait(self.batch_s)
             self._hurry = False
