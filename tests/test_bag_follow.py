@@ -15,6 +15,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from racecar_hw.bags.follow import (
+    READY_WAIT_S,
     BagFollower,
     Command,
     CommandSync,
@@ -36,6 +37,7 @@ from racecar_hw.base.errors import BagError, ConfigError
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, ScanRange, Time
 from racecar_hw.base.topics import NAV0_TOPIC, TELEOP_TOPIC
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime import lockstep
 
 T0 = 1_700_000_000 * NS_PER_S
 
@@ -374,6 +376,46 @@ def test_follower_forwards_fixed_rate(tmp_path: Path) -> None:
     assert got[11][0] - got[0][0] >= 11 * 10_000_000 - 1_000_000
     assert progress[-1] == (1.0, 0.0)
     assert [f for f, _ in progress] == sorted(f for f, _ in progress)
+
+
+def follow_in_lockstep(bag: Path, ready_at_s: float | None) -> tuple[list[int], int]:
+    """Replay ``bag`` at 100 Hz on virtual time with the car ready ``ready_at_s`` seconds in (None:
+    never): the sim-time instants (ns) of the commands, and the instant the replay was started."""
+
+    async def main() -> tuple[list[int], int]:
+        bus, at = Bus(), []
+        bus.subscribe(NAV0_TOPIC, lambda _m: at.append(monotonic_ns()))
+        follower = BagFollower(bus, FollowerParams(bag=str(bag), rate_hz=100.0))
+        follower.load()
+        began = monotonic_ns()
+        if ready_at_s is not None:
+            follower.ready = lambda: monotonic_ns() - began >= ready_at_s * NS_PER_S
+        else:
+            follower.ready = lambda: False
+        await follower.run()
+        return at, began
+
+    return lockstep.run(main())
+
+
+def test_the_replay_waits_until_the_car_is_ready(tmp_path: Path) -> None:
+    """Commands played while the VESC or the lidar is still connecting would be lost: the replay
+    starts when the daemon says the car is ready (here 2.5 s in), not when the daemon starts."""
+    bag = write_ours(tmp_path / "f.bag", "ros1", figure8())
+    at, began = follow_in_lockstep(bag, 2.5)
+    assert len(at) == len(figure8()) + 1  # every command, then the stop
+    assert 2.5 * NS_PER_S <= at[0] - began <= 2.6 * NS_PER_S  # polled every 20 ms
+    assert at[11] - at[0] == 11 * 10_000_000  # the bag's own pacing from there
+
+
+def test_a_car_that_never_gets_ready_is_replayed_to_after_ten_seconds(tmp_path: Path, caplog) -> None:
+    bag = write_ours(tmp_path / "f.bag", "ros1", figure8())
+    caplog.set_level(logging.INFO, "racecar_hw.bags.follow")
+    at, began = follow_in_lockstep(bag, None)
+    assert len(at) == len(figure8()) + 1
+    assert READY_WAIT_S * NS_PER_S <= at[0] - began <= (READY_WAIT_S + 0.1) * NS_PER_S
+    assert "waiting for the car (VESC and lidar) before replaying" in caplog.text
+    assert "the car is not ready after 10 s; replaying anyway" in caplog.text
 
 
 def test_follower_backwards_with_timestamps(tmp_path: Path) -> None:

@@ -79,7 +79,7 @@ def test_fake_vesc_command_serves_until_ctrl_c(tmp_path, stop):
                              "--firmware", "3.40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             preexec_fn=ignore_sigint)
     with reaped(proc):
-        wait_for(lambda: os.path.exists(link) or proc.poll() is not None)
+        wait_for(lambda: os.path.exists(link) or proc.poll() is not None, timeout=60)
         assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
         info = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "vesc-info", "--port", str(link)],
                               capture_output=True, text=True, timeout=60)

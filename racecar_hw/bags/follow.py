@@ -72,6 +72,9 @@ ACCEPTED_TYPES = ACKERMANN_TYPES + TWIST_TYPES
 MUX_INPUT_PART = "/ackermann_cmd_mux/input/"
 #: Wheelbase (m) for converting Twist when the caller gives none: the F1TENTH car's.
 DEFAULT_WHEELBASE_M = 0.25
+#: How long a replay waits for the car to be ready (:attr:`BagFollower.ready`) before it starts
+#: anyway, s: a device that never comes up is then reported by the command's exit status.
+READY_WAIT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -491,6 +494,9 @@ class BagFollower:
         #: every speed of the replay is multiplied by this (and the timing stretched): see fit_speed
         self.speed_scale = 1.0
         self._steps: list[Step] | None = None
+        #: whether the car can act on a command (its VESC answers and, with a lidar, the safety
+        #: controller has a scan); the replay starts once it is true, or after READY_WAIT_S. None: at once
+        self.ready: Callable[[], bool] | None = None
 
     def load(self) -> list[Step]:
         """Read and check the bag and build the steps (raises BagError); done once, also by :meth:`run`,
@@ -532,6 +538,7 @@ class BagFollower:
         log.info("following %d commands from %s (%s, %s)", len(sync), p.bag,
                  "backwards" if p.reverse else "forwards",
                  "bag timing" if p.use_timestamps else f"{p.rate_hz:g} Hz")
+        await self._wait_until_ready()
         start = monotonic_ns()
         last_offset = sync.steps[-1].offset_ns if sync.steps else 0
         try:
@@ -551,6 +558,19 @@ class BagFollower:
                 self._publish(AckermannDrive())
             self.done = True
         return self.published
+
+    async def _wait_until_ready(self) -> None:
+        """Hold the replay's start until :attr:`ready` (at most READY_WAIT_S): commands played
+        while the VESC or the lidar is still connecting would be lost, the start of the bag with them."""
+        if self.ready is None or self.ready():
+            return
+        log.info("waiting for the car (VESC and lidar) before replaying")
+        deadline = monotonic_ns() + round(READY_WAIT_S * NS_PER_S)
+        while not self._stop.is_set() and not self.ready():
+            if monotonic_ns() >= deadline:
+                log.warning("the car is not ready after %.0f s; replaying anyway", READY_WAIT_S)
+                return
+            await asyncio.sleep(0.02)
 
     def _publish(self, drive: AckermannDrive) -> None:
         self.bus.publish(self.params.input_topic,
