@@ -101,10 +101,8 @@ class Interfaces:
                            release_topic=mux.estop_release_topic, on_estop=control.network_estop,
                            refusals=refusals)
         if z.enabled:
-            # odometry and /tf go out with the next scan when it is due within a control period
             self.zenoh = ZenohBridge(bus, z, self.live_topics, urgent=urgent,
-                                     early={config.safety.scan_topic}, riders={TOPIC_ODOM, TOPIC_TF},
-                                     ride_s=1.0 / mux.rate_hz, inbox=self.inbox,
+                                     early={config.safety.scan_topic}, inbox=self.inbox,
                                      refusals=refusals, parameters=self.parameters)
             # the scan is queued by the control path right after its motor write
             control.early.append(functools.partial(self.zenoh.send_early, config.safety.scan_topic))

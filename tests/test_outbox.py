@@ -221,21 +221,20 @@ def test_an_idle_thread_sleeps_until_a_job_comes_and_then_runs_it() -> None:
     assert not outbox.running
 
 
-def test_a_rider_wakes_nobody_and_still_runs_on_the_threads_timer() -> None:
+def test_a_sleeping_thread_wakes_at_once_for_an_urgent_job_and_ends_at_stop() -> None:
+    """Asleep with no timer: an urgent job runs with no batch wait, a plain one after its batch;
+    stop() wakes it and it ends (a thread nobody woke would still be alive after DEADLINE_S)."""
     done: list[str] = []
-    outbox = Outbox("test", size=10, batch_s=0.01)
+    outbox = Outbox("test", size=10, batch_s=30.0)  # a batch wait would outlast the deadline
     outbox.start()
+    thread = outbox._thread
+    assert thread is not None
     try:
-        assert wait_until(lambda: outbox._idle and outbox._untimed)
-        # asleep with no timer: the rider wakes it once, to sleep again with its timer
-        outbox.put(done.append, "first", ride=True)
-        assert wait_until(lambda: done == ["first"])
-        assert wait_until(lambda: outbox._idle and not outbox._untimed)
-        outbox.put(done.append, "second", ride=True)
-        assert not outbox._wake.is_set()  # riders are coming: the thread's timer takes it
-        assert wait_until(lambda: done == ["first", "second"])
-        outbox.put(done.append, "third", ride=True)
-        outbox.put(done.append, "scan", urgent=True)  # the wake-up it rode on
-        assert wait_until(lambda: done[2:] == ["third", "scan"])
+        assert wait_until(lambda: outbox._idle)
+        outbox.put(done.append, "urgent", urgent=True)
+        assert wait_until(lambda: done == ["urgent"])
+        assert wait_until(lambda: outbox._idle)
     finally:
         outbox.stop(DEADLINE_S)
+    assert not thread.is_alive()
+    assert done == ["urgent"]

@@ -42,7 +42,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from racecar_hw.base.bus import Bus, Subscription
-from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
 from racecar_hw.net.inbox import Inbox, all_finite
@@ -108,15 +107,6 @@ class ZenohBridge:
     the obstacle memory's update, the scan summaries and the recorder, which a bus subscription
     made after theirs would wait for. They wake the publisher thread at once.
 
-    ``riders`` (the daemon names odometry and ``/tf``, 50 Hz) are urgent too, except when the next
-    early message (the scan, 40 Hz) is due within ``ride_s`` (the daemon gives one control period):
-    then they wait for its wake-up and go out just before it, one wake-up of the publisher thread
-    (and of Zenoh's transmit thread) for both instead of one each. The next scan is expected one
-    scan interval (the last one) after the last scan; a rider waits at most ``ride_s`` longer than
-    it would have, plus the lidar's jitter, and while no scan is expected (no subscriber of the
-    scan, the lidar stopped or late) it wakes the thread itself. Should the scan not come after
-    all, the thread's own timer sends the rider within ``2 * batch_s`` of the outbox (40 ms).
-
     Incoming messages go to ``inbox`` (the daemon's, shared with the other network surfaces,
     which hands them over as it is told); without one the bridge has its own, which publishes
     them on the bus and then calls ``on_input``.
@@ -128,8 +118,7 @@ class ZenohBridge:
                  refusals: Refusals | None = None,
                  parameters: ParameterService | None = None,
                  inbox: Inbox | None = None,
-                 early: frozenset[str] | set[str] = frozenset(),
-                 riders: frozenset[str] | set[str] = frozenset(), ride_s: float = 0.0) -> None:
+                 early: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -148,12 +137,7 @@ class ZenohBridge:
         self._lock = threading.Lock()
         self.early = frozenset(early)
         self.urgent = frozenset(urgent) | self.early
-        self.riders = frozenset(riders) - self.early
-        self.ride_ns = round(ride_s * NS_PER_S)
-        self._early: dict[str, list[tuple[_Out, Callable[[Message], None]]]] = {}
-        #: when an early message was last queued, and the interval before it (monotonic ns; 0: none)
-        self._early_ns = 0
-        self._early_interval_ns = 0
+        self._early: dict[str, list[Callable[[Message], None]]] = {}
         # not niced: remote navigation code waits for the scan it sends (the Foxglove sender is)
         self.outbox = Outbox("zenoh-publisher", params.queue_size, nice=0)
         self._types = ros2_types()
@@ -208,7 +192,7 @@ class ZenohBridge:
         for out in self._outs:
             enqueue = self._enqueuer(out)
             if out.row.bus in self.early and not out.latched:
-                self._early.setdefault(out.row.bus, []).append((out, enqueue))
+                self._early.setdefault(out.row.bus, []).append(enqueue)
             else:
                 self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
             latest = self.bus.latest(out.row.bus)
@@ -289,33 +273,11 @@ class ZenohBridge:
 
     def send_early(self, topic: str, msg: Message) -> None:
         """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
-        for out, enqueue in self._early.get(topic, ()):
-            if out.matching:  # it wakes the publisher thread: riders may wait for the next one
-                now = monotonic_ns()
-                last, self._early_ns = self._early_ns, now
-                self._early_interval_ns = now - last if last else 0
+        for enqueue in self._early.get(topic, ()):
             enqueue(msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
-        if out.row.bus in self.riders and self.ride_ns > 0 and not out.latched:
-            return self._rider(out)
         return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
-
-    def _rider(self, out: _Out) -> Callable[[Message], None]:
-        """A bus callback for a rider row: urgent unless the next early message is due within
-        ``ride_s`` (then it goes out with that one's wake-up of the publisher thread)."""
-        put, publish, stats, ride_ns = self.outbox.put, self._publish, self.stats, self.ride_ns
-
-        def enqueue(msg: Message) -> None:
-            if not out.matching:
-                stats.skipped += 1
-                return
-            interval = self._early_interval_ns
-            due_in = self._early_ns + interval - monotonic_ns()
-            ride = bool(interval) and 0 <= due_in <= ride_ns
-            put(publish, out, msg, wall_ns(), urgent=not ride, ride=ride)
-
-        return enqueue
 
     def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
         """In the publisher thread: serialize ``msg`` and put it with rmw_zenoh's attachment."""

@@ -17,10 +17,6 @@ latency matters (the scan itself, queued after its motor command, for remote nav
 With nothing queued (and no ``on_batch``) the thread sleeps until a job comes, not waking on a
 timer (a network interface nobody listens to costs no wake-ups); the first job into the empty
 queue wakes it, and unless it is urgent the thread then waits up to ``batch_s`` for more.
-A job queued with ``ride=True`` wakes nobody: it goes with the next wake-up, which the caller
-expects soon (odometry riding the next scan's, :mod:`racecar_hw.net.zenoh_bridge`); while such
-jobs come (for :data:`RIDE_KEEP_S` after the last), the thread's idle wait keeps its timer, so a
-rider waits at most ``2 * batch_s`` when the wake-up it expected does not come.
 
 Hooks for a writer that owns a resource in its thread (the recorder's bag: sqlite3 connections
 belong to the thread that made them): ``start(setup)`` runs ``setup`` in the thread first and
@@ -51,8 +47,6 @@ BATCH_S = 0.02
 WAKE_AT = 16
 #: The sender thread's niceness relative to the daemon (Linux: per thread).
 SENDER_NICE = 5
-#: How long after the last ``ride`` job the idle thread keeps waking on its timer (s).
-RIDE_KEEP_S = 1.0
 #: What goes when the queue is full.
 DROP_POLICIES = ("oldest", "newest")
 
@@ -139,9 +133,7 @@ class Outbox:
             maxlen=None if self._drop_newest else size)
         self._wake = _Wake()
         self._stopping = False
-        self._idle = False   # the thread sleeps until a job comes
-        self._untimed = False  # ... with no timer
-        self._ride_until = 0.0  # monotonic s: until then the idle thread keeps its timer (riders)
+        self._idle = False  # the thread sleeps, with no timer, until a job comes
         self._hurry = False  # an urgent job (or a full batch) is queued: no batch wait
         self._thread: threading.Thread | None = None
         self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the thread
@@ -188,12 +180,10 @@ class Outbox:
         if thread.is_alive():
             log.warning("%s: thread still busy after %.1f s; left behind", self.name, timeout_s)
 
-    def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False, ride: bool = False) -> None:
+    def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False) -> None:
         """Queue ``fn(*args)`` for the thread; when full, a job is dropped (see ``drop``).
 
-        ``urgent``: wake the thread now rather than at the next batch. ``ride``: wake nobody, not
-        even an idle thread: the job goes with the next wake-up, which the caller expects soon (at
-        most ``2 * batch_s`` later, on the thread's timer).
+        ``urgent``: wake the thread now rather than at the next batch.
         """
         queue = self._queue
         if len(queue) >= self.size:
@@ -205,10 +195,6 @@ class Outbox:
             self._hurry = True
             if not self._wake.is_set():
                 self._wake.set()
-        elif ride:
-            self._ride_until = time.monotonic() + RIDE_KEEP_S
-            if self._untimed and not self._wake.is_set():
-                self._wake.set()  # asleep with no timer: it goes back to sleep with one
         elif self._idle and not self._wake.is_set():
             self._wake.set()  # the first job into an empty queue: the thread waits for its batch
 
@@ -264,20 +250,18 @@ class Outbox:
                     wait_s = min(2 * self.batch_s, max(0.0, next_s))
             else:
                 # before looking at the queue: a put after the look wakes us
-                self._untimed = untimed = time.monotonic() >= self._ride_until
                 self._idle = True
                 if queue:
-                    self._idle = self._untimed = False
+                    self._idle = False
                 else:
                     idle = True
-                    if untimed:
-                        wait_s = None
+                    wait_s = None
             self._drain_due = time.monotonic() + self.batch_s
-            woken = self._wake.wait(wait_s)
+            self._wake.wait(wait_s)
             if idle:
-                self._idle = self._untimed = False
-                # woken by a job that can wait for its batch (not by the timer: riders go now)
-                if woken and not self._hurry and not self._stopping:
+                self._idle = False
+                # woken by a job that can wait for its batch
+                if not self._hurry and not self._stopping:
                     self._drain_due = time.monotonic() + self.batch_s
                     self._wake.wait(self.batch_s)
             self._hurry = False
