@@ -86,6 +86,22 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
+def _thread_wakeups(pid: int) -> dict[str, int]:
+    """Voluntary context switches per thread of a process, by thread name: each is the thread
+    blocking (on a lock, a queue, epoll, a timer) and being woken again, a wake-up."""
+    out: dict[str, int] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            status = (task / "status").read_text()
+        except OSError:
+            continue
+        for line in status.splitlines():
+            if line.startswith("voluntary_ctxt_switches:"):
+                out[f"{name}[{task.name}]"] = int(line.split()[1])
+    return out
+
+
 def _host_ticks() -> tuple[int, int]:
     """(busy, stolen) clock ticks of all CPUs so far, from /proc/stat (steal: time the hypervisor
     gave this virtual machine's CPUs to others while they had work)."""
@@ -193,26 +209,30 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
         cfg = Path(tmp) / "bench.yaml"
         cfg.write_text(yaml.safe_dump(config))
         profile = os.environ.get("BENCH_PROFILE")  # a path: run the daemon under cProfile
+        profile = os.path.abspath(profile) if profile else None  # the daemon runs in tmp
         prefix = ["-m", "cProfile", "-o", profile] if profile else []
         command = [sys.executable, *prefix, "-m", "racecar_hw.cli", "-v", "run", "--config", str(cfg)]
         log_path = Path(tmp) / "daemon.log"
         log_file = log_path.open("w")
-        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, text=True)
+        # started in the temporary directory: ``-m`` and ``-c`` put the working directory first on
+        # sys.path, which would shadow the tree PYTHONPATH names (the --before settings)
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, text=True, cwd=tmp)
         clients = ExitStack()
         others: list[subprocess.Popen] = []
         try:
-            deadline = time.monotonic() + 20
+            deadline = time.monotonic() + 60  # a loaded machine (load 20 on 2 cores) took more than 20 s
             while lidar.clients == 0 or len(vesc.commands) < 50:
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError(f"daemon did not start: {log_path.read_text()[-2000:]}")
                 time.sleep(0.05)
             if attach is not None:
                 clients.enter_context(attach(log_path))
-            others = [subprocess.Popen(h, stdout=subprocess.DEVNULL) for h in helpers or []]
+            others = [subprocess.Popen(h, stdout=subprocess.DEVNULL, cwd=tmp) for h in helpers or []]
             time.sleep(4.0 if others else 2.0)  # warm up: caches, first bag chunk, helpers connected
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
             threads0 = _thread_cpu_s(proc.pid)
+            wakeups0 = _thread_wakeups(proc.pid)
             helper_threads0 = [(o, _thread_cpu_s(o.pid)) for o in others]
             fakes0 = time.process_time()
             host0 = _host_ticks()
@@ -227,6 +247,7 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             host1 = _host_ticks()
             fakes1 = time.process_time()
             threads1 = _thread_cpu_s(proc.pid)
+            wakeups1 = _thread_wakeups(proc.pid)
             helper_threads = [(o.args, t0_, _thread_cpu_s(o.pid)) for o, t0_ in helper_threads0]
             rss = _peak_rss_mb(proc.pid)
             pss = _pss_mb(proc.pid)
@@ -260,7 +281,8 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
               file=sys.stderr)
         for name, cpu in sorted(threads1.items()):
             share = 100.0 * (cpu - threads0.get(name, 0.0)) / (t1 - t0)
-            print(f"thread {name}: {share:.2f} % of a core", file=sys.stderr)
+            rate = (wakeups1.get(name, 0) - wakeups0.get(name, 0)) / (t1 - t0)
+            print(f"thread {name}: {share:.2f} % of a core, {rate:.1f} wake-ups/s", file=sys.stderr)
         for args, before, after in helper_threads:
             print(f"helper {' '.join(map(str, args))[-60:]!r}:", file=sys.stderr)
             for name, cpu in sorted(after.items()):
@@ -272,6 +294,8 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
     rows = [
         {"name": "daemon CPU share of one core", "value": 100.0 * (cpu1 - cpu0) / (t1 - t0),
          "unit": "%", "target": CPU_TARGET},
+        {"name": "daemon thread wake-ups per second", "unit": "/s", "target": None,
+         "value": sum(n - wakeups0.get(name, 0) for name, n in wakeups1.items()) / (t1 - t0)},
         {"name": "helpers' CPU share of one core", "value": 100.0 * (helpers1 - helpers0) / (t1 - t0),
          "unit": "%", "target": None},
         {"name": "daemon peak RSS", "value": rss, "unit": "MB", "target": RSS_TARGET},
@@ -325,6 +349,41 @@ def _summary(log: str) -> dict[str, float]:
                     map(float, match.groups()), strict=True))
 
 
+def _against(seconds: float, before: str, rounds: int) -> list[dict]:
+    """The nominal-load daemon with Zenoh and DDS on and nobody listening, this code against the
+    source tree ``before`` (the daemon importing it), interleaved for ``rounds`` rounds; medians."""
+    from rounds import interleaved, pooled_p99  # noqa: PLC0415
+
+    def nominal() -> list[dict]:
+        return run(seconds, zenoh_port=_free_port(), config_extra=ALL_INTERFACES)
+
+    def there() -> list[dict]:
+        old = os.environ.get("PYTHONPATH")
+        os.environ["PYTHONPATH"] = before
+        try:
+            return nominal()
+        finally:
+            if old is None:
+                del os.environ["PYTHONPATH"]
+            else:
+                os.environ["PYTHONPATH"] = old
+
+    results = interleaved({"this code": nominal, "before": there}, rounds)
+    names = ("daemon CPU share of one core", "scan to VESC command p50 (in daemon)",
+             "scan to VESC command p99 (in daemon)", "  the daemon's CPU time in it, p99",
+             "daemon thread wake-ups per second", "host: CPU time stolen by the hypervisor")
+    rows = []
+    for label, runs in results.items():
+        for name in names:
+            values = [next(r["value"] for r in rows_ if r["name"] == name) for rows_ in runs]
+            rows.append({"name": f"{label}: {name.strip()} (median of {len(values)}; "
+                                 f"{min(values):.2f}-{max(values):.2f})",
+                         "value": float(np.median(values)), "unit": "", "target": None})
+        rows.append({"name": f"{label}: round trip lidar to VESC, p99 of all rounds' scans",
+                     "value": pooled_p99(runs), "unit": "ms", "target": None})
+    return rows
+
+
 def main() -> None:
     args = sys.argv[1:]
     seconds = float(args[0]) if args and not args[0].startswith("-") else 20.0
@@ -337,6 +396,10 @@ def main() -> None:
             for row in run(seconds, recorder="--no-recorder" not in args, config_extra={"vesc": {"imu": on}}):
                 rows.append({**row, "name": f"{row['name']}, imu {'on' if on else 'off'}"})
         print_rows(rows)
+        return
+    if "--before" in args:  # this code against another tree, every interface on, nobody listening
+        print_rows(_against(seconds, args[args.index("--before") + 1],
+                            int(args[args.index("--rounds") + 1]) if "--rounds" in args else 4))
         return
     if "--all-interfaces" in args:  # issue 26: the memory with every network interface on
         print_rows(run(seconds, recorder="--no-recorder" not in args, zenoh_port=_free_port(),

@@ -19,6 +19,14 @@ every scan of every round of a setting together (:func:`rounds.pooled_p99`), as 
 ``bench_zenoh.py``: one run's p99 rests on its eight slowest scans. Each run uses a DDS domain of
 its own (``ROS_DOMAIN_ID`` for the rclpy node). ``python benchmarks/bench_dds.py [SECONDS
 [ROUNDS]]``; ``run()`` returns the rows.
+
+``--far-side`` runs :func:`far_side` instead (issue 25's "the far side must be cheap and fast", as
+``bench_zenoh.py --far-side`` for Zenoh): an rclpy node subscribed to ``/scan`` and ``/odom``
+answering every scan with ``/cmd_vel``, against the daemon with DDS on and nobody subscribed, both
+with the figure-8 source off; with ``--before TREE`` the same two with the daemon importing an
+older source tree, all interleaved::
+
+    python benchmarks/bench_dds.py --far-side 15 3 --before /tmp/main
 """
 
 from __future__ import annotations
@@ -70,6 +78,11 @@ def answer(scan):
 node.create_subscription(LaserScan, "/scan", answer, qos_profile_sensor_data)
 rclpy.spin(node)
 '''
+
+#: ANSWER, also subscribed to /odom (a navigation node reads both)
+FAR_ANSWER = ANSWER.replace("rclpy.spin(node)", """from nav_msgs.msg import Odometry
+node.create_subscription(Odometry, "/odom", lambda m: None, 10)
+rclpy.spin(node)""")
 
 P99 = "scan to VESC command p99 (in daemon)"
 P50 = "scan to VESC command p50 (in daemon)"
@@ -138,9 +151,70 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     return rows
 
 
+def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None) -> list[dict]:
+    """What one rclpy node answering every scan over DDS adds to the daemon's CPU, and its round
+    trip (scan frame out of the fake lidar to the answer at the fake VESC), interleaved with the
+    daemon with nobody subscribed; with ``before`` (a source tree), both again on that code."""
+    from bench_zenoh import _code_from, _latencies, _percentiles  # noqa: PLC0415
+
+    if not Path(ROS_PYTHON).exists():
+        raise SystemExit(f"no ROS 2 environment at {ROS_PYTHON} (.ci/run makes it)")
+    domain = random.randrange(100, 200)
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    quiet = {**_dds(domain), "figure8": {"enabled": False}}
+    trips: dict[str, list[float]] = {"rclpy": [], "rclpy, before": []}
+
+    def answered(label: str) -> list[dict]:
+        def on_results(sent: np.ndarray, commands: list) -> list[dict]:
+            trips[label].extend(_latencies(sent, commands))
+            return []
+        return run_daemon(seconds, config_extra=_dds(domain), on_results=on_results,
+                          helpers=[[ROS_PYTHON, "-c", FAR_ANSWER, "--drives"]])
+
+    settings = {"nobody": lambda: run_daemon(seconds, config_extra=quiet), "rclpy": lambda: answered("rclpy")}
+    if before:
+        settings["nobody, before"] = _code_from(before, settings["nobody"])
+        settings["rclpy, before"] = _code_from(before, lambda: answered("rclpy, before"))
+    results = interleaved(settings, rounds)
+    wakeups = "daemon thread wake-ups per second"
+
+    def median(label: str, name: str) -> float:
+        return float(np.median([_pick(r, name) for r in results[label]]))
+
+    rows = []
+    for suffix in ("", ", before") if before else ("",):
+        nobody, answer = "nobody" + suffix, "rclpy" + suffix
+        p50, p99 = _percentiles(trips[answer])
+        rows += [
+            {"name": f"daemon CPU, DDS on, nobody subscribed{suffix}", "value": median(nobody, CPU),
+             "unit": "%", "target": None},
+            {"name": f"daemon CPU, one rclpy node answering every scan{suffix}", "value": median(answer, CPU),
+             "unit": "%", "target": None},
+            {"name": f"CPU added to the daemon by the rclpy node{suffix}", "unit": "points", "target": 2.0,
+             "value": median(answer, CPU) - median(nobody, CPU)},
+            {"name": f"daemon thread wake-ups/s added by the rclpy node{suffix}", "unit": "/s",
+             "target": None, "value": median(answer, wakeups) - median(nobody, wakeups)},
+            {"name": f"nobody subscribed{suffix}: daemon thread wake-ups/s", "unit": "/s", "target": None,
+             "value": median(nobody, wakeups)},
+            {"name": f"rclpy{suffix}: round trip scan frame out -> answer at the VESC, p50", "value": p50,
+             "unit": "ms", "target": None},
+            {"name": f"rclpy{suffix}: round trip, p99", "value": p99, "unit": "ms", "target": 2.0},
+            {"name": f"rclpy{suffix}: scans answered and matched", "value": len(trips[answer]),
+             "unit": "scans", "target": None},
+        ]
+    steal = "host: CPU time stolen by the hypervisor"
+    rows.append({"name": "host steal, all runs (max)", "unit": "% of busy", "target": None,
+                 "value": max(_pick(r, steal) for each in results.values() for r in each)})
+    return rows
+
+
 def main() -> None:
     args = sys.argv[1:]
-    print_rows(run(float(args[0]) if args else 20.0, int(args[1]) if len(args) > 1 else 3))
+    before = args[args.index("--before") + 1] if "--before" in args else None
+    numbers = [a for a in args if not a.startswith("-") and a != before]
+    seconds = float(numbers[0]) if numbers else (15.0 if "--far-side" in args else 20.0)
+    rounds = int(numbers[1]) if len(numbers) > 1 else 3
+    print_rows(far_side(seconds, rounds, before) if "--far-side" in args else run(seconds, rounds))
 
 
 if __name__ == "__main__":

@@ -165,7 +165,8 @@ def run(seconds: float, python: str, on_results: Callable[[np.ndarray, list], li
             raise RuntimeError("fake lidar did not start")
         host, port = lidar.tcp_address
         env = {**os.environ, "ROS_DOMAIN_ID": str(os.getpid() % 200 + 20)}  # apart from other runs
-        env.pop("PYTHONPATH", None)
+        # the chain's nodes import this project's codecs from this tree, whatever the working directory
+        env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
         nodes = [[python, "-c", VESC, f"{tmp}/vesc"], [python, "-c", MUX], [python, "-c", NAV],
                  [python, "-c", LIDAR, host, str(port)]]
         logs = [open(f"{tmp}/node{i}.log", "w") for i in range(len(nodes))]  # noqa: SIM115

@@ -266,6 +266,8 @@ def far_side(seconds: float = 20.0, rounds: int = 4, chain_python: str | None = 
         settings["rclpy chain"] = lambda: run_chain(seconds, chain_python, on_results=collect("rclpy chain"))
     results = interleaved(settings, rounds)
     cpu, helpers = "daemon CPU share of one core", "helpers' CPU share of one core"
+    wakeups = "daemon thread wake-ups per second"
+    p99, cpu_p99 = "scan to VESC command p99 (in daemon)", "  the daemon's CPU time in it, p99"
     med = {label: float(np.median([_pick(r, cpu) for r in runs])) for label, runs in results.items()
            if label != "rclpy chain"}
     rows = []
@@ -278,6 +280,15 @@ def far_side(seconds: float = 20.0, rounds: int = 4, chain_python: str | None = 
              "unit": "%", "target": None},
             {"name": f"CPU added to the daemon by the client{suffix}", "unit": "points", "target": 2.0,
              "value": med[client_label] - med[quiet_label]},
+            {"name": f"daemon thread wake-ups/s added by the client{suffix}", "unit": "/s", "target": None,
+             "value": float(np.median([_pick(r, wakeups) for r in results[client_label]])
+                            - np.median([_pick(r, wakeups) for r in results[quiet_label]]))},
+            {"name": f"nobody subscribed{suffix}: scan to VESC command p99 (in daemon), median", "unit": "ms",
+             "target": None, "value": float(np.median([_pick(r, p99) for r in results[quiet_label]]))},
+            {"name": f"nobody subscribed{suffix}: the daemon's CPU time in it, p99, median", "unit": "ms",
+             "target": None, "value": float(np.median([_pick(r, cpu_p99) for r in results[quiet_label]]))},
+            {"name": f"nobody subscribed{suffix}: daemon thread wake-ups/s", "unit": "/s", "target": None,
+             "value": float(np.median([_pick(r, wakeups) for r in results[quiet_label]]))},
             {"name": f"the client's own CPU share{suffix}", "unit": "%", "target": None,
              "value": float(np.median([_pick(r, helpers) for r in results[client_label]]))},
             {"name": f"daemon + client CPU{suffix}", "unit": "%", "target": None,

@@ -18,7 +18,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from zenoh_util import ROOT, free_port, start_sim, switch_times, switches
+from conftest import ahead_of_ordinary_load
+from zenoh_util import ROOT, free_port, start_sim, switch_times, switches, wait_until_stopped
 
 from racecar_hw.sim.trajectory import read_csv
 
@@ -35,9 +36,12 @@ PEER = str(ROOT / "tests" / "zenoh_peer.py")
 QUIET = ("foxglove.enabled=false", "web.enabled=false")
 
 
-def _peer(port: int, *args: str, timeout: float = 150) -> dict:
+def _peer(port: int, *args: str, timeout: float = 150, ahead: bool = False) -> dict:
+    """``ahead``: run the peer ahead of the ordinary load of a shared machine, for a peer that
+    drives: what is checked is the daemon's handling of its 20 Hz stream (the mux's 0.2 s timeout),
+    not how long another tenant of the machine holds the peer's process up."""
     proc = subprocess.run([sys.executable, PEER, str(port), *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT)
+                          timeout=timeout, cwd=ROOT, preexec_fn=ahead_of_ordinary_load if ahead else None)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -80,10 +84,13 @@ def _camel(service_path: str) -> str:
 @pytest.mark.slow
 def test_a_humble_peer_reads_the_car_and_drives_it_when_the_daemon_is_set_for_humble(tmp_path):
     port = free_port()
-    sim = start_sim(tmp_path, port, *QUIET, "zenoh.ros_distro=humble", duration=14.0)
+    # ended (SIGINT) once the peer is done and the car stands still, not after a fixed duration
+    sim = start_sim(tmp_path, port, *QUIET, "zenoh.ros_distro=humble", duration=180.0,
+                    preexec_fn=ahead_of_ordinary_load)
     try:
-        seen = _peer(port, "drive", "--humble")
-        report = sim.report()
+        seen = _peer(port, "drive", "--humble", ahead=True)
+        wait_until_stopped(port, ros_distro="humble")
+        report = sim.interrupt()
     finally:
         sim.kill()
     assert seen["scan_before_driving"] >= 5 and seen["odom_before_driving"] >= 5
@@ -98,5 +105,7 @@ def test_a_humble_peer_reads_the_car_and_drives_it_when_the_daemon_is_set_for_hu
     nav_off = min(t for t in switch_times(report, "idle") if nav[-1] < t < twist_on)
     assert 0.5 < max(s.speed for s in samples if nav_on <= s.t <= nav_off + 0.05) < 0.7
     assert 1.5 <= nav_off - nav_on <= 1.5 + 0.2 + 0.6  # 30 commands 50 ms apart, then the timeout
-    assert abs(min(samples, key=lambda s: abs(s.t - (nav_off + 0.4))).speed) < 0.05  # then it stopped
+    # then it stopped (the first sample 0.4 s on: a loaded machine may hold the sim up, and the
+    # sample nearest that time may be one from before the switch)
+    assert abs(next((s for s in samples if s.t >= nav_off + 0.4), samples[-1]).speed) < 0.05
     assert report["final_speed_mps"] == pytest.approx(0.0, abs=0.02)

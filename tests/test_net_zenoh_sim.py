@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 import pytest
-from zenoh_util import ROOT, free_port, start_sim, switch_times, switches
+from conftest import ahead_of_ordinary_load
+from zenoh_util import ROOT, free_port, start_sim, switch_times, switches, wait_until_stopped
 
 from racecar_hw.sim.trajectory import read_csv
 
@@ -26,14 +27,20 @@ PEER = str(ROOT / "tests" / "zenoh_peer.py")
 
 
 def _peer(port: int, *args: str, timeout: float = 60) -> dict:
+    """Run the peer ahead of the ordinary load of a shared machine: what is checked is the daemon's
+    handling of its streams (a 20 Hz stream, the mux's 0.2 s timeout), not how long another tenant
+    of the machine holds the peer's process up."""
     proc = subprocess.run([sys.executable, PEER, str(port), *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT)
+                          timeout=timeout, cwd=ROOT,
+                          preexec_fn=ahead_of_ordinary_load)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def _speed_near(samples, t: float) -> float:
-    return min(samples, key=lambda s: abs(s.t - t)).speed
+    """The speed at world time ``t``: of the first sample at or after it (a loaded machine may hold
+    the sim up, and the sample nearest ``t`` may then be one from before what ``t`` follows)."""
+    return next((s for s in samples if s.t >= t), samples[-1]).speed
 
 
 @pytest.mark.slow
@@ -43,14 +50,17 @@ def _speed_near(samples, t: float) -> float:
 ])
 def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile, input_topic):
     port = free_port()
-    sim = start_sim(tmp_path, port, f"zenoh.profile={profile}", duration=14.0)
+    # ended (SIGINT) once the peers are done and the car stands still, not after a fixed duration
+    sim = start_sim(tmp_path, port, f"zenoh.profile={profile}", duration=180.0,
+                    preexec_fn=ahead_of_ordinary_load)
     try:
         seen = _peer(port, "drive", "--input", input_topic)
         # /tf_static is latched (TRANSIENT_LOCAL): a subscriber starting now, long after the
         # daemon published it once at start, still gets it from the publisher's cache
         assert time.monotonic() - sim.started > 5.0
         latched = _peer(port, "latched", "/tf_static")
-        report = sim.report()
+        wait_until_stopped(port, profile=profile)
+        report = sim.interrupt()
     finally:
         sim.kill()
     assert seen["scan_before_driving"] >= 5 and seen["odom_before_driving"] >= 5
@@ -62,15 +72,21 @@ def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile,
     assert order.index("cmd_vel") > order.index("nav_0")
     assert order[order.index("nav_0") + 1] == "idle" and order[order.index("cmd_vel") + 1] == "idle"
     samples = read_csv(report["trajectory_csv"])
-    nav_on, = switch_times(report, "nav_0")
-    twist_on, = switch_times(report, "cmd_vel")
+    # On a loaded machine a gap in the peer's 20 Hz stream can outlast the mux's 0.2 s timeout:
+    # its input times out and comes back. A run is from its first switch to the idle after its
+    # last, before the next input's; its length is the stream's all the same.
+    nav, twist = switch_times(report, "nav_0"), switch_times(report, "cmd_vel")
+    nav_on, twist_on = nav[0], twist[0]
+    assert nav[-1] < twist_on, report["mux_switches"]
     idle = switch_times(report, "idle")
-    nav_off = min(t for t in idle if t > nav_on)
-    twist_off = min(t for t in idle if t > twist_on)
+    nav_off = min(t for t in idle if nav[-1] < t < twist_on)
+    twist_off = min(t for t in idle if t > twist[-1])
     # AckermannDriveStamped at 0.6 m/s for 1.5 s: the car reaches that speed (limiter: 2.5 m/s^2)
     assert 0.5 < max(s.speed for s in samples if nav_on <= s.t <= nav_off + 0.05) < 0.7
-    # then the peer stopped sending: 0.2 s of mux timeout, then the mux stops the car
-    assert nav_off - nav_on == pytest.approx(1.5 + 0.2, abs=0.35)
+    # then the peer stopped sending: 0.2 s of mux timeout, then the mux stops the car. The stream
+    # lasts 1.5 s (30 commands 50 ms apart) where the peer keeps its pace; as long as it took where
+    # a loaded machine held the peer's process up (its own measure, first command to last + 50 ms)
+    assert nav_off - nav_on == pytest.approx(seen["drive_s"] + 0.05 + 0.2, abs=0.35)
     assert abs(_speed_near(samples, nav_off + 0.4)) < 0.05
     # Twist 0.5 m/s, 0.6 rad/s: forward and turning left (yaw grows)
     during = [s for s in samples if twist_on <= s.t <= twist_off]

@@ -144,3 +144,97 @@ def wait_until(condition, timeout_s: float = DEADLINE_S) -> bool:
             return True
         time.sleep(0.005)
     return False
+
+
+def test_a_wake_up_asked_for_twice_before_the_thread_looks_wakes_it_once() -> None:
+    from racecar_hw.runtime.outbox import _Wake
+
+    wake = _Wake()
+    wake.set()
+    wake.set()  # a second set before the thread woke: still one pending wake-up
+    assert wake.is_set()
+    started = time.monotonic()
+    wake.wait(DEADLINE_S)  # returns at once
+    assert not wake.is_set()
+    assert time.monotonic() - started < DEADLINE_S
+    wake.wait(0.01)  # nothing pending: only the timeout ends the wait
+    assert not wake.is_set()
+
+    woken = threading.Event()
+
+    def sleeper() -> None:
+        wake.wait(None)
+        woken.set()
+
+    thread = threading.Thread(target=sleeper, daemon=True)
+    thread.start()
+    wake.set()  # from another thread
+    assert woken.wait(DEADLINE_S)
+    thread.join(DEADLINE_S)
+
+
+def test_the_thread_carries_its_name_at_the_os_where_the_os_names_threads() -> None:
+    import sys
+    from pathlib import Path
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("thread names at the OS are set on Linux only")
+    names: list[str] = []
+    outbox = Outbox("zenoh-publisher", size=10)
+    outbox.put(lambda: names.append(Path(f"/proc/self/task/{threading.get_native_id()}/comm")
+                                    .read_text().strip()))
+    outbox.start()
+    outbox.stop(DEADLINE_S)
+    assert names == ["zenoh-publisher"]
+
+
+def _wakeups(thread: threading.Thread) -> int:
+    from pathlib import Path
+
+    for line in Path(f"/proc/self/task/{thread.native_id}/status").read_text().splitlines():
+        if line.startswith("voluntary_ctxt_switches:"):
+            return int(line.split()[1])
+    raise AssertionError("no voluntary_ctxt_switches")
+
+
+def test_an_idle_thread_sleeps_until_a_job_comes_and_then_runs_it() -> None:
+    import sys
+
+    done: list[str] = []
+    outbox = Outbox("test", size=10, batch_s=0.01)
+    outbox.start()
+    try:
+        assert wait_until(lambda: outbox._idle)
+        if sys.platform.startswith("linux"):
+            thread = outbox._thread
+            assert thread is not None
+            before = _wakeups(thread)
+            time.sleep(0.5)  # on a timer it would have woken 25 times (every 2 * batch_s)
+            assert _wakeups(thread) - before <= 2
+        outbox.put(done.append, "plain")  # wakes the thread, which runs it after its batch
+        assert wait_until(lambda: done == ["plain"])
+        assert wait_until(lambda: outbox._idle)
+        outbox.put(done.append, "urgent", urgent=True)
+        assert wait_until(lambda: done == ["plain", "urgent"])
+    finally:
+        outbox.stop(DEADLINE_S)
+    assert not outbox.running
+
+
+def test_a_sleeping_thread_wakes_at_once_for_an_urgent_job_and_ends_at_stop() -> None:
+    """Asleep with no timer: an urgent job runs with no batch wait, a plain one after its batch;
+    stop() wakes it and it ends (a thread nobody woke would still be alive after DEADLINE_S)."""
+    done: list[str] = []
+    outbox = Outbox("test", size=10, batch_s=30.0)  # a batch wait would outlast the deadline
+    outbox.start()
+    thread = outbox._thread
+    assert thread is not None
+    try:
+        assert wait_until(lambda: outbox._idle)
+        outbox.put(done.append, "urgent", urgent=True)
+        assert wait_until(lambda: done == ["urgent"])
+        assert wait_until(lambda: outbox._idle)
+    finally:
+        outbox.stop(DEADLINE_S)
+    assert not thread.is_alive()
+    assert done == ["urgent"]

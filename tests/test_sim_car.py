@@ -116,6 +116,35 @@ def test_corridor_centre_clearance_is_0_6_m() -> None:
         assert col.clearance((x, 0.0, 0.0)) == pytest.approx(0.6, abs=1e-9)
 
 
+def test_clearance_asked_again_answers_as_measuring_again() -> None:
+    """A car at rest is asked its clearance at every step: the answer (and the anchor the map bound
+    works from) is the same as measuring each time, whatever the running minimum and obstacles."""
+    pole = Circle(2.2, 2.4, 0.1)
+    remembered, measured = Collider(wall_map(), P), Collider(wall_map(), P)
+    searches = {"remembered": 0, "measured": 0}
+    for name, collider in (("remembered", remembered), ("measured", measured)):
+        search = collider._map_clearance
+
+        def counted(*args, name=name, search=search):  # noqa: ANN002, ANN202
+            searches[name] += 1
+            return search(*args)
+
+        collider._map_clearance = counted  # type: ignore[method-assign]
+    least = math.inf
+    poses = [(2.0, 2.0, 0.0)] * 4 + [(2.1, 2.0, 0.1)] * 3 + [(2.0, 2.0, 0.0)] * 3 + [(2.3, 1.9, 0.2)] * 2
+    for k, pose in enumerate(poses):
+        shapes = [pole] if k % 5 else []
+        for exact_below in (least, least, math.inf) if k % 3 == 0 else (least, least):
+            measured._last = None  # (measures every time)
+            got = remembered.clearance(pose, shapes, exact_below=exact_below)
+            assert got == measured.clearance(pose, shapes, exact_below=exact_below)
+            assert remembered._anchor is not None and measured._anchor is not None
+            assert np.array_equal(remembered._anchor[0], measured._anchor[0])
+            assert remembered._anchor[1] == measured._anchor[1]
+            least = min(least, got)
+    assert searches["remembered"] < searches["measured"]
+
+
 def test_obstacles() -> None:
     col = Collider(wall_map(), P)
     pole = Circle(1.5, 2.0, 0.1)  # near edge at x = 1.4; the bumper of a car at x = 0.5 is at 0.95

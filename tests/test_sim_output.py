@@ -140,7 +140,7 @@ def test_the_figure_reads_in_metres_with_the_path_coloured_by_speed_and_the_even
     w_m, h_m = occ.size_m
     x0, x1 = ax_map.get_xlim()
     assert x1 - x0 == pytest.approx(w_m) and x0 == pytest.approx(occ.origin[0])
-    # the path: one segment per step, coloured by the speed at its end
+    # the path: one segment per step (that moves), coloured by the speed at its end
     (path,) = _by_gid(fig, "path")
     assert len(path.get_segments()) == 49
     assert np.allclose(path.get_array(), [0.02 * k for k in range(1, 50)])

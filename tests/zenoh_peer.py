@@ -180,7 +180,12 @@ def main() -> int:
     Time, Header = store["builtin_interfaces/msg/Time"], store["std_msgs/msg/Header"]
     Drive, Vector3 = store["ackermann_msgs/msg/AckermannDrive"], store["geometry_msgs/msg/Vector3"]
     sent = {"drive": 0, "twist": 0}
+    # how long each stream took from its first command to its last (1.45 s at 20 Hz; longer where a
+    # loaded machine held this process up), for the test to compare the mux's switches with
+    spread = {}
+    first = time.monotonic()
     for _ in range(30):
+        spread["drive_s"] = time.monotonic() - first
         now = time.time_ns()
         stamp = Time(sec=now // 10**9, nanosec=now % 10**9)
         drive_pub.publish(header=Header(stamp=stamp, frame_id="base_link"),
@@ -189,12 +194,14 @@ def main() -> int:
         sent["drive"] += 1
         time.sleep(0.05)
     time.sleep(1.5)
+    first = time.monotonic()
     for _ in range(30):
+        spread["twist_s"] = time.monotonic() - first
         twist_pub.publish(linear=Vector3(x=0.5, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=0.6))
         sent["twist"] += 1
         time.sleep(0.05)
     time.sleep(1.0)
-    print(json.dumps({**seen, **sent}), flush=True)
+    print(json.dumps({**seen, **sent, **spread}), flush=True)
     for entity in (*subs, drive_pub, twist_pub):
         entity.close()
     return 0

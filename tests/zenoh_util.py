@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,6 +78,31 @@ def start_sim(out: Path, listen_port: int | None, *sets: str, scenario: str = "w
     proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
                             preexec_fn=preexec_fn)
     return SimProcess(proc, out, time.monotonic())
+
+
+def wait_standing(car: Any, timeout: float = 60.0) -> None:
+    """Until three odometry messages in a row that ``car`` (a :class:`racecar_hw.client.Car`)
+    receives after the call say the car stands still (50 Hz odometry: 60 ms)."""
+    deadline = time.monotonic() + timeout
+    still = 0
+    while still < 3:
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the car still moves after {timeout} s: {car.odom}")
+        still = still + 1 if abs(car.next_odom(timeout=30).speed) < 0.005 else 0
+
+
+def wait_until_stopped(port: int, timeout: float = 60.0, **car: Any) -> None:
+    """:func:`wait_standing` through a client session of its own to the sim's Zenoh port (``car``:
+    more for :class:`racecar_hw.client.Car`, such as ``profile`` or ``ros_distro``).
+
+    A test whose driver has finished ends the sim then (SIGINT: :meth:`SimProcess.interrupt`) instead
+    of waiting out a fixed ``--duration``; its report's final speed is zero however late a loaded
+    machine ran the mux's timeout and the braking. The session only listens: it sends nothing that
+    the mux would see as a source."""
+    from racecar_hw.client import Car  # noqa: PLC0415 - the client (and Zenoh) only where used
+
+    with Car(endpoint(port), **car) as watcher:
+        wait_standing(watcher, timeout)
 
 
 def switches(report: dict) -> list[str]:

@@ -21,6 +21,7 @@ from racecar_hw.runtime.signals import StopSignals, add_restart_signing_handler,
 if TYPE_CHECKING:  # the simulator is imported when the command runs: it needs the sim extra
     from racecar_hw.sim.fleet import Fleet
     from racecar_hw.sim.loopback import Loopback, SimResult
+    from racecar_hw.sim.plot_worker import PlotWorker
     from racecar_hw.sim.scenario import Scenario
 
 DEFAULT_SCENARIO = "figure8"
@@ -122,13 +123,27 @@ def cmd_sim(args: argparse.Namespace) -> int:
             print(f"{name:18} {load_scenario(name).description}")
         return 0
     require_extra("sim", "the simulator (its maps and plot)")
-    from racecar_hw.runtime.panel import StatusPanel  # noqa: PLC0415 - rich, with the command
-    from racecar_hw.sim.loopback import Loopback, write_report  # noqa: PLC0415 - needs the extra
-
     scenario = build_scenario(args)
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
     if scenario.cars:
         return cmd_fleet(args, scenario, out)
+    from racecar_hw.sim.plot_worker import PlotWorker  # noqa: PLC0415 - with the command
+
+    if not (args.lockstep or args.speed is not None):
+        return _cmd_loopback(args, scenario, out, PlotWorker(None))
+    # lockstep: the plot's process imports matplotlib on the other core while this one starts and
+    # runs (in real time the plot is drawn here, as always: no second process competes with the
+    # run for the host, whose timing is the run's)
+    with PlotWorker.start() as plotter:
+        return _cmd_loopback(args, scenario, out, plotter)
+
+
+def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plotter: PlotWorker) -> int:
+    """One car: the daemon on the loopback, in real time or lockstep; the plot drawn by ``plotter``
+    (``PlotWorker(None)``: in this process)."""
+    from racecar_hw.runtime.panel import StatusPanel  # noqa: PLC0415 - rich, with the command
+    from racecar_hw.sim.loopback import Loopback, write_report  # noqa: PLC0415 - needs the extra
+
     overrides = [*args.overrides, *(["keyboard.enabled=true"] if args.keyboard else [])]
     if args.record:
         overrides += ["recorder.enabled=true", f"recorder.path={args.record}"]
@@ -140,7 +155,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     lockstep = args.lockstep or args.speed is not None
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration,
-                        until_replay_ends=bool(args.follow) and not given, lockstep=lockstep)
+                        until_replay_ends=bool(args.follow) and not given, lockstep=lockstep,
+                        plotter=plotter)
     with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
         if lockstep:
             from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the option

@@ -4,9 +4,11 @@ A command row's reader keeps only its newest sample (KEEP_LAST 1, in Cyclone's C
 GIL) and one thread for all command rows (the *pump*) takes it at most once per control period
 (``period_s``, s) per row, so a flood of ``/cmd_vel`` costs no Python work per message. The pump
 waits (in C) on one WaitSet holding every command reader's ReadCondition and a guard condition
-that :meth:`DdsReceiver.stop` sets; a row whose sample it has just taken is detached from the
-WaitSet for one period (its rest), so the other rows are still taken as soon as a sample arrives
-and an idle interface costs nothing. The e-stop and its release are never
+that :meth:`DdsReceiver.stop` sets. A sample that comes a period or more after the row's last take
+is taken at once; one that comes sooner has its row detached from the WaitSet until the period
+is over (its rest), then the newest is taken. So the other rows are still taken as soon as a
+sample arrives, an idle interface costs nothing, a client answering every scan (40 Hz) costs the
+pump one wake-up per command, and a flood at most two per period. The e-stop and its release are never
 coalesced: Cyclone calls their readers' listeners for every sample, in order. Every sample's CDR
 payload is decoded and checked by the :class:`~racecar_hw.net.inbox.Inbox`; without
 ``accepts_commands`` (a non-loopback interface) each is refused and counted instead.
@@ -22,6 +24,7 @@ from racecar_hw.base.clock import monotonic
 from racecar_hw.net.inbox import MALFORMED, NON_FINITE, Inbox
 from racecar_hw.net.topics import Topic
 from racecar_hw.runtime.refusals import Refusals
+from racecar_hw.runtime.threadname import name_this_thread
 
 if TYPE_CHECKING:
     from racecar_hw.net.dds_bridge import DdsStats
@@ -111,7 +114,7 @@ class DdsReceiver:
 
     def _pump(self, participant: Any, rows: list[tuple[Topic, str, Any]]) -> None:
         """The command rows' thread: wait (in C) for a sample on any row, take the newest of each
-        row that has one, and rest each such row one period."""
+        row that has one and was last taken a period ago or more, and rest the others until then."""
         from cyclonedds.core import (  # noqa: PLC0415
             GuardCondition,
             InstanceState,
@@ -121,6 +124,7 @@ class DdsReceiver:
             WaitSet,
         )
 
+        name_this_thread()
         mask = SampleState.NotRead | ViewState.Any | InstanceState.Any
         try:
             waitset = WaitSet(participant)
@@ -133,6 +137,7 @@ class DdsReceiver:
         except Exception:  # noqa: BLE001 - closed before the pump started
             return
         resting: dict[int, float] = {}  # row index -> monotonic time (s) it may be taken again
+        taken: dict[int, float] = {}    # row index -> monotonic time (s) of its last take
         period_s = self.period_s
         while not self._stopping.is_set():
             try:
@@ -150,9 +155,13 @@ class DdsReceiver:
                 now = monotonic()
                 for i, (condition, receive, reader) in enumerate(pumps):
                     if i not in resting and condition.triggered:
-                        receive(reader)
-                        waitset.detach(condition)
-                        resting[i] = now + period_s
+                        due = taken.get(i, -period_s) + period_s
+                        if now >= due:
+                            receive(reader)
+                            taken[i] = now
+                        else:  # sooner than a period after the last: the newest goes at its end
+                            waitset.detach(condition)
+                            resting[i] = due
             except Exception:  # noqa: BLE001 - the participant is gone: the thread ends
                 return
 

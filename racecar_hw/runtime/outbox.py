@@ -14,6 +14,9 @@ says it is idle (:meth:`Outbox.control_idle`, called by the daemon once a scan's
 so its work lands in the gap before the next scan; on its own it waits at most ``2 * batch_s``.
 A job queued with ``urgent=True`` wakes it at once: for a message queued in that gap whose
 latency matters (the scan itself, queued after its motor command, for remote navigation code).
+With nothing queued (and no ``on_batch``) the thread sleeps until a job comes, not waking on a
+timer (a network interface nobody listens to costs no wake-ups); the first job into the empty
+queue wakes it, and unless it is urgent the thread then waits up to ``batch_s`` for more.
 
 Hooks for a writer that owns a resource in its thread (the recorder's bag: sqlite3 connections
 belong to the thread that made them): ``start(setup)`` runs ``setup`` in the thread first and
@@ -34,6 +37,7 @@ from collections.abc import Callable
 from typing import Any
 
 from racecar_hw.base.clock import wall_ns
+from racecar_hw.runtime.threadname import name_this_thread
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +66,46 @@ def lower_thread_priority(nice: int) -> None:
         log.debug("cannot lower a thread's priority on this system")
 
 
+class _Wake:
+    """A wake-up flag for one waiting thread: :meth:`set` from any thread, :meth:`wait` in the thread.
+
+    A bare lock held while nobody asked for a wake-up, released by :meth:`set`: waking the thread
+    is one futex call and it wakes once, where :class:`threading.Event` goes through a
+    :class:`threading.Condition` whose lock the woken thread must take again (the setter, which
+    holds the GIL, often still has it), so a wake-up through an Event costs more context switches.
+    """
+
+    __slots__ = ("_lock", "_set")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._lock.acquire()
+        self._set = False
+
+    def is_set(self) -> bool:
+        """Whether a wake-up is pending."""
+        return self._set
+
+    def set(self) -> None:
+        """Wake the thread (once, however often it is called before the thread wakes)."""
+        if not self._set:
+            self._set = True
+            try:
+                self._lock.release()
+            except RuntimeError:  # already released: a wake-up is pending
+                pass
+
+    def wait(self, timeout_s: float | None) -> bool:
+        """Wait for a wake-up or ``timeout_s`` (None: no limit), then clear the flag; whether it
+        was a wake-up.
+
+        Clears before the caller looks at its queue: a :meth:`set` after that wakes it again.
+        """
+        woken = self._lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s))
+        self._set = False
+        return woken
+
+
 class Outbox:
     """Jobs for one thread; :meth:`put` from any thread, never blocks."""
 
@@ -87,8 +131,10 @@ class Outbox:
         self._on_stop = on_stop
         self._queue: collections.deque[Job] = collections.deque(
             maxlen=None if self._drop_newest else size)
-        self._wake = threading.Event()
+        self._wake = _Wake()
         self._stopping = False
+        self._idle = False  # the thread sleeps, with no timer, until a job comes
+        self._hurry = False  # an urgent job (or a full batch) is queued: no batch wait
         self._thread: threading.Thread | None = None
         self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the thread
         #: jobs dropped because the queue was full
@@ -145,8 +191,12 @@ class Outbox:
             if self._drop_newest:
                 return
         queue.append((fn, args))
-        if (urgent or len(queue) >= self.wake_at) and not self._wake.is_set():
-            self._wake.set()
+        if urgent or len(queue) >= self.wake_at:
+            self._hurry = True
+            if not self._wake.is_set():
+                self._wake.set()
+        elif self._idle and not self._wake.is_set():
+            self._wake.set()  # the first job into an empty queue: the thread waits for its batch
 
     def clear(self) -> int:
         """Drop every queued job (not counted in :attr:`dropped`); returns how many."""
@@ -179,6 +229,7 @@ class Outbox:
 
     def _run(self, setup: Callable[[], None] | None, ready: threading.Event,
              failure: list[BaseException]) -> None:
+        name_this_thread(self.name)
         if self.nice:
             lower_thread_priority(self.nice)
         try:
@@ -191,14 +242,29 @@ class Outbox:
             ready.set()
         queue = self._queue
         while True:
-            wait_s = 2 * self.batch_s
+            wait_s: float | None = 2 * self.batch_s
+            idle = False
             if self._on_batch is not None:  # at the start, then after every batch
                 next_s = self._on_batch()
                 if next_s is not None:
-                    wait_s = min(wait_s, max(0.0, next_s))
+                    wait_s = min(2 * self.batch_s, max(0.0, next_s))
+            else:
+                # before looking at the queue: a put after the look wakes us
+                self._idle = True
+                if queue:
+                    self._idle = False
+                else:
+                    idle = True
+                    wait_s = None
             self._drain_due = time.monotonic() + self.batch_s
             self._wake.wait(wait_s)
-            self._wake.clear()
+            if idle:
+                self._idle = False
+                # woken by a job that can wait for its batch
+                if not self._hurry and not self._stopping:
+                    self._drain_due = time.monotonic() + self.batch_s
+                    self._wake.wait(self.batch_s)
+            self._hurry = False
             stopping = self._stopping
             while queue:
                 try:

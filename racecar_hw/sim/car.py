@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -131,21 +131,35 @@ class Collider:
         self._occ = occ_map.occupied
         #: the last exact map gap (capped at CLEARANCE_RANGE_M) and the footprint it was measured at
         self._anchor: tuple[np.ndarray, float] | None = None
+        #: the last :meth:`clearance`: its arguments, the anchor it left, and its answer
+        self._last: tuple[tuple[Any, ...], tuple[Obstacle, ...], Any, float] | None = None
 
     def clearance(self, pose: Pose2D | tuple[float, float, float], obstacles: Iterable[Obstacle] = (),
                   max_distance: float = CLEARANCE_RANGE_M, exact_below: float = math.inf) -> float:
         """Smallest gap (m) from the footprint at ``pose`` to any obstacle; 0 on contact. Gaps of
         ``max_distance`` or more are reported as ``max_distance``. With ``exact_below``, a gap
         known to be at least ``exact_below`` may be reported as a lower bound that is itself at
-        least ``exact_below`` (enough for a running minimum)."""
+        least ``exact_below`` (enough for a running minimum).
+
+        Asked the same again (a car at rest: the world asks at every step), with the same obstacle
+        objects and nothing measured in between, it answers what it answered, without measuring:
+        measuring again would give that answer (the anchor it left is at this very footprint, or
+        was not moved by it) and leave an equal anchor."""
+        key = (*pose, max_distance, exact_below)
+        shapes = tuple(obstacles)
+        last = self._last
+        if (last is not None and last[0] == key and last[2] is self._anchor and len(last[1]) == len(shapes)
+                and all(a is b for a, b in zip(last[1], shapes, strict=True))):
+            return last[3]
         corners = footprint(pose, self.params)
         if max_distance == CLEARANCE_RANGE_M:
             gap = self._map_gap(pose, corners, exact_below)
         else:
             gap = min(self._map_clearance(pose, max_distance), max_distance)
         if gap > 0:
-            for obstacle in obstacles:
+            for obstacle in shapes:
                 gap = min(gap, obstacle.distance_to(corners))
+        self._last = (key, shapes, self._anchor, gap)
         return gap
 
     def collides(self, pose: Pose2D | tuple[float, float, float],

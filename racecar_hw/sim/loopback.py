@@ -39,7 +39,8 @@ from racecar_hw.sim.drivers import REPLAY_LATE_MAX_S, REPLAY_SETTLE_S, ScenarioD
 from racecar_hw.sim.live import SIM_TOPICS, log_estop_timing, publish_truth
 from racecar_hw.sim.observer import MAX_SAMPLES, SAMPLE_PERIOD_S, RunObserver
 from racecar_hw.sim.occupancy import load_map
-from racecar_hw.sim.plot import ControlSample, Mark
+from racecar_hw.sim.plot_rows import ControlSample, Mark
+from racecar_hw.sim.plot_worker import PlotWorker
 from racecar_hw.sim.report import RunReport, SimResult, write_report
 from racecar_hw.sim.rig import DEVICE_FAULTS, LIDAR_MAX_RANGE_M, FakeRig, car_params
 from racecar_hw.sim.scenario import FaultSpec, Scenario
@@ -61,7 +62,7 @@ class Loopback:
                  status: StatusPanel | None = None, duration_s: float | None = None,
                  until_replay_ends: bool = False,
                  setup: Callable[[Loopback], None] | None = None, lockstep: bool = False,
-                 car_name: str = "car") -> None:
+                 car_name: str = "car", plotter: PlotWorker | None = None) -> None:
         if scenario.cars:
             raise ConfigError("cars", f"scenario {scenario.name!r} has several cars: run it with "
                                       "racecar_hw.sim.fleet.Fleet")
@@ -77,6 +78,8 @@ class Loopback:
         self.overrides = tuple(overrides)
         self.status = status
         self.setup = setup
+        #: draws the run's plot in another process (started before the run); None: in this one
+        self.plotter = plotter
         self.map = load_map(scenario.map_path())
         #: the fakes in the daemon's loop behind in-memory links, on the loop's (virtual) clock
         #: (run it with :func:`racecar_hw.runtime.lockstep.run`), instead of ptys and TCP in real time

@@ -8,7 +8,7 @@ from __future__ import annotations
 import asyncio
 
 from racecar_hw.daemon import Daemon
-from racecar_hw.sim.plot import ControlSample, Mark
+from racecar_hw.sim.plot_rows import ControlSample, Mark
 from racecar_hw.sim.world import World
 
 #: How often the control path is sampled for the plot (s of sim time), and at most how many samples.

@@ -16,9 +16,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from matplotlib import colormaps
@@ -32,6 +31,8 @@ from matplotlib.transforms import Affine2D
 
 from racecar_hw.sim.obstacles import Box, Circle, Obstacle, Polygon
 from racecar_hw.sim.occupancy import OccupancyMap
+from racecar_hw.sim.plot_rows import ControlSample as ControlSample  # re-exported: plot rows
+from racecar_hw.sim.plot_rows import Mark
 from racecar_hw.sim.world import World
 
 #: Figure width in inches; ``width_px`` sets the resolution.
@@ -41,33 +42,6 @@ START_COLOUR, END_COLOUR = "#14a03c", "#8c28b4"
 INTERVENTION_COLOUR, COLLISION_COLOUR, OBSTACLE_COLOUR = "#f59600", "#dc1414", "#787878"
 SPEED_COLOURS = {"commanded": "#1f77b4", "output": "#17becf", "allowed": "#f59600", "measured": "#2ca02c"}
 SPEED_CMAP = "viridis"
-
-
-class ControlSample(NamedTuple):
-    """One sample of the control path during a run (sim time ``t`` in seconds, speeds in m/s).
-
-    ``commanded``: what the active source asked for; ``output``: what the mux sent to the VESC after
-    the safety controller and the rate limiter; ``allowed``: the safety controller's allowed speed
-    (inf when it does not limit); ``measured``: the odometry speed; ``steering``: the output steering
-    angle (rad, + left).
-    """
-
-    t: float
-    commanded: float
-    output: float
-    allowed: float
-    measured: float
-    steering: float
-
-
-@dataclass(frozen=True)
-class Mark:
-    """A point event on the map and, when its time is known, on the time axis."""
-
-    x: float
-    y: float
-    t: float | None = None
-    label: str = ""
 
 
 def as_marks(items: Iterable[Any]) -> list[Mark]:
@@ -207,12 +181,10 @@ def _draw_map(fig: Figure, ax: Any, occ_map: OccupancyMap, traj: np.ndarray, int
         ax.add_patch(CirclePatch((x, y), r, color=OBSTACLE_COLOUR, zorder=1))
     handles: list[Any] = []
     if len(traj) >= 2:
-        points = traj[:, 1:3]
-        segments = np.stack([points[:-1], points[1:]], axis=1)
-        speed = np.abs(traj[1:, 4])
+        segments, speed = path_segments(traj)
         lines = LineCollection(segments, cmap=colormaps[SPEED_CMAP], linewidths=2.5, zorder=2, gid="path")
         lines.set_array(speed)
-        lines.set_clim(0.0, max(float(speed.max()), 0.1))
+        lines.set_clim(0.0, max(float(np.abs(traj[1:, 4]).max()), 0.1))
         ax.add_collection(lines)
         fig.colorbar(lines, ax=ax, label="speed (m/s)", shrink=0.85, pad=0.01)
     if len(traj):
@@ -229,6 +201,20 @@ def _draw_map(fig: Figure, ax: Any, occ_map: OccupancyMap, traj: np.ndarray, int
         handles.append(_handle("x", COLLISION_COLOUR, f"collision ({len(collisions)})"))
     if handles:
         ax.legend(handles=handles, loc="upper right", fontsize="small", framealpha=0.85)
+
+
+def path_segments(traj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The driven path as line segments ((n, 2, 2): map-frame metres) and the |speed| (m/s) each is
+    coloured by, from trajectory rows (t, x, y, yaw, speed) with at least two rows.
+
+    A segment joins each row to the next and takes the later row's speed. Segments of zero length
+    (the car standing: most rows of a run that waits) are left out: a zero-length line strokes no
+    pixel, and each segment costs the plot a path of its own to build and draw.
+    """
+    points = traj[:, 1:3]
+    moved = np.any(points[1:] != points[:-1], axis=1)
+    segments = np.stack([points[:-1][moved], points[1:][moved]], axis=1)
+    return segments, np.abs(traj[1:, 4][moved])
 
 
 def _pose_marker(ax: Any, row: np.ndarray, colour: str, size: float) -> None:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from racecar_hw.sim.car import CLEARANCE_RANGE_M, footprint
 from racecar_hw.sim.obstacles import point_polygon_distance
-from racecar_hw.sim.plot import plot_run
+from racecar_hw.sim.plot_worker import PlotWorker
 from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
 from racecar_hw.sim.world import compose
 
@@ -131,11 +131,14 @@ class RunReport:
             run.out_dir.mkdir(parents=True, exist_ok=True)
             stem = run.scenario.name or "sim"
             csv_path = run.out_dir / f"{stem}-trajectory.csv"
-            write_csv(csv_path, world.samples)
             png_path = run.out_dir / f"{stem}.png"
-            plot_run(png_path, run.map, world.trajectory, run.intervention_marks, world.collisions,
-                     world.obstacles.values(), title=stem, series=run.control_samples,
-                     switches=report["mux_switches"])
+            # the plot is drawn by the run's plot worker (another process) while the CSV is written
+            plot = (run.plotter or PlotWorker(None)).submit(
+                png_path, run.map, world.trajectory, run.intervention_marks, world.collisions,
+                list(world.obstacles.values()), title=stem, series=run.control_samples,
+                switches=report["mux_switches"])
+            write_csv(csv_path, world.samples)
+            plot.wait()
             report["trajectory_csv"] = str(csv_path)
             report["plot_png"] = str(png_path)
             result.trajectory_csv, result.plot_png = csv_path, png_path

@@ -1,0 +1,163 @@
+"""The run's plot drawn in a second process, which imports matplotlib while the run goes.
+
+Importing matplotlib and drawing the figure is about a second of CPU, all of it after the run in
+one process. ``racecar-hw sim`` starts a :class:`PlotWorker` before the run: a child Python
+(``python -m racecar_hw.sim.plot_worker``) that imports :mod:`racecar_hw.sim.plot` on the
+machine's other core, then waits for the one figure to draw. At the end of the run the report
+hands it the same arguments :func:`racecar_hw.sim.plot.plot_run` takes (:meth:`PlotWorker.submit`)
+and writes the trajectory CSV while the child draws; :meth:`PendingPlot.wait` returns when the PNG
+is written. The picture is the one :func:`~racecar_hw.sim.plot.plot_run` draws in-process, byte
+for byte: same function, same arguments.
+
+Failure is never worse than no worker: a child that did not start, died, or raised is reported
+in the log and the figure is drawn in this process instead (where a genuine plotting error then
+raises as it always did).
+
+Interruption: the child runs in a session of its own, so a Ctrl-C at the terminal reaches only
+the ``sim`` process, which handles it as before; the child ends when its standard input closes
+(:meth:`PlotWorker.close`, or the parent gone for any reason).
+
+The pipe carries pickles between this process and the child it started, nothing else.
+"""
+
+from __future__ import annotations
+
+import logging
+import pickle
+import subprocess
+import sys
+import traceback
+from pathlib import Path
+from typing import IO, Any
+
+log = logging.getLogger(__name__)
+
+#: How long (s) :meth:`PlotWorker.close` waits for the child to end before killing it.
+CLOSE_TIMEOUT_S = 5.0
+
+
+class PendingPlot:
+    """A figure submitted to the worker; :meth:`wait` for it."""
+
+    def __init__(self, worker: PlotWorker | None, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+        self._worker = worker
+        self._args = args
+        self._kwargs = kwargs
+
+    def wait(self) -> tuple[int, int]:
+        """The PNG's size in pixels (width, height) once it is written; drawn here if the worker
+        could not."""
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            size = worker.result()
+            if size is not None:
+                return size
+        from racecar_hw.sim.plot import plot_run  # noqa: PLC0415 - matplotlib, only when needed
+
+        return plot_run(*self._args, **self._kwargs)
+
+
+class PlotWorker:
+    """A child process that draws one run's plot: :meth:`start`, :meth:`submit`, :meth:`close`
+    (or use it as a context manager)."""
+
+    def __init__(self, process: subprocess.Popen[bytes] | None) -> None:
+        self._process = process
+
+    @classmethod
+    def start(cls) -> PlotWorker:
+        """Start the child (it imports the plotting modules at once); a worker that could not start
+        draws nothing and every figure is drawn in this process."""
+        try:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "racecar_hw.sim.plot_worker"], stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True)
+        except OSError as err:
+            log.info("plot worker: not started (%s); the plot is drawn in this process", err)
+            process = None
+        return cls(process)
+
+    def submit(self, path: str | Path, *args: Any, **kwargs: Any) -> PendingPlot:
+        """Start drawing :func:`~racecar_hw.sim.plot.plot_run` (``path``, then its other arguments)
+        in the child; at most one figure per worker."""
+        call_args = (path, *args)
+        process, self._process = self._process, None
+        if process is None:
+            return PendingPlot(None, call_args, kwargs)
+        try:
+            assert process.stdin is not None
+            pickle.dump((call_args, kwargs), process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            process.stdin.close()
+        except (OSError, pickle.PicklingError, TypeError, AttributeError) as err:
+            log.info("plot worker: the figure could not be handed over (%s); drawn here", err)
+            _end(process)
+            return PendingPlot(None, call_args, kwargs)
+        self._process = process
+        return PendingPlot(self, call_args, kwargs)
+
+    def result(self) -> tuple[int, int] | None:
+        """The child's answer to the figure submitted: its size, or None (logged) on any failure."""
+        process, self._process = self._process, None
+        if process is None:
+            return None
+        try:
+            assert process.stdout is not None
+            status, value = pickle.load(process.stdout)
+        except (OSError, EOFError, pickle.UnpicklingError, ValueError) as err:
+            log.info("plot worker: no answer (%s); the plot is drawn in this process", err)
+            return None
+        finally:
+            _end(process)
+        if status != "ok":
+            log.info("plot worker: failed (%s); the plot is drawn in this process", value)
+            return None
+        return int(value[0]), int(value[1])
+
+    def close(self) -> None:
+        """End the child if it is still there (nothing submitted, or not waited for)."""
+        process, self._process = self._process, None
+        if process is not None:
+            _end(process)
+
+    def __enter__(self) -> PlotWorker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _end(process: subprocess.Popen[bytes]) -> None:
+    """Close the pipes and reap the child, killing it if it does not end by itself."""
+    for stream in (process.stdin, process.stdout):
+        if stream is not None:
+            try:
+                stream.close()
+            except OSError:
+                pass
+    try:
+        process.wait(CLOSE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def serve(stdin: IO[bytes], stdout: IO[bytes]) -> int:
+    """The child's side: import the plot, draw the one figure read from ``stdin`` (if any: EOF ends
+    it quietly), answer ``("ok", (width, height))`` or ``("error", text)`` on ``stdout``."""
+    from racecar_hw.sim.plot import plot_run  # noqa: PLC0415 - the point: imported while the run goes
+
+    try:
+        args, kwargs = pickle.load(stdin)
+    except EOFError:
+        return 0  # the run ended without a plot (interrupted, failed)
+    try:
+        answer: tuple[str, Any] = ("ok", plot_run(*args, **kwargs))
+    except Exception:  # noqa: BLE001 - reported to the parent, which draws (and raises) itself
+        answer = ("error", traceback.format_exc(limit=3))
+    pickle.dump(answer, stdout, protocol=pickle.HIGHEST_PROTOCOL)
+    stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(serve(sys.stdin.buffer, sys.stdout.buffer))
