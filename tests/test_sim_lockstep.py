@@ -34,7 +34,8 @@ from racecar_hw.sim.scenario import load_scenario, scenario_names
 #: spare and is preempted by any other runnable thread, the lockstep run's included, but does not
 #: take a core from the other pytest-xdist worker (docs/tests.md, "The CPU burner").
 BURNER_NICE = 19
-BURNER = f"import os; os.nice({BURNER_NICE})\nwhile True: pass"
+#: It spins until its parent (the test's process) is gone: a worker killed mid-test leaves none behind.
+BURNER = f"import os; os.nice({BURNER_NICE}); parent = os.getppid()\nwhile os.getppid() == parent: pass"
 
 
 @contextmanager
