@@ -18,7 +18,7 @@ import shutil
 
 import pytest
 from conftest import set_args
-from lockstep_sim import OFFLINE
+from lockstep_sim import OFFLINE, shares_run, shipped_run
 from zenoh_util import ROOT
 
 from racecar_hw.cli import main
@@ -44,6 +44,7 @@ def _figure8(capsys, tmp_path, config) -> dict:
 
 
 @pytest.mark.slow
+@shares_run("miscalibrated-figure8")
 def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(tmp_path, capsys):
     config = tmp_path / "car.yaml"
     shutil.copy(ROOT / "config" / "sim.yaml", config)
@@ -60,8 +61,9 @@ def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(
     written = config.read_text()
     assert "speed_to_erpm_gain" in written and written.startswith(shipped.splitlines()[0])
     assert f"+++ {config}" in stdout
-    # before: the shipped config on the same car; after: the calibrated one (two figure-8s, ~25 m)
-    before = _figure8(capsys, tmp_path, ROOT / "config" / "sim.yaml")
+    # before: the shipped config on the same car (the scenario as shipped: its shared lockstep run,
+    # tests/lockstep_sim.py); after: the calibrated one on the command line (two figure-8s, ~25 m)
+    before = shipped_run("miscalibrated-figure8")[0]
     after = _figure8(capsys, tmp_path, config)
     assert not before["collided"] and not after["collided"]
     assert after["distance_m"] > 20.0

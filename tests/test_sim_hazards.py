@@ -7,7 +7,9 @@ the same scenario with ``safety.mode=off`` (no limit at all: no braking for obst
 stale scan, no reverse cap) does collide, so each one is run twice. Both runs are lockstep
 (:mod:`racecar_hw.runtime.lockstep`): the daemon and the fakes on the simulation's virtual clock,
 as fast as the machine allows and the same on an idle or a loaded machine, so the outcomes are
-asserted exactly.
+asserted exactly. The run with the shipped config is the scenario's shared run
+(tests/lockstep_sim.py, :func:`~lockstep_sim.shipped_run`), which the determinism and scenario
+tests check too.
 
 Every shipped scenario is either in :data:`HAZARDS` or in :data:`NOT_HAZARDS` with the reason:
 a new scenario fails :func:`test_every_shipped_scenario_is_classified` until someone decides, and
@@ -19,11 +21,9 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import QUIET_NET
+from lockstep_sim import run_lockstep, shares_run, shipped_run
 
-from racecar_hw.runtime import lockstep
-from racecar_hw.sim.loopback import Loopback
-from racecar_hw.sim.scenario import load_scenario, scenario_names
+from racecar_hw.sim.scenario import scenario_names
 
 #: The hazard scenarios, each with the reason the shipped safety controller intervenes for.
 HAZARDS: dict[str, str] = {
@@ -54,12 +54,9 @@ NOT_HAZARDS: dict[str, str] = {
 CLEAR_MARGIN_M = 0.1
 
 
-def run_lockstep(name: str, tmp_path, *overrides: str) -> dict:
-    loopback = Loopback(load_scenario(name), out_dir=tmp_path, overrides=[*QUIET_NET, *overrides],
-                        lockstep=True)
-    report = lockstep.run(loopback.run()).report
-    # shown with a failure
-    print(name, overrides, json.dumps({k: report.get(k) for k in (
+def show(name: str, config: str, report: dict) -> dict:
+    """``report``, printed (shown with a failure)."""
+    print(name, config, json.dumps({k: report.get(k) for k in (
         "collided", "collisions", "min_clearance_m", "final_pose", "distance_m",
         "safety_interventions_by_reason", "interventions")}))
     return report
@@ -70,14 +67,14 @@ def test_every_shipped_scenario_is_classified():
     assert set(scenario_names()) == set(HAZARDS) | set(NOT_HAZARDS)
 
 
-@pytest.mark.parametrize("name", sorted(HAZARDS))
-def test_a_hazard_collides_without_the_safety_controller_and_not_with_it(tmp_path, name):
-    off = run_lockstep(name, tmp_path / "off", "safety.mode=off")
+@pytest.mark.parametrize("name", [pytest.param(name, marks=shares_run(name)) for name in sorted(HAZARDS)])
+def test_a_hazard_collides_without_the_safety_controller_and_not_with_it(name):
+    off = show(name, "safety.mode=off", run_lockstep(name, overrides=["safety.mode=off"])[0].report)
     assert off["collided"] is True
     assert off["safety_interventions"] == 0  # nothing limited the car
     assert off["min_clearance_m"] == 0.0
 
-    shipped = run_lockstep(name, tmp_path / "shipped")
+    shipped = show(name, "shipped", shipped_run(name)[0])
     assert shipped["collided"] is False, shipped["collisions"]
     assert shipped["min_clearance_m"] > CLEAR_MARGIN_M
     # it was the controller, for the reason the scenario is about, that kept the car clear

@@ -20,7 +20,7 @@ import sys
 
 import pytest
 from conftest import QUIET_NET, set_args
-from lockstep_sim import run_lockstep, trajectory
+from lockstep_sim import run_lockstep, shares_run, shipped_run, trajectory
 
 from racecar_hw.sim.loopback import Loopback, SimResult
 from racecar_hw.sim.scenario import load_scenario, scenario_names
@@ -44,13 +44,17 @@ def realtime(name: str, tmp_path, *overrides: str, duration_s: float | None = No
 def run(name: str, *overrides: str, duration_s: float | None = None) -> tuple[dict, list]:
     """``name`` in lockstep: its report and its trajectory. In lockstep the control loop never
     misses a tick and a scan is never late for the machine's load: only an unplugged lidar makes
-    one stale."""
-    result, loopback = run_lockstep(name, *overrides, duration_s=duration_s)
-    r = result.report
+    one stale. The shipped scenario as it is (no overrides) is its shared run
+    (:func:`lockstep_sim.shipped_run`): a test of it carries ``@shares_run(name)``."""
+    if not overrides and duration_s is None:
+        r, samples = shipped_run(name)
+    else:
+        result, loopback = run_lockstep(name, *overrides, duration_s=duration_s)
+        r, samples = result.report, trajectory(loopback)
     assert r["control"]["missed_ticks"] == 0, r["control"]
     if not any(a == "lidar_unplug" for _, a in r["faults"]):
         assert "stale_scan" not in r["safety_interventions_by_reason"], r["interventions"]
-    return r, trajectory(loopback)
+    return r, samples
 
 
 def mean_speed(samples, t0: float, t1: float) -> float:
@@ -73,6 +77,7 @@ def test_every_shipped_scenario_is_covered():
                                      "two-cars"}
 
 
+@shares_run("figure8")
 def test_figure8_returns_to_the_start():
     r, samples = run("figure8")
     assert not r["collided"]
@@ -113,9 +118,14 @@ def test_a_scans_motor_command_is_written_before_its_summaries_are_made():
     assert written_first.count(True) == timed
 
 
-@pytest.mark.parametrize("speed", [1.0, 2.0, 3.0, 4.0])
+#: The shipped wall scenario's speed (m/s): at it, the head-on run is the scenario's shared run.
+WALL_SPEED = 2.0
+
+
+@pytest.mark.parametrize("speed", [1.0, pytest.param(WALL_SPEED, marks=shares_run("wall")), 3.0, 4.0])
 def test_wall_head_on_never_touched_and_stopped_close(speed):
-    r, _ = run("wall", f"drivers.0.speed_mps={speed}")
+    assert load_scenario("wall").drivers[0].speed_mps == WALL_SPEED
+    r, _ = run("wall", *([] if speed == WALL_SPEED else [f"drivers.0.speed_mps={speed}"]))
     check_wall_head_on(r, speed)
     assert r["safety_interventions_by_reason"] == {"obstacle": 1}  # the wall, once, and it held
 
@@ -166,6 +176,7 @@ def test_a_usb_hokuyo_is_reached_on_a_pty_even_with_transport_tcp():
     assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
 
 
+@shares_run("corridor")
 def test_corridor_at_3_mps_without_intervention():
     r, _ = run("corridor")
     assert not r["collided"]
@@ -179,6 +190,7 @@ def test_corridor_at_3_mps_without_intervention():
     assert abs(r["final_pose"]["y"]) < 0.02
 
 
+@shares_run("obstacle")
 def test_obstacle_appearing_ahead_stops_the_car():
     r, _ = run("obstacle")
     assert not r["collided"], r["collisions"]
@@ -195,6 +207,7 @@ def obstacle_stops(report: dict) -> list[dict]:
     return [i for i in report["interventions"] if i["reason"] == "obstacle"]
 
 
+@shares_run("reverse-wall")
 def test_reversing_into_a_wall_seen_before_a_u_turn_stops_with_the_memory():
     r, samples = run("reverse-wall")
     assert r["safety_memory"] is True
@@ -249,6 +262,7 @@ def test_reversing_into_the_same_wall_without_the_memory_collides():
     assert r["final_pose"]["yaw"] == pytest.approx(0.0, abs=0.15)
 
 
+@shares_run("crossing-person")
 def test_a_person_crossing_at_1_mps_is_not_hit_at_2_mps():
     r, _ = run("crossing-person")
     assert not r["collided"], r["collisions"]
@@ -261,6 +275,7 @@ def test_a_person_crossing_at_1_mps_is_not_hit_at_2_mps():
     assert r["distance_m"] > 4.0
 
 
+@shares_run("sliding-box")
 def test_a_box_sliding_into_the_path_is_not_hit_at_2_mps():
     r, _ = run("sliding-box")
     assert not r["collided"], r["collisions"]
@@ -295,6 +310,7 @@ def test_the_memory_update_comes_after_the_scans_motor_command():
     assert after_write.count(True) >= timed
 
 
+@shares_run("teleop-override")
 def test_teleop_overrides_navigation_then_hands_back():
     r, samples = run("teleop-override")
     sources = [s for _, s in r["mux_switches"] if s != "idle"]
@@ -307,6 +323,7 @@ def test_teleop_overrides_navigation_then_hands_back():
     assert not r["collided"]
 
 
+@shares_run("lidar-dropout")
 def test_lidar_unplugged_stops_the_car_and_it_drives_on_when_back():
     r, samples = run("lidar-dropout")
     unplug_at, replug_at = fault_time(r, "lidar_unplug"), fault_time(r, "lidar_replug")
@@ -318,6 +335,7 @@ def test_lidar_unplugged_stops_the_car_and_it_drives_on_when_back():
     assert not r["collided"]
 
 
+@shares_run("vesc-replug")
 def test_vesc_replug_reconnects_and_drives_on():
     r, samples = run("vesc-replug")
     assert r["vesc"]["reconnects"] >= 1
