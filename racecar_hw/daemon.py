@@ -97,6 +97,14 @@ def laser_to_base(config: Config, tf: TfTree) -> Any:
     return None
 
 
+def car_ready(links: list[LinkWatch], safety: SafetyNode, has_lidar: bool) -> bool:
+    """Whether a command would move the car: every device link is up and, with a lidar, the
+    safety controller has a scan (without one it holds the car). What a bag replay waits for."""
+    if not all(watch.connected() for watch in links):
+        return False
+    return not has_lidar or safety.state.reason != "no_scan"
+
+
 def undriven_reason(vesc: VescDriver | None, port: str) -> str | None:
     """Why no drive command reached a connected VESC in this run; None when one did, or when there
     is no VESC to reach."""
@@ -186,7 +194,8 @@ class Daemon:
             self.links["lidar"] = LinkWatch(f"lidar {config.lidar.model}", lambda: lidar.connected,
                                             detail=lambda: lidar.last_error)
         if self.follower is not None:
-            self.follower.ready = self.car_ready
+            links, safety, has_lidar = list(self.links.values()), self.safety, self.lidar is not None
+            self.follower.ready = lambda: car_ready(links, safety, has_lidar)
         self.shape = car_shape(config, laser)
         #: the network and live interfaces; the daemon is their CarControl
         self.net = net = Interfaces(config, bus, self.control, self, self.refusals)
@@ -214,13 +223,6 @@ class Daemon:
         """Whether a configured source drives the car without anyone at the controls (a followed
         bag, the figure-8): then a run that never reached the VESC has failed."""
         return self.follower is not None or self.figure8 is not None
-
-    def car_ready(self) -> bool:
-        """Whether a command would move the car: every device link is up and, with a lidar, the
-        safety controller has a scan (without one it holds the car)."""
-        if not all(watch.connected() for watch in self.links.values()):
-            return False
-        return self.lidar is None or self.safety.state.reason != "no_scan"
 
     def undriven_reason(self) -> str | None:
         """Why no drive command reached a connected VESC in this run (:func:`undriven_reason`)."""
