@@ -37,6 +37,52 @@ async def until(predicate, limit_s: float = 30.0, step_s: float = 0.001) -> None
 # --- the loop -----------------------------------------------------------------------------------
 
 
+class TimeLimit(BaseException):
+    """What a test's time limit raises in whatever runs (pytest-timeout raises pytest's own
+    ``BaseException`` from its alarm signal)."""
+
+
+@pytest.mark.parametrize("where", ["callback", "task"])
+def test_a_time_limit_raised_inside_a_run_ends_it(where):
+    """asyncio logs and goes on after a ``BaseException`` in a callback, and keeps one in a task
+    until awaited: a run whose world or duration timer it ended would never end."""
+    ticks: list[float] = []
+
+    async def forever() -> None:  # a world stepping for ever
+        while True:
+            ticks.append(clock.monotonic())
+            await asyncio.sleep(0.01)
+
+    def limit() -> None:
+        raise TimeLimit
+
+    async def in_task() -> None:
+        await asyncio.sleep(1.0)
+        raise TimeLimit
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        if where == "callback":
+            loop.call_later(1.0, limit)
+        else:
+            keep = asyncio.create_task(in_task())  # noqa: F841 (held: tasks are weakly referenced)
+        await forever()
+
+    with pytest.raises(TimeLimit):
+        lockstep.run(main())
+    assert 95 <= len(ticks) <= 102  # ended at 1 s of virtual time, not run on
+
+
+def test_an_ordinary_error_in_a_callback_is_reported_and_the_run_goes_on(caplog):
+    async def main() -> float:
+        asyncio.get_running_loop().call_later(0.5, lambda: 1 / 0)
+        await asyncio.sleep(2.0)
+        return clock.monotonic()
+
+    assert lockstep.run(main()) == pytest.approx(3.0)  # the epoch, 1 s, and 2 s run
+    assert "ZeroDivisionError" in caplog.text
+
+
 def test_virtual_time_runs_timers_in_order_without_waiting_and_switches_the_clock_back():
     fired: list[tuple[str, int]] = []
 

@@ -62,6 +62,25 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         self.stood_still_s = 0.0
         self._until_ns: int | None = None  # run_until_time's end: the loop stops instead of passing it
         self._selector = _VirtualSelector(self._selector, self)  # type: ignore[has-type]
+        #: what ended the run from inside a callback or task (see :meth:`call_exception_handler`)
+        self.fatal: BaseException | None = None
+        self.set_task_factory(_watched_task)
+
+    # --- what ends a run from inside ----------------------------------------------------------
+
+    def call_exception_handler(self, context: dict[str, Any]) -> None:
+        """As asyncio's, but an exception that is not an ``Exception`` (a test's time limit, which
+        pytest raises as its own ``BaseException``) stops the loop, and :func:`run` raises it: asyncio
+        would log it and go on, and a run whose world or duration timer it ended would never end."""
+        exc = context.get("exception")
+        if _ends_the_run(exc):
+            self._end(exc)
+        super().call_exception_handler(context)
+
+    def _end(self, exc: BaseException) -> None:
+        if self.fatal is None:
+            self.fatal = exc
+            self.stop()
 
     # --- the clock ----------------------------------------------------------------------------
 
@@ -122,6 +141,8 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
             self.run_forever()
         finally:
             self._until_ns = None
+        if self.fatal is not None:
+            raise self.fatal
 
     def rewind(self, start_ns: int = SIM_EPOCH_NS) -> None:
         """Set virtual time back to ``start_ns`` between two runs in this loop, so each starts at the
@@ -218,6 +239,29 @@ class _VirtualSelector:
         return getattr(self._inner, name)
 
 
+def _ends_the_run(exc: object) -> bool:
+    return (isinstance(exc, BaseException) and not isinstance(exc, Exception)
+            and not isinstance(exc, (asyncio.CancelledError, KeyboardInterrupt, SystemExit)))
+
+
+def _watched_task(loop: asyncio.AbstractEventLoop, coro: Coroutine[Any, Any, Any],
+                  **kwargs: Any) -> asyncio.Task[Any]:
+    """A task whose end by an exception that :func:`_ends_the_run` ends the run (a task keeps
+    what it raised until awaited, so the loop's exception handler would not hear of it)."""
+    task = asyncio.Task(coro, loop=loop, **kwargs)
+
+    def check(done: asyncio.Task[Any]) -> None:
+        # the stored exception, read without marking it retrieved (``exception()`` would silence
+        # asyncio's "never retrieved" report of an ordinary error)
+        exc = getattr(done, "_exception", None)
+        if _ends_the_run(exc) and isinstance(loop, VirtualTimeLoop):
+            done.exception()  # retrieved: the run raises it
+            loop._end(exc)
+
+    task.add_done_callback(check)
+    return task
+
+
 def hold_while(predicate: Callable[[], bool]) -> Callable[[], None]:
     """In a lockstep run (the running loop is a :class:`VirtualTimeLoop`), hold virtual time while
     ``predicate()`` holds, e.g. while a writer thread is behind; elsewhere nothing. Returns the
@@ -242,7 +286,15 @@ def run(main: Coroutine[Any, Any, T], speed: float | None = None, *,
     with use_virtual_time(loop.now_ns):
         try:
             asyncio.set_event_loop(loop)
-            return loop.run_until_complete(main)
+            try:
+                result = loop.run_until_complete(main)
+            except RuntimeError:  # "stopped before Future completed": by what ended it, if anything
+                if loop.fatal is not None:
+                    raise loop.fatal from None
+                raise
+            if loop.fatal is not None:
+                raise loop.fatal
+            return result
         finally:
             try:
                 close(loop)
