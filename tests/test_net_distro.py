@@ -9,7 +9,7 @@ import asyncio
 import pytest
 import zenoh
 from conftest import async_wait_for
-from zenoh_util import endpoint, free_port
+from zenoh_util import bridge_with_peer, endpoint, free_port
 
 from mux.params import MuxParams
 from racecar_hw.base.bus import Bus
@@ -122,23 +122,13 @@ def test_a_sample_from_rmw_zenoh_before_0_2_4_is_dropped_with_a_hint_to_update(c
 
     async def run() -> object:
         bus = Bus()
-        port = free_port()
-        rows = topic_table(MuxParams(), SafetyParams())
-        bridge = ZenohBridge(bus, ZenohParams(listen=[endpoint(port)]), rows)
-        loop = asyncio.get_running_loop()
-        bus.bind_loop(loop)
-        await loop.run_in_executor(None, bridge.open, loop)
-        peer = zenoh.open(session_config("client", [], [endpoint(port)]))
-        try:
+        async with bridge_with_peer(bus) as (bridge, peer):
             key = rmw.topic_key(0, "/estop", Bool.ROS_TYPE, rmw.type_hash(Bool.ROS_TYPE))
             pub = peer.declare_publisher(key)
             await asyncio.sleep(0.3)
             pub.put(ros2_types().serialize(Bool(True)), attachment=old)
             await async_wait_for(lambda: bridge.stats.old_attachment, timeout=20)
             return bridge.stats
-        finally:
-            peer.close()
-            await loop.run_in_executor(None, bridge.close)
 
     with caplog.at_level("WARNING", logger="racecar_hw.net.zenoh_bridge"):
         stats = asyncio.run(run())

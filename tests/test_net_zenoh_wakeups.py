@@ -6,9 +6,8 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
-import zenoh
 from conftest import async_wait_for
-from zenoh_util import endpoint, free_port
+from zenoh_util import bridge_with_peer
 
 from mux.params import MuxParams
 from racecar_hw.base.bus import Bus
@@ -17,7 +16,7 @@ from racecar_hw.net import rmw
 from racecar_hw.net.rmw import SampleStamps
 from racecar_hw.net.topics import topic_table
 from racecar_hw.net.zenoh_bridge import ZenohBridge, _Out
-from racecar_hw.net.zenoh_config import ZenohParams, session_config
+from racecar_hw.net.zenoh_config import ZenohParams
 from racecar_hw.rosmsg.typestore import ros2_types
 from safety.params import SafetyParams
 from vesc.driver import TOPIC_ODOM
@@ -54,14 +53,7 @@ def test_a_command_stream_arrives_whole_and_a_flood_is_coalesced_to_its_newest()
         bus = Bus()
         got: list[float] = []
         bus.subscribe(NAV0, lambda msg: got.append(msg.drive.speed))
-        port = free_port()
-        rows = topic_table(MuxParams(), SafetyParams())
-        bridge = ZenohBridge(bus, ZenohParams(listen=[endpoint(port)]), rows)
-        loop = asyncio.get_running_loop()
-        bus.bind_loop(loop)
-        await loop.run_in_executor(None, bridge.open, loop)
-        peer = zenoh.open(session_config("client", [], [endpoint(port)]))
-        try:
+        async with bridge_with_peer(bus) as (bridge, peer):
             key = rmw.topic_key(0, NAV0, AckermannDriveStamped.ROS_TYPE,
                                 rmw.type_hash(AckermannDriveStamped.ROS_TYPE))
             pub = peer.declare_publisher(key)
@@ -82,9 +74,6 @@ def test_a_command_stream_arrives_whole_and_a_flood_is_coalesced_to_its_newest()
             await async_wait_for(lambda: got and np.isclose(got[-1], 1.299), timeout=20)
             await async_wait_for(lambda: bridge.inbox.counts()[NAV0].received == 305, timeout=20)
             return got, bridge.inbox.counts()[NAV0]
-        finally:
-            peer.close()
-            bridge.close()
 
     got, counts = asyncio.run(run())
     assert np.allclose(got[:5], [0.1, 0.2, 0.3, 0.4, 0.5])

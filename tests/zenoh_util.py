@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,32 @@ def free_port() -> int:
 
 def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
+
+
+@contextlib.asynccontextmanager
+async def bridge_with_peer(bus: Any) -> AsyncIterator[tuple[Any, Any]]:
+    """A :class:`~racecar_hw.net.zenoh_bridge.ZenohBridge` with the daemon's topic table, listening
+    on a free loopback port with its loop bound to ``bus``, and a client Zenoh session connected
+    to it: ``(bridge, peer)``, both closed on leaving."""
+    import zenoh  # noqa: PLC0415
+
+    from mux.params import MuxParams  # noqa: PLC0415
+    from racecar_hw.net.topics import topic_table  # noqa: PLC0415
+    from racecar_hw.net.zenoh_bridge import ZenohBridge  # noqa: PLC0415
+    from racecar_hw.net.zenoh_config import ZenohParams, session_config  # noqa: PLC0415
+    from safety.params import SafetyParams  # noqa: PLC0415
+
+    port = free_port()
+    bridge = ZenohBridge(bus, ZenohParams(listen=[endpoint(port)]), topic_table(MuxParams(), SafetyParams()))
+    loop = asyncio.get_running_loop()
+    bus.bind_loop(loop)
+    await loop.run_in_executor(None, bridge.open, loop)
+    peer = zenoh.open(session_config("client", [], [endpoint(port)]))
+    try:
+        yield bridge, peer
+    finally:
+        peer.close()
+        await loop.run_in_executor(None, bridge.close)
 
 
 @dataclass
