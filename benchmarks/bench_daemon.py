@@ -352,23 +352,12 @@ def _summary(log: str) -> dict[str, float]:
 def _against(seconds: float, before: str, rounds: int) -> list[dict]:
     """The nominal-load daemon with Zenoh and DDS on and nobody listening, this code against the
     source tree ``before`` (the daemon importing it), interleaved for ``rounds`` rounds; medians."""
-    from rounds import interleaved, pooled_p99  # noqa: PLC0415
+    from rounds import code_from, interleaved, pooled_p99  # noqa: PLC0415
 
     def nominal() -> list[dict]:
         return run(seconds, zenoh_port=_free_port(), config_extra=ALL_INTERFACES)
 
-    def there() -> list[dict]:
-        old = os.environ.get("PYTHONPATH")
-        os.environ["PYTHONPATH"] = before
-        try:
-            return nominal()
-        finally:
-            if old is None:
-                del os.environ["PYTHONPATH"]
-            else:
-                os.environ["PYTHONPATH"] = old
-
-    results = interleaved({"this code": nominal, "before": there}, rounds)
+    results = interleaved({"this code": nominal, "before": code_from(before, nominal)}, rounds)
     names = ("daemon CPU share of one core", "scan to VESC command p50 (in daemon)",
              "scan to VESC command p99 (in daemon)", "  the daemon's CPU time in it, p99",
              "daemon thread wake-ups per second", "host: CPU time stolen by the hypervisor")

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 from bench_daemon import run as run_daemon
 from bench_zenoh import CLIENT, _free_port, _pick, _round_trip
-from rounds import interleaved, pooled_p99
+from rounds import code_from, interleaved, pooled_p99
 from table import print_rows
 
 ROS_PYTHON = str(Path(os.environ.get("RACECAR_ROS_VENV", Path(__file__).resolve().parents[1] / ".ros-venv"))
@@ -155,7 +155,7 @@ def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None) 
     """What one rclpy node answering every scan over DDS adds to the daemon's CPU, and its round
     trip (scan frame out of the fake lidar to the answer at the fake VESC), interleaved with the
     daemon with nobody subscribed; with ``before`` (a source tree), both again on that code."""
-    from bench_zenoh import _code_from, _latencies, _percentiles  # noqa: PLC0415
+    from bench_zenoh import _latencies, _percentiles  # noqa: PLC0415
 
     if not Path(ROS_PYTHON).exists():
         raise SystemExit(f"no ROS 2 environment at {ROS_PYTHON} (.ci/run makes it)")
@@ -173,8 +173,8 @@ def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None) 
 
     settings = {"nobody": lambda: run_daemon(seconds, config_extra=quiet), "rclpy": lambda: answered("rclpy")}
     if before:
-        settings["nobody, before"] = _code_from(before, settings["nobody"])
-        settings["rclpy, before"] = _code_from(before, lambda: answered("rclpy, before"))
+        settings["nobody, before"] = code_from(before, settings["nobody"])
+        settings["rclpy, before"] = code_from(before, lambda: answered("rclpy, before"))
     results = interleaved(settings, rounds)
     wakeups = "daemon thread wake-ups per second"
 

@@ -34,21 +34,17 @@ samples the daemon and the client with py-spy.
 
 from __future__ import annotations
 
-import os
 import socket
 import sys
 import time
 from collections.abc import Callable
-from typing import TypeVar
 
 import numpy as np
 from bench_daemon import run as run_daemon
-from rounds import interleaved, pooled_p99
+from rounds import code_from, interleaved, pooled_p99
 from table import print_rows
 
 from vesc.codec import SetServoPosition
-
-T = TypeVar("T")
 
 SUBSCRIBERS = '''
 import sys, time, zenoh
@@ -205,25 +201,6 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     return rows
 
 
-def _code_from(tree: str | None, fn: Callable[[], T]) -> Callable[[], T]:
-    """``fn`` with the daemon and its helpers importing racecar-hw from ``tree`` (None: this one)."""
-    if tree is None:
-        return fn
-
-    def run_there() -> T:
-        before = os.environ.get("PYTHONPATH")
-        os.environ["PYTHONPATH"] = tree
-        try:
-            return fn()
-        finally:
-            if before is None:
-                del os.environ["PYTHONPATH"]
-            else:
-                os.environ["PYTHONPATH"] = before
-
-    return run_there
-
-
 def far_side(seconds: float = 20.0, rounds: int = 4, chain_python: str | None = None,
              before: str | None = None) -> list[dict]:
     """What one remote ``racecar_hw.client`` answering every scan costs, and its round trip.
@@ -258,8 +235,8 @@ def far_side(seconds: float = 20.0, rounds: int = 4, chain_python: str | None = 
         "client": lambda: client("client"),
     }
     if before:
-        settings["no subscriber, before"] = _code_from(before, settings["no subscriber"])
-        settings["client, before"] = _code_from(before, lambda: client("client, before"))
+        settings["no subscriber, before"] = code_from(before, settings["no subscriber"])
+        settings["client, before"] = code_from(before, lambda: client("client, before"))
     if chain_python:
         from bench_rclpy_chain import run as run_chain  # noqa: PLC0415
 

@@ -7,6 +7,7 @@ Use a multiple of the number of settings as the number of rounds.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -24,6 +25,26 @@ def interleaved(settings: dict[str, Callable[[], T]], rounds: int) -> dict[str, 
         for label in labels[k:] + labels[:k]:
             results[label].append(settings[label]())
     return results
+
+
+def code_from(tree: str | None, fn: Callable[[], T]) -> Callable[[], T]:
+    """``fn`` with the daemon and its helpers importing racecar-hw from ``tree`` (None: this one):
+    ``PYTHONPATH`` set for the processes it starts (they start outside the repo, so it decides)."""
+    if tree is None:
+        return fn
+
+    def run_there() -> T:
+        before = os.environ.get("PYTHONPATH")
+        os.environ["PYTHONPATH"] = tree
+        try:
+            return fn()
+        finally:
+            if before is None:
+                del os.environ["PYTHONPATH"]
+            else:
+                os.environ["PYTHONPATH"] = before
+
+    return run_there
 
 
 ROUND_TRIP_P99 = "round trip fake lidar to fake VESC p99"
