@@ -127,8 +127,10 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
     warm_cpu: list[int] = []
     warm_parts: dict[str, list[int]] = {}
 
+    counts = inbox._slots[topic].counts  # read in place: counts() copies every input's
+
     def handed() -> int:
-        return inbox.counts()[topic].handed_over
+        return counts.handed_over
 
     def timed_drain() -> None:  # the inbox wakes the loop with self.drain: this instead
         if not measuring:
@@ -208,9 +210,17 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
     while warm.is_alive():
         await asyncio.sleep(0.05)
     # the loop's CPU share with no command for as long as the commanded phase lasts
+    whole = bool(os.environ.get("BENCH_LOOP_PROFILE")) and profiler is None
+    idle_prof = cProfile.Profile(time.thread_time_ns, 1e-9) if whole else None
+    busy_prof = cProfile.Profile(time.thread_time_ns, 1e-9) if whole else None
+    if idle_prof is not None:
+        idle_prof.enable()
     idle0, t0 = time.thread_time_ns(), time.monotonic()
     await asyncio.sleep(commands * PERIOD_S)
     idle_pct = 100.0 * (time.thread_time_ns() - idle0) / 1e9 / (time.monotonic() - t0)
+    if idle_prof is not None:
+        idle_prof.disable()
+        busy_prof.enable()  # type: ignore[union-attr]
     measuring = True
     loop_cpu0 = time.thread_time_ns()
     t0 = time.monotonic()
@@ -221,6 +231,8 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
     await asyncio.sleep(0.1)  # the last hand-over
     measuring = False
     loop_cpu = time.thread_time_ns() - loop_cpu0
+    if busy_prof is not None:
+        busy_prof.disable()
     wall = time.monotonic() - t0
     stop.set()
     await task
@@ -240,6 +252,8 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
         # the loop's CPU per command, everything included (its wake-up, asyncio's own work)
         "loop_added_us": (100.0 * loop_cpu / 1e9 / wall - idle_pct) / 100.0 / (handed_over / wall) * 1e6,
     }
+    if idle_prof is not None and busy_prof is not None:
+        result["loop_profile"] = _difference(idle_prof, busy_prof, handed_over)
     if warm_cpu:
         result["warm_drain_cpu_us_p50"] = float(np.percentile(warm_cpu, 50)) / 1e3
         result["warm_parts_us_p50"] = {k: float(np.percentile(v, 50)) / 1e3 for k, v in warm_parts.items()}
@@ -252,6 +266,30 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
             stats.dump_stats(os.environ["BENCH_PROFILE"])
         result["profile"] = out.getvalue()
     return result
+
+
+def _difference(idle: cProfile.Profile, busy: cProfile.Profile, commands: int) -> str:
+    """What the commands added to the whole loop thread's profile (the same time without them
+    subtracted), per command: calls and CPU time of each function, the largest first."""
+    def table(prof: cProfile.Profile) -> dict[tuple, tuple[int, float]]:
+        stats = pstats.Stats(prof).stats  # type: ignore[attr-defined]
+        return {func: (nc, tt) for func, (_cc, nc, tt, _ct, _callers) in stats.items()}
+
+    before, after = table(idle), table(busy)
+    rows = []
+    for func in set(before) | set(after):
+        nc0, tt0 = before.get(func, (0, 0.0))
+        nc1, tt1 = after.get(func, (0, 0.0))
+        rows.append(((tt1 - tt0) / commands * 1e6, (nc1 - nc0) / commands, func))
+    rows.sort(reverse=True)
+    total_tt = sum(r[0] for r in rows)
+    total_nc = sum(r[1] for r in rows)
+    lines = [f"whole loop thread, added per command: {total_nc:.0f} calls, {total_tt:.0f} us "
+             "(profiled: slower than without)", "  us/cmd  calls/cmd  function"]
+    for tt, nc, (path, line, name) in rows[:30]:
+        where = f"{'/'.join(Path(path).parts[-2:])}:{line}" if line else path
+        lines.append(f"{tt:8.1f} {nc:10.2f}  {where}({name})")
+    return "\n".join(lines)
 
 
 def _round_in(tree: str | None, commands: int, profile: bool) -> dict:
@@ -281,6 +319,8 @@ def run(commands: int = 400, rounds: int = 1, before: str | None = None,
         for name in order:
             res = _round_in(settings[name], commands, profile)
             results[name].append(res)
+            if "loop_profile" in res:
+                print(f"--- {name}, round {r + 1}\n{res['loop_profile']}")
             if profile:
                 print(f"--- {name}, round {r + 1}: {res['calls_per_command']:.0f} Python calls per "
                       f"command\n{res['profile']}")
