@@ -203,7 +203,7 @@ def arbitrate(
             break
         if winner < 0 and drives[i] is not None and is_fresh(spec.timeout_ns, received_ns[i], now_ns):
             winner = i
-    ages = tuple([None if r is None else now_ns - r for r in received_ns])
+    ages = tuple(None if r is None else now_ns - r for r in received_ns)
     masked = table.names[first_masked:]
     if state is not MuxState.RUNNING:
         source = ESTOP if state is MuxState.ESTOP else FAULT

@@ -27,7 +27,7 @@ Callback = Callable[[Any], None]
 AnyCallback = Callable[[str, Any], None]
 
 
-@dataclass(slots=True)
+@dataclass
 class Latest(Generic[M]):
     """The last message on a topic and when it arrived (monotonic ns)."""
 

@@ -173,16 +173,12 @@ class ControlPath:
         bus, where the mux keeps it; if its input wins, it is sent now, not at the next tick."""
         self.bus.publish(topic, msg)
         name = self.remote_inputs.get(topic)
-        if name is None:
-            return
         now = monotonic_ns()
-        stats = self.stats
-        if stats.ticks > 0 and now - stats.last_tick_ns < 2 * self._period_ns:  # alive(now), inline
-            out = self.mux.decide_early(name, now, self.filters)
-            if out is not None:
-                self._write(out.drive)
-                self.mux.publish_output(out)  # _observe, inline
-                self.safety.publish_state_if_due(now)
+        if name is not None and self.alive(now):
+            msg = self.mux.decide_early(name, now, self.filters)
+            if msg is not None:
+                self._write(msg.drive)
+                self._observe(msg, now)
 
     def engage_estop(self, origin: Origin) -> None:
         """Latch the mux e-stop and write the brake now (not at the next tick)."""

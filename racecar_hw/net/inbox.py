@@ -270,33 +270,27 @@ class Inbox:
         Called by the inbox's own wake-ups; safe to call any time from the loop's thread.
         """
         now = self._clock()
-        stop_queue = self._stops
         with self._lock:
             loop = self._loop
             self._soon = False
             timer, self._timer, self._timer_ns = self._timer, None, None
-            stops: list[tuple[str, Message, str]] = []
-            wait_ns: int | None = None
-            if stop_queue:  # e-stop messages wait (rare): take them if due, else wait for them
-                stops = stop_queue.take(now)
-                wait_ns = stop_queue.next_ns if stop_queue else None
-                for topic, _, _ in stops:
-                    self._slots[topic].counts.handed_over += 1
+            stops = self._stops.take(now)
+            wait_ns = self._stops.next_ns if self._stops else None
             ready: list[tuple[str, Message, str]] = []
-            dirty = self._dirty
-            if dirty:
-                waiting: list[_Slot] = []
-                next_ns = now + self.period_ns
-                for slot in dirty:
-                    if now >= slot.next_ns:
-                        ready.append((slot.topic, slot.msg, slot.origin))  # type: ignore[arg-type]
-                        slot.msg = None
-                        slot.next_ns = next_ns
-                        slot.counts.handed_over += 1
-                    else:
-                        waiting.append(slot)
-                        wait_ns = slot.next_ns if wait_ns is None else min(wait_ns, slot.next_ns)
-                self._dirty = waiting
+            waiting: list[_Slot] = []
+            for slot in self._dirty:
+                if now >= slot.next_ns:
+                    assert slot.msg is not None
+                    ready.append((slot.topic, slot.msg, slot.origin))
+                    slot.msg = None
+                    slot.next_ns = now + self.period_ns
+                    slot.counts.handed_over += 1
+                else:
+                    waiting.append(slot)
+                    wait_ns = slot.next_ns if wait_ns is None else min(wait_ns, slot.next_ns)
+            self._dirty = waiting
+            for topic, _, _ in stops:
+                self._slots[topic].counts.handed_over += 1
             if loop is not None:
                 self._timer_ns = wait_ns
         if timer is not None:
@@ -307,12 +301,8 @@ class Inbox:
             self._timer = loop.call_later(max(0, wait_ns - now) / NS_PER_S, self._on_timer)
         for topic, msg, origin in stops:
             self._hand_over(self.on_estop, topic, msg, origin)
-        deliver = self.deliver
         for topic, msg, origin in ready:
-            try:  # as _hand_over, inline: one call fewer per command
-                deliver(topic, msg, origin)
-            except Exception:  # one failing hand-over must not lose the commands behind it
-                log.exception("inbox: handing over a message for %s from %s failed", topic, origin)
+            self._hand_over(self.deliver, topic, msg, origin)
 
     def _on_timer(self) -> None:
         with self._lock:
