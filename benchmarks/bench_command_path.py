@@ -23,6 +23,13 @@ threads make. Measured:
 - with ``--profile``, cProfile switched on inside each drain only: the Python calls per command
   and the functions that take the time.
 
+Environment: ``BENCH_PROFILE=PATH`` (with ``--profile``) keeps the whole profile for pstats;
+``BENCH_LOOP_PROFILE=1`` profiles the whole loop thread with and without commands and prints what
+the commands add, per command; ``BENCH_WARM=1`` repeats each hand-over at once (caches warm) and
+times its parts; ``BENCH_LISTENER=1`` measures the loop's and the process's share with a client in
+another process reading every scan and odometry (no answers) before the commands, which then come
+on top; ``BENCH_SUBSCRIBERS=1`` prints who the command's publications reach.
+
 Run ``python benchmarks/bench_command_path.py [COMMANDS] [--rounds N] [--before TREE] [--profile]``;
 ``--before TREE`` alternates rounds with another source tree (``git archive main | tar -x``), each
 round in a fresh process with ``PYTHONPATH`` naming the tree. ``run()`` returns the rows for
@@ -36,6 +43,7 @@ import asyncio
 import cProfile
 import io
 import json
+import math
 import multiprocessing
 import os
 import pstats
@@ -218,6 +226,18 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
     idle0, t0 = time.thread_time_ns(), time.monotonic()
     await asyncio.sleep(commands * PERIOD_S)
     idle_pct = 100.0 * (time.thread_time_ns() - idle0) / 1e9 / (time.monotonic() - t0)
+    listener = None
+    listen_pct = listen_process_pct = idle_process_pct = math.nan
+    if os.environ.get("BENCH_LISTENER"):
+        # a client in another process reading every scan (and odometry), answering nothing: what
+        # serving a subscriber costs the loop, apart from the commands (which then come on top)
+        idle_process_pct = await asyncio.to_thread(_process_share, commands * PERIOD_S)
+        port = daemon.config.zenoh.listen[0].rsplit(":", 1)[1]
+        listener = subprocess.Popen([sys.executable, "-c", LISTENER, port], cwd=tempfile.gettempdir())
+        await asyncio.sleep(4.0)  # connected, its first scans through
+        listen0, t0 = time.thread_time_ns(), time.monotonic()
+        listen_process_pct = await asyncio.to_thread(_process_share, commands * PERIOD_S)
+        listen_pct = 100.0 * (time.thread_time_ns() - listen0) / 1e9 / (time.monotonic() - t0)
     if idle_prof is not None:
         idle_prof.disable()
         busy_prof.enable()  # type: ignore[union-attr]
@@ -237,6 +257,9 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
     loop_cpu = time.thread_time_ns() - loop_cpu0
     if busy_prof is not None:
         busy_prof.disable()
+    if listener is not None:
+        listener.terminate()
+        listener.wait(10)
     wall = time.monotonic() - t0
     stop.set()
     await task
@@ -253,6 +276,9 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
         "offer_cpu_us_mean": float(np.mean(offers)) / 1e3,
         "loop_cpu_pct": 100.0 * loop_cpu / 1e9 / wall,
         "loop_idle_cpu_pct": idle_pct,
+        "loop_listener_cpu_pct": listen_pct,
+        "process_idle_cpu_pct": idle_process_pct,
+        "process_listener_cpu_pct": listen_process_pct,
         # the loop's share difference per command: includes its wake-up, but the phase without
         # commands has work of its own (the mux idle, the car standing): no clean measure
         "loop_added_us": (100.0 * loop_cpu / 1e9 / wall - idle_pct) / 100.0 / (handed_over / wall) * 1e6,
@@ -295,6 +321,22 @@ def _difference(idle: cProfile.Profile, busy: cProfile.Profile, commands: int) -
         where = f"{'/'.join(Path(path).parts[-2:])}:{line}" if line else path
         lines.append(f"{tt:8.1f} {nc:10.2f}  {where}({name})")
     return "\n".join(lines)
+
+
+LISTENER = '''
+import sys
+from racecar_hw.client import Car
+car = Car(f"tcp/127.0.0.1:{sys.argv[1]}")
+for scan in car.scans(timeout=30):
+    car.odom  # read, as a navigation node would
+'''
+
+
+def _process_share(seconds: float) -> float:
+    """This process's CPU share of one core over the next ``seconds`` (blocks the caller)."""
+    cpu0, t0 = time.process_time(), time.monotonic()
+    time.sleep(seconds)
+    return 100.0 * (time.process_time() - cpu0) / (time.monotonic() - t0)
 
 
 def _round_in(tree: str | None, commands: int, profile: bool) -> dict:
@@ -343,6 +385,15 @@ def run(commands: int = 400, rounds: int = 1, before: str | None = None,
              "value": float(np.median([x["loop_added_us"] for x in runs])), "unit": "us", "target": None},
             {"name": f"event loop CPU share, no command{label}",
              "value": float(np.median([x["loop_idle_cpu_pct"] for x in runs])), "unit": "%", "target": None},
+            {"name": f"event loop CPU share, a listener (BENCH_LISTENER){label}",
+             "value": float(np.median([x["loop_listener_cpu_pct"] for x in runs])), "unit": "%",
+             "target": None},
+            {"name": f"daemon process CPU share, no listener{label}",
+             "value": float(np.median([x["process_idle_cpu_pct"] for x in runs])), "unit": "%",
+             "target": None},
+            {"name": f"daemon process CPU share, a listener{label}",
+             "value": float(np.median([x["process_listener_cpu_pct"] for x in runs])), "unit": "%",
+             "target": None},
             {"name": f"event loop CPU share while commanded{label}",
              "value": float(np.median([x["loop_cpu_pct"] for x in runs])), "unit": "%", "target": None},
         ]
