@@ -120,6 +120,7 @@ def _result(proc: subprocess.Popen) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # it measures the pace of the machine (docs/tests.md, "Alone")
 def test_a_cmd_vel_flood_neither_starves_the_loop_nor_delays_an_estop(tmp_path):
     port = free_port()
     # what is measured is the flood's effect on the daemon, not other tenants' of the test machine
