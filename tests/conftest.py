@@ -81,8 +81,8 @@ def ahead_of_ordinary_load() -> None:
     """``preexec_fn`` for a process whose pace a test relies on (a sim's trajectory, a peer's 20 Hz
     stream against the mux's 0.2 s timeout) but whose test measures nothing of the machine: as
     root, FIFO real-time priority below :data:`REALTIME_PRIORITY`, so that the sims of the tests
-    that do measure (missed ticks under a flood, :func:`ahead_of_other_load`) on the other worker
-    still come first; otherwise a lower niceness, if allowed."""
+    that do measure (missed ticks under a flood, :func:`ahead_of_other_load`) still come first;
+    otherwise a lower niceness, if allowed. (Those tests also run ``alone``: docs/tests.md.)"""
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(ORDINARY_PRIORITY))
     except (OSError, AttributeError):
