@@ -258,9 +258,10 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     config.stash[PACE_LOCK] = PaceLock(folder, any(_alone(item) for item in session.items))
 
 
-@pytest.hookimpl(hookwrapper=True)
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
-    """Each test's setup, call and teardown inside the :class:`PaceLock`."""
+    """Each test's setup, call and teardown inside the :class:`PaceLock` (outside pytest-timeout's
+    timer, which also wraps the whole protocol: the wait for the lock is not the test's time)."""
     lock = item.config.stash.get(PACE_LOCK, None)
     if lock is None:
         yield
