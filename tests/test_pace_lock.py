@@ -119,7 +119,8 @@ def test_with_xdist_the_alone_tests_run_first_on_one_worker_and_by_themselves(tm
     (tmp_path / "test_session.py").write_text(SESSION_TESTS.format(log=str(log)))
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-n", "3", "-p", "no:cacheprovider", "-c", "/dev/null",
-         "--rootdir", str(tmp_path), "--dist", "loadgroup", "--no-loadscope-reorder",
+         "--rootdir", str(tmp_path), "--basetemp", str(tmp_path / "basetemp"),  # not pytest's numbered ones
+         "--dist", "loadgroup", "--no-loadscope-reorder",
          "-o", "markers=slow\nalone", "-W", "ignore::pytest.PytestUnknownMarkWarning",
          str(tmp_path / "test_session.py")], capture_output=True, text=True, timeout=240, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
