@@ -119,7 +119,11 @@ def test_a_missing_vesc_shows_as_connecting_on_the_panel(tmp_path):
         daemon = Daemon(config)
         stop = asyncio.Event()
         task = asyncio.create_task(daemon.run(stop))
-        await asyncio.sleep(1.2)
+        assert daemon.vesc is not None
+        deadline = time.monotonic() + 20
+        while daemon.vesc.last_error is None and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)  # until the driver tried the port and failed
+        assert daemon.vesc.last_error is not None
         snap = daemon.snapshot()
         stop.set()
         await asyncio.wait_for(task, 20)
@@ -258,6 +262,9 @@ def test_follow_arm_against_a_missing_vesc_port_exits_1_saying_why(tmp_path):
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("racecar-hw follow: no motor command reached the VESC: it never connected")
     assert str(tmp_path / "nope") in last and "Traceback" not in proc.stderr
+    # a port that does not exist is not waited for (docs/bags.md): the bag is not played into nothing
+    assert f"the VESC's port {tmp_path / 'nope'} does not exist" in proc.stderr
+    assert "replaying anyway" not in proc.stderr
 
 
 def test_run_with_a_bag_follower_against_a_missing_vesc_exits_1_saying_why(tmp_path):
