@@ -15,13 +15,13 @@ import asyncio
 import gc
 import json
 import math
-import subprocess
 import sys
 
 import pytest
 from conftest import QUIET_NET, set_args
 from lockstep_sim import run_lockstep, shares_run, shipped_run, trajectory
 
+from racecar_hw.cli import main
 from racecar_hw.sim.loopback import Loopback, SimResult
 from racecar_hw.sim.scenario import load_scenario, scenario_names
 from racecar_hw.sim.trajectory import read_csv
@@ -345,13 +345,12 @@ def test_vesc_replug_reconnects_and_drives_on():
     assert not r["collided"]
 
 
-def test_cli_sim_writes_report_csv_and_plot(tmp_path):
+def test_cli_sim_writes_report_csv_and_plot(tmp_path, capsys):
+    # the command in this process (its outputs are the subject; tests/test_sim_cli.py runs it as one)
     report = tmp_path / "out" / "report.json"
-    proc = subprocess.run(
-        [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall", "--duration", "3",
-         "--speed", "max", "--no-status", *set_args(*QUIET_NET), "--report", str(report)],
-        capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    code = main(["sim", "--scenario", "wall", "--duration", "3", "--speed", "max", "--no-status",
+                 *set_args(*QUIET_NET), "--report", str(report)])
+    assert code == 0, capsys.readouterr().err
     data = json.loads(report.read_text())
     for key in ("scenario", "sim_time_s", "collided", "min_clearance_m", "distance_m", "final_pose",
                 "safety_interventions", "mux_switches", "vesc", "lidar", "trajectory_csv"):
