@@ -90,6 +90,26 @@ def ahead_of_ordinary_load() -> None:
             os.nice(AHEAD_NICE)
 
 
+@contextlib.contextmanager
+def ahead_here() -> Iterator[None]:
+    """:func:`ahead_of_ordinary_load` for a real-time run in this test's own process: the calling
+    thread, and the threads it starts meanwhile (the fakes' device thread, the daemon's helpers),
+    which inherit its policy; back to the ordinary policy at the end. For an in-process real-time
+    run whose outcome rests on the wall clock's pace (a scan late for another worker's load is a
+    stale scan, and a car that stops late hits the wall): the run waits on the clock most of the
+    time, so it takes little from the other workers."""
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(ORDINARY_PRIORITY))
+    except (OSError, AttributeError):
+        yield  # not root: as it is
+        return
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, before[0], before[1])
+
+
 def set_args(*assignments: str) -> list[str]:
     """``--set`` before each assignment, for a command line."""
     return [arg for item in assignments for arg in ("--set", item)]

@@ -18,7 +18,7 @@ import math
 import sys
 
 import pytest
-from conftest import QUIET_NET, set_args
+from conftest import QUIET_NET, ahead_here, set_args
 from lockstep_sim import run_lockstep, shares_run, shipped_run, trajectory
 
 from racecar_hw.cli import main
@@ -62,7 +62,8 @@ def realtime(name: str, tmp_path, *overrides: str, duration_s: float | None = No
     scenario = load_scenario(name, list(overrides))
     loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s, overrides=[*QUIET_NET],
                         setup=end_when_stood)
-    result = asyncio.run(loopback.run())
+    with ahead_here():
+        result = asyncio.run(loopback.run())
     # shown with a failure: interventions by reason and missed control ticks tell a loaded
     # machine's hold-ups (stale_scan, missed ticks) from a wrong outcome
     r = result.report
@@ -185,7 +186,8 @@ def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     scenario = load_scenario("wall", ["lidar.model=a1", "lidar.transport=pty"])
     loopback = Loopback(scenario, out_dir=tmp_path, setup=end_when_stood,
                         overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", *QUIET_NET])
-    r = asyncio.run(loopback.run()).report
+    with ahead_here():
+        r = asyncio.run(loopback.run()).report
     assert r["stop_reason"] == STOOD  # it stood at the wall before the scenario's end
     assert r["lidar"]["model"] == "a1" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # ~10 Hz revolutions
     assert not r["collided"], r["collisions"]
