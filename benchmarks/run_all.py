@@ -15,8 +15,9 @@ from pathlib import Path
 from table import print_rows
 
 HERE = Path(__file__).resolve().parent
-ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "safety", "scan_path", "sim", "sim_env", "bags",
-       "status", "daemon", "live", "zenoh", "mavlink", "rosnode", "safety_scenarios", "lockstep", "fuzz")
+ALL = ("vesc", "lidar_scip", "lidar_rplidar", "mux", "command_path", "safety", "scan_path", "sim",
+       "sim_env", "bags", "status", "daemon", "live", "zenoh", "mavlink", "rosnode", "safety_scenarios",
+       "lockstep", "fuzz")
 #: Benchmarks whose module is not bench_<name>.py.
 MODULES = {"fuzz": "fuzz"}
 

@@ -5,13 +5,26 @@ by real threads."""
 from __future__ import annotations
 
 import asyncio
+import copy
+import dataclasses
 import math
 import threading
 
+import numpy as np
 from inbox_model import ESTOP, NAV, RELEASE, TELEOP, make_inbox
 
-from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Bool, DiagnosticStatus
-from racecar_hw.net.inbox import Inbox
+from racecar_hw.base.messages import (
+    AckermannDrive,
+    AckermannDriveStamped,
+    Bool,
+    DiagnosticArray,
+    DiagnosticStatus,
+    KeyValue,
+    Odometry,
+    Twist,
+    Vector3,
+)
+from racecar_hw.net.inbox import Inbox, all_finite
 from racecar_hw.rosmsg.typestore import ros2_types
 from racecar_hw.runtime.refusals import Refusals
 
@@ -201,3 +214,47 @@ def test_real_threads_flooding_a_real_loop_never_lose_an_estop():
     assert received > 1000
     assert c[NAV].handed_over + c[NAV].superseded == c[NAV].received
     assert inbox.wakeups < received / 5
+
+
+def _float_paths(msg: object, path: tuple = ()) -> list[tuple]:
+    """Every float field's path in a message (attribute names, list indices)."""
+    if isinstance(msg, float):
+        return [path]
+    if isinstance(msg, list):
+        return [p for i, item in enumerate(msg) for p in _float_paths(item, (*path, i))]
+    if dataclasses.is_dataclass(msg):
+        return [p for f in dataclasses.fields(msg)
+                for p in _float_paths(getattr(msg, f.name), (*path, f.name))]
+    return []
+
+
+def _with(msg: object, path: tuple, value: float) -> object:
+    out = copy.deepcopy(msg)
+    target = out
+    for step in path[:-1]:
+        target = target[step] if isinstance(step, int) else getattr(target, step)
+    if isinstance(path[-1], int):
+        target[path[-1]] = value
+    else:
+        setattr(target, path[-1], value)
+    return out
+
+
+def test_the_finiteness_check_finds_a_nan_or_inf_in_any_float_field_first_time_and_after() -> None:
+    """all_finite keeps each class's field names after its first message: the answer is the same
+    for every float field of nested messages and lists, before and after the class is known."""
+    samples = [AckermannDriveStamped(drive=AckermannDrive(0.5, 0.1, 1.0)), Twist(Vector3(1.0, 0.0, 0.0)),
+               Odometry(), DiagnosticArray(status=[DiagnosticStatus(0, "a", "b", "", [KeyValue("k", "v")])])]
+    for msg in samples:
+        paths = _float_paths(msg)
+        assert all_finite(msg) and all_finite(msg)  # the class unknown, then known
+        for path in paths:
+            for bad in (math.nan, math.inf, -math.inf):
+                assert not all_finite(_with(msg, path, bad)), (type(msg).__name__, path, bad)
+            assert not all_finite(_with(msg, path, np.float64("nan")))  # a float subclass
+    assert _float_paths(samples[0]) and _float_paths(samples[2])
+    odom = Odometry()
+    odom.pose.covariance = np.array(odom.pose.covariance, dtype=np.float64)
+    assert all_finite(odom)
+    odom.pose.covariance[7] = math.nan
+    assert not all_finite(odom)  # a float array inside a known class

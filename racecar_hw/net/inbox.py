@@ -70,16 +70,37 @@ MALFORMED = "malformed"
 NON_FINITE = "non-finite"
 
 
+#: each message class's field names, in order (``dataclasses.fields`` builds a tuple per call)
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+#: types that hold no float, whatever their value
+_NO_FLOATS = (int, str, bool, bytes)
+
+
 def all_finite(msg: Any) -> bool:
     """Whether every float (and float array) in a message is finite."""
+    cls = type(msg)
+    if cls is float:
+        return math.isfinite(msg)
+    names = _FIELD_NAMES.get(cls)
+    if names is not None:  # a message class seen before: its fields, without dataclasses' walk
+        for name in names:
+            value = getattr(msg, name)
+            kind = type(value)
+            if kind is float:
+                if not math.isfinite(value):
+                    return False
+            elif kind not in _NO_FLOATS and not all_finite(value):
+                return False
+        return True
     if isinstance(msg, float):
         return math.isfinite(msg)
     if isinstance(msg, np.ndarray):
         return msg.dtype.kind != "f" or bool(np.isfinite(msg).all())
     if isinstance(msg, list):
         return all(all_finite(item) for item in msg)
-    if dataclasses.is_dataclass(msg):
-        return all(all_finite(getattr(msg, f.name)) for f in dataclasses.fields(msg))
+    if dataclasses.is_dataclass(msg) and not isinstance(msg, type):
+        _FIELD_NAMES[cls] = tuple(f.name for f in dataclasses.fields(msg))
+        return all_finite(msg)
     return True
 
 
