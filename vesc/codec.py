@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import binascii
 import enum
+import functools
 import math
+import operator
 import struct
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -429,6 +431,64 @@ def _unpack_field(fmt: struct.Struct, scale: float, data: bytes, offset: int) ->
     return raw / scale if scale else raw
 
 
+class _ValuesPrefix:
+    """The leading fields of :data:`_NEW_FIELDS` that fit a payload of ``end`` bytes (id byte
+    included), packed and unpacked with one :class:`struct.Struct`: what the field-by-field loops of
+    :func:`encode_values` and :func:`decode_values` do, in one call (the VESC is polled at 50 Hz)."""
+
+    def __init__(self, end: int) -> None:
+        fields, offset = [], 1
+        for name, fmt, scale in _NEW_FIELDS:
+            if offset >= end:  # (encode_values: fields start before the layout's end)
+                break
+            fields.append((name, fmt, scale))
+            offset += fmt.size
+        #: the fields read from ``end`` bytes: those that end within them
+        read, offset = [], 1
+        for name, fmt, scale in _NEW_FIELDS:
+            if offset + fmt.size > end:
+                break
+            read.append((name, scale))
+            offset += fmt.size
+        self._names = tuple(name for name, _, _ in fields)
+        self._get = operator.attrgetter(*self._names) if len(self._names) > 1 else None
+        self._pack_scales = tuple(scale or 1 for _, _, scale in fields)
+        self._pack = struct.Struct(">B" + "".join(fmt.format.lstrip(">") for _, fmt, _ in fields))
+        self._read_names = tuple(name for name, _ in read)
+        self._read_scales = tuple(scale for _, scale in read)
+        self._unpack = struct.Struct(">" + "".join(fmt.format.lstrip(">") for _, fmt, _ in
+                                                   _NEW_FIELDS[:len(read)]))
+
+    def pack(self, values: Values) -> bytes | None:
+        """The payload, or None when a value needs the field-by-field checks (anything but a
+        plain finite int or float in range: the slow path then refuses it, naming the field)."""
+        if self._get is None:
+            return None
+        raw = self._get(values)
+        if not _PLAIN_NUMBERS.issuperset(map(type, raw)):
+            return None
+        try:
+            wire = [round(v * s) for v, s in zip(raw, self._pack_scales, strict=True)]
+            return self._pack.pack(CommandId.GET_VALUES, *wire)
+        except (ValueError, OverflowError, struct.error):
+            return None
+
+    def unpack(self, payload: bytes) -> Values:
+        raw = self._unpack.unpack_from(payload, 1)
+        fields = zip(self._read_names, raw, self._read_scales, strict=True)
+        return Values(**{name: value / scale if scale else value for name, value, scale in fields})
+
+
+#: The exact types :meth:`_ValuesPrefix.pack` packs without the per-field checks (bool is refused
+#: by them: it is neither).
+_PLAIN_NUMBERS = frozenset((int, float))
+
+
+@functools.cache
+def _values_prefix(end: int) -> _ValuesPrefix:
+    return _ValuesPrefix(end)
+
+
 def encode_values(values: Values, layout: Layout) -> bytes:
     """The GET_VALUES reply payload (id byte included) for ``values`` in ``layout``."""
     out = bytearray([CommandId.GET_VALUES])
@@ -440,6 +500,9 @@ def encode_values(values: Values, layout: Layout) -> bytes:
         for name, fmt, scale in _OLD_FIELDS:
             out += _pack_field(getattr(values, name), fmt, scale, name)
         return bytes(out)
+    fast = _values_prefix(layout.value).pack(values)
+    if fast is not None:
+        return fast
     for name, fmt, scale in _NEW_FIELDS:
         if len(out) >= layout.value:
             break
@@ -468,14 +531,7 @@ def decode_values(payload: bytes, firmware: tuple[int, int] | None) -> Values | 
         return Values(**fields)  # type: ignore[arg-type]
     if len(payload) < Layout.V3_07.value:
         return RawPacket(payload, f"GET_VALUES reply of {len(payload)} bytes, needs at least 54")
-    end = min(len(payload), layout.value)
-    offset = 1
-    for name, fmt, scale in _NEW_FIELDS:
-        if offset + fmt.size > end:
-            break
-        fields[name] = _unpack_field(fmt, scale, payload, offset)
-        offset += fmt.size
-    return Values(**fields)  # type: ignore[arg-type]
+    return _values_prefix(min(len(payload), layout.value)).unpack(payload)
 
 
 # --- FW_VERSION --------------------------------------------------------------------------------
