@@ -524,3 +524,39 @@ def test_values_fast_path_is_the_field_by_field_codec(raw, layout, cut):
     else:
         with pytest.raises(expected):
             encode_values(values, layout)
+
+
+def _reference_decode_imu(payload: bytes) -> ImuData | RawPacket:
+    """GET_IMU_DATA read one field at a time, as the mask defines it."""
+    if len(payload) < 3:
+        return RawPacket(payload, "GET_IMU_DATA reply without its mask")
+    mask = struct.unpack_from(">H", payload, 1)[0]
+    names = [name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1]
+    end = 3 + 4 * len(names)
+    if len(payload) < end:
+        return RawPacket(payload, f"GET_IMU_DATA reply of {len(payload)} bytes, its mask {mask:#06x} "
+                                  f"needs {end}")
+    fields: dict = {}
+    for k, name in enumerate(names):
+        value = struct.unpack_from(">f", payload, 3 + 4 * k)[0]
+        if not math.isfinite(value):
+            return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
+        fields[name] = value
+    if len(payload) > end:
+        fields["controller_id"] = payload[end]
+    return ImuData(**fields)
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 0xFFFF), st.binary(min_size=0, max_size=80), st.booleans())
+def test_imu_reply_read_in_one_call_is_the_field_by_field_reading(mask, body, finite_floats):
+    if finite_floats:  # mostly well-formed replies; otherwise any bytes (NaN, inf, short)
+        n = bin(mask).count("1")
+        body = b"".join(struct.pack(">f", (k * 0.37) % 5 - 2.5) for k in range(n)) + body[:2]
+    payload = bytes([codec.CommandId.GET_IMU_DATA]) + struct.pack(">H", mask) + body
+    got, want = decode_imu_data(payload), _reference_decode_imu(payload)
+    assert got == want
+    if isinstance(want, ImuData):  # and written back: the same fields, the same bytes
+        again = decode_imu_data(codec.encode_imu_data(want, (6, 5) if want.controller_id is not None
+                                                      else None))
+        assert again == want

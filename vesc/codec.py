@@ -576,10 +576,35 @@ def decode_fw_version(payload: bytes) -> FwVersion | RawPacket:
 _F32 = struct.Struct(">f")
 
 
+#: Every IMU field of a reply, in wire order (None where absent).
+_IMU_VALUES = operator.attrgetter(*IMU_FIELDS)
+
+
+@functools.cache
+def _imu_names(mask: int) -> tuple[str, ...]:
+    """The IMU fields ``mask`` selects, in wire order."""
+    return tuple(name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1)
+
+
+@functools.cache
+def _f32s(count: int) -> struct.Struct:
+    """``count`` big-endian float32s (the IMU reply's fields, read or written in one call)."""
+    return struct.Struct(">" + "f" * count)
+
+
 def encode_imu_data(reply: ImuData, firmware: tuple[int, int] | None = None) -> bytes:
     """The IMU reply payload (id included): the mask, each present field as float32, and from
     firmware 6.05 on the controller id (0 when ``reply`` has none)."""
     out = bytearray([CommandId.GET_IMU_DATA]) + _U16.pack(reply.mask)
+    present = [value for value in _IMU_VALUES(reply) if value is not None]
+    try:  # the fast path: every value a finite float32 (else the loop below, for its error)
+        if all(map(math.isfinite, present)):
+            out += _f32s(len(present)).pack(*present)
+            if firmware is not None and firmware >= IMU_ID_SINCE:
+                out.append(reply.controller_id or 0)
+            return bytes(out)
+    except (TypeError, OverflowError, struct.error):
+        pass
     for name in IMU_FIELDS:
         value = getattr(reply, name)
         if value is not None:
@@ -600,17 +625,16 @@ def decode_imu_data(payload: bytes) -> ImuData | RawPacket:
     if len(payload) < 3:
         return RawPacket(payload, "GET_IMU_DATA reply without its mask")
     mask = _U16.unpack_from(payload, 1)[0]
-    names = [name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1]
+    names = _imu_names(mask)
     end = 3 + 4 * len(names)
     if len(payload) < end:
         return RawPacket(payload, f"GET_IMU_DATA reply of {len(payload)} bytes, its mask {mask:#06x} "
                                   f"needs {end}")
-    fields: dict[str, float | int] = {}
-    for k, name in enumerate(names):
-        value = _F32.unpack_from(payload, 3 + 4 * k)[0]
-        if not math.isfinite(value):
-            return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
-        fields[name] = value
+    values = _f32s(len(names)).unpack_from(payload, 3)
+    if not all(map(math.isfinite, values)):
+        name = next(n for n, v in zip(names, values, strict=True) if not math.isfinite(v))
+        return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
+    fields: dict[str, float | int] = dict(zip(names, values, strict=True))
     if len(payload) > end:
         fields["controller_id"] = payload[end]
     return ImuData(**fields)  # type: ignore[arg-type]
