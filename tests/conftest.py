@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import importlib.util
 import os
 import subprocess
@@ -80,13 +81,33 @@ def ahead_of_ordinary_load() -> None:
     """``preexec_fn`` for a process whose pace a test relies on (a sim's trajectory, a peer's 20 Hz
     stream against the mux's 0.2 s timeout) but whose test measures nothing of the machine: as
     root, FIFO real-time priority below :data:`REALTIME_PRIORITY`, so that the sims of the tests
-    that do measure (missed ticks under a flood, :func:`ahead_of_other_load`) on the other worker
-    still come first; otherwise a lower niceness, if allowed."""
+    that do measure (missed ticks under a flood, :func:`ahead_of_other_load`) still come first;
+    otherwise a lower niceness, if allowed. (Those tests also run ``alone``: docs/tests.md.)"""
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(ORDINARY_PRIORITY))
     except (OSError, AttributeError):
         with contextlib.suppress(OSError):
             os.nice(AHEAD_NICE)
+
+
+@contextlib.contextmanager
+def ahead_here() -> Iterator[None]:
+    """:func:`ahead_of_ordinary_load` for a real-time run in this test's own process: the calling
+    thread, and the threads it starts meanwhile (the fakes' device thread, the daemon's helpers),
+    which inherit its policy; back to the ordinary policy at the end. For an in-process real-time
+    run whose outcome rests on the wall clock's pace (a scan late for another worker's load is a
+    stale scan, and a car that stops late hits the wall): the run waits on the clock most of the
+    time, so it takes little from the other workers."""
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(ORDINARY_PRIORITY))
+    except (OSError, AttributeError):
+        yield  # not root: as it is
+        return
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, before[0], before[1])
 
 
 def set_args(*assignments: str) -> list[str]:
@@ -151,8 +172,123 @@ def reaped(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
             proc.wait()
 
 
+#: The marker of a test that runs while no other pytest-xdist worker runs one (docs/tests.md, "Alone").
+ALONE = "alone"
+#: How long (s) a worker's first test waits for the session's alone tests to begin before it starts
+#: anyway (they are handed out first, so they begin within seconds; the bound covers a worker lost).
+ALONE_START_WAIT_S = 60.0
+
+
+def _alone(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker(ALONE) is not None
+
+
+def pytest_itemcollected(item: pytest.Item) -> None:
+    """The tests marked ``alone`` form one pytest-xdist group (added as each is collected: before
+    pytest-xdist reads the groups into the test ids)."""
+    if _alone(item):
+        item.add_marker(pytest.mark.xdist_group(ALONE))
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Tests marked ``slow`` run first (in their collection order; every worker collects the same
-    order), so that with pytest-xdist's workers a long test does not start last and leave one
-    worker running alone at the end."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """The order the workers are handed tests in (pyproject.toml's ``--no-loadscope-reorder`` keeps
+    it; every worker collects the same order): first the tests marked ``alone``, in one pytest-xdist
+    group so that one worker runs them back to back while the others wait (:class:`PaceLock`); then
+    the ``slow`` ones, so that a long test does not start last and leave one worker running alone
+    at the end; then the groups of tests sharing a run (several tests each); then the rest, each in
+    its collection order."""
+    items.sort(key=lambda item: (not _alone(item), item.get_closest_marker("slow") is None,
+                                 item.get_closest_marker("xdist_group") is None))
+
+
+class PaceLock:
+    """Tests marked ``alone`` run while no other pytest-xdist worker runs a test: a reader-writer lock
+    over two files that every worker of the session opens (``flock``, Linux), with writer preference.
+
+    Every test holds the lock shared from before its setup to after its teardown; an ``alone`` test
+    holds it exclusive, and keeps it through the next test when that one is ``alone`` too. A reader
+    takes the turnstile file, then the lock shared, and lets the turnstile go; a writer takes the
+    turnstile and keeps it while it waits for the readers to finish and while it runs, so no new
+    reader starts meanwhile (it is not starved). A worker holds one lock at a time and gives it back
+    after each test: one waiting for the exclusive lock holds no shared one, so no deadlock; a worker
+    that dies lets go of its locks with its files. Module and session fixtures are set up and torn
+    down inside a test's hold; one that outlives its test (a module's shared sim) may still run
+    beside an alone test, which is why the alone tests run first, before any such fixture exists.
+    A worker's first test also waits (up to :data:`ALONE_START_WAIT_S`) until the alone tests have
+    begun, where the session has any: otherwise the other workers' first tests would start first
+    and the alone ones wait for the longest of them.
+    """
+
+    def __init__(self, folder: Path, session_has_alone: bool) -> None:
+        self.turnstile = folder / "alone.turnstile"
+        self.rw = folder / "alone.rw"
+        self.begun = folder / "alone.begun"
+        self.wait_for_alone = session_has_alone
+        self._held: list[int] = []  # file descriptors, locked
+        self.exclusive = False
+
+    def _lock(self, path: Path, how: int) -> int:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        fcntl.flock(fd, how)
+        return fd
+
+    def hold(self, alone: bool) -> None:
+        """Take the lock for a test: exclusive if ``alone`` (kept if already held), else shared."""
+        if self._held:
+            if self.exclusive and alone:
+                return
+            self.release()
+        if alone:
+            self._held.append(self._lock(self.turnstile, fcntl.LOCK_EX))
+            self.begun.touch()
+            self._held.append(self._lock(self.rw, fcntl.LOCK_EX))
+            self.exclusive = True
+            return
+        if self.wait_for_alone:
+            self.wait_for_alone = False
+            deadline = time.monotonic() + ALONE_START_WAIT_S
+            while not self.begun.exists() and time.monotonic() < deadline:
+                time.sleep(0.05)
+        turnstile = self._lock(self.turnstile, fcntl.LOCK_EX)
+        try:
+            self._held.append(self._lock(self.rw, fcntl.LOCK_SH))
+        finally:
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+            os.close(turnstile)
+
+    def release(self) -> None:
+        """Let go of whatever is held (the lock before the turnstile)."""
+        while self._held:
+            fd = self._held.pop()
+            fcntl.flock(fd, fcntl.LOCK_UN)  # explicitly: a process forked by the test shares the file
+            os.close(fd)
+        self.exclusive = False
+
+
+PACE_LOCK = pytest.StashKey[PaceLock]()
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """In a pytest-xdist worker: the session's :class:`PaceLock`, in the folder all workers share
+    (the parent of each worker's ``--basetemp``)."""
+    config = session.config
+    if not hasattr(config, "workerinput"):
+        return  # one process: nothing runs beside a test
+    folder = config._tmp_path_factory.getbasetemp().parent  # noqa: SLF001 - pytest's own factory
+    config.stash[PACE_LOCK] = PaceLock(folder, any(_alone(item) for item in session.items))
+
+
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """Each test's setup, call and teardown inside the :class:`PaceLock` (outside pytest-timeout's
+    timer, which also wraps the whole protocol: the wait for the lock is not the test's time)."""
+    lock = item.config.stash.get(PACE_LOCK, None)
+    if lock is None:
+        yield
+        return
+    lock.hold(_alone(item))
+    try:
+        yield
+    finally:
+        if not (_alone(item) and _alone(nextitem)):
+            lock.release()

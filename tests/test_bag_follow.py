@@ -418,6 +418,30 @@ def test_a_car_that_never_gets_ready_is_replayed_to_after_ten_seconds(tmp_path: 
     assert "the car is not ready after 10 s; replaying anyway" in caplog.text
 
 
+def test_a_car_that_cannot_get_ready_is_not_replayed_to(tmp_path: Path, caplog) -> None:
+    """``racecar-hw follow`` against a VESC port that does not exist: the replay ends as soon as
+    that is known (here 0.5 s in), with only the final stop published, not after ten seconds."""
+    bag = write_ours(tmp_path / "f.bag", "ros1", figure8())
+    caplog.set_level(logging.INFO, "racecar_hw.bags.follow")
+
+    async def main() -> tuple[list[int], int, BagFollower]:
+        bus, at = Bus(), []
+        bus.subscribe(NAV0_TOPIC, lambda m: at.append((monotonic_ns(), m.drive.speed)))
+        follower = BagFollower(bus, FollowerParams(bag=str(bag), rate_hz=100.0))
+        began = monotonic_ns()
+        follower.ready = lambda: False
+        follower.hopeless = lambda: ("the VESC's port /dev/nope does not exist"
+                                     if monotonic_ns() - began >= NS_PER_S // 2 else None)
+        await follower.run()
+        return at, began, follower
+
+    at, began, follower = lockstep.run(main())
+    assert [speed for _, speed in at] == [0.0] and follower.done  # the stop, nothing of the bag
+    assert NS_PER_S // 2 <= at[0][0] - began <= NS_PER_S // 2 + 30_000_000  # polled every 20 ms
+    assert f"not replaying {bag}: the VESC's port /dev/nope does not exist" in caplog.text
+    assert "replaying anyway" not in caplog.text
+
+
 def test_follower_backwards_with_timestamps(tmp_path: Path) -> None:
     cmds = [(T0, 1.0, 0.2), (T0 + 20_000_000, 2.0, 0.3), (T0 + 320_000_000, 3.0, -0.1)]
     bag = write_ours(tmp_path / "b", "mcap", cmds)

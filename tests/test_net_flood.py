@@ -235,6 +235,7 @@ def flood_while_probing(sim: SimProcess, web_port: int, port: int, seconds: floa
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # it measures the pace of the machine (docs/tests.md, "Alone")
 def test_half_open_floods_leave_the_lidar_the_control_loop_and_new_clients_alone(tmp_path: Path,
                                                                                  many_files):
     out = tmp_path / "sim"

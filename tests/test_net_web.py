@@ -175,6 +175,7 @@ def _until(predicate, timeout_s: float = 20.0, what: str = ""):
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # it measures the pace of the machine (docs/tests.md, "Alone")
 def test_the_page_shows_the_car_and_its_estop_latches_until_a_deliberate_release(tmp_path):
     driver = chromium()  # first: skips at once where there is no browser
     # circles at 1.0 and 0.6 m/s in turn, two seconds each: the speed on the page keeps changing

@@ -27,7 +27,10 @@ def test_the_top_has_exactly_two_commands_demo_and_tests() -> None:
     blocks = code_blocks(top)
     assert [lang for lang, _ in blocks] == ["sh", "sh"]
     assert blocks[0][1].strip().endswith(".venv/bin/racecar-hw sim")
-    assert blocks[1][1].strip().endswith(".venv/bin/python -m pytest -n 2")
+    assert blocks[1][1].strip().endswith(".venv/bin/python -m pytest -n 3")
+    # CI runs the README's command (docs/tests.md)
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert ".venv/bin/python -m pytest -q -n 3\n" in ci
 
 
 def set_examples() -> list[str]:

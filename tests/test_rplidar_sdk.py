@@ -12,6 +12,10 @@ Sensitivity).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -22,6 +26,7 @@ from lidar_drivers.base import RoomRangeSource
 from lidar_drivers.params import RPLIDAR_MODELS
 from lidar_drivers.rplidar_codec import AnswerType, Command
 from lidar_drivers.rplidar_fake import FakeRplidar
+from racecar_hw.runtime.devicethread import DeviceThread
 
 ROOM = RoomRangeSource(8.0, 6.0, x=2.5, y=1.5, yaw=0.3)
 REVOLUTIONS = 4
@@ -35,13 +40,63 @@ CASES[1:1] = [pytest.param("a1", (1, 24), id="a1-firmware-1.24"),
               pytest.param("a1", (1, 27), id="a1-firmware-1.27")]
 
 
-@pytest.mark.parametrize(("model", "firmware"), CASES)
-def test_the_sdk_scans_the_fake_in_its_default_mode(model, firmware, device_thread, tmp_path):
-    fake = FakeRplidar(model, ROOM, str(tmp_path / "rplidar"), firmware=firmware)
-    device_thread.spawn(fake.serve())
-    wait_for(lambda: fake.port.plugged)
+#: Each case is a fake on a pty of its own and the SDK in a process of its own, and most of a run
+#: is waiting (the SDK's own time-outs for commands an old firmware does not answer, the
+#: revolutions, its exit): the runs are independent, so this many go at once, all started by the
+#: module's first test; each test then checks its own run. The module's tests are one
+#: pytest-xdist group (one worker makes the runs, once).
+AT_ONCE = 4
 
-    report = sdk_scan(fake.link, fake.spec.baudrate, REVOLUTIONS)
+pytestmark = pytest.mark.xdist_group("rplidar-sdk")
+
+
+class SdkRuns:
+    """The SDK against a fake for each selected case, :data:`AT_ONCE` at a time."""
+
+    def __init__(self, folder: Path, cases: list[tuple[str, tuple[int, int] | None]]) -> None:
+        self.folder = folder
+        self.thread = DeviceThread().start()
+        self.pool = ThreadPoolExecutor(AT_ONCE)
+        self.runs: dict[tuple[str, tuple[int, int] | None], tuple[FakeRplidar, Future]] = {}
+        for k, (model, firmware) in enumerate(cases):
+            fake = FakeRplidar(model, ROOM, str(folder / f"rplidar{k}"), firmware=firmware)
+            self.runs[(model, firmware)] = (fake, self.pool.submit(self._scan, fake))
+
+    def _scan(self, fake: FakeRplidar) -> dict[str, Any]:
+        served = self.thread.spawn(fake.serve())
+        try:
+            wait_for(lambda: fake.port.plugged)
+            return sdk_scan(fake.link, fake.spec.baudrate, REVOLUTIONS)
+        finally:
+            served.cancel()  # what the device saw stays in the fake (its requests) for the test
+
+    def get(self, model: str, firmware: tuple[int, int] | None) -> tuple[FakeRplidar, dict[str, Any]]:
+        """The fake of a case and the SDK's report of its run (raised: the run's failure or skip)."""
+        fake, future = self.runs[(model, firmware)]
+        return fake, future.result()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        self.thread.stop()
+
+
+@pytest.fixture(scope="module")
+def sdk_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[SdkRuns]:
+    """The runs of this session's cases of this module (those selected, in their order)."""
+    cases = [(item.callspec.params["model"], item.callspec.params["firmware"])
+             for item in request.session.items
+             if item.module is request.module and hasattr(item, "callspec")
+             and "model" in item.callspec.params]
+    runs = SdkRuns(tmp_path_factory.mktemp("rplidar-sdk"), cases)
+    try:
+        yield runs
+    finally:
+        runs.close()
+
+
+@pytest.mark.parametrize(("model", "firmware"), CASES)
+def test_the_sdk_scans_the_fake_in_its_default_mode(model, firmware, sdk_runs):
+    fake, report = sdk_runs.get(model, firmware)
 
     assert report["connected"], report["stderr"]
     info = report["info"]

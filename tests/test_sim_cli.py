@@ -7,6 +7,7 @@ on the simulation's clock, as fast as the machine allows)."""
 from __future__ import annotations
 
 import json
+import logging
 import re
 import signal
 import subprocess
@@ -182,9 +183,10 @@ def test_the_panel_shows_sim_time_pose_and_clearance(tmp_path):
     assert snap.vesc_link == "up" and snap.lidar_link == "up"
 
 
-def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning(tmp_path):
+def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning(tmp_path, capsys, caplog):
     """A ROS 1 bag from a car that steers further (0.3 rad; this car's limit is 0.26) drives the
-    simulated car in ``sim --follow``, clamped, with one warning that counts the commands."""
+    simulated car in ``sim --follow``, clamped, with one warning that counts the commands. In this
+    process (the command, not its process, is the subject): the warnings are the log's records."""
     from racecar_hw.bags.record import BagFile
     from racecar_hw.rosmsg.typestore import types_for
 
@@ -196,14 +198,15 @@ def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning
                 1_000_000_000 + i * 50_000_000)
     f.close()
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--follow", str(bag),
-                           "--no-status", "--speed", "max", *set_args(*OFFLINE), "--out", str(out)],
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    warnings = [line for line in proc.stderr.splitlines() if "limits" in line]
-    assert len(warnings) == 1, proc.stderr
+    caplog.set_level(logging.WARNING)
+    code = main(["sim", "--follow", str(bag), "--no-status", "--speed", "max", *set_args(*OFFLINE),
+                 "--out", str(out)])
+    err = capsys.readouterr().err + caplog.text
+    assert code == 0, err
+    warnings = [r.getMessage() for r in caplog.records if "limits" in r.getMessage()]
+    assert len(warnings) == 1, err
     assert "40 of 40 commands" in warnings[0] and "steering up to 0.3 rad (limit 0.26)" in warnings[0]
-    assert "clamped" in warnings[0] and "refused" not in proc.stderr
+    assert "clamped" in warnings[0] and "refused" not in err
     report = json.loads(next(out.glob("*.json")).read_text())
     assert report["distance_m"] > 0.8  # the car drove
     assert report["final_pose"]["yaw"] > 0.3  # and turned left, at the clamped angle
@@ -213,15 +216,14 @@ def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_p
     """``sim --record`` prints the bag's path with the report's (named after the scenario), the
     plot's and the trajectory's; ``bag info`` takes the bag's .mcap file as well as its folder."""
     out, record = tmp_path / "out", tmp_path / "bags"
-    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall",
-                           "--duration", "1", "--no-status", "--speed", "max", *set_args(*QUIET_NET),
-                           "--out", str(out), "--record", str(record)],
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
+    code = main(["sim", "--scenario", "wall", "--duration", "1", "--no-status", "--speed", "max",
+                 *set_args(*QUIET_NET), "--out", str(out), "--record", str(record)])
+    stdout, stderr = capsys.readouterr()
+    assert code == 0, stderr
     # the summary says where the live view and the page were (free ports here)
     assert re.search(r"live view \(Foxglove\) ws://127\.0\.0\.1:\d+ and status page "
-                     r"http://127\.0\.0\.1:\d+/ \(while it ran\)", proc.stdout), proc.stdout
-    said = dict(line.split(":", 1) for line in proc.stdout.splitlines()[-4:])
+                     r"http://127\.0\.0\.1:\d+/ \(while it ran\)", stdout), stdout
+    said = dict(line.split(":", 1) for line in stdout.splitlines()[-4:])
     said = {k.strip(): Path(v.strip()) for k, v in said.items()}
     assert said["report"] == out / "wall.json" and said["report"].is_file()
     assert said["plot"] == out / "wall.png" and said["plot"].is_file()

@@ -15,23 +15,55 @@ import asyncio
 import gc
 import json
 import math
-import subprocess
 import sys
 
 import pytest
-from conftest import QUIET_NET, set_args
+from conftest import QUIET_NET, ahead_here, set_args
 from lockstep_sim import run_lockstep, shares_run, shipped_run, trajectory
 
+from racecar_hw.cli import main
 from racecar_hw.sim.loopback import Loopback, SimResult
 from racecar_hw.sim.scenario import load_scenario, scenario_names
 from racecar_hw.sim.trajectory import read_csv
 
+#: A real-time run of a car that drives up to something and stops ends once it has stood this
+#: long (world seconds), not at the scenario's duration: the wall clock it waits is CI's time
+#: (docs/tests.md, "How the real-time tests keep their time down"). The lockstep runs of the
+#: same scenarios run their whole duration.
+STOOD_S = 1.5
+STOOD = "stood still"
+
+
+def end_when_stood(loopback: Loopback) -> None:
+    """``setup`` for a real-time run: once the car has driven (over 0.5 m/s) and then stood
+    (under 0.01 m/s) for :data:`STOOD_S`, end the run (``stop_reason`` :data:`STOOD`)."""
+    world, daemon = loopback.world, loopback.daemon
+    assert world is not None and daemon is not None
+
+    async def watch() -> None:
+        drove, since = False, None
+        while True:
+            await asyncio.sleep(0.05)
+            drove = drove or abs(world.speed) > 0.5
+            if not drove or abs(world.speed) >= 0.01:
+                since = None
+            elif since is None:
+                since = world.sim_time
+            elif world.sim_time - since >= STOOD_S:
+                loopback.request_stop(STOOD)
+                return
+
+    daemon.add_task(watch())
+
 
 def realtime(name: str, tmp_path, *overrides: str, duration_s: float | None = None) -> SimResult:
-    """``name`` in real time: the fakes on a thread of their own behind a real pty and TCP."""
+    """``name`` in real time: the fakes on a thread of their own behind a real pty and TCP; the
+    run ends once the car has stood :data:`STOOD_S` after driving (:func:`end_when_stood`)."""
     scenario = load_scenario(name, list(overrides))
-    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s, overrides=[*QUIET_NET])
-    result = asyncio.run(loopback.run())
+    loopback = Loopback(scenario, out_dir=tmp_path, duration_s=duration_s, overrides=[*QUIET_NET],
+                        setup=end_when_stood)
+    with ahead_here():
+        result = asyncio.run(loopback.run())
     # shown with a failure: interventions by reason and missed control ticks tell a loaded
     # machine's hold-ups (stale_scan, missed ticks) from a wrong outcome
     r = result.report
@@ -134,7 +166,9 @@ def test_wall_head_on_never_touched_and_stopped_close(speed):
 def test_wall_head_on_in_real_time_over_a_pty_and_tcp(tmp_path):
     """The same run on the wall clock: the fake VESC behind a real pty, the fake UST-10LX on a
     loopback TCP port, on a thread of their own beside the daemon's loop."""
-    check_wall_head_on(realtime("wall", tmp_path, "drivers.0.speed_mps=2.0").report, 2.0)
+    r = realtime("wall", tmp_path, "drivers.0.speed_mps=2.0").report
+    check_wall_head_on(r, 2.0)
+    assert r["stop_reason"] == STOOD  # it stood at the wall before the scenario's end
 
 
 def check_wall_head_on(r: dict, speed: float) -> None:
@@ -150,9 +184,11 @@ def check_wall_head_on(r: dict, speed: float) -> None:
 def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     # in real time: the lidar's pty and the sweep's timing on the wall clock
     scenario = load_scenario("wall", ["lidar.model=a1", "lidar.transport=pty"])
-    loopback = Loopback(scenario, out_dir=tmp_path,
+    loopback = Loopback(scenario, out_dir=tmp_path, setup=end_when_stood,
                         overrides=["safety.scan_timeout_s=0.3", "safety.scan_period_s=0.1", *QUIET_NET])
-    r = asyncio.run(loopback.run()).report
+    with ahead_here():
+        r = asyncio.run(loopback.run()).report
+    assert r["stop_reason"] == STOOD  # it stood at the wall before the scenario's end
     assert r["lidar"]["model"] == "a1" and 5.0 < r["lidar"]["rate_hz"] < 12.0  # ~10 Hz revolutions
     assert not r["collided"], r["collisions"]
     assert r["final_speed_mps"] == pytest.approx(0.0, abs=0.02)
@@ -345,13 +381,12 @@ def test_vesc_replug_reconnects_and_drives_on():
     assert not r["collided"]
 
 
-def test_cli_sim_writes_report_csv_and_plot(tmp_path):
+def test_cli_sim_writes_report_csv_and_plot(tmp_path, capsys):
+    # the command in this process (its outputs are the subject; tests/test_sim_cli.py runs it as one)
     report = tmp_path / "out" / "report.json"
-    proc = subprocess.run(
-        [sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall", "--duration", "3",
-         "--speed", "max", "--no-status", *set_args(*QUIET_NET), "--report", str(report)],
-        capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    code = main(["sim", "--scenario", "wall", "--duration", "3", "--speed", "max", "--no-status",
+                 *set_args(*QUIET_NET), "--report", str(report)])
+    assert code == 0, capsys.readouterr().err
     data = json.loads(report.read_text())
     for key in ("scenario", "sim_time_s", "collided", "min_clearance_m", "distance_m", "final_pose",
                 "safety_interventions", "mux_switches", "vesc", "lidar", "trajectory_csv"):

@@ -88,15 +88,19 @@ class SimProcess:
 
 def start_sim(out: Path, listen_port: int | None, *sets: str, scenario: str = "wall",
               scenario_sets: tuple[str, ...] = ("drivers=[]",), duration: float = 12.0,
-              preexec_fn: Callable[[], None] | None = None) -> SimProcess:
+              preexec_fn: Callable[[], None] | None = None, speed: float | None = None) -> SimProcess:
     """Start ``racecar-hw sim`` with its Zenoh bridge listening on ``listen_port`` (None: ``sets`` say).
 
     The live view and the status page listen on free ports (never the defaults 8765 and 8080).
+    ``speed``: lockstep paced at that many times real time (``--speed``), every interface still on;
+    None: real time.
     """
     out.mkdir(parents=True, exist_ok=True)
     command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", scenario,
                "--duration", str(duration), "--no-status", "--out", str(out),
                "--report", str(out / "report.json"), "--set", "foxglove.port=0", "--set", "web.port=0"]
+    if speed is not None:
+        command += ["--speed", f"{speed:g}"]
     for item in scenario_sets:
         command += ["--scenario-set", item]
     if listen_port is not None:

@@ -497,6 +497,11 @@ class BagFollower:
         #: whether the car can act on a command (its VESC answers and, with a lidar, the safety
         #: controller has a scan); the replay starts once it is true, or after READY_WAIT_S. None: at once
         self.ready: Callable[[], bool] | None = None
+        #: why the car cannot get ready in this replay (a device whose port does not exist), or None
+        #: while it may; asked while the replay waits for :attr:`ready`: with a reason the replay
+        #: ends before its first command (``racecar-hw follow`` sets it; the daemon's own follower
+        #: keeps waiting, since its devices may be plugged in later)
+        self.hopeless: Callable[[], str | None] | None = None
 
     def load(self) -> list[Step]:
         """Read and check the bag and build the steps (raises BagError); done once, also by :meth:`run`,
@@ -567,6 +572,10 @@ class BagFollower:
         log.info("waiting for the car (VESC and lidar) before replaying")
         deadline = monotonic_ns() + round(READY_WAIT_S * NS_PER_S)
         while not self._stop.is_set() and not self.ready():
+            if self.hopeless is not None and (why := self.hopeless()):
+                log.error("not replaying %s: %s", self.params.bag, why)
+                self._stop.set()
+                return
             if monotonic_ns() >= deadline:
                 log.warning("the car is not ready after %.0f s; replaying anyway", READY_WAIT_S)
                 return

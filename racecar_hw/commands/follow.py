@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.base.errors import ConfigError
@@ -58,6 +59,7 @@ def cmd_follow(args: argparse.Namespace) -> int:
     follower = daemon.follower
     assert follower is not None
     follower.load()  # a missing, damaged or out-of-limits bag is a one-line error before the car is touched
+    follower.hopeless = lambda: missing_vesc_port(daemon)
     if not config.arming.start_armed:
         raise ConfigError("arming.start_armed", "the car starts disarmed, so it would stand still "
                           "while the bag plays; give --arm to follow armed (the gamepad's BACK "
@@ -74,6 +76,19 @@ def cmd_follow(args: argparse.Namespace) -> int:
     if daemon.arming.changes and not daemon.arming.armed:
         print(f"racecar-hw follow: stopped at {follower.published} commands: {daemon.arming.reason}")
     return code or exit_if_undriven("follow", daemon)
+
+
+def missing_vesc_port(daemon: Daemon) -> str | None:
+    """Why a replay cannot reach the VESC: its configured port is a device path that does not
+    exist (once the driver failed to open it). None while it may yet connect: a port that exists,
+    a URL, ``auto``, or a VESC that connected before. A replay then ends at once (exit 1, saying
+    why) rather than waiting for a car that cannot get ready and playing the bag into nothing."""
+    vesc, port = daemon.vesc, daemon.config.vesc.port
+    if vesc is None or vesc.ever_connected or vesc.last_error is None:
+        return None
+    if port == "auto" or "://" in port or os.path.exists(port):
+        return None
+    return f"the VESC's port {port} does not exist"
 
 
 async def _follow(daemon: Daemon, follower: BagFollower, stops: StopSignals) -> int:

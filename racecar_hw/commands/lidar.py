@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import contextlib
 import math
+import os
 import threading
 import time
 
@@ -53,7 +54,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     where.add_argument("--tcp", metavar="HOST:PORT", help="Ethernet Hokuyo address")
     info.add_argument("--model", choices=MODELS, type=str.lower,
                       help="lidar model (default: the one the device reports; with --port a Hokuyo "
-                           "is tried first, then an RPLIDAR)")
+                           "is tried first, then an RPLIDAR: a port that is there but does not "
+                           "answer one protocol is tried with the next at once)")
     info.add_argument("--baudrate", type=int, default=None, help="serial baud (default: the model's)")
     info.add_argument("--timeout", type=float, default=5.0, metavar="S",
                       help="seconds to wait for the first scan (default 5)")
@@ -139,8 +141,12 @@ def lidar_info(args: argparse.Namespace) -> int:
         return 2
     detected = args.model is None
     driver, scan = None, None
+    # detecting on a serial port that is there: a protocol the device does not answer (one session
+    # of its driver ended without the device naming itself) hands over to the next at once, not
+    # after --timeout; a port that is not there yet is waited for (the device may be plugged in)
+    hand_over = detected and args.port is not None and os.path.exists(args.port)
     for model in [args.model] if args.model else PROBE_MODELS["tcp" if args.tcp else "port"]:
-        driver, scan = _probe(args, model)
+        driver, scan = _probe(args, model, hand_over=hand_over)
         reported = driver.info.get("model")
         key = model_for_reported(reported) if reported else None
         if detected and key is not None and key != model:
@@ -194,22 +200,30 @@ def _model_mismatch(model: str, reported: str | None) -> str | None:
     return f"the device reports {reported}, not {model_name(model)} ({model}); {advice}"
 
 
-def _probe(args: argparse.Namespace, model: str) -> tuple[LidarDriver, LaserScan | None]:
-    """The driver for ``model`` at the given port or address after its first scan (None: none came)."""
+def _probe(args: argparse.Namespace, model: str, *, hand_over: bool = False,
+           ) -> tuple[LidarDriver, LaserScan | None]:
+    """The driver for ``model`` at the given port or address after its first scan (None: none came).
+    ``hand_over``: give up as soon as a session ended without the device naming itself (it does not
+    speak this model's protocol), rather than at ``--timeout``."""
     params = LidarParams(model=model, port=args.port, tcp=args.tcp, baudrate=args.baudrate,
                          reconnect_backoff_min_s=0.2)
-    return asyncio.run(_first_scan(params, args.timeout))
+    return asyncio.run(_first_scan(params, args.timeout, hand_over=hand_over))
 
 
-async def _first_scan(params: LidarParams, timeout: float) -> tuple[LidarDriver, LaserScan | None]:
+async def _first_scan(params: LidarParams, timeout: float, *, hand_over: bool = False,
+                      ) -> tuple[LidarDriver, LaserScan | None]:
     bus = Bus()
     driver = make_driver(bus, params)
     got: list[LaserScan] = []
     bus.subscribe(params.topic, got.append)
     task = asyncio.create_task(driver.run())
     deadline = time.monotonic() + timeout
+
+    def not_this_protocol() -> bool:
+        return hand_over and driver.stats.device_errors > 0 and not driver.info.get("model")
+
     try:
-        while not got and not task.done() and time.monotonic() < deadline:
+        while not got and not task.done() and time.monotonic() < deadline and not not_this_protocol():
             await asyncio.sleep(0.02)
     finally:
         task.cancel()
