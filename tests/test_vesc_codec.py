@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from racecar_hw.base.errors import LocalProtocolError
+from vesc import codec
 from vesc.codec import (
     IMU_FIELDS,
     MAX_PAYLOAD,
@@ -474,3 +475,88 @@ def test_imu_decoder_never_raises(body):
     assert isinstance(event, (ImuData, RawPacket))
     if isinstance(event, ImuData):
         assert all(math.isfinite(getattr(event, n)) for n in IMU_FIELDS if getattr(event, n) is not None)
+
+
+# --- the one-struct fast path of GET_VALUES against the field-by-field definition -----------------
+
+
+def _reference_encode(values: Values, layout: Layout) -> bytes:
+    """GET_VALUES (3.07 and later) as the field table defines it, one field at a time."""
+    out = bytearray([codec.CommandId.GET_VALUES])
+    for name, fmt, scale in codec._NEW_FIELDS:
+        if len(out) >= layout.value:
+            break
+        out += codec._pack_field(getattr(values, name), fmt, scale, name)
+    return bytes(out)
+
+
+def _reference_decode(payload: bytes, layout: Layout) -> Values:
+    end, offset, fields = min(len(payload), layout.value), 1, {}
+    for name, fmt, scale in codec._NEW_FIELDS:
+        if offset + fmt.size > end:
+            break
+        fields[name] = codec._unpack_field(fmt, scale, payload, offset)
+        offset += fmt.size
+    return Values(**fields)
+
+
+_NEW_LAYOUTS = [layout for layout in Layout if layout is not Layout.PRE_3_07]
+_FW_OF = {Layout.V3_07: (3, 7), Layout.V3_34: (3, 34), Layout.V3_40: (3, 40), Layout.V3_48: (3, 48),
+          Layout.V3_60: (3, 60), Layout.V5_03: (5, 3)}
+
+
+@settings(max_examples=150, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                          st.integers(-(2**33), 2**33), st.booleans()),
+                min_size=len(dataclasses.fields(Values)), max_size=len(dataclasses.fields(Values))),
+       st.sampled_from(_NEW_LAYOUTS), st.integers(0, 30))
+def test_values_fast_path_is_the_field_by_field_codec(raw, layout, cut):
+    values = Values(**{f.name: v for f, v in zip(dataclasses.fields(Values), raw, strict=True)})
+    try:
+        expected: bytes | type[BaseException] = _reference_encode(values, layout)
+    except (LocalProtocolError, OverflowError) as err:
+        expected = type(err)
+    if isinstance(expected, bytes):
+        assert encode_values(values, layout) == expected
+        # decoding: the whole payload, and one cut short (down to the 54 bytes every layout has)
+        for payload in (expected, expected[:max(Layout.V3_07.value, len(expected) - cut)]):
+            assert decode_values(payload, _FW_OF[layout]) == _reference_decode(payload, layout)
+    else:
+        with pytest.raises(expected):
+            encode_values(values, layout)
+
+
+def _reference_decode_imu(payload: bytes) -> ImuData | RawPacket:
+    """GET_IMU_DATA read one field at a time, as the mask defines it."""
+    if len(payload) < 3:
+        return RawPacket(payload, "GET_IMU_DATA reply without its mask")
+    mask = struct.unpack_from(">H", payload, 1)[0]
+    names = [name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1]
+    end = 3 + 4 * len(names)
+    if len(payload) < end:
+        return RawPacket(payload, f"GET_IMU_DATA reply of {len(payload)} bytes, its mask {mask:#06x} "
+                                  f"needs {end}")
+    fields: dict = {}
+    for k, name in enumerate(names):
+        value = struct.unpack_from(">f", payload, 3 + 4 * k)[0]
+        if not math.isfinite(value):
+            return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
+        fields[name] = value
+    if len(payload) > end:
+        fields["controller_id"] = payload[end]
+    return ImuData(**fields)
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 0xFFFF), st.binary(min_size=0, max_size=80), st.booleans())
+def test_imu_reply_read_in_one_call_is_the_field_by_field_reading(mask, body, finite_floats):
+    if finite_floats:  # mostly well-formed replies; otherwise any bytes (NaN, inf, short)
+        n = bin(mask).count("1")
+        body = b"".join(struct.pack(">f", (k * 0.37) % 5 - 2.5) for k in range(n)) + body[:2]
+    payload = bytes([codec.CommandId.GET_IMU_DATA]) + struct.pack(">H", mask) + body
+    got, want = decode_imu_data(payload), _reference_decode_imu(payload)
+    assert got == want
+    if isinstance(want, ImuData):  # and written back: the same fields, the same bytes
+        again = decode_imu_data(codec.encode_imu_data(want, (6, 5) if want.controller_id is not None
+                                                      else None))
+        assert again == want

@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import binascii
 import enum
+import functools
 import math
+import operator
 import struct
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -429,6 +431,64 @@ def _unpack_field(fmt: struct.Struct, scale: float, data: bytes, offset: int) ->
     return raw / scale if scale else raw
 
 
+class _ValuesPrefix:
+    """The leading fields of :data:`_NEW_FIELDS` that fit a payload of ``end`` bytes (id byte
+    included), packed and unpacked with one :class:`struct.Struct`: what the field-by-field loops of
+    :func:`encode_values` and :func:`decode_values` do, in one call (the VESC is polled at 50 Hz)."""
+
+    def __init__(self, end: int) -> None:
+        fields, offset = [], 1
+        for name, fmt, scale in _NEW_FIELDS:
+            if offset >= end:  # (encode_values: fields start before the layout's end)
+                break
+            fields.append((name, fmt, scale))
+            offset += fmt.size
+        #: the fields read from ``end`` bytes: those that end within them
+        read, offset = [], 1
+        for name, fmt, scale in _NEW_FIELDS:
+            if offset + fmt.size > end:
+                break
+            read.append((name, scale))
+            offset += fmt.size
+        self._names = tuple(name for name, _, _ in fields)
+        self._get = operator.attrgetter(*self._names) if len(self._names) > 1 else None
+        self._pack_scales = tuple(scale or 1 for _, _, scale in fields)
+        self._pack = struct.Struct(">B" + "".join(fmt.format.lstrip(">") for _, fmt, _ in fields))
+        self._read_names = tuple(name for name, _ in read)
+        self._read_scales = tuple(scale for _, scale in read)
+        self._unpack = struct.Struct(">" + "".join(fmt.format.lstrip(">") for _, fmt, _ in
+                                                   _NEW_FIELDS[:len(read)]))
+
+    def pack(self, values: Values) -> bytes | None:
+        """The payload, or None when a value needs the field-by-field checks (anything but a
+        plain finite int or float in range: the slow path then refuses it, naming the field)."""
+        if self._get is None:
+            return None
+        raw = self._get(values)
+        if not _PLAIN_NUMBERS.issuperset(map(type, raw)):
+            return None
+        try:
+            wire = [round(v * s) for v, s in zip(raw, self._pack_scales, strict=True)]
+            return self._pack.pack(CommandId.GET_VALUES, *wire)
+        except (ValueError, OverflowError, struct.error):
+            return None
+
+    def unpack(self, payload: bytes) -> Values:
+        raw = self._unpack.unpack_from(payload, 1)
+        fields = zip(self._read_names, raw, self._read_scales, strict=True)
+        return Values(**{name: value / scale if scale else value for name, value, scale in fields})
+
+
+#: The exact types :meth:`_ValuesPrefix.pack` packs without the per-field checks (bool is refused
+#: by them: it is neither).
+_PLAIN_NUMBERS = frozenset((int, float))
+
+
+@functools.cache
+def _values_prefix(end: int) -> _ValuesPrefix:
+    return _ValuesPrefix(end)
+
+
 def encode_values(values: Values, layout: Layout) -> bytes:
     """The GET_VALUES reply payload (id byte included) for ``values`` in ``layout``."""
     out = bytearray([CommandId.GET_VALUES])
@@ -440,6 +500,9 @@ def encode_values(values: Values, layout: Layout) -> bytes:
         for name, fmt, scale in _OLD_FIELDS:
             out += _pack_field(getattr(values, name), fmt, scale, name)
         return bytes(out)
+    fast = _values_prefix(layout.value).pack(values)
+    if fast is not None:
+        return fast
     for name, fmt, scale in _NEW_FIELDS:
         if len(out) >= layout.value:
             break
@@ -468,14 +531,7 @@ def decode_values(payload: bytes, firmware: tuple[int, int] | None) -> Values | 
         return Values(**fields)  # type: ignore[arg-type]
     if len(payload) < Layout.V3_07.value:
         return RawPacket(payload, f"GET_VALUES reply of {len(payload)} bytes, needs at least 54")
-    end = min(len(payload), layout.value)
-    offset = 1
-    for name, fmt, scale in _NEW_FIELDS:
-        if offset + fmt.size > end:
-            break
-        fields[name] = _unpack_field(fmt, scale, payload, offset)
-        offset += fmt.size
-    return Values(**fields)  # type: ignore[arg-type]
+    return _values_prefix(min(len(payload), layout.value)).unpack(payload)
 
 
 # --- FW_VERSION --------------------------------------------------------------------------------
@@ -520,10 +576,35 @@ def decode_fw_version(payload: bytes) -> FwVersion | RawPacket:
 _F32 = struct.Struct(">f")
 
 
+#: Every IMU field of a reply, in wire order (None where absent).
+_IMU_VALUES = operator.attrgetter(*IMU_FIELDS)
+
+
+@functools.cache
+def _imu_names(mask: int) -> tuple[str, ...]:
+    """The IMU fields ``mask`` selects, in wire order."""
+    return tuple(name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1)
+
+
+@functools.cache
+def _f32s(count: int) -> struct.Struct:
+    """``count`` big-endian float32s (the IMU reply's fields, read or written in one call)."""
+    return struct.Struct(">" + "f" * count)
+
+
 def encode_imu_data(reply: ImuData, firmware: tuple[int, int] | None = None) -> bytes:
     """The IMU reply payload (id included): the mask, each present field as float32, and from
     firmware 6.05 on the controller id (0 when ``reply`` has none)."""
     out = bytearray([CommandId.GET_IMU_DATA]) + _U16.pack(reply.mask)
+    present = [value for value in _IMU_VALUES(reply) if value is not None]
+    try:  # the fast path: every value a finite float32 (else the loop below, for its error)
+        if all(map(math.isfinite, present)):
+            out += _f32s(len(present)).pack(*present)
+            if firmware is not None and firmware >= IMU_ID_SINCE:
+                out.append(reply.controller_id or 0)
+            return bytes(out)
+    except (TypeError, OverflowError, struct.error):
+        pass
     for name in IMU_FIELDS:
         value = getattr(reply, name)
         if value is not None:
@@ -544,17 +625,16 @@ def decode_imu_data(payload: bytes) -> ImuData | RawPacket:
     if len(payload) < 3:
         return RawPacket(payload, "GET_IMU_DATA reply without its mask")
     mask = _U16.unpack_from(payload, 1)[0]
-    names = [name for i, name in enumerate(IMU_FIELDS) if mask >> i & 1]
+    names = _imu_names(mask)
     end = 3 + 4 * len(names)
     if len(payload) < end:
         return RawPacket(payload, f"GET_IMU_DATA reply of {len(payload)} bytes, its mask {mask:#06x} "
                                   f"needs {end}")
-    fields: dict[str, float | int] = {}
-    for k, name in enumerate(names):
-        value = _F32.unpack_from(payload, 3 + 4 * k)[0]
-        if not math.isfinite(value):
-            return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
-        fields[name] = value
+    values = _f32s(len(names)).unpack_from(payload, 3)
+    if not all(map(math.isfinite, values)):
+        name = next(n for n, v in zip(names, values, strict=True) if not math.isfinite(v))
+        return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
+    fields: dict[str, float | int] = dict(zip(names, values, strict=True))
     if len(payload) > end:
         fields["controller_id"] = payload[end]
     return ImuData(**fields)  # type: ignore[arg-type]

@@ -16,6 +16,7 @@ negated relative to the quaternion); the quaternion is.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -45,7 +46,14 @@ class ImuCovariances:
     linear_acceleration: float
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The three row-major 3x3 covariance arrays of sensor_msgs/Imu."""
+        """The three row-major 3x3 covariance arrays of sensor_msgs/Imu (new copies each call: a
+        message owns its arrays)."""
+        o, w, a = self._diagonals
+        return o.copy(), w.copy(), a.copy()
+
+    @functools.cached_property
+    def _diagonals(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The arrays, built once (the IMU is read at 50 Hz)."""
         def diag(a: float, b: float, c: float) -> np.ndarray:
             return np.diag(np.array([a, b, c], dtype=np.float64)).reshape(9)
         return (diag(self.orientation_rp, self.orientation_rp, self.orientation_yaw),

@@ -59,7 +59,7 @@ from racecar_hw.net.foxglove_teleop import (
     decode_twist,
     twist_to_drive,
 )
-from racecar_hw.net.loopback_tls import LOOPBACK, make_loopback_cert
+from racecar_hw.net.loopback_tls import LOOPBACK, PendingCert
 from racecar_hw.net.parameters import HIDDEN, SECRET_WORDS
 from racecar_hw.net.relay import Relay
 from racecar_hw.net.scene import scene_update
@@ -139,6 +139,8 @@ class FoxgloveServer:
         self._scene_id = self._speeds_id = self._log_id = -1
         self._next_scene_ns = 0
         self._log_handler: _LogHandler | None = None
+        #: the SDK server's loopback certificate, made by a child process from now until start()
+        self._cert: PendingCert | None = PendingCert()
 
     # --- life cycle -----------------------------------------------------------------------------
 
@@ -171,7 +173,8 @@ class FoxgloveServer:
         if self.teleop.teleop_input is not None:
             capabilities.append(Capability.ClientPublish)
         # the SDK behind the relay, on loopback with TLS only the relay trusts (see net.relay)
-        cert = make_loopback_cert()
+        pending, self._cert = self._cert or PendingCert(), None
+        cert = pending.result()
         try:
             self.server = foxglove.start_server(
                 name=self.name, host=LOOPBACK, port=0, capabilities=capabilities,
@@ -205,6 +208,9 @@ class FoxgloveServer:
 
     def stop(self) -> None:
         """Stop serving (safe to call twice)."""
+        if self._cert is not None:  # never started
+            self._cert.cancel()
+            self._cert = None
         if self._log_handler is not None:
             logging.getLogger().removeHandler(self._log_handler)
             self._log_handler = None

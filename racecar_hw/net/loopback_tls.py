@@ -11,7 +11,8 @@ start; the private key is never written to disk. :func:`pinned_context` is the c
 trusts exactly that certificate.
 
 The certificate is made by a short-lived child process (``python -m racecar_hw.net.loopback_tls``,
-about a quarter of a second once at start) that hands the two PEM blocks back over a pipe: the
+about a quarter of a second once at start; :class:`PendingCert` starts it early and collects it
+when needed, so the caller goes on meanwhile) that hands the two PEM blocks back over a pipe: the
 ``cryptography`` library it needs would otherwise stay in the daemon for good, about 10 MB of its
 memory (PSS) for one certificate (docs/install.md, "Memory").
 """
@@ -51,25 +52,62 @@ class CertificateError(RacecarError):
     """The loopback certificate could not be made."""
 
 
+class PendingCert:
+    """A certificate being made: the child process starts at once and :meth:`result` collects it,
+    so the caller can do other work (start its other interfaces) meanwhile. :meth:`cancel` ends a
+    child whose certificate is not wanted."""
+
+    def __init__(self, valid_days: int = 3650) -> None:
+        self._error: OSError | None = None
+        self._process: subprocess.Popen[bytes] | None = None
+        try:
+            self._process = subprocess.Popen([sys.executable, *SAFE_PATH, "-m", __name__, str(valid_days)],
+                                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                             stderr=subprocess.PIPE)
+        except OSError as err:
+            self._error = err
+
+    def result(self) -> LoopbackCert:
+        """The certificate (waits for the child); :class:`CertificateError` if it failed."""
+        process, self._process = self._process, None
+        if process is None:
+            raise CertificateError(f"cannot make the loopback certificate: "
+                                   f"{self._error or 'already collected'}")
+        try:
+            stdout, stderr = process.communicate(timeout=MAKE_TIMEOUT_S)
+        except subprocess.TimeoutExpired as err:
+            _reap(process)
+            raise CertificateError(f"cannot make the loopback certificate: {err}") from err
+        if process.returncode != 0:
+            last = (stderr.decode(errors="replace").strip().splitlines() or ["no output"])[-1]
+            raise CertificateError(f"cannot make the loopback certificate: {last}")
+        try:
+            pems = json.loads(stdout)
+            return LoopbackCert(pems["cert"].encode(), pems["key"].encode())
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
+            # a child that ran other code (an older racecar_hw first on PYTHONPATH, say) answers nothing
+            raise CertificateError(f"cannot make the loopback certificate: the child process answered "
+                                   f"{stdout[:60]!r} ({err})") from None
+
+    def cancel(self) -> None:
+        """End the child if its certificate was not collected (safe to call twice)."""
+        process, self._process = self._process, None
+        if process is not None:
+            _reap(process)
+
+    def __del__(self) -> None:
+        self.cancel()
+
+
+def _reap(process: subprocess.Popen[bytes]) -> None:
+    process.kill()
+    process.communicate()
+
+
 def make_loopback_cert(valid_days: int = 3650) -> LoopbackCert:
     """A new self-signed server certificate for :data:`LOOPBACK`, valid from a minute ago, made in a
     child process (:class:`CertificateError` if that fails)."""
-    try:
-        done = subprocess.run([sys.executable, *SAFE_PATH, "-m", __name__, str(valid_days)],
-                              capture_output=True, timeout=MAKE_TIMEOUT_S, check=False,
-                              stdin=subprocess.DEVNULL)
-    except (OSError, subprocess.TimeoutExpired) as err:
-        raise CertificateError(f"cannot make the loopback certificate: {err}") from err
-    if done.returncode != 0:
-        last = (done.stderr.decode(errors="replace").strip().splitlines() or ["no output"])[-1]
-        raise CertificateError(f"cannot make the loopback certificate: {last}")
-    try:
-        pems = json.loads(done.stdout)
-        return LoopbackCert(pems["cert"].encode(), pems["key"].encode())
-    except (ValueError, KeyError, TypeError, AttributeError) as err:
-        # a child that ran other code (an older racecar_hw first on PYTHONPATH, say) answers nothing
-        raise CertificateError(f"cannot make the loopback certificate: the child process answered "
-                               f"{done.stdout[:60]!r} ({err})") from None
+    return PendingCert(valid_days).result()
 
 
 def _generate(valid_days: int) -> LoopbackCert:
