@@ -58,6 +58,8 @@ from racecar_hw.runtime.fakepty import PtyPort, port_for
 
 TOO_NEAR = 2
 """Error code for a return closer than DMIN."""
+#: how many step ranges (start, end) :meth:`FakeHokuyo.measure` keeps the angles of
+_MAX_SWEEPS = 16
 
 
 class _Session:
@@ -257,6 +259,7 @@ class FakeHokuyo:
         #: speaks SCIP 1.1 until told ``SCIP2.0`` (a classic URG-04LX after power-on)
         self.scip1 = self.boots_scip1 = scip1
         self.range_source = range_source
+        self._sweeps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.link = link
         self.tcp = tcp
         self.serial = "H1612345"
@@ -303,15 +306,14 @@ class FakeHokuyo:
     def measure(self, cmd: ScanCommand, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """Distances (mm or error codes) and intensities for the steps ``cmd`` asks for."""
         m = self.model
-        steps = np.arange(cmd.start, cmd.end + 1)
-        angles = (steps - m.afrt) * (2.0 * np.pi / m.ares)
+        angles, outside = self._sweep(cmd.start, cmd.end)
         r = np.asarray(self.range_source.ranges(angles, stamp_ns), dtype=np.float64)
         limit = m.dmax if cmd.width == 3 else min(m.dmax, 4095)
         with np.errstate(invalid="ignore", over="ignore"):
             mm = np.where(np.isfinite(r), np.rint(r * 1000.0), np.inf)
             dist = np.where(mm > limit, m.no_return,
                             np.where(mm < m.dmin, TOO_NEAR, np.nan_to_num(mm, posinf=0)))
-        dist = np.where((steps < m.amin) | (steps > m.amax), m.unmeasurable, dist).astype(np.int64)
+        dist = np.where(outside, m.unmeasurable, dist).astype(np.int64)
         valid = dist >= m.dmin
         inten = np.where(valid, np.minimum(262143, 4_000_000 // (1000 + dist)), 0)
         cluster = max(cmd.cluster, 1)
@@ -326,6 +328,23 @@ class FakeHokuyo:
             i = np.concatenate([inten, np.zeros(pad, dtype=np.int64)]).reshape(-1, cluster)
             inten = i.max(axis=1)
         return dist, inten
+
+    def _sweep(self, start: int, end: int) -> tuple[np.ndarray, np.ndarray]:
+        """The angles (rad) of steps ``start`` to ``end`` and which of them the model cannot
+        measure; kept (read-only) for the next scan, which a stream asks for with the same steps."""
+        key = (start, end)
+        sweep = self._sweeps.get(key)
+        if sweep is None:
+            m = self.model
+            steps = np.arange(start, end + 1)
+            angles = (steps - m.afrt) * (2.0 * np.pi / m.ares)
+            outside = (steps < m.amin) | (steps > m.amax)
+            angles.setflags(write=False)
+            outside.setflags(write=False)
+            if len(self._sweeps) >= _MAX_SWEEPS:
+                self._sweeps.clear()
+            sweep = self._sweeps[key] = (angles, outside)
+        return sweep
 
     def frame(self, cmd: ScanCommand, echo: str, status: str, at_ns: int | None = None) -> bytes:
         """One encoded scan reply for ``cmd`` measured at monotonic ``at_ns`` (default: now)."""

@@ -4,6 +4,7 @@ the fakes through them (the same codecs, the same bytes), on virtual time."""
 from __future__ import annotations
 
 import asyncio
+import socket
 import threading
 import time
 
@@ -20,6 +21,7 @@ from racecar_hw.base.memlink import MemoryLink, MemoryPort
 from racecar_hw.base.messages import AckermannDrive, LaserScan
 from racecar_hw.runtime import lockstep
 from racecar_hw.runtime.lockstep import VirtualTimeLoop
+from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.codec import SetRpm, SetServoPosition
 from vesc.driver import VescDriver
 from vesc.fake import FakeVesc
@@ -150,6 +152,36 @@ def test_a_busy_predicate_holds_time_until_it_clears_and_a_thread_can_hand_work_
         return [t - start for t in seen]
 
     assert lockstep.run(main()) == [0, 0, 0]
+
+
+def test_as_fast_as_possible_a_busy_loop_still_hears_its_sockets():
+    """At ``speed=None`` the loop asks the OS for events at most every EVENTS_EVERY_S of real time
+    while it has work: a socket that turns readable while timers keep it busy is still read."""
+
+    async def main() -> bytes:
+        loop = asyncio.get_running_loop()
+        here, there = socket.socketpair()
+        here.setblocking(False)
+        got = loop.create_future()
+        loop.add_reader(here.fileno(), lambda: got.done() or got.set_result(here.recv(16)))
+        ticks = 0
+
+        def tick(_due: int, _periods: int) -> None:
+            nonlocal ticks
+            ticks += 1
+
+        timer = PeriodicTimer(1000.0, tick)  # a callback every virtual ms: never idle for long
+        timer.start()
+        try:
+            there.send(b"ping")
+            return await asyncio.wait_for(got, timeout=3600.0)  # virtual s: an hour of 1 kHz ticks
+        finally:
+            timer.cancel()
+            loop.remove_reader(here.fileno())
+            here.close()
+            there.close()
+
+    assert lockstep.run(main()) == b"ping"
 
 
 def test_paced_virtual_time_keeps_at_least_the_real_time_it_stands_for():

@@ -9,7 +9,9 @@ sent is therefore consumed, in full, before the world moves on, and the same inp
 run on an idle or a loaded machine.
 
 Threads still work: a thread that hands the loop work (``call_soon_threadsafe``, a network
-callback) wakes it; time stands still while a job given to a thread
+callback) wakes it (as fast as possible, a loop with work asks the OS for socket and thread events
+at most every :data:`EVENTS_EVERY_S` of real time: what a thread hands over waits in the queue
+meanwhile, and time does not jump past it); time stands still while a job given to a thread
 (``run_in_executor``, ``asyncio.to_thread``) runs, and while any of :meth:`add_busy`'s predicates
 holds (a recorder's queue to its writer thread). Those are the only real-time waits.
 
@@ -36,6 +38,10 @@ T = TypeVar("T")
 
 #: How long (real s) the loop looks for thread work between checks while time stands still.
 BUSY_POLL_S = 0.002
+#: How often (real s) a run as fast as possible asks the OS for socket and thread events while it
+#: has work (a look costs a system call and a GIL hand-over; a pass of the loop, a few us).
+#: Threads' callbacks (``call_soon_threadsafe``) are queued for the next pass without it.
+EVENTS_EVERY_S = 0.001
 #: Paced runs that fall this far (real s) behind their schedule start it again from now instead
 #: of racing to catch up (a stall at start-up, a debugger).
 RESYNC_BEHIND_S = 0.25
@@ -60,6 +66,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         self._anchor: tuple[int, float] | None = None  # (virtual ns, real monotonic s) of the pace
         #: real seconds the loop waited for threads while virtual time stood still
         self.stood_still_s = 0.0
+        self._events_due = 0.0  # real monotonic s of the next look for events (speed=None, busy)
         self._until_ns: int | None = None  # run_until_time's end: the loop stops instead of passing it
         self._selector = _VirtualSelector(self._selector, self)  # type: ignore[has-type]
         #: what ended the run from inside a callback or task (see :meth:`call_exception_handler`)
@@ -185,7 +192,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     def _select(self, select: Callable[[float | None], list[Any]],
                 timeout: float | None) -> list[Any]:
         if timeout == 0:
-            return select(0)
+            return self._look(select)
         if self._held():
             started = time.monotonic()
             events = select(BUSY_POLL_S if timeout is None else min(timeout, BUSY_POLL_S))
@@ -200,11 +207,21 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         if target is None:  # no timer: only a thread can give the loop work
             return select(None if timeout is None else BUSY_POLL_S)
         if self.speed is None:
-            events = select(0)
-            if not events:
+            events = self._look(select)
+            if not events and not self._ready:  # type: ignore[attr-defined]  # (a thread's callback)
                 self._now_ns = target
             return events
         return self._paced(select, target)
+
+    def _look(self, select: Callable[[float | None], list[Any]]) -> list[Any]:
+        """Events ready now, without waiting; as fast as possible, the OS asked at most every
+        :data:`EVENTS_EVERY_S` (nothing new in between: what a thread handed over is queued)."""
+        if self.speed is None:
+            real = time.monotonic()
+            if real < self._events_due:
+                return []
+            self._events_due = real + EVENTS_EVERY_S
+        return select(0)
 
     def _paced(self, select: Callable[[float | None], list[Any]], target: int) -> list[Any]:
         assert self.speed is not None
@@ -326,4 +343,5 @@ def _cancel_all(loop: asyncio.AbstractEventLoop) -> None:
                                          "exception": task.exception(), "task": task})
 
 
-__all__ = ["BUSY_POLL_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "close", "hold_while", "run"]
+__all__ = ["BUSY_POLL_S", "EVENTS_EVERY_S", "RESYNC_BEHIND_S", "VirtualTimeLoop", "close", "hold_while",
+           "run"]
