@@ -174,6 +174,7 @@ def reaped(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
 
 #: The marker of a test that runs while no other pytest-xdist worker runs one (docs/tests.md, "Alone").
 ALONE = "alone"
+QUIET = "quiet"
 #: How long (s) a worker's first test waits for the session's alone tests to begin before it starts
 #: anyway (they are handed out first, so they begin within seconds; the bound covers a worker lost).
 ALONE_START_WAIT_S = 60.0
@@ -181,6 +182,10 @@ ALONE_START_WAIT_S = 60.0
 
 def _alone(item: pytest.Item | None) -> bool:
     return item is not None and item.get_closest_marker(ALONE) is not None
+
+
+def _quiet(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker(QUIET) is not None
 
 
 def pytest_itemcollected(item: pytest.Item) -> None:
@@ -196,8 +201,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     group so that one worker runs them back to back while the others wait (:class:`PaceLock`); then
     the ``slow`` ones, so that a long test does not start last and leave one worker running alone
     at the end; then the groups of tests sharing a run (several tests each); then the rest, each in
-    its collection order."""
-    items.sort(key=lambda item: (not _alone(item), item.get_closest_marker("slow") is None,
+    its collection order. The ``quiet`` modules' tests come right after the alone ones: the other
+    workers run them while the alone tests run (:class:`PaceLock`)."""
+    items.sort(key=lambda item: (not _alone(item), not _quiet(item), item.get_closest_marker("slow") is None,
                                  item.get_closest_marker("xdist_group") is None))
 
 
@@ -217,6 +223,11 @@ class PaceLock:
     A worker's first test also waits (up to :data:`ALONE_START_WAIT_S`) until the alone tests have
     begun, where the session has any: otherwise the other workers' first tests would start first
     and the alone ones wait for the longest of them.
+
+    A ``quiet`` test (computation in the test's own process at the ordinary priority: no thread,
+    socket, subprocess or wall-clock wait) takes no lock: it may run beside an alone test. The
+    flood tests' sims run at FIFO priority, ahead of it; beside the web page's sim and browser it
+    takes a share of the cores at their priority, as any other program would.
     """
 
     def __init__(self, folder: Path, session_has_alone: bool) -> None:
@@ -284,6 +295,10 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     timer, which also wraps the whole protocol: the wait for the lock is not the test's time)."""
     lock = item.config.stash.get(PACE_LOCK, None)
     if lock is None:
+        yield
+        return
+    if _quiet(item):
+        lock.release()
         yield
         return
     lock.hold(_alone(item))

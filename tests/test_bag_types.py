@@ -22,6 +22,8 @@ from racecar_hw.base.messages import (
 )
 from racecar_hw.rosmsg.typestore import MESSAGE_CLASSES, BagTypes, ros1_types, ros2_types
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 CDR_BYTES = ("000100000c000000590100000a000000626173655f6c696e6b0000000000803e000000000000c03f"
              "0000000000000000")
 ROS1_BYTES = ("070000000c0000005901000009000000626173655f6c696e6b0000803e000000000000c03f0000"

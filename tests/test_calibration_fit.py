@@ -10,6 +10,8 @@ import pytest
 
 from racecar_hw.sources.calibration_fit import fit_erpm_gain, fit_steering, fit_wall
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 
 def _scan_of_wall(distance: float, normal: float, noise: float, rng: np.random.Generator):
     angles = np.linspace(-2.35, 2.35, 1081)

@@ -20,6 +20,8 @@ from inbox_model import ESTOP, NAV, RELEASE, TELEOP, make_inbox
 from racecar_hw.base.messages import AckermannDrive, Bool
 from racecar_hw.base.messages import AckermannDriveStamped as _Cmd
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 FRAMES = 4000
 
 #: The recovery each protocol allows, measured with the seeds below and rounded down (docs/fuzz.md

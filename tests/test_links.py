@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import logging
 
+import pytest
+
 from racecar_hw.runtime.links import LinkWatch
+
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
 
 S = 1_000_000_000
 

@@ -6,6 +6,8 @@ import pytest
 
 from racecar_hw.base.loopback import is_loopback
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "127.1.2.3", "::1", "[::1]", "localhost", "LOCALHOST",
                                   "localhost.localdomain", "ip6-localhost", " 127.0.0.1 "])

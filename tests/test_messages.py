@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 
 from racecar_hw.base import messages as m
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 
 def _message_classes():
     return [c for c in vars(m).values()

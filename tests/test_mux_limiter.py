@@ -12,6 +12,8 @@ from mux.limiter import RateLimiter
 from mux.params import MuxParams
 from racecar_hw.base.messages import AckermannDrive
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 TOL = 1e-9
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from racecar_hw.base.resources import config_file
 from racecar_hw.config import build_config
 from racecar_hw.net.foxglove_server import (
@@ -16,6 +18,8 @@ from racecar_hw.net.foxglove_server import (
 from racecar_hw.net.layout import FILES, LEGACY_PANEL_TYPES, layout_json, legacy_layout, main
 from racecar_hw.net.topics import topic_table
 from racecar_hw.sim.live import SIM_TOPICS
+
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
 
 
 def _panels(node):

@@ -13,6 +13,8 @@ from racecar_hw.net.control import CLEAR, LIMITING, STOPPED, CarShape, LiveState
 from racecar_hw.net.scene import label, scene_update
 from safety.arc import SweptFootprint, free_distance, path_lengths
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 SHAPE = CarShape(front_m=0.45, rear_m=0.10, half_width_m=0.2, wheelbase_m=0.25, latency_s=0.055,
                  max_decel_mps2=4.0, margin_m=0.25, max_path_m=10.0)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from mux.params import LockParams, MuxParams
 from racecar_hw.base.messages import AckermannDriveStamped, Bool, LaserScan, TFMessage
 from racecar_hw.net.topics import (
@@ -13,6 +15,8 @@ from racecar_hw.net.topics import (
     topic_table,
 )
 from safety.params import SafetyParams
+
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
 
 
 def _rows(**kwargs):

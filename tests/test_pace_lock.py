@@ -100,14 +100,25 @@ def test_slow():
 @pytest.mark.alone
 @pytest.mark.parametrize("k", range(2))
 def test_alone(k):
+    # a quiet test runs meanwhile: it takes no lock (had it waited, this would wait its 60 s out)
+    deadline = time.monotonic() + 60
+    while not os.path.exists({quiet_started!r}) and time.monotonic() < deadline:
+        time.sleep(0.01)
     _ran(f"alone{{k}}")
+
+@pytest.mark.quiet
+@pytest.mark.parametrize("k", range(2))
+def test_quiet(k):
+    open({quiet_started!r}, "a").close()
+    _ran(f"quiet{{k}}")
 '''
 
 
 def test_with_xdist_the_alone_tests_run_first_on_one_worker_and_by_themselves(tmp_path):
     """The whole arrangement in a pytest session of its own with three workers (pyproject.toml's
     options, this folder's hooks): the alone tests (collected last here) go to one worker, begin
-    before any other test, and no test runs while one of them does."""
+    before any other test but the quiet ones, and no test but a quiet one runs while one of them
+    does."""
     import json
     import subprocess
     import sys
@@ -116,18 +127,23 @@ def test_with_xdist_the_alone_tests_run_first_on_one_worker_and_by_themselves(tm
     log = tmp_path / "ran.jsonl"
     (tmp_path / "conftest.py").write_text(SESSION_CONFTEST.format(
         conftest=str(Path(__file__).with_name("conftest.py"))))
-    (tmp_path / "test_session.py").write_text(SESSION_TESTS.format(log=str(log)))
+    quiet_started = tmp_path / "quiet.started"
+    (tmp_path / "test_session.py").write_text(SESSION_TESTS.format(log=str(log),
+                                                                   quiet_started=str(quiet_started)))
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-n", "3", "-p", "no:cacheprovider", "-c", "/dev/null",
          "--rootdir", str(tmp_path), "--basetemp", str(tmp_path / "basetemp"),  # not pytest's numbered ones
          "--dist", "loadgroup", "--no-loadscope-reorder",
-         "-o", "markers=slow\nalone", "-W", "ignore::pytest.PytestUnknownMarkWarning",
+         "-o", "markers=slow\nalone\nquiet", "-W", "ignore::pytest.PytestUnknownMarkWarning",
          str(tmp_path / "test_session.py")], capture_output=True, text=True, timeout=240, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     ran = {name: (worker, start, end)
            for name, worker, start, end in map(json.loads, log.read_text().splitlines())}
-    assert len(ran) == 7, ran
+    assert len(ran) == 9, ran
     alone = [ran.pop(f"alone{k}") for k in range(2)]
+    quiet = [ran.pop(f"quiet{k}") for k in range(2)]
+    # a quiet test ran while the first alone one waited (it did not wait its 60 s out)
+    assert min(start for _, start, _ in quiet) < min(start for _, start, _ in alone), (alone, quiet)
     assert alone[0][0] == alone[1][0]  # one worker, back to back
     first = min(start for _, start, _ in alone)
     assert all(start >= first for _, start, _ in ran.values())  # they began first

@@ -9,6 +9,8 @@ import pytest
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build, describe, param, to_dict
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 
 @dataclass
 class Inner:

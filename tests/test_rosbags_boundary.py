@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("racecar_hw", "vesc", "lidar_drivers", "mux", "safety")
 #: rosbags modules and names that write bags: racecar-hw writes its own.

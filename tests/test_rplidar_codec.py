@@ -32,6 +32,8 @@ from lidar_drivers.rplidar_codec import (
 )
 from racecar_hw.base.errors import LocalProtocolError
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 INFO = DeviceInfo(0x18, 1, 29, 7, bytes(range(16)))
 
 

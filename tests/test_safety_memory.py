@@ -19,6 +19,8 @@ from scans import LASER_X, Segment, base_points, left_arc, scan_at, square, stra
 from safety.controller import planar_transform
 from safety.memory import MIN_ANGLE_INCREMENT_RAD, ObstacleMemory, _window_min
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 MS = 1_000_000
 PERIOD_NS = 25 * MS  # 40 Hz
 TO_BASE = planar_transform((LASER_X, 0.0, 0.0))

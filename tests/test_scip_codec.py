@@ -41,6 +41,8 @@ from lidar_drivers.scip import (
 )
 from racecar_hw.base.errors import LocalProtocolError, RemoteProtocolError
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 GD_EXCHANGE = (b"GD0540056101\n00P\n018dm\n"
                b"0H40H50H60H70H80H90H:0H;0H<0H=0H>0H?0H@0HA0HB0HC0HD0HE0HF0HG0HH0N\nHIA\n\n")
 

@@ -115,6 +115,7 @@ def test_recorded_bags_of_two_lockstep_runs_hold_the_same_messages(tmp_path):
     assert got[0] == got[1]  # topics, receive times (sim time) and serialized bytes
 
 
+@pytest.mark.alone  # its real-time run is on the machine's pace (docs/tests.md, "Alone")
 def test_the_cli_at_max_speed_drives_as_real_time_does(tmp_path):
     """``racecar-hw sim --scenario figure8 --speed max``, every interface on as shipped, against the
     same scenario in real time over ptys and TCP: the same path length within 1 %, no collision."""

@@ -17,6 +17,8 @@ from racecar_hw.sim.obstacles import Box, Circle, Polygon, place
 from racecar_hw.sim.plot import plot_world
 from racecar_hw.sim.scenario import ObstacleSpec, Scenario, load_scenario, scenario_names
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 
 def test_a_polygon_is_convex_counter_clockwise_and_hit_where_geometry_says() -> None:
     square = Polygon.convex([(1, -1), (1, 1), (3, 1), (3, -1)])  # given clockwise

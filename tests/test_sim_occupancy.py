@@ -15,6 +15,8 @@ from PIL import Image
 from racecar_hw.base.errors import ConfigError, RacecarError
 from racecar_hw.sim.occupancy import MapError, OccupancyMap, image_to_grid, load_map, load_shipped_map
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 YAML = """image: {image}
 resolution: {resolution}
 origin: {origin}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -10,6 +11,8 @@ from mux.params import MuxParams
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped
 from racecar_hw.teleop.arming import Arming, ArmingChange, ArmingParams
+
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
 
 
 def test_starts_as_configured_and_reports_changes() -> None:

@@ -37,6 +37,8 @@ from racecar_hw.base.transforms import (
     ypr_from_rotation,
 )
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 finite = st.floats(min_value=-50.0, max_value=50.0, allow_nan=False, allow_infinity=False)
 angles = st.floats(min_value=-math.pi, max_value=math.pi, allow_nan=False)
 xyz = st.tuples(finite, finite, finite)

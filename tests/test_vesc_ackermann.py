@@ -16,6 +16,8 @@ from vesc.ackermann import AckermannConversion
 from vesc.odometry import OdometryIntegrator
 from vesc.params import VescParams
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 F1T = AckermannConversion()  # f1tenth_stack/config/vesc.yaml defaults
 
 

@@ -42,6 +42,8 @@ from vesc.codec import (
     values_layout,
 )
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 KNOWN_FRAMES = [
     (SetRpm(5000), "02 05 08 00 00 13 88 44 8D 03"),
     (SetServoPosition(0.5), "02 03 0C 01 F4 E9 CB 03"),
