@@ -47,6 +47,8 @@ from racecar_hw.rosmsg.typestore import (
 )
 from safety.params import SafetyParams
 
+pytestmark = pytest.mark.quiet  # may run beside an alone test (tests/conftest.py, PaceLock)
+
 STORES = {1: ros1_types, 2: ros2_types}
 _INT_RANGES = {
     "bool": (0, 1), "byte": (-128, 127), "char": (0, 255), "int8": (-128, 127), "uint8": (0, 255),

@@ -23,6 +23,9 @@ from zenoh_util import ROOT
 
 from racecar_hw.cli import main
 
+#: lockstep in this process, interfaces off, or pure computation: may run beside an alone test
+pytestmark = pytest.mark.quiet
+
 VALUE = re.compile(r"^(\w+): (\S+) \(true: (\S+)\)", re.MULTILINE)
 
 

@@ -19,6 +19,9 @@ from racecar_hw.sim.occupancy import load_shipped_map
 from racecar_hw.sim.policies import STEERING_MAX_RAD, follow_right_wall
 from racecar_hw.sim.scenario import load_scenario
 
+#: lockstep in this process, interfaces off, or pure computation: may run beside an alone test
+pytestmark = pytest.mark.quiet
+
 
 def drive_track(env: RaceEnv, seed: int, steps: int) -> dict:
     """One episode of the track scenario under :func:`follow_right_wall`: its final state."""

@@ -25,6 +25,9 @@ from lockstep_sim import run_lockstep, shares_run, shipped_run
 
 from racecar_hw.sim.scenario import scenario_names
 
+#: lockstep in this process, interfaces off, or pure computation: may run beside an alone test
+pytestmark = pytest.mark.quiet
+
 #: The hazard scenarios, each with the reason the shipped safety controller intervenes for.
 HAZARDS: dict[str, str] = {
     "wall": "obstacle",             # the far wall, seen by the live scan
