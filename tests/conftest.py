@@ -185,7 +185,11 @@ def _alone(item: pytest.Item | None) -> bool:
 
 
 def _quiet(item: pytest.Item | None) -> bool:
-    return item is not None and item.get_closest_marker(QUIET) is not None
+    """Marked ``quiet`` and in no pytest-xdist group: a group's tests run on one worker one after
+    another, and one of them that waits for the lock would hold up the quiet ones after it (every
+    shared lockstep run's group has the determinism test, with its CPU burner)."""
+    return (item is not None and item.get_closest_marker(QUIET) is not None
+            and item.get_closest_marker("xdist_group") is None)
 
 
 def pytest_itemcollected(item: pytest.Item) -> None:
