@@ -185,11 +185,17 @@ def _alone(item: pytest.Item | None) -> bool:
 
 
 def _quiet(item: pytest.Item | None) -> bool:
-    """Marked ``quiet`` and in no pytest-xdist group: a group's tests run on one worker one after
-    another, and one of them that waits for the lock would hold up the quiet ones after it (every
-    shared lockstep run's group has the determinism test, with its CPU burner)."""
-    return (item is not None and item.get_closest_marker(QUIET) is not None
-            and item.get_closest_marker("xdist_group") is None)
+    """Marked ``quiet`` and in no pytest-xdist group, or in a shared lockstep run's group
+    (tests/lockstep_sim.py ``shares_run``: every test of one is a lockstep run in its own process
+    with every network interface off; the determinism test's CPU burner runs at SCHED_IDLE). A
+    group's tests run on one worker one after another, so a group is quiet as a whole or not at
+    all: one of its tests that waited for the lock would hold up the quiet ones after it."""
+    if item is None:
+        return False
+    group = item.get_closest_marker("xdist_group")
+    if group is not None:
+        return str(group.args[0] if group.args else group.kwargs.get("name", "")).startswith("lockstep-")
+    return item.get_closest_marker(QUIET) is not None
 
 
 def pytest_itemcollected(item: pytest.Item) -> None:

@@ -30,17 +30,21 @@ from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.report import RUN_SPECIFIC, comparable
 from racecar_hw.sim.scenario import load_scenario, scenario_names
 
-#: The burner spins at the lowest priority (niceness 19): it takes every cycle the machine has
-#: spare and is preempted by any other runnable thread, the lockstep run's included, but does not
-#: take a core from the other pytest-xdist worker (docs/tests.md, "The CPU burner").
+#: The burner spins at the lowest priority (SCHED_IDLE, and niceness 19 where that policy is not
+#: to be had): it takes every cycle the machine has spare and is preempted by any other runnable
+#: thread, the lockstep run's included, but does not take a core from the other pytest-xdist
+#: workers, nor from an alone test's niceness-19 flooder beside it (docs/tests.md, "The CPU burner").
 BURNER_NICE = 19
 #: It spins until its parent (the test's process) is gone: a worker killed mid-test leaves none behind.
-BURNER = f"import os; os.nice({BURNER_NICE}); parent = os.getppid()\nwhile os.getppid() == parent: pass"
+BURNER = (f"import os; os.nice({BURNER_NICE})\n"
+          "try:\n    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\n"
+          "except (OSError, AttributeError):\n    pass\n"
+          "parent = os.getppid()\nwhile os.getppid() == parent: pass")
 
 
 @contextmanager
 def cpu_burners(n: int = 1) -> Iterator[list[subprocess.Popen]]:
-    """``n`` processes that spin a core each, at niceness :data:`BURNER_NICE`."""
+    """``n`` processes that spin a core each, at the lowest priority (:data:`BURNER`)."""
     procs = [subprocess.Popen([sys.executable, "-c", BURNER]) for _ in range(n)]
     try:
         yield procs
