@@ -57,17 +57,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from fakes import room_fakes
 from table import print_rows
 
-from lidar_drivers.scip_fake import FakeHokuyo
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.config import load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.rosmsg.typestore import ros2_types
-from racecar_hw.runtime.devicethread import DeviceThread
-from racecar_hw.sim.occupancy import load_shipped_map
-from racecar_hw.sim.world import World
-from vesc.fake import FakeVesc
 
 INPUT = "nav_0"
 PERIOD_S = 0.025  # one command per scan at 40 Hz
@@ -91,17 +87,7 @@ def _overrides(tmp: str, vesc_port: str, lidar: tuple[str, int]) -> list[str]:
 
 def _fakes(tmp: str, ready: Any, stop: Any) -> None:
     """The fake VESC and the fake lidar in a process of their own (not contending for our GIL)."""
-    with (DeviceThread("bench-vesc") as vesc_thread, DeviceThread("bench-lidar") as lidar_thread,
-          DeviceThread("bench-world") as world_thread):
-        vesc = FakeVesc(f"{tmp}/vesc")
-        world = World(load_shipped_map("room"), erpm_source=lambda: vesc.erpm,
-                      servo_source=lambda: vesc.servo, seed=1, on_collision=vesc.stall)
-        lidar = FakeHokuyo("ust-10lx", world.range_source(max_range=10.0), tcp=("127.0.0.1", 0))
-        vesc_thread.spawn(vesc.serve())
-        lidar_thread.spawn(lidar.serve())
-        world_thread.spawn(world.run(200.0))
-        if not lidar.ready.wait(10):
-            raise RuntimeError("fake lidar did not start")
+    with room_fakes(tmp) as (_, lidar):
         ready.put(lidar.tcp_address)
         stop.wait()
 

@@ -52,14 +52,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from fakes import room_fakes
 from table import print_rows
 
-from lidar_drivers.scip_fake import FakeHokuyo
-from racecar_hw.runtime.devicethread import DeviceThread
-from racecar_hw.sim.occupancy import load_shipped_map
-from racecar_hw.sim.world import World
 from vesc.codec import SetCurrent, SetCurrentBrake, SetRpm
-from vesc.fake import FakeVesc
 
 CPU_TARGET = 10.0   # percent of one core
 RSS_TARGET = 150.0  # MB
@@ -170,19 +166,9 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
     # Each fake in its own thread, and a short GIL switch interval, so that the fake VESC reads a
     # command when it arrives rather than after the fake lidar has encoded its next frame.
     sys.setswitchinterval(0.0002)
-    with (tempfile.TemporaryDirectory() as tmp, DeviceThread("bench-vesc") as vesc_thread,
-          DeviceThread("bench-lidar") as lidar_thread, DeviceThread("bench-world") as world_thread):
-        vesc = FakeVesc(f"{tmp}/vesc")
-        # the car drives its figure-8 in the shipped room, and the lidar sees the room from where
-        # the car is (the obstacle memory's load depends on a world that stays put)
-        world = World(load_shipped_map("room"), erpm_source=lambda: vesc.erpm,
-                      servo_source=lambda: vesc.servo, seed=1, on_collision=vesc.stall)
-        lidar = FakeHokuyo("ust-10lx", world.range_source(max_range=10.0), tcp=("127.0.0.1", 0))
-        vesc_thread.spawn(vesc.serve())
-        lidar_thread.spawn(lidar.serve())
-        world_thread.spawn(world.run(200.0))
-        if not lidar.ready.wait(10):
-            raise RuntimeError("fake lidar did not start")
+    # the car drives its figure-8 in the shipped room, and the lidar sees the room from where the
+    # car is (the obstacle memory's load depends on a world that stays put)
+    with tempfile.TemporaryDirectory() as tmp, room_fakes(tmp) as (vesc, lidar):
         host, port = lidar.tcp_address
         config = {
             "vesc": {"port": f"{tmp}/vesc", "poll_rate_hz": 50.0},

@@ -38,14 +38,10 @@ from pathlib import Path
 
 import numpy as np
 from bench_daemon import _cpu_s, _host_ticks
+from fakes import room_fakes
 from table import print_rows
 
-from lidar_drivers.scip_fake import FakeHokuyo
-from racecar_hw.runtime.devicethread import DeviceThread
-from racecar_hw.sim.occupancy import load_shipped_map
-from racecar_hw.sim.world import World
 from vesc.codec import SetRpm
-from vesc.fake import FakeVesc
 
 COMMON = '''
 import os, sys, rclpy
@@ -152,17 +148,7 @@ def run(seconds: float, python: str, on_results: Callable[[np.ndarray, list], li
     """One run of the chain against fresh fakes; rows as ``bench_daemon.run``'s (the chain's CPU
     in "helpers' CPU share of one core"), plus what ``on_results(sent_ns, commands)`` returns."""
     sys.setswitchinterval(0.0002)
-    with (tempfile.TemporaryDirectory() as tmp, DeviceThread("bench-vesc") as vesc_thread,
-          DeviceThread("bench-lidar") as lidar_thread, DeviceThread("bench-world") as world_thread):
-        vesc = FakeVesc(f"{tmp}/vesc").open()
-        world = World(load_shipped_map("room"), erpm_source=lambda: vesc.erpm,
-                      servo_source=lambda: vesc.servo, seed=1, on_collision=vesc.stall)
-        lidar = FakeHokuyo("ust-10lx", world.range_source(max_range=10.0), tcp=("127.0.0.1", 0))
-        vesc_thread.spawn(vesc.serve())
-        lidar_thread.spawn(lidar.serve())
-        world_thread.spawn(world.run(200.0))
-        if not lidar.ready.wait(10):
-            raise RuntimeError("fake lidar did not start")
+    with tempfile.TemporaryDirectory() as tmp, room_fakes(tmp, open_vesc=True) as (vesc, lidar):
         host, port = lidar.tcp_address
         env = {**os.environ, "ROS_DOMAIN_ID": str(os.getpid() % 200 + 20)}  # apart from other runs
         # the chain's nodes import this project's codecs from this tree, whatever the working directory
