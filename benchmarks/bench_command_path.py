@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 from fakes import room_fakes
+from rounds import thread_cpu_s
 from table import print_rows
 
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
@@ -217,16 +218,16 @@ async def _measure(daemon: Daemon, commands: int, profile: bool) -> dict:
     if os.environ.get("BENCH_LISTENER"):
         # a client in another process reading every scan (and odometry), answering nothing: what
         # serving a subscriber costs the loop, apart from the commands (which then come on top)
-        threads0 = _thread_cpu()
+        threads0 = thread_cpu_s(os.getpid())
         idle_process_pct = await asyncio.to_thread(_process_share, commands * PERIOD_S)
-        threads1 = _thread_cpu()
+        threads1 = thread_cpu_s(os.getpid())
         port = daemon.config.zenoh.listen[0].rsplit(":", 1)[1]
         listener = subprocess.Popen([sys.executable, "-c", LISTENER, port], cwd=tempfile.gettempdir())
         await asyncio.sleep(4.0)  # connected, its first scans through
-        threads1b = _thread_cpu()
+        threads1b = thread_cpu_s(os.getpid())
         listen0, t0 = time.thread_time_ns(), time.monotonic()
         listen_process_pct = await asyncio.to_thread(_process_share, commands * PERIOD_S)
-        threads2 = _thread_cpu()
+        threads2 = thread_cpu_s(os.getpid())
         span = commands * PERIOD_S
         added = {name: 100.0 * ((threads2.get(name, 0.0) - threads1b.get(name, 0.0))
                                 - (threads1.get(name, 0.0) - threads0.get(name, 0.0))) / span
@@ -327,20 +328,6 @@ car = Car(f"tcp/127.0.0.1:{sys.argv[1]}")
 for scan in car.scans(timeout=30):
     car.odom  # read, as a navigation node would
 '''
-
-
-def _thread_cpu() -> dict[str, float]:
-    """CPU seconds of each thread of this process so far, by name (/proc/self/task)."""
-    out: dict[str, float] = {}
-    for task in Path("/proc/self/task").iterdir():
-        try:
-            name = (task / "comm").read_text().strip()
-            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-        out[f"{name}[{task.name}]"] = cpu
-    return out
 
 
 def _process_share(seconds: float) -> float:

@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 from fakes import room_fakes
+from rounds import thread_cpu_s
 from table import print_rows
 
 from vesc.codec import SetCurrent, SetCurrentBrake, SetRpm
@@ -66,20 +67,6 @@ LATENCY_P99_TARGET = 2.0  # ms
 def _cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _thread_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds per thread of a process, by thread name (for BENCH_VERBOSE)."""
-    out: dict[str, float] = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            name = (task / "comm").read_text().strip()
-            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-        out[f"{name}[{task.name}]"] = cpu
-    return out
 
 
 def _thread_wakeups(pid: int) -> dict[str, int]:
@@ -217,9 +204,9 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
             time.sleep(4.0 if others else 2.0)  # warm up: caches, first bag chunk, helpers connected
             lidar.frames_sent_ns.clear()
             vesc.clear_commands()
-            threads0 = _thread_cpu_s(proc.pid)
+            threads0 = thread_cpu_s(proc.pid)
             wakeups0 = _thread_wakeups(proc.pid)
-            helper_threads0 = [(o, _thread_cpu_s(o.pid)) for o in others]
+            helper_threads0 = [(o, thread_cpu_s(o.pid)) for o in others]
             fakes0 = time.process_time()
             host0 = _host_ticks()
             spies = _spy(proc.pid, others, seconds)
@@ -232,9 +219,9 @@ def _run_once(seconds: float, recorder: bool, zenoh_port: int | None, helpers: l
                 spy.wait(30)
             host1 = _host_ticks()
             fakes1 = time.process_time()
-            threads1 = _thread_cpu_s(proc.pid)
+            threads1 = thread_cpu_s(proc.pid)
             wakeups1 = _thread_wakeups(proc.pid)
-            helper_threads = [(o.args, t0_, _thread_cpu_s(o.pid)) for o, t0_ in helper_threads0]
+            helper_threads = [(o.args, t0_, thread_cpu_s(o.pid)) for o, t0_ in helper_threads0]
             rss = _peak_rss_mb(proc.pid)
             pss = _pss_mb(proc.pid)
             sent = np.array(lidar.frames_sent_ns, dtype=np.int64)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
@@ -59,3 +60,17 @@ def pooled_p99(runs: list[list[dict]]) -> float:
     """
     samples = [row["samples"] for rows in runs for row in rows if row["name"] == ROUND_TRIP_P99]
     return float(np.percentile(np.concatenate(samples), 99))
+
+
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds of each thread of process ``pid`` so far, by thread name and id (/proc, Linux)."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        out[f"{name}[{task.name}]"] = cpu
+    return out
