@@ -174,6 +174,7 @@ def reaped(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
 
 #: The marker of a test that runs while no other pytest-xdist worker runs one (docs/tests.md, "Alone").
 ALONE = "alone"
+#: ... and of one that may run beside them, taking no lock (:func:`_quiet`).
 QUIET = "quiet"
 #: How long (s) a worker's first test waits for the session's alone tests to begin before it starts
 #: anyway (they are handed out first, so they begin within seconds; the bound covers a worker lost).
@@ -211,8 +212,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     group so that one worker runs them back to back while the others wait (:class:`PaceLock`); then
     the ``slow`` ones, so that a long test does not start last and leave one worker running alone
     at the end; then the groups of tests sharing a run (several tests each); then the rest, each in
-    its collection order. The ``quiet`` modules' tests come right after the alone ones: the other
-    workers run them while the alone tests run (:class:`PaceLock`)."""
+    its collection order. The quiet tests (:func:`_quiet`: the ``quiet`` modules' and the shared
+    lockstep runs' groups) come right after the alone ones: the other workers run them while the
+    alone tests run (:class:`PaceLock`)."""
     items.sort(key=lambda item: (not _alone(item), not _quiet(item), item.get_closest_marker("slow") is None,
                                  item.get_closest_marker("xdist_group") is None))
 
@@ -234,8 +236,9 @@ class PaceLock:
     begun, where the session has any: otherwise the other workers' first tests would start first
     and the alone ones wait for the longest of them.
 
-    A ``quiet`` test (computation in the test's own process at the ordinary priority: no thread,
-    socket, subprocess or wall-clock wait) takes no lock: it may run beside an alone test. The
+    A quiet test (:func:`_quiet`: computation or a lockstep run in the test's own process at the
+    ordinary priority, no socket, subprocess but a SCHED_IDLE burner, or wall-clock wait) takes no
+    lock: it may run beside an alone test. The
     flood tests' sims run at FIFO priority, ahead of it; beside the web page's sim and browser it
     takes a share of the cores at their priority, as any other program would.
     """
