@@ -99,7 +99,8 @@ class CommandMux:
         self._origin: Origin | None = None
         if params.start_estopped:
             self.engage_estop("start_estopped", Origin(DAEMON, "mux.start_estopped"))
-        self._start_ns = clock()
+        #: the clock (ns) at creation; :attr:`switches` are seconds since it
+        self.start_ns = clock()
         n, m = len(self.table.inputs), len(self.table.locks)
         self._drives: list[AckermannDrive | None] = [None] * n
         self._received: list[int | None] = [None] * n
@@ -326,7 +327,7 @@ class CommandMux:
             arb = stopped(self.table)
             if self.source != FAULT:
                 self.source = FAULT
-                self.switches.append(((now - self._start_ns) / NS_PER_S, FAULT))
+                self.switches.append(((now - self.start_ns) / NS_PER_S, FAULT))
             return arb
 
     def _switch(self, arb: Arbitration, now_ns: int) -> None:
@@ -334,7 +335,7 @@ class CommandMux:
         self.source = arb.source
         if len(self.switches) >= _MAX_SWITCHES:
             del self.switches[: _MAX_SWITCHES // 2]
-        t = (now_ns - self._start_ns) / NS_PER_S
+        t = (now_ns - self.start_ns) / NS_PER_S
         self.switches.append((t, arb.source))
         log.info("mux source %s -> %s at %.3f s; %s", previous, arb.source, t, self.summary(arb))
         self._unannounced = arb.source

@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 from mux.estop import DAEMON, Origin
-from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import merge
 from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
@@ -95,8 +94,6 @@ class Loopback:
         self._real_start: float | None = None  # real monotonic s when run() began
         #: why the run ended: "duration", or what interrupted it (request_stop)
         self.stop_reason = "duration"
-        #: world time at which the mux started counting (its switch times are relative to it)
-        self.mux_offset_s = 0.0
         #: listeners whose configured port was taken, with where they listen instead
         self.moved_ports: list[tuple[Listener, str]] = []
 
@@ -183,14 +180,11 @@ class Loopback:
             self.config = self.rig.start(config)
             world = self.clock.world = self.rig.world
             assert world is not None
-            created_ns = monotonic_ns()
             daemon = self.daemon = Daemon(self.config, status=self.status)
             self.clock.daemon = daemon
             daemon.state.extra_status = lambda: {
                 "sim_time_s": world.sim_time, "sim_pose": tuple(world.pose),
                 "clearance_m": world.clearance()}
-            # world time at which the mux started counting (its switch times are relative to it)
-            self.mux_offset_s = world.sim_time - (monotonic_ns() - created_ns) / NS_PER_S
             if self.setup is not None:
                 self.setup(self)
             stop = self._stop = asyncio.Event()

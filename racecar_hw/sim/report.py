@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.sim.car import CLEARANCE_RANGE_M, footprint
 from racecar_hw.sim.obstacles import point_polygon_distance
 from racecar_hw.sim.plot_worker import PlotWorker
@@ -96,7 +97,8 @@ class RunReport:
             "max_speed_mps": _num(max((abs(s[4]) for s in world.trajectory), default=0.0)),
             "safety_interventions": daemon.safety.interventions,
             "safety_interventions_by_reason": dict(daemon.safety.controller.interventions_by_reason),
-            "mux_switches": [[round(t + run.mux_offset_s, 3), s] for t, s in daemon.mux.switches],
+            "mux_switches": [[round(world.sim_time_at(daemon.mux.start_ns + round(t * NS_PER_S)), 3), s]
+                             for t, s in daemon.mux.switches],
             "faults": [[t, a] for t, a in run.fault_log],
             "vesc": {
                 "frames_tx": vstats.frames_tx if vstats else 0,
