@@ -125,10 +125,16 @@ class Interfaces:
         if self.inbox is not None:
             self.inbox.bind(loop)
             stack.callback(self.inbox.close)
-        for bridge in (self.zenoh, self.dds):
-            if bridge is not None:  # closed also when its open fails half-way
-                stack.push_async_callback(quietly, loop.run_in_executor, None, bridge.close)
-                await loop.run_in_executor(None, bridge.open, loop)
+        bridges = [b for b in (self.zenoh, self.dds) if b is not None]
+        for bridge in bridges:  # closed also when its open fails half-way
+            stack.push_async_callback(quietly, loop.run_in_executor, None, bridge.close)
+        # side by side: each mostly waits in its library (sockets, discovery), and a lockstep
+        # run's virtual time stands still until both are open
+        opened = await asyncio.gather(*(loop.run_in_executor(None, b.open, loop) for b in bridges),
+                                      return_exceptions=True)
+        failed = next((r for r in opened if isinstance(r, BaseException)), None)
+        if failed is not None:  # both have ended: the first bridge's error, as one after the other gave
+            raise failed
 
     def _refuse_taken_ports(self) -> None:
         """The rule for every interface (docs/live-view.md, "Ports"); Zenoh's own open refuses a
