@@ -28,6 +28,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle as CirclePatch
 from matplotlib.patches import Polygon as PolygonPatch
 from matplotlib.transforms import Affine2D
+from mpl_toolkits.axes_grid1 import make_axes_locatable
 
 from racecar_hw.sim.obstacles import Box, Circle, Obstacle, Polygon
 from racecar_hw.sim.occupancy import OccupancyMap
@@ -42,6 +43,12 @@ START_COLOUR, END_COLOUR = "#14a03c", "#8c28b4"
 INTERVENTION_COLOUR, COLLISION_COLOUR, OBSTACLE_COLOUR = "#f59600", "#dc1414", "#787878"
 SPEED_COLOURS = {"commanded": "#1f77b4", "output": "#17becf", "allowed": "#f59600", "measured": "#2ca02c"}
 SPEED_CMAP = "viridis"
+#: The figure's margins (inches): tick labels and axis labels left and below, the title above.
+MARGIN_LEFT_IN, MARGIN_RIGHT_IN, MARGIN_BOTTOM_IN, MARGIN_TOP_IN = 0.85, 0.1, 0.5, 0.35
+#: The gaps (inches) under the map (its x tick labels and label) and between the time panels.
+MAP_GAP_IN, SERIES_GAP_IN = 0.6, 0.12
+#: Room (inches) right of the map for its colour bar's tick labels and label.
+COLORBAR_LABELS_IN = 0.75
 
 
 def as_marks(items: Iterable[Any]) -> list[Mark]:
@@ -118,15 +125,29 @@ def run_figure(occ_map: OccupancyMap, trajectory: Sequence[Sequence[float]],
     marks_i, marks_c = as_marks(interventions), as_marks(collisions)
     with_series = bool(len(samples) or len(switches))
     w_in, h_in = _figure_inches(occ_map, with_series)
-    fig = Figure(figsize=(w_in, h_in), dpi=width_px / w_in, layout="constrained")
+    fig = Figure(figsize=(w_in, h_in), dpi=width_px / w_in)
     FigureCanvasAgg(fig)
+    # fixed margins in inches, not a layout engine: matplotlib's constrained layout measures every
+    # tick label in extra drawing passes, half the time of writing the PNG
+    box = {"left": MARGIN_LEFT_IN / w_in, "right": 1.0 - MARGIN_RIGHT_IN / w_in,
+           "bottom": MARGIN_BOTTOM_IN / h_in, "top": 1.0 - MARGIN_TOP_IN / h_in}
     if with_series:
-        grid = fig.add_gridspec(4, 1, height_ratios=[_map_inches(occ_map), 2.0, 1.3, 0.7])
-        ax_map = fig.add_subplot(grid[0])
-        ax_speed = fig.add_subplot(grid[1])
-        ax_steer = fig.add_subplot(grid[2], sharex=ax_speed)
-        ax_source = fig.add_subplot(grid[3], sharex=ax_speed)
+        map_in = _map_inches(occ_map) - MAP_GAP_IN
+        series_in = h_in - MARGIN_TOP_IN - MARGIN_BOTTOM_IN - MAP_GAP_IN - map_in
+        outer = fig.add_gridspec(2, 1, height_ratios=[map_in, series_in],
+                                 hspace=MAP_GAP_IN / ((map_in + series_in) / 2), **box)
+        ratios = [2.0, 1.3, 0.7]
+        inner = outer[1].subgridspec(3, 1, height_ratios=ratios,
+                                     hspace=SERIES_GAP_IN / ((series_in - 2 * SERIES_GAP_IN) / 3))
+        map_row = outer[0].subgridspec(1, 2, wspace=0.0, width_ratios=[
+            w_in - MARGIN_LEFT_IN - MARGIN_RIGHT_IN - COLORBAR_LABELS_IN, COLORBAR_LABELS_IN])
+        ax_map = fig.add_subplot(map_row[0])
+        ax_map.set_anchor("S")  # a map shorter than its panel keeps its x labels by the panels below
+        ax_speed = fig.add_subplot(inner[0])
+        ax_steer = fig.add_subplot(inner[1], sharex=ax_speed)
+        ax_source = fig.add_subplot(inner[2], sharex=ax_speed)
     else:
+        fig.subplots_adjust(**{**box, "right": box["right"] - COLORBAR_LABELS_IN / w_in})
         ax_map = fig.add_subplot(1, 1, 1)
     _draw_map(fig, ax_map, occ_map, traj, marks_i, marks_c, obstacles)
     if title:
@@ -186,7 +207,13 @@ def _draw_map(fig: Figure, ax: Any, occ_map: OccupancyMap, traj: np.ndarray, int
         lines.set_array(speed)
         lines.set_clim(0.0, max(float(np.abs(traj[1:, 4]).max()), 0.1))
         ax.add_collection(lines)
-        fig.colorbar(lines, ax=ax, label="speed (m/s)", shrink=0.85, pad=0.01)
+        # beside the map as drawn (its aspect kept), as tall as it: axes_grid1's divider, since the
+        # figure has no layout engine to size a colorbar to the map
+        divider = make_axes_locatable(ax)
+        divider.set_anchor(ax.get_anchor())
+        cax = divider.append_axes("right", size="3%", pad=0.1)
+        cax.set_label("<colorbar>")  # the name matplotlib gives the axes of fig.colorbar(ax=...)
+        fig.colorbar(lines, cax=cax, label="speed (m/s)")
     if len(traj):
         _pose_marker(ax, traj[0], START_COLOUR, 13)
         _pose_marker(ax, traj[-1], END_COLOUR, 9)
