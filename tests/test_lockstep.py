@@ -319,3 +319,23 @@ def test_the_lidar_drivers_stream_scans_from_the_fakes_over_memory_links(model, 
 
     first = lockstep.run(main())
     assert first == lockstep.run(main())  # the same arrival times, to the nanosecond
+
+
+def test_timers_due_at_the_same_time_run_in_the_order_they_were_set():
+    # asyncio's heap orders timers of equal time by its shape; the virtual loop by when they were
+    # set, so a timer added or removed elsewhere does not reorder the others' shared instants
+    # (a run's outcome depends on that order: which of the world's step and a scan comes first)
+    ran: list[tuple[float, int]] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        handles = [loop.call_at(start + (0.010 if i % 3 else 0.005), ran.append, (i % 3 != 0, i))
+                   for i in range(40)]
+        for handle in handles[1::7]:
+            handle.cancel()
+        await asyncio.sleep(0.02)
+
+    lockstep.run(main())
+    kept = [(later, i) for later, i in [(i % 3 != 0, i) for i in range(40)] if i % 7 != 1]
+    assert ran == sorted(kept)  # the 5 ms ones first, each group in the order set
