@@ -40,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
-from racecar_hw.base.clock import monotonic_ns, seconds
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, seconds
 from racecar_hw.runtime.fakepty import port_for
 from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.codec import (
@@ -144,6 +144,7 @@ class FakeVesc:
         self._split = False
         self._corrupt_next = False
         self._last_reset_ns = monotonic_ns()
+        self._motor_ns = self._last_reset_ns  # monotonic ns of the motor model's last step
         self._reading = False
         #: set while :meth:`serve` answers on the port; unplug and replug wait for it in tests
         self.ready = threading.Event()
@@ -163,26 +164,26 @@ class FakeVesc:
             self.port.open()
         return self
 
-    async def serve(self) -> None:
-        """Answer requests and run the motor model until cancelled; removes the pty on exit."""
+    async def serve(self, motor_timer: bool = True) -> None:
+        """Answer requests and run the motor model until cancelled; removes the pty on exit.
+
+        ``motor_timer``: the motor model steps every ``tick_s`` on a loop timer of its own. False:
+        the caller calls :meth:`step_motor` instead (the lockstep simulation, from the world's
+        step on the same grid: one timer for both).
+        """
         self._loop = asyncio.get_running_loop()
         self._tx = asyncio.Queue()
         self.open()
         self._attach()
         writer = asyncio.create_task(self._write_loop())
-        last = monotonic_ns()
-
-        def tick(_due: int, _periods: int) -> None:
-            nonlocal last
-            now = monotonic_ns()
-            self._step(seconds(now - last), now)
-            last = now
+        self._motor_ns = monotonic_ns()
 
         failed: asyncio.Future[None] = self._loop.create_future()
         # a loop timer on the tick's grid, not a sleeping task (cheaper, and in step with the world)
-        motor = PeriodicTimer(1.0 / self.tick_s, tick,
+        motor = PeriodicTimer(1.0 / self.tick_s, lambda _due, _periods: self.step_motor(monotonic_ns()),
                               on_error=lambda err: failed.done() or failed.set_exception(err))
-        motor.start()
+        if motor_timer:
+            motor.start()
         self.ready.set()
         try:
             await failed
@@ -195,6 +196,17 @@ class FakeVesc:
             self._detach()
             self.port.close()
             self._loop = None
+
+    @property
+    def tick_ns(self) -> int:
+        """The motor model's step (ns): the period of its timer."""
+        return round(NS_PER_S / (1.0 / self.tick_s))  # as the timer's rate gives it
+
+    def step_motor(self, now_ns: int) -> None:
+        """Step the motor model from its last step to monotonic ``now_ns`` (what its timer does
+        every ``tick_s``; call it from the device loop)."""
+        self._step(seconds(now_ns - self._motor_ns), now_ns)
+        self._motor_ns = now_ns
 
     # --- what the world simulation and tests read ---------------------------------------------
 
