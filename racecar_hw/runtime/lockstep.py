@@ -91,7 +91,8 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         if self._debug:  # type: ignore[attr-defined]
             self._check_thread()  # type: ignore[attr-defined]
             self._check_callback(callback, "call_at")  # type: ignore[attr-defined]
-        timer = _Timer(when, next(self._timer_seq), callback, args, self, context)
+        timer = _Timer(when, callback, args, self, context)
+        timer._key = (when, next(self._timer_seq))
         if timer._source_traceback:  # type: ignore[attr-defined]  # (debug mode) this frame
             del timer._source_traceback[-1]  # type: ignore[attr-defined]
         heapq.heappush(self._scheduled, timer)  # type: ignore[attr-defined]
@@ -268,21 +269,16 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
 
 
 class _Timer(asyncio.TimerHandle):
-    """A loop timer ordered by its time, then by when it was set (``seq``, from the loop's count)."""
+    """A loop timer ordered by its time, then by when it was set: ``_key`` is (when, the loop's
+    count of timers set), compared as one tuple."""
 
-    __slots__ = ("_seq",)
-
-    def __init__(self, when: float, seq: int, callback: Callable[..., object], args: tuple[Any, ...],
-                 loop: asyncio.AbstractEventLoop, context: Any) -> None:
-        super().__init__(when, callback, args, loop, context)
-        if self._source_traceback:  # type: ignore[attr-defined]  # (debug mode) the caller's frame
-            del self._source_traceback[-1]  # type: ignore[attr-defined]
-        self._seq = seq
+    __slots__ = ("_key",)
 
     def __lt__(self, other: object) -> bool:
-        if isinstance(other, _Timer):
-            return self._when < other._when or (self._when == other._when and self._seq < other._seq)
-        return super().__lt__(other)  # type: ignore[no-any-return]
+        try:
+            return self._key < other._key  # type: ignore[attr-defined,no-any-return]
+        except AttributeError:  # (not one of the loop's: asyncio's order)
+            return super().__lt__(other)  # type: ignore[no-any-return]
 
 
 class _VirtualSelector:
