@@ -319,3 +319,59 @@ def test_the_lidar_drivers_stream_scans_from_the_fakes_over_memory_links(model, 
 
     first = lockstep.run(main())
     assert first == lockstep.run(main())  # the same arrival times, to the nanosecond
+
+
+def test_timers_due_at_the_same_time_run_in_the_order_they_were_set():
+    # asyncio's heap orders timers of equal time by its shape; the virtual loop by when they were
+    # set, so a timer added or removed elsewhere does not reorder the others' shared instants
+    # (a run's outcome depends on that order: which of the world's step and a scan comes first)
+    ran: list[tuple[float, int]] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        handles = [loop.call_at(start + (0.010 if i % 3 else 0.005), ran.append, (i % 3 != 0, i))
+                   for i in range(40)]
+        for handle in handles[1::7]:
+            handle.cancel()
+        await asyncio.sleep(0.02)
+
+    lockstep.run(main())
+    kept = [(later, i) for later, i in [(i % 3 != 0, i) for i in range(40)] if i % 7 != 1]
+    assert ran == sorted(kept)  # the 5 ms ones first, each group in the order set
+
+
+def test_a_fake_vesc_stepped_from_outside_moves_as_on_its_own_timer():
+    """The lockstep sim steps the fake VESC's motor from the world's timer (one timer for both):
+    the same commands give the same motor, step by step, as the fake's own timer."""
+
+    async def drive(own_timer: bool) -> list[tuple[int, float, float]]:
+        name = f"mem://t/vesc-{own_timer}"
+        bus = Bus()
+        fake = FakeVesc(name).open()
+        served = asyncio.create_task(fake.serve(motor_timer=own_timer))
+        outside = PeriodicTimer(1.0 / fake.tick_s, lambda _due, _n: fake.step_motor(clock.monotonic_ns()))
+        if not own_timer:
+            outside.start()
+        driver = VescDriver(bus, VescParams(port=name))
+        task = asyncio.create_task(driver.run())
+        seen: list[tuple[int, float, float]] = []
+        try:
+            await until(lambda: driver.connected)
+            start = clock.monotonic_ns()
+            for speed in (1.0, 2.5, -0.5, 0.0):
+                driver.command(AckermannDrive(speed=speed, steering_angle=0.0))
+                for _ in range(40):
+                    await asyncio.sleep(0.0125)
+                    seen.append((clock.monotonic_ns() - start, fake.erpm, fake.status))
+        finally:
+            outside.cancel()
+            task.cancel()
+            served.cancel()
+            await asyncio.gather(task, served, return_exceptions=True)
+        return seen
+
+    own = lockstep.run(drive(True))
+    stepped = lockstep.run(drive(False))
+    assert max(abs(erpm) for _, erpm, _ in own) > 1000  # it moved
+    assert stepped == own

@@ -31,7 +31,6 @@ the fault injections (``inject_garbage``, ``inject_reply``, ``corrupt_next_crc``
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import random
 import threading
@@ -40,7 +39,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
-from racecar_hw.base.clock import monotonic_ns, seconds
+from racecar_hw.base.clock import NS_PER_S, monotonic_ns, seconds
 from racecar_hw.runtime.fakepty import port_for
 from racecar_hw.runtime.ticker import PeriodicTimer
 from vesc.codec import (
@@ -139,11 +138,16 @@ class FakeVesc:
         self._rng = random.Random(seed)
         self._uuid = bytes(self._rng.randrange(256) for _ in range(12))
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._tx: asyncio.Queue[tuple[bytes, bool]] | None = None
+        #: replies waiting to be written (by a loop callback, in the pass after the first of them
+        #: was queued: where a writer task woken by it would write them), with whether to split
+        self._pending: deque[tuple[bytes, bool]] = deque()
+        self._serving: object | None = None  # while serve() runs: its token (writes of another end)
+        self._writing = False  # a write of the pending replies is scheduled or waits mid-reply
         self._stalled = False
         self._split = False
         self._corrupt_next = False
         self._last_reset_ns = monotonic_ns()
+        self._motor_ns = self._last_reset_ns  # monotonic ns of the motor model's last step
         self._reading = False
         #: set while :meth:`serve` answers on the port; unplug and replug wait for it in tests
         self.ready = threading.Event()
@@ -163,38 +167,48 @@ class FakeVesc:
             self.port.open()
         return self
 
-    async def serve(self) -> None:
-        """Answer requests and run the motor model until cancelled; removes the pty on exit."""
+    async def serve(self, motor_timer: bool = True) -> None:
+        """Answer requests and run the motor model until cancelled; removes the pty on exit.
+
+        ``motor_timer``: the motor model steps every ``tick_s`` on a loop timer of its own. False:
+        the caller calls :meth:`step_motor` instead (the lockstep simulation, from the world's
+        step on the same grid: one timer for both).
+        """
         self._loop = asyncio.get_running_loop()
-        self._tx = asyncio.Queue()
+        self._serving = object()
         self.open()
         self._attach()
-        writer = asyncio.create_task(self._write_loop())
-        last = monotonic_ns()
-
-        def tick(_due: int, _periods: int) -> None:
-            nonlocal last
-            now = monotonic_ns()
-            self._step(seconds(now - last), now)
-            last = now
+        self._motor_ns = monotonic_ns()
 
         failed: asyncio.Future[None] = self._loop.create_future()
         # a loop timer on the tick's grid, not a sleeping task (cheaper, and in step with the world)
-        motor = PeriodicTimer(1.0 / self.tick_s, tick,
+        motor = PeriodicTimer(1.0 / self.tick_s, lambda _due, _periods: self.step_motor(monotonic_ns()),
                               on_error=lambda err: failed.done() or failed.set_exception(err))
-        motor.start()
+        if motor_timer:
+            motor.start()
         self.ready.set()
         try:
             await failed
         finally:
             self.ready.clear()
             motor.cancel()
-            writer.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await writer
+            self._serving = None  # what was not written yet never will be
+            self._pending.clear()
+            self._writing = False
             self._detach()
             self.port.close()
             self._loop = None
+
+    @property
+    def tick_ns(self) -> int:
+        """The motor model's step (ns): the period of its timer."""
+        return round(NS_PER_S / (1.0 / self.tick_s))  # as the timer's rate gives it
+
+    def step_motor(self, now_ns: int) -> None:
+        """Step the motor model from its last step to monotonic ``now_ns`` (what its timer does
+        every ``tick_s``; call it from the device loop)."""
+        self._step(seconds(now_ns - self._motor_ns), now_ns)
+        self._motor_ns = now_ns
 
     # --- what the world simulation and tests read ---------------------------------------------
 
@@ -477,22 +491,37 @@ class FakeVesc:
         self._enqueue(data, split)
 
     def _enqueue(self, data: bytes, split: bool) -> None:
-        if self._tx is not None:
-            self._tx.put_nowait((data, split))
-        else:
+        loop, token = self._loop, self._serving
+        if loop is None or token is None:
             self.port.write(data)
+            return
+        self._pending.append((data, split))
+        if not self._writing:
+            self._writing = True
+            loop.call_soon(self._write_pending, token)
 
-    async def _write_loop(self) -> None:
-        assert self._tx is not None
-        while True:
-            data, split = await self._tx.get()
+    def _write_pending(self, token: object) -> None:
+        """Write the pending replies in order; a split one in two halves 3 ms apart, the replies
+        after it after its second half. (What a writer task awaiting a queue would do, in the same
+        passes of the loop, without a task's wake-up per reply.)"""
+        if token is not self._serving:
+            return
+        pending, loop = self._pending, self._loop
+        assert loop is not None
+        while pending:
+            data, split = pending.popleft()
             if split and len(data) > 1:
                 cut = len(data) // 2
                 self.port.write(data[:cut])
-                await asyncio.sleep(0.003)
-                self.port.write(data[cut:])
-            else:
-                self.port.write(data)
+                loop.call_later(0.003, loop.call_soon, self._write_rest, token, data[cut:])
+                return
+            self.port.write(data)
+        self._writing = False
+
+    def _write_rest(self, token: object, rest: bytes) -> None:
+        if token is self._serving:
+            self.port.write(rest)
+            self._write_pending(token)
 
     def __repr__(self) -> str:
         return f"FakeVesc({self.path!r}, firmware={self.firmware})"

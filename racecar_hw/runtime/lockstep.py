@@ -6,7 +6,9 @@ ready, no reply pending on a device link, no job handed to a thread, no queue to
 still full. It then jumps to the next timer (``speed=None``: as fast as the machine allows) or
 waits for it on the real clock scaled by ``speed`` (``speed=1``: real time). Whatever a fake device
 sent is therefore consumed, in full, before the world moves on, and the same inputs give the same
-run on an idle or a loaded machine.
+run on an idle or a loaded machine. Timers due at the same instant (the world's step, a scan, the
+control tick share many) run in the order they were set, not in the order of asyncio's heap, so
+adding or removing a timer elsewhere does not change what the others compute.
 
 Threads still work: a thread that hands the loop work (``call_soon_threadsafe``, a network
 callback) wakes it (as fast as possible, a loop with work asks the OS for socket and thread events
@@ -26,6 +28,8 @@ done), :meth:`VirtualTimeLoop.rewind` (the clock back to the start between two r
 from __future__ import annotations
 
 import asyncio
+import heapq
+import itertools
 import math
 import selectors
 import time
@@ -72,6 +76,28 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         #: what ended the run from inside a callback or task (see :meth:`call_exception_handler`)
         self.fatal: BaseException | None = None
         self.set_task_factory(_watched_task)
+        self._timer_seq = itertools.count()
+
+    # --- timers: due at the same time, they run in the order they were set -------------------
+
+    def call_at(self, when: float, callback: Callable[..., object], *args: Any,
+                context: Any = None) -> asyncio.TimerHandle:
+        """As asyncio's, but timers due at the same time run in the order they were set (asyncio's
+        heap leaves their order to its shape, so a timer added or removed anywhere in the process
+        would reorder the others' at every shared instant, and with them what a run computes)."""
+        if when is None:
+            raise TypeError("when cannot be None")
+        self._check_closed()  # type: ignore[attr-defined]
+        if self._debug:  # type: ignore[attr-defined]
+            self._check_thread()  # type: ignore[attr-defined]
+            self._check_callback(callback, "call_at")  # type: ignore[attr-defined]
+        timer = _Timer(when, callback, args, self, context)
+        timer._key = (when, next(self._timer_seq))
+        if timer._source_traceback:  # type: ignore[attr-defined]  # (debug mode) this frame
+            del timer._source_traceback[-1]  # type: ignore[attr-defined]
+        heapq.heappush(self._scheduled, timer)  # type: ignore[attr-defined]
+        timer._scheduled = True
+        return timer
 
     # --- what ends a run from inside ----------------------------------------------------------
 
@@ -240,6 +266,19 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         else:
             self._now_ns = target
         return events
+
+
+class _Timer(asyncio.TimerHandle):
+    """A loop timer ordered by its time, then by when it was set: ``_key`` is (when, the loop's
+    count of timers set), compared as one tuple."""
+
+    __slots__ = ("_key",)
+
+    def __lt__(self, other: object) -> bool:
+        try:
+            return self._key < other._key  # type: ignore[attr-defined,no-any-return]
+        except AttributeError:  # (not one of the loop's: asyncio's order)
+            return super().__lt__(other)  # type: ignore[no-any-return]
 
 
 class _VirtualSelector:

@@ -32,7 +32,7 @@ from racecar_hw.base.topics import CLOCK_TOPIC
 from racecar_hw.config import Config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.topics import CLOCK_ROW
-from racecar_hw.runtime.ticker import Ticker
+from racecar_hw.sim.pacer import Pacer
 
 
 def clock_message(now_ns: int) -> Clock:
@@ -41,11 +41,12 @@ def clock_message(now_ns: int) -> Clock:
 
 
 async def publish_clock(bus: Bus, rate_hz: float) -> None:
-    """Publish ``/clock`` at ``rate_hz`` (simulation time) until cancelled, the first at once."""
-    ticker = Ticker(rate_hz)  # on the process's clock: the virtual one in lockstep
-    while True:
-        await ticker.tick()
-        bus.publish(CLOCK_TOPIC, clock_message(wall_ns()))
+    """Publish ``/clock`` at ``rate_hz`` (simulation time) until cancelled, the first at once.
+
+    On the process's clock (the virtual one in lockstep), from a loop timer on the rate's grid
+    (:class:`~racecar_hw.sim.pacer.Pacer`) rather than a sleeping task: one event-loop callback per
+    message instead of a timer and a task's wake-up."""
+    await Pacer(rate_hz).run(lambda _now_ns: bus.publish(CLOCK_TOPIC, clock_message(wall_ns())))
 
 
 def carried(config: Config) -> bool:

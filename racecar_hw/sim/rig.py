@@ -25,6 +25,7 @@ from racecar_hw.runtime.devicethread import DeviceThread
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.live import map_to_odom
 from racecar_hw.sim.occupancy import OccupancyMap
+from racecar_hw.sim.pacer import Pacer
 from racecar_hw.sim.scenario import CarSpec, FaultSpec, Scenario
 from racecar_hw.sim.world import World
 from vesc.codec import servo_on_wire
@@ -85,8 +86,12 @@ class FakeRig:
         config.vesc.port = vesc.path
         if self.lockstep:  # the fakes first in the loop's queue: plugged in before a driver looks
             vesc.open()
+            # the motor model stepped by the world's timer when both step on the same grid: one
+            # loop timer instead of two, the motor first at each instant as when each had its own
+            shared = vesc.tick_ns == Pacer(sc.world.rate_hz).period_ns
             self._tasks = [asyncio.ensure_future(c) for c in
-                           (vesc.serve(), self.lidar.serve(), world.run(sc.world.rate_hz))]
+                           (vesc.serve(motor_timer=not shared), self.lidar.serve(),
+                            world.run(sc.world.rate_hz, before_step=vesc.step_motor if shared else None))]
             if use_tcp:  # the Ethernet link, in memory
                 config.lidar.tcp, config.lidar.port = lidar_path, None
             else:

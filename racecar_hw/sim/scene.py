@@ -114,10 +114,14 @@ class Scene:
         """The walls' ranges from the ray caster; the last cast again (a copy) when the laser has
         not moved (a car at rest scans the same walls: only the noise and the obstacles change)."""
         last = self._last_cast
-        if last is not None and last[0] == (x, y, yaw, max_range) and np.array_equal(last[1], angles):
+        if (last is not None and last[0] == (x, y, yaw, max_range)
+                and (last[1] is angles or np.array_equal(last[1], angles))):
             return last[2].copy()
         ranges = self._raycaster.cast(x, y, yaw, angles, max_range)
-        self._last_cast = ((x, y, yaw, max_range), angles.copy(), ranges.copy())
+        # kept as is when nothing can change it (read-only and its own data: the fake lidar's
+        # angles of a sweep, the same array every scan), so the next scan's test is `is`
+        kept = angles if not angles.flags.writeable and angles.base is None else angles.copy()
+        self._last_cast = ((x, y, yaw, max_range), kept, ranges.copy())
         return ranges
 
     def ranges(self, laser_pose: tuple[float, float, float], angles: np.ndarray, max_range: float,

@@ -259,13 +259,20 @@ class World:
             if self.on_collision is not None:
                 self.on_collision()
 
-    async def run(self, rate_hz: float = 200.0) -> None:
+    async def run(self, rate_hz: float = 200.0, before_step: Callable[[int], None] | None = None) -> None:
         """Step on the monotonic clock at ``rate_hz`` with absolute deadlines, forever (cancel to stop;
-        see :class:`~racecar_hw.sim.pacer.Pacer`). If nothing has been stepped yet, sim time starts now."""
+        see :class:`~racecar_hw.sim.pacer.Pacer`). If nothing has been stepped yet, sim time starts now.
+        ``before_step(now_ns)``: called first at each step (a device model on the same grid, such as
+        the fake VESC's motor, stepped by the world's timer instead of a timer of its own)."""
         with self._lock:
             if not self._history.stepped:
                 self._history.restart(monotonic_ns())
-        await Pacer(rate_hz).run(self._step_to)
+        step_to = self._step_to
+        if before_step is not None:
+            def step_to(now_ns: int) -> None:
+                before_step(now_ns)
+                self._step_to(now_ns)
+        await Pacer(rate_hz).run(step_to)
 
     def _step_to(self, now_ns: int) -> None:
         with self._lock:
@@ -319,8 +326,10 @@ class SimRangeSource:
         if self.noise_std_m > 0:
             with self._rng_lock:
                 noise = self._rng.normal(0.0, self.noise_std_m, size=ranges.shape)
-            finite = np.isfinite(ranges)
-            ranges[finite] = np.maximum(ranges[finite] + noise[finite], 0.0)
+            # in place over every beam: a beam with no return (inf) stays inf, a finite one gets
+            # its noise, clipped at 0 (the same numbers as masking the finite beams, fewer copies)
+            np.add(ranges, noise, out=ranges)
+            np.maximum(ranges, 0.0, out=ranges)
             ranges[ranges > self.max_range] = np.inf
         return ranges
 
