@@ -77,8 +77,7 @@ class World:
     # --- state ---------------------------------------------------------------------------------
 
     def _reset_locked(self, pose: Pose2D, time_ns: int) -> None:
-        obstacles = self.scene.shapes_at(0.0)
-        if self._collider.collides(pose, obstacles):
+        if self._collider.collides(pose, obstacles := self.scene.shapes_at(0.0)):
             raise ConfigError("start_pose", f"the car's footprint at {tuple(pose)} overlaps a wall or "
                                             "an obstacle")
         self._generation += 1
@@ -198,8 +197,7 @@ class World:
 
     def add_obstacle_ahead(self, distance: float, radius: float = 0.2, lateral: float = 0.0) -> int:
         """A disc whose near edge is ``distance`` m ahead of the front bumper, ``lateral`` m to the left."""
-        p = self.params
-        front = p.length - p.rear_overhang
+        front = self.params.length - self.params.rear_overhang
         x, y, _ = compose(self.pose, (front + distance + radius, lateral, 0.0))
         return self.add_obstacle(x, y, radius=radius)
 
@@ -229,7 +227,7 @@ class World:
 
     def step(self, dt: float) -> None:
         """Advance the world by ``dt`` seconds with the current motor ERPM and servo position."""
-        self._step_ns(max(int(round(dt * NS_PER_S)), 0))
+        self._step_ns(max(round(dt * NS_PER_S), 0))
 
     def _step_ns(self, dt_ns: int) -> None:
         p = self.params
@@ -261,18 +259,13 @@ class World:
 
     async def run(self, rate_hz: float = 200.0, before_step: Callable[[int], None] | None = None) -> None:
         """Step on the monotonic clock at ``rate_hz`` with absolute deadlines, forever (cancel to stop;
-        see :class:`~racecar_hw.sim.pacer.Pacer`). If nothing has been stepped yet, sim time starts now.
-        ``before_step(now_ns)``: called first at each step (a device model on the same grid, such as
-        the fake VESC's motor, stepped by the world's timer instead of a timer of its own)."""
+        :class:`~racecar_hw.sim.pacer.Pacer`); sim time starts now if nothing was stepped yet.
+        ``before_step(now_ns)`` runs first at each step: a device model on the same grid (the fake
+        VESC's motor) stepped by the world's timer instead of a timer of its own."""
         with self._lock:
             if not self._history.stepped:
                 self._history.restart(monotonic_ns())
-        step_to = self._step_to
-        if before_step is not None:
-            def step_to(now_ns: int) -> None:
-                before_step(now_ns)
-                self._step_to(now_ns)
-        await Pacer(rate_hz).run(step_to)
+        await Pacer(rate_hz).run(self._step_to if before_step is None else _chain(before_step, self._step_to))
 
     def _step_to(self, now_ns: int) -> None:
         with self._lock:
@@ -305,6 +298,16 @@ class World:
         now); ``inf`` beyond ``max_range``."""
         laser = compose(self.pose, self.laser_pose_in_base) if laser_pose is None else laser_pose
         return self.scene.ranges(laser, angles, max_range, self.sim_time if t is None else t)
+
+
+def _chain(first: Callable[[int], None], then: Callable[[int], None]) -> Callable[[int], None]:
+    """One step callback: ``first(now_ns)``, then ``then(now_ns)``."""
+
+    def step(now_ns: int) -> None:
+        first(now_ns)
+        then(now_ns)
+
+    return step
 
 
 class SimRangeSource:
