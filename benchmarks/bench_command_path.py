@@ -372,37 +372,31 @@ def run(commands: int = 400, rounds: int = 1, before: str | None = None,
     rows = []
     for name, runs in results.items():
         label = f" ({name})" if before else ""
-        rows += [
-            {"name": f"loop CPU per command, drain + take_input, p50{label}",
-             "value": float(np.median([x["drain_cpu_us_p50"] for x in runs])), "unit": "us", "target": None},
-            {"name": f"loop CPU per command, mean{label}",
-             "value": float(np.median([x["drain_cpu_us_mean"] for x in runs])), "unit": "us", "target": None},
-            {"name": f"input thread CPU per offer_cdr, p50{label}",
-             "value": float(np.median([x["offer_cpu_us_p50"] for x in runs])), "unit": "us", "target": None},
-            {"name": f"loop share difference per command (commanded - none){label}",
-             "value": float(np.median([x["loop_added_us"] for x in runs])), "unit": "us", "target": None},
-            {"name": f"event loop CPU share, no command{label}",
-             "value": float(np.median([x["loop_idle_cpu_pct"] for x in runs])), "unit": "%", "target": None},
-            {"name": f"event loop CPU share while commanded{label}",
-             "value": float(np.median([x["loop_cpu_pct"] for x in runs])), "unit": "%", "target": None},
-        ]
+        shown = list(_ROWS)
         if not math.isnan(runs[0]["loop_listener_cpu_pct"]):  # BENCH_LISTENER
-            rows += [
-                {"name": f"event loop CPU share, a listener (BENCH_LISTENER){label}",
-                 "value": float(np.median([x["loop_listener_cpu_pct"] for x in runs])), "unit": "%",
-                 "target": None},
-                {"name": f"daemon process CPU share, no listener{label}",
-                 "value": float(np.median([x["process_idle_cpu_pct"] for x in runs])), "unit": "%",
-                 "target": None},
-                {"name": f"daemon process CPU share, a listener{label}",
-                 "value": float(np.median([x["process_listener_cpu_pct"] for x in runs])), "unit": "%",
-                 "target": None},
-            ]
+            shown += _LISTENER_ROWS
         if profile:
-            rows.append({"name": f"Python calls per command{label}",
-                         "value": float(np.median([x["calls_per_command"] for x in runs])),
-                         "unit": "", "target": None})
+            shown.append(("Python calls per command", "calls_per_command", ""))
+        rows += [{"name": title + label, "value": float(np.median([x[key] for x in runs])),
+                  "unit": unit, "target": None} for title, key, unit in shown]
     return rows
+
+
+#: The rows of the table: (title, key of a round's result, unit), each the median over the rounds.
+_ROWS = [
+    ("loop CPU per command, drain + take_input, p50", "drain_cpu_us_p50", "us"),
+    ("loop CPU per command, mean", "drain_cpu_us_mean", "us"),
+    ("input thread CPU per offer_cdr, p50", "offer_cpu_us_p50", "us"),
+    ("loop share difference per command (commanded - none)", "loop_added_us", "us"),
+    ("event loop CPU share, no command", "loop_idle_cpu_pct", "%"),
+    ("event loop CPU share while commanded", "loop_cpu_pct", "%"),
+]
+#: With BENCH_LISTENER: the shares with and without a listener of the scans and odometry.
+_LISTENER_ROWS = [
+    ("event loop CPU share, a listener (BENCH_LISTENER)", "loop_listener_cpu_pct", "%"),
+    ("daemon process CPU share, no listener", "process_idle_cpu_pct", "%"),
+    ("daemon process CPU share, a listener", "process_listener_cpu_pct", "%"),
+]
 
 
 if __name__ == "__main__":
