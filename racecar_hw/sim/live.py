@@ -30,6 +30,7 @@ from racecar_hw.control.path import EstopRequest
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.topics import DEFAULT, LATCHED, Direction, Topic
 from racecar_hw.sim.occupancy import OccupancyMap
+from racecar_hw.sim.pacer import Pacer
 from racecar_hw.sim.world import World
 from vesc.codec import SetCurrent, SetCurrentBrake, SetDuty, SetRpm
 from vesc.fake import CommandRecord, FakeVesc
@@ -69,11 +70,13 @@ def map_to_odom(start: tuple[float, float, float]) -> StaticTransformParams:
 async def publish_truth(bus: Bus, world: World, occ_map: OccupancyMap) -> None:
     """Publish the map once, then the true pose at :data:`TRUE_POSE_RATE_HZ` until cancelled."""
     bus.publish(MAP_TOPIC, map_message(occ_map, wall_ns()))
-    while True:
+
+    def publish(_now_ns: int) -> None:
         pose = world.pose
         true = Pose(Point(pose.x, pose.y, 0.0), Quaternion.from_yaw(pose.yaw))
         bus.publish(TRUE_POSE_TOPIC, PoseStamped(stamp_now(MAP_FRAME, wall_ns()), true))
-        await asyncio.sleep(1.0 / TRUE_POSE_RATE_HZ)
+
+    await Pacer(TRUE_POSE_RATE_HZ).run(publish)
 
 
 async def log_estop_timing(daemon: Daemon, vesc: FakeVesc, timeout_s: float = 2.0) -> None:

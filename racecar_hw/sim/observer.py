@@ -5,19 +5,20 @@ Positions are in the map frame (m); times are sim time (s).
 
 from __future__ import annotations
 
-import asyncio
-
 from racecar_hw.daemon import Daemon
+from racecar_hw.sim.pacer import Pacer
 from racecar_hw.sim.plot_rows import ControlSample, Mark
 from racecar_hw.sim.world import World
 
 #: How often the control path is sampled for the plot (s of sim time), and at most how many samples.
 SAMPLE_PERIOD_S = 0.05
 MAX_SAMPLES = 200_000
+#: How often the safety controller is looked at for a new intervention (s).
+WATCH_PERIOD_S = 0.02
 
 
 class RunObserver:
-    """Polls the daemon's safety controller and control path every 20 ms (:meth:`watch`)."""
+    """Looks at the daemon's safety controller and control path every 20 ms (:meth:`watch`)."""
 
     def __init__(self) -> None:
         #: where each intervention started (x, y in the map)
@@ -28,11 +29,13 @@ class RunObserver:
         self.control_samples: list[ControlSample] = []
 
     async def watch(self, daemon: Daemon, world: World) -> None:
-        """Note where and when interventions start, and sample the control path for the plot."""
+        """Note where and when interventions start, and sample the control path for the plot
+        (a loop timer every 20 ms, until cancelled)."""
         seen = 0
         next_sample = 0.0
-        while True:
-            await asyncio.sleep(0.02)
+
+        def look(_now_ns: int) -> None:
+            nonlocal seen, next_sample
             n = daemon.safety.interventions
             t = world.sim_time
             if n > seen:
@@ -43,6 +46,8 @@ class RunObserver:
             if t >= next_sample and len(self.control_samples) < MAX_SAMPLES:
                 next_sample = t + SAMPLE_PERIOD_S
                 self.control_samples.append(self._control_sample(daemon, t))
+
+        await Pacer(1.0 / WATCH_PERIOD_S).run(look)
 
     @staticmethod
     def _control_sample(daemon: Daemon, t: float) -> ControlSample:

@@ -38,8 +38,10 @@ class ScenarioClock:
     async def wait_until(self, t_s: float) -> None:
         """Wait until scenario time ``t_s`` (after the car is ready)."""
         await self.wait_ready()
+        # a sleep for what is left, then a look: the world's time moves in steps, so the last
+        # wait is at most a step (1 ms sleeps), and a long wait wakes the loop once, not every 20 ms
         while (left := t_s - self.scenario_time()) > 0:
-            await asyncio.sleep(min(0.02, max(0.001, left)))
+            await asyncio.sleep(max(0.001, left))
 
     async def wait_ready(self, timeout_s: float = 15.0) -> None:
         """Wait until the car is ready to drive: the VESC answered and the first scan is in.
