@@ -35,7 +35,7 @@ from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.ports import Listener, free_port, port_taken
 from racecar_hw.net.rosout import RosoutParams
 from racecar_hw.net.topics import CMD_VEL_INPUT, CMD_VEL_PRIORITY, Topic, named, topic_table
-from racecar_hw.net.web import WebParams
+from racecar_hw.net.web_params import WebParams
 from racecar_hw.net.zenoh_config import ZenohParams, parse_endpoint
 from racecar_hw.sources.figure8 import Figure8Params
 from racecar_hw.sources.scan_summary import ScanSummaryParams

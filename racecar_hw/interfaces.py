@@ -33,7 +33,6 @@ from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.ports import port_taken, taken_message
 from racecar_hw.net.rosout import RosoutHandler, logger_name
 from racecar_hw.net.topics import Direction, Topic
-from racecar_hw.net.web import WebServer
 from racecar_hw.net.zenoh_bridge import ZenohBridge
 from racecar_hw.runtime.extras import missing_extra
 from racecar_hw.runtime.refusals import Refusals
@@ -43,6 +42,7 @@ from vesc.driver import TOPIC_ODOM, TOPIC_TF
 
 if TYPE_CHECKING:  # imported where foxglove.enabled: the SDK comes with the foxglove extra
     from racecar_hw.net.foxglove_server import FoxgloveServer
+    from racecar_hw.net.web import WebServer  # where web.enabled: aiohttp is a fifth of a second
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +74,11 @@ class Interfaces:
                                            parameters=to_dict(config), teleop_input=teleop,
                                            wheelbase_m=config.vesc.wheelbase_m,
                                            max_steering_rad=config.vesc.steering_max_rad, refusals=refusals)
-        self.web = (WebServer(bus, config.web, car, scan_topic=config.safety.scan_topic, refusals=refusals)
-                    if config.web.enabled else None)
+        self.web: WebServer | None = None
+        if config.web.enabled:
+            from racecar_hw.net.web import WebServer  # noqa: PLC0415 - aiohttp, only for the page
+
+            self.web = WebServer(bus, config.web, car, scan_topic=config.safety.scan_topic, refusals=refusals)
         self.cmd_vel: CmdVelConverter | None = None
         self.inbox: Inbox | None = None
         self.zenoh: ZenohBridge | None = None

@@ -33,7 +33,6 @@ import json
 import logging
 import math
 import sys
-from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
@@ -45,42 +44,14 @@ from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns, wall_ns
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import LaserScan
-from racecar_hw.base.params import param
 from racecar_hw.net.auth import bearer, local_host_header, new_token, same_origin, token_ok
 from racecar_hw.net.band import band_polygon, body_corners, swept_band
 from racecar_hw.net.control import CarControl, LiveState
-from racecar_hw.net.gate import ConnectionGate, ConnectionLimits
+from racecar_hw.net.gate import ConnectionGate
+from racecar_hw.net.web_params import WebParams
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class WebParams:
-    """The status page with the e-stop."""
-
-    enabled: bool = param(True, "serve the status page with the e-stop")
-    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs a token")
-    port: int = param(8080, "TCP port (0: any free port, logged at start)", min=0, max=65535)
-    token: str = param("", "the page's token (open http://car:8080/?token=...); empty on a "
-                           "non-loopback host: one is generated and printed at start")
-    push_rate_hz: float = param(10.0, "state updates per second to each open page", unit="Hz",
-                                min=1.0, max=30.0)
-    scan_points: int = param(360, "scan points per update at most (every n-th beam)", min=10, max=2000)
-    max_range_m: float = param(8.0, "scan points farther than this are left out", unit="m",
-                               min=1.0, max=60.0)
-    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
-                                     "not finished its request is closed, else the new one",
-                                 min=1, max=1000)
-    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
-                                  unit="s", min=0.5, max=60.0)
-    idle_timeout_s: float = param(60.0, "a connection that sends nothing for this long is closed (an open "
-                                        "page answers the server's ping every 5 s)",
-                                  unit="s", min=10.0, max=3600.0)
-
-    def limits(self) -> ConnectionLimits:
-        """The connection cap and timeouts."""
-        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
 
 
 class WebServer:
@@ -105,6 +76,8 @@ class WebServer:
         self.gate = ConnectionGate("web", params.limits(), self.refusals)
         self._clients: dict[web.WebSocketResponse, asyncio.Task[Any] | None] = {}
         self._idle = asyncio.Event()
+        #: set while a page is open: with none, the push loop sleeps until one opens
+        self._watched = asyncio.Event()
         self._next_push_ns = 0
         self._push_task: asyncio.Task[None] | None = None
         self._page = resources.files("racecar_hw.net").joinpath("static/status.html").read_text()
@@ -221,6 +194,7 @@ class WebServer:
             "front": shape.front_m, "rear": shape.rear_m, "half_width": shape.half_width_m,
             "body": _rounded(body_corners(shape))}}))
         self._clients[ws] = None
+        self._watched.set()
         self._next_push_ns = 0
         try:
             async for msg in ws:  # the page sends nothing; this waits for the close
@@ -228,6 +202,8 @@ class WebServer:
                     break
         finally:
             self._clients.pop(ws, None)
+            if not self._clients:
+                self._watched.clear()
         return ws
 
     # --- pushing --------------------------------------------------------------------------------
@@ -235,6 +211,7 @@ class WebServer:
     async def _push_loop(self) -> None:
         period = 1.0 / self.params.push_rate_hz
         while True:
+            await self._watched.wait()  # nobody watching: no wake-ups
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                 # woken by control_idle() after a scan; the timeout covers a car without a lidar
                 await asyncio.wait_for(self._idle.wait(), 1.5 * period)
