@@ -212,14 +212,31 @@ def test_a_bag_beyond_the_cars_steering_limit_is_driven_clamped_with_one_warning
     assert report["final_pose"]["yaw"] > 0.3  # and turned left, at the clamped angle
 
 
+def test_at_max_speed_the_command_loads_no_network_library(tmp_path):
+    """``racecar-hw sim --speed max`` runs off the network (docs/sim.md, "The network at --speed
+    max"), so it never loads aiohttp, cyclonedds or Zenoh: the second of start-up they cost."""
+    script = ("import sys\nfrom racecar_hw.cli import main\n"
+              "code = main(['sim', '--scenario', 'wall', '--duration', '0.5', '--no-status', "
+              f"'--speed', 'max', '--out', {str(tmp_path)!r}])\n"
+              "print(code, sorted(m for m in ('aiohttp', 'cyclonedds', 'zenoh') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == "0 []", done.stdout
+    assert "--speed max runs off the network" in done.stderr
+    assert json.loads((tmp_path / "wall.json").read_text())["live"] == {}
+
+
 def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_path, capsys):
     """``sim --record`` prints the bag's path with the report's (named after the scenario), the
     plot's and the trajectory's; ``bag info`` takes the bag's .mcap file as well as its folder."""
     out, record = tmp_path / "out", tmp_path / "bags"
+    # the live view and the page turned back on at --speed max, which runs off the network
     code = main(["sim", "--scenario", "wall", "--duration", "1", "--no-status", "--speed", "max",
-                 *set_args(*QUIET_NET), "--out", str(out), "--record", str(record)])
+                 *set_args(*QUIET_NET, "foxglove.enabled=true", "web.enabled=true"), "--out", str(out),
+                 "--record", str(record)])
     stdout, stderr = capsys.readouterr()
     assert code == 0, stderr
+    assert "--speed max runs off the network" in stderr
     # the summary says where the live view and the page were (free ports here)
     assert re.search(r"live view \(Foxglove\) ws://127\.0\.0\.1:\d+ and status page "
                      r"http://127\.0\.0\.1:\d+/ \(while it ran\)", stdout), stdout

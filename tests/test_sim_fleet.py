@@ -419,8 +419,8 @@ def test_the_command_line_refuses_to_drive_one_of_several_cars(capsys, option):
 def test_a_bad_config_of_one_car_is_refused_in_one_line_naming_the_car(capsys, tmp_path):
     code = main(["sim", "--scenario", "two-cars", "--speed", "max", "--no-status", "--out", str(tmp_path),
                  "--scenario-set", 'cars.1.config={zenoh: {namespace: "bad ns"}}',
-                 *set_args('zenoh.listen=["tcp/127.0.0.1:0"]', "dds.enabled=false", "foxglove.port=0",
-                           "web.port=0")])
+                 *set_args("zenoh.enabled=true", 'zenoh.listen=["tcp/127.0.0.1:0"]', "dds.enabled=false",
+                           "foxglove.port=0", "web.port=0")])
     err = capsys.readouterr().err
     assert code == 1, err
     assert "racecar-hw sim: car follower: zenoh.namespace: '/bad ns' is not a valid ROS 2 topic name" in err

@@ -17,7 +17,7 @@ from pathlib import Path
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
 from racecar_hw.commands.daemon import add_config_options, run_daemon
-from racecar_hw.commands.sim import _speed
+from racecar_hw.commands.sim import _speed, offline_at_max_speed
 from racecar_hw.config import Config, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.runtime.extras import require_extra
@@ -189,7 +189,8 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
                                    then=lambda: loopback.request_stop("calibration ended")))
 
     lockstep = args.speed is not None
-    loopback = Loopback(scenario, config_path=args.config, overrides=args.overrides, duration_s=600.0,
+    overrides = offline_at_max_speed(args.speed, args.overrides, "racecar-hw calibrate")
+    loopback = Loopback(scenario, config_path=args.config, overrides=overrides, duration_s=600.0,
                         setup=setup, lockstep=lockstep)
 
     async def main() -> None:

@@ -7,6 +7,7 @@ import asyncio
 import json
 import math
 import signal
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -85,6 +86,21 @@ def _speed(text: str) -> float:
     return _positive(text, "max or a positive number")
 
 
+def offline_at_max_speed(speed: float | None, overrides: list[str], command: str) -> list[str]:
+    """``--set``'s settings, after :data:`~racecar_hw.sim.loopback.OFFLINE_OVERRIDES` at ``--speed
+    max`` (said on standard error): a run as fast as the machine allows is one nothing outside can
+    keep pace with or take part in without changing it, so it serves no network, and it starts
+    about a second sooner (docs/sim.md, "The network at --speed max"). ``--set`` turns an
+    interface back on."""
+    if speed is None or not math.isinf(speed):
+        return overrides
+    from racecar_hw.sim.loopback import OFFLINE_OVERRIDES  # noqa: PLC0415 - needs the sim extra
+
+    print(f"{command}: --speed max runs off the network (no Zenoh, DDS, Foxglove, status page); "
+          "--set zenoh.enabled=true (dds, foxglove, web) turns one on", file=sys.stderr, flush=True)
+    return [*OFFLINE_OVERRIDES, *overrides]
+
+
 def build_scenario(args: argparse.Namespace) -> Scenario:
     """The scenario to run: ``--scenario`` with ``--follow``'s driver, then ``--scenario-set``."""
     from racecar_hw.sim.scenario import load_scenario  # noqa: PLC0415 - with the command
@@ -124,6 +140,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return 0
     require_extra("sim", "the simulator (its maps and plot)")
     scenario = build_scenario(args)
+    args.overrides = offline_at_max_speed(args.speed, args.overrides, "racecar-hw sim")
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
     if scenario.cars:
         return cmd_fleet(args, scenario, out)

@@ -36,7 +36,7 @@ from racecar_hw.daemon import Daemon
 from racecar_hw.runtime import lockstep
 from racecar_hw.runtime.lockstep import VirtualTimeLoop
 from racecar_hw.sim.episode import READY_TIMEOUT_S, Episode
-from racecar_hw.sim.loopback import Loopback
+from racecar_hw.sim.loopback import OFFLINE_OVERRIDES, Loopback
 from racecar_hw.sim.report import SimResult
 from racecar_hw.sim.scenario import Scenario, load_scenario
 from racecar_hw.sim.world import World
@@ -45,8 +45,7 @@ from racecar_hw.sim.world import World
 DEFAULT_SCENARIO = "track"
 #: Config overrides an env applies before the caller's: no network interfaces (speed, and many
 #: envs on one machine without port clashes) and no /rosout records.
-ENV_OVERRIDES = ("zenoh.enabled=false", "dds.enabled=false", "foxglove.enabled=false",
-                 "web.enabled=false", "rosout.enabled=false")
+ENV_OVERRIDES = OFFLINE_OVERRIDES
 
 
 class RaceEnv:

@@ -52,6 +52,13 @@ log = logging.getLogger(__name__)
 #: The origin of a scenario's e-stop and release actions: the daemon itself.
 SCENARIO = Origin(DAEMON, "scenario")
 
+#: Settings that keep a simulated car off the network and the live views (Zenoh, DDS, Foxglove,
+#: the status page, ``/rosout``), for runs nothing outside can keep pace with or take part in
+#: without changing them: ``racecar-hw sim --speed max`` and the step API (docs/sim.md, "The
+#: network at --speed max"). Settings given after them turn an interface back on.
+OFFLINE_OVERRIDES = ("zenoh.enabled=false", "dds.enabled=false", "foxglove.enabled=false",
+                     "web.enabled=false", "rosout.enabled=false")
+
 
 class Loopback:
     """One scenario on fake hardware: build with a scenario and config, then ``await run()``."""
@@ -272,5 +279,5 @@ class Loopback:
             self.daemon.arming.arm("scenario")
 
 
-__all__ = ["LIDAR_MAX_RANGE_M", "MAX_SAMPLES", "REPLAY_LATE_MAX_S", "REPLAY_SETTLE_S", "SAMPLE_PERIOD_S",
-           "SCENARIO", "Loopback", "SimResult", "write_report"]
+__all__ = ["LIDAR_MAX_RANGE_M", "MAX_SAMPLES", "OFFLINE_OVERRIDES", "REPLAY_LATE_MAX_S", "REPLAY_SETTLE_S",
+           "SAMPLE_PERIOD_S", "SCENARIO", "Loopback", "SimResult", "write_report"]
