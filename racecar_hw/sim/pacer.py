@@ -4,7 +4,8 @@ Deadlines are absolute (whole multiples of the period on the monotonic clock:
 :class:`~racecar_hw.runtime.ticker.PeriodicTimer`), so the pace does not drift; a deadline already
 passed runs at once, and deadlines missed in a stall are skipped instead of firing in a burst (the
 step that follows covers the whole gap: the callee is given the monotonic time, in ns, and steps
-to it).
+to it). The world's step, ``/clock`` and the run's watchers (the observer, the true pose) are
+paced this way: loop timers, not tasks that sleep.
 """
 
 from __future__ import annotations
