@@ -37,8 +37,7 @@ from racecar_hw.sim.scenario import load_scenario, scenario_names
 
 QUIET = OFFLINE_OVERRIDES
 #: ``--network``: the command with every interface turned back on, as it ran before it went offline
-NETWORK = ("zenoh.enabled=true", "dds.enabled=true", "foxglove.enabled=true", "web.enabled=true",
-           "rosout.enabled=true")
+NETWORK = tuple(key.replace("=false", "=true") for key in OFFLINE_OVERRIDES)
 #: The issue's bar: a lockstep run at max speed takes at most a tenth of its simulated time.
 TARGET_SPEEDUP = 10.0
 
