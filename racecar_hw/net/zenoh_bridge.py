@@ -252,7 +252,6 @@ class ZenohBridge:
             session.close()
         except Exception as err:  # noqa: BLE001 - shutting down: report and go on
             log.warning("zenoh session close failed: %r", err)
-        self.inputs.join(5.0)  # the session's close ended their wait for a sample
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
                  "%d received, %d without attachment, %d malformed, %d with an old rmw_zenoh's attachment, "

@@ -1,31 +1,31 @@
 """The Zenoh bridge's incoming side: subscribers of the input rows, checks, hand-over to the inbox.
 
-Zenoh calls back in its own threads; there the sample's rmw_zenoh attachment is checked and the
-payload given to the network :class:`~racecar_hw.net.inbox.Inbox` (shared with every network
-surface), which decodes it, checks every number is finite and keeps the latest message per input
-for the event loop. A command row's subscriber keeps only the newest sample (a Zenoh ring channel,
-in Rust, without the GIL) until the row's own thread takes it, at most once per control tick;
-e-stop rows take every message, in order, never coalesced. A second subscriber per input topic
-matches the topic whatever its type and counts the samples of another type (or type hash) in
-``wrong_type`` and in the daemon's :class:`~racecar_hw.runtime.refusals.Refusals`.
-See :mod:`racecar_hw.net.zenoh_bridge`.
+Each input row has one subscriber, on its topic whatever the type (``<domain>/<topic>/*/*``),
+whose callback runs in Zenoh's receiving thread (not ``indirect``: no Python thread of its own to
+wake per sample). A sample on another key than the row's (another type or type hash) is counted in
+``wrong_type`` and in the daemon's :class:`~racecar_hw.runtime.refusals.Refusals`. On the row's key
+its rmw_zenoh attachment is checked and the payload given to the network
+:class:`~racecar_hw.net.inbox.Inbox` (shared with every network surface), which decodes it,
+checks every number is finite and keeps the latest message per input for the event loop. A command
+row's samples pass a :class:`~racecar_hw.net.command_gate.CommandGate` first: at most one offer
+per control period, the newest, at once when none was offered within the period (a client
+answering every scan costs no wake-up of a thread of ours). E-stop rows take every message, in
+order, never coalesced. See :mod:`racecar_hw.net.zenoh_bridge`.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
 from racecar_hw.net import rmw
+from racecar_hw.net.command_gate import CommandGate
 from racecar_hw.net.inbox import NON_FINITE, Inbox
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.zenoh_node import ZenohNode
 from racecar_hw.runtime.refusals import Refusals
-from racecar_hw.runtime.threadname import name_this_thread
 
 log = logging.getLogger(__name__)
 
@@ -53,49 +53,47 @@ class ZenohInputs:
         self.lock = lock
         self.refusals = refusals
         self.ros_name = ros_name
-        self._pumps: list[threading.Thread] = []
-        self._stopping = threading.Event()
+        #: the command rows' rate gate (its thread offers the samples that came within a period)
+        self.gate = CommandGate("zenoh-in", inbox.period_ns / 1e9)
 
     def declare(self, row: Topic, node: ZenohNode, zenoh: Any) -> None:
-        """Subscribe to ``row`` (and to its topic whatever the type) on ``node``'s session."""
+        """Subscribe to ``row``'s topic (whatever the type) on ``node``'s session, and announce it."""
         topic = self.ros_name(row)
         key = node.names.key(topic, row.msgtype.ROS_TYPE)
+        guard = self._type_guard(row, key)
         if row.qos.latched:
             history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=row.qos.depth)
             node.track(zenoh.ext.declare_advanced_subscriber(node.session, key, self.receiver(row),
                                                              history=history, subscriber_detection=True))
-            node.announce(node.names.endpoint(rmw.SUBSCRIPTION, topic, row.msgtype.ROS_TYPE, row.qos))
-        elif row.bus in self.inbox.stop_topics:
-            # every e-stop message, in order, through a callback in Zenoh's thread: never coalesced
-            node.subscriber(topic, row.msgtype, row.qos, self.receiver(row))
+            node.track(node.session.declare_subscriber(rmw.topic_key_pattern(node.names.domain_id, topic),
+                                                       zenoh.handlers.Callback(guard, indirect=False)))
         else:
-            # a command: Zenoh keeps only the newest sample until this row's thread takes it, at
-            # most once per control tick (the inbox's period)
-            sub = node.subscriber(topic, row.msgtype, row.qos, zenoh.handlers.RingChannel(1))
-            self._pumps.append(threading.Thread(target=self._pump, args=(row, sub), daemon=True,
-                                                name=f"zenoh-in {row.ros}"))
-        node.track(node.session.declare_subscriber(rmw.topic_key_pattern(node.names.domain_id, topic),
-                                                   self._type_guard(row, key)))
+            if row.bus in self.inbox.stop_topics:
+                take = self.receiver(row)  # every e-stop message, in order: never coalesced
+            else:
+                take = self.gate.row(self.receiver(row, gaps={}))
+
+            def on_sample(sample: Any) -> None:  # in Zenoh's receiving thread
+                if str(sample.key_expr) == key:
+                    take(sample)
+                else:
+                    guard(sample)
+
+            node.track(node.session.declare_subscriber(rmw.topic_key_pattern(node.names.domain_id, topic),
+                                                       zenoh.handlers.Callback(on_sample, indirect=False)))
+        node.announce(node.names.endpoint(rmw.SUBSCRIPTION, topic, row.msgtype.ROS_TYPE, row.qos))
 
     def start(self) -> None:
-        """Start the command rows' threads."""
-        for pump in self._pumps:
-            pump.start()
+        """Start the command rows' gate."""
+        self.gate.start()
 
     def stop(self) -> None:
-        """Tell the command rows' threads to end (they wait for a sample until the session closes)."""
-        self._stopping.set()
-
-    def join(self, timeout_s: float = 5.0) -> None:
-        """Wait for the command rows' threads (after the session's close ended their wait)."""
-        for pump in self._pumps:
-            if pump.is_alive() or pump.ident is not None:
-                pump.join(timeout_s)
-        self._pumps.clear()
+        """Stop the command rows' gate (samples still pending are dropped)."""
+        self.gate.stop()
 
     def _type_guard(self, row: Topic, key: str) -> Callable[[Any], None]:
-        """A callback for every sample on the row's topic, whatever its type: counts the samples of
-        another type (or type hash), which the row's own subscriber never sees."""
+        """Counts a sample on the row's topic with another key than ``key`` (another type or type
+        hash), which the row never takes."""
         expected = row.msgtype.ROS_TYPE
         topic = self.ros_name(row)
         stats, lock = self.stats, self.lock
@@ -117,38 +115,6 @@ class ZenohInputs:
             self.refusals.note("zenoh", topic, reason)
 
         return guard
-
-    def _pump(self, row: Topic, sub: Any) -> None:
-        """A command row's thread: take the newest sample, check it, offer it; at most one per period.
-
-        A sample that comes a period or more after the last one offered is offered at once, with
-        no rest after it (a client answering every scan at 40 Hz costs one wake-up of this thread
-        per command, not two). One that comes sooner waits out the rest of the period, and then
-        the newest sample (Zenoh's ring channel kept it, dropping the ones before) is offered
-        instead: a flood still costs this thread at most two wake-ups per period.
-        """
-        name_this_thread(f"zenoh-in{row.ros}")
-        receive = self.receiver(row, gaps={})
-        period_s = self.inbox.period_ns / 1e9
-        clock = time.monotonic
-        last = -math.inf
-        while not self._stopping.is_set():
-            try:
-                sample = sub.recv()  # blocks without the GIL; raises once the session closes
-            except Exception:  # noqa: BLE001 - closed: the thread ends
-                return
-            rest = last + period_s - clock()
-            if rest > 0.0:
-                if self._stopping.wait(rest):
-                    return
-                try:
-                    newer = sub.try_recv()  # the newest sample, if one came meanwhile
-                except Exception:  # noqa: BLE001 - closed: the thread ends
-                    return
-                if newer is not None:
-                    sample = newer
-            last = clock()
-            receive(sample)
 
     def receiver(self, row: Topic, gaps: dict[bytes, int] | None = None) -> Callable[[Any], None]:
         """Check one sample of ``row`` and offer it to the inbox (in Zenoh's or the row's thread).
