@@ -553,7 +553,12 @@ class Car(_SimTime, _EstopControls):
         def on_sample(sample: Any) -> None:
             stream.push_raw(sample.payload.to_bytes())
 
-        self.node.subscriber(bus_topic if absolute else self.ros_name(bus_topic), msgtype, qos, on_sample)
+        import zenoh  # noqa: PLC0415 - loaded already: the session is open
+
+        # called in Zenoh's receiving thread (not ``indirect``, which puts a Python thread of its
+        # own between every sample and the reader it wakes)
+        self.node.subscriber(bus_topic if absolute else self.ros_name(bus_topic), msgtype, qos,
+                             zenoh.handlers.Callback(on_sample, indirect=False))
         return stream
 
     @staticmethod
