@@ -91,6 +91,7 @@ from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, PROFILES, ZenohAuthPar
 from racecar_hw.net.zenoh_node import ZenohNode
 from racecar_hw.net.zenoh_security import check_credentials, zenoh_error_text
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.foreign_threads import hold_thread_state
 from safety.params import SafetyParams
 
 T = TypeVar("T")
@@ -551,6 +552,7 @@ class Car(_SimTime, _EstopControls):
         stream: _Stream[T] = _Stream(decode, shared)
 
         def on_sample(sample: Any) -> None:
+            hold_thread_state()
             stream.push_raw(sample.payload.to_bytes())
 
         import zenoh  # noqa: PLC0415 - loaded already: the session is open

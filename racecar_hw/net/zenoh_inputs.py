@@ -25,6 +25,7 @@ from racecar_hw.net.command_gate import CommandGate
 from racecar_hw.net.inbox import NON_FINITE, Inbox
 from racecar_hw.net.topics import Topic
 from racecar_hw.net.zenoh_node import ZenohNode
+from racecar_hw.runtime.foreign_threads import hold_thread_state
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
@@ -74,6 +75,7 @@ class ZenohInputs:
                 take = self.gate.row(self.receiver(row, gaps={}))
 
             def on_sample(sample: Any) -> None:  # in Zenoh's receiving thread
+                hold_thread_state()
                 if str(sample.key_expr) == key:
                     take(sample)
                 else:
@@ -99,6 +101,7 @@ class ZenohInputs:
         stats, lock = self.stats, self.lock
 
         def guard(sample: Any) -> None:
+            hold_thread_state()
             got = str(sample.key_expr)
             if got == key:
                 return
