@@ -166,3 +166,43 @@ def test_a_non_finite_command_stops_at_the_mux_edge_and_only_finite_commands_are
     assert all(math.isfinite(d.speed) and math.isfinite(d.steering_angle) for d in written)
     assert written[0].speed > 0.0 and written[-1].speed > 0.0
     assert daemon.mux.rejected["teleop"] == 3
+
+
+def test_the_outboxes_wait_for_a_remote_answer_while_remote_code_answers_scans():
+    """The idle hooks (the outboxes' batches: the bag writer, the senders) run after a scan's
+    bookkeeping; while remote navigation code answers scans (a remote command written within
+    REMOTE_ANSWER_NS), after that command's write instead, so a batch never lands between a scan
+    and its answer."""
+    from racecar_hw.control.path import REMOTE_ANSWER_NS
+
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "foxglove.enabled=false", "web.enabled=false",
+                                "arming.start_armed=true", "safety.mode=off", *QUIET_NET])
+    daemon = Daemon(config)
+    control = daemon.control
+    nav = "/vesc/high_level/ackermann_cmd_mux/input/nav_0"
+    control.remote_inputs[nav] = "nav_0"
+    events: list[str] = []
+    control._write = lambda drive: events.append("motor")
+    control.idle.append(lambda: events.append("idle"))
+
+    def scan() -> LaserScan:
+        msg = LaserScan(angle_min=-1.0, angle_increment=0.01, range_min=0.02, range_max=30.0,
+                        ranges=np.full(201, 25.0, dtype=np.float32))
+        msg.header.frame_id = "laser"
+        return msg
+
+    control.tick(monotonic_ns())  # the loop runs: the scan path and the early step may write
+    events.clear()
+    control.take_scan(scan())  # nobody remote yet
+    assert events[-1] == "idle"
+    events.clear()
+    control.take_input(nav, AckermannDriveStamped(drive=AckermannDrive(speed=0.5)), "zenoh")
+    assert events == ["motor", "idle"]  # the answer's write, then the batches
+    events.clear()
+    control.take_scan(scan())  # the next answer is on its way: no batch now
+    assert "idle" not in events
+    control._remote_write_ns -= REMOTE_ANSWER_NS + 1  # the remote code went quiet
+    events.clear()
+    control.take_scan(scan())
+    assert events[-1] == "idle"

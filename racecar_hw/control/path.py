@@ -63,6 +63,10 @@ from vesc.driver import VescDriver
 
 log = logging.getLogger(__name__)
 
+#: While a remote command was written within this long (ns), remote navigation code is taken to be
+#: answering scans: the outboxes' batches wait for its next command rather than start after a scan.
+REMOTE_ANSWER_NS = 100_000_000
+
 
 @dataclass(frozen=True)
 class EstopRequest:
@@ -101,8 +105,9 @@ class ControlPath:
         self.estop_requests: deque[EstopRequest] = deque(maxlen=1000)
         #: called with each scan right after its motor command (the Zenoh bridge's early queue)
         self.early: list[Callable[[LaserScan], None]] = []
-        #: called after each scan's bookkeeping and the obstacle memory's update, in order: the loop
-        #: is idle until the next event (the outboxes' threads may take the GIL now)
+        #: called when the loop is idle until its next event (the outboxes' threads may take the GIL
+        #: now): after each scan's bookkeeping and the obstacle memory's update, or, while remote
+        #: navigation code answers scans, after its command's write instead
         self.idle: list[Callable[[], None]] = []
         self._write: Callable[[AckermannDrive], None] = vesc.command if vesc is not None else _nowhere
         self._period_ns = NS_PER_S / mux.params.rate_hz
@@ -110,6 +115,7 @@ class ControlPath:
         self._diagnostics_every = max(1, round(mux.params.rate_hz / diagnostics_rate_hz))
         self._watchdog_period_ns: int | None = None
         self._last_watchdog_ns = 0
+        self._remote_write_ns = -REMOTE_ANSWER_NS  # monotonic ns of the last remote command's write
         if lidar is not None:
             lidar.scan_sink = self.take_scan
 
@@ -165,8 +171,9 @@ class ControlPath:
         if len(times) >= 2:
             self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
         self.safety.remember()  # before waking the outboxes' threads, which would contend for the GIL
-        for idle in self.idle:
-            idle()
+        if now - self._remote_write_ns > REMOTE_ANSWER_NS:
+            self._idle()
+        # else remote navigation code is answering scans: its command, on its way now, comes first
 
     def take_input(self, topic: str, msg: Message, origin: str = "") -> None:
         """A command from a network surface (the inbox's hand-over, ``origin`` its surface): on the
@@ -179,6 +186,8 @@ class ControlPath:
             if msg is not None:
                 self._write(msg.drive)
                 self._observe(msg, now)
+                self._remote_write_ns = now
+                self._idle()
 
     def engage_estop(self, origin: Origin) -> None:
         """Latch the mux e-stop and write the brake now (not at the next tick)."""
@@ -236,6 +245,11 @@ class ControlPath:
         msg = self.mux.decide(now, self.filters)
         self._write(msg.drive)
         self._observe(msg, now)
+
+    def _idle(self) -> None:
+        """The loop is idle until its next event: the outboxes' threads may take the GIL now."""
+        for idle in self.idle:
+            idle()
 
     def _observe(self, msg: AckermannDriveStamped, now: int) -> None:
         """After the write: the bus sees the output and the safety state."""

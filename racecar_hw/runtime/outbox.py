@@ -10,8 +10,9 @@ the oldest (``drop="oldest"``: a network client wants the latest data) or the ne
 
 Idle behaviour. The thread is not woken per job: it runs what is queued every ``batch_s``
 (:data:`BATCH_S`), at once when ``wake_at`` (:data:`WAKE_AT`) jobs wait, or when the control path
-says it is idle (:meth:`Outbox.control_idle`, called by the daemon once a scan's command is out),
-so its work lands in the gap before the next scan; on its own it waits at most ``2 * batch_s``.
+says it is idle (:meth:`Outbox.control_idle`, called by the daemon once a scan's command is out, or
+a remote answer's while remote navigation code answers scans), so its work lands in the gap before
+the next scan; on its own it waits at most ``2 * batch_s``.
 A job queued with ``urgent=True`` wakes it at once: for a message queued in that gap whose
 latency matters (the scan itself, queued after its motor command, for remote navigation code).
 With nothing queued (and no ``on_batch``) the thread sleeps until a job comes, not waking on a
