@@ -115,7 +115,8 @@ class Interfaces:
         if dds_on:
             self.dds = DdsBridge(bus, d, self.live_topics, namespace=z.namespace, node_name=z.node_name,
                                  urgent=urgent, refusals=refusals, inbox=self.inbox,
-                                 period_s=1.0 / mux.rate_hz)
+                                 period_s=1.0 / mux.rate_hz, early={config.safety.scan_topic})
+            control.early.append(functools.partial(self.dds.send_early, config.safety.scan_topic))
         control.idle.extend(s.control_idle for s in (self.zenoh, self.dds) if s is not None)
 
     async def open(self, loop: asyncio.AbstractEventLoop, stack: contextlib.AsyncExitStack) -> None:

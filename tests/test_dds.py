@@ -395,3 +395,47 @@ def test_the_node_graph_names_the_node_in_its_namespace_with_every_endpoint():
                                          ros2_factory().topic_type("std_msgs/msg/String")), qos_of(DEFAULT))
         wait_for(lambda: bridge._outs[0].matching, timeout=30)
         assert late.get_subscription_matched_status().current_count == 1
+
+
+def test_the_scan_is_queued_for_dds_right_after_the_motor_write_not_from_the_bus():
+    """As for Zenoh (tests/test_net_bridge.py): the control path hands the scan to the DDS
+    publisher right after the motor write, before the bookkeeping, the obstacle memory and the
+    bus's subscribers, and wakes its thread; the bridge does not take the scan from the bus."""
+    import asyncio
+
+    import numpy as np
+
+    from racecar_hw.base.clock import monotonic_ns
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, LaserScan
+    from racecar_hw.config import load_config
+    from racecar_hw.daemon import Daemon
+
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "zenoh.enabled=false", "foxglove.enabled=false",
+                                "web.enabled=false", f"dds.domain_id={_domain()}"])
+    daemon = Daemon(config)
+    assert daemon.dds is not None
+    dds = daemon.dds
+    events: list = []
+
+    async def run() -> list:
+        loop = asyncio.get_running_loop()
+        daemon.bus.bind_loop(loop)
+        dds.outbox.put = lambda fn, *args, urgent=False: events.append(("queued", urgent))
+        await loop.run_in_executor(None, dds.open, loop)
+        try:
+            callbacks = [s.callback for s in daemon.bus._subs.get("/scan", [])]
+            next(o for o in dds._outs if o.row.bus == "/scan").matching = True  # a reader matched
+            daemon.control._write = lambda drive: events.append("motor write")
+            daemon.safety.remember = lambda: events.append("obstacle memory")  # type: ignore[method-assign]
+            daemon.mux.last_output = AckermannDriveStamped(drive=AckermannDrive())
+            daemon.stats.ticks, daemon.stats.last_tick_ns = 1, monotonic_ns()
+            daemon.control.take_scan(LaserScan(angle_min=-1.0, angle_increment=0.01,
+                                               ranges=np.full(201, 5.0, dtype=np.float32)))
+            return callbacks
+        finally:
+            dds.close()
+
+    callbacks = asyncio.run(run())
+    assert not any(c.__qualname__.startswith("DdsBridge") or "enqueue" in c.__qualname__ for c in callbacks)
+    assert events == ["motor write", ("queued", True), "obstacle memory"]

@@ -104,7 +104,9 @@ class DdsBridge:
     e-stop topics and hands over in the event loop). Without one the bridge makes its own, whose
     hand-over publishes on the bus then calls ``on_input(bus_topic)``, with ``estop_topic`` and
     ``release_topic`` going to ``on_estop(topic, msg, "dds")`` instead. Messages on ``urgent`` bus
-    topics wake the publisher thread at once.
+    topics wake the publisher thread at once. ``early`` bus topics (the daemon names the scan) are
+    not taken from the bus: the daemon hands them over with :meth:`send_early` right after the
+    scan's motor write, before its bookkeeping (as to the Zenoh bridge); they wake the thread at once.
     """
 
     def __init__(self, bus: Bus, params: DdsParams, rows: list[Topic], *, namespace: str = "",
@@ -114,7 +116,7 @@ class DdsBridge:
                  inbox: Inbox | None = None,
                  on_estop: Callable[[str, Message, str], None] | None = None,
                  estop_topic: str | None = None, release_topic: str | None = None,
-                 period_s: float = 0.02) -> None:
+                 period_s: float = 0.02, early: frozenset[str] | set[str] = frozenset()) -> None:
         self.bus = bus
         self.params = params
         self.rows = rows
@@ -133,7 +135,9 @@ class DdsBridge:
         #: the readers' samples into the inbox (a thread per command row)
         self.receiver = DdsReceiver(self.inbox, self.stats, self.refusals,
                                     accepts_commands=params.accepts_commands, period_s=self.period_s)
-        self.urgent = frozenset(urgent)
+        self.early = frozenset(early)
+        self.urgent = frozenset(urgent) | self.early
+        self._early: dict[str, list[Callable[[Message], None]]] = {}
         self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
         self.factory: TypeFactory = ros2_factory()
         self._types = ros2_types()
@@ -210,7 +214,11 @@ class DdsBridge:
         self.outbox.start()
         self.receiver.start()
         for out in self._outs:
-            self._bus_subs.append(self.bus.subscribe(out.row.bus, self._enqueuer(out)))
+            enqueue = self._enqueuer(out)
+            if out.row.bus in self.early and not out.latched:
+                self._early.setdefault(out.row.bus, []).append(enqueue)
+            else:
+                self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
             latest = self.bus.latest(out.row.bus)
             if out.latched and latest is not None:
                 self._enqueuer(out)(latest)
@@ -239,6 +247,7 @@ class DdsBridge:
 
     def close(self) -> None:
         """Stop the publisher thread, delete every entity, leave the domain (safe twice)."""
+        self._early = {}
         for sub in self._bus_subs:
             sub.close()
         self._bus_subs.clear()
@@ -276,6 +285,11 @@ class DdsBridge:
     def control_idle(self) -> None:
         """The control path is idle until its next event (a scan's command is out): send now."""
         self.outbox.control_idle()
+
+    def send_early(self, topic: str, msg: Message) -> None:
+        """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
+        for enqueue in self._early.get(topic, ()):
+            enqueue(msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
         return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
