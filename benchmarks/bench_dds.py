@@ -24,9 +24,10 @@ its own (``ROS_DOMAIN_ID`` for the rclpy node). ``python benchmarks/bench_dds.py
 ``bench_zenoh.py --far-side`` for Zenoh): an rclpy node subscribed to ``/scan`` and ``/odom``
 answering every scan with ``/cmd_vel``, against the daemon with DDS on and nobody subscribed, both
 with the figure-8 source off; with ``--before TREE`` the same two with the daemon importing an
-older source tree, all interleaved::
+older source tree; with ``--chain`` the four-process rclpy chain of ``bench_rclpy_chain.py`` in the
+same rounds (the issue's yardstick for the round trip); all interleaved::
 
-    python benchmarks/bench_dds.py --far-side 15 3 --before /tmp/main
+    python benchmarks/bench_dds.py --far-side 15 3 --before /tmp/main --chain
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from __future__ import annotations
 import os
 import random
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -151,10 +153,12 @@ def run(seconds: float = 20.0, rounds: int = 3) -> list[dict]:
     return rows
 
 
-def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None) -> list[dict]:
+def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None,
+             chain: bool = False) -> list[dict]:
     """What one rclpy node answering every scan over DDS adds to the daemon's CPU, and its round
     trip (scan frame out of the fake lidar to the answer at the fake VESC), interleaved with the
-    daemon with nobody subscribed; with ``before`` (a source tree), both again on that code."""
+    daemon with nobody subscribed; with ``before`` (a source tree), both again on that code; with
+    ``chain``, the four-process rclpy chain of ``bench_rclpy_chain.py`` in the same rounds."""
     from bench_zenoh import _latencies, _percentiles  # noqa: PLC0415
 
     if not Path(ROS_PYTHON).exists():
@@ -162,19 +166,26 @@ def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None) 
     domain = random.randrange(100, 200)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     quiet = {**_dds(domain), "figure8": {"enabled": False}}
-    trips: dict[str, list[float]] = {"rclpy": [], "rclpy, before": []}
+    trips: dict[str, list[float]] = {"rclpy": [], "rclpy, before": [], "rclpy chain": []}
 
-    def answered(label: str) -> list[dict]:
+    def collect(label: str) -> Callable[[np.ndarray, list], list[dict]]:
         def on_results(sent: np.ndarray, commands: list) -> list[dict]:
             trips[label].extend(_latencies(sent, commands))
             return []
-        return run_daemon(seconds, config_extra=_dds(domain), on_results=on_results,
+        return on_results
+
+    def answered(label: str) -> list[dict]:
+        return run_daemon(seconds, config_extra=_dds(domain), on_results=collect(label),
                           helpers=[[ROS_PYTHON, "-c", FAR_ANSWER, "--drives"]])
 
     settings = {"nobody": lambda: run_daemon(seconds, config_extra=quiet), "rclpy": lambda: answered("rclpy")}
     if before:
         settings["nobody, before"] = code_from(before, settings["nobody"])
         settings["rclpy, before"] = code_from(before, lambda: answered("rclpy, before"))
+    if chain:
+        from bench_rclpy_chain import run as run_chain  # noqa: PLC0415
+
+        settings["rclpy chain"] = lambda: run_chain(seconds, ROS_PYTHON, on_results=collect("rclpy chain"))
     results = interleaved(settings, rounds)
     wakeups = "daemon thread wake-ups per second"
 
@@ -202,6 +213,13 @@ def far_side(seconds: float = 15.0, rounds: int = 3, before: str | None = None) 
             {"name": f"rclpy{suffix}: scans answered and matched", "value": len(trips[answer]),
              "unit": "scans", "target": None},
         ]
+    if chain:
+        p50, p99 = _percentiles(trips["rclpy chain"])
+        rows += [{"name": "rclpy chain: round trip scan frame out -> answer at the VESC, p50", "value": p50,
+                  "unit": "ms", "target": None},
+                 {"name": "rclpy chain: round trip, p99", "value": p99, "unit": "ms", "target": 2.0},
+                 {"name": "rclpy chain: scans answered and matched", "value": len(trips["rclpy chain"]),
+                  "unit": "scans", "target": None}]
     steal = "host: CPU time stolen by the hypervisor"
     rows.append({"name": "host steal, all runs (max)", "unit": "% of busy", "target": None,
                  "value": max(_pick(r, steal) for each in results.values() for r in each)})
@@ -214,7 +232,8 @@ def main() -> None:
     numbers = [a for a in args if not a.startswith("-") and a != before]
     seconds = float(numbers[0]) if numbers else (15.0 if "--far-side" in args else 20.0)
     rounds = int(numbers[1]) if len(numbers) > 1 else 3
-    print_rows(far_side(seconds, rounds, before) if "--far-side" in args else run(seconds, rounds))
+    print_rows(far_side(seconds, rounds, before, "--chain" in args) if "--far-side" in args
+               else run(seconds, rounds))
 
 
 if __name__ == "__main__":
