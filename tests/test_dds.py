@@ -249,7 +249,7 @@ def test_commands_are_checked_then_handed_to_the_bus():
         writer.write(raw_sample(topic_type, types.serialize(Twist(Vector3(0.4, 0.0, 0.0), Vector3()))))
         wait_for(lambda: got, timeout=30)
         assert got[0].linear.x == 0.4 and car.inputs == ["/dds_test/cmd"]
-        # the pump thread counts a sample after the inbox has taken it, so the loop may hand it
+        # the receiving thread counts a sample after the inbox has taken it, so the loop may hand it
         # to the bus first
         wait_for(lambda: s.received == 1, timeout=30)
         assert s.malformed == 0 and s.refused == 0
@@ -293,7 +293,7 @@ def test_a_command_flood_is_handed_over_at_most_once_per_period_and_e_stops_neve
 
 
 def test_one_thread_takes_every_command_row_each_at_most_once_per_period():
-    """Two command rows, one flooded: one pump thread serves both; the quiet row's one message is
+    """Two command rows, one flooded: one gate thread serves both; the quiet row's one message is
     handed over while the other row rests, and each row's newest message arrives."""
     domain_id = _domain()
     params = DdsParams(domain_id=domain_id)

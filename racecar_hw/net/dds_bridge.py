@@ -202,14 +202,15 @@ class DdsBridge:
                 self._readers.append(reader)
                 reader_gids.append(reader.guid.bytes)
             else:
-                # a command: the reader keeps only the newest sample (in C, without the GIL) until
-                # the pump thread takes it, at most once per control tick
+                # a command: the reader keeps only the newest sample (in C), taken at most once
+                # per control tick (DdsReceiver.gated)
                 newest = qos_of(dataclasses.replace(row.qos, depth=1), dds_graph.user_data(
                     rmw.type_hash(ros_type) if hashes else None))
-                reader = DataReader(self.participant, topic, newest)
+                gated = self.receiver.gated(row, self.ros_name(row))
+                reader = DataReader(self.participant, topic, newest,
+                                    listener=Listener(on_data_available=gated))
                 self._readers.append(reader)
                 reader_gids.append(reader.guid.bytes)
-                self.receiver.add_pump(self.participant, row, self.ros_name(row), reader)
         self._publish_graph(reader_gids, writer_gids, DdsTopic, DataWriter)
         self.outbox.start()
         self.receiver.start()
