@@ -9,7 +9,6 @@ import sys
 import threading
 from pathlib import Path
 
-import pytest
 from conftest import wait_for
 from zenoh_util import endpoint, free_port
 
@@ -19,7 +18,7 @@ from racecar_hw.runtime.foreign_threads import hold_thread_state
 def _callback_states(hold: bool) -> list[int]:
     """Per sample received over TCP (Zenoh's receiving thread, a direct callback): how many samples
     that thread's Python state had seen before."""
-    zenoh = pytest.importorskip("zenoh")
+    import zenoh  # noqa: PLC0415 - in the fresh process the test starts
     port = free_port()
     scouting = {"multicast": {"enabled": False}}
     listen = zenoh.open(zenoh.Config.from_json5(json.dumps(
@@ -52,7 +51,6 @@ def test_a_held_thread_state_outlives_the_callback_and_an_unheld_one_does_not():
     """In a fresh process (Zenoh's receiving threads are the process's, so a hold taken by any
     earlier test would stay): first without the hold, every callback gets a new thread state (what
     the hold saves is real), then with it the state carries over."""
-    pytest.importorskip("zenoh")
     script = ("import json, sys; sys.path[:0] = sys.argv[1:]; import test_foreign_threads as t; "
               "print(json.dumps([t._callback_states(hold=False), t._callback_states(hold=True)]))")
     run = subprocess.run([sys.executable, "-c", script, str(Path(__file__).parent)],
