@@ -32,7 +32,7 @@ def test_odometry_wakes_the_publisher_at_once_even_right_after_a_scan():
     scan_out, odom_out = (_Out(next(r for r in rows if r.bus == t), None, SampleStamps(bytes(16)),
                                latched=False) for t in ("/scan", TOPIC_ODOM))
     scan_out.matching = odom_out.matching = True
-    bridge._early["/scan"] = [bridge._enqueuer(scan_out)]
+    assert bridge.early.take("/scan", False, bridge._enqueuer(scan_out))
     odom = bridge._enqueuer(odom_out)
     for _ in range(3):  # the outbox is not started: its wake flag stays as put leaves it
         bridge.send_early("/scan", LaserScan())

@@ -44,6 +44,7 @@ from racecar_hw.net import dds_graph, rmw
 from racecar_hw.net.dds_config import DdsParams, cyclone_xml
 from racecar_hw.net.dds_inbound import DdsReceiver
 from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
+from racecar_hw.net.early import EarlyRows
 from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -135,9 +136,8 @@ class DdsBridge:
         #: the readers' samples into the inbox (a thread per command row)
         self.receiver = DdsReceiver(self.inbox, self.stats, self.refusals,
                                     accepts_commands=params.accepts_commands, period_s=self.period_s)
-        self.early = frozenset(early)
-        self.urgent = frozenset(urgent) | self.early
-        self._early: dict[str, list[Callable[[Message], None]]] = {}
+        self.early = EarlyRows(early)
+        self.urgent = frozenset(urgent) | self.early.topics
         self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
         self.factory: TypeFactory = ros2_factory()
         self._types = ros2_types()
@@ -216,9 +216,7 @@ class DdsBridge:
         self.receiver.start()
         for out in self._outs:
             enqueue = self._enqueuer(out)
-            if out.row.bus in self.early and not out.latched:
-                self._early.setdefault(out.row.bus, []).append(enqueue)
-            else:
+            if not self.early.take(out.row.bus, out.latched, enqueue):
                 self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
             latest = self.bus.latest(out.row.bus)
             if out.latched and latest is not None:
@@ -248,7 +246,7 @@ class DdsBridge:
 
     def close(self) -> None:
         """Stop the publisher thread, delete every entity, leave the domain (safe twice)."""
-        self._early = {}
+        self.early.clear()
         for sub in self._bus_subs:
             sub.close()
         self._bus_subs.clear()
@@ -289,8 +287,7 @@ class DdsBridge:
 
     def send_early(self, topic: str, msg: Message) -> None:
         """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
-        for enqueue in self._early.get(topic, ()):
-            enqueue(msg)
+        self.early.send(topic, msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
         return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)

@@ -44,6 +44,7 @@ from typing import Any
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
+from racecar_hw.net.early import EarlyRows
 from racecar_hw.net.inbox import Inbox, all_finite
 from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.topics import Direction, Reliability, Topic
@@ -135,9 +136,8 @@ class ZenohBridge:
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
-        self.early = frozenset(early)
-        self.urgent = frozenset(urgent) | self.early
-        self._early: dict[str, list[Callable[[Message], None]]] = {}
+        self.early = EarlyRows(early)
+        self.urgent = frozenset(urgent) | self.early.topics
         # not niced: remote navigation code waits for the scan it sends (the Foxglove sender is)
         self.outbox = Outbox("zenoh-publisher", params.queue_size, nice=0)
         self._types = ros2_types()
@@ -191,9 +191,7 @@ class ZenohBridge:
         self.inputs.start()
         for out in self._outs:
             enqueue = self._enqueuer(out)
-            if out.row.bus in self.early and not out.latched:
-                self._early.setdefault(out.row.bus, []).append(enqueue)
-            else:
+            if not self.early.take(out.row.bus, out.latched, enqueue):
                 self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
             latest = self.bus.latest(out.row.bus)
             if out.latched and latest is not None:
@@ -234,7 +232,7 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
-        self._early = {}
+        self.early.clear()
         self.inputs.stop()
         if self._own_inbox:
             self.inbox.close()
@@ -272,8 +270,7 @@ class ZenohBridge:
 
     def send_early(self, topic: str, msg: Message) -> None:
         """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
-        for enqueue in self._early.get(topic, ()):
-            enqueue(msg)
+        self.early.send(topic, msg)
 
     def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
         return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
