@@ -14,14 +14,19 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.params import param
 from racecar_hw.base.topics import FOXGLOVE_TELEOP_TOPIC
-from racecar_hw.net.gate import ConnectionLimits
+from racecar_hw.net.gate import (
+    GatedServerParams,
+    head_timeout_param,
+    idle_timeout_param,
+    max_connections_param,
+)
 
 #: Foxglove's web app (and its older and embedded addresses): pages that may connect without a token.
 DEFAULT_ORIGINS = ("https://app.foxglove.dev", "https://studio.foxglove.dev", "https://embed.foxglove.dev")
 
 
 @dataclass
-class FoxgloveParams:
+class FoxgloveParams(GatedServerParams):
     """The Foxglove live-view server."""
 
     enabled: bool = param(True, "serve the live view to Foxglove and Lichtblick (WebSocket)")
@@ -46,14 +51,10 @@ class FoxgloveParams:
                                  min=0.5, max=50.0)
     queue_size: int = param(1000, "messages waiting for the sender thread before the oldest are dropped",
                             min=10, max=100_000)
-    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
-                                     "not finished its request is closed, else the new one",
-                                 min=1, max=1000)
-    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
-                                  unit="s", min=0.5, max=60.0)
-    idle_timeout_s: float = param(60.0, "a connection on which nothing moves either way for this long is "
-                                        "closed (a viewer with no channel subscribed reconnects)",
-                                  unit="s", min=10.0, max=3600.0)
+    max_connections: int = max_connections_param()
+    head_timeout_s: float = head_timeout_param()
+    idle_timeout_s: float = idle_timeout_param("on which nothing moves either way for this long is "
+                                               "closed (a viewer with no channel subscribed reconnects)")
 
     def __post_init__(self) -> None:
         origins = []
@@ -68,11 +69,6 @@ class FoxgloveParams:
             raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
                                                 "foxglove.token (clients add ?token=... to the URL), or "
                                                 "keep host 127.0.0.1 and reach it over ssh -L")
-
-
-    def limits(self) -> ConnectionLimits:
-        """The relay's connection cap and timeouts."""
-        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
 
 
 def _is_origin(text: str) -> bool:

@@ -43,6 +43,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from racecar_hw.base.params import param
 from racecar_hw.runtime.refusals import Refusals
 
 #: Connections accepted per wake-up of the event loop (asyncio takes it from ``backlog``): each costs
@@ -73,6 +74,38 @@ class ConnectionLimits:
     max_connections: int = 32
     head_timeout_s: float = 5.0
     idle_timeout_s: float = 60.0
+
+
+def max_connections_param() -> Any:
+    """The ``max_connections`` parameter of a config section whose server has a gate."""
+    return param(ConnectionLimits.max_connections,
+                 "connections open at once at most; beyond it the oldest one that has not finished "
+                 "its request is closed, else the new one", min=1, max=1000)
+
+
+def head_timeout_param() -> Any:
+    """The ``head_timeout_s`` parameter of a config section whose server has a gate."""
+    return param(ConnectionLimits.head_timeout_s, "a connection must send its request head within this",
+                 unit="s", min=0.5, max=60.0)
+
+
+def idle_timeout_param(what_counts: str) -> Any:
+    """The ``idle_timeout_s`` parameter of a config section whose server has a gate; ``what_counts``
+    says what keeps that server's connections alive (in parentheses in the description)."""
+    return param(ConnectionLimits.idle_timeout_s, f"a connection {what_counts}", unit="s",
+                 min=10.0, max=3600.0)
+
+
+class GatedServerParams:
+    """For a config section with the three parameters above: :meth:`limits`."""
+
+    max_connections: int
+    head_timeout_s: float
+    idle_timeout_s: float
+
+    def limits(self) -> ConnectionLimits:
+        """The section's connection cap and timeouts."""
+        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
 
 
 class _Conn:

@@ -6,11 +6,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from racecar_hw.base.params import param
-from racecar_hw.net.gate import ConnectionLimits
+from racecar_hw.net.gate import (
+    GatedServerParams,
+    head_timeout_param,
+    idle_timeout_param,
+    max_connections_param,
+)
 
 
 @dataclass
-class WebParams:
+class WebParams(GatedServerParams):
     """The status page with the e-stop."""
 
     enabled: bool = param(True, "serve the status page with the e-stop")
@@ -23,18 +28,10 @@ class WebParams:
     scan_points: int = param(360, "scan points per update at most (every n-th beam)", min=10, max=2000)
     max_range_m: float = param(8.0, "scan points farther than this are left out", unit="m",
                                min=1.0, max=60.0)
-    max_connections: int = param(32, "connections open at once at most; beyond it the oldest one that has "
-                                     "not finished its request is closed, else the new one",
-                                 min=1, max=1000)
-    head_timeout_s: float = param(5.0, "a connection must send its request head within this",
-                                  unit="s", min=0.5, max=60.0)
-    idle_timeout_s: float = param(60.0, "a connection that sends nothing for this long is closed (an open "
-                                        "page answers the server's ping every 5 s)",
-                                  unit="s", min=10.0, max=3600.0)
-
-    def limits(self) -> ConnectionLimits:
-        """The connection cap and timeouts."""
-        return ConnectionLimits(self.max_connections, self.head_timeout_s, self.idle_timeout_s)
+    max_connections: int = max_connections_param()
+    head_timeout_s: float = head_timeout_param()
+    idle_timeout_s: float = idle_timeout_param("that sends nothing for this long is closed (an open "
+                                               "page answers the server's ping every 5 s)")
 
 
 __all__ = ["WebParams"]
