@@ -260,7 +260,9 @@ def node_info(session: ZenohSession, port: int, node: str, done: set[str]) -> in
         services = [(name, types) for name, types in get_service_names_and_types(timeout=1.0, **common)
                     if name.startswith(node + "/")]
     out["services"] = services
-    rosout = get_topic_info("/rosout", timeout=1.0, verbose=True, **common)
+    rosout = None  # asked again until it answers with the publisher: one query may time out under load
+    while time.monotonic() < deadline and (rosout is None or not rosout.publishers):
+        rosout = get_topic_info("/rosout", timeout=1.0, verbose=True, **common)
     out["rosout_publishers"] = ([f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in rosout.publishers]
                                 if rosout is not None else [])
     out["rosout_qos"] = [p.qos for p in rosout.publishers] if rosout is not None else []
