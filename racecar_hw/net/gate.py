@@ -89,10 +89,10 @@ def head_timeout_param() -> Any:
                  unit="s", min=0.5, max=60.0)
 
 
-def idle_timeout_param(what_counts: str) -> Any:
-    """The ``idle_timeout_s`` parameter of a config section whose server has a gate; ``what_counts``
-    says what keeps that server's connections alive (in parentheses in the description)."""
-    return param(ConnectionLimits.idle_timeout_s, f"a connection {what_counts}", unit="s",
+def idle_timeout_param(rest: str) -> Any:
+    """The ``idle_timeout_s`` parameter of a config section whose server has a gate; ``rest``: its
+    description after "a connection" (what counts as idle there, and what keeps a client alive)."""
+    return param(ConnectionLimits.idle_timeout_s, f"a connection {rest}", unit="s",
                  min=10.0, max=3600.0)
 
 
