@@ -58,4 +58,6 @@ def test_a_held_thread_state_outlives_the_callback_and_an_unheld_one_does_not():
     assert run.returncode == 0, run.stderr
     unheld, held = json.loads(run.stdout.strip().splitlines()[-1])
     assert unheld == [0] * 50
-    assert len(held) == 50 and max(held) >= 25  # at most two receiving threads took them
+    # a new state only at each receiving thread's first callback (Zenoh's receiving runtime has two
+    # threads; they share the samples, 25 each when they alternate: counts 0 to 24)
+    assert len(held) == 50 and 1 <= held.count(0) <= 4
