@@ -103,7 +103,7 @@ class ControlPath:
         self.stats = ControlStats()
         #: e-stops asked for through the live and network interfaces, for reports
         self.estop_requests: deque[EstopRequest] = deque(maxlen=1000)
-        #: called with each scan right after its motor command (the Zenoh bridge's early queue)
+        #: called with each scan right after its motor command (the network interfaces' early queues)
         self.early: list[Callable[[LaserScan], None]] = []
         #: called when the loop is idle until its next event (the outboxes' threads may take the GIL
         #: now): after each scan's bookkeeping and the obstacle memory's update, or, while remote

@@ -16,8 +16,8 @@ another client latched only after about 0.1 s. So every surface gives its messag
   (counted). The loop takes at most one message per input per period (the control tick,
   ``1 / mux.rate_hz``): the first message after a quiet period goes at once (no added latency for a
   well-behaved client), a faster stream is handed over once per period, its latest value.
-* **Cheapest where the surface offers at most one sample per input per period** (Zenoh's
-  :class:`~racecar_hw.net.command_gate.CommandGate`, a DDS reader with KEEP_LAST 1 and its pump):
+* **Cheapest where the surface offers at most one sample per input per period** (a
+  :class:`~racecar_hw.net.command_gate.CommandGate`: Zenoh's rows, and DDS readers with KEEP_LAST 1):
   it offers the newest with the number dropped before it (``superseded``, from the publishers'
   sequence numbers), and a flood costs no decoding beyond one message per input per period.
 * **One wake-up, not one per message.** The loop is woken (``call_soon_threadsafe``) only when the
