@@ -146,7 +146,7 @@ def main() -> int:
     if args.mode == "imu":
         return imu(session, done, common, args.namespace, args.count)
     for name in ("sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist",
-                 "ackermann_msgs/msg/AckermannDriveStamped"):
+                 "ackermann_msgs/msg/AckermannDriveStamped", "rosgraph_msgs/msg/Clock"):
         register(session, name, done)
     seen = {"scan": 0, "odom": 0, "scan_beams": 0, "odom_frame": ""}
 
@@ -158,13 +158,21 @@ def main() -> int:
         seen["odom"] += 1
         seen["odom_frame"] = msg.header.frame_id
 
+    clock_ns: list[int] = []  # the newest /clock (the simulation's time), as a node on sim time reads it
+
+    def on_clock(msg) -> None:  # noqa: ANN001
+        clock_ns[:] = [msg.clock.sec * 10**9 + msg.clock.nanosec]
+
     ns = args.namespace
     subs = [ROS2Subscriber(f"{ns}/scan", "sensor_msgs/msg/LaserScan", on_scan,
                            msg_definition=definition("sensor_msgs/msg/LaserScan"),
                            type_hash=type_hash("sensor_msgs/msg/LaserScan"), **common),
             ROS2Subscriber(f"{ns}/odom", "nav_msgs/msg/Odometry", on_odom,
                            msg_definition=definition("nav_msgs/msg/Odometry"),
-                           type_hash=type_hash("nav_msgs/msg/Odometry"), **common)]
+                           type_hash=type_hash("nav_msgs/msg/Odometry"), **common),
+            ROS2Subscriber("/clock", "rosgraph_msgs/msg/Clock", on_clock,
+                           msg_definition=definition("rosgraph_msgs/msg/Clock"),
+                           type_hash=type_hash("rosgraph_msgs/msg/Clock"), **common)]
     deadline = time.monotonic() + 30
     while (seen["scan"] < 5 or seen["odom"] < 5) and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -181,11 +189,18 @@ def main() -> int:
     Drive, Vector3 = store["ackermann_msgs/msg/AckermannDrive"], store["geometry_msgs/msg/Vector3"]
     sent = {"drive": 0, "twist": 0}
     # how long each stream took from its first command to its last (1.45 s at 20 Hz; longer where a
-    # loaded machine held this process up), for the test to compare the mux's switches with
+    # loaded machine held this process up), for the test to compare the mux's switches with; and the
+    # same on the simulation's clock as /clock gave it (absent where no /clock came)
     spread = {}
-    first = time.monotonic()
+
+    def measure(name: str, first: float, first_clock: list[int]) -> None:
+        spread[f"{name}_s"] = time.monotonic() - first
+        if first_clock and clock_ns:
+            spread[f"{name}_sim_s"] = (clock_ns[0] - first_clock[0]) / 1e9
+
+    first, first_clock = time.monotonic(), list(clock_ns)
     for _ in range(30):
-        spread["drive_s"] = time.monotonic() - first
+        measure("drive", first, first_clock)
         now = time.time_ns()
         stamp = Time(sec=now // 10**9, nanosec=now % 10**9)
         drive_pub.publish(header=Header(stamp=stamp, frame_id="base_link"),
@@ -194,9 +209,9 @@ def main() -> int:
         sent["drive"] += 1
         time.sleep(0.05)
     time.sleep(1.5)
-    first = time.monotonic()
+    first, first_clock = time.monotonic(), list(clock_ns)
     for _ in range(30):
-        spread["twist_s"] = time.monotonic() - first
+        measure("twist", first, first_clock)
         twist_pub.publish(linear=Vector3(x=0.5, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=0.6))
         sent["twist"] += 1
         time.sleep(0.05)
