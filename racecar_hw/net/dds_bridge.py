@@ -37,18 +37,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import dds_graph, rmw
+from racecar_hw.net.bridge import Bridge
 from racecar_hw.net.dds_config import DdsParams, cyclone_xml
 from racecar_hw.net.dds_inbound import DdsReceiver
 from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
-from racecar_hw.net.early import EarlyRows
 from racecar_hw.net.inbox import Inbox
 from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
-from racecar_hw.runtime.outbox import Outbox
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
@@ -97,7 +96,7 @@ def qos_of(qos: Qos, user_data: bytes = b"") -> Any:
     return CQos(*policies)
 
 
-class DdsBridge:
+class DdsBridge(Bridge):
     """The bus's network rows on DDS. Build, ``open()`` (blocking, from any thread), ``close()``.
 
     ``namespace``, ``node_name``: the zenoh section's naming: one table, two wires.
@@ -109,6 +108,8 @@ class DdsBridge:
     not taken from the bus: the daemon hands them over with :meth:`send_early` right after the
     scan's motor write, before its bookkeeping (as to the Zenoh bridge); they wake the thread at once.
     """
+
+    WIRE = "dds"
 
     def __init__(self, bus: Bus, params: DdsParams, rows: list[Topic], *, namespace: str = "",
                  node_name: str = "racecar_hw", on_input: Callable[[str], None] | None = None,
@@ -136,9 +137,7 @@ class DdsBridge:
         #: the readers' samples into the inbox (a thread per command row)
         self.receiver = DdsReceiver(self.inbox, self.stats, self.refusals,
                                     accepts_commands=params.accepts_commands, period_s=self.period_s)
-        self.early = EarlyRows(early)
-        self.urgent = frozenset(urgent) | self.early.topics
-        self.outbox = Outbox("dds-publisher", params.queue_size, nice=0)
+        self._init_outgoing("dds-publisher", params.queue_size, urgent, early)
         self.factory: TypeFactory = ros2_factory()
         self._types = ros2_types()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -147,12 +146,12 @@ class DdsBridge:
         self._outs: list[_Out] = []
         self._readers: list[Any] = []
         self._info_writer: Any = None
-        self._bus_subs: list[Subscription] = []
         self._open = False
 
-    def ros_name(self, row: Topic) -> str:
-        """The topic's full ROS name: the namespace (unless the row is absolute), then the row's ROS name."""
-        return row.ros if row.absolute else self.namespace + row.ros
+    @property
+    def is_open(self) -> bool:
+        """Whether the participant is up."""
+        return self._open
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -212,15 +211,8 @@ class DdsBridge:
                 self._readers.append(reader)
                 reader_gids.append(reader.guid.bytes)
         self._publish_graph(reader_gids, writer_gids, DdsTopic, DataWriter)
-        self.outbox.start()
+        self._take_rows(self._outs)
         self.receiver.start()
-        for out in self._outs:
-            enqueue = self._enqueuer(out)
-            if not self.early.take(out.row.bus, out.latched, enqueue):
-                self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
-            latest = self.bus.latest(out.row.bus)
-            if out.latched and latest is not None:
-                self._enqueuer(out)(latest)
         log.info("dds interface up: domain %d, interface %s, peers %s, node %s/%s; %d topics out, %d in%s",
                  self.domain_id, p.interface, ",".join(p.peers), self.namespace, self.node_name,
                  len(self._outs), len(self._readers), "" if p.accepts_commands else " (commands refused)")
@@ -246,11 +238,7 @@ class DdsBridge:
 
     def close(self) -> None:
         """Stop the publisher thread, delete every entity, leave the domain (safe twice)."""
-        self.early.clear()
-        for sub in self._bus_subs:
-            sub.close()
-        self._bus_subs.clear()
-        self.outbox.stop(5.0)
+        self._stop_outgoing()
         if self._own_inbox:
             self.inbox.close()
         self.receiver.stop()
@@ -274,45 +262,14 @@ class DdsBridge:
                  "%d received, %d malformed, %d non-finite, %d refused", s.published, self.outbox.dropped,
                  s.skipped, s.received, s.malformed, s.non_finite, s.refused)
 
-    # --- out: bus thread, then the publisher thread -------------------------------------------
+    # --- out: the publisher thread -----------------------------------------------------------
 
-    @property
-    def dropped(self) -> int:
-        """Outgoing messages dropped because the queue was full (the oldest go first)."""
-        return self.outbox.dropped
-
-    def control_idle(self) -> None:
-        """The control path is idle until its next event (a scan's command is out): send now."""
-        self.outbox.control_idle()
-
-    def send_early(self, topic: str, msg: Message) -> None:
-        """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
-        self.early.send(topic, msg)
-
-    def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
-        return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
-
-    def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
+    def _write(self, out: _Out, msg: Message, stamp: int) -> None:
         """In the publisher thread: serialize ``msg`` and write it with its source timestamp."""
-        try:
-            out.writer.write(raw_sample(out.topic_type, self._types.serialize(msg)), timestamp=stamp)
-            self.stats.published += 1
-        except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
-            self.stats.publish_errors += 1
-            if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
-                log.warning("dds: could not publish %s (%d so far): %r", out.row.ros,
-                            self.stats.publish_errors, err)
+        out.writer.write(raw_sample(out.topic_type, self._types.serialize(msg)), timestamp=stamp)
 
-    # --- in: Cyclone's receive thread (see DdsReceiver), then the event loop ----------------
+    # --- in: Cyclone's receive thread (see DdsReceiver), then the event loop (Bridge._deliver) --
 
     def _receiver(self, row: Topic) -> Callable[[Any], None]:
         """What takes ``row``'s samples from a reader into the inbox."""
         return self.receiver.receiver(row, self.ros_name(row))
-
-    def _deliver(self, topic: str, msg: Message, origin: str) -> None:
-        """The own inbox's hand-over, in the event loop: on the bus, then ``on_input``."""
-        if not self._open:
-            return
-        self.bus.publish(topic, msg)
-        if self.on_input is not None:
-            self.on_input(topic)

@@ -41,10 +41,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from racecar_hw.base.bus import Bus, Subscription
+from racecar_hw.base.bus import Bus
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
-from racecar_hw.net.early import EarlyRows
+from racecar_hw.net.bridge import Bridge
 from racecar_hw.net.inbox import Inbox, all_finite
 from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.topics import Direction, Reliability, Topic
@@ -54,7 +54,6 @@ from racecar_hw.net.zenoh_node import ZenohNode
 from racecar_hw.net.zenoh_security import open_error
 from racecar_hw.net.zenoh_services import ZenohServices
 from racecar_hw.rosmsg.typestore import ros2_types
-from racecar_hw.runtime.outbox import Outbox
 from racecar_hw.runtime.refusals import Refusals
 
 log = logging.getLogger(__name__)
@@ -94,7 +93,7 @@ class _Out:
         self.listener: Any = None
 
 
-class ZenohBridge:
+class ZenohBridge(Bridge):
     """The bus's network rows on Zenoh. Build, ``open()`` (blocking, from any thread), ``close()``.
 
     ``on_input(bus_topic)`` is called in the event loop after an incoming message was published on
@@ -112,6 +111,8 @@ class ZenohBridge:
     which hands them over as it is told); without one the bridge has its own, which publishes
     them on the bus and then calls ``on_input``.
     """
+
+    WIRE = "zenoh"
 
     def __init__(self, bus: Bus, params: ZenohParams, rows: list[Topic],
                  on_input: Callable[[str], None] | None = None,
@@ -136,13 +137,9 @@ class ZenohBridge:
         self.session: Any = None
         self.zid = ""
         self._lock = threading.Lock()
-        self.early = EarlyRows(early)
-        self.urgent = frozenset(urgent) | self.early.topics
-        # not niced: remote navigation code waits for the scan it sends (the Foxglove sender is)
-        self.outbox = Outbox("zenoh-publisher", params.queue_size, nice=0)
+        self._init_outgoing("zenoh-publisher", params.queue_size, urgent, early)
         self._types = ros2_types()
         self._outs: list[_Out] = []
-        self._bus_subs: list[Subscription] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self.inputs = ZenohInputs(self.inbox, self.stats, self._lock, self.refusals, self.ros_name)
         #: answers the parameter services (None: no services)
@@ -150,9 +147,10 @@ class ZenohBridge:
 
     # --- names --------------------------------------------------------------------------------
 
-    def ros_name(self, row: Topic) -> str:
-        """The topic's full ROS name: the namespace (unless the row is absolute), then the row's ROS name."""
-        return row.ros if row.absolute else self.namespace + row.ros
+    @property
+    def is_open(self) -> bool:
+        """Whether the session is open."""
+        return self.session is not None
 
     def key(self, row: Topic) -> str:
         """The Zenoh key of a row's samples."""
@@ -187,15 +185,8 @@ class ZenohBridge:
                 self.inputs.declare(row, node, zenoh)
         if self.services is not None:
             self.services.declare(node)
-        self.outbox.start()
+        self._take_rows(self._outs)
         self.inputs.start()
-        for out in self._outs:
-            enqueue = self._enqueuer(out)
-            if not self.early.take(out.row.bus, out.latched, enqueue):
-                self._bus_subs.append(self.bus.subscribe(out.row.bus, enqueue))
-            latest = self.bus.latest(out.row.bus)
-            if out.latched and latest is not None:
-                self._enqueuer(out)(latest)
         log.info("zenoh bridge up: %s mode, session %s, domain %d, namespace %r, listen %s, "
                  "connect %s; %d topics out, %d in, %d services; peers: rmw_zenoh %s", p.mode, self.zid,
                  self.domain_id, self.namespace or "/", p.listen, p.connect, len(self._outs),
@@ -232,14 +223,10 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything, stop the publisher thread, close the session (safe twice)."""
-        self.early.clear()
         self.inputs.stop()
         if self._own_inbox:
             self.inbox.close()
-        for sub in self._bus_subs:
-            sub.close()
-        self._bus_subs.clear()
-        self.outbox.stop(5.0)
+        self._stop_outgoing()
         session, self.session = self.session, None
         if session is None:
             return
@@ -257,42 +244,8 @@ class ZenohBridge:
                  self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.old_attachment,
                  s.non_finite, s.wrong_type, s.service_calls, s.service_errors)
 
-    # --- out: bus thread, then the publisher thread -------------------------------------------
+    # --- out: the publisher thread -----------------------------------------------------------
 
-    @property
-    def dropped(self) -> int:
-        """Outgoing messages dropped because the queue was full (the oldest go first)."""
-        return self.outbox.dropped
-
-    def control_idle(self) -> None:
-        """The control path is idle until its next event (a scan's command is out): send now."""
-        self.outbox.control_idle()
-
-    def send_early(self, topic: str, msg: Message) -> None:
-        """Queue ``msg`` of an ``early`` topic now (the event loop, after the scan's motor write)."""
-        self.early.send(topic, msg)
-
-    def _enqueuer(self, out: _Out) -> Callable[[Message], None]:
-        return self.outbox.enqueuer(self._publish, out, self.stats, urgent=out.row.bus in self.urgent)
-
-    def _publish(self, out: _Out, msg: Message, stamp: int) -> None:
+    def _write(self, out: _Out, msg: Message, stamp: int) -> None:
         """In the publisher thread: serialize ``msg`` and put it with rmw_zenoh's attachment."""
-        try:
-            payload = self._types.serialize(msg)
-            out.publisher.put(payload, attachment=out.stamps.next(stamp))
-            self.stats.published += 1
-        except Exception as err:  # noqa: BLE001 - one bad message never stops the thread
-            self.stats.publish_errors += 1
-            if self.stats.publish_errors in (1, 10, 100) or self.stats.publish_errors % 1000 == 0:
-                log.warning("zenoh: could not publish %s (%d so far): %r", out.row.ros,
-                            self.stats.publish_errors, err)
-
-    # --- in: the event loop ------------------------------------------------------------------
-
-    def _deliver(self, topic: str, msg: Message, origin: str) -> None:
-        """The own inbox's hand-over, in the event loop: on the bus, then ``on_input``."""
-        if self.session is None:
-            return
-        self.bus.publish(topic, msg)
-        if self.on_input is not None:
-            self.on_input(topic)
+        out.publisher.put(self._types.serialize(msg), attachment=out.stamps.next(stamp))
