@@ -196,6 +196,28 @@ def test_paced_virtual_time_keeps_at_least_the_real_time_it_stands_for():
     assert time.monotonic() - real >= 1.0 / 4.0  # never faster than asked (slower if loaded)
 
 
+def test_a_paced_run_held_up_goes_on_from_where_it_was_instead_of_racing():
+    """Held up (a callback blocks, as a descheduled process would) for 0.15 s, more than twice
+    RESYNC_BEHIND_S, a paced loop does not run the timers it owes back to back: virtual time loses
+    the hold. Racing through it would show a 20 Hz stream from another thread with a gap of the
+    hold and a period, 0.2 s: a mux input's timeout, and the car would brake."""
+    hold_s = 0.15
+    assert hold_s > 2 * lockstep.RESYNC_BEHIND_S
+
+    async def main() -> tuple[float, float]:
+        start_v, start_r = clock.monotonic(), time.monotonic()
+        for i in range(20):
+            await asyncio.sleep(0.02)
+            if i == 5:
+                time.sleep(hold_s)  # held up
+        return clock.monotonic() - start_v, time.monotonic() - start_r
+
+    virtual, real = lockstep.run(main(), speed=1.0)
+    assert virtual == pytest.approx(0.4)
+    # a loaded machine only adds to the real time; racing would have caught up with it
+    assert real >= virtual + hold_s - lockstep.RESYNC_BEHIND_S
+
+
 @pytest.mark.parametrize("speed", [0.0, -1.0, float("nan"), float("inf")])
 def test_a_speed_must_be_positive_and_finite(speed):
     with pytest.raises(ValueError, match="speed"):

@@ -47,8 +47,11 @@ BUSY_POLL_S = 0.002
 #: Threads' callbacks (``call_soon_threadsafe``) are queued for the next pass without it.
 EVENTS_EVERY_S = 0.001
 #: Paced runs that fall this far (real s) behind their schedule start it again from now instead
-#: of racing to catch up (a stall at start-up, a debugger).
-RESYNC_BEHIND_S = 0.25
+#: of racing to catch up (a process held up on a loaded machine, a stall at start-up, a debugger):
+#: racing through a hold would run the timers it owes back to back, and input from outside (a
+#: client's 20 Hz stream) would look to the daemon as if it had paused for the hold, long enough
+#: for a mux input's 0.2 s timeout. Virtual time loses the hold instead; shorter lags are caught up.
+RESYNC_BEHIND_S = 0.05
 
 
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
