@@ -147,16 +147,16 @@ class ZenohBridge(Bridge):
 
     # --- names --------------------------------------------------------------------------------
 
-    @property
-    def is_open(self) -> bool:
-        """Whether the session is open."""
-        return self.session is not None
-
     def key(self, row: Topic) -> str:
         """The Zenoh key of a row's samples."""
         return self.names.key(self.ros_name(row), row.msgtype.ROS_TYPE)
 
     # --- life cycle ---------------------------------------------------------------------------
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the session is open."""
+        return self.session is not None
 
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
         """Open the session, declare every row and token, start the publisher thread.
