@@ -89,8 +89,8 @@ def test_an_independent_ros2_peer_reads_the_car_and_drives_it(tmp_path, profile,
     # then the peer stopped sending: 0.2 s of mux timeout, then the mux stops the car. The stream
     # lasts 1.5 s (30 commands 50 ms apart) where the peer keeps its pace; as long as it took where
     # a loaded machine held the peer's process up: its own measure, first command to last + 50 ms,
-    # on the simulation's clock as /clock gave it (the sim's time stands still while the loop
-    # waits for its bag writer, so a loaded machine can hold the sim's clock back from the peer's)
+    # on the simulation's clock as /clock gave it (a paced sim's clock can fall behind the peer's,
+    # docs/tests.md)
     assert nav_off - nav_on == pytest.approx(seen["drive_sim_s"] + 0.05 + 0.2, abs=0.35)
     assert abs(_speed_near(samples, nav_off + 0.4)) < 0.05
     # Twist 0.5 m/s, 0.6 rad/s: forward and turning left (yaw grows)

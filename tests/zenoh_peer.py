@@ -13,8 +13,10 @@ below, with the hash ROS 2's own generator gives them (tests/test_net_rmw.py che
 
 ``drive``: wait for /scan and /odom, then publish AckermannDriveStamped on the input topic at
 20 Hz for 1.5 s (0.6 m/s, steering 0), pause 1.5 s, then Twist on /cmd_vel for 1.5 s (0.5 m/s,
-0.6 rad/s), pause; print a JSON line of what it saw. ``--humble`` makes it a Humble rmw_zenoh node:
-``TypeHashNotSupported`` instead of every RIHS01 hash, in its keys and liveliness tokens.
+0.6 rad/s), pause; print a JSON line of what it saw, with each stream's length on its own clock
+and on the simulation's (``/clock``, where the daemon publishes it). ``--humble`` makes it a
+Humble rmw_zenoh node: ``TypeHashNotSupported`` instead of every RIHS01 hash, in its keys and
+liveliness tokens.
 ``latched``: subscribe TRANSIENT_LOCAL to a TFMessage topic and print the frames of the first
 message (or none after 10 s). ``node``: what ``ros2 node info`` and ``ros2 param`` see of the node:
 its services and publishers in the graph, ``list_parameters``, ``get_parameters`` (of
