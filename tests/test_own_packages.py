@@ -125,3 +125,38 @@ def test_the_message_without_an_owner_says_what_to_do():
 
 def test_the_guarded_names_are_the_design_cards():
     assert set(OWN_PACKAGES) == {"vesc", "lidar_drivers", "mux", "safety"}
+
+
+def test_an_installed_wheels_record_is_read_beside_the_packages(tmp_path):
+    """A wheel install keeps ``racecar_hw-<version>.dist-info/RECORD`` next to the packages; its hash
+    of ``safety/__init__.py`` is what an overwrite is checked against."""
+    from racecar_hw.runtime import own_packages
+
+    (tmp_path / "safety").mkdir()
+    init = tmp_path / "safety" / "__init__.py"
+    init.write_text("ours\n")
+    digest = base64.urlsafe_b64encode(hashlib.sha256(b"ours\n").digest()).rstrip(b"=").decode()
+    info = tmp_path / "racecar_hw-0.1.0.dist-info"
+    info.mkdir()
+    (info / "RECORD").write_text(f"safety/__init__.py,sha256={digest},5\n"
+                                 "racecar_hw-0.1.0.dist-info/RECORD,,\n")
+    recorded = own_packages._recorded_hashes(tmp_path)
+    assert recorded == {"safety/__init__.py": f"sha256={digest}"}
+    assert own_packages._hash_matches(init, recorded["safety/__init__.py"])
+    init.write_text("theirs\n")
+    assert not own_packages._hash_matches(init, recorded["safety/__init__.py"])
+    # two racecar-hw installs in one place: which RECORD is ours is unknown, the location check stays
+    (tmp_path / "racecar_hw-0.0.9.dist-info").mkdir()
+    (tmp_path / "racecar_hw-0.0.9.dist-info" / "RECORD").write_text("safety/__init__.py,sha256=x,1\n")
+    assert own_packages._recorded_hashes(tmp_path) == {}
+    assert own_packages._recorded_hashes(tmp_path / "nowhere") == {}
+
+
+def test_the_check_itself_does_not_load_the_metadata_machinery():
+    """Every command runs the check first; importlib.metadata (about 50 ms) loads only to name the
+    owner of a foreign package."""
+    code = ("import sys; from racecar_hw.runtime.own_packages import find_foreign_packages; "
+            "assert find_foreign_packages() == []; print('importlib.metadata' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          check=True)
+    assert proc.stdout.strip() == "False"
