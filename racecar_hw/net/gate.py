@@ -274,8 +274,15 @@ def head_end(tail: bytes, data: bytes) -> tuple[bool, bytes]:
     """Whether a request head ends in ``data``, given the ``tail`` kept from the reads before it.
 
     Returns (ended, the tail to keep for the next read): the head's end, ``\r\n\r\n``, may be split
-    across reads, so the last three bytes are kept, never more.
+    across reads, so the last three bytes are kept, never more. Blank lines before the request line
+    are not a head (HTTP servers skip them and wait on): until a byte other than CR or LF comes the
+    tail stays empty, so a connection sending only line ends stays unfinished, evictable and bound
+    by the head timeout.
     """
+    if not tail:
+        data = data.lstrip(b"\r\n")
+        if not data:
+            return False, b""
     seen = tail + data
     if HEAD_END in seen:
         return True, b""
