@@ -126,6 +126,44 @@ def test_refused_requests_are_summarised_in_the_log_not_logged_one_by_one(open_s
     assert all("web: refused 127.0.0.1: request without the token (401)" in line for line in lines), lines
 
 
+def test_blank_lines_hold_no_slot_and_malformed_requests_are_refusals_not_tracebacks(open_sim):
+    """Anyone who can connect: connections that send only line ends (which aiohttp skips, waiting on)
+    do not keep the operator out once every slot is taken, and requests that do not parse are
+    counted refusals, not an ERROR traceback each in the daemon's log."""
+    from racecar_hw.net.web_params import WebParams
+
+    printed = open_sim.wait_for(r"racecar-hw: status page http://0\.0\.0\.0:(\d+)/\?token=(\S+) ")
+    port, token = int(printed.group(1)), printed.group(2)
+    start = len(open_sim.lines)
+
+    async def main() -> None:
+        holders = []
+        for _ in range(WebParams().max_connections):
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.write(b"\r\n\r\n")
+            await writer.drain()
+            holders.append((reader, writer))
+        # every slot held by an unfinished request: the operator's request takes the oldest's
+        url, limit = f"http://127.0.0.1:{port}/api/state?token={token}", aiohttp.ClientTimeout(total=20)
+        async with aiohttp.ClientSession(timeout=limit) as http, http.get(url) as res:
+            assert res.status == 200
+        assert await asyncio.wait_for(holders[0][0].read(), 20) == b""  # closed by the daemon
+        for _, writer in holders:
+            writer.close()
+        for _ in range(50):
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.write(b"GET / HTTP/1.1\r\nBad Header: x\r\n\r\n")
+            answer = await asyncio.wait_for(reader.read(), 20)
+            assert re.match(rb"HTTP/1\.[01] 400 ", answer), answer[:80]
+            writer.close()
+
+    asyncio.run(main())
+    open_sim.wait_for(r"web: refused 127\.0\.0\.1: too many connections: closed the oldest", start=start)
+    open_sim.wait_for(r"web: refused 127\.0\.0\.1: malformed request \(400\)", start=start)
+    logged = "\n".join(open_sim.lines[start:])
+    assert "Traceback" not in logged and "Error handling request" not in logged, logged[-2000:]
+
+
 @pytest.fixture(scope="module")
 def loopback_sim(tmp_path_factory):
     """A sim whose page listens on loopback without a token (the default)."""

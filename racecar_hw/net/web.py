@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 from aiohttp import WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
+from aiohttp.log import server_logger
 
 from mux.estop import Origin
 from racecar_hw.base.bus import Bus
@@ -99,7 +101,8 @@ class WebServer:
         # aiohttp serves the requests; the listening socket is ours, so that every connection passes
         # the gate first (a cap and a head timeout, which aiohttp does not have: see net.gate)
         runner = web.AppRunner(self.app(), handle_signals=False, access_log=None,
-                               keepalive_timeout=self.params.idle_timeout_s)
+                               keepalive_timeout=self.params.idle_timeout_s,
+                               logger=_RequestErrors(self.refusals))
         await runner.setup()
         try:
             server = await self.gate.serve(runner.server, self.params.host, self.params.port)
@@ -281,6 +284,26 @@ class WebServer:
         r, a = r[ok], a[ok] + lyaw
         xy = np.column_stack([lx + r * np.cos(a), ly + r * np.sin(a)])
         return np.round(xy, 2).ravel().tolist()
+
+
+class _RequestErrors:
+    """aiohttp's server log for the page: a request that does not parse (a bad header, an overlong
+    line) is a refusal counted per source (:class:`Refusals`, summarised), not a traceback at
+    ERROR per request, which anyone who can connect could otherwise write as fast as they send;
+    anything else aiohttp reports goes to its own log as before."""
+
+    def __init__(self, refusals: Refusals) -> None:
+        self._refusals = refusals
+
+    def exception(self, msg: str, *args: Any, exc_info: Any = None, **kwargs: Any) -> None:
+        if isinstance(exc_info, HttpProcessingError):
+            source = str(args[0]) if args and args[0] else "unknown"
+            self._refusals.note("web", source, "malformed request (400)")
+            return
+        server_logger.exception(msg, *args, exc_info=exc_info, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:  # debug, warning, isEnabledFor, ...
+        return getattr(server_logger, name)
 
 
 def _closing(response: web.Response) -> web.Response:
