@@ -77,3 +77,20 @@ def test_counts_from_many_threads():
     for t in threads:
         t.join()
     assert refusals.total("zenoh") == 8000
+
+
+def test_reasons_per_source_are_bounded_and_cut_short():
+    """A reason may quote the sender (a Zenoh sample's type and hash): varying it grows nothing."""
+    from racecar_hw.runtime.refusals import MAX_REASON_CHARS, OTHER_REASONS
+
+    refusals = Refusals(10.0, max_reasons=4, clock=_Clock(), logger=logging.getLogger("quiet"))
+    for i in range(1000):
+        refusals.note("zenoh", "/cmd_vel", f"wrong type pkg{i}/msg/T (it takes geometry_msgs/msg/Twist)")
+    refusals.note("zenoh", "/cmd_vel", "x" * 10_000)
+    refusals.note("zenoh", "/drive", "y" * 10_000)
+    by = refusals.by_source()
+    assert len([k for k in by if k[1] == "/cmd_vel"]) == 5
+    assert by[("zenoh", "/cmd_vel", OTHER_REASONS)] == 1000 - 4 + 1
+    assert refusals.total() == 1002
+    assert all(len(reason) <= MAX_REASON_CHARS for _, _, reason in by)
+    assert ("zenoh", "/drive", "y" * (MAX_REASON_CHARS - 1) + "\u2026") in by

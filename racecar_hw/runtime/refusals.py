@@ -9,7 +9,10 @@ writes what is still pending (at shutdown).
 
 Callable from any thread (Zenoh's callbacks, the relay thread, the event loop): one lock, held for
 a dictionary update. The number of distinct sources is bounded (``max_sources``): beyond it new
-sources are counted under ``"other sources"``, so spoofed addresses cannot grow memory.
+sources are counted under ``"other sources"``, so spoofed addresses cannot grow memory. So is the
+number of reasons per source (``max_reasons``, beyond it ``"other reasons"``) and a reason's length
+(:data:`MAX_REASON_CHARS`): a reason may quote what the sender sent (a Zenoh sample's type name and
+hash), and a sender varying it must not grow the counts, the log or ``/diagnostics`` either.
 """
 
 from __future__ import annotations
@@ -25,6 +28,10 @@ log = logging.getLogger("racecar_hw.refusals")
 
 #: Where sources beyond ``max_sources`` are counted.
 OTHER_SOURCES = "other sources"
+#: Where a source's reasons beyond ``max_reasons`` are counted.
+OTHER_REASONS = "other reasons"
+#: Longer reasons are cut to this many characters (the last one an ellipsis).
+MAX_REASON_CHARS = 160
 
 
 @dataclass
@@ -45,29 +52,38 @@ class Refusals:
     log lines of one pair (s); ``clock`` is monotonic ns.
     """
 
-    def __init__(self, interval_s: float = 10.0, *, max_sources: int = 256,
+    def __init__(self, interval_s: float = 10.0, *, max_sources: int = 256, max_reasons: int = 16,
                  logger: logging.Logger = log, clock: Callable[[], int] = monotonic_ns) -> None:
         self.interval_ns = int(interval_s * NS_PER_S)
         self.max_sources = max_sources
+        self.max_reasons = max_reasons
         self.logger = logger
         self._clock = clock
         self._lock = threading.Lock()
         self._pairs: dict[tuple[str, str, str], _Pair] = {}
-        self._sources: set[tuple[str, str]] = set()
+        #: (surface, source) -> how many reasons it has
+        self._sources: dict[tuple[str, str], int] = {}
 
     def note(self, surface: str, source: str, reason: str, count: int = 1) -> None:
         """Count ``count`` refusals; log a line if this pair has not spoken for ``interval_s``."""
         now = self._clock()
         line: tuple[str, str, str, int, int, int | None] | None = None
+        if len(reason) > MAX_REASON_CHARS:
+            reason = reason[:MAX_REASON_CHARS - 1] + "\u2026"
         with self._lock:
             if (surface, source) not in self._sources:
                 if len(self._sources) >= self.max_sources:
                     source = OTHER_SOURCES
-                else:
-                    self._sources.add((surface, source))
+                self._sources.setdefault((surface, source), 0)
             pair = self._pairs.get((surface, source, reason))
             if pair is None:
-                pair = self._pairs[(surface, source, reason)] = _Pair()
+                if self._sources[(surface, source)] >= self.max_reasons:
+                    reason = OTHER_REASONS
+                    pair = self._pairs.get((surface, source, reason))
+                else:
+                    self._sources[(surface, source)] += 1
+                if pair is None:
+                    pair = self._pairs[(surface, source, reason)] = _Pair()
             pair.total += count
             pair.pending += count
             if pair.logged_ns is None or now - pair.logged_ns >= self.interval_ns:
