@@ -36,7 +36,18 @@ def test_forward_conversion():
     assert F1T.speed_to_erpm(-2.0) == -9228
     assert F1T.servo_centre == pytest.approx(0.5304)
     offset = AckermannConversion(speed_to_erpm_offset=100.0)
-    assert offset.speed_to_erpm(0.0) == 100
+    assert offset.speed_to_erpm(1.0) == 4714 and offset.speed_to_erpm(-0.0) == 0
+    assert offset.erpm_to_speed(4714) == pytest.approx(1.0)
+
+
+def test_a_stop_is_zero_erpm_whatever_the_offset():
+    """The ROS formula would send the offset alone (here 2,000 ERPM, 0.43 m/s) for speed 0, which
+    is what the mux sends while e-stopped: the motor would turn."""
+    conv = AckermannConversion(speed_to_erpm_offset=2000.0)
+    assert conv.speed_to_erpm(0.0) == 0
+    assert conv.to_vesc(AckermannDrive(speed=0.0, steering_angle=0.2)).erpm == 0
+    assert conv.erpm_to_speed(0) == 0.0
+    assert conv.speed_to_erpm(1e-9) == 2000  # a crawl command keeps the formula
 
 
 def test_symmetric_si_limits_then_servo_clamp():

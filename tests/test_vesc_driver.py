@@ -155,6 +155,32 @@ def test_commands_arrive_with_exact_values():
     lockstep.run(scenario())
 
 
+def test_the_estopped_mux_output_stops_the_motor_whatever_the_erpm_offset():
+    """The mux's e-stop output (speed 0) through the driver with ``speed_to_erpm_offset`` 2000 (0.43
+    m/s at the default gain): SET_RPM 0 reaches the fake VESC, not the offset; driving keeps it."""
+    from mux.node import CommandMux
+
+    async def scenario() -> None:
+        fake = memory_fake("offset")
+        bus = Bus()
+        mux = CommandMux(bus)
+        async with VescDriver(bus, VescParams(port=fake.path, speed_to_erpm_offset=2000.0)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            driver.command(AckermannDrive(speed=1.0, steering_angle=0.0))
+            await async_wait_for(lambda: any(r.packet == SetRpm(4614 + 2000) for r in fake.commands))
+            mux.engage_estop("operator pressed E-STOP")
+            fake.clear_commands()
+            for _ in range(5):  # what the control path does each period
+                out = mux.decide()
+                assert out.drive.speed == 0.0
+                driver.command(out.drive)
+                await asyncio.sleep(0.02)
+            await async_wait_for(lambda: sum(isinstance(r.packet, SetRpm) for r in fake.commands) >= 5)
+            assert {r.packet.erpm for r in fake.commands if isinstance(r.packet, SetRpm)} == {0}
+
+    lockstep.run(scenario())
+
+
 def test_failsafe_brakes_and_centres_within_100ms():
     """In lockstep (the driver and the fake VESC on virtual time behind an in-memory link): the
     brake and the centring come exactly the 50 ms command timeout after the last command."""

@@ -8,7 +8,10 @@
 
 Speed is first clamped to +-speed_max_mps and the steering angle (rad, positive left) to
 +-steering_max_rad, so the limits are symmetric in SI units; the servo value is then clamped to
-[servo_min, servo_max] as a last guard for the mechanical stops. ``invert_motor`` and
+[servo_min, servo_max] as a last guard for the mechanical stops. A speed of exactly 0 (a stop: the
+mux's e-stop, fault and idle outputs, a disarmed car) is 0 ERPM whatever the offset, and 0 ERPM reads
+back as 0 m/s: the ROS formula would send ``speed_to_erpm_offset`` (up to 10,000 ERPM) to a car that
+should stand, and a real VESC turns its motor at any non-zero set RPM. ``invert_motor`` and
 ``invert_servo`` negate the respective gain. NaN or infinite input is refused with
 :class:`~racecar_hw.base.errors.LocalProtocolError`; the caller brakes instead.
 
@@ -80,6 +83,8 @@ class AckermannConversion:
     def speed_to_erpm(self, speed: float) -> int:
         """ERPM for ``speed`` m/s after the speed limit; refuses NaN/inf."""
         _finite(speed, "speed")
+        if speed == 0.0:
+            return 0  # stand: never the offset alone
         v = min(max(speed, -self.speed_max_mps), self.speed_max_mps)
         return round(self.erpm_gain * v + self.speed_to_erpm_offset)
 
@@ -101,7 +106,10 @@ class AckermannConversion:
         return self.steering_to_servo(0.0)
 
     def erpm_to_speed(self, erpm: float) -> float:
-        """Rear-axle speed (m/s) from a measured ERPM: the inverse of :meth:`speed_to_erpm`."""
+        """Rear-axle speed (m/s) from a measured ERPM: the inverse of :meth:`speed_to_erpm` (0 ERPM
+        is standing)."""
+        if erpm == 0.0:
+            return 0.0
         return (erpm - self.speed_to_erpm_offset) / self.erpm_gain
 
     def servo_to_steering(self, servo: float) -> float:

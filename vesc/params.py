@@ -41,8 +41,8 @@ class VescParams:
     # --- Ackermann -> VESC conversion (f1tenth_stack/config/vesc.yaml)
     speed_to_erpm_gain: float = param(4614.0, "ERPM per m/s of rear-axle speed",
                                       unit="ERPM/(m/s)", min=1.0, max=100000.0)
-    speed_to_erpm_offset: float = param(0.0, "ERPM added to every speed command", unit="ERPM",
-                                        min=-10000.0, max=10000.0)
+    speed_to_erpm_offset: float = param(0.0, "ERPM added to every non-zero speed command (a stop is 0 ERPM)",
+                                        unit="ERPM", min=-10000.0, max=10000.0)
     steering_angle_to_servo_gain: float = param(-1.2135, "servo position per radian of steering "
                                                 "angle (sign sets the direction)", unit="1/rad",
                                                 min=-10.0, max=10.0)

@@ -47,7 +47,8 @@ class CarParams:
     """The physical car the simulator drives: its true gains (the F1TENTH defaults) and its size."""
 
     speed_to_erpm_gain: float = param(4614.0, "motor ERPM per m/s of car speed", unit="ERPM/(m/s)")
-    speed_to_erpm_offset: float = param(0.0, "motor ERPM at standstill", unit="ERPM")
+    speed_to_erpm_offset: float = param(0.0, "ERPM added to a non-zero speed (0 ERPM is standing)",
+                                        unit="ERPM")
     steering_angle_to_servo_gain: float = param(-1.2135, "servo position per radian of steering",
                                                 unit="1/rad")
     steering_angle_to_servo_offset: float = param(0.530, "servo position that steers straight ahead "
@@ -70,8 +71,9 @@ class CarParams:
 
 
 def speed_from_erpm(erpm: float, params: CarParams) -> float:
-    """Car speed (m/s) for a motor ERPM; 0 for a non-finite reading."""
-    if not math.isfinite(erpm):
+    """Car speed (m/s) for a motor ERPM; 0 for 0 ERPM (the driver's stop, whatever the offset) and
+    for a non-finite reading."""
+    if erpm == 0.0 or not math.isfinite(erpm):
         return 0.0
     return (erpm - params.speed_to_erpm_offset) / params.speed_to_erpm_gain
 
