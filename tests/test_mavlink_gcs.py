@@ -323,6 +323,22 @@ def test_non_loopback_station_requires_a_signing_key(tmp_path: Path) -> None:
     assert MavlinkParams().bind == ("127.0.0.1", 14555)
 
 
+def test_listening_beyond_loopback_requires_a_signing_key_too(tmp_path: Path) -> None:
+    """A loopback ground station with ``bind_address`` 0.0.0.0: the datagrams of other hosts are
+    refused as foreign, but the port is open to the network, so it needs signing like the station."""
+    for bind in ("0.0.0.0", "::", "192.168.1.5"):
+        with pytest.raises(ConfigError, match="bind_address") as info:
+            MavlinkParams(enabled=True, bind_address=bind)
+        assert info.value.key == "mavlink.bind_address" and "signing" in str(info.value)
+        with pytest.raises(ConfigError) as info:
+            MavlinkGcs(Bus(), MavlinkParams(bind_address=bind), Arming())
+        assert info.value.key == "mavlink.bind_address"
+    key = tmp_path / "key"
+    key.write_text("correct horse battery staple\n")
+    assert MavlinkParams(enabled=True, bind_address="0.0.0.0", signing_key_file=str(key)).bind[0] == "0.0.0.0"
+    assert MavlinkParams(enabled=True, bind_address="127.0.0.2").bind[0] == "127.0.0.2"
+
+
 def odom_at(x: float, y: float, yaw: float, vx: float = 0.0, wz: float = 0.0) -> Odometry:
     odom = Odometry()
     odom.pose.pose.position.x, odom.pose.pose.position.y = x, y

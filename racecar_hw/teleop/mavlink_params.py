@@ -48,6 +48,8 @@ def station_host(host: str, key: str) -> str:
 
 NEEDS_SIGNING = ("the ground station {} is not on loopback: MAVLink 2 signing is required; set "
                   "signing_key_file to a key file")
+BIND_NEEDS_SIGNING = ("{} is not a loopback address: listening beyond this computer requires MAVLink 2 "
+                      "signing; set mavlink.signing_key_file to a key file, or bind_address to auto")
 
 
 @dataclass
@@ -111,6 +113,9 @@ class MavlinkParams:
             raise ConfigError("mavlink.rc_trim_us", "must lie strictly between rc_min_us and rc_max_us")
         if self.enabled and not self.signing_key_file and not is_loopback(host):
             raise ConfigError("mavlink.signing_key_file", NEEDS_SIGNING.format(self.gcs_address))
+        bind_host = self.bind[0]
+        if self.enabled and not self.signing_key_file and not is_loopback(bind_host):
+            raise ConfigError("mavlink.bind_address", BIND_NEEDS_SIGNING.format(bind_host))
 
     @property
     def gcs(self) -> tuple[str, int]:
