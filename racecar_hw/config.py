@@ -222,7 +222,37 @@ def network_topics(config: Config) -> list[Topic]:
         open_space_topic=summary.open_space_topic if summary.enabled else None,
         cmd_vel_topic=z.cmd_vel_topic if z.cmd_vel and cmd_vel_input_topic(config) else None,
         rosout=config.rosout.enabled)
+    first: dict[str, Topic] = {}
+    for row in rows:
+        other = first.setdefault(row.bus, row)
+        if other is not row:
+            keys = keys_set_to(config, row.bus)
+            changed = [k for k in keys if k not in keys_set_to(Config(), row.bus)] or keys
+            raise ConfigError(changed[0] if changed else "zenoh.profile",
+                              f"{row.bus} would be both {other.what} and {row.what}; each needs a topic "
+                              f"of its own (keys set to {row.bus}: {', '.join(keys)})")
     return named(rows, config.mux, z.profile, z.remap, "zenoh")
+
+
+def keys_set_to(config: Config, value: str) -> list[str]:
+    """The dotted keys of ``config`` whose value is ``value`` (``mux.inputs.0.topic``), in order."""
+    found: list[str] = []
+
+    def walk(node: Any, key: str) -> None:
+        if dataclasses.is_dataclass(node) and not isinstance(node, type):
+            for f in dataclasses.fields(node):
+                walk(getattr(node, f.name), f"{key}.{f.name}" if key else f.name)
+        elif isinstance(node, (list, tuple)):
+            for i, item in enumerate(node):
+                walk(item, f"{key}.{i}")
+        elif isinstance(node, dict):
+            for k, item in node.items():
+                walk(item, f"{key}.{k}")
+        elif node == value and isinstance(node, str):
+            found.append(key)
+
+    walk(config, "")
+    return found
 
 
 #: An RPLIDAR's sweep period (s): about 10 Hz revolutions (A1 5.5 Hz at the slowest).

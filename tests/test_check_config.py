@@ -48,6 +48,21 @@ def test_two_typos_in_a_file_are_both_reported_with_their_lines_and_suggestions(
     assert not any("allowed keys" in line for line in lines)  # no dump of every key
 
 
+@pytest.mark.parametrize(("setting", "key"), [("mux.estop_topic=/odom", "mux.estop_topic"),
+                                            ("lidar.topic=/estop", "lidar.topic"),
+                                            ("mux.output_topic=/odom", "mux.output_topic")])
+def test_two_things_on_one_topic_name_the_key_that_was_set(check_config, setting, key):
+    """Not the Zenoh profile, which was not touched: the key whose value made the clash, and every
+    key with that value, so the reader sees which one to change."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    topic = setting.split("=")[1]
+    assert line.startswith(f"racecar-hw check-config: {key}: {topic} would be both "), line
+    assert "each needs a topic of its own" in line and f"(from --set {setting})" in line
+    assert "zenoh.profile" not in line
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")
