@@ -186,6 +186,18 @@ def test_a_listen_beyond_loopback_without_authentication_is_refused(listen):
     assert "auth.dictionary_file" in str(err.value)
 
 
+def test_multicast_scouting_is_refused_even_with_authentication(tmp_path):
+    """Scouting makes the car open sessions to whatever LAN peer answers; the dictionary only checks
+    the sessions others open to the car, so it does not make scouting safe."""
+    users = tmp_path / "users.txt"
+    users.write_text("laptop:a-long-random-password\n")
+    for extra in ([], [f"zenoh.auth.dictionary_file={users}"]):
+        with pytest.raises(ConfigError, match="multicast scouting listens on every interface") as err:
+            load_config(None, ["zenoh.multicast_scouting=true", *extra])
+        assert err.value.key == "zenoh.multicast_scouting" and "connect" in str(err.value)
+    load_config(None, ["zenoh.multicast_scouting=false"])
+
+
 def test_a_listen_beyond_loopback_with_authentication_is_accepted(tmp_path):
     users = tmp_path / "users.txt"
     users.write_text("laptop:a-long-random-password\n")

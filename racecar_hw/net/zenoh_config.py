@@ -57,6 +57,14 @@ class ZenohTlsParams:
                                      "root_ca_certificate (mutual TLS)")
 
 
+#: Why ``multicast_scouting: true`` is refused.
+MULTICAST_REFUSED = (
+    "multicast scouting listens on every interface and connects the car to any Zenoh peer on the LAN "
+    "that answers; Zenoh's user/password and TLS check only the sessions others open to the car, so "
+    "such a peer could read and drive it. Name the routers or peers in connect (and listen with auth "
+    "or TLS beyond loopback) instead")
+
+
 @dataclass
 class ZenohParams:
     """ROS 2 topics over Zenoh in rmw_zenoh's format (see docs/interop.md)."""
@@ -87,7 +95,10 @@ class ZenohParams:
     cmd_vel_topic: str = param("/cmd_vel", "the Twist topic")
     queue_size: int = param(64, "outgoing messages waiting for the publisher thread before the "
                                 "oldest is dropped", min=1, max=100000)
-    multicast_scouting: bool = param(False, "find peers by UDP multicast (reaches the whole LAN)")
+    multicast_scouting: bool = param(False, "find peers by UDP multicast: refused (true is a "
+                                            "ConfigError), since it listens on every interface and "
+                                            "connects to any LAN peer that answers, unauthenticated; "
+                                            "name peers and routers in connect")
     count_failed_logins: bool = param(True, "count failed logins (user/password, TLS) by source address "
                                             "in /diagnostics, the status page and the log, read from "
                                             "Zenoh's own log on standard output (racecar-hw run, sim "
@@ -122,6 +133,8 @@ class ZenohParams:
                 rmw.check_topic_name(ros)
             except rmw.WireError as err:
                 raise ConfigError(f"{key}.remap.{bus}", str(err)) from None
+        if self.multicast_scouting:
+            raise ConfigError(f"{key}.multicast_scouting", MULTICAST_REFUSED)
         a, t = self.auth, self.tls
         check_credentials(a.user, a.password, f"{key}.auth.user", f"{key}.auth.password")
         if a.dictionary_file:
