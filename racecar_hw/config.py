@@ -226,12 +226,20 @@ def network_topics(config: Config) -> list[Topic]:
     for row in rows:
         other = first.setdefault(row.bus, row)
         if other is not row:
-            keys = keys_set_to(config, row.bus)
-            changed = [k for k in keys if k not in keys_set_to(Config(), row.bus)] or keys
-            raise ConfigError(changed[0] if changed else "zenoh.profile",
-                              f"{row.bus} would be both {other.what} and {row.what}; each needs a topic "
-                              f"of its own (keys set to {row.bus}: {', '.join(keys)})")
+            key, keys = topic_keys(config, row.bus) or ("zenoh.profile", [])
+            raise ConfigError(key, f"{row.bus} would be both {other.what} and {row.what}; each needs a "
+                                   f"topic of its own (keys set to {row.bus}: {', '.join(keys)})")
     return named(rows, config.mux, z.profile, z.remap, "zenoh")
+
+
+def topic_keys(config: Config, topic: str) -> tuple[str, list[str]] | None:
+    """The key to name for a clash on ``topic`` (the first key set to it that is not so by default)
+    and every key set to it; None when no key is."""
+    keys = keys_set_to(config, topic)
+    if not keys:
+        return None
+    default = keys_set_to(Config(), topic)
+    return next((k for k in keys if k not in default), keys[0]), keys
 
 
 def keys_set_to(config: Config, value: str) -> list[str]:

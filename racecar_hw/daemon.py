@@ -40,7 +40,7 @@ from racecar_hw.base.clock import wall_ns
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import DiagnosticStatus
 from racecar_hw.base.transforms import TfTree
-from racecar_hw.config import Config
+from racecar_hw.config import Config, topic_keys
 from racecar_hw.control.path import ControlPath
 from racecar_hw.control.state import CarState, car_shape
 from racecar_hw.interfaces import Interfaces
@@ -127,6 +127,7 @@ class Daemon:
                  status: StatusPanel | None = None) -> None:
         self.config = config
         self.bus = bus = bus if bus is not None else Bus()
+        bus.config_keys = lambda topic: topic_keys(config, topic)  # a type clash names its key
         self.notifier = notifier if notifier is not None else Notifier.from_env()
         #: undoes start-up in reverse (:meth:`shutdown`); what is built here closes last
         self._stack = stack = contextlib.AsyncExitStack()

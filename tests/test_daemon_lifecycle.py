@@ -56,3 +56,18 @@ def test_shutdown_undoes_start_up_in_reverse_and_closes_what_was_built(tmp_path)
     # what __init__ built is closed too (its closing was pushed first, so it runs last)
     assert daemon.mux._subs == [] and daemon.safety._subs == []
     assert events.count("stop recorder") == 1  # the second shutdown() undid nothing again
+
+
+def test_two_components_on_one_topic_with_two_types_name_the_key_that_was_set():
+    """The gamepad's drive commands on the e-stop's topic: the daemon is not built, and the error
+    names gamepad.topic (set here), not only the topic."""
+    import pytest
+
+    from racecar_hw.base.errors import ConfigError
+
+    config = load_config(None, ["gamepad.enabled=true", "gamepad.topic=/estop", *QUIET_NET])
+    with pytest.raises(ConfigError) as err:
+        Daemon(config)
+    assert err.value.key == "gamepad.topic"
+    assert "/estop carries std_msgs/msg/Bool, not ackermann_msgs/msg/AckermannDriveStamped" in str(err.value)
+    assert "mux.estop_topic, gamepad.topic" in str(err.value)

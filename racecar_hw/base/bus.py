@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 from racecar_hw.base.clock import monotonic_ns
-from racecar_hw.base.errors import TopicTypeError
+from racecar_hw.base.errors import ConfigError, TopicTypeError
 from racecar_hw.base.messages import Message
 
 log = logging.getLogger(__name__)
@@ -64,12 +64,20 @@ class Bus:
         self._types: dict[str, type[Message]] = {}
         self.callback_errors = 0
         self._loop: asyncio.AbstractEventLoop | None = None
+        #: for a daemon built from a config: a topic -> (the key to name, every key set to it), so
+        #: that two components declaring one topic with two types is a ConfigError naming the key
+        self.config_keys: Callable[[str], tuple[str, list[str]] | None] | None = None
 
     def declare(self, topic: str, msgtype: type[Message]) -> None:
         """Fix the type of ``topic`` before anything is published on it."""
         known = self._types.setdefault(topic, msgtype)
         if known is not msgtype:
-            raise TopicTypeError(f"{topic} carries {known.ROS_TYPE}, not {msgtype.ROS_TYPE}")
+            clash = f"{topic} carries {known.ROS_TYPE}, not {msgtype.ROS_TYPE}"
+            keys = self.config_keys(topic) if self.config_keys is not None else None
+            if keys is not None:
+                raise ConfigError(keys[0], f"{clash}: two things of different types cannot share a "
+                                           f"topic (keys set to {topic}: {', '.join(keys[1])})")
+            raise TopicTypeError(clash)
 
     def publish(self, topic: str, msg: Message) -> None:
         """Deliver ``msg`` to every subscriber of ``topic`` and remember it as the latest."""
