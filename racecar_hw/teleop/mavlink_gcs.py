@@ -61,8 +61,6 @@ from typing import Any
 
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import monotonic_ns, wall_ns
-from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.loopback import is_loopback
 from racecar_hw.base.messages import (
     AckermannDrive,
     AckermannDriveStamped,
@@ -74,7 +72,7 @@ from racecar_hw.runtime.ticker import Ticker
 from racecar_hw.teleop.arming import Arming, ArmingChange
 from racecar_hw.teleop.mavlink_commands import Commands
 from racecar_hw.teleop.mavlink_dialect import MODE_NAMES, MODES, mavlink
-from racecar_hw.teleop.mavlink_params import BIND_NEEDS_SIGNING, MavlinkParams
+from racecar_hw.teleop.mavlink_params import MavlinkParams
 from racecar_hw.teleop.mavlink_presence import StationPresence
 from racecar_hw.teleop.mavlink_rx import MavlinkRx
 from racecar_hw.teleop.mavlink_signing import (
@@ -141,10 +139,7 @@ class MavlinkGcs:
             self.mav, gcs_host, params.gcs_address, params.gcs_system_id,
             signing_key_file=params.signing_key_file, signing_link_id=params.signing_link_id,
             future_window_s=params.future_window_s, counters=self.counters, refusals=self.refusals,
-            wall_clock=wall_clock)
-        bind_host = params.bind[0]
-        if self.security.secret_key is None and not is_loopback(bind_host):
-            raise ConfigError("mavlink.bind_address", BIND_NEEDS_SIGNING.format(bind_host))
+            wall_clock=wall_clock, bind_host=params.bind[0])
         self.gcs_system_id = params.gcs_system_id
         self._publishing = False
         bus.declare(params.teleop_topic, AckermannDriveStamped)

@@ -24,7 +24,7 @@ from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.runtime.refusals import Refusals
-from racecar_hw.teleop.mavlink_params import NEEDS_SIGNING
+from racecar_hw.teleop.mavlink_params import BIND_NEEDS_SIGNING, NEEDS_SIGNING
 from racecar_hw.teleop.mavlink_rx import MavlinkRx
 
 log = logging.getLogger(__name__)
@@ -86,12 +86,14 @@ class LinkSecurity:
     ``mav`` is the pymavlink packer whose outgoing signing this keeps in step with what was
     received; ``counters`` the link's counters (the refusal names of :data:`REFUSAL_REASONS`);
     ``gcs_host`` the station's host as :func:`~racecar_hw.teleop.mavlink_gcs.station_host` gives it.
-    A station outside loopback without ``signing_key_file`` is a ConfigError.
+    A station outside loopback without ``signing_key_file`` is a ConfigError, and so is a socket
+    bound outside loopback (``bind_host``) without it.
     """
 
     def __init__(self, mav: Any, gcs_host: str, gcs_address: str, gcs_system_id: int, *,
                  signing_key_file: str, signing_link_id: int, future_window_s: float,
-                 counters: dict[str, int], refusals: Refusals, wall_clock: Callable[[], int]) -> None:
+                 counters: dict[str, int], refusals: Refusals, wall_clock: Callable[[], int],
+                 bind_host: str = "127.0.0.1") -> None:
         self.mav = mav
         self.counters = counters
         self.refusals = refusals
@@ -103,6 +105,8 @@ class LinkSecurity:
             self.secret_key = load_signing_key(signing_key_file)
         elif not is_loopback(gcs_host):
             raise ConfigError("mavlink.signing_key_file", NEEDS_SIGNING.format(gcs_address))
+        elif not is_loopback(bind_host):
+            raise ConfigError("mavlink.bind_address", BIND_NEEDS_SIGNING.format(bind_host))
         self.rx = MavlinkRx(self.secret_key, signing_timestamp(wall_clock()),
                             future_window=round(future_window_s * SIGNING_UNITS_PER_S))
         if self.secret_key is not None:
