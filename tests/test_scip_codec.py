@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from lidar_drivers.scip import (
@@ -443,10 +443,14 @@ REPLIES = [md_frame(list(range(100, 400)), tag="a"), encode_time("TM1", 123456),
 
 @given(st.sampled_from(REPLIES), st.sampled_from(REPLIES), st.floats(0.0, 1.0), st.integers(1, 97))
 @settings(max_examples=400, deadline=None)
+@example(REPLIES[0], REPLIES[2], 0.6, 1)  # cut in a data line
 def test_a_damaged_reply_costs_itself_and_never_the_next_one(damaged, good, where, chunk):
     """Cut anywhere (down to missing only its final line feed), a reply runs into the next one;
     the decoder finds the next reply's echo and status and decodes it."""
     cut = damaged[:int(where * (len(damaged) - 1))]  # never the whole reply
+    # cut inside its echo's tag (after the ';'), the next reply's echo line reads as the rest of that
+    # tag: b"MD0000029901000;" + b"QT\n00P\n\n" is a whole, valid MD status reply with tag "QT"
+    assume(not (b";" in cut and b"\n" not in cut))
     stream = cut + good
     d = ResponseDecoder()
     events = []
@@ -458,6 +462,14 @@ def test_a_damaged_reply_costs_itself_and_never_the_next_one(damaged, good, wher
     assert decoded[-1:] == [expected] or (isinstance(expected, ScanReply) and decoded
                                           and decoded[-1].distances.tolist() == expected.distances.tolist())
     assert len(decoded) <= 2  # at most the damaged one, when only its final line feed was missing
+
+
+def test_a_reply_cut_inside_its_tag_and_the_next_echo_read_as_one_reply():
+    """The one cut the test above leaves out: the bytes are a valid reply of their own (an MD
+    acknowledgement whose tag is the next echo), and that is what they decode to, not an error."""
+    stream = md_frame(list(range(100, 400)), tag="a")[:16] + encode_reply("QT", "00")
+    assert stream == b"MD0000029901000;QT\n00P\n\n"
+    assert decode_all(stream) == [StatusReply(echo="MD0000029901000;QT", command="MD", status="00", tag="QT")]
 
 
 def test_a_reply_missing_only_its_final_line_feed_is_still_decoded():
