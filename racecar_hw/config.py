@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -380,7 +380,8 @@ class ConfigProblem:
 MAX_PROBLEMS = 50
 
 
-def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = ()
+def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (), *,
+                 build: Callable[[Config], object] | None = None
                  ) -> tuple[Config | None, list[ConfigProblem]]:
     """Every error of a config at once (``racecar-hw check-config``): the config (None when it has
     errors) and each error with the file and line (or the ``--set``) its value came from.
@@ -388,6 +389,9 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
     After an error its key is taken out (so its default applies) and the config is checked again,
     until it builds or an error's key cannot be taken out (a rule across keys: then that error is
     the last). A file that cannot be read or parsed, or a malformed ``--set``, is one error.
+    ``build`` (the daemon's constructor) then builds what the config describes, without starting
+    it: a ConfigError only the components see (two of them declaring one topic with two types) is
+    reported as the others are.
     """
     file = Path(path) if path is not None else shipped_config("car")
     data = _assemble(file, overrides)
@@ -398,6 +402,8 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
     while len(problems) < MAX_PROBLEMS:
         try:
             config = build_config(copy.deepcopy(data))
+            if build is not None and not problems:
+                build(config)
         except ConfigError as err:
             if err.key in seen:  # taking it out did not help: a rule across keys
                 break

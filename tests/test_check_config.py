@@ -63,6 +63,18 @@ def test_two_things_on_one_topic_name_the_key_that_was_set(check_config, setting
     assert "zenoh.profile" not in line
 
 
+def test_a_clash_only_the_components_see_is_reported_too(check_config):
+    """The gamepad's drive commands on the e-stop's Bool topic passes every key's own check; the
+    daemon's components, built without starting, find it, and check-config reports it like the
+    others, with the --set it came from."""
+    proc = check_config("--set", "gamepad.enabled=true", "--set", "gamepad.topic=/estop")
+    assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith("racecar-hw check-config: gamepad.topic: /estop carries std_msgs/msg/Bool, "
+                           "not ackermann_msgs/msg/AckermannDriveStamped"), line
+    assert line.endswith("(from --set gamepad.topic=/estop)")
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")

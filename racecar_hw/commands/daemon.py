@@ -51,7 +51,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     --set) its value came from, exit 1."""
     if args.describe is not None:
         return describe(args.describe)
-    config, problems = check_config(args.file, args.overrides)
+    config, problems = check_config(args.file, args.overrides, build=Daemon)
     if problems:
         for problem in problems:
             print(f"racecar-hw check-config: {problem}", file=sys.stderr)
