@@ -59,6 +59,7 @@ from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.gamepad import GamepadTeleop
 from racecar_hw.teleop.keyboard import KEY_HINTS, KeyboardTeleop
 from safety.node import SafetyNode
+from vesc.ackermann import AckermannConversion
 from vesc.driver import VescDriver
 
 if TYPE_CHECKING:  # imported where switched on: rich (a panel), the mavlink extra
@@ -145,7 +146,7 @@ class Daemon:
         self.mux = CommandMux(bus, config.mux, refusals=self.refusals)
         stack.callback(self.mux.close)
         self.safety = SafetyNode(bus, config.safety, laser, defer_memory=True, scans_from_bus=False,
-                                 steering_limit_rad=config.vesc.steering_max_rad)
+                                 steering_limit_rad=AckermannConversion.from_params(config.vesc).steering_range())
         stack.callback(self.safety.close)
         self.arming = Arming.from_params(config.arming)
         pad, keys = Origin("gamepad", "gamepad"), Origin("keyboard", "keyboard")

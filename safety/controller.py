@@ -198,14 +198,19 @@ class SafetyController:
 
     ``laser_to_base`` is the pose of the laser in base_link (4x4, or (x, y, yaw)); None takes it
     from ``params.laser``. ``steering_limit_rad`` is the largest steering angle the car can drive
-    (the VESC driver's ``steering_max_rad``): a command beyond it is swept at the limit, the arc the
-    car will actually follow. Times are integer nanoseconds on one monotonic clock of the caller's.
+    (the VESC driver's ``steering_max_rad``), or the (right, left) pair it drives at full right and
+    full left (:meth:`vesc.ackermann.AckermannConversion.steering_range`, where the servo's limits
+    clip a side further): a command beyond it is swept at the limit, the arc the car will actually
+    follow. Times are integer nanoseconds on one monotonic clock of the caller's.
     """
 
     def __init__(self, params: SafetyParams, laser_to_base: LaserTransform | None = None,
-                 steering_limit_rad: float = math.inf) -> None:
+                 steering_limit_rad: float | tuple[float, float] = math.inf) -> None:
         self.params = params
-        self.steering_limit_rad = steering_limit_rad
+        if isinstance(steering_limit_rad, tuple):
+            self.steering_range = (float(steering_limit_rad[0]), float(steering_limit_rad[1]))
+        else:
+            self.steering_range = (-float(steering_limit_rad), float(steering_limit_rad))
         if laser_to_base is None:
             laser_to_base = (params.laser.x_m, params.laser.y_m, params.laser.yaw_rad)
         self._to_base = planar_transform(laser_to_base)
@@ -371,7 +376,7 @@ class SafetyController:
             self.state = SafetyState(math.inf, math.nan, None, reason, False)
             return drive, self.state
 
-        driven = min(max(steering, -self.steering_limit_rad), self.steering_limit_rad)
+        driven = min(max(steering, self.steering_range[0]), self.steering_range[1])
         allowed, free, obstacle, reason = self._assess(driven, speed < 0.0, now_ns)
         magnitude = abs(speed)
         along = measured_speed_mps * math.copysign(1.0, speed) if speed != 0.0 else 0.0

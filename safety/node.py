@@ -59,7 +59,8 @@ class SafetyNode:
 
     def __init__(self, bus: Bus, params: SafetyParams, laser_to_base: LaserTransform | None = None,
                  clock: Callable[[], int] = monotonic_ns, defer_memory: bool = False,
-                 steering_limit_rad: float = math.inf, scans_from_bus: bool = True) -> None:
+                 steering_limit_rad: float | tuple[float, float] = math.inf,
+                 scans_from_bus: bool = True) -> None:
         """``defer_memory``: leave the memory update of each scan to :meth:`remember` (the daemon
         calls it after the scan's motor command is written); otherwise it follows each scan.
         ``steering_limit_rad``: the steering the car can drive (see :class:`SafetyController`).

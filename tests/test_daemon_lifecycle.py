@@ -71,3 +71,13 @@ def test_two_components_on_one_topic_with_two_types_name_the_key_that_was_set():
     assert err.value.key == "gamepad.topic"
     assert "/estop carries std_msgs/msg/Bool, not ackermann_msgs/msg/AckermannDriveStamped" in str(err.value)
     assert "mux.estop_topic, gamepad.topic" in str(err.value)
+
+
+def test_the_safety_controller_sweeps_the_steering_the_vesc_conversion_lets_the_car_drive():
+    """A calibrated servo offset clips full right to -0.222 rad: the daemon's safety controller
+    sweeps that, not the configured -0.26 (tests/test_safety_controller.py shows the difference)."""
+    import pytest
+
+    config = load_config(None, ["vesc.steering_angle_to_servo_offset=0.5804", *QUIET_NET])
+    right, left = Daemon(config).safety.controller.steering_range
+    assert right == pytest.approx((0.85 - 0.5804) / -1.2135) and left == pytest.approx(0.26)

@@ -630,6 +630,30 @@ def test_a_command_beyond_the_steering_limit_is_swept_along_the_arc_the_car_driv
     assert out.steering_angle == 0.6  # the command itself is left to the VESC's clamp
 
 
+def test_where_the_servo_limit_clips_a_side_the_arc_the_car_drives_is_swept() -> None:
+    """With the servo offset calibrated to 0.5804, full right (-0.26 rad) drives only -0.222 rad:
+    a post on that wider arc must cut the command, which the -0.26 rad sweep missed."""
+    from vesc.ackermann import AckermannConversion
+
+    steer = AckermannConversion(steering_angle_to_servo_offset=0.5804).steering_range()
+    assert steer[0] == pytest.approx(-0.2222, abs=1e-4)
+    radius = 0.25 / math.tan(0.2222)  # the rear axle's turning radius on the driven arc
+    angle = 0.55  # rad round the circle: about 0.6 m along the arc
+    x, y = radius * math.sin(angle), -radius * (1 - math.cos(angle))
+    post = [((x, y - 0.05), (x, y + 0.05))]
+    scan = ust10lx_scan(post)
+    symmetric = SafetyController(build(SafetyParams, {}, "safety"), steering_limit_rad=0.26)
+    clipped = SafetyController(build(SafetyParams, {}, "safety"), steering_limit_rad=steer)
+    for c in (symmetric, clipped):
+        c.on_scan(scan, now_ns=0)
+    _, missed = symmetric.limit(drive(3.0, -0.26), "nav", 0.0, now_ns=0)
+    out, seen = clipped.limit(drive(3.0, -0.26), "nav", 0.0, now_ns=0)
+    _, driven = clipped.limit(drive(3.0, steer[0]), "nav", 0.0, now_ns=0)
+    assert seen.free_distance == pytest.approx(driven.free_distance)
+    assert seen.free_distance < missed.free_distance
+    assert out.speed < 3.0 and seen.intervening
+
+
 def test_a_wall_in_view_and_in_the_memory_is_named_by_the_live_scan() -> None:
     """The remembered copy of a wall the lidar sees now may lie up to a cell's diagonal nearer (its
     cell's centre): the distance is the nearer one, the obstacle the live return."""

@@ -184,3 +184,13 @@ def test_odometry_messages():
     assert tf.transform.translation.y == odom.pose.y
     odom.reset()
     assert (odom.pose.x, odom.pose.y, odom.pose.yaw) == (0.0, 0.0, 0.0)
+
+
+def test_the_steering_range_is_what_the_servo_limits_let_the_car_drive():
+    """A calibrated servo offset of 0.5804 moves the centre toward servo_max: full right (-0.26 rad)
+    asks for servo 0.896, clamped to 0.85, which steers -0.222 rad; full left is unclipped."""
+    assert F1T.steering_range() == pytest.approx((-0.26, 0.26))
+    right, left = AckermannConversion(steering_angle_to_servo_offset=0.5804).steering_range()
+    assert right == pytest.approx((0.85 - 0.5804) / -1.2135) and left == pytest.approx(0.26)
+    inverted = AckermannConversion(steering_angle_to_servo_offset=0.5804, invert_servo=True)
+    assert inverted.steering_range() == pytest.approx((-0.26, (0.85 - 0.5804) / 1.2135))  # now left

@@ -112,6 +112,14 @@ class AckermannConversion:
             return 0.0
         return (erpm - self.speed_to_erpm_offset) / self.erpm_gain
 
+    def steering_range(self) -> tuple[float, float]:
+        """The steering angles (rad, right negative, left positive) the car drives at full right
+        and full left: ``steering_max_rad`` each way, unless ``servo_min``/``servo_max`` clip a side
+        further (a calibrated servo offset moves the centre toward one limit)."""
+        right = self.servo_to_steering(self.steering_to_servo(-self.steering_max_rad))
+        left = self.servo_to_steering(self.steering_to_servo(self.steering_max_rad))
+        return min(right, left, 0.0), max(right, left, 0.0)
+
     def servo_to_steering(self, servo: float) -> float:
         """Steering angle (rad, positive left) from a servo position: the inverse map."""
         if self.servo_gain == 0.0:
