@@ -50,6 +50,19 @@ def test_a_stop_is_zero_erpm_whatever_the_offset():
     assert conv.speed_to_erpm(1e-9) == 2000  # a crawl command keeps the formula
 
 
+def test_the_offset_never_reverses_a_command():
+    """-0.4 and -0.1 m/s with an offset of +2,000 ERPM would be +154 and +1,539 ERPM: forward, on
+    a path the safety controller never swept. They stand instead; beyond the offset they reverse."""
+    conv = AckermannConversion(speed_to_erpm_offset=2000.0)
+    assert conv.speed_to_erpm(-0.4) == 0 and conv.speed_to_erpm(-0.1) == 0
+    assert conv.speed_to_erpm(-1.0) == -4614 + 2000
+    assert conv.speed_to_erpm(0.1) == round(461.4 + 2000)
+    low = AckermannConversion(speed_to_erpm_offset=-2000.0)
+    assert low.speed_to_erpm(0.1) == 0 and low.speed_to_erpm(-0.1) == round(-461.4 - 2000)
+    inverted = AckermannConversion(speed_to_erpm_offset=2000.0, invert_motor=True)
+    assert inverted.speed_to_erpm(0.1) == 0 and inverted.speed_to_erpm(1.0) == -4614 + 2000
+
+
 def test_symmetric_si_limits_then_servo_clamp():
     assert F1T.speed_to_erpm(50.0) == round(4614 * 5.0)
     assert F1T.speed_to_erpm(-50.0) == -round(4614 * 5.0)

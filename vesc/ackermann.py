@@ -11,7 +11,9 @@ Speed is first clamped to +-speed_max_mps and the steering angle (rad, positive 
 [servo_min, servo_max] as a last guard for the mechanical stops. A speed of exactly 0 (a stop: the
 mux's e-stop, fault and idle outputs, a disarmed car) is 0 ERPM whatever the offset, and 0 ERPM reads
 back as 0 m/s: the ROS formula would send ``speed_to_erpm_offset`` (up to 10,000 ERPM) to a car that
-should stand, and a real VESC turns its motor at any non-zero set RPM. ``invert_motor`` and
+should stand, and a real VESC turns its motor at any non-zero set RPM. Nor does the offset reverse
+a command: where it would flip the sign of a small speed (-0.1 m/s with an offset of +2,000 ERPM
+would be +1,539 ERPM, forward), 0 ERPM is sent. ``invert_motor`` and
 ``invert_servo`` negate the respective gain. NaN or infinite input is refused with
 :class:`~racecar_hw.base.errors.LocalProtocolError`; the caller brakes instead.
 
@@ -86,7 +88,9 @@ class AckermannConversion:
         if speed == 0.0:
             return 0  # stand: never the offset alone
         v = min(max(speed, -self.speed_max_mps), self.speed_max_mps)
-        return round(self.erpm_gain * v + self.speed_to_erpm_offset)
+        base = self.erpm_gain * v
+        erpm = round(base + self.speed_to_erpm_offset)
+        return erpm if (erpm > 0) == (base > 0) else 0  # the offset never reverses the direction
 
     def steering_to_servo(self, angle: float) -> float:
         """Servo position for ``angle`` rad (positive left) after both limits; refuses NaN/inf."""
