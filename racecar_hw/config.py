@@ -180,6 +180,7 @@ def build_config(data: dict[str, Any]) -> Config:
     if config.dds.enabled:
         config.dds.validate("dds")
     _check_scan_timing(config)
+    _check_braking(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
     return config
@@ -336,6 +337,17 @@ def _check_scan_timing(config: Config) -> None:
         raise ConfigError("safety.scan_period_s", f"{safety.scan_period_s} s is shorter than an "
                           f"RPLIDAR's sweep ({lidar.model}, about 0.1 s): the stopping distance would "
                           "be underestimated; set safety.scan_period_s: 0.1")
+
+
+def _check_braking(config: Config) -> None:
+    """Refuse a mux limiter that brakes more gently than the safety controller counts on."""
+    mux, safety = config.mux, config.safety
+    if mux.limiter_enabled and safety.mode != "off" and mux.max_decel_mps2 < safety.max_decel_mps2:
+        raise ConfigError("mux.max_decel_mps2", f"{mux.max_decel_mps2} m/s^2 is below "
+                          f"safety.max_decel_mps2 ({safety.max_decel_mps2}): the safety controller's "
+                          "stopping distances assume the car brakes at that rate, and the limiter, "
+                          "which runs after it (and ramps down a timed-out input or a stale scan), "
+                          "would brake more gently; raise it, or lower safety.max_decel_mps2")
 
 
 def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),

@@ -75,6 +75,20 @@ def test_a_clash_only_the_components_see_is_reported_too(check_config):
     assert line.endswith("(from --set gamepad.topic=/estop)")
 
 
+@pytest.mark.parametrize(("setting", "key", "words"), [
+    ("mux.max_decel_mps2=0.05", "mux.max_decel_mps2", "is below safety.max_decel_mps2 (4.0)"),
+    ("vesc.brake_current_a=0", "vesc.brake_current_a", "out of range; allowed: 1.0 to 200.0")])
+def test_settings_that_would_let_the_car_brake_late_or_coast_are_refused(check_config, setting, key, words):
+    """A limiter braking at 0.05 m/s^2 still drove 1.51 m/s 10 s after its input went silent; a brake
+    current of 0 A releases the motor. The safety controller counts on neither."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {key}: ") and words in line, line
+    assert check_config("--set", setting, "--set", "safety.mode=off").returncode == (
+        0 if key.startswith("mux") else 1)
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")

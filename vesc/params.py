@@ -72,8 +72,9 @@ class VescParams:
     brake_mode: str = param("rpm", "how the driver brakes: 'rpm' sends SET_RPM 0 (speed loop holds "
                             "the wheels), 'current' sends SET_CURRENT_BRAKE brake_current_a",
                             choices=("rpm", "current"))
-    brake_current_a: float = param(20.0, "braking current when brake_mode is 'current'", unit="A",
-                                   min=0.0, max=200.0)
+    brake_current_a: float = param(20.0, "braking current when brake_mode is 'current' (at least "
+                                         "1 A: SET_CURRENT_BRAKE 0 releases the motor, the car coasts)",
+                                   unit="A", min=1.0, max=200.0)
     alive_interval_s: float = param(0.2, "while moving, send ALIVE when no motor command went out "
                                     "for this long (firmware timeout is 1 s)", unit="s",
                                     min=0.02, max=0.9)
