@@ -33,6 +33,7 @@ import numpy as np
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.messages import AckermannDrive, LaserScan
 from safety.arc import PathHit, SweptFootprint, free_distances, stopping_speed
+from safety.blind import blind_beams, blind_radius
 from safety.memory import ObstacleMemory, plausible_increment
 from safety.params import SafetyParams
 
@@ -42,8 +43,9 @@ log = logging.getLogger(__name__)
 REASONS = ("clear", "obstacle", "stale_scan", "no_scan", "bad_scan", "reverse_cap", "exempt", "off",
            "fault")
 
-#: Where the point that limits the path came from: the live scan or the obstacle memory.
-SOURCES = ("scan", "memory")
+#: Where the point that limits the path came from: the live scan, a blind sector of it (a run of
+#: unusable beams, :mod:`safety.blind`) or the obstacle memory.
+SOURCES = ("scan", "blind", "memory")
 
 #: Intervention entries kept in :attr:`SafetyController.events` (the oldest are dropped).
 MAX_EVENTS = 1000
@@ -132,8 +134,9 @@ def planar_transform(laser_to_base: LaserTransform) -> np.ndarray:
 class _CachedScan:
     """One scan, already reduced to its usable returns as base_link points.
 
-    ``x[:live]``, ``y[:live]`` are the scan's own returns, the rest remembered points; ``pose`` is
-    base_link in odom at the scan (None without odometry); ``remembered``: folded into the memory.
+    ``x[:live]``, ``y[:live]`` are the scan's own returns, the next ``blind`` the obstacles put on
+    its blind sectors' rays, the rest remembered points; ``pose`` is base_link in odom at the scan
+    (None without odometry); ``remembered``: folded into the memory.
     """
 
     x: np.ndarray
@@ -145,6 +148,7 @@ class _CachedScan:
     scan: LaserScan | None = None
     pose: Pose | None = None
     remembered: bool = False
+    blind: int = 0
 
 
 class _Hysteresis:
@@ -231,6 +235,8 @@ class SafetyController:
         self._dirs_key: tuple[float, float, int] | None = None
         self._dirs = np.zeros(0, dtype=np.complex128)
         self._origin = complex(self._to_base[0, 2], self._to_base[1, 2])  # the laser in base_link
+        fp_swept = self.footprint
+        self._blind_r = blind_radius(self._origin, fp_swept.front_m, fp_swept.rear_m, fp_swept.half_width_m)
         self._hyst = _Hysteresis(params.release_margin_mps, round(params.release_hold_s * NS_PER_S))
         self._exempt = set(params.exempt_sources)
         if params.exempt_teleop:
@@ -295,6 +301,11 @@ class SafetyController:
             z = z[((x < -body.rear_m) | (x > body.front_m) | (np.abs(y) > body.half_width_m)).nonzero()[0]]
         sweep = float(scan.scan_time) if 0.0 < scan.scan_time <= 1.0 else 0.0
         live = len(z)
+        # unusable beams ignored one by one, but a wide run of them is a sector the lidar is blind
+        # in: an obstacle on each of its rays just outside the body (safety.blind)
+        blind = blind_beams(at_least_min, scan.angle_increment) if usable else None
+        if blind is not None and blind.size:
+            z = np.concatenate((z, self._origin + self._blind_r * self._directions(scan, n)[blind]))
         memory = self.memory
         if memory is not None and pose is not None:
             remembered = memory.points()
@@ -304,7 +315,7 @@ class SafetyController:
                 turn = complex(math.cos(yaw), -math.sin(yaw))
                 z = np.concatenate((z, remembered * turn - complex(px, py) * turn))
         self._scan = _CachedScan(z.real, z.imag, now_ns, usable / n if n else 0.0, sweep, live, scan,
-                                 pose)
+                                 pose, blind=0 if blind is None else len(blind))
 
     def remember(self) -> None:
         """Fold the cached scan into the obstacle memory (once; nothing when the memory is off, or
@@ -464,8 +475,9 @@ class SafetyController:
             if (index >= scan.live and live.index >= 0
                     and live.distance_m <= hit.distance_m + self._memory_cell_m):
                 index = live.index
-            obstacle = Obstacle(float(scan.x[index]), float(scan.y[index]), hit.distance_m,
-                                "scan" if index < scan.live else "memory")
+            source = ("scan" if index < scan.live else "blind" if index < scan.live + scan.blind
+                      else "memory")
+            obstacle = Obstacle(float(scan.x[index]), float(scan.y[index]), hit.distance_m, source)
         if reverse and p.reverse_speed_cap_mps < allowed:
             return p.reverse_speed_cap_mps, hit.distance_m, obstacle, "reverse_cap"
         return allowed, hit.distance_m, obstacle, "obstacle"

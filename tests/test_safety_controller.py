@@ -687,3 +687,53 @@ def test_a_command_sweeps_the_path_once_with_the_memory_too(monkeypatch: pytest.
     out, state = c.limit(drive(3.0), "nav", 0.5, now)
     assert state.obstacle is not None and state.obstacle.source == "scan" and out.speed < 3.0
     assert c.memory_active and len(sweeps) == 1
+
+
+def _blinded(scan: LaserScan, half_width_rad: float, value: float) -> LaserScan:
+    """``scan`` with the beams within ``half_width_rad`` of straight ahead set to ``value``."""
+    angles = scan.angle_min + scan.angle_increment * np.arange(len(scan.ranges))
+    ranges = np.asarray(scan.ranges, dtype=np.float32).copy()
+    ranges[np.abs(angles) < half_width_rad] = value
+    return LaserScan(angle_min=scan.angle_min, angle_max=scan.angle_max, angle_increment=scan.angle_increment,
+                     time_increment=scan.time_increment, scan_time=scan.scan_time,
+                     range_min=scan.range_min, range_max=scan.range_max, ranges=ranges)
+
+
+@pytest.mark.parametrize("value", [math.nan, 0.01])  # a device fault; a hand or dust on the window
+def test_a_blind_sector_ahead_is_not_free_space(value: float) -> None:
+    """A wall 1.2 m ahead, then the front 103 degrees of the scan unusable (62 % of the beams still
+    usable, above min_valid_fraction): the car stops (it was allowed 4 m/s, "clear", before)."""
+    wall = ust10lx_scan(wall_ahead(1.2 + LASER_X))
+    c = controller(memory={"enabled": False})
+    c.on_scan(_blinded(wall, 0.9, value), now_ns=0)
+    out, state = c.limit(drive(4.0), "nav", 0.0, now_ns=0)
+    assert out.speed == 0.0 and state.reason == "obstacle" and state.obstacle.source == "blind"
+    # reversing away from it is not blocked by the blind sector ahead
+    fresh = controller(memory={"enabled": False})
+    fresh.on_scan(_blinded(wall, 0.9, value), now_ns=0)
+    assert fresh.limit(drive(-0.3), "nav", 0.0, now_ns=0)[0].speed == -0.3
+
+
+def test_single_unusable_beams_are_ignored_and_blind_points_are_not_remembered() -> None:
+    """Every fifth beam NaN (dropouts on a dark surface) changes nothing; a blind sector stops the
+    car, and once the lidar sees again nothing of it is left in the obstacle memory."""
+    empty = ust10lx_scan([])
+    holey = np.asarray(empty.ranges, dtype=np.float32).copy()
+    holey[::5] = np.nan
+    c = controller()
+    c.on_scan(LaserScan(angle_min=empty.angle_min, angle_max=empty.angle_max,
+                        angle_increment=empty.angle_increment, scan_time=empty.scan_time,
+                        range_min=empty.range_min, range_max=empty.range_max, ranges=holey), now_ns=0)
+    out, _ = c.limit(drive(4.0), "nav", 0.0, now_ns=0)
+    assert out.speed == 4.0
+    pose = (0.0, 0.0, 0.0)
+    c.on_scan(_blinded(empty, 0.9, math.nan), 25 * MS, pose)
+    c.remember()
+    assert c.limit(drive(4.0), "nav", 0.0, now_ns=25 * MS)[0].speed == 0.0
+    now = 25 * MS
+    while now < 500 * MS:  # past the intervention's release hold (0.3 s) with a clear view
+        now += 25 * MS
+        c.on_scan(empty, now, pose)
+        c.remember()
+        out, state = c.limit(drive(4.0), "nav", 0.0, now_ns=now)
+    assert out.speed == 4.0 and state.reason == "clear" and len(c.memory) == 0
