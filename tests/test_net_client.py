@@ -201,7 +201,10 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
                 assert scan.ranges.size == scan.angles.size == 1081
                 n += 1
                 car.drive(0.3, 0.0)
-                if n == 30:
+                # at least 30 scans, and on until the car moves: on a loaded machine the first
+                # commands can go out before the daemon has matched the client's publisher
+                latest = car.odom
+                if n >= 30 and (n >= 400 or (latest is not None and latest.speed > 0.05)):
                     break
             async for odom in car.odometry(timeout=5):
                 return n, odom.speed
@@ -214,7 +217,7 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
         report = sim.interrupt()
     finally:
         sim.kill()
-    assert n == 30 and 0.05 < speed < 0.4
+    assert 30 <= n < 400 and 0.05 < speed < 0.4
     assert "nav_0" in switches(report)
     assert math.isclose(report["final_speed_mps"], 0.0, abs_tol=0.02)
 
