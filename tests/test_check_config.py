@@ -89,6 +89,25 @@ def test_settings_that_would_let_the_car_brake_late_or_coast_are_refused(check_c
         0 if key.startswith("mux") else 1)
 
 
+@pytest.mark.parametrize(("content", "words"), [
+    (b"vesc:\n  port: /dev/ttyACM0 \xb5\n", "is not UTF-8 text (byte 0xb5 at offset 27)"),
+    (b"vesc: " + b"[" * 5000 + b"]" * 5000 + b"\n", "is not valid YAML: nested too deep"),
+    (b"vesc:\n  poll_rate_hz: " + b"9" * 5000 + b"\n", "is not valid YAML: Exceeds the limit"),
+    (b"vesc:\n  port: /dev/a\n  port: /dev/b\n", "line 3, column 3: found the key 'port' twice"),
+    (b"vesc:\n  port: [\n", "line 3, column 1: expected the node content")])
+def test_a_file_that_does_not_parse_is_one_line(tmp_path, check_config, content, words):
+    """Text that is not UTF-8, nesting too deep, an integer too long, a key given twice (PyYAML would
+    keep the last one silently) and a syntax error: one line each, with the file, no traceback."""
+    cfg = tmp_path / "car.yaml"
+    cfg.write_bytes(content)
+    proc = check_config(str(cfg))
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {cfg}") and words in line, line
+    deep = check_config("--set", "vesc.port=" + "[" * 3000)
+    assert deep.returncode == 1 and len(deep.stderr.splitlines()) == 1 and "nested too deep" in deep.stderr
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")

@@ -19,19 +19,56 @@ import yaml
 from racecar_hw.base.errors import ConfigError
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                duplicate = key in seen
+            except TypeError:  # an unhashable key: PyYAML's own error follows
+                break
+            if duplicate:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping", node.start_mark, f"found the key {key!r} twice",
+                    key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str, where: str) -> Any:
+    """``text`` parsed as YAML; a ConfigError in one line naming ``where`` and the line and column
+    for bad YAML, a key given twice, nesting too deep to parse or an integer too long to convert."""
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark
+        at = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        raise ConfigError("", f"{where} is not valid YAML: {at}{err.problem or err.context}") from None
+    except yaml.YAMLError as err:
+        raise ConfigError("", f"{where} is not valid YAML: {' '.join(str(err).split())}") from None
+    except RecursionError:
+        raise ConfigError("", f"{where} is not valid YAML: nested too deep") from None
+    except ValueError as err:  # int() of more than 4,300 digits
+        raise ConfigError("", f"{where} is not valid YAML: {err}") from None
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """The mapping in a YAML file; ConfigError for a missing file, bad YAML or a non-mapping."""
+    """The mapping in a YAML file; ConfigError for a missing or unreadable file, text that is not
+    UTF-8, bad YAML (:func:`parse_yaml`) or a non-mapping."""
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8")
     except FileNotFoundError as err:
         raise ConfigError("", f"config file not found: {p}") from err
     except OSError as err:
         raise ConfigError("", f"cannot read {p}: {err}") from err
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ConfigError("", f"{p} is not valid YAML: {err}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError("", f"{p} is not UTF-8 text (byte 0x{err.object[err.start]:02x} at offset "
+                              f"{err.start})") from None
+    data = parse_yaml(text, str(p))
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -44,8 +81,8 @@ def key_lines(path: str | Path) -> dict[tuple[str | int, ...], int]:
 
     Empty for a file that cannot be read or parsed (load_yaml reports that)."""
     try:
-        root = yaml.compose(Path(path).read_text())
-    except (OSError, yaml.YAMLError):
+        root = yaml.compose(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
         return {}
     out: dict[tuple[str | int, ...], int] = {}
 
@@ -103,9 +140,10 @@ def apply_override(data: dict[str, Any], assignment: str,
     if not sep or not key:
         raise ConfigError(assignment, "an override must look like section.key=value")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as err:
-        raise ConfigError(key, f"cannot parse value {raw!r}: {err}") from err
+        value = parse_yaml(raw, "the value") if raw.strip() else ""
+    except ConfigError as err:
+        shown = raw if len(raw) <= 60 else raw[:57] + "..."
+        raise ConfigError(key, f"cannot parse value {shown!r}: {err}") from None
     parts = key.split(".")
     node: Any = data
     default: Any = defaults
