@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.link import parse_host_port
 from racecar_hw.base.params import param
 
 #: Models racecar-hw drives, by family.
@@ -39,3 +41,12 @@ class LidarParams:
                                         "triggers a reconnect", unit="s", min=0.05)
     reconnect_backoff_min_s: float = param(0.1, "first reconnect delay", unit="s", min=0.01)
     reconnect_backoff_max_s: float = param(1.0, "longest reconnect delay", unit="s", min=0.05)
+
+    def __post_init__(self) -> None:
+        if self.tcp is not None:
+            try:
+                _, port = parse_host_port(self.tcp, default_port=1)  # no port: the driver's default
+            except ValueError as err:
+                raise ConfigError("tcp", str(err)) from None
+            if port == 0:
+                raise ConfigError("tcp", f"{self.tcp!r}: port 0 is no lidar's port")

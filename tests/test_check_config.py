@@ -108,6 +108,22 @@ def test_a_file_that_does_not_parse_is_one_line(tmp_path, check_config, content,
     assert deep.returncode == 1 and len(deep.stderr.splitlines()) == 1 and "nested too deep" in deep.stderr
 
 
+@pytest.mark.parametrize(("setting", "words"), [
+    ("lidar.tcp=127.0.0.1:99999",
+     "lidar.tcp: '127.0.0.1:99999': port '99999' is not a port number (0-65535)"),
+    ("lidar.tcp=host:-5", "lidar.tcp: 'host:-5': port '-5' is not a port number (0-65535)"),
+    ("lidar.tcp=10.0.0.1:0", "lidar.tcp: '10.0.0.1:0': port 0 is no lidar's port"),
+    ("vesc.servo_min=0.9", "vesc.servo_min: 0.9 is above servo_max 0.85")])
+def test_a_check_across_a_sections_keys_names_the_full_key_and_its_set(check_config, setting, words):
+    """A lidar port out of range passed check-config and then made the daemon log a traceback on
+    every reconnect; a section's own checks named their key without the section (``servo_min``)
+    and so could not point at the --set that caused them."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line == f"racecar-hw check-config: {words} (from --set {setting})", line
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")

@@ -358,7 +358,7 @@ class TcpLink(_ReceivingLink):
             raise DeviceTimeout(f"no answer from {self.name}") from err
         except ConnectionRefusedError as err:
             raise DeviceNotFound(f"nothing listens at {self.name}") from err
-        except OSError as err:
+        except (OSError, OverflowError, ValueError) as err:  # the last two: a port out of range
             raise DeviceIOError(f"cannot connect to {self.name}: {err}") from err
         self._transport = transport  # type: ignore[assignment]
         self._protocol = protocol
@@ -396,8 +396,10 @@ def parse_host_port(spec: str, default_port: int | None = None) -> tuple[str, in
         if default_port is None:
             raise ValueError(f"{spec!r} is not HOST:PORT")
         return spec, default_port
-    if not port.isdigit():
-        raise ValueError(f"{spec!r}: port {port!r} is not a number")
+    if not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"{spec!r}: port {port!r} is not a port number (0-65535)")
+    if not host.strip("[]"):
+        raise ValueError(f"{spec!r} names no host")
     return host.strip("[]"), int(port)
 
 

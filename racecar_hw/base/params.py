@@ -82,7 +82,9 @@ def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
         values[name] = _convert(hints[name], data[name], _join(key, name), f.metadata)
     try:
         return cls(**values)
-    except ConfigError:
+    except ConfigError as err:
+        if key and err.key in fields:  # a check of the dataclass's own naming its field alone
+            raise ConfigError(_join(key, err.key), str(err).removeprefix(f"{err.key}: ")) from None
         raise
     except (TypeError, ValueError) as err:
         raise ConfigError(key, str(err)) from err
