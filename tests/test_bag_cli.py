@@ -179,3 +179,20 @@ def test_info_says_the_real_tools_bags_are_complete(bag_fixtures, capsys):
             continue
         assert main(["bag", "info", str(bag)]) == 0, capsys.readouterr().err
         assert "complete:  yes" in capsys.readouterr().out, bag
+
+
+def test_info_of_a_bag_with_a_damaged_definition_is_one_printable_line(bag_fixtures, tmp_path, capsys):
+    """Five bytes of a message definition inside the real rosbag2 MCAP bag made NULs: bag info's
+    error was the reader's whole text, 25 lines with the NULs in them."""
+    bag = tmp_path / "cdr_test"
+    shutil.copytree(bag_fixtures / "ros2" / "mcap" / "cdr_test", bag)
+    for part in bag.iterdir():
+        part.chmod(0o644)
+    mcap = bag / "cdr_test_0.mcap"
+    data = mcap.read_bytes()
+    at = data.rindex(b"uint16 UINT16_CONST")  # the definition's copy in the summary
+    mcap.write_bytes(data[:at + 1] + b"\0" * 5 + data[at + 6:])
+    assert main(["bag", "info", str(bag)]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.rstrip("\n").isprintable()
+    assert err.startswith(f"racecar-hw bag: cannot read bag {bag}: ") and "Traceback" not in err

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from racecar_hw.bags.recover import BagState, inspect_bag, read_db, scan_mcap, scan_ros1
-from racecar_hw.bags.validate import guarded
+from racecar_hw.bags.validate import describe, guarded
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -122,7 +122,7 @@ def _from_reader(state: BagState) -> BagInfo:
             start = reader.start_time if has_messages else None
             end = reader.end_time - 1 if has_messages else None  # rosbags: one past the last
     except Exception as err:
-        raise BagError(f"cannot read bag {target}: {err}") from err
+        raise BagError(f"cannot read bag {target}: {describe(err)}") from err
     topics = [TopicSummary(t, types[t], n) for t, n in sorted(counts.items())]
     return BagInfo(state, topics, start, end)
 

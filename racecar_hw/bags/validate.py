@@ -72,7 +72,8 @@ def describe(err: BaseException) -> str:
     """A reader's exception as a one-line cause a user can act on."""
     if isinstance(err, MemoryError):
         return "it declares more data than fits in memory (damaged?)"
-    text = " ".join(str(err).split()) or "no details"
+    # one line of printable text: a damaged bag's bytes (NULs, control characters) can be in it
+    text = " ".join("".join(c if c.isprintable() else " " for c in str(err)).split()) or "no details"
     if len(text) > MAX_CAUSE_CHARS:
         text = text[:MAX_CAUSE_CHARS - 3] + "..."
     if isinstance(err, sqlite3.Error):
