@@ -196,3 +196,32 @@ def test_info_of_a_bag_with_a_damaged_definition_is_one_printable_line(bag_fixtu
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and err.rstrip("\n").isprintable()
     assert err.startswith(f"racecar-hw bag: cannot read bag {bag}: ") and "Traceback" not in err
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "ros1"])
+def test_a_recovery_stopped_midway_leaves_nothing_and_the_next_one_runs(tmp_path, capsys, monkeypatch, fmt):
+    """Ctrl-C while the recovered bag is written (KeyboardInterrupt from its third message): no
+    half-written bag at the output, which a later recover would refuse to overwrite and bag info
+    would call another interrupted recording; the bag itself is as it was; recovering again works."""
+    from racecar_hw.bags import recover
+
+    bag = write_bag(tmp_path, fmt, close=False)
+    target = bag.with_name(f"{bag.stem}.recovered.bag" if fmt == "ros1" else f"{bag.name}.recovered")
+    writer = recover.Ros1Writer if fmt == "ros1" else recover.Ros2Bag
+    write = writer.write
+    calls = []
+
+    def interrupted(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return write(self, *args, **kwargs)
+
+    monkeypatch.setattr(writer, "write", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        recover.recover_bag(bag)
+    assert not target.exists() and sorted(p.name for p in bag.parent.iterdir()) == [bag.name]
+    monkeypatch.setattr(writer, "write", write)
+    assert main(["bag", "recover", str(bag)]) == 0
+    assert f"recovered 5 messages into {target}" in capsys.readouterr().out
+    assert [c.drive.speed for c in load_commands(target, CMD)] == [0.0, 1.0, 2.0, 3.0, 4.0]

@@ -31,6 +31,7 @@ import sqlite3
 import struct
 import zlib
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -207,10 +208,29 @@ def _mcap_record(op: int, body: bytes, scan: McapScan) -> None:
         scan.messages.append((cid, log_time, body[22:]))
 
 
+@contextmanager
+def _staged(target: Path) -> Iterator[Path]:
+    """Where to write the recovered bag ``target`` (a file or a directory): in a hidden folder beside
+    it, renamed to ``target`` once the writing is done; on any exception, Ctrl-C included, the
+    folder is removed and ``target`` never appears half written (which a later recover would refuse
+    to overwrite, and which would look like another interrupted bag). The source bag is untouched."""
+    folder = target.parent / f".{target.name}.partial"
+    shutil.rmtree(folder, ignore_errors=True)  # an earlier attempt's, stopped before it could clean
+    try:
+        folder.mkdir(parents=True)
+    except OSError as err:
+        raise BagError(f"cannot write beside {target}: {err}") from err
+    try:
+        yield folder / target.name
+        (folder / target.name).rename(target)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
     scans = [scan_mcap(f.read_bytes()) for f in files]
     store = get_typestore(Stores.EMPTY)
-    with Ros2Bag(out, "mcap") as writer:
+    with _staged(out) as staging, Ros2Bag(staging, "mcap") as writer:
         conns = {}  # (topic, type, qos) -> connection, over every file
         count = 0
         for scan in scans:
@@ -466,7 +486,7 @@ def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
     scan = scan_ros1(data)
     if not check_ros1_index(data, scan):
         return RecoveryResult(file, len(scan.messages), True)
-    with Ros1Writer(out) as writer:
+    with _staged(out) as staging, Ros1Writer(staging) as writer:
         conns = {}
         for cid, f in scan.connections.items():
             latching = f.get("latching")
