@@ -56,6 +56,36 @@ def test_a_signal_stops_the_sim_and_keeps_its_results(tmp_path, stop):
     assert "{" not in out  # a short summary after the panel, not the whole JSON
 
 
+def test_a_second_ctrl_c_still_writes_the_report_without_the_plot(tmp_path):
+    """Ctrl-C twice (the second while the run stops): the report and the trajectory of the time
+    driven are still written, only the roll to rest and the plot are skipped; exit 0. (Before, the
+    second Ctrl-C aborted with nothing written.)"""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--duration", "120", "--no-status",
+         *set_args(*QUIET_NET), "--out", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        assert proc.stderr is not None
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "racecar-hw running" in line:
+                proc.send_signal(signal.SIGINT)
+            if "control summary" in line:  # the daemon is stopping: the second Ctrl-C
+                proc.send_signal(signal.SIGINT)
+                break
+        out, err = proc.communicate(timeout=60)
+    err = "".join(seen) + err
+    assert proc.returncode == 0, err
+    assert "the report without waiting for the car to stop or drawing the plot" in err
+    assert "Traceback" not in err
+    report = json.loads((tmp_path / "figure8.json").read_text())
+    assert report["interrupted"] is True and report["stop_reason"] == "SIGINT"
+    assert read_csv(report["trajectory_csv"]) and report["plot_png"] is None
+    assert not (tmp_path / "figure8.png").exists()
+    assert "plot:       none (a second Ctrl-C skipped it)" in out
+
+
 @pytest.mark.parametrize("value", ["-5", "0", "nan", "inf", "soon"])
 def test_duration_must_be_positive_and_finite(value, capsys):
     with pytest.raises(SystemExit) as exc:

@@ -235,7 +235,8 @@ def fleet_summary(report: dict[str, Any]) -> str:
 
 def outputs(report: dict[str, Any], report_path: Path) -> str:
     """Where each output of the run went: the report, the plot, the trajectory, any bag."""
-    lines = [f"report:     {report_path}", f"plot:       {report['plot_png']}",
+    plot = report["plot_png"] or "none (a second Ctrl-C skipped it)"
+    lines = [f"report:     {report_path}", f"plot:       {plot}",
              f"trajectory: {report['trajectory_csv']}"]
     lines += [f"bag:        {bag}" for bag in report.get("bags") or []]
     return "\n".join(lines)
@@ -293,13 +294,21 @@ def _clearance(report: dict[str, Any]) -> str:
 async def _run(loopback: Loopback | Fleet, stops: StopSignals) -> SimResult | None:
     """Run the scenario (one car's loopback, or a fleet of them); the first SIGINT/SIGTERM (or one
     ``stops`` noted before the loop ran) ends it as its duration would (brake, write the report for
-    the time driven), a second one stops at once (None)."""
+    the time driven), a second one hurries that (the report at once: no roll to rest, no plot), a
+    third stops at once (None: nothing written)."""
     loop = asyncio.get_running_loop()
     task = asyncio.ensure_future(loopback.run())
+    signals = 0
 
     def on_signal(sig: int) -> None:
-        if loopback.stop_reason == "duration":
+        nonlocal signals
+        signals += 1
+        if signals == 1 and loopback.stop_reason == "duration":
             loopback.request_stop(signal.Signals(sig).name)
+        elif signals <= 2:
+            print("racecar-hw sim: stopping: the report without waiting for the car to stop or "
+                  "drawing the plot; once more to abort with nothing written", file=sys.stderr, flush=True)
+            loopback.hurry()
         else:
             task.cancel()
 

@@ -267,6 +267,11 @@ class Fleet:
                 raise result
         return FleetReport(self, dict(zip(tasks, results, strict=True))).result()
 
+    def hurry(self) -> None:
+        """A second stop request, for every car (see :meth:`Loopback.hurry`)."""
+        for car in self.cars.values():
+            car.hurry()
+
     def request_stop(self, reason: str = "request") -> None:
         """End every car's run now (see :meth:`Loopback.request_stop`)."""
         if self.stop_reason == "duration":

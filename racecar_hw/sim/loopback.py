@@ -101,6 +101,8 @@ class Loopback:
         self._real_start: float | None = None  # real monotonic s when run() began
         #: why the run ended: "duration", or what interrupted it (request_stop)
         self.stop_reason = "duration"
+        #: a second stop request (hurry): the report without the roll to rest or the plot
+        self.hurried = False
         #: listeners whose configured port was taken, with where they listen instead
         self.moved_ports: list[tuple[Listener, str]] = []
 
@@ -239,11 +241,17 @@ class Loopback:
         if self._stop is not None:
             self._stop.set()
 
+    def hurry(self) -> None:
+        """A second stop request: stop if not stopping yet, then write the report at once, without
+        waiting for the car to roll to rest or drawing the plot (the trajectory CSV is written)."""
+        self.hurried = True
+        self.request_stop("hurry")
+
     async def _settle(self) -> None:
         """Let the car roll to rest after the daemon's final brake, for honest final numbers."""
         assert self.world is not None
         for _ in range(100):
-            if abs(self.world.speed) < 0.01:
+            if abs(self.world.speed) < 0.01 or self.hurried:
                 return
             await asyncio.sleep(0.02)
 

@@ -134,6 +134,10 @@ class RunReport:
             stem = run.scenario.name or "sim"
             csv_path = run.out_dir / f"{stem}-trajectory.csv"
             png_path = run.out_dir / f"{stem}.png"
+            if run.hurried:  # a second Ctrl-C: the numbers and the trajectory, not the picture
+                write_csv(csv_path, world.samples)
+                report["trajectory_csv"], result.trajectory_csv = str(csv_path), csv_path
+                return result
             # the plot is drawn by the run's plot worker (another process) while the CSV is written
             plot = (run.plotter or PlotWorker(None)).submit(
                 png_path, run.map, world.trajectory, run.intervention_marks, world.collisions,
