@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 from racecar_hw import __version__
 from racecar_hw.base.errors import RacecarError
-from racecar_hw.runtime.interrupts import INTERRUPTED, StopSignals
+from racecar_hw.runtime.interrupts import INTERRUPTED, STOP_SIGNALS, StopSignals
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = (
@@ -114,5 +114,17 @@ def _main(argv: Sequence[str] | None, stops: StopSignals) -> int:
         return 128 + signal.SIGPIPE
 
 
+def console() -> None:
+    """The ``racecar-hw`` console script (and ``python -m racecar_hw.cli``): :func:`main`, then the
+    exit with its status, a stop signal ignored from then on. The command has finished (its bag
+    closed, its report written); a second Ctrl-C during the interpreter's exit would otherwise meet
+    Python's own handler again and end the process as killed by SIGINT (status -2), not with the
+    command's status."""
+    code = main()
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -132,3 +132,29 @@ def test_a_stop_signal_after_the_banner_ends_fake_vesc_as_documented(tmp_path) -
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0 and "Traceback" not in err, err
     assert not link.exists()
+
+
+def test_ctrl_c_held_down_through_the_end_of_run_still_exits_0(tmp_path) -> None:
+    """SIGINT after SIGINT (every 3 ms) from the first until the process is gone: ``run`` stops
+    once, closes its ROS 1 bag and exits 0. The signals that came while the interpreter exited met
+    Python's own handler again and ended the process as killed by SIGINT (-2)."""
+    import time
+
+    cmd = [sys.executable, "-m", "racecar_hw.cli", "-v", "run", "--no-status",
+           *set_args(*QUIET_NET, "vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                     "recorder.enabled=true", f"recorder.path={tmp_path / 'rec'}", "recorder.format=ros1")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "racecar-hw running" in line:
+                break
+        while proc.poll() is None:
+            try:
+                proc.send_signal(signal.SIGINT)
+            except ProcessLookupError:
+                break
+            time.sleep(0.003)
+        proc.wait(timeout=60)
+    assert proc.returncode == 0
+    assert list((tmp_path / "rec").glob("*.bag"))  # the recording, closed

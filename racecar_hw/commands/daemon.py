@@ -91,7 +91,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     daemon = Daemon(config, status=status)
     if daemon.follower is not None:
         daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
-    with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+    with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
         code = asyncio.run(run_daemon(daemon, noted=stops))
     if daemon.drives_itself():  # a bag or the figure-8 was to drive: say so when it never could
         code = code or exit_if_undriven("run", daemon)

@@ -71,7 +71,7 @@ def cmd_follow(args: argparse.Namespace) -> int:
                   TimeRemainingColumn()) as bar:
         task = bar.add_task("bag", total=1.0)
         follower.progress = lambda fraction, eta: bar.update(task, completed=fraction)
-        with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+        with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
             code = asyncio.run(_follow(daemon, follower, stops))
     if daemon.arming.changes and not daemon.arming.armed:
         print(f"racecar-hw follow: stopped at {follower.published} commands: {daemon.arming.reason}")

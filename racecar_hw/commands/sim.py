@@ -174,7 +174,7 @@ def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plott
                         status=status, duration_s=args.duration,
                         until_replay_ends=bool(args.follow) and not given, lockstep=lockstep,
                         plotter=plotter)
-    with StopSignals() as stops:  # until the loop's handlers are in place: noted, handed to them
+    with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
         if lockstep:
             from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the option
 
@@ -206,7 +206,7 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
     fleet = Fleet(scenario, config_path=args.config, overrides=args.overrides, out_dir=out,
                   duration_s=args.duration, record_dir=args.record)
     speed = args.speed if args.speed is not None else 1.0
-    with StopSignals() as stops:
+    with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
         result = virtual.run(_run(fleet, stops), None if math.isinf(speed) else speed)
     if result is None:
         return INTERRUPTED

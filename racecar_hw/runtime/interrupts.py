@@ -54,13 +54,18 @@ def interrupt_on_stop_signals() -> Iterator[None]:
 class StopSignals:
     """SIGINT and SIGTERM noted (:attr:`noted`) from ``with`` on, raised after :meth:`interrupt`.
 
-    Leaving the block puts back the handlers found on entering it.
+    Leaving the block puts back the handlers found on entering it; with ``keep`` (a command that
+    runs until stopped, inside :func:`racecar_hw.cli.main`'s own block) it leaves its noting handler
+    in place instead, so that a second Ctrl-C while the command finishes (closing its bag, writing
+    its report) is noted, not raised as KeyboardInterrupt (exit 130, the report unwritten);
+    ``main``'s block puts back the process's own handlers when the command has returned.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, keep: bool = False) -> None:
         #: the first stop signal received, None while there was none
         self.noted: int | None = None
         self._raising = False
+        self._keep = keep
         self._previous: dict[int, object] = {}
 
     def __enter__(self) -> StopSignals:
@@ -68,6 +73,8 @@ class StopSignals:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        if self._keep:
+            return
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
 
