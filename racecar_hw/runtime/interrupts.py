@@ -78,6 +78,12 @@ class StopSignals:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
 
+    def handle_again(self) -> None:
+        """Take SIGINT and SIGTERM back (after an event loop's own handlers were removed: asyncio
+        then leaves Python's defaults, KeyboardInterrupt and death by SIGTERM, not ours)."""
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, self._handle)
+
     def interrupt(self) -> None:
         """From now on a stop signal raises KeyboardInterrupt; one noted before raises it at once."""
         self._raising = True

@@ -35,7 +35,8 @@ def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int],
     """``callback(signum)`` on SIGINT and SIGTERM in ``loop``; returns a function that removes them.
 
     ``noted``: the :class:`StopSignals` that covered the loop's start; a signal it noted is handed
-    to ``callback`` at once (as soon as the loop runs).
+    to ``callback`` at once (as soon as the loop runs), and it takes the signals back when the
+    handlers are removed.
     """
     for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, callback, sig)
@@ -45,6 +46,8 @@ def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int],
     def remove() -> None:
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
+        if noted is not None:
+            noted.handle_again()  # not Python's defaults, which asyncio leaves behind
 
     return remove
 
