@@ -182,7 +182,7 @@ def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plott
             result = virtual.run(_run(loopback, stops), None if math.isinf(speed) else speed)
         else:
             result = asyncio.run(_run(loopback, stops))
-    if result is None:  # a second signal: stopped at once, nothing written
+    if result is None:  # a third signal: stopped at once, nothing written
         return INTERRUPTED
     report = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
     # after the daemon has closed the status panel: a few lines, the whole report is in the file

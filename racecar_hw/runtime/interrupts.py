@@ -30,7 +30,7 @@ from types import FrameType
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 #: The exit status of a command stopped by SIGINT or SIGTERM before it could finish (as a shell
-#: reports a program stopped by Ctrl-C): during start-up, a one-shot command, a second signal to
+#: reports a program stopped by Ctrl-C): during start-up, a one-shot command, a third signal to
 #: ``sim``. Commands that serve until stopped exit 0 on a stop signal (their documented end).
 INTERRUPTED = 130
 
