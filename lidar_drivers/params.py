@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.link import parse_host_port
+from racecar_hw.base.memlink import is_memory
 from racecar_hw.base.params import param
 
 #: Models racecar-hw drives, by family.
@@ -43,7 +44,7 @@ class LidarParams:
     reconnect_backoff_max_s: float = param(1.0, "longest reconnect delay", unit="s", min=0.05)
 
     def __post_init__(self) -> None:
-        if self.tcp is not None:
+        if self.tcp is not None and not is_memory(self.tcp):  # mem://: a lockstep run's link
             try:
                 _, port = parse_host_port(self.tcp, default_port=1)  # no port: the driver's default
             except ValueError as err:
