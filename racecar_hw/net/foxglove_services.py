@@ -69,13 +69,24 @@ class TriggerServices:
             who = f"foxglove client {request.client_id}"
 
             def run() -> None:
+                if not done.set_running_or_notify_cancel():
+                    return  # the caller was told it failed (timed out): it must not happen later
                 try:
                     done.set_result(action(who))
                 except Exception as err:  # noqa: BLE001 - reported to the caller
                     done.set_exception(err)
 
             self.loop.call_soon_threadsafe(run)
-            success, message = done.result(SERVICE_TIMEOUT_S)
+            try:
+                success, message = done.result(SERVICE_TIMEOUT_S)
+            except concurrent.futures.TimeoutError:
+                if not done.cancel():  # it has just started: its answer comes at once
+                    success, message = done.result()
+                else:
+                    log.warning("foxglove: %s%s from %s: not done: the daemon was busy for %.0f s",
+                                SERVICE_PREFIX, name, who, SERVICE_TIMEOUT_S)
+                    raise TimeoutError(f"not done: the daemon was busy for {SERVICE_TIMEOUT_S:.0f} s; "
+                                       "nothing was changed, call again") from None
             log.info("foxglove: %s%s from %s: %s", SERVICE_PREFIX, name, who, message)
             if request.encoding == "json":
                 return json.dumps({"success": success, "message": message}).encode()
