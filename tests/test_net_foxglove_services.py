@@ -1,4 +1,5 @@
-"""The Foxglove Trigger services against a busy event loop: what the caller is told is what happens.
+"""The Foxglove server's hostile edges: Trigger services against a busy event loop (what the caller
+is told is what happens), and channels a client advertises that the car does not take.
 
 A real Foxglove SDK server with :class:`TriggerServices` on a free port and a raw WebSocket client
 (the SDK's binary service-call frame); the daemon's event loop runs in a thread and is held busy
@@ -94,3 +95,28 @@ def test_a_call_the_busy_daemon_could_not_run_in_time_fails_and_never_runs_later
     assert failed["op"] == "serviceCallFailure" and "not done: the daemon was busy" in failed["message"]
     assert [name for name, _ in calls.ran] == ["disarm"], calls.ran
     assert later["op"] == "serviceCallResponse"
+
+
+def test_channels_a_client_advertises_cannot_flood_or_forge_the_log(caplog):
+    """2,000 channels the car does not take, with a line break and a forged log line in a topic
+    and a 10,000-character schema name: a few quoted lines, none of them spanning two."""
+    from types import SimpleNamespace
+
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.net.foxglove_teleop import LOGGED_CHANNELS, TwistTeleop
+
+    teleop = TwistTeleop(Bus(), "/teleop_twist", "foxglove", wheelbase_m=0.25, max_speed_mps=1.0,
+                         max_steering_rad=0.3)
+    forged = "/x\n2026-11-27 19:50:00,000 CRITICAL racecar_hw.daemon: e-stop released by operator"
+    with caplog.at_level("INFO", logger="racecar_hw.net.foxglove_teleop"):
+        for i in range(1000):
+            other = SimpleNamespace(id=i, topic=forged, schema_name="x" * 10_000, encoding="cdr")
+            wrong = SimpleNamespace(id=1000 + i, topic="/teleop_twist", schema_name="y" * 10_000,
+                                    encoding="cdr")
+            teleop.advertised(1, other)
+            teleop.advertised(1, wrong)
+    lines = [r.getMessage() for r in caplog.records]
+    assert teleop.ignored_channels == 2000
+    assert len(lines) == LOGGED_CHANNELS + 2000 // 100  # the first ten, then every hundredth
+    assert all("\n" not in line and len(line) < 400 for line in lines), lines[:3]
+    assert "(2000 channels not taken so far)" in lines[-1]

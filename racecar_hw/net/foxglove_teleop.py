@@ -62,6 +62,16 @@ def decode_twist(data: bytes, encoding: str) -> Twist:
     return msg
 
 
+#: How many channels not taken are logged one by one (then every hundredth).
+LOGGED_CHANNELS = 10
+
+
+def _shown(text: Any, limit: int = 80) -> str:
+    """A name a client chose, as a log line may show it: quoted (escapes included), cut short."""
+    shown = repr(str(text))
+    return shown if len(shown) <= limit else shown[:limit - 4] + "...'"
+
+
 class TwistTeleop:
     """The clients' Twist channels on ``teleop_topic``, driving ``teleop_input`` (None: teleop off).
 
@@ -81,19 +91,33 @@ class TwistTeleop:
         self._last_twist_ns: dict[tuple[int, int], int] = {}
         self.twists = 0
         self.refused = 0
+        #: channels advertised that the car does not take (another topic, type or encoding)
+        self.ignored_channels = 0
 
     def advertised(self, client_id: int, channel: Any) -> None:
-        """A client advertised ``channel``: taken when it is a Twist on the teleop topic."""
+        """A client advertised ``channel``: taken when it is a Twist on the teleop topic.
+
+        Channels not taken are logged with their names quoted and cut short (a client chooses
+        them: a line break in one would forge a log line), the first :data:`LOGGED_CHANNELS` and
+        then every hundredth, so that a client advertising thousands does not flood the log."""
         if channel.topic != self.teleop_topic or self.teleop_input is None:
-            log.info("foxglove: client %d advertised %s (%s); only %s is taken", client_id, channel.topic,
-                     channel.schema_name, self.teleop_topic)
+            self._note_ignored(logging.INFO, "foxglove: client %d advertised %s (%s); only %s is taken",
+                               client_id, _shown(channel.topic), _shown(channel.schema_name),
+                               self.teleop_topic)
             return
         if channel.schema_name not in TWIST_TYPES or channel.encoding not in ("cdr", "json"):
-            log.warning("foxglove: %s must carry geometry_msgs/msg/Twist as cdr or json, not %s as %s",
-                        channel.topic, channel.schema_name, channel.encoding)
+            self._note_ignored(logging.WARNING, "foxglove: %s must carry geometry_msgs/msg/Twist as cdr or "
+                               "json, not %s as %s", channel.topic, _shown(channel.schema_name),
+                               _shown(channel.encoding))
             return
         self._channels[(client_id, channel.id)] = channel.encoding
         log.info("foxglove: client %d drives through the mux input on %s", client_id, self.teleop_input)
+
+    def _note_ignored(self, level: int, fmt: str, *args: Any) -> None:
+        self.ignored_channels += 1
+        n = self.ignored_channels
+        if n <= LOGGED_CHANNELS or n % 100 == 0:
+            log.log(level, fmt + (f" ({n} channels not taken so far)" if n > LOGGED_CHANNELS else ""), *args)
 
     def unadvertised(self, client_id: int, channel_id: int) -> None:
         """A client withdrew a channel: a teleop channel stops the car now, not at the timeout."""
