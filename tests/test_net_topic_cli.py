@@ -140,3 +140,25 @@ def test_a_wrong_type_is_refused_by_topic_pub_and_counted_by_the_daemon(tmp_path
     # rate-limited: the first at once, then summaries (one at shutdown), not 200 lines
     assert len(lines) <= 3
     assert re.search(r"of a wrong type|(\d+) in all", sim.log)
+
+
+@pytest.mark.parametrize(("msgtype", "values", "words"), [
+    ("sensor_msgs/msg/LaserScan", "{ranges: 5}", "is not a sensor_msgs/msg/LaserScan"),
+    ("std_msgs/msg/Header", "{stamp: {sec: 99999999999}}", "is not a std_msgs/msg/Header"),
+    ("std_msgs/msg/Header", "{stamp: {sec: .inf}}", "cannot convert float infinity to integer"),
+    ("sensor_msgs/msg/LaserScan", "{ranges: [1, 2], intensities: {a: 1}}",
+     "is not a sensor_msgs/msg/LaserScan")])
+def test_values_the_message_cannot_hold_are_one_clear_error_before_anything_is_sent(msgtype, values, words):
+    """An infinite integer, a number where an array goes, an integer past its range: a TopicError
+    naming the values and the type (they were tracebacks, after the Zenoh session was open).
+    Refused before the session is used: none is given."""
+    import argparse
+
+    from racecar_hw.commands.topic import MESSAGE_CLASSES, TopicError, _pub
+
+    if msgtype not in MESSAGE_CLASSES:
+        pytest.fail(f"{msgtype} is not publishable any more: pick another type for this test")
+    args = argparse.Namespace(topic="/x", type=msgtype, values=values, ros_distro="jazzy")
+    with pytest.raises(TopicError, match=re.escape(words)) as err:
+        _pub(None, 0, args)
+    assert "\n" not in str(err.value)

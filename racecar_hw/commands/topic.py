@@ -237,10 +237,11 @@ def _pub(session: Any, domain: int, args: argparse.Namespace) -> int:
     try:
         values = yaml.safe_load(args.values) or {}
         msg = from_plain(cls, values)
-    except (yaml.YAMLError, TypeError, ValueError) as err:
-        raise TopicError(f"{args.values!r} is not a {args.type}: {err}") from None
+        # the serializer checks what from_plain cannot: array lengths, integer ranges (struct)
+        payload = ros2_types().serialize(msg)
+    except Exception as err:  # noqa: BLE001 - whatever the values make the parser or serializer raise
+        raise TopicError(f"{args.values!r} is not a {args.type}: {' '.join(str(err).split())}") from None
     _check_pub_type(session, domain, args.topic, args.type)
-    payload = ros2_types().serialize(msg)
     type_hash = rmw.wire_type_hash(args.type, args.ros_distro)
     zid = str(session.zid())
     liveliness = session.liveliness()
