@@ -263,6 +263,10 @@ class _Stream(Generic[T]):
         self._raw: bytes | None = None  # the newest sample, not yet decoded
         self._raw_count = 0  # the count at that sample
         self._version = 0  # the count at the sample that gave ``_latest``
+        #: the client was closed: readers waiting, and any that come, get a ClientError
+        self.closed = False
+        #: called when the stream closes (an async reader's wake-up)
+        self.on_close: list[Callable[[], None]] = []
 
     @property
     def latest(self) -> T | None:
@@ -304,13 +308,25 @@ class _Stream(Generic[T]):
         for callback in list(self.callbacks):
             callback(value)
 
+    def close(self) -> None:
+        """Wake every reader with a ClientError (the client closed); later reads get it at once."""
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+        for wake in list(self.on_close):
+            wake()
+
     def wait_newer(self, seen: int, timeout: float | None) -> tuple[T, int]:
-        """The newest value once the count passed ``seen``; ClientError after ``timeout`` s."""
+        """The newest value once the count passed ``seen``; ClientError after ``timeout`` s, or
+        once the client is closed."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
             while True:
                 left = None if deadline is None else max(0.0, deadline - time.monotonic())
-                if not self._cond.wait_for(lambda s=seen: self.count > s, left):
+                arrived = self._cond.wait_for(lambda s=seen: self.count > s or self.closed, left)
+                if self.closed:
+                    raise ClientError("the client is closed")
+                if not arrived:
                     raise ClientError(f"nothing received for {timeout:g} s: is the daemon running and "
                                       "reachable, with the same domain id and namespace?")
                 value = self._take()
@@ -518,6 +534,7 @@ class Car(_SimTime, _EstopControls):
         self._pubs: dict[str, tuple[Any, rmw.SampleStamps]] = {}
         self._lock = threading.Lock()
         self._closed = False
+        self._streams: list[_Stream[Any]] = []  # closed with the client: their readers wake
         self.scan_stream: _Stream[Scan] = self._subscribe("/scan", LaserScan, _scan, SENSOR_DATA)
         self.odom_stream: _Stream[Odom] = self._subscribe("/odom", Odometry, _odom, DEFAULT)
         self.safety_stream: _Stream[SafetyState] = self._subscribe(safety.state_topic, DiagnosticArray,
@@ -550,6 +567,7 @@ class Car(_SimTime, _EstopControls):
             return convert(deserialize(raw, msgtype))
 
         stream: _Stream[T] = _Stream(decode, shared)
+        self._streams.append(stream)
 
         def on_sample(sample: Any) -> None:
             hold_thread_state()
@@ -667,6 +685,8 @@ class Car(_SimTime, _EstopControls):
             if self._closed:
                 return
             self._closed = True
+        for stream in self._streams:
+            stream.close()
         self.node.close()
         if self._own_session:
             with contextlib.suppress(Exception):
@@ -709,16 +729,35 @@ class AsyncCar:
             with contextlib.suppress(RuntimeError):  # the loop closed
                 loop.call_soon_threadsafe(put, value)
 
+        closed = asyncio.Event()
+
+        def wake() -> None:
+            with contextlib.suppress(RuntimeError):  # the loop closed
+                loop.call_soon_threadsafe(closed.set)
+
         stream.callbacks.append(callback)
+        stream.on_close.append(wake)
         try:
             while True:
+                if stream.closed:
+                    raise ClientError("the client is closed")
+                getter, closing = asyncio.ensure_future(box.get()), asyncio.ensure_future(closed.wait())
                 try:
-                    yield await asyncio.wait_for(box.get(), timeout)
-                except asyncio.TimeoutError:
+                    await asyncio.wait((getter, closing), timeout=timeout,
+                                       return_when=asyncio.FIRST_COMPLETED)
+                finally:  # also when the reader is cancelled: no task left pending
+                    closing.cancel()
+                    if not getter.done():
+                        getter.cancel()
+                if not getter.done() or getter.cancelled():
+                    if closed.is_set():
+                        raise ClientError("the client is closed")
                     raise ClientError(f"nothing received for {timeout:g} s: is the daemon running and "
-                                      "reachable?") from None
+                                      "reachable?")
+                yield getter.result()
         finally:
             stream.callbacks.remove(callback)
+            stream.on_close.remove(wake)
 
     def scans(self, timeout: float | None = 5.0) -> AsyncIterator[Scan]:
         """Scans as they arrive (the newest when the loop gets to it)."""

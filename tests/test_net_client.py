@@ -367,3 +367,45 @@ def test_the_mux_status_is_not_hidden_by_other_components_diagnostics():
     stream.push_raw(array(MUX_STATUS_NAME, "running"))
     stream.push_raw(array("racecar_hw: control loop", "whatever"))
     assert stream.wait_newer(seen, timeout=1.0)[0].state == "running"
+
+
+def test_closing_the_client_wakes_every_reader_with_a_clear_error():
+    """A thread waiting for a scan with no timeout, and an async reader, when another thread closes
+    the car: both get ClientError("the client is closed") instead of waiting forever; a read after
+    close gets it at once. The car's peer is a bare Zenoh session: no daemon needed."""
+    import zenoh
+
+    from racecar_hw.net.zenoh_config import session_config
+
+    port = free_port()
+    peer = zenoh.open(session_config("peer", [f"tcp/127.0.0.1:{port}"], []))
+    errors: list[BaseException] = []
+
+    async def main() -> str:
+        car = AsyncCar(f"tcp/127.0.0.1:{port}", mode="peer")
+
+        def wait_forever() -> None:
+            try:
+                car.next_scan(timeout=None)  # the blocking Car method, in a thread
+            except ClientError as err:
+                errors.append(err)
+
+        reader = threading.Thread(target=wait_forever, daemon=True)
+        reader.start()
+        threading.Timer(0.3, car.car.close).start()  # another thread closes the car
+        try:
+            async for _ in car.scans(timeout=None):
+                pass
+        except ClientError as err:
+            reader.join(30)
+            assert not reader.is_alive()
+            with pytest.raises(ClientError, match="the client is closed"):
+                car.next_scan(timeout=None)
+            return str(err)
+        return "ended without an error"
+
+    try:
+        assert asyncio.run(asyncio.wait_for(main(), 30)) == "the client is closed"
+    finally:
+        peer.close()
+    assert [str(e) for e in errors] == ["the client is closed"]
