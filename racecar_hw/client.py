@@ -671,6 +671,8 @@ class Car(_SimTime, _EstopControls):
 
     def twist(self, linear: float, angular: float, topic: str = "/cmd_vel") -> None:
         """Send a geometry_msgs/Twist (m/s, rad/s) as Nav2 would, to the daemon's /cmd_vel."""
+        if not (math.isfinite(linear) and math.isfinite(angular)):  # as drive(): the daemon drops it
+            raise ValueError(f"linear and angular must be finite, got {linear!r}, {angular!r}")
         self.publish(topic, Twist(Vector3(x=float(linear)), Vector3(z=float(angular))))
 
     def stop(self, input: str | None = None) -> None:  # noqa: A002

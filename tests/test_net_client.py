@@ -401,6 +401,8 @@ def test_closing_the_client_wakes_every_reader_with_a_clear_error():
             assert not reader.is_alive()
             with pytest.raises(ClientError, match="the client is closed"):
                 car.next_scan(timeout=None)
+            with pytest.raises(ValueError, match="must be finite"):  # checked before anything is sent
+                car.twist(math.nan, 0.0)
             return str(err)
         return "ended without an error"
 
