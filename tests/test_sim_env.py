@@ -154,6 +154,14 @@ def test_refusals():
                 env.step(bad)
         with pytest.raises(ValueError, match="poses"):
             env.reset(options={"poses": [[0.0, 0.0, 0.0]]})
+        # a bad seed or scenario is refused before the running episode ends: it steps on
+        before = env.steps
+        for bad_seed in (-1, 1.5, True):
+            with pytest.raises(ValueError, match="seed must be a non-negative integer"):
+                env.reset(seed=bad_seed)
+        with pytest.raises(ConfigError):
+            env.reset("no-such-scenario")
+        assert env.step((0.5, 0.0))[4]["steps"] == before + 1
         assert clock.is_virtual()
     assert not clock.is_virtual()  # closed: the real clock is back
     env.close()  # twice is fine

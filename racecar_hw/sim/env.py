@@ -146,12 +146,15 @@ class RaceEnv:
         if set(options) - {"scenario"}:
             raise ValueError(f"unknown reset options {sorted(set(options) - {'scenario'})}; "
                              "the one option is 'scenario'")
+        # the arguments first: a bad one leaves the running episode as it is
+        sc = self._scenario(scenario if scenario is not None else self.scenario)
+        if seed is not None:
+            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+                raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+            sc = dataclasses.replace(sc, world=dataclasses.replace(sc.world, seed=int(seed)))
         self._end_episode()
         self.loop.run_until_time(self.loop.now_ns())  # what the teardown left to do at this instant
         self.loop.rewind()  # every episode from the same virtual time: the same seed, the same run
-        sc = self._scenario(scenario if scenario is not None else self.scenario)
-        if seed is not None:
-            sc = dataclasses.replace(sc, world=dataclasses.replace(sc.world, seed=int(seed)))
         episode = Episode(self.loop, sc, config_path=self.config_path, overrides=self.overrides,
                           car_name=self.car_name, mux_input=self.mux_input, lap_centre=self.lap_centre)
         episode.start()  # raises what refused the scenario; then nothing of it runs
