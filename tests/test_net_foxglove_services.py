@@ -120,3 +120,27 @@ def test_channels_a_client_advertises_cannot_flood_or_forge_the_log(caplog):
     assert len(lines) == LOGGED_CHANNELS + 2000 // 100  # the first ten, then every hundredth
     assert all("\n" not in line and len(line) < 400 for line in lines), lines[:3]
     assert "(2000 channels not taken so far)" in lines[-1]
+
+
+def test_a_client_cannot_multiply_its_twist_rate_with_more_channels():
+    """200 Teleop channels of one client, a Twist on each at one instant (virtual time: the same
+    instant however loaded the machine is): one is taken, 199 refused. Per channel, all 200 were
+    taken (40,000 a second from one client in a review, the car driving on for seconds after)."""
+    from types import SimpleNamespace
+
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.net.foxglove_teleop import TwistTeleop
+    from racecar_hw.runtime import lockstep
+
+    async def scenario() -> tuple[int, int]:
+        teleop = TwistTeleop(Bus(), "/teleop_twist", "foxglove", wheelbase_m=0.25, max_speed_mps=1.0,
+                             max_steering_rad=0.3)
+        teleop.loop = asyncio.get_running_loop()
+        for i in range(200):
+            teleop.advertised(7, SimpleNamespace(id=i, topic="/teleop_twist",
+                                                 schema_name="geometry_msgs/msg/Twist", encoding="json"))
+        for i in range(200):
+            teleop.message(7, i, b'{"linear": {"x": 0.5}, "angular": {"z": 0.0}}')
+        return teleop.twists, teleop.refused
+
+    assert lockstep.run(scenario()) == (1, 199)

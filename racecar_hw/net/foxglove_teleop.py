@@ -3,8 +3,9 @@
 A client advertises ``geometry_msgs/msg/Twist`` (``cdr`` or ``json``) on ``teleop_topic``; each
 Twist (m/s forward, rad/s yaw rate) is converted with the wheelbase into an Ackermann command
 (m/s, rad + left) and published on the mux input, whose short timeout stops the car when the tab
-closes or the Wi-Fi drops. Twists closer together than :data:`MIN_TWIST_INTERVAL_NS` per client
-channel, and bytes that are no Twist, are refused and counted. Called from the SDK's threads; the
+closes or the Wi-Fi drops. Twists closer together than :data:`MIN_TWIST_INTERVAL_NS` from one
+client, over all its channels (200 channels of one client no longer make 200 times the rate), and
+bytes that are no Twist, are refused and counted. Called from the SDK's threads; the
 command is published from the event loop (``call_soon_threadsafe``).
 """
 
@@ -24,8 +25,8 @@ from racecar_hw.rosmsg.typestore import ros2_types
 log = logging.getLogger(__name__)
 
 TWIST_TYPES = ("geometry_msgs/msg/Twist", "geometry_msgs/Twist")
-#: Twists closer together than this (per client channel) are dropped: a flooding client cannot load
-#: the control loop (the Teleop panel sends 10 Hz, at most tens).
+#: Twists closer together than this from one client (over all its channels) are dropped: a flooding
+#: client cannot load the control loop (the Teleop panel sends 10 Hz, at most tens).
 MIN_TWIST_INTERVAL_NS = 5_000_000
 
 
@@ -88,7 +89,7 @@ class TwistTeleop:
         self.max_steering_rad = max_steering_rad
         self.loop: asyncio.AbstractEventLoop | None = None
         self._channels: dict[tuple[int, int], str] = {}  # (client, channel) -> encoding
-        self._last_twist_ns: dict[tuple[int, int], int] = {}
+        self._last_twist_ns: dict[int, int] = {}  # client -> its last Twist taken (monotonic ns)
         self.twists = 0
         self.refused = 0
         #: channels advertised that the car does not take (another topic, type or encoding)
@@ -121,8 +122,10 @@ class TwistTeleop:
 
     def unadvertised(self, client_id: int, channel_id: int) -> None:
         """A client withdrew a channel: a teleop channel stops the car now, not at the timeout."""
-        self._last_twist_ns.pop((client_id, channel_id), None)
-        if self._channels.pop((client_id, channel_id), None) is not None and self.loop is not None:
+        taken = self._channels.pop((client_id, channel_id), None)
+        if not any(client == client_id for client, _ in self._channels):
+            self._last_twist_ns.pop(client_id, None)
+        if taken is not None and self.loop is not None:
             self.loop.call_soon_threadsafe(self._drive, AckermannDrive())
 
     def message(self, client_id: int, channel_id: int, data: bytes) -> None:
@@ -132,10 +135,10 @@ class TwistTeleop:
         if encoding is None or self.loop is None:
             return
         now = monotonic_ns()
-        if now - self._last_twist_ns.get(key, 0) < MIN_TWIST_INTERVAL_NS:
+        if now - self._last_twist_ns.get(client_id, 0) < MIN_TWIST_INTERVAL_NS:
             self.refused += 1
             return
-        self._last_twist_ns[key] = now
+        self._last_twist_ns[client_id] = now
         try:
             twist = decode_twist(data, encoding)
         except Exception as err:  # noqa: BLE001 - a client's bad bytes: refused, counted, logged
