@@ -111,6 +111,9 @@ def test_a_wrong_type_is_refused_by_topic_pub_and_counted_by_the_daemon(tmp_path
             ros_type = "ackermann_msgs/msg/AckermannDrive"
             key = rmw.topic_key(0, topic, ros_type, rmw.type_hash(ros_type))
             publisher = session.declare_publisher(key)
+            # a type name that would forge a log line and repaint the terminal, if logged as sent
+            head, _, hash_ = key.rpartition("/")
+            forger = session.declare_publisher(f"{head.rpartition('/')[0]}/evil\nFORGED line\x1b[2J_/{hash_}")
             from racecar_hw.base.messages import AckermannDrive
             from racecar_hw.rosmsg.typestore import ros2_types
 
@@ -120,8 +123,10 @@ def test_a_wrong_type_is_refused_by_topic_pub_and_counted_by_the_daemon(tmp_path
             while time.monotonic() < deadline and sent < 200:  # until the daemon's guard matched
                 sent += 1
                 publisher.put(payload, attachment=rmw.encode_attachment(sent, time.time_ns(), bytes(16)))
+                forger.put(payload, attachment=rmw.encode_attachment(sent, time.time_ns(), bytes(16)))
                 time.sleep(0.02)
             publisher.undeclare()
+            forger.undeclare()
         finally:
             session.close()
         sim.interrupt()
@@ -133,10 +138,13 @@ def test_a_wrong_type_is_refused_by_topic_pub_and_counted_by_the_daemon(tmp_path
     assert f"{topic} takes ackermann_msgs/msg/AckermannDriveStamped" in wrong.stderr
     assert "not ackermann_msgs/msg/AckermannDrive" in wrong.stderr
     assert right.returncode == 0, right.stderr
-    lines = [line for line in sim.log.splitlines() if "wrong type" in line]
+    lines = [line for line in sim.log.splitlines() if "wrong type ackermann_msgs" in line]
     assert lines, sim.log[-3000:]
     assert (f"zenoh: refused {topic}: wrong type ackermann_msgs/msg/AckermannDrive (it takes "
             f"ackermann_msgs/msg/AckermannDriveStamped)") in lines[0]
+    # the forger's type name is logged on the refusal's own line, its newline and escape blanked
+    assert "wrong type evil FORGED line [2J_" in sim.log, sim.log[-3000:]
+    assert "\x1b" not in sim.log and not any(line.startswith("FORGED") for line in sim.log.splitlines())
     # rate-limited: the first at once, then summaries (one at shutdown), not 200 lines
     assert len(lines) <= 3
     assert re.search(r"of a wrong type|(\d+) in all", sim.log)

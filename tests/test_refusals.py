@@ -94,3 +94,16 @@ def test_reasons_per_source_are_bounded_and_cut_short():
     assert refusals.total() == 1002
     assert all(len(reason) <= MAX_REASON_CHARS for _, _, reason in by)
     assert ("zenoh", "/drive", "y" * (MAX_REASON_CHARS - 1) + "\u2026") in by
+
+
+def test_sources_and_reasons_are_logged_as_one_printable_line(caplog):
+    """A sender's text in a reason (a Zenoh type name) forges no log line and paints no terminal."""
+    refusals = Refusals(10.0, clock=_Clock())
+    with caplog.at_level(logging.WARNING, logger="racecar_hw.refusals"):
+        refusals.note("zenoh", "/cmd_vel\r\nFORGED", "wrong type evil\nERROR forged line\x1b[2J (it takes T)")
+    (record,) = caplog.records
+    text = record.getMessage()
+    assert "\n" not in text and "\r" not in text and "\x1b" not in text
+    assert "refused /cmd_vel FORGED: wrong type evil ERROR forged line [2J (it takes T)" in text
+    reason = "wrong type evil ERROR forged line [2J (it takes T)"
+    assert refusals.by_source() == {("zenoh", "/cmd_vel FORGED", reason): 1}

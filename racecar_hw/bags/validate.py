@@ -41,6 +41,7 @@ from typing import IO, Any, Protocol, TypeVar
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
 from racecar_hw.base.messages import AckermannDrive
+from racecar_hw.base.text import one_line
 
 #: The largest record (a message, or a chunk of messages) read from a bag, in bytes. A drive
 #: command is under 100 bytes; a chunk of a recording with camera images can reach a few MB.
@@ -73,9 +74,7 @@ def describe(err: BaseException) -> str:
     if isinstance(err, MemoryError):
         return "it declares more data than fits in memory (damaged?)"
     # one line of printable text: a damaged bag's bytes (NULs, control characters) can be in it
-    text = " ".join("".join(c if c.isprintable() else " " for c in str(err)).split()) or "no details"
-    if len(text) > MAX_CAUSE_CHARS:
-        text = text[:MAX_CAUSE_CHARS - 3] + "..."
+    text = one_line(err, MAX_CAUSE_CHARS) or "no details"
     if isinstance(err, sqlite3.Error):
         return f"its sqlite3 storage is damaged ({text})"
     name = type(err).__name__

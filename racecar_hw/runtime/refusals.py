@@ -12,7 +12,9 @@ a dictionary update. The number of distinct sources is bounded (``max_sources``)
 sources are counted under ``"other sources"``, so spoofed addresses cannot grow memory. So is the
 number of reasons per source (``max_reasons``, beyond it ``"other reasons"``) and a reason's length
 (:data:`MAX_REASON_CHARS`): a reason may quote what the sender sent (a Zenoh sample's type name and
-hash), and a sender varying it must not grow the counts, the log or ``/diagnostics`` either.
+hash), and a sender varying it must not grow the counts, the log or ``/diagnostics`` either. Sources
+and reasons are logged as one line of printable text (:func:`racecar_hw.base.text.one_line`): a
+newline or a terminal escape in a sender's type name forges no log line.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
+from racecar_hw.base.text import one_line
 
 log = logging.getLogger("racecar_hw.refusals")
 
@@ -32,6 +35,8 @@ OTHER_SOURCES = "other sources"
 OTHER_REASONS = "other reasons"
 #: Longer reasons are cut to this many characters (the last one an ellipsis).
 MAX_REASON_CHARS = 160
+#: Longer sources are cut to this many characters (the last one an ellipsis).
+MAX_SOURCE_CHARS = 120
 
 
 @dataclass
@@ -68,8 +73,7 @@ class Refusals:
         """Count ``count`` refusals; log a line if this pair has not spoken for ``interval_s``."""
         now = self._clock()
         line: tuple[str, str, str, int, int, int | None] | None = None
-        if len(reason) > MAX_REASON_CHARS:
-            reason = reason[:MAX_REASON_CHARS - 1] + "\u2026"
+        source, reason = one_line(source, MAX_SOURCE_CHARS), one_line(reason, MAX_REASON_CHARS)
         with self._lock:
             if (surface, source) not in self._sources:
                 if len(self._sources) >= self.max_sources:
