@@ -180,6 +180,64 @@ def test_standard_nodes_resync_after_garbage_and_a_bad_check_bit():
     assert dist[100] not in d[95:105]
 
 
+def _relock_by_byte(data: bytes) -> int | None:
+    """The re-lock's definition, one start offset at a time: the first offset followed by
+    NODE_RESYNC_RUN plausible nodes with small angle steps (None: none in ``data``)."""
+    from lidar_drivers.rplidar_codec import NODE_LEN, NODE_RESYNC_MAX_STEP_DEG, NODE_RESYNC_RUN
+
+    for start in range(len(data) - NODE_RESYNC_RUN * NODE_LEN + 1):
+        nodes = [data[start + k * NODE_LEN:start + (k + 1) * NODE_LEN] for k in range(NODE_RESYNC_RUN)]
+        angles = [((n[1] | n[2] << 8) >> 1) for n in nodes]
+        plausible = all(((n[0] >> 1 ^ n[0]) & 1) and n[1] & 1 and a < 360 * 64
+                        for n, a in zip(nodes, angles, strict=True))
+        steps = [(b - a) / 64.0 % 360.0 for a, b in zip(angles, angles[1:], strict=False)]
+        if plausible and all(step < NODE_RESYNC_MAX_STEP_DEG for step in steps):
+            return start
+    return None
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=120), st.integers(0, 60))
+def test_node_relock_takes_the_first_offset_a_byte_by_byte_search_would(noise, at):
+    """The re-lock tries every offset at once (line noise must not cost the event loop a numpy
+    call per byte); it locks where the byte-by-byte definition does, or keeps only a tail."""
+    from lidar_drivers.rplidar_codec import NODE_LEN, NODE_RESYNC_RUN
+
+    good, _, _ = _node_stream(8)
+    data = noise[:at] + good + noise[at:]
+    client = RplidarClient()
+    client.send(Request.simple(Command.SCAN))
+    feed(client, encode_scan_descriptor(False))
+    client._buf[:] = data
+    client._node_locked = False
+    locked = client._relock_nodes()
+    expected = _relock_by_byte(data)
+    assert expected is not None  # the good nodes are in there
+    assert locked and client.stats.garbage_bytes == expected and bytes(client._buf) == data[expected:]
+    tail = noise[:NODE_RESYNC_RUN * NODE_LEN + 20]
+    client = RplidarClient()
+    client.send(Request.simple(Command.SCAN))
+    feed(client, encode_scan_descriptor(False))
+    client._buf[:] = tail
+    client._node_locked = False
+    found = _relock_by_byte(tail)
+    assert client._relock_nodes() == (found is not None)
+    kept = tail[found:] if found is not None else tail[max(len(tail) - NODE_RESYNC_RUN * NODE_LEN + 1, 0):]
+    assert bytes(client._buf) == kept
+
+
+def test_a_long_burst_of_line_noise_is_skipped_in_one_search():
+    """64 KiB of noise in the node stream, then nodes: they decode, the noise counted as garbage."""
+    data, _, dist = _node_stream(40)
+    noise = np.random.default_rng(1).integers(0, 256, 65536, dtype=np.uint8).tobytes()
+    client = RplidarClient()
+    client.send(Request.simple(Command.SCAN))
+    feed(client, encode_scan_descriptor(False) + data[:50])
+    _, d, _ = samples(feed(client, noise + data[50:]))
+    assert client.stats.garbage_bytes >= 65536 - 40 and client.stats.resyncs >= 1
+    np.testing.assert_array_equal(d[-20:], dist[-20:])
+
+
 # --- express scan ------------------------------------------------------------------------------
 
 
