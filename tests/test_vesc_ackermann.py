@@ -84,6 +84,21 @@ def test_non_finite_input_is_refused(bad):
         F1T.to_vesc(AckermannDrive(steering_angle=bad))
 
 
+def test_numpy_scalars_convert_as_floats_and_non_numbers_are_refused():
+    """Code on numpy (float32 fields of a decoded message) drives as with Python floats."""
+    import numpy as np
+
+    want = F1T.to_vesc(AckermannDrive(speed=1.5, steering_angle=0.25))
+    got = F1T.to_vesc(AckermannDrive(speed=np.float32(1.5), steering_angle=np.float32(0.25)))
+    assert got.erpm == want.erpm and type(got.erpm) is int
+    assert type(got.servo) is float and got.servo == pytest.approx(want.servo, abs=1e-6)
+    for bad in ("fast", None, [1.0]):
+        with pytest.raises(LocalProtocolError, match="not a number"):
+            F1T.to_vesc(AckermannDrive(speed=bad))  # type: ignore[arg-type]
+        with pytest.raises(LocalProtocolError, match="not a number"):
+            F1T.to_vesc(AckermannDrive(steering_angle=bad))  # type: ignore[arg-type]
+
+
 def test_invert_flags():
     inv = AckermannConversion(invert_motor=True, invert_servo=True)
     assert inv.speed_to_erpm(1.0) == -4614

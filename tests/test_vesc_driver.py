@@ -294,6 +294,25 @@ def test_nan_command_brakes_at_once_and_brake_current_mode(tmp_path, device_thre
     asyncio.run(scenario())
 
 
+def test_a_numpy_float32_command_drives_and_a_non_number_brakes(tmp_path, device_thread):
+    """``command()`` never raises: numpy scalars drive, a value that is no number brakes."""
+    import numpy as np
+
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            driver.command(AckermannDrive(speed=np.float32(1.0), steering_angle=np.float32(0.1)))
+            assert driver.moving and driver.stats.refused_commands == 0
+            await async_wait_for(lambda: fake.erpm != 0)
+            driver.command(AckermannDrive(speed="fast"))  # type: ignore[arg-type]
+            assert driver.stats.refused_commands == 1 and not driver.moving
+            await async_wait_for(lambda: fake.erpm == 0, timeout=5)
+
+    asyncio.run(scenario())
+
+
 def test_alive_keeps_the_firmware_fed_between_sparse_commands(tmp_path, device_thread):
     fake = start_fake(device_thread, tmp_path / "vesc", timeout_s=0.3)
 

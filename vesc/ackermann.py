@@ -101,8 +101,10 @@ class AckermannConversion:
         return min(max(servo, self.servo_min), self.servo_max)
 
     def to_vesc(self, drive: AckermannDrive) -> VescSetpoint:
-        """The set point for a drive command (acceleration and jerk are ignored)."""
-        return VescSetpoint(self.speed_to_erpm(drive.speed), self.steering_to_servo(drive.steering_angle))
+        """The set point for a drive command (acceleration and jerk are ignored); any real number
+        is taken (a numpy float32 too), anything else is refused as a NaN is."""
+        speed, angle = _real(drive.speed, "speed"), _real(drive.steering_angle, "steering_angle")
+        return VescSetpoint(self.speed_to_erpm(speed), self.steering_to_servo(angle))
 
     @property
     def servo_centre(self) -> float:
@@ -130,6 +132,14 @@ class AckermannConversion:
             return 0.0
         angle = (servo - self.steering_angle_to_servo_offset) / self.servo_gain
         return angle if angle >= 0 else (servo - self.steering_angle_to_servo_offset) / self.servo_gain_right
+
+
+def _real(value: object, what: str) -> float:
+    """``value`` as a Python float (a numpy scalar's type would not pass the codec's checks)."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError) as err:
+        raise LocalProtocolError(f"{what} {value!r} refused: not a number") from err
 
 
 def _finite(value: float, what: str) -> None:
