@@ -336,11 +336,29 @@ class SensorParams:
 
     @classmethod
     def from_fields(cls, fields: Mapping[str, str]) -> SensorParams:
-        """From PP's KEY:VALUE fields; RemoteProtocolError if one is missing or not a number."""
+        """From PP's KEY:VALUE fields; RemoteProtocolError if one is missing or not a number, or
+        the values describe no sensor (no steps per revolution, a motor standing, an empty or
+        inverted step or distance range, the front outside the steps)."""
         try:
-            return cls(fields.get("MODL", ""), *(int(fields[k]) for k in _PP_KEYS))
+            params = cls(fields.get("MODL", ""), *(int(fields[k]) for k in _PP_KEYS))
         except (KeyError, ValueError) as err:
             raise RemoteProtocolError(f"PP reply lacks a numeric field: {err}") from err
+        problem = params._implausible()
+        if problem:
+            raise RemoteProtocolError(f"PP reply describes no sensor: {problem}")
+        return params
+
+    def _implausible(self) -> str:
+        """What makes these values impossible for a sensor, or empty."""
+        if self.ares <= 0 or self.scan_rpm <= 0:
+            return f"ARES {self.ares} steps a revolution, SCAN {self.scan_rpm} rpm (both must be positive)"
+        if not 0 <= self.amin <= self.amax < self.ares * 2:
+            return f"steps AMIN {self.amin} to AMAX {self.amax} (ARES {self.ares})"
+        if not self.amin <= self.afrt <= self.amax:
+            return f"front step AFRT {self.afrt} outside AMIN {self.amin} to AMAX {self.amax}"
+        if not 0 <= self.dmin <= self.dmax:
+            return f"distances DMIN {self.dmin} to DMAX {self.dmax} mm"
+        return ""
 
     def fields(self) -> dict[str, str | int]:
         """The ``PP`` reply's fields in device order."""

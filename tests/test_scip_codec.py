@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import assume, example, given, settings
@@ -427,6 +429,9 @@ def test_sensor_params_from_any_fields_is_a_record_or_a_named_error(fields):
         assert "PP reply" in str(err)
     else:
         assert pp.fields()["DMIN"] == int(fields["DMIN"])
+        # a record is a sensor: its timing and angles compute
+        assert math.isfinite(pp.scan_period_s) and pp.step_time_s > 0 and pp.steps >= 1
+        assert math.isfinite(pp.angle_of(pp.amax)) and pp.angle_of(pp.afrt) == 0.0
 
 
 def test_a_status_line_with_non_ascii_bytes_and_a_valid_checksum_is_an_event():

@@ -201,6 +201,29 @@ def test_dropped_tcp_connection_reconnects(device_thread, tmp_path):
     drive(params_for(fake), scenario)
 
 
+@pytest.mark.parametrize(("field", "value"), [("scan_rpm", 0), ("ares", 0), ("amin", 2000)])
+def test_a_pp_reply_that_describes_no_sensor_is_a_device_error_without_a_traceback(
+        device_thread, tmp_path, caplog, field, value):
+    """A damaged or hostile PP (no motor speed, no steps, AMIN past AMAX) is said in one line and
+    retried; it once raised ZeroDivisionError or blamed lidar.angle_min, with a traceback each time."""
+    import dataclasses
+    import logging
+
+    fake = FakeHokuyo("ust-10lx", ROOM, tcp=("127.0.0.1", 0), seed=7)
+    fake.model = dataclasses.replace(fake.model, **{field: value})
+    device_thread.spawn(fake.serve())
+    assert fake.ready.wait(10)
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        await async_wait_for(lambda: driver.stats.reconnects >= 2, 15)
+        assert "PP reply describes no sensor" in (driver.last_error or ""), driver.last_error
+        assert not scans
+
+    with caplog.at_level(logging.DEBUG):
+        drive(params_for(fake), scenario)
+    assert not [r for r in caplog.records if r.exc_info], [r.getMessage() for r in caplog.records]
+
+
 def test_silent_device_is_detected_and_recovered(device_thread, tmp_path):
     fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
 
