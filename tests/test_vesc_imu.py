@@ -42,6 +42,14 @@ def test_a_reply_without_the_quaternion_says_orientation_not_provided():
     assert msg.angular_velocity.z == pytest.approx(math.radians(10.0))
 
 
+@pytest.mark.parametrize("quat", [(0.0, 0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0), (0.5, 0.0, 0.0, 0.0)])
+def test_a_quaternion_that_is_no_rotation_says_orientation_not_provided(quat):
+    """All zeros (an IMU not yet running) or a norm far from 1 (damaged) is no orientation."""
+    msg = imu_message(ImuData(gyro_z=10.0, q0=quat[0], q1=quat[1], q2=quat[2], q3=quat[3]), 0, "imu", COV)
+    assert msg.orientation_covariance[0] == -1.0
+    assert msg.angular_velocity.z == pytest.approx(math.radians(10.0))
+
+
 def test_gyro_bias_is_learned_at_standstill_and_held_while_moving():
     bias = GyroBias(tau_s=1.0)
     t = 0
@@ -114,6 +122,33 @@ def test_the_driver_polls_the_fake_imu_and_publishes_it(tmp_path, device_thread,
     assert msg.header.frame_id == "imu"
     assert msg.linear_acceleration.z == pytest.approx(G, rel=1e-5)
     assert msg.angular_velocity.z == pytest.approx(math.radians(2.0), rel=1e-5)  # published as measured
+
+
+def test_imu_replies_beyond_the_sensors_full_scale_are_dropped_and_spare_the_gyro_bias(
+        tmp_path, device_thread):
+    """A gyro reading past +-2000 deg/s (finite, so not refused by the codec) is never published
+    and never reaches the gyro bias or the odometry; plausible replies after it are."""
+    from test_vesc_driver import start_fake
+
+    fake = start_fake(device_thread, tmp_path / "vesc")
+    fake.imu.motion = lambda: PlanarMotion(0.0, 0.0, 0.0, 0.0)
+    fake.imu.errors = ImuErrors(gyro_bias_dps=5.0e6, gyro_noise_dps=0.0, accel_noise_g=0.0, vibration_g=0.0)
+    bus = Bus()
+    seen = []
+    bus.subscribe(TOPIC_IMU, seen.append)
+
+    async def scenario() -> None:
+        params = VescParams(port=fake.path, odometry_yaw_rate="imu", imu_bias_time_s=0.3)
+        async with VescDriver(bus, params) as driver:
+            await async_wait_for(lambda: driver.stats.implausible_imu >= 20, timeout=20)
+            assert seen == [] and driver.gyro_bias.bias == 0.0
+            fake.imu.errors = ImuErrors(gyro_bias_dps=2.0, gyro_noise_dps=0.0, accel_noise_g=0.0,
+                                        vibration_g=0.0)
+            await async_wait_for(lambda: len(seen) >= 40 and driver.gyro_bias.settled, timeout=20)
+            assert driver.gyro_bias.bias == pytest.approx(math.radians(2.0), rel=1e-3)
+
+    asyncio.run(scenario())
+    assert all(abs(m.angular_velocity.z) < 1.0 for m in seen)
 
 
 def test_old_firmware_is_not_asked_for_the_imu(tmp_path, device_thread):

@@ -35,7 +35,8 @@ during the handshake, and only for a firmware whose layout the codec knows
 mid-session) is ignored and counted, so the telemetry layout never changes without a new handshake.
 Telemetry with physically impossible values (ERPM beyond :data:`IMPLAUSIBLE_ERPM_FACTOR` times
 the ERPM at ``speed_max_mps``, input voltage outside 0-100 V, duty cycle beyond +-1) is dropped
-and counted, never published.
+and counted, never published; so is an IMU reply beyond the sensor's full scale
+(:data:`PLAUSIBLE_GYRO_DPS`, :data:`PLAUSIBLE_ACC_G`), which would also have poisoned the gyro bias.
 
 An unplug (DeviceIOError/DeviceNotFound) closes the port and reopens it with exponential backoff
 from ``reconnect_backoff_min_s`` to ``reconnect_backoff_max_s``. No exception leaves :meth:`run`
@@ -106,6 +107,11 @@ PLAUSIBLE_V_IN = (0.0, 100.0)
 #: Largest |duty cycle| a reply can carry (the firmware clamps to 0.95).
 PLAUSIBLE_DUTY = 1.0
 
+#: Largest |angular rate| (deg/s) and |acceleration| (g) an IMU reply can carry: the VESC's IMUs
+#: (BMI160, LSM6DS3, MPU9250) read at most +-2000 deg/s and +-16 g, with a tenth of margin.
+PLAUSIBLE_GYRO_DPS = 2200.0
+PLAUSIBLE_ACC_G = 17.6
+
 #: IMU replies older than this many poll periods are not used for odometry's yaw rate.
 IMU_STALE_POLLS = 3
 
@@ -119,7 +125,8 @@ class VescLinkStats:
     ``refused_commands``: NaN/inf drive commands; ``write_errors``: writes that found the port
     gone; ``ignored_fw_versions``: FW_VERSION frames not taken (unasked, mid-session, or an
     unknown version); ``implausible_telemetry``: GET_VALUES replies dropped for physically
-    impossible values.
+    impossible values; ``implausible_imu``: IMU replies dropped for values beyond the sensor's
+    full scale.
     """
 
     frames_tx: int = 0
@@ -135,6 +142,7 @@ class VescLinkStats:
     ignored_fw_versions: int = 0
     implausible_telemetry: int = 0
     imu_replies: int = 0
+    implausible_imu: int = 0
     drive_commands: int = 0
 
 
@@ -606,12 +614,26 @@ class VescDriver(ReconnectingDevice):
     def _on_imu(self, data: ImuData) -> None:
         if self._firmware is None or data.gyro_z is None:
             return
+        if not _plausible_imu(data):
+            self.stats.implausible_imu += 1
+            (log.warning if self.stats.implausible_imu == 1 else log.debug)(
+                "VESC IMU reply dropped: beyond the sensor's full scale (gyro %s deg/s, acc %s g)",
+                (data.gyro_x, data.gyro_y, data.gyro_z), (data.acc_x, data.acc_y, data.acc_z))
+            return
         mono, stamp = monotonic_ns(), wall_ns()
         self.stats.imu_replies += 1
         self.gyro_bias.update(data.gyro_z * DEG, self._standing, mono)
         msg = imu_message(data, stamp, self.params.imu_frame_id, self._imu_cov)
         self._last_imu, self._last_imu_ns = msg, mono
         self.bus.publish(TOPIC_IMU, msg)
+
+
+def _plausible_imu(data: ImuData) -> bool:
+    """Whether every rate and acceleration the reply carries is within the sensor's full scale."""
+    rates = (data.gyro_x, data.gyro_y, data.gyro_z)
+    accelerations = (data.acc_x, data.acc_y, data.acc_z)
+    return (all(abs(w) <= PLAUSIBLE_GYRO_DPS for w in rates if w is not None)
+            and all(abs(a) <= PLAUSIBLE_ACC_G for a in accelerations if a is not None))
 
 
 async def probe(port: str, baudrate: int = 115200,

@@ -29,6 +29,9 @@ from vesc.codec import ImuData
 #: Standard gravity (m/s² per g), the unit the firmware's accelerometer reports in.
 G = 9.80665
 DEG = math.pi / 180.0
+#: Norms of the reply's quaternion taken as an orientation (the firmware sends a unit quaternion;
+#: float32 rounding moves it by far less).
+QUATERNION_NORM_RANGE = (0.9, 1.1)
 
 
 @dataclass(frozen=True)
@@ -64,20 +67,23 @@ def imu_message(data: ImuData, stamp_ns: int, frame_id: str, cov: ImuCovariances
                 gyro_bias_z: float = 0.0) -> Imu:
     """``data`` as sensor_msgs/Imu stamped ``stamp_ns`` (wall ns) in ``frame_id``.
 
-    Missing fields (the reply's mask left them out) read as zero, and a missing quaternion gives
-    an orientation covariance of -1 ("not provided", as sensor_msgs/Imu defines it).
-    ``gyro_bias_z`` (rad/s) is subtracted from the z rate.
+    Missing fields (the reply's mask left them out) read as zero. A missing quaternion, or one
+    whose norm is not about 1 (:data:`QUATERNION_NORM_RANGE`: all zeros from an IMU not yet
+    running, damaged bytes), gives an orientation covariance of -1 ("not provided", as
+    sensor_msgs/Imu defines it). ``gyro_bias_z`` (rad/s) is subtracted from the z rate.
     """
     o_cov, w_cov, a_cov = cov.arrays()
     quat = (data.q0, data.q1, data.q2, data.q3)
-    if any(q is None for q in quat):
+    norm = (math.sqrt(sum(float(q) * float(q) for q in quat))  # type: ignore[arg-type]
+            if all(q is not None for q in quat) else 0.0)
+    lo, hi = QUATERNION_NORM_RANGE
+    if not lo <= norm <= hi:
         orientation = Quaternion()
         o_cov = np.zeros(9)
         o_cov[0] = -1.0
     else:
         w, x, y, z = (float(q) for q in quat)  # type: ignore[arg-type]
-        norm = math.sqrt(w * w + x * x + y * y + z * z)
-        orientation = Quaternion(x / norm, y / norm, z / norm, w / norm) if norm > 0 else Quaternion()
+        orientation = Quaternion(x / norm, y / norm, z / norm, w / norm)
 
     def v(a: float | None) -> float:
         return 0.0 if a is None else float(a)
