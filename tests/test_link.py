@@ -173,6 +173,28 @@ def test_serial_link_receiver_gets_bytes_and_its_error_fails_the_link(tmp_path):
     asyncio.run(scenario())
 
 
+def test_a_device_that_takes_no_data_fails_the_link_at_a_bounded_backlog(tmp_path):
+    """Writes to a device that stopped reading queue up to MAX_TX_PENDING bytes, then the link
+    fails (a reconnect starts afresh); they never grow without bound."""
+    from racecar_hw.base.link import MAX_TX_PENDING
+
+    async def scenario() -> None:
+        port, link = await _open_pty_link(tmp_path)  # the device side never reads
+        chunk = bytes(100)
+        with pytest.raises(DeviceIOError, match="takes no data"):
+            for _ in range(100_000):  # the OS's buffer fills first, then the link's
+                link.write(chunk)
+                assert link.tx_pending <= MAX_TX_PENDING
+        assert not link.is_open
+        with pytest.raises(DeviceIOError, match="takes no data"):
+            await asyncio.wait_for(link.read(), 5)
+        link.close()
+        assert link.tx_pending == 0
+        port.close()
+
+    asyncio.run(scenario())
+
+
 def test_read_within_times_out_and_returns_bytes(tmp_path):
     async def scenario() -> None:
         port, link = await _open_pty_link(tmp_path)

@@ -313,6 +313,61 @@ def test_a_numpy_float32_command_drives_and_a_non_number_brakes(tmp_path, device
     asyncio.run(scenario())
 
 
+def test_a_vesc_that_stops_answering_is_a_lost_link_and_is_reopened(tmp_path, device_thread, caplog):
+    """A VESC whose firmware hangs with its port still there: after reply_timeout_s with polls
+    unanswered the driver says so, reopens the port and, once it answers again, drives on."""
+    import logging
+
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        async with VescDriver(Bus(), VescParams(port=fake.path, reply_timeout_s=0.3)) as driver:
+            await async_wait_for(lambda: driver.connected and driver.last_state is not None)
+            fake.mute(True)
+            await async_wait_for(lambda: driver.stats.reconnects >= 1, timeout=15)
+            assert not driver.connected  # no handshake answer yet
+            fake.mute(False)
+            await async_wait_for(lambda: driver.connected, timeout=15)
+            await drive_for(driver, 0.2, 1.0)
+            await async_wait_for(lambda: fake.erpm != 0)
+
+    with caplog.at_level(logging.WARNING, logger="vesc.driver"):
+        asyncio.run(scenario())
+    lost = [r.getMessage() for r in caplog.records if "link lost" in r.getMessage()]
+    assert lost and "sent no valid frame for" in lost[0], [r.getMessage() for r in caplog.records]
+    assert not [r for r in caplog.records if r.exc_info]
+
+
+def test_a_vesc_that_stops_reading_never_gets_an_unbounded_backlog(tmp_path, device_thread):
+    """The device stops reading its port: the driver's queued bytes stay bounded (the link fails
+    and is reopened), and once it reads again the car is driven afresh."""
+    from racecar_hw.base.link import MAX_TX_PENDING
+
+    fake = start_fake(device_thread, tmp_path / "vesc")
+
+    async def scenario() -> None:
+        async with VescDriver(Bus(), VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            fake.stop_reading(True)
+            most = 0
+
+            def lost() -> bool:
+                nonlocal most
+                link = driver._link
+                most = max(most, link.tx_pending if link is not None and link.is_open else 0)
+                driver.command(AckermannDrive(speed=1.0))
+                return driver.stats.reconnects >= 1
+
+            await async_wait_for(lost, timeout=20)
+            assert most <= MAX_TX_PENDING
+            fake.stop_reading(False)
+            await async_wait_for(lambda: driver.connected, timeout=15)
+            await drive_for(driver, 0.2, 1.0)
+            await async_wait_for(lambda: fake.erpm != 0)
+
+    asyncio.run(scenario())
+
+
 def test_alive_keeps_the_firmware_fed_between_sparse_commands(tmp_path, device_thread):
     fake = start_fake(device_thread, tmp_path / "vesc", timeout_s=0.3)
 

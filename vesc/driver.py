@@ -39,7 +39,12 @@ and counted, never published; so is an IMU reply beyond the sensor's full scale
 (:data:`PLAUSIBLE_GYRO_DPS`, :data:`PLAUSIBLE_ACC_G`), which would also have poisoned the gyro bias.
 
 An unplug (DeviceIOError/DeviceNotFound) closes the port and reopens it with exponential backoff
-from ``reconnect_backoff_min_s`` to ``reconnect_backoff_max_s``. No exception leaves :meth:`run`
+from ``reconnect_backoff_min_s`` to ``reconnect_backoff_max_s``; so does a VESC that stops
+answering with its port still open (after the handshake, no valid frame for ``reply_timeout_s``
+with :data:`UNANSWERED_POLLS` polls or more written since:
+:class:`~racecar_hw.base.errors.DeviceTimeout`; counting polls keeps a process that was held up,
+and its reader with it, from calling a live VESC lost), and one that stops reading (the link's
+transmit backlog full). No exception leaves :meth:`run`
 except CancelledError; :meth:`shutdown` brakes, centres, closes and is safe twice.
 """
 
@@ -111,6 +116,10 @@ PLAUSIBLE_DUTY = 1.0
 #: (BMI160, LSM6DS3, MPU9250) read at most +-2000 deg/s and +-16 g, with a tenth of margin.
 PLAUSIBLE_GYRO_DPS = 2200.0
 PLAUSIBLE_ACC_G = 17.6
+
+#: Telemetry polls written without a frame coming back before a silent VESC counts as lost (with
+#: ``reply_timeout_s`` passed too).
+UNANSWERED_POLLS = 3
 
 #: IMU replies older than this many poll periods are not used for odometry's yaw rate.
 IMU_STALE_POLLS = 3
@@ -200,6 +209,12 @@ class VescDriver(ReconnectingDevice):
         # telemetry keeps the configured rate (at most ~10 % above it) with fewer writes.
         self._poll_due_ns = nanoseconds(0.9 / self.params.poll_rate_hz)
         self._last_poll_ns = 0
+        #: no valid frame for this long, with UNANSWERED_POLLS polls written, is a lost link
+        self._reply_timeout_ns = nanoseconds(self.params.reply_timeout_s)
+        self._last_rx_ns = 0
+        self._unanswered = 0
+        #: why the poll loop dropped the link, raised by the session in place of the link's "not open"
+        self._lost: DeviceError | None = None
         #: what each poll asks for: GET_VALUES, and the IMU where the firmware has one
         self._polls: tuple[Packet, ...] = (GetValuesRequest(),)
         self._imu_cov = ImuCovariances(params.imu_orientation_variance, params.imu_yaw_variance,
@@ -381,9 +396,15 @@ class VescDriver(ReconnectingDevice):
         ticker = asyncio.create_task(self._tick_loop(link), name="vesc-poll")
         # replies are decoded in the link's reader callback, without waking this task
         link.set_receiver(self._on_bytes)
+        self._lost, self._unanswered = None, 0
         try:
             while True:
                 self._on_bytes(await link.read())  # with a receiver set, this raises once the link fails
+        except DeviceError:
+            lost, self._lost = self._lost, None
+            if lost is not None:
+                raise lost from None
+            raise
         finally:
             ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -427,6 +448,9 @@ class VescDriver(ReconnectingDevice):
                     timer.cancel()
         except asyncio.CancelledError:
             raise
+        except DeviceError as err:
+            self._lost = err
+            link.close()
         except Exception:
             log.exception("VESC poll loop failed; dropping the link to reconnect")
             link.close()
@@ -441,6 +465,9 @@ class VescDriver(ReconnectingDevice):
         age would brake a car whose commands were never stale.
         """
         now = monotonic_ns()
+        if now - self._last_rx_ns > self._reply_timeout_ns and self._unanswered >= UNANSWERED_POLLS:
+            raise DeviceTimeout(f"{self.params.port}: the VESC sent no valid frame for "
+                                f"{seconds(now - self._last_rx_ns):.2f} s")
         if now - self._last_poll_ns >= self._poll_due_ns:
             self._last_poll_ns = now
             self._write(*self._polls)
@@ -532,6 +559,8 @@ class VescDriver(ReconnectingDevice):
             elif isinstance(p, SetServoPosition):
                 self._servo_sent = p.position
                 self.bus.publish(TOPIC_SERVO, Float64(p.position))
+            elif isinstance(p, GetValuesRequest):
+                self._unanswered += 1
         return True
 
     def _on_bytes(self, data: bytes) -> None:
@@ -549,6 +578,8 @@ class VescDriver(ReconnectingDevice):
         self.stats.raw_packets = s.raw_packets
 
     def _on_packet(self, packet: Packet) -> None:
+        self._last_rx_ns = monotonic_ns()  # a frame with a valid CRC: the VESC is there
+        self._unanswered = 0
         if isinstance(packet, Values):
             self._on_values(packet)
         elif isinstance(packet, ImuData):

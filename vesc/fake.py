@@ -25,7 +25,7 @@ Model (integrated every ``tick_s``):
 
 Read-only properties (``erpm``, ``servo``, ``commands``, counters) are safe from any thread; so are
 the fault injections (``inject_garbage``, ``inject_reply``, ``corrupt_next_crc``, ``split_replies``,
-``unplug``, ``replug``), which run in the device loop.
+``mute``, ``stop_reading``, ``unplug``, ``replug``), which run in the device loop.
 """
 
 from __future__ import annotations
@@ -144,6 +144,7 @@ class FakeVesc:
         self._serving: object | None = None  # while serve() runs: its token (writes of another end)
         self._writing = False  # a write of the pending replies is scheduled or waits mid-reply
         self._stalled = False
+        self._muted = False
         self._split = False
         self._corrupt_next = False
         self._last_reset_ns = monotonic_ns()
@@ -291,6 +292,17 @@ class FakeVesc:
         """Send each reply in two writes a few milliseconds apart (or not)."""
         with self._lock:
             self._split = on
+
+    def mute(self, on: bool) -> None:
+        """Stop answering (a firmware that hung with its USB port still there): commands are still
+        read and obeyed, no reply is sent; or answer again."""
+        with self._lock:
+            self._muted = on
+
+    def stop_reading(self, on: bool) -> None:
+        """Stop reading the port (a device that takes no more data: the host's writes back up in the
+        OS buffer), or read again."""
+        self._in_loop(self._detach if on else self._attach)
 
     def unplug(self) -> None:
         """Pull the USB cable: the pty and its symlink disappear. The motor model keeps running."""
@@ -483,6 +495,8 @@ class FakeVesc:
     def _reply(self, packet: FwVersion | Values | ImuData) -> None:
         data = self._codec.send(packet)
         with self._lock:
+            if self._muted:
+                return
             corrupt, self._corrupt_next = self._corrupt_next, False
             split = self._split
         if corrupt:

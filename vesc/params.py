@@ -32,6 +32,10 @@ class VescParams:
                                 "failsafe repeats brake and centre", unit="Hz", min=1.0, max=500.0)
     handshake_interval_s: float = param(0.1, "interval between FW_VERSION requests until the VESC "
                                         "answers", unit="s", min=0.01, max=5.0)
+    reply_timeout_s: float = param(1.0, "after the handshake, no valid frame from the VESC for this "
+                                   "long, with three polls or more unanswered, counts as a lost "
+                                   "link: the driver says so and reopens the port", unit="s",
+                                   min=0.05, max=60.0)
     reconnect_backoff_min_s: float = param(0.05, "first wait before reopening a lost port; doubles "
                                            "after each failure", unit="s", min=0.01, max=10.0)
     reconnect_backoff_max_s: float = param(0.5, "longest wait between reopen attempts; bounds how "

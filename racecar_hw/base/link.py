@@ -32,6 +32,10 @@ from racecar_hw.base.errors import DeviceIOError, DeviceNotFound, DeviceTimeout
 _timeout = getattr(asyncio, "timeout", None)  # Python 3.11+
 T = TypeVar("T")
 
+#: Bytes a serial link queues beyond what the OS took before the device counts as gone (about a
+#: second of a VESC's commands and polls at 50 Hz, once the OS's own buffer is full).
+MAX_TX_PENDING = 2048
+
 
 class Link(ABC):
     """A byte stream to one device. Use it from one event loop; it is an async context manager."""
@@ -280,10 +284,18 @@ class SerialLink(_ReceivingLink):
         self._writer_armed = False
 
     def write(self, data: bytes) -> None:
+        """Queue ``data`` and write what the OS takes now; the rest goes when the port is writable.
+
+        A device that takes nothing for long fails the link once :data:`MAX_TX_PENDING` bytes wait
+        (a backlog of stale commands is worse than none: the reconnect starts afresh)."""
         if self._error is not None:
             raise self._error
         if self._fd is None:
             raise DeviceIOError(f"{self.url}: not open")
+        if len(self._tx) + len(data) > MAX_TX_PENDING:
+            self._fail(DeviceIOError(f"{self.url}: the device takes no data ({len(self._tx)} bytes "
+                                     "unwritten)"))
+            raise self._error  # type: ignore[misc]
         self._tx += data
         self._flush()
         if self._error is not None:
@@ -303,10 +315,14 @@ class SerialLink(_ReceivingLink):
             raise DeviceIOError(f"{self.url}: cannot set DTR: {err}") from err
 
     def close(self) -> None:
+        """Close the port, discarding what was written but not yet sent (queued here and in the OS):
+        stale commands must not reach a device that starts reading again."""
         self._detach()
         self._receiver = None
         port, self._port = self._port, None
         if port is not None:
+            with contextlib.suppress(Exception):
+                port.reset_output_buffer()
             with contextlib.suppress(Exception):
                 port.close()
         self._wake()
