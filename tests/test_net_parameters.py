@@ -200,13 +200,39 @@ def test_cdr_answers_are_the_services_answers_cached_and_warmed(service):
     types = ros2_types()
     answers = CdrAnswers(service)
     answers.warm()
-    assert len(answers._cache) == 4  # list, and get, types, describe of every name
+    assert len(answers._warm) == 4 and answers.cached_bytes == 0  # list; get, types, describe of all
     names = list(service.values)
     raw = answers.answer("get_parameters", types.serialize(GetParametersRequest(names)))
     assert types.deserialize(raw, GetParametersResponse) == service.handle(
         "get_parameters", GetParametersRequest(names))
-    assert len(answers._cache) == 4  # that one was warm
+    assert len(answers._cache) == 0  # that one was warm
     one = answers.answer("get_parameters", types.serialize(GetParametersRequest(["web.port"])))
     assert types.deserialize(one, GetParametersResponse).values[0].integer_value == 8080
+    assert len(answers._cache) == 1
     with pytest.raises(Exception):  # noqa: B017, PT011 - whatever the decoder raises; the bridge counts it
         answers.answer("get_parameters", b"\x00\x01\x00\x00\xff\xff\xff\x7f")
+
+
+def test_a_request_too_large_is_refused_before_any_work_and_the_cache_stays_bounded(service):
+    """A client's request is bounded (bytes, names); the remembered answers are bounded in bytes,
+    the warm ones kept. One describe_parameters naming a parameter 20,000 times once built 15 MB
+    of answer in Zenoh's thread and kept it."""
+    from racecar_hw.net.parameters import CdrAnswers, RequestRefused  # noqa: PLC0415
+
+    types = ros2_types()
+    answers = CdrAnswers(service)
+    answers.warm()
+    many = types.serialize(DescribeParametersRequest(["web.port"] * (CdrAnswers.MAX_REQUEST_ITEMS + 1)))
+    with pytest.raises(RequestRefused, match="names"):
+        answers.answer("describe_parameters", many)
+    huge = types.serialize(ListParametersRequest(["x" * 1000] * 100))
+    with pytest.raises(RequestRefused, match="bytes"):
+        answers.answer("list_parameters", huge)
+    assert answers.cached_bytes == 0
+    for i in range(300):  # varied requests: each answered, the memory of them bounded
+        request = DescribeParametersRequest(["web.port"] * (CdrAnswers.MAX_REQUEST_ITEMS - i))
+        answers.answer("describe_parameters", types.serialize(request))
+        assert answers.cached_bytes <= CdrAnswers.MAX_CACHED_BYTES
+    assert len(answers._warm) == 4
+    full = types.serialize(GetParametersRequest(list(service.values)))
+    assert answers.answer("get_parameters", full) is answers._warm[("get_parameters", full)]

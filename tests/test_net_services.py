@@ -6,6 +6,7 @@ never raised."""
 from __future__ import annotations
 
 import asyncio
+import logging
 
 import zenoh
 from conftest import async_wait_for
@@ -13,7 +14,11 @@ from zenoh_util import endpoint, free_port
 
 from mux.params import MuxParams
 from racecar_hw.base.bus import Bus
-from racecar_hw.base.parameter_messages import GetParametersRequest, GetParametersResponse
+from racecar_hw.base.parameter_messages import (
+    GetParametersRequest,
+    GetParametersResponse,
+    SetParametersRequest,
+)
 from racecar_hw.net import rmw
 from racecar_hw.net.parameters import ParameterService
 from racecar_hw.net.topics import topic_table
@@ -23,9 +28,10 @@ from racecar_hw.rosmsg.typestore import ros2_types
 from safety.params import SafetyParams
 
 SRV = "rcl_interfaces/srv/GetParameters"
+SET_SRV = "rcl_interfaces/srv/SetParameters"
 
 
-def test_a_call_is_answered_on_the_service_key_with_rmw_zenohs_attachment():
+def test_a_call_is_answered_on_the_service_key_with_rmw_zenohs_attachment(caplog):
     async def run() -> tuple[list, list[str], object]:
         bus = Bus()
         port = free_port()
@@ -48,11 +54,27 @@ def test_a_call_is_answered_on_the_service_key_with_rmw_zenohs_attachment():
         try:
             replies = await loop.run_in_executor(None, lambda: call(
                 payload=request, attachment=rmw.Attachment(7, 1, gid).encode()))
-            # hostile: no attachment, a wrong one, bytes that are no request
+            # hostile: no attachment, a wrong one, bytes that are no request, a request too large
+            too_many = ros2_types().serialize(GetParametersRequest(["mux.rate_hz"] * 1025))
             for kwargs in (dict(payload=request), dict(payload=request, attachment=b"\x01"),
-                           dict(payload=b"\xff" * 9, attachment=rmw.Attachment(8, 1, gid).encode())):
+                           dict(payload=b"\xff" * 9, attachment=rmw.Attachment(8, 1, gid).encode()),
+                           dict(payload=too_many, attachment=rmw.Attachment(9, 1, gid).encode())):
                 assert await loop.run_in_executor(None, lambda kw=kwargs: call(**kw)) == []
-            await async_wait_for(lambda: bridge.stats.service_errors >= 3, timeout=20)
+            await async_wait_for(lambda: bridge.stats.service_errors >= 4, timeout=20)
+            # set_parameters: malformed calls are refusals, answered ones logged sparingly
+            set_key = rmw.topic_key(0, "/car1/racecar_hw/set_parameters", SET_SRV, rmw.type_hash(SET_SRV))
+            set_request = ros2_types().serialize(SetParametersRequest())
+
+            def set_calls() -> None:
+                for n in range(30):
+                    list(peer.get(set_key, payload=b"\xff" * 3, timeout=10,
+                                  attachment=rmw.Attachment(100 + n, 1, gid).encode()))
+                    list(peer.get(set_key, payload=set_request, timeout=10,
+                                  attachment=rmw.Attachment(200 + n, 1, gid).encode()))
+
+            with caplog.at_level(logging.INFO, logger="racecar_hw.net.zenoh_services"):
+                await loop.run_in_executor(None, set_calls)
+                await async_wait_for(lambda: bridge.stats.set_calls >= 30, timeout=20)
             tokens = [str(r.ok.key_expr) for r in peer.liveliness().get(rmw.liveliness_pattern(0), timeout=5)
                       if r.ok is not None]
             return replies, tokens, bridge.stats
@@ -68,7 +90,9 @@ def test_a_call_is_answered_on_the_service_key_with_rmw_zenohs_attachment():
     assert [v.double_value for v in response.values] == [50.0]
     back = rmw.Attachment.decode(attachment)
     assert back.sequence_number == 7 and back.gid == bytes(range(16)) and back.source_timestamp_ns > 1
-    assert stats.service_calls == 1 and stats.service_errors == 3
+    assert stats.service_calls == 1 + 30 and stats.service_errors == 4 + 30 and stats.set_calls == 30
+    set_lines = [r.getMessage() for r in caplog.records if "set_parameters: refused" in r.getMessage()]
+    assert len(set_lines) == 2 and set_lines[-1].endswith("(10 so far)"), set_lines  # the 1st and the 10th
     servers = [rmw.parse_token(t) for t in tokens if "/SS/" in t]
     assert sorted(e.topic for e in servers) == [
         f"/car1/racecar_hw/{n}" for n in ("describe_parameters", "get_parameter_types", "get_parameters",

@@ -245,6 +245,10 @@ class ParameterService:
         return all(name in self.values for name in names)
 
 
+class RequestRefused(ValueError):
+    """A parameter request this daemon will not answer (too large); the message says why."""
+
+
 class CdrAnswers:
     """:class:`ParameterService` over CDR bytes, for a network interface: request bytes in, response
     bytes out, from any thread, remembered per request.
@@ -253,40 +257,72 @@ class CdrAnswers:
     ``ParameterValue``'s string and 8-byte arrays have no direct serializer), so the answers are
     cached (the configuration never changes), and :meth:`warm` computes the ones ``ros2 param list``,
     ``ros2 param dump`` and rqt ask for before anyone asks: the whole list, and every name's value,
-    type and description in the list's order.
+    type and description in the list's order. Those stay; other answers are remembered up to
+    :attr:`MAX_CACHED_BYTES` (requests and answers together), then forgotten.
+
+    A client chooses its request, so it is bounded before any work: at most
+    :attr:`MAX_REQUEST_BYTES` of CDR and :attr:`MAX_REQUEST_ITEMS` names, prefixes or parameters
+    (the configuration has a few hundred names); a larger one raises :class:`RequestRefused`.
+    Without the bounds one describe_parameters call naming one parameter 20,000 times built 15 MB
+    of answer in Zenoh's thread, holding the GIL the control loop needs, and kept it.
     """
 
-    MAX_CACHED = 256
+    MAX_CACHED_BYTES = 1 << 20
+    MAX_REQUEST_BYTES = 64 * 1024
+    MAX_REQUEST_ITEMS = 1024
 
     def __init__(self, service: ParameterService) -> None:
         self.service = service
         self._types = ros2_types()
+        self._warm: dict[tuple[str, bytes], bytes] = {}
         self._cache: dict[tuple[str, bytes], bytes] = {}
+        self._cached_bytes = 0
         self._lock = threading.Lock()
 
     def answer(self, name: str, request: bytes) -> bytes:
-        """The CDR response of service ``name`` to the CDR ``request``; raises on a malformed request."""
+        """The CDR response of service ``name`` to the CDR ``request``; raises on a malformed request
+        (:class:`RequestRefused` for one too large to answer)."""
         key = (name, bytes(request))
-        cached = self._cache.get(key)
+        cached = self._warm.get(key) or self._cache.get(key)
         if cached is not None:
             return cached
+        if len(key[1]) > self.MAX_REQUEST_BYTES:
+            raise RequestRefused(f"request of {len(key[1])} bytes (at most {self.MAX_REQUEST_BYTES})")
         spec = _SPECS[name]
         request_msg = self._types.deserialize(key[1], spec.request)
+        items = sum(len(getattr(request_msg, f)) for f in ("names", "prefixes", "parameters")
+                    if hasattr(request_msg, f))
+        if items > self.MAX_REQUEST_ITEMS:
+            raise RequestRefused(f"request of {items} names (at most {self.MAX_REQUEST_ITEMS})")
         response = self._types.serialize(self.service.handle(name, request_msg))
+        size = len(key[1]) + len(response)
         with self._lock:
-            if len(self._cache) >= self.MAX_CACHED:
+            if self._cached_bytes + size > self.MAX_CACHED_BYTES:
                 self._cache.clear()
-            self._cache[key] = response
+                self._cached_bytes = 0
+            if size <= self.MAX_CACHED_BYTES:
+                self._cache[key] = response
+                self._cached_bytes += size
         return response
 
     def warm(self) -> None:
-        """Compute the common answers now (at start, off the event loop)."""
+        """Compute the common answers now (at start, off the event loop); they are kept."""
         names = list(self.service.values)
         for name, request in (("list_parameters", ListParametersRequest()),
                               ("get_parameters", GetParametersRequest(names)),
                               ("get_parameter_types", GetParameterTypesRequest(names)),
                               ("describe_parameters", DescribeParametersRequest(names))):
-            self.answer(name, self._types.serialize(request))
+            data = self._types.serialize(request)
+            response = self.answer(name, data)
+            with self._lock:
+                self._warm[(name, bytes(data))] = response
+                if self._cache.pop((name, bytes(data)), None) is not None:
+                    self._cached_bytes -= len(data) + len(response)
+
+    @property
+    def cached_bytes(self) -> int:
+        """Bytes of the answers remembered beyond the warm ones (requests included)."""
+        return self._cached_bytes
 
 
 def _under(name: str, prefix: str, depth: int) -> bool:

@@ -77,7 +77,8 @@ class BridgeStats:
     old_attachment: int = 0  #: incoming samples with rmw_zenoh 0.2.0-0.2.3's string-keyed attachment
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
     service_calls: int = 0   #: service requests answered
-    service_errors: int = 0  #: service requests refused (no attachment, malformed) or failed replies
+    service_errors: int = 0  #: service requests refused (no attachment, malformed, too big) or failed
+    set_calls: int = 0       #: set_parameters calls answered (read-only: refused in the answer)
     wrong_type: int = 0      #: incoming samples on an input topic with another type or type hash
 
 

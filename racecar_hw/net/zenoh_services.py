@@ -23,6 +23,7 @@ from racecar_hw.net.parameters import (
     SERVICE_QOS,
     CdrAnswers,
     ParameterService,
+    RequestRefused,
     ServiceSpec,
     service_name,
 )
@@ -32,8 +33,8 @@ log = logging.getLogger(__name__)
 
 
 class ZenohServices:
-    """The parameter services of one node. ``stats`` (``service_calls``, ``service_errors``) is
-    written under ``lock``."""
+    """The parameter services of one node. ``stats`` (``service_calls``, ``service_errors``,
+    ``set_calls``) is written under ``lock``."""
 
     def __init__(self, parameters: ParameterService, stats: Any, lock: threading.Lock) -> None:
         self.answers = CdrAnswers(parameters)
@@ -62,17 +63,25 @@ class ZenohServices:
 
         def answer(query: Any) -> None:
             attachment, payload = query.attachment, query.payload
-            if spec.name.startswith("set_"):
-                log.info("zenoh: a client called %s: refused, the parameters are read-only", name)
             if attachment is None or payload is None:
                 refuse("no rmw_zenoh attachment" if attachment is None else "no request")
                 return
             try:
                 request = rmw.Attachment.decode(attachment.to_bytes())
                 reply = answers.answer(spec.name, payload.to_bytes())
+            except RequestRefused as err:
+                refuse(str(err))
+                return
             except Exception as err:  # noqa: BLE001 - hostile bytes: whatever the decoder raises
                 refuse(f"malformed request ({type(err).__name__})")
                 return
+            if spec.name.startswith("set_"):
+                with lock:
+                    stats.set_calls += 1
+                    n = stats.set_calls
+                if n in (1, 10, 100) or n % 1000 == 0:
+                    log.info("zenoh: a client called %s: refused, the parameters are read-only "
+                             "(%d so far)", name, n)
             try:
                 query.reply(key, reply, attachment=rmw.encode_attachment(
                     request.sequence_number, wall_ns(), request.gid))
