@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import difflib
 import math
-import re
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -16,6 +14,7 @@ from pathlib import Path
 
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
+from racecar_hw.commands.calibrate_write import configured, write
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.commands.sim import _speed, offline_at_max_speed
 from racecar_hw.config import Config, load_config
@@ -105,9 +104,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if problems:
         print("racecar-hw calibrate: not written, the fit is poor: " + "; ".join(problems), file=sys.stderr)
         return 1
-    print("\nconfig snippet:\nvesc:\n" + "".join(f"  {k}: {v}\n" for k, v in values.items()), end="")
+    target = load_config(args.write) if args.write else load_config(args.config, args.overrides)
+    shown = configured(values, target.vesc)  # as the config states them, its invert flags applied
+    print("\nconfig snippet:\nvesc:\n" + "".join(f"  {k}: {'null' if v is None else v}\n"
+                                                for k, v in shown.items()), end="")
     if args.write:
-        _write(Path(args.write), values)
+        write(Path(args.write), values)
     return 0
 
 
@@ -211,8 +213,9 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
     return (outcome[0] if outcome else "interrupted before the procedure ended"), truth[0]
 
 
-def _values(result: CalibrationResult) -> tuple[dict[str, float], list[str]]:
-    """The config values to write, and why not (empty: good enough)."""
+def _values(result: CalibrationResult) -> tuple[dict[str, float | None], list[str]]:
+    """The measured values (physical signs; a right-turn gain of None: as the left), and why they
+    should not be written (empty: good enough)."""
     gain, st = result.erpm_gain, result.steering
     problems = []
     if not gain.std_error <= MAX_ERPM_GAIN_ERROR * abs(gain.value):
@@ -224,13 +227,14 @@ def _values(result: CalibrationResult) -> tuple[dict[str, float], list[str]]:
         if not est.std_error <= MAX_STEERING_GAIN_ERROR * abs(est.value):
             problems.append(f"the {name} steering gain ±{est.std_error:.3f} is over "
                             f"{MAX_STEERING_GAIN_ERROR:.0%}")
-    values = {"speed_to_erpm_gain": round(gain.value, 1),
-              "steering_angle_to_servo_offset": round(st.offset.value, 4)}
+    values: dict[str, float | None] = {"speed_to_erpm_gain": round(gain.value, 1),
+                                       "steering_angle_to_servo_offset": round(st.offset.value, 4)}
     if st.gains_differ:
         values["steering_angle_to_servo_gain"] = round(st.gain_left.value, 4)
         values["steering_angle_to_servo_gain_right"] = round(st.gain_right.value, 4)
     else:
         values["steering_angle_to_servo_gain"] = round(_mean(st.gain_left, st.gain_right), 4)
+        values["steering_angle_to_servo_gain_right"] = None  # an earlier right gain no longer holds
     return values, problems
 
 
@@ -260,32 +264,3 @@ def _report(result: CalibrationResult, truth: _Truth | None) -> str:
         line("gyro_bias_rad_s", bias, ".5f", t.gyro_bias if t else None,
              f"{math.degrees(bias.value):.2f} deg/s, learned again at every standstill"),
     ])
-
-
-def _write(path: Path, values: dict[str, float]) -> None:
-    """Put ``values`` under ``vesc:`` in the YAML file, keeping its comments; print the diff."""
-    before = path.read_text()
-    lines = before.splitlines(keepends=True)
-    start = next((i for i, text in enumerate(lines) if re.match(r"^vesc:\s*(#.*)?$", text)), None)
-    if start is None:
-        lines += (["\n"] if lines and not lines[-1].endswith("\n") else []) + ["vesc:\n"]
-        start = len(lines) - 1
-    end = next((i for i in range(start + 1, len(lines)) if re.match(r"^\S", lines[i])), len(lines))
-    while end > start + 1 and not lines[end - 1].strip():  # new keys go after the block's last line
-        end -= 1
-    for key, value in values.items():
-        pattern = re.compile(rf"^(\s+){re.escape(key)}:\s*[^#\n]*(#.*)?$")
-        for i in range(start + 1, end):
-            m = pattern.match(lines[i].rstrip("\n"))
-            if m:
-                comment = f"  {m.group(2)}" if m.group(2) else ""
-                lines[i] = f"{m.group(1)}{key}: {value}{comment}\n"
-                break
-        else:
-            lines.insert(end, f"  {key}: {value}  # racecar-hw calibrate\n")
-            end += 1
-    after = "".join(lines)
-    path.write_text(after)
-    diff = difflib.unified_diff(before.splitlines(keepends=True), after.splitlines(keepends=True),
-                                str(path), str(path))
-    print(f"\nwritten to {path}:\n" + "".join(diff), end="")

@@ -1,0 +1,121 @@
+"""``racecar-hw calibrate --write``: the measured values into a config file, checked before it is
+replaced.
+
+The procedure measures the car as it is: ERPM per m/s of driving (a magnitude, as
+``speed_to_erpm_gain`` is: ``invert_motor`` gives the direction) and servo position per radian of
+left turn with its physical sign (the servo positions actually sent against the turns measured).
+``invert_servo`` negates the configured steering gains, so where the file sets it the measured
+ones are written negated. The file's ``vesc:`` block is edited line by line, keeping comments and the block's
+indentation; a right-turn gain left from an earlier calibration is set to null when both sides now
+turn alike. The edited text must load as a valid config whose conversion gives back the measured
+gains and offset; otherwise nothing is written and the reason names ``--write`` (a flow-style
+``vesc: {...}`` block, for one, is left for a person to edit).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import difflib
+import math
+import os
+import re
+from pathlib import Path
+
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.config import Config, load_config
+from vesc.ackermann import AckermannConversion
+from vesc.params import VescParams
+
+#: Written keys whose value the file's ``invert_servo`` negates.
+_SERVO_KEYS = ("steering_angle_to_servo_gain", "steering_angle_to_servo_gain_right")
+RIGHT_GAIN = "steering_angle_to_servo_gain_right"
+
+
+def configured(measured: dict[str, float | None], vesc: VescParams) -> dict[str, float | None]:
+    """The values to configure for the ``measured`` ones under ``vesc``'s ``invert_servo``."""
+    out = dict(measured)
+    for key in _SERVO_KEYS:
+        value = out.get(key)
+        if vesc.invert_servo and value is not None:
+            out[key] = -value
+    return out
+
+
+def write(path: Path, measured: dict[str, float | None]) -> dict[str, float | None]:
+    """Put the ``measured`` values into the config at ``path`` as :func:`configured` says, print the
+    diff and return what was written; ConfigError naming ``--write`` (file untouched) when the result
+    would not be a valid config stating the measurement."""
+    before = path.read_text()
+    values = configured(measured, _load(path, before, "as it is").vesc)
+    after = edited(before, values)
+    vesc = _load(path, after, "after the edit").vesc
+    if configured(measured, vesc) != values:  # the edit changed a flag's meaning: never silently
+        raise ConfigError("--write", f"{path}: the edit would change invert_servo; "
+                                     "nothing written: put the snippet above in by hand")
+    _check(path, vesc, measured)
+    tmp = path.with_name(f".{path.name}.calibrate")
+    tmp.write_text(after)
+    os.replace(tmp, path)
+    diff = difflib.unified_diff(before.splitlines(keepends=True), after.splitlines(keepends=True),
+                                str(path), str(path))
+    print(f"\nwritten to {path}:\n" + "".join(diff), end="")
+    return values
+
+
+def edited(text: str, values: dict[str, float | None]) -> str:
+    """``text`` with each of ``values`` set under its block-style ``vesc:`` key (a new key at the
+    block's indentation; a None value sets an existing key to null and adds none)."""
+    lines = text.splitlines(keepends=True)
+    start = next((i for i, line in enumerate(lines) if re.match(r"^vesc:\s*(#.*)?$", line)), None)
+    if start is None:
+        lines += (["\n"] if lines and not lines[-1].endswith("\n") else []) + ["vesc:\n"]
+        start = len(lines) - 1
+    end = next((i for i in range(start + 1, len(lines)) if re.match(r"^\S", lines[i])), len(lines))
+    while end > start + 1 and not lines[end - 1].strip():  # new keys go after the block's last line
+        end -= 1
+    indent = next((m.group(1) for line in lines[start + 1:end]
+                   if (m := re.match(r"^(\s+)[^\s#]", line))), "  ")
+    for key, value in values.items():
+        shown = "null" if value is None else repr(value)
+        pattern = re.compile(rf"^(\s+){re.escape(key)}:\s*[^#\n]*(#.*)?$")
+        for i in range(start + 1, end):
+            m = pattern.match(lines[i].rstrip("\n"))
+            if m and m.group(1) == indent:
+                comment = f"  {m.group(2)}" if m.group(2) else ""
+                lines[i] = f"{indent}{key}: {shown}{comment}\n"
+                break
+        else:
+            if value is not None:
+                lines.insert(end, f"{indent}{key}: {shown}  # racecar-hw calibrate\n")
+                end += 1
+    return "".join(lines)
+
+
+def _load(path: Path, text: str, when: str) -> Config:
+    """``text`` loaded as the config file at ``path`` would be (beside it, for relative paths)."""
+    tmp = path.with_name(f".{path.name}.calibrate-check")
+    try:
+        tmp.write_text(text)
+        return load_config(tmp)
+    except ConfigError as err:
+        raise ConfigError("--write", f"{path}: {when} it would not load ({err}); nothing "
+                                     "written: put the snippet above in by hand") from None
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def _check(path: Path, vesc: VescParams, measured: dict[str, float | None]) -> None:
+    """The written config's conversion gives back the measured gains and offset."""
+    conv = AckermannConversion.from_params(vesc)
+    left = measured.get("steering_angle_to_servo_gain")
+    right = measured.get(RIGHT_GAIN) or left
+    wants = (("speed_to_erpm_gain", conv.speed_to_erpm_gain, measured.get("speed_to_erpm_gain")),
+             ("steering_angle_to_servo_offset", conv.steering_angle_to_servo_offset,
+              measured.get("steering_angle_to_servo_offset")),
+             ("steering_angle_to_servo_gain", conv.servo_gain, left),
+             (RIGHT_GAIN, conv.servo_gain_right, right))
+    for key, got, want in wants:
+        if want is not None and not math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-9):
+            raise ConfigError("--write", f"{path}: vesc.{key} would mean {got} where {want} was measured; "
+                                         "nothing written: put the snippet above in by hand")

@@ -1,0 +1,82 @@
+"""``racecar-hw calibrate --write``: measured values into a config file as its invert flags state
+them, stale keys cleared, and nothing written where the result would not load or would not mean
+what was measured (racecar_hw.commands.calibrate_write)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from zenoh_util import ROOT
+
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.commands.calibrate_write import write
+from racecar_hw.config import load_config
+from vesc.ackermann import AckermannConversion
+
+pytestmark = pytest.mark.quiet  # pure computation and small files
+
+#: what the procedure measures: physical signs (a mirrored servo turns left with a positive gain)
+MEASURED = {"speed_to_erpm_gain": 4702.5, "steering_angle_to_servo_offset": 0.5804,
+            "steering_angle_to_servo_gain": 1.3349, "steering_angle_to_servo_gain_right": None}
+
+
+def _car(tmp_path: Path, extra: str = "", indent: str = "  ") -> Path:
+    text = (ROOT / "config" / "car.yaml").read_text()
+    if extra:
+        text = text.replace("\nvesc:\n", f"\nvesc:\n  {extra}\n", 1)
+    if indent != "  ":
+        text = "\n".join(indent + line[2:] if line.startswith("  ") and not line.startswith("   ") else line
+                         for line in text.splitlines()) + "\n"
+    path = tmp_path / "car.yaml"
+    path.write_text(text)
+    return path
+
+
+def _effective(path) -> AckermannConversion:
+    return AckermannConversion.from_params(load_config(path).vesc)
+
+
+@pytest.mark.parametrize(("flags", "servo_sign", "motor_sign"), [
+    ("", 1, 1), ("invert_servo: true", -1, 1), ("invert_motor: true", 1, -1)])
+def test_the_written_gains_mean_what_was_measured_under_the_files_invert_flags(
+        tmp_path, capsys, flags, servo_sign, motor_sign):
+    """A mirrored servo configured with invert_servo: true gets the measured gain negated, so the
+    car turns the way it is told (it once turned the other way after calibrating)."""
+    path = _car(tmp_path, flags)
+    written = write(path, MEASURED)
+    assert written["steering_angle_to_servo_gain"] == servo_sign * 1.3349
+    assert written["speed_to_erpm_gain"] == 4702.5  # a magnitude: invert_motor gives the direction
+    conv = _effective(path)
+    assert conv.servo_gain == pytest.approx(1.3349) and conv.servo_gain_right == pytest.approx(1.3349)
+    assert conv.erpm_gain == pytest.approx(motor_sign * 4702.5)
+    assert conv.steering_angle_to_servo_offset == 0.5804
+    assert f"+++ {path}" in capsys.readouterr().out
+
+
+def test_an_earlier_right_gain_is_cleared_when_both_sides_now_turn_alike(tmp_path):
+    path = _car(tmp_path, "steering_angle_to_servo_gain_right: -1.9")
+    write(path, MEASURED)
+    vesc = load_config(path).vesc
+    assert vesc.steering_angle_to_servo_gain_right is None and vesc.steering_angle_to_servo_gain == 1.3349
+    fresh = _car(tmp_path)  # no such key: none is added
+    write(fresh, MEASURED)
+    assert "steering_angle_to_servo_gain_right" not in fresh.read_text()
+
+
+def test_a_block_indented_by_four_keeps_its_indentation(tmp_path):
+    path = _car(tmp_path, indent="    ")
+    write(path, {**MEASURED, "steering_angle_to_servo_gain_right": 1.5})
+    text = path.read_text()
+    assert "\n    steering_angle_to_servo_gain_right: 1.5  # racecar-hw calibrate\n" in text
+    assert load_config(path).vesc.steering_angle_to_servo_gain_right == 1.5
+
+
+def test_a_flow_style_block_is_refused_and_the_file_left_as_it_was(tmp_path):
+    path = tmp_path / "car.yaml"
+    path.write_text("vesc: {port: /dev/vesc, wheelbase_m: 0.25}\n")
+    before = path.read_text()
+    with pytest.raises(ConfigError, match="--write: .* after the edit it would not load .* nothing written"):
+        write(path, MEASURED)
+    assert path.read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["car.yaml"]
