@@ -273,8 +273,8 @@ _TCP_PROTOCOLS = ("tcp", "tls", "ws")
 
 
 def listeners(config: Config) -> list[Listener]:
-    """Every TCP port the configuration listens on: Zenoh's listen endpoints, the Foxglove live
-    view, the status page (enabled ones; port 0, any free port, is left out)."""
+    """Every port the configuration listens on: Zenoh's listen endpoints, the Foxglove live view,
+    the status page (TCP), the MAVLink link (UDP); enabled ones, port 0 (any free port) left out."""
     out: list[Listener] = []
     if config.zenoh.enabled:
         for i, endpoint in enumerate(config.zenoh.listen):
@@ -287,12 +287,15 @@ def listeners(config: Config) -> list[Listener]:
                             config.foxglove.port))
     if config.web.enabled and config.web.port:
         out.append(Listener("web.port", "the status page", config.web.host, config.web.port))
+    if config.mavlink.enabled and config.mavlink.bind_port:
+        host, port = config.mavlink.bind
+        out.append(Listener("mavlink.bind_port", "the MAVLink ground-station link", host, port, "udp"))
     return out
 
 
 def taken_listeners(config: Config) -> list[Listener]:
     """The listeners whose port another program holds now (:func:`racecar_hw.net.ports.port_taken`)."""
-    return [item for item in listeners(config) if port_taken(item.host, item.port)]
+    return [item for item in listeners(config) if port_taken(item.host, item.port, item.kind)]
 
 
 def move_to_free_ports(config: Config, avoid: Collection[int] = ()) -> list[tuple[Listener, str]]:
@@ -302,9 +305,9 @@ def move_to_free_ports(config: Config, avoid: Collection[int] = ()) -> list[tupl
     moved: list[tuple[Listener, str]] = []
     clashing = [item for item in listeners(config) if item.port in avoid]
     for item in clashing + [item for item in taken_listeners(config) if item not in clashing]:
-        port = free_port(item.host)
+        port = free_port(item.host, item.kind)
         while port in avoid:  # free now, but promised: ask again
-            port = free_port(item.host)
+            port = free_port(item.host, item.kind)
         where = f"{item.host}:{port}"
         if item.key.startswith("zenoh.listen["):
             i = int(item.key[len("zenoh.listen["):-1])
@@ -313,6 +316,9 @@ def move_to_free_ports(config: Config, avoid: Collection[int] = ()) -> list[tupl
             address, sep, tail = rest.partition("#")
             host_part = address.rpartition(":")[0]
             config.zenoh.listen[i] = where = f"{proto}/{host_part}:{port}" + (sep + tail if sep else "")
+        elif item.key == "mavlink.bind_port":
+            config.mavlink.bind_port = port
+            where = f"udp {where}"
         elif item.key == "foxglove.port":
             config.foxglove.port = port
             where = f"ws://{item.host}:{port}"

@@ -213,6 +213,8 @@ class Daemon:
                               KEY_HINTS if self.keyboard is not None else None)
         self.snapshot, self.live_state = self.state.snapshot, self.state.live_state
         self._tasks: list[asyncio.Task[Any]] = []
+        #: the component whose failure ended the run, and its exception (None: it was stopped)
+        self.failure: tuple[str, BaseException] | None = None
         #: where the live interfaces listened once started (``net.urls()``), for reports
         self.started_live: dict[str, str] = {}
         self._extra: list[Coroutine[Any, Any, Any]] = []
@@ -337,18 +339,9 @@ class Daemon:
         self.notifier.ready("racecar-hw running")
         log.info("racecar-hw running")
         stack.callback(self._stopping)
-        waiter = asyncio.create_task(stop.wait())
         try:
-            done, _ = await asyncio.wait([waiter, *self._tasks], return_when=asyncio.FIRST_COMPLETED)
-            for task in done:
-                if task is not waiter and not task.cancelled() and task.exception() is not None:
-                    log.error("component failed: %r", task.exception(), exc_info=task.exception())
-            # components that finish on their own (a figure-8, a bag) leave the rest running
-            while not stop.is_set():
-                pending = [t for t in self._tasks if not t.done()]
-                await asyncio.wait([waiter, *pending], return_when=asyncio.FIRST_COMPLETED)
+            self.failure = await _until_stop_or_failure(stop, self._tasks)
         finally:
-            waiter.cancel()
             await self.shutdown()
 
     def _stopping(self) -> None:
@@ -368,3 +361,25 @@ class Daemon:
         """Undo start-up in reverse: stop the tasks and brake, stop the live interfaces, flush the
         recorder, close the network, then what was built first. Safe to call twice."""
         await self._stack.aclose()
+
+
+async def _until_stop_or_failure(stop: asyncio.Event, tasks: list[asyncio.Task[Any]]
+                                 ) -> tuple[str, BaseException] | None:
+    """Wait until ``stop`` is set or a component's task fails: then the failed one's name and
+    exception, logged (the run then ends and the car brakes: a component that is down, a teleop
+    link that could not open, must not leave the car driving without it). Components that finish
+    on their own (a figure-8, a bag) leave the rest running."""
+    waiter = asyncio.create_task(stop.wait())
+    try:
+        while not stop.is_set():
+            pending = [t for t in tasks if not t.done()]
+            done, _ = await asyncio.wait([waiter, *pending], return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if task is not waiter and not task.cancelled() and task.exception() is not None:
+                    err = task.exception()
+                    name = getattr(task.get_coro(), "__qualname__", task.get_name())
+                    log.error("component failed, stopping: %s: %r", name, err, exc_info=err)
+                    return name, err  # type: ignore[return-value]
+        return None
+    finally:
+        waiter.cancel()

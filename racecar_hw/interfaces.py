@@ -144,7 +144,7 @@ class Interfaces:
         """The rule for every interface (docs/live-view.md, "Ports"); Zenoh's own open refuses a
         taken listen port the same way, naming ``zenoh.listen[i]``."""
         for item in listeners(self.config):
-            if not item.key.startswith("zenoh.") and port_taken(item.host, item.port):
+            if not item.key.startswith("zenoh.") and port_taken(item.host, item.port, item.kind):
                 raise ConfigError(item.key, taken_message(item))
 
     def _uninstall_rosout(self) -> None:

@@ -54,6 +54,28 @@ def test_taken_ports_are_found_and_moved_for_all_three_interfaces():
         assert not taken_listeners(config)
 
 
+@contextlib.contextmanager
+def held_udp_port() -> Iterator[int]:
+    """A loopback UDP port held by a bound socket until the block ends (a ground station's, or
+    another racecar-hw's MAVLink link)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        yield s.getsockname()[1]
+
+
+def test_the_mavlink_links_udp_port_follows_the_same_rule():
+    """It once was outside the rule: ``run`` failed with a traceback and drove on without the
+    ground station; ``sim`` said nothing."""
+    with held_udp_port() as held:
+        config = load_config(None, ["mavlink.enabled=true", f"mavlink.bind_port={held}",
+                                    "zenoh.enabled=false", "web.enabled=false", "foxglove.enabled=false"])
+        assert [(t.key, t.kind) for t in taken_listeners(config)] == [("mavlink.bind_port", "udp")]
+        ((moved, where),) = move_to_free_ports(config)
+        assert moved.key == "mavlink.bind_port" and config.mavlink.bind_port not in (held, 0)
+        assert where == f"udp 127.0.0.1:{config.mavlink.bind_port}"
+        assert not taken_listeners(config)
+
+
 @pytest.mark.slow
 def test_a_sim_started_while_its_ports_are_held_runs_on_printed_free_ports():
     with held_ports(3) as (z, f, w):
@@ -92,3 +114,15 @@ def test_run_refuses_a_taken_port_in_one_line_naming_the_key(tmp_path):
         assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
         assert proc.stderr.startswith(f"racecar-hw run: {key}.port: 127.0.0.1:{held} is already in use"), \
             proc.stderr
+    with held_udp_port() as held:
+        cfg = tmp_path / "mavlink.yaml"
+        cfg.write_text(yaml.safe_dump({
+            "vesc": {"port": str(tmp_path / "no-vesc")}, "lidar": {"enabled": False},
+            "gamepad": {"enabled": False}, "zenoh": {"enabled": False}, "web": {"enabled": False},
+            "foxglove": {"enabled": False}, "mavlink": {"enabled": True, "bind_port": held}}))
+        proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
+                              capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith(f"racecar-hw run: mavlink.bind_port: 127.0.0.1:{held} is already in use"), \
+        proc.stderr

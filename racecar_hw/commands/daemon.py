@@ -114,7 +114,8 @@ def exit_if_undriven(command: str, daemon: Daemon) -> int:
 async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,
                      noted: StopSignals | None = None) -> int:
     """Run ``daemon`` until SIGINT, SIGTERM (or one ``noted`` before the loop ran) or ``stop`` is set.
-    SIGUSR1 (``systemctl reload``) restarts the MAVLink link's signing state."""
+    SIGUSR1 (``systemctl reload``) restarts the MAVLink link's signing state. 1, after one line on
+    stderr, when a component's failure ended the run (systemd then restarts the service)."""
     event = stop if stop is not None else asyncio.Event()
     loop = asyncio.get_running_loop()
     remove = add_stop_handlers(loop, lambda _sig: event.set(), noted=noted)
@@ -124,4 +125,8 @@ async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,
     finally:
         remove_restart()
         remove()
+    if daemon.failure is not None:
+        name, err = daemon.failure
+        print(f"racecar-hw: stopped, braked: {name} failed: {err}", file=sys.stderr)
+        return 1
     return 0

@@ -188,6 +188,10 @@ def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plott
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
     print(outputs(result.report, report))
+    failure = loopback.daemon.failure if loopback.daemon is not None else None
+    if failure is not None:  # the report says so too (stop_reason)
+        print(f"racecar-hw sim: stopped early: {failure[0]} failed: {failure[1]}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -218,6 +218,8 @@ class Loopback:
 
             daemon.add_task(timer())
             await daemon.run(stop)
+            if daemon.failure is not None:
+                self.request_stop(f"failure of {daemon.failure[0]}: {daemon.failure[1]}")
             await self._settle()
             return RunReport(self).result()
         finally:
