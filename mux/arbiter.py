@@ -95,7 +95,8 @@ class MuxStateMachine:
 
 @dataclass(frozen=True, slots=True)
 class InputSpec:
-    """One input as arbitration sees it; ``timeout_ns`` 0 means never expires."""
+    """One input as arbitration sees it (``timeout_ns`` is never 0 for an input: every input expires,
+    :class:`~mux.params.InputParams`)."""
 
     name: str
     priority: int

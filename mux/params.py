@@ -25,6 +25,9 @@ from racecar_hw.base.topics import MUX_ACTIVE_TOPIC, MUX_HIGH, MUX_LOW
 RESERVED_SOURCES: tuple[str, ...] = ("idle", "estop", "fault")
 
 _LOW, _HIGH = MUX_LOW, MUX_HIGH
+#: An input's timeout (s) is within these: a source that never expired (0, once "never") or
+#: expired only after many seconds would hold its last command, driving a car nobody commands.
+MIN_INPUT_TIMEOUT_S, MAX_INPUT_TIMEOUT_S = 0.01, 5.0
 
 
 @dataclass
@@ -34,8 +37,9 @@ class InputParams:
     name: str = field(metadata={"doc": "source name shown in diagnostics and switch logs"})
     topic: str = field(metadata={"doc": "topic carrying AckermannDriveStamped commands"})
     priority: int = param(0, "larger wins; unique among inputs", min=0, max=255)
-    timeout_s: float = param(0.2, "the source expires this long after its last message; 0 = never",
-                             unit="s", min=0.0)
+    timeout_s: float = param(0.2, "the source expires this long after its last message (every source "
+                             "expires: the mux never holds a command)", unit="s",
+                             min=MIN_INPUT_TIMEOUT_S, max=MAX_INPUT_TIMEOUT_S)
 
 
 @dataclass
@@ -151,8 +155,10 @@ class MuxParams:
                                   f"{inp.priority} is already used by {priorities[inp.priority]}; "
                                   "input priorities must be unique")
             priorities[inp.priority] = where
-            if not math.isfinite(inp.timeout_s):
-                raise ConfigError(f"{where}.timeout_s", "must be finite (0 means never expires)")
+            if not MIN_INPUT_TIMEOUT_S <= inp.timeout_s <= MAX_INPUT_TIMEOUT_S:
+                raise ConfigError(f"{where}.timeout_s", f"{inp.timeout_s} s: every input must expire, "
+                                  f"{MIN_INPUT_TIMEOUT_S} to {MAX_INPUT_TIMEOUT_S} s (the mux never "
+                                  "holds a command)")
             claim(inp.topic, f"{where}.topic")
         lock_names: dict[str, str] = {}
         for i, lock in enumerate(self.locks):

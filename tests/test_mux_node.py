@@ -144,12 +144,15 @@ def test_idle_output_brakes_at_max_decel_with_the_limiter():
     assert speeds == pytest.approx([4.0 - 0.16, 4.0 - 0.32, 4.0 - 0.48])
 
 
-def test_timeout_zero_input_never_expires_on_the_bus():
-    from mux.params import InputParams
-    bus, mux, clock = _mux(inputs=[InputParams("bag", "/bag", 10, 0.0)])
+def test_an_input_at_the_longest_timeout_still_expires_on_the_bus():
+    """No input holds its last command (0, "never", is refused: tests/test_mux_params.py)."""
+    from mux.params import MAX_INPUT_TIMEOUT_S, InputParams
+    bus, mux, clock = _mux(inputs=[InputParams("bag", "/bag", 10, MAX_INPUT_TIMEOUT_S)])
     bus.publish("/bag", _cmd(1.0))
-    clock.advance(3600.0)
+    clock.advance(MAX_INPUT_TIMEOUT_S)
     assert mux.arbitrate().source == "bag"
+    clock.advance(0.001)
+    assert mux.arbitrate().source == "idle"
 
 
 def test_filters_run_between_arbitration_and_limiter():

@@ -111,6 +111,19 @@ def test_missing_and_out_of_range_fields_name_the_key():
     assert err.value.key == "mux.hold_steering_when_idel"
 
 
+@pytest.mark.parametrize("timeout", [0.0, 5.5, 100000.0])
+def test_every_input_expires_within_bounds(timeout):
+    """No input may hold its last command: 0 (twist_mux's "never") and long timeouts are refused,
+    in the config and in code alike (a nav input at 0 drove on at 1 m/s after its source fell
+    silent)."""
+    with pytest.raises(ConfigError, match="out of range; allowed: 0.01 to 5.0") as err:
+        build(MuxParams, {"inputs": [{"name": "a", "topic": "/a", "timeout_s": timeout}]}, "mux")
+    assert err.value.key == "mux.inputs[0].timeout_s"
+    with pytest.raises(ConfigError, match="every input must expire") as err:
+        MuxParams(inputs=[InputParams("a", "/a", 1, timeout)])
+    assert err.value.key == "mux.inputs[0].timeout_s"
+
+
 def test_direct_construction_is_validated_too():
     with pytest.raises(ConfigError) as err:
         MuxParams(max_accel_mps2=float("nan"))
