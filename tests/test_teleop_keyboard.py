@@ -152,6 +152,31 @@ def test_shell_on_a_pipe_drives_then_quits() -> None:
     asyncio.run(main())
 
 
+@pytest.mark.parametrize("keys", [b"ww", b""])
+def test_input_from_a_file_or_dev_null_is_read_to_its_end_then_stops(tmp_path, keys) -> None:
+    """``--keyboard < keys.txt`` or ``< /dev/null``: no selector can watch a file (it raised
+    PermissionError, a failed component); its keys are taken, then its end stops the car."""
+    path = tmp_path / "keys.txt"
+    path.write_bytes(keys)
+
+    async def main() -> list[AckermannDriveStamped]:
+        bus = Bus()
+        p = KeyboardParams(rate_hz=50.0, hold_s=5.0)
+        got: list[AckermannDriveStamped] = []
+        bus.subscribe(p.topic, got.append)
+        fd = os.open(path if keys else os.devnull, os.O_RDONLY)
+        try:
+            kb = KeyboardTeleop(bus, p, fd=fd)
+            await asyncio.wait_for(kb.run(), 10)
+            assert kb.state.speed == (0.5 if keys else 0.0)  # the file's keys were taken
+            return got
+        finally:
+            os.close(fd)
+
+    got = asyncio.run(main())
+    assert got and got[-1].drive.speed == 0.0
+
+
 def test_shell_on_a_pty_uses_cbreak_and_restores_the_terminal() -> None:
     async def main() -> None:
         bus = Bus()

@@ -273,6 +273,16 @@ class KeyboardTeleop:
         if (not data or self.state.quit) and self._done is not None and not self._done.done():
             self._done.set_result(None)
 
+    def _read_to_end(self) -> None:
+        """Take input that is a file (``< keys.txt``, ``< /dev/null``) as a pipe's: its keys (at most
+        :data:`MAX_FILE_INPUT` bytes), then its end."""
+        taken = 0
+        while not (self._done is not None and self._done.done()) and taken < MAX_FILE_INPUT:
+            taken += 64
+            self._on_readable()
+        if self._done is not None and not self._done.done():
+            self._done.set_result(None)
+
     async def run(self) -> None:
         """Drive until ``q`` or end of input (or cancellation)."""
         loop = asyncio.get_running_loop()
@@ -283,7 +293,10 @@ class KeyboardTeleop:
             tty.setcbreak(self.fd)
         blocking = os.get_blocking(self.fd)
         os.set_blocking(self.fd, False)
-        loop.add_reader(self.fd, self._on_readable)
+        try:
+            loop.add_reader(self.fd, self._on_readable)
+        except PermissionError:  # a regular file or /dev/null: no selector watches it, it is all there
+            self._read_to_end()
         ticker = Ticker(self.params.rate_hz, self._clock)
         try:
             while not self._done.done():
@@ -302,6 +315,9 @@ class KeyboardTeleop:
                 termios.tcsetattr(self.fd, termios.TCSADRAIN, saved)
             self._publish(AckermannDrive())
 
+
+#: Bytes of keys read from input that is a file, not a terminal or a pipe.
+MAX_FILE_INPUT = 1 << 16
 
 HELP = ("keyboard teleop: UP/w faster, DOWN/s slower, LEFT/a RIGHT/d steer, SPACE stop, "
         "ENTER keep going, e e-stop, R (shift) release it, q quit")
