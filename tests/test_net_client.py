@@ -225,11 +225,11 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
 @pytest.mark.slow
 def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_once(tmp_path):
     """The daemon uses F1TENTH names with /odom renamed, and its nav_0 input times out only after
-    30 s: a car that stops after the ``with`` block, with nav_0 still the mux's source commanding
+    5 s (the longest an input may hold): a car that stops after the ``with`` block, with nav_0 still the mux's source commanding
     zero and no safety intervention, was stopped by the client's stop command, not by a timeout."""
     port = free_port()
     remap = {"/odom": "/wheel/odom"}
-    sim = start_sim(tmp_path, port, "mux.inputs.2.timeout_s=30", "zenoh.profile=f1tenth",
+    sim = start_sim(tmp_path, port, "mux.inputs.2.timeout_s=5", "zenoh.profile=f1tenth",
                     "zenoh.remap={/odom: /wheel/odom}", duration=120.0)
     try:
         _wait_listening(port)
@@ -267,7 +267,7 @@ def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_o
                 return (values["source"] == "nav_0" and values["commanded_speed"] == 0.0
                         and abs(watcher.odom.speed) < 0.02)
 
-            # without the stop, nav_0 would hold 0.5 m/s for 30 s, until the safety controller
+            # without the stop, nav_0 would hold 0.5 m/s for 5 s, until the safety controller
             # stopped the car at the wall ahead (and counted an intervention)
             wait_for(stopped_by_nav_0, timeout=20)
         sim.proc.send_signal(signal.SIGINT)

@@ -448,8 +448,11 @@ class VescDriver(ReconnectingDevice):
                     timer.cancel()
         except asyncio.CancelledError:
             raise
-        except DeviceError as err:
+        except DeviceError as err:  # a VESC that stopped answering: its queued commands are stale
             self._lost = err
+            discard = getattr(link, "discard_unsent", None)
+            if discard is not None:
+                discard()
             link.close()
         except Exception:
             log.exception("VESC poll loop failed; dropping the link to reconnect")

@@ -293,6 +293,7 @@ class SerialLink(_ReceivingLink):
         if self._fd is None:
             raise DeviceIOError(f"{self.url}: not open")
         if len(self._tx) + len(data) > MAX_TX_PENDING:
+            self.discard_unsent()
             self._fail(DeviceIOError(f"{self.url}: the device takes no data ({len(self._tx)} bytes "
                                      "unwritten)"))
             raise self._error  # type: ignore[misc]
@@ -314,15 +315,20 @@ class SerialLink(_ReceivingLink):
         except (serial.SerialException, OSError) as err:
             raise DeviceIOError(f"{self.url}: cannot set DTR: {err}") from err
 
+    def discard_unsent(self) -> None:
+        """Drop what was written but not yet sent, queued here and in the OS's buffer: stale commands
+        to a device that stopped reading must not reach it when it reads again (before a close that
+        gives the device up; a plain close sends what is queued, a shutdown's brake among it)."""
+        self._tx.clear()
+        if self._port is not None:
+            with contextlib.suppress(Exception):
+                self._port.reset_output_buffer()
+
     def close(self) -> None:
-        """Close the port, discarding what was written but not yet sent (queued here and in the OS):
-        stale commands must not reach a device that starts reading again."""
         self._detach()
         self._receiver = None
         port, self._port = self._port, None
         if port is not None:
-            with contextlib.suppress(Exception):
-                port.reset_output_buffer()
             with contextlib.suppress(Exception):
                 port.close()
         self._wake()
