@@ -149,7 +149,7 @@ class WorldSpec:
 
     rate_hz: float = param(200.0, "physics step rate", unit="Hz", min=20.0, max=2000.0)
     noise_std_m: float = param(0.01, "lidar range noise (standard deviation)", unit="m", min=0.0)
-    seed: int | None = param(1, "random seed for the noise; none: different every run")
+    seed: int | None = param(1, "random seed for the noise; none: different every run", min=0)
     clock_rate_hz: float = param(100.0, "/clock publish rate in simulation time (rosgraph_msgs/Clock "
                                  "for ROS 2 nodes with use_sim_time; docs/sim.md); 0: no /clock",
                                  unit="Hz", min=0.0, max=1000.0)
