@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import types
 import typing
 from collections.abc import Iterable, Iterator, Mapping
@@ -88,7 +89,8 @@ def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
     try:
         return cls(**values)
     except ConfigError as err:
-        if key and err.key in fields:  # a check of the dataclass's own naming its field alone
+        # a check of the dataclass's own naming its field (or a part of it: ``steps[2].speed_mps``)
+        if key and re.split(r"[.\[]", err.key, maxsplit=1)[0] in fields:
             raise ConfigError(_join(key, err.key), str(err).removeprefix(f"{err.key}: ")) from None
         raise
     except (TypeError, ValueError) as err:
