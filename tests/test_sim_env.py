@@ -171,6 +171,28 @@ def test_refusals():
         env.reset()
 
 
+@pytest.mark.parametrize(("kwargs", "words"), [
+    ({"max_laps": 0}, "max_laps must be a whole number of laps from 1"),
+    ({"max_laps": -1}, "max_laps must be a whole number"),
+    ({"max_laps": "2"}, "max_laps must be a whole number"),
+    ({"max_laps": 1.5}, "max_laps must be a whole number"),
+    ({"max_laps": True}, "max_laps must be a whole number"),
+    ({"lap_centre": (math.nan, math.nan)}, "lap_centre must be finite"),
+    ({"lap_centre": (0.0, math.inf)}, "lap_centre must be finite"),
+    ({"lap_centre": (1.0,)}, r"lap_centre must be \(x m, y m\)"),
+    ({"lap_centre": "middle"}, r"lap_centre must be \(x m, y m\)"),
+])
+def test_bad_lap_settings_are_refused_when_the_env_is_made(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        RaceEnv(**kwargs)
+    assert not clock.is_virtual()  # refused before it took the process's clock
+
+
+def test_good_lap_settings_are_kept():
+    with RaceEnv(max_laps=np.int64(2), lap_centre=np.array([1, -2])) as env:
+        assert env.max_laps == 2 and env.lap_centre == (1.0, -2.0)
+
+
 def test_a_refused_scenario_says_why_and_the_env_starts_the_next(caplog):
     broken = load_scenario("track", ["drivers=[{input: nav_9}]"])
     with RaceEnv() as env:

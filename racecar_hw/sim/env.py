@@ -72,8 +72,8 @@ class RaceEnv:
         self.overrides = (*ENV_OVERRIDES, *overrides)
         self.mux_input = mux_input
         self.max_episode_s = float(max_episode_s)
-        self.max_laps = max_laps
-        self.lap_centre = lap_centre
+        self.max_laps = _max_laps(max_laps)
+        self.lap_centre = _lap_centre(lap_centre)
         self.car_name = car_name
         self.loop = VirtualTimeLoop(None)
         self._clock = use_virtual_time(self.loop.now_ns)
@@ -213,6 +213,29 @@ class RaceEnv:
             result = episode.end()
             if result is not None:
                 self.last_result = result
+
+
+def _max_laps(max_laps: int | None) -> int | None:
+    """``max_laps`` if it is None or a whole number of laps from 1 (ValueError otherwise)."""
+    if max_laps is None:
+        return None
+    if isinstance(max_laps, bool) or not isinstance(max_laps, (int, np.integer)) or max_laps < 1:
+        raise ValueError(f"max_laps must be a whole number of laps from 1, or None, got {max_laps!r}")
+    return int(max_laps)
+
+
+def _lap_centre(lap_centre: Sequence[float] | None) -> tuple[float, float] | None:
+    """``lap_centre`` as (x m, y m) if it is None or two finite numbers (ValueError otherwise)."""
+    if lap_centre is None:
+        return None
+    try:
+        x, y = (float(v) for v in np.asarray(lap_centre, dtype=np.float64).reshape(-1))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"lap_centre must be (x m, y m) in the map frame, or None, got {lap_centre!r}") \
+            from err
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"lap_centre must be finite, got {lap_centre!r}")
+    return x, y
 
 
 def _action(action: Sequence[float]) -> tuple[float, float]:
