@@ -137,7 +137,10 @@ class RaceEnv:
         """End the running episode (its daemon stopped, its fakes unplugged) and start ``scenario``
         (default: the env's) with the world's random seed ``seed`` (None: the scenario's
         ``world.seed``); returns once the car is ready to drive: ``(observation, info)``.
-        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``."""
+        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``.
+        What refuses the new scenario before its devices start (a bad option, seed, map, config,
+        driver input, firmware or start pose, a scenario with ``cars``) is raised before the
+        running episode ends: that one steps on."""
         if self._closed:
             raise RuntimeError("the env is closed")
         options = dict(options or {})
@@ -152,11 +155,17 @@ class RaceEnv:
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
                 raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
             sc = dataclasses.replace(sc, world=dataclasses.replace(sc.world, seed=int(seed)))
+        # then the scenario (its map, config, drivers, firmware, start), starting nothing of it yet
+        episode = Episode(self.loop, sc, config_path=self.config_path, overrides=self.overrides,
+                          car_name=self.car_name, mux_input=self.mux_input, lap_centre=self.lap_centre)
+        try:
+            episode.check()
+        except BaseException:
+            episode.discard()
+            raise
         self._end_episode()
         self.loop.run_until_time(self.loop.now_ns())  # what the teardown left to do at this instant
         self.loop.rewind()  # every episode from the same virtual time: the same seed, the same run
-        episode = Episode(self.loop, sc, config_path=self.config_path, overrides=self.overrides,
-                          car_name=self.car_name, mux_input=self.mux_input, lap_centre=self.lap_centre)
         episode.start()  # raises what refused the scenario; then nothing of it runs
         self.episode, self.steps = episode, 0
         return episode.observation(), episode.info(self.loop.now_ns(), 0)
