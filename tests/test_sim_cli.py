@@ -118,6 +118,27 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
     assert not list(tmp_path.glob("*.json"))
 
 
+@pytest.mark.parametrize(("option", "words"), [
+    ("--report", "a-dir is a directory, not a file"),
+    ("--record", "a-file is a file, not a directory"),
+    ("--out", "a-file is a file, not a directory"),
+])
+def test_an_output_that_cannot_be_written_is_one_line_before_anything_runs(tmp_path, capsys, option, words):
+    """A report path that is a directory, or a bag or output directory that is a file, is refused
+    naming the option before the run (not a traceback at its end, with the report lost)."""
+    (tmp_path / "a-dir").mkdir()
+    (tmp_path / "a-file").write_text("")
+    target = tmp_path / ("a-dir" if option == "--report" else "a-file")
+    out = [] if option == "--out" else ["--out", str(tmp_path / "out")]
+    code = main(["sim", "--scenario", "wall", "--duration", "0.5", "--speed", "max", "--no-status",
+                 *out, option, str(target)])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 1
+    assert err[-1] == f"racecar-hw sim: {option}: {tmp_path}/{words}"
+    assert not any("Traceback" in line for line in err)
+    assert not (tmp_path / "out").exists()  # nothing ran: no trajectory, no plot
+
+
 def test_follow_options_come_first_and_scenario_sets_apply_to_them(tmp_path):
     args = build_parser().parse_args(["sim", "--follow", str(tmp_path / "b"), "--scenario-set",
                                       "drivers.0.rate_hz=10", "--scenario-set",

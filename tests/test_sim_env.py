@@ -4,6 +4,7 @@ step, the same run for the same seed; and the loop's stepping and rewinding unde
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 
 import numpy as np
@@ -169,6 +170,57 @@ def test_refusals():
         env.reset()
     with RaceEnv(mux_input="nav_9") as env, pytest.raises(ValueError, match="nav_9"):
         env.reset()
+
+
+@pytest.mark.parametrize(("kwargs", "words"), [
+    ({"max_laps": 0}, "max_laps must be a whole number of laps from 1"),
+    ({"max_laps": -1}, "max_laps must be a whole number"),
+    ({"max_laps": "2"}, "max_laps must be a whole number"),
+    ({"max_laps": 1.5}, "max_laps must be a whole number"),
+    ({"max_laps": True}, "max_laps must be a whole number"),
+    ({"lap_centre": (math.nan, math.nan)}, "lap_centre must be finite"),
+    ({"lap_centre": (0.0, math.inf)}, "lap_centre must be finite"),
+    ({"lap_centre": (1.0,)}, r"lap_centre must be \(x m, y m\)"),
+    ({"lap_centre": "middle"}, r"lap_centre must be \(x m, y m\)"),
+])
+def test_bad_lap_settings_are_refused_when_the_env_is_made(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        RaceEnv(**kwargs)
+    assert not clock.is_virtual()  # refused before it took the process's clock
+
+
+def test_good_lap_settings_are_kept():
+    with RaceEnv(max_laps=np.int64(2), lap_centre=np.array([1, -2])) as env:
+        assert env.max_laps == 2 and env.lap_centre == (1.0, -2.0)
+
+
+def test_a_scenario_refused_before_its_devices_start_leaves_the_running_episode_stepping(tmp_path):
+    """What Episode.start would refuse before anything of the scenario starts is refused by reset
+    before it ends the running episode: a bad ``config:`` key, a missing map, a bad firmware, a
+    scenario with cars, a negative seed in a Scenario made in code, a start inside a wall, a driver
+    on no mux input."""
+    track = load_scenario("track")
+    bad = {
+        "config": (load_scenario("track", ["config={safety: {nosuchkey: 1}}"]), "safety.nosuchkey"),
+        "map": (load_scenario("track", [f"map={tmp_path / 'nope.yaml'}"]), "nope.yaml"),
+        "firmware": (load_scenario("track", ["firmware=abc"]), "firmware: 'abc' is not X.Y"),
+        "cars": ("two-cars", "several cars"),
+        "seed": (dataclasses.replace(track, world=dataclasses.replace(track.world, seed=-5)), "negative"),
+        "start": (load_scenario("track", ["start=[6.0, 5.75, 0.0]"]), "start_pose"),
+        "driver": (load_scenario("track", ["drivers=[{input: nav_9}]"]), "nav_9"),
+    }
+    with RaceEnv() as env:
+        env.reset(seed=1)
+        for _ in range(5):
+            info = env.step((1.0, 0.0))[4]
+        for what, (scenario, words) in bad.items():
+            with pytest.raises((ConfigError, ValueError), match=words):
+                env.reset(scenario)
+            after = env.step((1.0, 0.0))[4]  # the same episode, one step on
+            assert after["steps"] == info["steps"] + 1, what
+            assert after["time_s"] > info["time_s"] and after["distance_m"] > info["distance_m"], what
+            info = after
+        assert env.reset()[1]["steps"] == 0  # and a good one starts
 
 
 def test_a_refused_scenario_says_why_and_the_env_starts_the_next(caplog):

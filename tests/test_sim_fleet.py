@@ -123,6 +123,19 @@ def test_a_scenario_with_cars_refuses_what_belongs_to_each_car():
         Loopback(load_scenario("two-cars"))
 
 
+def test_overlapping_starts_are_checked_with_each_cars_own_footprint():
+    """A car whose config makes its footprint 2 m long overlaps a car 1 m ahead, where two cars of
+    the default footprint (0.55 m) would not; a car's config that does not load names the car."""
+    apart = ["cars=[{name: a, start: [0, 0, 0]}, {name: b, start: [1, 0, 0]}]"]
+    Fleet(load_scenario("two-cars", apart))._check_starts()
+    long_a = ["cars.0.config={safety: {footprint: {length_m: 2.0}}}"]
+    with pytest.raises(ConfigError, match=r"^scenario\.cars\[1\]\.start: car b's .* overlaps car a's"):
+        Fleet(load_scenario("two-cars", apart + long_a))._check_starts()
+    bad_b = "cars.1.config={safety: {footprint: {nope: 1}}}"
+    with pytest.raises(ConfigError, match=r"^car b: safety\.footprint\.nope: unknown key"):
+        Fleet(load_scenario("two-cars", [*apart, bad_b]))._check_starts()
+
+
 CAR_ENTRY = st.fixed_dictionaries(
     {"name": st.one_of(st.sampled_from(["a", "b", "car_1"]), st.text(max_size=6))},
     optional={"start": st.lists(st.floats(allow_nan=True), max_size=4),

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import types
 import typing
 from collections.abc import Iterable, Iterator, Mapping
@@ -29,6 +30,11 @@ from racecar_hw.base.errors import ConfigError
 T = TypeVar("T")
 
 _MISSING = dataclasses.MISSING
+
+
+class _Mismatch(ConfigError):
+    """A value of the wrong type or shape (not one out of range): for ``X | Y`` fields, where
+    only a value that fits no option's type is said to fit none."""
 
 
 def param(
@@ -67,7 +73,7 @@ def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        raise ConfigError(key, f"expected a mapping of parameters, got {_show(data)}")
+        raise _Mismatch(key, f"expected a mapping of parameters, got {_show(data)}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields))
     if unknown:
@@ -83,7 +89,8 @@ def build(cls: type[T], data: Mapping[str, Any] | None, key: str = "") -> T:
     try:
         return cls(**values)
     except ConfigError as err:
-        if key and err.key in fields:  # a check of the dataclass's own naming its field alone
+        # a check of the dataclass's own naming its field (or a part of it: ``steps[2].speed_mps``)
+        if key and re.split(r"[.\[]", err.key, maxsplit=1)[0] in fields:
             raise ConfigError(_join(key, err.key), str(err).removeprefix(f"{err.key}: ")) from None
         raise
     except (TypeError, ValueError) as err:
@@ -138,31 +145,31 @@ def _convert(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
         if value is None and type(None) in args:
             return None
         inner = [a for a in args if a is not type(None)]
-        errors = []
         for option in inner:
             try:
                 return _convert(option, value, key, meta)
-            except ConfigError as err:
-                errors.append(str(err))
-        raise ConfigError(key, f"{_show(value)} fits none of {', '.join(map(_name, inner))}")
+            except _Mismatch:
+                continue  # not this type: try the next
+            # any other ConfigError: the value has this option's type but is wrong (out of range)
+        raise _Mismatch(key, f"{_show(value)} fits none of {', '.join(map(_name, inner))}")
     if dataclasses.is_dataclass(hint):
         return build(hint, value, key)
     if origin is list:
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(key, f"expected a list, got {_show(value)}")
+            raise _Mismatch(key, f"expected a list, got {_show(value)}")
         return [_convert(args[0], v, f"{key}[{i}]", {}) for i, v in enumerate(value)]
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(key, f"expected a list, got {_show(value)}")
+            raise _Mismatch(key, f"expected a list, got {_show(value)}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(args[0], v, f"{key}[{i}]", meta) for i, v in enumerate(value))
         if len(value) != len(args):
-            raise ConfigError(key, f"expected {len(args)} values, got {len(value)}")
+            raise _Mismatch(key, f"expected {len(args)} values, got {len(value)}")
         pairs = enumerate(zip(args, value, strict=True))
         return tuple(_convert(a, v, f"{key}[{i}]", meta) for i, (a, v) in pairs)
     if origin is dict:
         if not isinstance(value, Mapping):
-            raise ConfigError(key, f"expected a mapping, got {_show(value)}")
+            raise _Mismatch(key, f"expected a mapping, got {_show(value)}")
         return {str(k): _convert(args[1], v, _join(key, str(k)), {}) for k, v in value.items()}
     if hint is Any:
         return value
@@ -172,15 +179,15 @@ def _convert(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
 def _scalar(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
     if hint is bool:
         if not isinstance(value, bool):
-            raise ConfigError(key, f"expected true or false, got {_show(value)}")
+            raise _Mismatch(key, f"expected true or false, got {_show(value)}")
         out: Any = value
     elif hint is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(key, f"expected an integer, got {_show(value)}")
+            raise _Mismatch(key, f"expected an integer, got {_show(value)}")
         out = value
     elif hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(key, f"expected a number, got {_show(value)}")
+            raise _Mismatch(key, f"expected a number, got {_show(value)}")
         out = float(value)
         if math.isnan(out):
             raise ConfigError(key, "NaN is not allowed")
@@ -189,7 +196,7 @@ def _scalar(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
         if isinstance(value, bool) and {True: "on", False: "off"}[value] in choices:
             value = "on" if value else "off"  # YAML 1.1 reads a bare `off` (`--set safety.mode=off`) as false
         if not isinstance(value, str):
-            raise ConfigError(key, f"expected a string, got {_show(value)}")
+            raise _Mismatch(key, f"expected a string, got {_show(value)}")
         out = value
     else:
         raise ConfigError(key, f"unsupported parameter type {_name(hint)}")

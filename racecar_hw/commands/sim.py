@@ -142,6 +142,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     scenario = build_scenario(args)
     args.overrides = offline_at_max_speed(args.speed, args.overrides, "racecar-hw sim")
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
+    check_outputs(args, out, Path(args.report or out / f"{scenario.name or 'sim'}.json"))
     if scenario.cars:
         return cmd_fleet(args, scenario, out)
     from racecar_hw.sim.plot_worker import PlotWorker  # noqa: PLC0415 - with the command
@@ -153,6 +154,17 @@ def cmd_sim(args: argparse.Namespace) -> int:
     # run for the host, whose timing is the run's)
     with PlotWorker.start() as plotter:
         return _cmd_loopback(args, scenario, out, plotter)
+
+
+def check_outputs(args: argparse.Namespace, out: Path, report: Path) -> None:
+    """Refuse, before anything runs, a report, output directory or bag directory that could not be
+    written (a run that ends with nowhere to put its report loses it)."""
+    from racecar_hw.sim.report import check_writable  # noqa: PLC0415 - needs the sim extra
+
+    check_writable(out, "--out" if args.out or not args.report else "--report", directory=True)
+    check_writable(report, "--report", directory=False)
+    if args.record:
+        check_writable(args.record, "--record", directory=True)
 
 
 def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plotter: PlotWorker) -> int:

@@ -72,8 +72,8 @@ class RaceEnv:
         self.overrides = (*ENV_OVERRIDES, *overrides)
         self.mux_input = mux_input
         self.max_episode_s = float(max_episode_s)
-        self.max_laps = max_laps
-        self.lap_centre = lap_centre
+        self.max_laps = _max_laps(max_laps)
+        self.lap_centre = _lap_centre(lap_centre)
         self.car_name = car_name
         self.loop = VirtualTimeLoop(None)
         self._clock = use_virtual_time(self.loop.now_ns)
@@ -137,7 +137,10 @@ class RaceEnv:
         """End the running episode (its daemon stopped, its fakes unplugged) and start ``scenario``
         (default: the env's) with the world's random seed ``seed`` (None: the scenario's
         ``world.seed``); returns once the car is ready to drive: ``(observation, info)``.
-        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``."""
+        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``.
+        What refuses the new scenario before its devices start (a bad option, seed, map, config,
+        driver input, firmware or start pose, a scenario with ``cars``) is raised before the
+        running episode ends: that one steps on."""
         if self._closed:
             raise RuntimeError("the env is closed")
         options = dict(options or {})
@@ -152,11 +155,17 @@ class RaceEnv:
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
                 raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
             sc = dataclasses.replace(sc, world=dataclasses.replace(sc.world, seed=int(seed)))
+        # then the scenario (its map, config, drivers, firmware, start), starting nothing of it yet
+        episode = Episode(self.loop, sc, config_path=self.config_path, overrides=self.overrides,
+                          car_name=self.car_name, mux_input=self.mux_input, lap_centre=self.lap_centre)
+        try:
+            episode.check()
+        except BaseException:
+            episode.discard()
+            raise
         self._end_episode()
         self.loop.run_until_time(self.loop.now_ns())  # what the teardown left to do at this instant
         self.loop.rewind()  # every episode from the same virtual time: the same seed, the same run
-        episode = Episode(self.loop, sc, config_path=self.config_path, overrides=self.overrides,
-                          car_name=self.car_name, mux_input=self.mux_input, lap_centre=self.lap_centre)
         episode.start()  # raises what refused the scenario; then nothing of it runs
         self.episode, self.steps = episode, 0
         return episode.observation(), episode.info(self.loop.now_ns(), 0)
@@ -213,6 +222,29 @@ class RaceEnv:
             result = episode.end()
             if result is not None:
                 self.last_result = result
+
+
+def _max_laps(max_laps: int | None) -> int | None:
+    """``max_laps`` if it is None or a whole number of laps from 1 (ValueError otherwise)."""
+    if max_laps is None:
+        return None
+    if isinstance(max_laps, bool) or not isinstance(max_laps, (int, np.integer)) or max_laps < 1:
+        raise ValueError(f"max_laps must be a whole number of laps from 1, or None, got {max_laps!r}")
+    return int(max_laps)
+
+
+def _lap_centre(lap_centre: Sequence[float] | None) -> tuple[float, float] | None:
+    """``lap_centre`` as (x m, y m) if it is None or two finite numbers (ValueError otherwise)."""
+    if lap_centre is None:
+        return None
+    try:
+        x, y = (float(v) for v in np.asarray(lap_centre, dtype=np.float64).reshape(-1))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"lap_centre must be (x m, y m) in the map frame, or None, got {lap_centre!r}") \
+            from err
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"lap_centre must be finite, got {lap_centre!r}")
+    return x, y
 
 
 def _action(action: Sequence[float]) -> tuple[float, float]:

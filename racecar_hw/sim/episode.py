@@ -20,6 +20,7 @@ import numpy as np
 from racecar_hw.base.clock import NS_PER_S, wall_ns
 from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, stamp_now
 from racecar_hw.base.topics import TOPIC_ODOM
+from racecar_hw.config import Config
 from racecar_hw.daemon import Daemon
 from racecar_hw.runtime.lockstep import VirtualTimeLoop
 from racecar_hw.sim.laps import LapProgress, infield_centre
@@ -62,6 +63,17 @@ class Episode:
 
     # --- life ------------------------------------------------------------------------------------
 
+    def check(self) -> None:
+        """Refuse, starting nothing, what :meth:`start` would refuse before its devices start (the
+        scenario's config, drivers, firmware and start pose: :meth:`Loopback.check`) and a
+        ``mux_input`` the config does not have; the map and a scenario with ``cars`` were refused
+        when the episode was made. For while another episode runs, so a bad one leaves it running."""
+        self._input_topic(self.loopback.check())
+
+    def discard(self) -> None:
+        """Forget an episode that will not start (after a refusal by :meth:`check`)."""
+        self.loopback.discard()
+
     def start(self) -> None:
         """Start the run and the loop until the car is ready to drive (the VESC answered, a scan is
         in, odometry came). Raises what refused the scenario (a ConfigError naming the key), or
@@ -79,11 +91,11 @@ class Episode:
                                "while it started")
         config = self.loopback.config
         assert config is not None
-        topics = {inp.name: inp.topic for inp in config.mux.inputs}
-        if self.mux_input not in topics:
+        try:
+            self._topic = self._input_topic(config)
+        except ValueError:
             self.end()
-            raise ValueError(f"{self.mux_input!r} is not a mux input; inputs: {', '.join(topics)}")
-        self._topic = topics[self.mux_input]
+            raise
         self._scan_topic = config.safety.scan_topic
         self.period_ns = round(NS_PER_S / config.mux.rate_hz)
         self.t0_ns = self.loop.now_ns()
@@ -114,6 +126,13 @@ class Episode:
             log.warning("sim env: the episode's run failed: %r", err)
             return None
         return task.result()
+
+    def _input_topic(self, config: Config) -> str:
+        """The topic of the episode's mux input in ``config`` (ValueError: no such input)."""
+        topics = {inp.name: inp.topic for inp in config.mux.inputs}
+        if self.mux_input not in topics:
+            raise ValueError(f"{self.mux_input!r} is not a mux input; inputs: {', '.join(topics)}")
+        return topics[self.mux_input]
 
     async def _until_ready(self, task: asyncio.Task[SimResult]) -> None:
         loopback = self.loopback

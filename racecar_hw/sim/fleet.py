@@ -42,6 +42,7 @@ from racecar_hw.sim.loopback import Loopback
 from racecar_hw.sim.movers import Mover
 from racecar_hw.sim.obstacles import Box, Obstacle, polygon_distance
 from racecar_hw.sim.report import SimResult
+from racecar_hw.sim.rig import car_params
 from racecar_hw.sim.scenario import Scenario, ScenarioCar
 from racecar_hw.sim.timeline import ScenarioClock
 from racecar_hw.sim.world import World
@@ -160,9 +161,21 @@ class FleetCar(Loopback):
         try:
             return await super().run()
         except ConfigError as err:  # say which car's config it is
-            named = ConfigError("", f"car {self.name}: {err}")
-            named.key = err.key
-            raise named from None
+            raise self.named(err) from None
+
+    def named(self, err: ConfigError) -> ConfigError:
+        """``err`` saying it is this car's."""
+        named = ConfigError("", f"car {self.name}: {err}")
+        named.key = err.key
+        return named
+
+    def footprint_params(self) -> CarParams:
+        """The simulated car with its own config's footprint (sizes in m), before anything starts;
+        refuses (ConfigError naming the car) a config that does not load."""
+        try:
+            return car_params(self._build_config(), self.scenario.car)
+        except ConfigError as err:
+            raise self.named(err) from None
 
     def _take_free_ports(self, config: Config) -> None:
         """Between building the config and starting anything: claim this car's share of what the
@@ -280,10 +293,10 @@ class Fleet:
             car.request_stop(reason)
 
     def _check_starts(self) -> None:
-        """Refuse cars whose footprints overlap at the start (with the footprint of the sim config
-        and the scenario's config; a car's own footprint override is checked by its world)."""
-        params = CarParams()
-        boxes = [(entry.name, footprint(entry.start, params)) for entry in self.scenario.cars]
+        """Refuse cars whose footprints overlap at the start, each car's footprint as its own
+        config gives it (the sim config, the scenario's, the car's and the ``--set``s)."""
+        boxes = [(entry.name, footprint(entry.start, self.cars[entry.name].footprint_params()))
+                 for entry in self.scenario.cars]
         for i, (name, corners) in enumerate(boxes):
             for other, other_corners in boxes[:i]:
                 if polygon_distance(corners, other_corners) <= 0.0:

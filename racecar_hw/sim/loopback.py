@@ -77,6 +77,7 @@ class Loopback:
         #: run as long as the follow drivers' replays (stretched for the reverse cap) and
         #: :data:`REPLAY_SETTLE_S`, instead of the scenario's duration; ``duration_s`` wins
         self.until_replay_ends = until_replay_ends and duration_s is None
+        self.map = load_map(scenario.map_path())  # first: a missing map leaves nothing behind
         self._tmp = tempfile.TemporaryDirectory(prefix="racecar-hw-sim-")
         self.dev_dir = Path(self._tmp.name)
         self.out_dir = Path(out_dir) if out_dir is not None else None
@@ -86,7 +87,6 @@ class Loopback:
         self.setup = setup
         #: draws the run's plot in another process (started before the run); None: in this one
         self.plotter = plotter
-        self.map = load_map(scenario.map_path())
         #: the fakes in the daemon's loop behind in-memory links, on the loop's (virtual) clock
         #: (run it with :func:`racecar_hw.runtime.lockstep.run`), instead of ptys and TCP in real time
         self.lockstep = lockstep
@@ -164,6 +164,19 @@ class Loopback:
             "lidar": {"model": self.scenario.lidar.model, "tcp": None, "port": None},
         })
         return load_config(self.config_path, self.overrides, extra=extra)
+
+    def check(self) -> Config:
+        """Refuse what :meth:`run` would refuse before its devices start, starting nothing: the
+        config (the scenario's merged in), the drivers' mux inputs, the firmware, the lidar's
+        mounting and the start pose on the map; returns the config. Bags are loaded by the run."""
+        config = self._build_config()
+        ScenarioDrivers(self.scenario, config, self.clock).check()
+        self.rig.check(config)
+        return config
+
+    def discard(self) -> None:
+        """Forget a loopback that will not run (its temporary directory is removed)."""
+        self._tmp.cleanup()
 
     def _take_free_ports(self, config: Config) -> None:
         """The rule for ports (docs/live-view.md, "Ports"): a sim listens on free ports instead of

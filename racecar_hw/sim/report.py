@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from racecar_hw.base.clock import NS_PER_S
+from racecar_hw.base.errors import ConfigError
 from racecar_hw.sim.car import CLEARANCE_RANGE_M, footprint
 from racecar_hw.sim.obstacles import point_polygon_distance
 from racecar_hw.sim.plot_worker import PlotWorker
@@ -59,6 +61,27 @@ def write_report(result: SimResult, path: str | Path) -> Path:
     p.write_text(json.dumps(result.report, indent=2) + "\n")
     result.report_path = p
     return p
+
+
+def check_writable(path: str | Path, option: str, *, directory: bool) -> None:
+    """Refuse (a one-line ConfigError naming ``option``) an output that could not be written: a
+    file ``path`` that is a directory, a ``directory`` that is a file, or a place whose nearest
+    existing directory is not writable. For before a run starts, so it is not lost at its end."""
+    p = Path(path)
+    if directory and p.exists() and not p.is_dir():
+        raise ConfigError(option, f"{p} is a file, not a directory")
+    if not directory:
+        if p.is_dir():
+            raise ConfigError(option, f"{p} is a directory, not a file")
+        if p.exists() and not os.access(p, os.W_OK):
+            raise ConfigError(option, f"{p} cannot be written (permission denied)")
+    base = p if directory else p.parent
+    while not base.exists() and base != base.parent:  # what mkdir(parents=True) would start from
+        base = base.parent
+    if not base.is_dir():
+        raise ConfigError(option, f"{p} cannot be made: {base} is a file, not a directory")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ConfigError(option, f"{p} cannot be written: {base} is not writable")
 
 
 class RunReport:

@@ -112,6 +112,15 @@ class FakeRig:
             config.lidar.port = lidar_path
         return config
 
+    def check(self, config: Config) -> None:
+        """Build, without starting anything, what :meth:`start` builds from ``config`` that can
+        refuse it: the fake VESC's firmware version, the lidar's mounting, the simulated car and its
+        world at the start pose (a ConfigError naming the key)."""
+        sc = self.scenario
+        sc.firmware_version()
+        World(self.map, car_params(config, sc.car), sc.start, laser_pose_in_base=laser_pose(config),
+              noise_std_m=sc.world.noise_std_m, seed=sc.world.seed)
+
     def device_path(self, device: str) -> str:
         """Where the daemon finds ``device`` (vesc, lidar): a pty link in ``dev_dir``, or in
         lockstep ``mem://NAME/DEVICE``."""

@@ -38,6 +38,8 @@ last), and is gone from ``disappear_s`` (none: never); positions in the map fram
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,6 +55,22 @@ DRIVER_TYPES = ("constant", "script", "figure8", "setpoint", "follow")
 OBSTACLE_SHAPES = ("disc", "box", "polygon")
 FAULT_ACTIONS = ("lidar_unplug", "lidar_replug", "vesc_unplug", "vesc_replug", "obstacle_ahead",
                  "clear_obstacles", "vesc_garbage", "estop", "estop_release", "disarm", "arm")
+#: what a driver may command: speed (m/s) and steering (rad, + left), lowest and highest
+SPEED_RANGE_MPS = (-10.0, 10.0)
+STEERING_RANGE_RAD = (-1.0, 1.0)
+
+
+def check_finite(key: str, values: Iterable[float]) -> None:
+    """Refuse (ConfigError naming ``key``) ``values`` unless every one is finite."""
+    values = list(values)
+    if not all(math.isfinite(v) for v in values):
+        raise ConfigError(key, f"every value must be finite, got {values}")
+
+
+def _check_range(key: str, value: float, bounds: tuple[float, float], unit: str) -> None:
+    lo, hi = bounds
+    if not lo <= value <= hi:
+        raise ConfigError(key, f"{value!r} is out of range; allowed: {lo:g} to {hi:g} {unit}")
 
 
 @dataclass
@@ -62,11 +80,14 @@ class DriverSpec:
     type: str = param("constant", "how commands are made", choices=DRIVER_TYPES)
     input: str = param("nav_0", "mux input name the commands go to")
     from_s: float = param(0.0, "start publishing at this scenario time", unit="s", min=0.0)
-    until_s: float | None = param(None, "stop publishing at this scenario time; none: never", unit="s")
-    speed_mps: float = param(1.0, "speed (constant, setpoint, figure8)", unit="m/s", min=-10, max=10)
+    until_s: float | None = param(None, "stop publishing at this scenario time; none: never", unit="s",
+                                  min=0.0)
+    speed_mps: float = param(1.0, "speed (constant, setpoint, figure8)", unit="m/s",
+                             min=SPEED_RANGE_MPS[0], max=SPEED_RANGE_MPS[1])
     steering_rad: float = param(0.0, "steering angle, + left (constant, setpoint, figure8)",
-                                unit="rad", min=-1.0, max=1.0)
-    steps: list[tuple[float, float, float]] = param([], "script: [t_s, speed_mps, steering_rad] rows")
+                                unit="rad", min=STEERING_RANGE_RAD[0], max=STEERING_RANGE_RAD[1])
+    steps: list[tuple[float, float, float]] = param([], "script: [t_s, speed_mps, steering_rad] rows "
+                                                        "(t_s from 0, speed and steering in their ranges)")
     figure8s: int = param(1, "figure8: how many", min=0)
     rate_hz: float = param(20.0, "command rate", unit="Hz", min=1.0, max=200.0)
     bag: str = param("", "follow: the bag to follow")
@@ -74,6 +95,13 @@ class DriverSpec:
                            "several, its only mux input)")
     reverse: bool = param(False, "follow: backwards")
     use_timestamps: bool = param(False, "follow: the bag's own timing")
+
+    def __post_init__(self) -> None:
+        for k, (t_s, speed, steering) in enumerate(self.steps):
+            if not (math.isfinite(t_s) and t_s >= 0):
+                raise ConfigError(f"steps[{k}].t_s", f"{t_s!r} is not a time from 0 s on")
+            _check_range(f"steps[{k}].speed_mps", speed, SPEED_RANGE_MPS, "m/s")
+            _check_range(f"steps[{k}].steering_rad", steering, STEERING_RANGE_RAD, "rad")
 
 
 @dataclass
@@ -107,12 +135,19 @@ class ObstacleSpec:
     appear_s: float = param(0.0, "appears at this scenario time", unit="s", min=0.0)
     disappear_s: float | None = param(None, "gone from this scenario time; none: stays", unit="s")
     velocity_mps: tuple[float, float] = param((0.0, 0.0), "moves at this constant velocity (x, y) "
-                                                          "from when it appears", unit="m/s")
+                                                          "from when it appears", unit="m/s",
+                                              min=-50.0, max=50.0)
     waypoints: list[tuple[float, float]] = param([], "or moves through these points in turn at "
                                                      "speed_mps, stopping at the last", unit="m")
     speed_mps: float = param(1.0, "speed along the waypoints", unit="m/s", min=0.01, max=50.0)
 
     def __post_init__(self) -> None:
+        check_finite("at", self.at)
+        check_finite("yaw_rad", [self.yaw_rad])
+        check_finite("size_m", self.size_m)
+        for key in ("points", "waypoints"):
+            for k, point in enumerate(getattr(self, key)):
+                check_finite(f"{key}[{k}]", point)
         self.mover()  # refuses a shape or a schedule that makes no obstacle
 
     def outline(self) -> Obstacle:
@@ -148,8 +183,9 @@ class WorldSpec:
     """World simulation settings."""
 
     rate_hz: float = param(200.0, "physics step rate", unit="Hz", min=20.0, max=2000.0)
-    noise_std_m: float = param(0.01, "lidar range noise (standard deviation)", unit="m", min=0.0)
-    seed: int | None = param(1, "random seed for the noise; none: different every run")
+    noise_std_m: float = param(0.01, "lidar range noise (standard deviation)", unit="m", min=0.0,
+                               max=1.0)
+    seed: int | None = param(1, "random seed for the noise; none: different every run", min=0)
     clock_rate_hz: float = param(100.0, "/clock publish rate in simulation time (rosgraph_msgs/Clock "
                                  "for ROS 2 nodes with use_sim_time; docs/sim.md); 0: no /clock",
                                  unit="Hz", min=0.0, max=1000.0)
@@ -192,6 +228,7 @@ class ScenarioCar:
     car: CarSpec = param(CarSpec(), "the simulated car's true gains where they differ from the config")
 
     def __post_init__(self) -> None:
+        check_finite("start", self.start)
         if not (self.name and self.name.isidentifier() and self.name.isascii()):
             raise ValueError(f"name: {self.name!r}: a car's name is letters, digits and _ "
                              "(not starting with a digit)")
@@ -221,6 +258,7 @@ class Scenario:
                                         "start, drivers, faults and car are each car's); none: one car")
 
     def __post_init__(self) -> None:
+        check_finite("start", self.start)
         if not self.cars:
             return
         names = [c.name for c in self.cars]
