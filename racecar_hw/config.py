@@ -132,7 +132,6 @@ class Config:
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
-    sim: dict[str, Any] = field(default_factory=dict)
 
 
 _SECTIONS: dict[str, type] = {
@@ -145,16 +144,23 @@ _SECTIONS: dict[str, type] = {
     "rosout": RosoutParams,
 }
 
+#: Said after ``sim: unknown section``: the simulated car and world are a scenario's, not the daemon's.
+_SIM_HINT = ("; the simulated car's true values and its world are set in a scenario "
+             "(racecar-hw sim --scenario FILE; the format: racecar_hw/sim/scenario.py)")
+
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
 FOXGLOVE_INPUT = "foxglove"
 
 
 def build_config(data: dict[str, Any]) -> Config:
     """A validated :class:`Config` from a plain mapping (a parsed YAML file)."""
-    allowed = sorted([*_SECTIONS, "static_transforms", "sim"])
+    allowed = sorted([*_SECTIONS, "static_transforms"])
     unknown = sorted(set(data) - set(allowed))
     if unknown:
-        raise ConfigError(unknown[0], unknown_key(unknown[0], allowed, "section"))
+        message = unknown_key(unknown[0], allowed, "section")
+        if unknown[0] == "sim":
+            message += _SIM_HINT
+        raise ConfigError(unknown[0], message)
     values: dict[str, Any] = {}
     for name, cls in _SECTIONS.items():
         if name in data:
@@ -162,10 +168,6 @@ def build_config(data: dict[str, Any]) -> Config:
     if "static_transforms" in data:
         values["static_transforms"] = build_static_transforms(data["static_transforms"],
                                                               "static_transforms")
-    if "sim" in data:
-        if not isinstance(data["sim"], dict):
-            raise ConfigError("sim", "expected a mapping")
-        values["sim"] = data["sim"]
     config = Config(**values)
     gamepad = config.gamepad
     if gamepad.enabled and gamepad.autonomy_lock:

@@ -144,3 +144,21 @@ def test_describe_prints_yaml_values_and_honours_a_section(check_config):
     wrong = check_config("--describe", "vsec")
     assert wrong.returncode == 1
     assert wrong.stderr == "racecar-hw check-config: vsec: unknown section; did you mean vesc?\n"
+
+
+def test_a_sim_section_is_refused_and_points_at_the_scenario(tmp_path, check_config):
+    """The config once took a ``sim:`` section of any keys and values and nothing read it: a typo or
+    a negative wheelbase there passed. The simulated car and world are a scenario's."""
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("vesc:\n  port: /dev/vesc\nsim:\n  car: {wheelbase: -5}\n")
+    proc = check_config(str(cfg))
+    assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {cfg}:3: sim: unknown section; allowed sections: "
+                           ), line
+    assert "racecar-hw sim --scenario FILE" in line
+    assert ", sim," not in line and "static_transforms, status" in line
+    proc = check_config("--set", "sim.garbage=1", "--set", "sim.car.wheelbase=-5")
+    assert proc.returncode == 1 and "sim: unknown section" in proc.stderr
+    assert "sim" not in yaml.safe_load(check_config().stdout)
+    assert check_config("--describe", "sim").returncode == 1
