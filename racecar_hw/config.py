@@ -365,8 +365,12 @@ def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] 
 
 
 def _assemble(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),
-              extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The config's plain data: the file (None: the shipped car config), ``extra``, the ``--set``s."""
+              extra: dict[str, Any] | None = None,
+              problems: list[ConfigProblem] | None = None) -> dict[str, Any]:
+    """The config's plain data: the file (None: the shipped car config), ``extra``, the ``--set``s.
+
+    With ``problems``, a ``--set`` that cannot be applied is added there (and left out) instead of
+    raised."""
     data = load_yaml(path if path is not None else shipped_config("car"))
     if extra:
         data = merge(data, extra)
@@ -376,10 +380,24 @@ def _assemble(path: str | Path | None, overrides: list[str] | tuple[str, ...] = 
         if _input_index(assignment) >= len(_inputs(data, defaults)):
             later.append(assignment)
         else:
-            apply_override(data, assignment, defaults)
+            _apply(data, assignment, defaults, problems)
     if later:
-        _set_added_inputs(data, defaults, later)
+        _set_added_inputs(data, defaults, later, problems)
     return data
+
+
+def _apply(data: dict[str, Any], assignment: str, defaults: dict[str, Any] | None,
+           problems: list[ConfigProblem] | None, inputs: list[Any] | None = None) -> None:
+    """:func:`apply_override`; with ``problems``, its error goes there, from the ``--set``. With
+    ``inputs`` (the mux's, the added ones included), an index past them is refused naming them."""
+    try:
+        if inputs is not None and _input_index(assignment) >= len(inputs):
+            raise _no_such_input(assignment, inputs)
+        apply_override(data, assignment, defaults)
+    except ConfigError as err:
+        if problems is None:
+            raise
+        problems.append(ConfigProblem(f"--set {assignment}", err))
 
 
 @dataclass(frozen=True)
@@ -414,10 +432,15 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
     reported as the others are.
     """
     file = Path(path) if path is not None else shipped_config("car")
-    data = _assemble(file, overrides)
     lines = key_lines(file)
     sets = {key_path(o.partition("=")[0].strip()): o for o in overrides}
     problems: list[ConfigProblem] = []
+    try:
+        data = _assemble(file, overrides, problems=problems)
+    except ConfigError as err:
+        if not err.key:  # the file cannot be read: the message names it
+            raise
+        return None, [*problems, ConfigProblem(_source(key_path(err.key), file, lines, sets), err)]
     seen: set[str] = set()
     while len(problems) < MAX_PROBLEMS:
         try:
@@ -440,10 +463,16 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
 def _source(where: tuple[str | int, ...], file: Path, lines: dict[tuple[str | int, ...], int],
             sets: dict[tuple[str | int, ...], str]) -> str:
     """Where the value at ``where`` came from: the --set that named it (or a section above it),
-    else the file's line of the key (or of the closest section above it), else the file."""
+    else the file's line of the key, else a --set of a key below it (``--set foo.bar=1`` made the
+    section ``foo``), else the file's line of the closest section above it, else the file."""
     for n in range(len(where), 0, -1):
         if where[:n] in sets:
             return f"--set {sets[where[:n]]}"
+    if where in lines:
+        return f"{file}:{lines[where]}"
+    below = [assignment for path, assignment in sets.items() if where and path[:len(where)] == where]
+    if below:
+        return f"--set {below[0]}"
     for n in range(len(where), 0, -1):
         if where[:n] in lines:
             return f"{file}:{lines[where[:n]]}"
@@ -465,7 +494,8 @@ def _inputs(data: dict[str, Any], defaults: dict[str, Any] | None) -> list[Any]:
     return inputs if isinstance(inputs, list) else []
 
 
-def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, assignments: list[str]) -> None:
+def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, assignments: list[str],
+                      problems: list[ConfigProblem] | None = None) -> None:
     """Apply ``--set mux.inputs.N...`` to the list check-config shows: the configured inputs, then
     those the features add (:func:`added_inputs`, from the settings after every other ``--set``),
     which are written into the data as configured inputs first."""
@@ -478,16 +508,18 @@ def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, ass
     added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i], dds)
     mux["inputs"] = [*inputs, *to_dict(added)]
     for assignment in assignments:
-        index = _input_index(assignment)
-        if index >= len(mux["inputs"]):
-            key = assignment.partition("=")[0].strip()
-            listed = ", ".join(f"{i} {item.get('name', '?') if isinstance(item, dict) else '?'}"
-                               for i, item in enumerate(mux["inputs"]))
-            raise ConfigError(key, f"no mux input {index}; the mux has {len(mux['inputs'])} inputs: "
-                                   f"{listed} (check-config lists them; foxglove is added by "
-                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel (with zenoh or dds "
-                                   "on), when the config names no input so)")
-        apply_override(data, assignment, defaults)
+        _apply(data, assignment, defaults, problems, mux["inputs"])
+
+
+def _no_such_input(assignment: str, inputs: list[Any]) -> ConfigError:
+    """The error of a ``--set mux.inputs.N...`` past the mux's ``inputs``, naming them."""
+    key = assignment.partition("=")[0].strip()
+    listed = ", ".join(f"{i} {item.get('name', '?') if isinstance(item, dict) else '?'}"
+                       for i, item in enumerate(inputs))
+    return ConfigError(key, f"no mux input {_input_index(assignment)}; the mux has {len(inputs)} inputs: "
+                            f"{listed} (check-config lists them; foxglove is added by "
+                            "foxglove.teleop, cmd_vel by zenoh.cmd_vel (with zenoh or dds "
+                            "on), when the config names no input so)")
 
 
 def shipped_config(name: str) -> Path:

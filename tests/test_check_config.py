@@ -162,3 +162,39 @@ def test_a_sim_section_is_refused_and_points_at_the_scenario(tmp_path, check_con
     assert proc.returncode == 1 and "sim: unknown section" in proc.stderr
     assert "sim" not in yaml.safe_load(check_config().stdout)
     assert check_config("--describe", "sim").returncode == 1
+
+
+@pytest.mark.parametrize(("setting", "words"), [
+    ("gamepad.topic=relative", "gamepad.topic: 'relative' is not an absolute topic name"),
+    ("gamepad.autonomy_lock_topic=lock", "gamepad.autonomy_lock_topic: 'lock' is not an absolute topic name"),
+    ("gamepad.rescan_max_s=0.1", "gamepad.rescan_max_s: must not be below rescan_min_s"),
+    ("keyboard.topic=teleop", "keyboard.topic: 'teleop' is not an absolute topic name"),
+    ("vesc.gamepad.x=1", "vesc.gamepad: unknown key; allowed keys: "),
+    ("foo.bar=1", "foo: unknown section; allowed sections: "),
+    ("sim.car.wheelbase=-5", "sim: unknown section; allowed sections: "),
+    (".x=1", ".x: a part of the key is empty; an override must look like section.key=value"),
+    ("vesc..port=/dev/x", "vesc..port: a part of the key is empty; "),
+    ("mux.inputs.x.timeout_s=1", "mux.inputs.x: list index 'x' out of range")])
+def test_an_error_from_a_set_names_the_users_key_and_the_set(check_config, setting, words):
+    """The gamepad's checks named a section ``teleop`` there is none of; a section or key the --set
+    made (foo, vesc.gamepad) was blamed on the file and its line; an empty part of a key was applied
+    as a section named ''; a --set that could not be applied came without its origin."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {words}"), line
+    assert line.endswith(f" (from --set {setting})"), line
+    assert "car.yaml" not in line
+
+
+def test_a_set_that_cannot_be_applied_is_reported_with_the_files_errors(tmp_path, check_config):
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("vesc:\n  speed_to_erpm_gian: 4614\n")
+    proc = check_config(str(cfg), "--set", ".x=1", "--set", "lidar.modle=a1")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [
+        "racecar-hw check-config: .x: a part of the key is empty; an override must look like "
+        "section.key=value (from --set .x=1)",
+        f"racecar-hw check-config: {cfg}:2: vesc.speed_to_erpm_gian: unknown key; did you mean "
+        "speed_to_erpm_gain?",
+        "racecar-hw check-config: lidar.modle: unknown key; did you mean model? (from --set lidar.modle=a1)"]

@@ -139,6 +139,8 @@ def apply_override(data: dict[str, Any], assignment: str,
     key = key.strip()
     if not sep or not key:
         raise ConfigError(assignment, "an override must look like section.key=value")
+    if "" in key.split("."):
+        raise ConfigError(key, "a part of the key is empty; an override must look like section.key=value")
     try:
         value = parse_yaml(raw, "the value") if raw.strip() else ""
     except ConfigError as err:

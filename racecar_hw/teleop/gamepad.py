@@ -574,12 +574,12 @@ class GamepadParams:
 
     def __post_init__(self) -> None:
         if not self.topic.startswith("/"):
-            raise ConfigError("teleop.topic", f"{self.topic!r} is not an absolute topic name")
+            raise ConfigError("topic", f"{self.topic!r} is not an absolute topic name")
         if not self.autonomy_lock_topic.startswith("/"):
-            raise ConfigError("teleop.autonomy_lock_topic",
+            raise ConfigError("autonomy_lock_topic",
                               f"{self.autonomy_lock_topic!r} is not an absolute topic name")
         if self.rescan_max_s < self.rescan_min_s:
-            raise ConfigError("teleop.rescan_max_s", "must not be below rescan_min_s")
+            raise ConfigError("rescan_max_s", "must not be below rescan_min_s")
 
     def lock_params(self) -> LockParams:
         """The mux lock entry that makes the autonomy lock work (add it to ``mux.locks``)."""

@@ -148,7 +148,7 @@ class KeyboardParams:
 
     def __post_init__(self) -> None:
         if not self.topic.startswith("/"):
-            raise ConfigError("keyboard.topic", f"{self.topic!r} is not an absolute topic name")
+            raise ConfigError("topic", f"{self.topic!r} is not an absolute topic name")
 
 
 class KeyboardState:
