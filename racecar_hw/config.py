@@ -75,7 +75,7 @@ class Figure8Section:
                                       min=-0.8, max=0.8)
     figure8s: int = param(1, "figure-8s to drive; 0 drives until stopped", min=0)
     rate_hz: float = param(20.0, "command rate", unit="Hz", min=1.0, max=200.0)
-    topic: str = param("/vesc/high_level/ackermann_cmd_mux/input/nav_0", "mux input to drive")
+    topic: str = param("/vesc/high_level/ackermann_cmd_mux/input/nav_0", "mux input to drive", topic=True)
 
     def params(self, wheelbase_m: float) -> Figure8Params:
         """The driver's parameters for a car of ``wheelbase_m``."""

@@ -198,3 +198,47 @@ def test_a_set_that_cannot_be_applied_is_reported_with_the_files_errors(tmp_path
         f"racecar-hw check-config: {cfg}:2: vesc.speed_to_erpm_gian: unknown key; did you mean "
         "speed_to_erpm_gain?",
         "racecar-hw check-config: lidar.modle: unknown key; did you mean model? (from --set lidar.modle=a1)"]
+
+
+def _string_keys(*, topics: bool) -> list[str]:
+    """Every config key (a list's first item for a list of sections) whose name ends so: ``topic``
+    (``lidar.topic``, ``safety.scan_topic``), or ``frame_id`` and ``port`` (a device path)."""
+    from racecar_hw.config import describe_config
+
+    ends = ("topic",) if topics else ("frame_id", "port")
+    return [key.replace("[]", ".0") for key, default, _ in describe_config()
+            if key.split(".")[-1].endswith(ends) and (isinstance(default, str) or default is None)
+            and key != "follower.topic"]  # a topic in the bag; empty: the bag's only one
+
+
+def _enabled(key: str) -> list[str]:
+    """--sets that switch on the section of ``key``, so its checks run."""
+    section = key.split(".")[0]
+    extra = ["--set", "follower.bag=/nonexistent.bag"] if section == "follower" else []
+    return ["--set", f"{section}.enabled=true", *extra] if section in (
+        "setpoint", "figure8", "follower", "keyboard", "mavlink", "foxglove") else []
+
+
+@pytest.mark.parametrize("key", _string_keys(topics=True))
+@pytest.mark.parametrize("value", ["", "scan"])
+def test_every_topic_must_be_absolute(check_config, key, value):
+    """lidar.topic, safety.scan_topic, the set-point's topics and more took a relative or empty name
+    (and nothing ever met on it) while the mux, keyboard and gamepad topics refused one."""
+    proc = check_config(*_enabled(key), "--set", f"{key}={value}")
+    assert proc.returncode == 1, (key, proc.stdout[-300:])
+    line = proc.stderr.splitlines()[0]
+    assert f"{key.replace('.0.', '[0].')}: {value!r} is not an absolute topic name" in line \
+        or f"{key}: {value!r} is not an absolute topic name" in line, line
+    assert line.endswith(f"(from --set {key}={value})"), line
+
+
+@pytest.mark.parametrize("key", _string_keys(topics=False))
+def test_every_frame_id_and_device_port_must_not_be_empty(check_config, key):
+    """``--set vesc.port=`` passed, and run then looked for a serial device at ''; an empty VESC
+    odometry, base or IMU frame passed while an empty static_transforms frame_id was refused."""
+    proc = check_config(*_enabled(key), "--set", f"{key}=")
+    assert proc.returncode == 1, (key, proc.stdout[-300:])
+    line = proc.stderr.splitlines()[0]
+    assert line.endswith(f"must not be empty (from --set {key}=)"), line
+    assert {"vesc.port", "vesc.odom_frame_id", "vesc.base_frame_id", "vesc.imu_frame_id", "lidar.port",
+            "lidar.frame_id", "static_transforms.0.frame_id"} <= set(_string_keys(topics=False))
