@@ -174,7 +174,7 @@ def test_a_sim_section_is_refused_and_points_at_the_scenario(tmp_path, check_con
     ("sim.car.wheelbase=-5", "sim: unknown section; allowed sections: "),
     (".x=1", ".x: a part of the key is empty; an override must look like section.key=value"),
     ("vesc..port=/dev/x", "vesc..port: a part of the key is empty; "),
-    ("mux.inputs.x.timeout_s=1", "mux.inputs.x: list index 'x' out of range")])
+    ("mux.inputs.x.timeout_s=1", "mux.inputs.x")])
 def test_an_error_from_a_set_names_the_users_key_and_the_set(check_config, setting, words):
     """The gamepad's checks named a section ``teleop`` there is none of; a section or key the --set
     made (foo, vesc.gamepad) was blamed on the file and its line; an empty part of a key was applied
@@ -242,3 +242,42 @@ def test_every_frame_id_and_device_port_must_not_be_empty(check_config, key):
     assert line.endswith(f"must not be empty (from --set {key}=)"), line
     assert {"vesc.port", "vesc.odom_frame_id", "vesc.base_frame_id", "vesc.imu_frame_id", "lidar.port",
             "lidar.frame_id", "static_transforms.0.frame_id"} <= set(_string_keys(topics=False))
+
+
+def test_a_set_numbers_the_mux_locks_and_inputs_as_check_config_lists_them(check_config):
+    """The car config's autonomy lock (the gamepad's) is lock 0, as check-config lists it, and the
+    inputs are 0..6 with cmd_vel; a --set past them said ``(0..-1)`` and ``(0..5)``, without its
+    origin."""
+    proc = check_config("--set", "mux.locks.0.timeout_s=1")
+    assert proc.returncode == 0, proc.stderr
+    assert yaml.safe_load(proc.stdout)["mux"]["locks"] == [
+        {"name": "autonomy", "topic": "/vesc/autonomy_lock", "priority": 50, "timeout_s": 1.0}]
+    added = ("(check-config lists them; autonomy is added by gamepad.autonomy_lock (with the gamepad "
+             "on), when no lock is on gamepad.autonomy_lock_topic)")
+    for sets, words in [
+        (["mux.locks.1.timeout_s=1"], "mux.locks.1.timeout_s: no mux lock 1; the mux has 1 lock: 0 autonomy "
+                                      + added),
+        (["gamepad.enabled=false", "mux.locks.0.timeout_s=1"],
+         "mux.locks.0.timeout_s: no mux lock 0; the mux has 0 locks " + added),
+        (["mux.inputs.x.timeout_s=1"], "mux.inputs.x.timeout_s: no mux input 'x'; the mux has 7 inputs: "
+                                       "0 safety, 1 teleop, 2 nav_0, 3 nav_1, 4 nav_2, 5 nav_3, 6 cmd_vel ")]:
+        proc = check_config(*[arg for s in sets for arg in ("--set", s)])
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr
+        line, = proc.stderr.splitlines()
+        assert line.startswith(f"racecar-hw check-config: {words}"), line
+        assert line.endswith(f" (from --set {sets[-1]})"), line
+
+
+@pytest.mark.parametrize(("setting", "words"), [
+    ("static_transforms.0.xyz=[.nan,0,0]", "static_transforms[0].xyz[0]: NaN is not allowed"),
+    ("static_transforms.x.xyz=[1,0,0]", "static_transforms.x: 'x' is not a list index; the list has 2 "
+                                        "items (0..1)"),
+    ("static_transforms.2.xyz=[1,0,0]", "static_transforms.2: index 2 is out of range; the list has 2 "
+                                        "items (0..1)"),
+    ("mux.estop_release_sources=[web,web]", "mux.estop_release_sources[1]: 'web' is listed twice")])
+def test_an_element_of_a_list_is_one_error(check_config, setting, words):
+    """A NaN in xyz was reported, then (its element taken out) 'expected 3 values, got 2' too; an
+    index that is no number was said to be out of range."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [f"racecar-hw check-config: {words} (from --set {setting})"]
