@@ -22,12 +22,13 @@ class LidarParams:
     """How to reach the lidar and how to shape its scans."""
 
     model: str = param("ust-10lx", "lidar model", choices=MODELS)
-    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, UTM-30LX, RPLIDAR)")
+    port: str | None = param(None, "serial port path or pyserial URL (URG-04LX, UTM-30LX, RPLIDAR); "
+                                   "not empty")
     tcp: str | None = param(None, "HOST:PORT of an Ethernet Hokuyo (UST, UTM-30LX-EW: "
                                   "192.168.0.10:10940)")
     baudrate: int | None = param(None, "serial baud rate; default: the model's own", min=9600)
-    frame_id: str = param("laser", "frame_id of the published scans")
-    topic: str = param("/scan", "topic of the published sensor_msgs/LaserScan")
+    frame_id: str = param("laser", "frame_id of the published scans", nonempty=True)
+    topic: str = param("/scan", "topic of the published sensor_msgs/LaserScan", topic=True)
     intensities: bool = param(False, "also publish intensities (Hokuyo ME, RPLIDAR quality)")
     angle_min: float | None = param(None, "crop: first beam angle; default the device's", unit="rad")
     angle_max: float | None = param(None, "crop: last beam angle; default the device's", unit="rad")
@@ -44,6 +45,8 @@ class LidarParams:
     reconnect_backoff_max_s: float = param(1.0, "longest reconnect delay", unit="s", min=0.05)
 
     def __post_init__(self) -> None:
+        if self.port == "":  # nonempty= would be lost in `str | None`'s "fits none of str"
+            raise ConfigError("port", "must not be empty")
         if self.tcp is not None and not is_memory(self.tcp):  # mem://: a lockstep run's link
             try:
                 _, port = parse_host_port(self.tcp, default_port=1)  # no port: the driver's default

@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 
 from lidar_drivers.params import RPLIDAR_MODELS, LidarParams
-from mux.params import InputParams, MuxParams
+from mux.params import InputParams, LockParams, MuxParams
 from racecar_hw.bags.follow import FollowerParams
 from racecar_hw.bags.record import RecorderParams
 from racecar_hw.base.errors import ConfigError
@@ -75,7 +75,7 @@ class Figure8Section:
                                       min=-0.8, max=0.8)
     figure8s: int = param(1, "figure-8s to drive; 0 drives until stopped", min=0)
     rate_hz: float = param(20.0, "command rate", unit="Hz", min=1.0, max=200.0)
-    topic: str = param("/vesc/high_level/ackermann_cmd_mux/input/nav_0", "mux input to drive")
+    topic: str = param("/vesc/high_level/ackermann_cmd_mux/input/nav_0", "mux input to drive", topic=True)
 
     def params(self, wheelbase_m: float) -> Figure8Params:
         """The driver's parameters for a car of ``wheelbase_m``."""
@@ -132,7 +132,6 @@ class Config:
     watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
-    sim: dict[str, Any] = field(default_factory=dict)
 
 
 _SECTIONS: dict[str, type] = {
@@ -145,16 +144,23 @@ _SECTIONS: dict[str, type] = {
     "rosout": RosoutParams,
 }
 
+#: Said after ``sim: unknown section``: the simulated car and world are a scenario's, not the daemon's.
+_SIM_HINT = ("; the simulated car's true values and its world are set in a scenario "
+             "(racecar-hw sim --scenario FILE; the format: racecar_hw/sim/scenario.py)")
+
 #: The mux input Foxglove's Teleop panel drives through (when foxglove.teleop is on).
 FOXGLOVE_INPUT = "foxglove"
 
 
 def build_config(data: dict[str, Any]) -> Config:
     """A validated :class:`Config` from a plain mapping (a parsed YAML file)."""
-    allowed = sorted([*_SECTIONS, "static_transforms", "sim"])
+    allowed = sorted([*_SECTIONS, "static_transforms"])
     unknown = sorted(set(data) - set(allowed))
     if unknown:
-        raise ConfigError(unknown[0], unknown_key(unknown[0], allowed, "section"))
+        message = unknown_key(unknown[0], allowed, "section")
+        if unknown[0] == "sim":
+            message += _SIM_HINT
+        raise ConfigError(unknown[0], message)
     values: dict[str, Any] = {}
     for name, cls in _SECTIONS.items():
         if name in data:
@@ -162,16 +168,8 @@ def build_config(data: dict[str, Any]) -> Config:
     if "static_transforms" in data:
         values["static_transforms"] = build_static_transforms(data["static_transforms"],
                                                               "static_transforms")
-    if "sim" in data:
-        if not isinstance(data["sim"], dict):
-            raise ConfigError("sim", "expected a mapping")
-        values["sim"] = data["sim"]
     config = Config(**values)
-    gamepad = config.gamepad
-    if gamepad.enabled and gamepad.autonomy_lock:
-        lock = gamepad.lock_params()
-        if all(existing.topic != lock.topic for existing in config.mux.locks):
-            config.mux.locks.append(lock)
+    config.mux.locks.extend(added_locks(config.gamepad, config.mux.locks))
     config.mux.inputs.extend(added_inputs(config.foxglove, config.zenoh, config.mux.inputs, config.dds))
     config.mux.validate("mux")
     if config.zenoh.enabled or config.dds.enabled:
@@ -205,6 +203,16 @@ def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputPara
     if ros and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
         added.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, CMD_VEL_TIMEOUT_S))
     return added
+
+
+def added_locks(gamepad: GamepadParams, locks: list[LockParams] | list[dict[str, Any]]) -> list[LockParams]:
+    """The mux locks the features add after the configured ``locks``: the gamepad's autonomy lock
+    (``gamepad.autonomy_lock``, with the gamepad on), unless a lock is on its topic already."""
+    if not (gamepad.enabled and gamepad.autonomy_lock):
+        return []
+    lock = gamepad.lock_params()
+    topics = {item.get("topic") if isinstance(item, dict) else item.topic for item in locks}
+    return [] if lock.topic in topics else [lock]
 
 
 def cmd_vel_input_topic(config: Config) -> str | None:
@@ -363,21 +371,42 @@ def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] 
 
 
 def _assemble(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),
-              extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The config's plain data: the file (None: the shipped car config), ``extra``, the ``--set``s."""
+              extra: dict[str, Any] | None = None,
+              problems: list[ConfigProblem] | None = None) -> dict[str, Any]:
+    """The config's plain data: the file (None: the shipped car config), ``extra``, the ``--set``s.
+
+    With ``problems``, a ``--set`` that cannot be applied is added there (and left out) instead of
+    raised."""
     data = load_yaml(path if path is not None else shipped_config("car"))
     if extra:
         data = merge(data, extra)
     defaults = to_dict(Config()) if overrides else None
-    later = []  # --set mux.inputs.N... beyond the configured inputs: one the features add
+    later = []  # --set mux.inputs.N... (or locks) not among the configured ones: one the features add
     for assignment in overrides:
-        if _input_index(assignment) >= len(_inputs(data, defaults)):
+        item = _mux_item(assignment)
+        if item is not None and not _among(item[1], _mux_list(data, defaults, item[0])):
             later.append(assignment)
         else:
-            apply_override(data, assignment, defaults)
+            _apply(data, assignment, defaults, problems)
     if later:
-        _set_added_inputs(data, defaults, later)
+        _set_added(data, defaults, later, problems)
     return data
+
+
+def _apply(data: dict[str, Any], assignment: str, defaults: dict[str, Any] | None,
+           problems: list[ConfigProblem] | None, items: list[Any] | None = None) -> None:
+    """:func:`apply_override`; with ``problems``, its error goes there, from the ``--set``. With
+    ``items`` (the mux's inputs or locks, the added ones included), an index not among them is
+    refused naming them."""
+    try:
+        item = _mux_item(assignment)
+        if items is not None and item is not None and not _among(item[1], items):
+            raise _no_such_item(assignment, items)
+        apply_override(data, assignment, defaults)
+    except ConfigError as err:
+        if problems is None:
+            raise
+        problems.append(ConfigProblem(f"--set {assignment}", err))
 
 
 @dataclass(frozen=True)
@@ -404,18 +433,24 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
     """Every error of a config at once (``racecar-hw check-config``): the config (None when it has
     errors) and each error with the file and line (or the ``--set``) its value came from.
 
-    After an error its key is taken out (so its default applies) and the config is checked again,
-    until it builds or an error's key cannot be taken out (a rule across keys: then that error is
-    the last). A file that cannot be read or parsed, or a malformed ``--set``, is one error.
+    After an error its key is taken out (for an element of a list of values, the list), so its
+    default applies, and the config is checked again, until it builds or an error's key cannot be
+    taken out (a rule across keys: then that error is the last). A file that cannot be read or
+    parsed is one error; a ``--set`` that cannot be applied is one, and the others are checked.
     ``build`` (the daemon's constructor) then builds what the config describes, without starting
     it: a ConfigError only the components see (two of them declaring one topic with two types) is
     reported as the others are.
     """
     file = Path(path) if path is not None else shipped_config("car")
-    data = _assemble(file, overrides)
     lines = key_lines(file)
     sets = {key_path(o.partition("=")[0].strip()): o for o in overrides}
     problems: list[ConfigProblem] = []
+    try:
+        data = _assemble(file, overrides, problems=problems)
+    except ConfigError as err:
+        if not err.key:  # the file cannot be read: the message names it
+            raise
+        return None, [*problems, ConfigProblem(_source(key_path(err.key), file, lines, sets), err)]
     seen: set[str] = set()
     while len(problems) < MAX_PROBLEMS:
         try:
@@ -428,64 +463,113 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
             seen.add(err.key)
             where = key_path(err.key)
             problems.append(ConfigProblem(_source(where, file, lines, sets), err))
-            if not err.key or not remove_key(data, where):
+            if not err.key or not remove_key(data, _value_path(data, where)):
                 break
             continue
         return (None, problems) if problems else (config, [])
     return None, problems
 
 
+def _value_path(data: dict[str, Any], where: tuple[str | int, ...]) -> tuple[str | int, ...]:
+    """The key to take out after an error at ``where``: the whole value when ``where`` is an element
+    of a list of values (``static_transforms[0].xyz[0]``: the xyz), whose length may be checked
+    (taking one element out would be a second error, of a shortened list); else ``where``."""
+    node: Any = data
+    for part in where[:-1]:
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            return where
+    if isinstance(where[-1] if where else None, int) and isinstance(node, list) and not all(
+            isinstance(item, dict) for item in node):
+        return where[:-1]
+    return where
+
+
 def _source(where: tuple[str | int, ...], file: Path, lines: dict[tuple[str | int, ...], int],
             sets: dict[tuple[str | int, ...], str]) -> str:
     """Where the value at ``where`` came from: the --set that named it (or a section above it),
-    else the file's line of the key (or of the closest section above it), else the file."""
+    else the file's line of the key, else a --set of a key below it (``--set foo.bar=1`` made the
+    section ``foo``), else the file's line of the closest section above it, else the file."""
     for n in range(len(where), 0, -1):
         if where[:n] in sets:
             return f"--set {sets[where[:n]]}"
+    if where in lines:
+        return f"{file}:{lines[where]}"
+    below = [assignment for path, assignment in sets.items() if where and path[:len(where)] == where]
+    if below:
+        return f"--set {below[0]}"
     for n in range(len(where), 0, -1):
         if where[:n] in lines:
             return f"{file}:{lines[where[:n]]}"
     return str(file)
 
 
-def _input_index(assignment: str) -> int:
-    """N of a ``mux.inputs.N...=value``; -1 for any other key."""
+def _mux_item(assignment: str) -> tuple[str, str] | None:
+    """(``inputs`` or ``locks``, N) of a ``mux.inputs.N...=value`` or ``mux.locks.N...``; None for
+    any other key."""
     parts = assignment.partition("=")[0].strip().split(".")
-    return int(parts[2]) if parts[:2] == ["mux", "inputs"] and len(parts) > 2 and parts[2].isdigit() else -1
+    return (parts[1], parts[2]) if len(parts) > 2 and parts[0] == "mux" and parts[1] in _ADDED else None
 
 
-def _inputs(data: dict[str, Any], defaults: dict[str, Any] | None) -> list[Any]:
-    """The configured mux inputs, as plain data: the file's, or the defaults'."""
+def _among(index: str, items: list[Any]) -> bool:
+    """Whether ``index`` (a --set's key part) numbers one of ``items``."""
+    return index.isdigit() and int(index) < len(items)
+
+
+def _mux_list(data: dict[str, Any], defaults: dict[str, Any] | None, name: str) -> list[Any]:
+    """The configured mux ``inputs`` or ``locks``, as plain data: the file's, or the defaults'."""
     mux = data.get("mux")
-    inputs = mux.get("inputs") if isinstance(mux, dict) else None
-    if inputs is None:
-        inputs = (defaults or to_dict(Config()))["mux"]["inputs"]
-    return inputs if isinstance(inputs, list) else []
+    items = mux.get(name) if isinstance(mux, dict) else None
+    if items is None:
+        items = (defaults or to_dict(Config()))["mux"][name]
+    return items if isinstance(items, list) else []
 
 
-def _set_added_inputs(data: dict[str, Any], defaults: dict[str, Any] | None, assignments: list[str]) -> None:
-    """Apply ``--set mux.inputs.N...`` to the list check-config shows: the configured inputs, then
-    those the features add (:func:`added_inputs`, from the settings after every other ``--set``),
-    which are written into the data as configured inputs first."""
-    inputs = copy.deepcopy(_inputs(data, defaults))
+def _set_added(data: dict[str, Any], defaults: dict[str, Any] | None, assignments: list[str],
+               problems: list[ConfigProblem] | None = None) -> None:
+    """Apply ``--set mux.inputs.N...`` and ``mux.locks.N...`` to the lists check-config shows: the
+    configured inputs (locks), then those the features add (:func:`added_inputs`,
+    :func:`added_locks`, from the settings after every other ``--set``), which are written into
+    the data as configured ones first."""
     mux = data.get("mux")
+    named = {name: copy.deepcopy(_mux_list(data, defaults, name)) for name in _ADDED}
     data["mux"] = mux = dict(mux) if isinstance(mux, dict) else {}
-    fox = build(FoxgloveParams, data.get("foxglove") or {}, "foxglove")
-    zenoh = build(ZenohParams, data.get("zenoh") or {}, "zenoh")
-    dds = build(DdsParams, data.get("dds") or {}, "dds")
-    added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i], dds)
-    mux["inputs"] = [*inputs, *to_dict(added)]
+    wanted = {item[0] for item in map(_mux_item, assignments) if item is not None}
+    if "inputs" in wanted:
+        inputs = named["inputs"]
+        fox = build(FoxgloveParams, data.get("foxglove") or {}, "foxglove")
+        zenoh = build(ZenohParams, data.get("zenoh") or {}, "zenoh")
+        dds = build(DdsParams, data.get("dds") or {}, "dds")
+        added = added_inputs(fox, zenoh, [i for i in inputs if isinstance(i, dict) and "name" in i], dds)
+        mux["inputs"] = [*inputs, *to_dict(added)]
+    if "locks" in wanted:
+        locks = [lock for lock in named["locks"] if isinstance(lock, dict)]
+        gamepad = build(GamepadParams, data.get("gamepad") or {}, "gamepad")
+        mux["locks"] = [*named["locks"], *to_dict(added_locks(gamepad, locks))]
     for assignment in assignments:
-        index = _input_index(assignment)
-        if index >= len(mux["inputs"]):
-            key = assignment.partition("=")[0].strip()
-            listed = ", ".join(f"{i} {item.get('name', '?') if isinstance(item, dict) else '?'}"
-                               for i, item in enumerate(mux["inputs"]))
-            raise ConfigError(key, f"no mux input {index}; the mux has {len(mux['inputs'])} inputs: "
-                                   f"{listed} (check-config lists them; foxglove is added by "
-                                   "foxglove.teleop, cmd_vel by zenoh.cmd_vel (with zenoh or dds "
-                                   "on), when the config names no input so)")
-        apply_override(data, assignment, defaults)
+        item = _mux_item(assignment)
+        _apply(data, assignment, defaults, problems, mux[item[0]] if item is not None else None)
+
+
+#: The mux's lists the features add to, and what adds each item (said when a --set names no item).
+_ADDED = {
+    "inputs": "foxglove is added by foxglove.teleop, cmd_vel by zenoh.cmd_vel (with zenoh or dds on), "
+              "when the config names no input so",
+    "locks": "autonomy is added by gamepad.autonomy_lock (with the gamepad on), when no lock is on "
+             "gamepad.autonomy_lock_topic",
+}
+
+
+def _no_such_item(assignment: str, items: list[Any]) -> ConfigError:
+    """The error of a ``--set mux.inputs.N...`` (or locks) not among the mux's ``items``, naming them."""
+    key = assignment.partition("=")[0].strip()
+    name, index = _mux_item(assignment) or ("inputs", "?")
+    listed = "".join(f"{', ' if i else ': '}{i} {item.get('name', '?') if isinstance(item, dict) else '?'}"
+                     for i, item in enumerate(items))
+    count = f"{len(items)} {name if len(items) != 1 else name[:-1]}"
+    return ConfigError(key, f"no mux {name[:-1]} {index if index.isdigit() else repr(index)}; the mux "
+                            f"has {count}{listed} (check-config lists them; {_ADDED[name]})")
 
 
 def shipped_config(name: str) -> Path:

@@ -65,7 +65,7 @@ class ConeParams:
                                            "stop_distance_m by this much (no chatter)",
                                     unit="m", min=0.0, max=5.0)
     topic: str = param(MUX_SAFETY_TOPIC, "where the zero-speed AckermannDriveStamped goes: the "
-                                         "mux's top-priority safety input")
+                                         "mux's top-priority safety input", topic=True)
 
 
 @dataclass
@@ -144,10 +144,10 @@ class SafetyParams:
     odom_timeout_s: float = param(0.5, "odometry older than this is ignored (speed and memory)", unit="s",
                                   min=0.01, max=10.0)
     cone: ConeParams = param(ConeParams(), "mode cone only")
-    scan_topic: str = param("/scan", "sensor_msgs/LaserScan input")
+    scan_topic: str = param("/scan", "sensor_msgs/LaserScan input", topic=True)
     odom_topic: str = param("/odom", "nav_msgs/Odometry input: the measured speed (twist.linear.x) "
-                                     "and the pose the obstacle memory follows")
-    state_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray output")
+                                     "and the pose the obstacle memory follows", topic=True)
+    state_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray output", topic=True)
     state_rate_hz: float = param(2.0, "state republish rate when nothing changes", unit="Hz",
                                  min=0.1, max=100.0)
 

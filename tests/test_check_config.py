@@ -144,3 +144,140 @@ def test_describe_prints_yaml_values_and_honours_a_section(check_config):
     wrong = check_config("--describe", "vsec")
     assert wrong.returncode == 1
     assert wrong.stderr == "racecar-hw check-config: vsec: unknown section; did you mean vesc?\n"
+
+
+def test_a_sim_section_is_refused_and_points_at_the_scenario(tmp_path, check_config):
+    """The config once took a ``sim:`` section of any keys and values and nothing read it: a typo or
+    a negative wheelbase there passed. The simulated car and world are a scenario's."""
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("vesc:\n  port: /dev/vesc\nsim:\n  car: {wheelbase: -5}\n")
+    proc = check_config(str(cfg))
+    assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {cfg}:3: sim: unknown section; allowed sections: "
+                           ), line
+    assert "racecar-hw sim --scenario FILE" in line
+    assert ", sim," not in line and "static_transforms, status" in line
+    proc = check_config("--set", "sim.garbage=1", "--set", "sim.car.wheelbase=-5")
+    assert proc.returncode == 1 and "sim: unknown section" in proc.stderr
+    assert "sim" not in yaml.safe_load(check_config().stdout)
+    assert check_config("--describe", "sim").returncode == 1
+
+
+@pytest.mark.parametrize(("setting", "words"), [
+    ("gamepad.topic=relative", "gamepad.topic: 'relative' is not an absolute topic name"),
+    ("gamepad.autonomy_lock_topic=lock", "gamepad.autonomy_lock_topic: 'lock' is not an absolute topic name"),
+    ("gamepad.rescan_max_s=0.1", "gamepad.rescan_max_s: must not be below rescan_min_s"),
+    ("keyboard.topic=teleop", "keyboard.topic: 'teleop' is not an absolute topic name"),
+    ("vesc.gamepad.x=1", "vesc.gamepad: unknown key; allowed keys: "),
+    ("foo.bar=1", "foo: unknown section; allowed sections: "),
+    ("sim.car.wheelbase=-5", "sim: unknown section; allowed sections: "),
+    (".x=1", ".x: a part of the key is empty; an override must look like section.key=value"),
+    ("vesc..port=/dev/x", "vesc..port: a part of the key is empty; "),
+    ("mux.inputs.x.timeout_s=1", "mux.inputs.x")])
+def test_an_error_from_a_set_names_the_users_key_and_the_set(check_config, setting, words):
+    """The gamepad's checks named a section ``teleop`` there is none of; a section or key the --set
+    made (foo, vesc.gamepad) was blamed on the file and its line; an empty part of a key was applied
+    as a section named ''; a --set that could not be applied came without its origin."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {words}"), line
+    assert line.endswith(f" (from --set {setting})"), line
+    assert "car.yaml" not in line
+
+
+def test_a_set_that_cannot_be_applied_is_reported_with_the_files_errors(tmp_path, check_config):
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("vesc:\n  speed_to_erpm_gian: 4614\n")
+    proc = check_config(str(cfg), "--set", ".x=1", "--set", "lidar.modle=a1")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [
+        "racecar-hw check-config: .x: a part of the key is empty; an override must look like "
+        "section.key=value (from --set .x=1)",
+        f"racecar-hw check-config: {cfg}:2: vesc.speed_to_erpm_gian: unknown key; did you mean "
+        "speed_to_erpm_gain?",
+        "racecar-hw check-config: lidar.modle: unknown key; did you mean model? (from --set lidar.modle=a1)"]
+
+
+def _string_keys(*, topics: bool) -> list[str]:
+    """Every config key (a list's first item for a list of sections) whose name ends so: ``topic``
+    (``lidar.topic``, ``safety.scan_topic``), or ``frame_id`` and ``port`` (a device path)."""
+    from racecar_hw.config import describe_config
+
+    ends = ("topic",) if topics else ("frame_id", "port")
+    return [key.replace("[]", ".0") for key, default, _ in describe_config()
+            if key.split(".")[-1].endswith(ends) and (isinstance(default, str) or default is None)
+            and key != "follower.topic"]  # a topic in the bag; empty: the bag's only one
+
+
+def _enabled(key: str) -> list[str]:
+    """--sets that switch on the section of ``key``, so its checks run."""
+    section = key.split(".")[0]
+    extra = ["--set", "follower.bag=/nonexistent.bag"] if section == "follower" else []
+    return ["--set", f"{section}.enabled=true", *extra] if section in (
+        "setpoint", "figure8", "follower", "keyboard", "mavlink", "foxglove") else []
+
+
+@pytest.mark.parametrize("key", _string_keys(topics=True))
+@pytest.mark.parametrize("value", ["", "scan"])
+def test_every_topic_must_be_absolute(check_config, key, value):
+    """lidar.topic, safety.scan_topic, the set-point's topics and more took a relative or empty name
+    (and nothing ever met on it) while the mux, keyboard and gamepad topics refused one."""
+    proc = check_config(*_enabled(key), "--set", f"{key}={value}")
+    assert proc.returncode == 1, (key, proc.stdout[-300:])
+    line = proc.stderr.splitlines()[0]
+    assert f"{key.replace('.0.', '[0].')}: {value!r} is not an absolute topic name" in line \
+        or f"{key}: {value!r} is not an absolute topic name" in line, line
+    assert line.endswith(f"(from --set {key}={value})"), line
+
+
+@pytest.mark.parametrize("key", _string_keys(topics=False))
+def test_every_frame_id_and_device_port_must_not_be_empty(check_config, key):
+    """``--set vesc.port=`` passed, and run then looked for a serial device at ''; an empty VESC
+    odometry, base or IMU frame passed while an empty static_transforms frame_id was refused."""
+    proc = check_config(*_enabled(key), "--set", f"{key}=")
+    assert proc.returncode == 1, (key, proc.stdout[-300:])
+    line = proc.stderr.splitlines()[0]
+    assert line.endswith(f"must not be empty (from --set {key}=)"), line
+    assert {"vesc.port", "vesc.odom_frame_id", "vesc.base_frame_id", "vesc.imu_frame_id", "lidar.port",
+            "lidar.frame_id", "static_transforms.0.frame_id"} <= set(_string_keys(topics=False))
+
+
+def test_a_set_numbers_the_mux_locks_and_inputs_as_check_config_lists_them(check_config):
+    """The car config's autonomy lock (the gamepad's) is lock 0, as check-config lists it, and the
+    inputs are 0..6 with cmd_vel; a --set past them said ``(0..-1)`` and ``(0..5)``, without its
+    origin."""
+    proc = check_config("--set", "mux.locks.0.timeout_s=1")
+    assert proc.returncode == 0, proc.stderr
+    assert yaml.safe_load(proc.stdout)["mux"]["locks"] == [
+        {"name": "autonomy", "topic": "/vesc/autonomy_lock", "priority": 50, "timeout_s": 1.0}]
+    added = ("(check-config lists them; autonomy is added by gamepad.autonomy_lock (with the gamepad "
+             "on), when no lock is on gamepad.autonomy_lock_topic)")
+    for sets, words in [
+        (["mux.locks.1.timeout_s=1"], "mux.locks.1.timeout_s: no mux lock 1; the mux has 1 lock: 0 autonomy "
+                                      + added),
+        (["gamepad.enabled=false", "mux.locks.0.timeout_s=1"],
+         "mux.locks.0.timeout_s: no mux lock 0; the mux has 0 locks " + added),
+        (["mux.inputs.x.timeout_s=1"], "mux.inputs.x.timeout_s: no mux input 'x'; the mux has 7 inputs: "
+                                       "0 safety, 1 teleop, 2 nav_0, 3 nav_1, 4 nav_2, 5 nav_3, 6 cmd_vel ")]:
+        proc = check_config(*[arg for s in sets for arg in ("--set", s)])
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr
+        line, = proc.stderr.splitlines()
+        assert line.startswith(f"racecar-hw check-config: {words}"), line
+        assert line.endswith(f" (from --set {sets[-1]})"), line
+
+
+@pytest.mark.parametrize(("setting", "words"), [
+    ("static_transforms.0.xyz=[.nan,0,0]", "static_transforms[0].xyz[0]: NaN is not allowed"),
+    ("static_transforms.x.xyz=[1,0,0]", "static_transforms.x: 'x' is not a list index; the list has 2 "
+                                        "items (0..1)"),
+    ("static_transforms.2.xyz=[1,0,0]", "static_transforms.2: index 2 is out of range; the list has 2 "
+                                        "items (0..1)"),
+    ("mux.estop_release_sources=[web,web]", "mux.estop_release_sources[1]: 'web' is listed twice")])
+def test_an_element_of_a_list_is_one_error(check_config, setting, words):
+    """A NaN in xyz was reported, then (its element taken out) 'expected 3 values, got 2' too; an
+    index that is no number was said to be out of range."""
+    proc = check_config("--set", setting)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [f"racecar-hw check-config: {words} (from --set {setting})"]

@@ -225,8 +225,9 @@ def test_the_asyncio_client_iterates_scans_and_odometry(tmp_path):
 @pytest.mark.slow
 def test_safety_states_callbacks_remaps_and_leaving_the_block_stops_the_car_at_once(tmp_path):
     """The daemon uses F1TENTH names with /odom renamed, and its nav_0 input times out only after
-    5 s (the longest an input may hold): a car that stops after the ``with`` block, with nav_0 still the mux's source commanding
-    zero and no safety intervention, was stopped by the client's stop command, not by a timeout."""
+    5 s (the longest an input may hold): a car that stops after the ``with`` block, with nav_0
+    still the mux's source commanding zero and no safety intervention, was stopped by the client's
+    stop command, not by a timeout."""
     port = free_port()
     remap = {"/odom": "/wheel/odom"}
     sim = start_sim(tmp_path, port, "mux.inputs.2.timeout_s=5", "zenoh.profile=f1tenth",

@@ -88,3 +88,24 @@ def test_a_bare_off_is_the_choice_off():
     assert load_config(None, ["safety.mode=off"]).safety.mode == "off"
     with pytest.raises(ConfigError, match="expected a string, got False"):
         load_config(None, ["lidar.model=off"])  # no choice named off there
+
+
+@dataclass
+class Named:
+    topic: str = param("/scan", "scan input", topic=True)
+    frame_id: str = param("laser", "frame of the scans", nonempty=True)
+
+
+@pytest.mark.parametrize(("data", "key", "words"), [
+    ({"topic": ""}, "lidar.topic", "'' is not an absolute topic name"),
+    ({"topic": "scan"}, "lidar.topic", "'scan' is not an absolute topic name"),
+    ({"frame_id": ""}, "lidar.frame_id", "must not be empty")])
+def test_a_topic_must_be_absolute_and_a_nonempty_string_not_empty(data, key, words):
+    with pytest.raises(ConfigError) as info:
+        build(Named, data, "lidar")
+    assert str(info.value) == f"{key}: {words}"
+    assert build(Named, {"topic": "/car1/scan", "frame_id": "car1/laser"}) == Named("/car1/scan",
+                                                                                    "car1/laser")
+    rows = {key: doc for key, _, doc in describe(Named)}
+    assert rows == {"topic": "scan input (an absolute topic name)",
+                    "frame_id": "frame of the scans (not empty)"}

@@ -21,7 +21,7 @@ class VescParams:
 
     # --- link
     port: str = param("/dev/vesc", "serial device path or pyserial URL (spy://, socket://); "
-                      "'auto' finds the USB device by usb_vid_pid and usb_serial")
+                      "'auto' finds the USB device by usb_vid_pid and usb_serial", nonempty=True)
     usb_vid_pid: str = param("0483:5740", "USB VID:PID (hex) searched when port is 'auto' "
                              "(STM32 virtual COM port, as the VESC enumerates)")
     usb_serial: str | None = param(None, "USB serial number to pick one VESC among several "
@@ -84,8 +84,8 @@ class VescParams:
                                     min=0.02, max=0.9)
 
     # --- odometry
-    odom_frame_id: str = param("odom", "frame of the odometry pose (header.frame_id)")
-    base_frame_id: str = param("base_link", "frame of the car (child_frame_id)")
+    odom_frame_id: str = param("odom", "frame of the odometry pose (header.frame_id)", nonempty=True)
+    base_frame_id: str = param("base_link", "frame of the car (child_frame_id)", nonempty=True)
     publish_tf: bool = param(True, "publish the odom -> base_link transform on /tf")
     pose_covariance_xy: float = param(0.2, "variance of x and y in the odometry pose", unit="m^2",
                                       min=0.0, max=1e6)
@@ -105,7 +105,7 @@ class VescParams:
     imu: bool = param(True, "poll the VESC's IMU with the telemetry and publish sensor_msgs/Imu on "
                       "/imu (firmware before 3.52 has none: nothing is published)")
     imu_frame_id: str = param("imu", "frame of the IMU messages; give base_link -> imu in "
-                              "static_transforms")
+                              "static_transforms", nonempty=True)
     imu_orientation_variance: float = param(
         0.0012, "variance of roll and pitch (about (2 deg)^2: the firmware's accelerometer "
         "fusion on a vibrating car)", unit="rad^2", min=0.0, max=1e6)

@@ -100,7 +100,7 @@ class FollowerParams:
     bag: str = param("", "ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP) to follow")
     topic: str = param("", "topic in the bag holding AckermannDriveStamped, AckermannDrive, Twist or "
                            "TwistStamped; empty: the bag's only such topic (a mux input preferred)")
-    input_topic: str = param(NAV0_TOPIC, "mux input topic the commands are published on")
+    input_topic: str = param(NAV0_TOPIC, "mux input topic the commands are published on", topic=True)
     rate_hz: float = param(20.0, "fixed publish rate when not using the bag timestamps", unit="Hz",
                            min=0.1, max=1000.0)
     use_timestamps: bool = param(False, "replay with the bag's own timing instead of rate_hz")
@@ -109,7 +109,7 @@ class FollowerParams:
     reverse: bool = param(False, "follow the path backwards: reversed order, negated speed, same "
                                  "steering")
     loop: bool = param(False, "start again after the last command")
-    frame_id: str = param("base_link", "frame_id of the re-stamped commands")
+    frame_id: str = param("base_link", "frame_id of the re-stamped commands", nonempty=True)
     stop_at_end: bool = param(True, "publish one zero-speed, centred command when the replay ends")
     max_message_bytes: int = param(DEFAULT_MAX_MESSAGE_BYTES, "largest message, or chunk of messages, "
                                    "read from the bag; a bag declaring a larger one is refused before "

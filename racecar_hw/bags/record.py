@@ -96,7 +96,7 @@ class RecorderParams:
     """Parameters of the bag recorder (the ``bag`` section of the configuration)."""
 
     enabled: bool = param(False, "record bus topics into a bag")
-    path: str = param("bags", "directory that receives the bags (created if missing)")
+    path: str = param("bags", "directory that receives the bags (created if missing)", nonempty=True)
     name: str = param("", "base name of the bag; empty = racecar_<YYYYmmdd-HHMMSS>")
     format: str = param("mcap", "bag format: ROS 2 mcap or sqlite3, or a ROS 1 .bag",
                         choices=("mcap", "sqlite3", "ros1"))

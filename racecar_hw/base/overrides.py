@@ -139,6 +139,8 @@ def apply_override(data: dict[str, Any], assignment: str,
     key = key.strip()
     if not sep or not key:
         raise ConfigError(assignment, "an override must look like section.key=value")
+    if "" in key.split("."):
+        raise ConfigError(key, "a part of the key is empty; an override must look like section.key=value")
     try:
         value = parse_yaml(raw, "the value") if raw.strip() else ""
     except ConfigError as err:
@@ -192,5 +194,7 @@ def _child(node: Any, part: str, where: str, create: bool, default: Any = None) 
 
 def _index(node: list[Any], part: str, where: str) -> int:
     if not part.isdigit() or int(part) >= len(node):
-        raise ConfigError(where, f"list index {part!r} out of range (0..{len(node) - 1})")
+        items = f"the list has {len(node)} items (0..{len(node) - 1})" if node else "the list is empty"
+        what = f"index {part} is out of range" if part.isdigit() else f"{part!r} is not a list index"
+        raise ConfigError(where, f"{what}; {items}")
     return int(part)

@@ -45,12 +45,17 @@ def param(
     min: float | None = None,  # noqa: A002 - reads naturally at the call site
     max: float | None = None,  # noqa: A002
     choices: tuple[Any, ...] | None = None,
+    topic: bool = False,
+    nonempty: bool = False,
 ) -> Any:
     """A dataclass field with a default, documentation, an optional unit, range and choices.
 
-    Mutable defaults (lists, dicts, dataclass instances) are copied for each instance.
+    A string with ``topic`` must be an absolute topic name (``/scan``); one with ``nonempty`` must
+    not be empty (a frame id, a device path). Mutable defaults (lists, dicts, dataclass instances)
+    are copied for each instance.
     """
-    meta = {"doc": doc, "unit": unit, "min": min, "max": max, "choices": choices}
+    meta = {"doc": doc, "unit": unit, "min": min, "max": max, "choices": choices, "topic": topic,
+            "nonempty": nonempty}
     if isinstance(default, (list, dict, set)) or dataclasses.is_dataclass(default):
         import copy
 
@@ -133,6 +138,10 @@ def describe(cls: type, key: str = "") -> Iterator[tuple[str, Any, str]]:
             extras.append(f"range {'-inf' if lo is None else lo}..{'inf' if hi is None else hi}")
         if meta.get("choices"):
             extras.append("one of " + ", ".join(map(str, meta["choices"])))
+        if meta.get("topic"):
+            extras.append("an absolute topic name")
+        if meta.get("nonempty"):
+            extras.append("not empty")
         if extras:
             doc = f"{doc} ({'; '.join(extras)})"
         yield name, to_dict(default), doc
@@ -197,6 +206,10 @@ def _scalar(hint: Any, value: Any, key: str, meta: Mapping[str, Any]) -> Any:
             value = "on" if value else "off"  # YAML 1.1 reads a bare `off` (`--set safety.mode=off`) as false
         if not isinstance(value, str):
             raise _Mismatch(key, f"expected a string, got {_show(value)}")
+        if meta.get("topic") and not value.startswith("/"):
+            raise ConfigError(key, f"{value!r} is not an absolute topic name")
+        if meta.get("nonempty") and not value:
+            raise ConfigError(key, "must not be empty")
         out = value
     else:
         raise ConfigError(key, f"unsupported parameter type {_name(hint)}")

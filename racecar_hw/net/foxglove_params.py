@@ -39,7 +39,8 @@ class FoxgloveParams(GatedServerParams):
                                        "pages served by this machine and desktop apps); 'null' admits "
                                        "every opaque origin, including any site's sandboxed frames")
     teleop: bool = param(True, "let Foxglove's Teleop panel drive through the mux input 'foxglove'")
-    teleop_topic: str = param(FOXGLOVE_TELEOP_TOPIC, "geometry_msgs/Twist topic the Teleop panel publishes")
+    teleop_topic: str = param(FOXGLOVE_TELEOP_TOPIC, "geometry_msgs/Twist topic the Teleop panel publishes",
+                              topic=True)
     teleop_priority: int = param(85, "priority of the mux input 'foxglove' (below teleop's 90)",
                                  min=0, max=255)
     teleop_timeout_s: float = param(0.3, "the car stops this long after the last Twist (a closed tab, "

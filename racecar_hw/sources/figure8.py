@@ -40,8 +40,8 @@ class Figure8Params:
     wheelbase_m: float = param(0.25, "rear axle to front axle", unit="m", min=0.05, max=2.0)
     figure8s: int = param(1, "figure-8s to drive, then stop; 0 drives until cancelled", min=0, max=1000)
     rate_hz: float = param(20.0, "command rate", unit="Hz", min=1.0, max=200.0)
-    topic: str = param(NAV0_TOPIC, "mux input the commands go to")
-    frame_id: str = param("base_link", "frame_id of the published commands")
+    topic: str = param(NAV0_TOPIC, "mux input the commands go to", topic=True)
+    frame_id: str = param("base_link", "frame_id of the published commands", nonempty=True)
 
     def __post_init__(self) -> None:
         if self.speed_mps == 0.0 or not math.isfinite(self.speed_mps):

@@ -29,9 +29,11 @@ log = logging.getLogger(__name__)
 class ScanSummaryParams:
     """Where scans come from and where their summaries go."""
 
-    scan_topic: str = param("/scan", "sensor_msgs/LaserScan input")
-    scan_range_topic: str = param("/scan_range", "racecar_msgs/ScanRange output (closest, farthest)")
-    open_space_topic: str = param("/open_space", "racecar_msgs/OpenSpace output (angle, distance)")
+    scan_topic: str = param("/scan", "sensor_msgs/LaserScan input", topic=True)
+    scan_range_topic: str = param("/scan_range", "racecar_msgs/ScanRange output (closest, farthest)",
+                                  topic=True)
+    open_space_topic: str = param("/open_space", "racecar_msgs/OpenSpace output (angle, distance)",
+                                  topic=True)
 
 
 def scan_range(scan: LaserScan) -> ScanRange:

@@ -77,15 +77,17 @@ def parse_pose(text: str) -> Pose2D:
 class SetpointParams:
     """The set-point relay's topics, rate and limits."""
 
-    topic: str = param(NAV0_TOPIC, "where the AckermannDriveStamped commands go (a mux input)")
+    topic: str = param(NAV0_TOPIC, "where the AckermannDriveStamped commands go (a mux input)", topic=True)
     rate_hz: float = param(20.0, "publish rate", unit="Hz", min=1.0, max=200.0)
-    frame_id: str = param("base_link", "frame_id of the published commands")
+    frame_id: str = param("base_link", "frame_id of the published commands", nonempty=True)
     max_speed_mps: float = param(2.0, "largest |velocity| accepted", unit="m/s", min=0.0, max=20.0)
     max_steering_rad: float = param(0.4189, "largest |steering angle| accepted", unit="rad",
                                     min=0.0, max=1.2)
-    velocity_topic: str = param("/lab0/velocity", "std_msgs/Float64 velocity set-points (m/s)")
-    steering_topic: str = param("/lab0/steering_angle", "std_msgs/Float64 steering set-points (rad)")
-    initial_pose_topic: str = param("/lab0/initialpose", "std_msgs/String 'x,y,theta' initial poses")
+    velocity_topic: str = param("/lab0/velocity", "std_msgs/Float64 velocity set-points (m/s)", topic=True)
+    steering_topic: str = param("/lab0/steering_angle", "std_msgs/Float64 steering set-points (rad)",
+                                topic=True)
+    initial_pose_topic: str = param("/lab0/initialpose", "std_msgs/String 'x,y,theta' initial poses",
+                                    topic=True)
     initial_pose: str | None = param(None, "initial pose 'x,y,theta' (m, m, rad, map frame)")
 
     def __post_init__(self) -> None:

@@ -543,7 +543,7 @@ class GamepadParams:
                                 "substring of the device name, or auto (first known pad)")
     profile: str = param("auto", "button/axis mapping; auto picks it from the USB id or name",
                          choices=("auto", *PROFILES))
-    topic: str = param(TELEOP_TOPIC, "mux input for AckermannDriveStamped teleop commands")
+    topic: str = param(TELEOP_TOPIC, "mux input for AckermannDriveStamped teleop commands", topic=True)
     rate_hz: float = param(20.0, "command rate while the deadman is held", unit="Hz",
                            min=1.0, max=200.0)
     max_speed_mps: float = param(2.0, "speed at full stick", unit="m/s", min=0.0, max=20.0)
@@ -554,7 +554,7 @@ class GamepadParams:
     autonomy_lock: bool = param(True, "publish the autonomy lock (RB); switch off in the simulation "
                                       "so navigation runs without a pad")
     autonomy_lock_topic: str = param("/vesc/autonomy_lock",
-                                     "std_msgs/Bool; true (engaged) while RB is released")
+                                     "std_msgs/Bool; true (engaged) while RB is released", topic=True)
     autonomy_lock_priority: int = param(50, "mux lock priority: above every nav input, below "
                                             "teleop and safety", min=0, max=255)
     autonomy_lock_timeout_s: float = param(0.5, "mux lock deadman timeout: a silent pad engages it",
@@ -567,19 +567,19 @@ class GamepadParams:
                                 unit="s", min=0.01, max=60.0)
     rescan_max_s: float = param(5.0, "longest retry delay (the delay doubles up to this)",
                                 unit="s", min=0.01, max=600.0)
-    input_dir: str = param("/dev/input", "where event nodes live")
-    sys_class_dir: str = param("/sys/class/input", "where device names and ids are read")
+    input_dir: str = param("/dev/input", "where event nodes live", nonempty=True)
+    sys_class_dir: str = param("/sys/class/input", "where device names and ids are read", nonempty=True)
     layout: str = param("native", "struct input_event layout; native on a real device",
                         choices=("native", "64le", "32le"))
 
     def __post_init__(self) -> None:
         if not self.topic.startswith("/"):
-            raise ConfigError("teleop.topic", f"{self.topic!r} is not an absolute topic name")
+            raise ConfigError("topic", f"{self.topic!r} is not an absolute topic name")
         if not self.autonomy_lock_topic.startswith("/"):
-            raise ConfigError("teleop.autonomy_lock_topic",
+            raise ConfigError("autonomy_lock_topic",
                               f"{self.autonomy_lock_topic!r} is not an absolute topic name")
         if self.rescan_max_s < self.rescan_min_s:
-            raise ConfigError("teleop.rescan_max_s", "must not be below rescan_min_s")
+            raise ConfigError("rescan_max_s", "must not be below rescan_min_s")
 
     def lock_params(self) -> LockParams:
         """The mux lock entry that makes the autonomy lock work (add it to ``mux.locks``)."""

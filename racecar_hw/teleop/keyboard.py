@@ -136,7 +136,7 @@ class KeyDecoder:
 class KeyboardParams:
     """The terminal keyboard teleop."""
 
-    topic: str = param(TELEOP_TOPIC, "mux input for AckermannDriveStamped teleop commands")
+    topic: str = param(TELEOP_TOPIC, "mux input for AckermannDriveStamped teleop commands", topic=True)
     rate_hz: float = param(20.0, "command rate while keys are fresh", unit="Hz", min=1.0, max=200.0)
     speed_step_mps: float = param(0.25, "speed change per key", unit="m/s", min=0.01, max=5.0)
     steering_step_rad: float = param(0.05, "steering change per key", unit="rad", min=0.005, max=1.0)
@@ -148,7 +148,7 @@ class KeyboardParams:
 
     def __post_init__(self) -> None:
         if not self.topic.startswith("/"):
-            raise ConfigError("keyboard.topic", f"{self.topic!r} is not an absolute topic name")
+            raise ConfigError("topic", f"{self.topic!r} is not an absolute topic name")
 
 
 class KeyboardState:

@@ -100,11 +100,11 @@ class MavlinkParams:
     rate_hz: float = param(20.0, "teleop command rate", unit="Hz", min=1.0, max=100.0)
     telemetry_rate_hz: float = param(4.0, "ATTITUDE, LOCAL_POSITION_NED, OBSTACLE_DISTANCE rate",
                                      unit="Hz", min=0.1, max=50.0)
-    teleop_topic: str = param(TELEOP_TOPIC, "mux input the ground station drives")
-    vesc_state_topic: str = param("/vesc/sensors/core", "vesc_msgs/VescStateStamped")
-    odom_topic: str = param("/odom", "nav_msgs/Odometry")
-    scan_topic: str = param("/scan", "sensor_msgs/LaserScan")
-    safety_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray")
+    teleop_topic: str = param(TELEOP_TOPIC, "mux input the ground station drives", topic=True)
+    vesc_state_topic: str = param("/vesc/sensors/core", "vesc_msgs/VescStateStamped", topic=True)
+    odom_topic: str = param("/odom", "nav_msgs/Odometry", topic=True)
+    scan_topic: str = param("/scan", "sensor_msgs/LaserScan", topic=True)
+    safety_topic: str = param("/safety/state", "diagnostic_msgs/DiagnosticArray", topic=True)
 
     def __post_init__(self) -> None:
         host, _ = parse_address(self.gcs_address, "mavlink.gcs_address")
