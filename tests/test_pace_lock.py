@@ -83,8 +83,8 @@ SESSION_TESTS = '''
 import json, os, time
 import pytest
 
-def _ran(name):
-    start = time.time()
+def _ran(name, start=None):
+    start = time.time() if start is None else start
     time.sleep(0.3)
     with open({log!r}, "a") as f:
         f.write(json.dumps([name, os.environ["PYTEST_XDIST_WORKER"], start, time.time()]) + "\\n")
@@ -109,8 +109,9 @@ def test_alone(k):
 @pytest.mark.quiet
 @pytest.mark.parametrize("k", range(2))
 def test_quiet(k):
+    start = time.time()  # before the alone test can see the file and take its own start
     open({quiet_started!r}, "a").close()
-    _ran(f"quiet{{k}}")
+    _ran(f"quiet{{k}}", start)
 '''
 
 
