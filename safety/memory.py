@@ -17,15 +17,20 @@ One :meth:`update` per scan (or every few scans), with the car's odom pose at th
    forgotten.
 2. Remembered cells older than ``max_age_s`` are forgotten: odometry drifts.
 3. Remembered cells inside the lidar's field of view are checked against the scan: a cell is
-   forgotten when every beam across its width reaches ``see_through_m`` beyond it, because the
-   lidar now sees through it (the live scan wins: what moved away is not remembered where it was).
-   Cells inside the car's own footprint are forgotten too: the car stands there.
-4. The scan's returns are written in, stamped with the update's time.
+   forgotten when every beam across its width reaches it, to within ``see_through_m``, or beyond,
+   because the lidar now sees what is there (the live scan wins: what moved away is not remembered
+   where it was, and a noisy return is replaced by the next ones, which step 4 writes in). Only a
+   cell hidden behind something nearer stays. Cells inside the car's own footprint are forgotten
+   too: the car stands there.
+4. The scan's returns are written in, stamped with the update's time, each cell keeping the odom
+   position of the last return in it.
 
-:meth:`points` then gives the centre of every remembered cell within ``reach_m`` of the car. The
-safety controller sweeps them with the live scan: where the lidar sees, they repeat what it sees
-(within a cell); where it does not (behind, beside the rear wheels, a point that left the field of
-view between two updates), they are all there is. Farther ones only matter to a path longer than
+:meth:`points` then gives the position of every remembered return within ``reach_m`` of the car
+(the return itself, not its cell's centre: a centre is up to half a cell diagonal nearer, which put
+a box's corner inside a corridor the car fitted through, and kept it stopped there). The safety
+controller sweeps them with the live scan: where the lidar sees, they repeat what it saw at the last
+update; where it does not (behind, beside the rear wheels, a point that left the field of view
+between two updates), they are all there is. Farther ones only matter to a path longer than
 that, which the lidar sees ahead, or to reversing faster than the crawl the controller allows.
 
 Pure numpy, no clock, no bus: times are the caller's monotonic nanoseconds, poses the caller's
@@ -83,6 +88,7 @@ class ObstacleMemory:
         self.reach_m = float(reach_m)
         n = self.cells_per_side
         self._seen = np.zeros((n, n), dtype=np.int64)  # row: y cell, column: x cell
+        self._where = np.zeros((n, n), dtype=np.complex128)  # odom x + iy of each cell's last return
         self._origin: tuple[int, int] | None = None  # global (x, y) cell index of [0, 0]
         self._last_xy: tuple[float, float] | None = None
         self._points = np.zeros(0, dtype=np.complex128)  # odom cell centres as x + iy
@@ -98,11 +104,11 @@ class ObstacleMemory:
     @property
     def nbytes(self) -> int:
         """Bytes held by the grid and the remembered points."""
-        return int(self._seen.nbytes + self._points.nbytes)
+        return int(self._seen.nbytes + self._where.nbytes + self._points.nbytes)
 
     def points(self) -> np.ndarray:
-        """The remembered cells within ``reach_m`` of the car at the last update: their odom
-        centres as complex numbers x + iy.
+        """The remembered returns within ``reach_m`` of the car at the last update: their odom
+        positions as complex numbers x + iy (a cell's last return).
 
         Complex, because a planar rigid transform is then two numpy operations,
         ``points * exp(-i yaw) - p * exp(-i yaw)``, the cheapest way on the scan-to-command path.
@@ -131,6 +137,7 @@ class ObstacleMemory:
     def clear(self) -> None:
         """Forget everything (the odometry was lost or jumped); the next update starts afresh."""
         self._seen[:] = 0
+        self._where[:] = 0
         self._points = np.zeros(0, dtype=np.complex128)
         self._origin = None
         self._last_xy = None
@@ -162,10 +169,7 @@ class ObstacleMemory:
                      range_max, now_ns, footprint)
         self._insert((px, py, yaw), x, y, now_ns)
         occupied = (self._seen.reshape(-1) != 0).nonzero()[0]  # nonzero() of booleans: fast
-        row, column = np.divmod(occupied, self.cells_per_side)
-        _, _, x0, _, _, y0 = self._cells_to_odom()
-        res = self.resolution_m
-        points = (column * res + x0) + 1j * (row * res + y0)
+        points = self._where.reshape(-1)[occupied]
         self._points = points[np.abs(points - complex(px, py)) <= self.reach_m]
         self.updates += 1
 
@@ -199,10 +203,11 @@ class ObstacleMemory:
                       angle_increment: float, range_min: float, range_max: float) -> np.ndarray:
         """For cells at range ``r`` and ``bearing`` (laser frame): whether the scan sees through them.
 
-        A cell is seen through when it is inside the field of view and the lidar's range limits,
-        and every beam across its width reaches ``see_through_m`` beyond it. A scan whose beams
-        have no plausible directions (a non-finite angle, an increment below
-        :data:`MIN_ANGLE_INCREMENT_RAD` or above a turn) sees through nothing.
+        A cell is seen when it is inside the field of view and the lidar's range limits, and every
+        beam across its width reaches it, to within ``see_through_m`` (range noise), or beyond:
+        the scan then holds what is there now. A scan whose beams have no plausible directions (a
+        non-finite angle, an increment below :data:`MIN_ANGLE_INCREMENT_RAD` or above a turn) sees
+        nothing.
         """
         count = len(ranges)
         if count == 0 or not (math.isfinite(angle_min) and plausible_increment(angle_increment)):
@@ -232,7 +237,7 @@ class ObstacleMemory:
             across = 0.75 * self.resolution_m / (step * r)
         half = np.minimum(across, MAX_HALF_WINDOW - 1).astype(np.intp) + 1
         nearest = _window_min(free, np.maximum(centre - half, 0), np.minimum(centre + half, count - 1))
-        return visible & (nearest > r + tol)
+        return visible & (nearest >= r - tol)
 
     def _insert(self, pose: tuple[float, float, float], x: np.ndarray, y: np.ndarray, now_ns: int) -> None:
         """Step 4: stamp the cells of the scan's returns."""
@@ -242,9 +247,13 @@ class ObstacleMemory:
         a, b, tx, c, d, ty = _compose(_inverse(self._cells_to_odom()), _pose(pose))
         # + 0.5: from "a cell's centre at 0" to "a cell starts at 0", so that floor gives the cell
         to_cells = np.array(((a, b, tx + 0.5), (c, d, ty + 0.5)))
-        ij = np.floor(to_cells @ np.array((x, y, np.ones(len(x))))).astype(np.int64)
+        xy1 = np.array((x, y, np.ones(len(x))))
+        ij = np.floor(to_cells @ xy1).astype(np.int64)
         inside = ((ij >= 0) & (ij < n)).all(axis=0)
-        self._seen.reshape(-1)[(ij[1] * n + ij[0])[inside]] = max(now_ns, 1)  # 0 marks an empty cell
+        flat = (ij[1] * n + ij[0])[inside]
+        self._seen.reshape(-1)[flat] = max(now_ns, 1)  # 0 marks an empty cell
+        odom = np.array(_pose(pose)).reshape(2, 3) @ xy1[:, inside]
+        self._where.reshape(-1)[flat] = odom[0] + 1j * odom[1]  # of several, the last in the scan
 
     def _cells_to_odom(self) -> Affine:
         """A cell's (column, row) to the odom point at its centre."""
@@ -265,13 +274,20 @@ class ObstacleMemory:
         if abs(want[0] - oi) <= n // 4 and abs(want[1] - oj) <= n // 4:
             return
         di, dj = want[0] - oi, want[1] - oj
-        shifted = np.zeros_like(self._seen)
-        if abs(di) < n and abs(dj) < n:
-            # new[j, i] = old[j + dj, i + di] where both are inside the grid
-            shifted[max(-dj, 0):n - max(dj, 0), max(-di, 0):n - max(di, 0)] = \
-                self._seen[max(dj, 0):n - max(-dj, 0), max(di, 0):n - max(-di, 0)]
-        self._seen = shifted
+        self._seen, self._where = (_shifted(grid, di, dj) for grid in (self._seen, self._where))
         self._origin = want
+
+
+def _shifted(grid: np.ndarray, di: int, dj: int) -> np.ndarray:
+    """``grid`` moved by (di, dj) cells: new[j, i] = old[j + dj, i + di] where both are inside,
+    empty (0) elsewhere."""
+    n = grid.shape[0]
+    shifted = np.zeros_like(grid)
+    if abs(di) < n and abs(dj) < n:
+        shifted[max(-dj, 0):n - max(dj, 0), max(-di, 0):n - max(di, 0)] = \
+            grid[max(dj, 0):n - max(-dj, 0), max(di, 0):n - max(-di, 0)]
+    return shifted
+
 
 def _window_min(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """``min(values[lo[k]:hi[k] + 1])`` for every k (lo <= hi, windows of at most 64 values).

@@ -216,8 +216,17 @@ def test_the_swept_points_are_the_cells_within_reach_of_the_car():
     px, py, _ = poses[-1]
     within = np.hypot(x - px, y - py) <= 2.0
     assert 0 < within.sum() < len(memory)
-    got = np.sort_complex(np.round(memory.points(), 6))
-    assert np.array_equal(got, np.sort_complex(np.round(x[within] + 1j * y[within], 6)))
+    got = memory.points()
+    assert np.all(np.abs(got - complex(px, py)) <= 2.0)
+    # one per cell (its last return, not its centre): as many as the cells within reach, give or
+    # take those whose centre and return lie either side of the reach
+    half_diagonal = 0.025 * math.sqrt(2.0)
+    distance = np.hypot(x - px, y - py)
+    assert (distance <= 2.0 - half_diagonal).sum() <= len(got) <= (distance <= 2.0 + half_diagonal).sum()
+    centres = x + 1j * y
+    for point in got:
+        off = np.maximum(abs(centres.real - point.real), abs(centres.imag - point.imag))
+        assert off.min() <= 0.025 + 1e-9
 
 
 def test_returns_land_in_the_cells_that_hold_them():
@@ -232,6 +241,31 @@ def test_returns_land_in_the_cells_that_hold_them():
     assert len(x) == 3 and set(seen) == {1}
     for px, py in zip(ox, oy, strict=True):  # each return is in the 5 cm cell around some centre
         assert np.any((np.abs(x - px) <= 0.025 + 1e-9) & (np.abs(y - py) <= 0.025 + 1e-9))
+    # and the swept points are the returns themselves, not their cells' centres
+    np.testing.assert_allclose(np.sort_complex(memory.points()), np.sort_complex(ox + 1j * oy), atol=1e-9)
+
+
+def test_a_remembered_return_the_scan_now_reaches_gives_way_to_the_scans_returns():
+    """A noisy return just inside a corridor is not kept once the lidar sees the wall behind it
+    within the range noise (it kept a car stopped in a gap it fitted through): a cell the scan
+    reaches is forgotten and what the scan sees there now is written in. A cell behind something
+    nearer stays."""
+    memory = ObstacleMemory(resolution_m=0.05, see_through_m=0.1)
+    angles = -2.35 + 0.004363 * np.arange(1081)
+    wall = np.full(1081, np.inf)
+    ahead = np.abs(angles) < 0.3
+    wall[ahead] = 2.0 / np.cos(angles[ahead])  # a wall 2 m ahead
+    noisy = np.array([1.93]), np.array([0.0])  # one return 7 cm short of it
+    memory.update((0.0, 0.0, 0.0), TO_BASE, wall, -2.35, 0.004363, 0.06, 30.0, *noisy, 1)
+    assert np.allclose(memory.points(), [1.93])
+    bx, by = 2.0 * np.ones(3), np.array([-0.1, 0.0, 0.1])  # the next scan: the wall, no noise
+    memory.update((0.0, 0.0, 0.0), TO_BASE, wall, -2.35, 0.004363, 0.06, 30.0, bx, by, 2)
+    assert np.allclose(np.sort_complex(memory.points()), bx + 1j * by)
+    post = wall.copy()
+    post[np.abs(angles) < 0.05] = 1.0  # a post 1 m ahead hides the wall's middle
+    memory.update((0.0, 0.0, 0.0), TO_BASE, post, -2.35, 0.004363, 0.06, 30.0, np.array([1.0]),
+                  np.array([0.0]), 3)
+    assert 2.0 + 0.0j in np.round(memory.points(), 9) and 1.0 + 0.0j in np.round(memory.points(), 9)
 
 
 @settings(max_examples=200, deadline=None)
