@@ -428,8 +428,11 @@ class SafetyController:
                  if o else "no obstacle")
         what = ("still intervening, now for an obstacle" if event.continues
                 else f"intervening ({event.reason})")
-        log.warning("safety: %s on %s: commanded %.2f m/s, measured %.2f m/s, allowed %.2f m/s, %s",
-                    what, source, event.commanded_speed, event.measured_speed, event.allowed_speed, where)
+        # a client may command 1e300 m/s (clamped long before the wire): %.2f wrote 300 digits
+        commanded = event.commanded_speed
+        shown = f"{commanded:.2f}" if abs(commanded) < 1e6 else f"{commanded:.3g}"
+        log.warning("safety: %s on %s: commanded %s m/s, measured %.2f m/s, allowed %.2f m/s, %s",
+                    what, source, shown, event.measured_speed, event.allowed_speed, where)
 
     def _ended(self, now_ns: int) -> None:
         """The current intervention ended at ``now_ns``."""

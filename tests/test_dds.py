@@ -68,6 +68,44 @@ def test_beyond_loopback_dds_takes_commands_only_when_a_key_says_so():
     assert '<NetworkInterface name="eth0"/>' in cyclone_xml(allowed)
 
 
+def test_the_participant_index_range_is_fast_dds_s_and_a_full_range_is_said_so():
+    """Cyclone's default of 32 left the 33rd ROS 2 process on the computer without the car, and 32
+    held ports kept the daemon from starting, blamed on dds.interface. The range is 0-120 now;
+    with every one of its discovery ports held, the refusal names the domain and the cause."""
+    import socket
+
+    from racecar_hw.net.dds_config import MAX_PARTICIPANT_INDEX, participant_ports
+
+    assert f"<MaxAutoParticipantIndex>{MAX_PARTICIPANT_INDEX}</MaxAutoParticipantIndex>" in cyclone_xml(
+        DdsParams()) and MAX_PARTICIPANT_INDEX == 120
+    domain_id = 231  # its ports, 65160-65400, are above the ephemeral range on this machine kind
+    ports = participant_ports(domain_id)
+    assert ports[0] == 7410 + 250 * domain_id and ports[-1] == ports[0] + 240 < 65536
+    held = []
+    try:
+        for port in ports[:40]:  # more than the old 32: the bridge still opens
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", port))
+            held.append(s)
+        bridge = DdsBridge(Bus(), DdsParams(domain_id=domain_id), [])
+        loop = asyncio.new_event_loop()
+        try:
+            bridge.open(loop)
+        finally:
+            bridge.close()
+        for port in ports[40:]:
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", port))
+            held.append(s)
+        full = DdsBridge(Bus(), DdsParams(domain_id=domain_id), [])
+        with pytest.raises(ConfigError, match=r"^dds\.domain_id: no free DDS participant index in domain"):
+            full.open(loop)
+        loop.close()
+    finally:
+        for s in held:
+            s.close()
+
+
 def test_the_section_refuses_bad_values_naming_the_key(monkeypatch):
     with pytest.raises(ConfigError, match=r"dds\.multicast"):
         load_config(None, ["dds.multicast=true"])

@@ -476,6 +476,16 @@ def test_interventions_are_counted_once_per_start(caplog: pytest.LogCaptureFixtu
     assert len([r for r in caplog.records if "intervening" in r.getMessage()]) == 1
 
 
+def test_an_absurd_commanded_speed_is_logged_in_a_short_line(caplog: pytest.LogCaptureFixture) -> None:
+    """1e300 m/s from a client (clamped before the wire) once wrote a 509-character line."""
+    c = controller()
+    caplog.set_level("WARNING", logger="safety.controller")
+    c.on_scan(ust10lx_scan(wall_ahead(1.0)), now_ns=0)
+    c.limit(drive(1e300), "nav", 0.0, now_ns=0)
+    (line,) = [r.getMessage() for r in caplog.records if "intervening" in r.getMessage()]
+    assert "commanded 1e+300 m/s" in line and len(line) < 200
+
+
 def test_laser_transform_forms_agree_and_upside_down_lidar_mirrors() -> None:
     yaw = 0.3
     m = np.eye(4)

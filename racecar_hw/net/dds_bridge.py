@@ -42,10 +42,11 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import dds_graph, rmw
 from racecar_hw.net.bridge import Bridge
-from racecar_hw.net.dds_config import DdsParams, cyclone_xml
+from racecar_hw.net.dds_config import MAX_PARTICIPANT_INDEX, DdsParams, cyclone_xml, participant_ports
 from racecar_hw.net.dds_inbound import DdsReceiver
 from racecar_hw.net.dds_types import TypeFactory, raw_sample, ros2_factory
 from racecar_hw.net.inbox import Inbox
+from racecar_hw.net.ports import port_taken
 from racecar_hw.net.topics import Direction, Qos, Reliability, Topic
 from racecar_hw.rosmsg.typestore import ros2_types
 from racecar_hw.runtime.refusals import Refusals
@@ -174,6 +175,13 @@ class DdsBridge(Bridge):
             self._domain = Domain(self.domain_id, cyclone_xml(p))
             self.participant = DomainParticipant(self.domain_id)
         except DDSException as err:
+            taken = sum(port_taken(p.interface, port, "udp") for port in participant_ports(self.domain_id))
+            if taken == MAX_PARTICIPANT_INDEX + 1:
+                raise ConfigError("dds.domain_id", f"no free DDS participant index in domain "
+                                  f"{self.domain_id}: every discovery port of indices 0-"
+                                  f"{MAX_PARTICIPANT_INDEX} on {p.interface} is held (that many DDS "
+                                  "participants, ROS 2 processes among them, run on this computer); "
+                                  "stop some, or use another ROS_DOMAIN_ID") from None
             raise ConfigError("dds.interface", f"Cyclone DDS could not start on {p.interface!r} "
                                                f"(domain {self.domain_id}): {err}") from None
         self._open = True

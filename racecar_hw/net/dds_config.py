@@ -40,8 +40,14 @@ LOOPBACK = "127.0.0.1"
 #: How often the participant announces itself to its unicast peers (Cyclone's default is 30 s). A
 #: ROS 2 node with default discovery announces itself by multicast, which does not reach a
 #: participant on loopback, so it finds the car only when the car's announcement reaches it: every
-#: second, to about 33 ports of 127.0.0.1, a few hundred bytes each.
+#: second, to the discovery port of every participant index up to MAX_PARTICIPANT_INDEX on each peer
+#: (121 ports of 127.0.0.1), a few hundred bytes each.
 SPDP_INTERVAL = "1s"
+#: The highest participant index the daemon takes for itself and announces itself to: Fast DDS's own
+#: limit (120; ports 7410 + 250 domain + 10 + 2 index stay below 65536 for every domain id). At 32,
+#: Cyclone's default, the 33rd ROS 2 process on the computer (the ros2 daemon and every CLI call
+#: count) never found the car, and with 32 ports of the range held the daemon could not start.
+MAX_PARTICIPANT_INDEX = 120
 
 
 @dataclass
@@ -158,12 +164,19 @@ def cyclone_xml(params: DdsParams) -> str:
         '<CycloneDDS xmlns="https://cdds.io/config"><Domain Id="any">'
         f"<General><Interfaces>{interface}</Interfaces><AllowMulticast>{multicast}</AllowMulticast>"
         "</General>"
-        f"<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32"
-        f"</MaxAutoParticipantIndex><Peers>{peers}</Peers>"
+        f"<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>"
+        f"{MAX_PARTICIPANT_INDEX}</MaxAutoParticipantIndex><Peers>{peers}</Peers>"
         f"<SPDPInterval>{SPDP_INTERVAL}</SPDPInterval></Discovery>"
         f"<Compatibility><IgnoreTypeInformation>{FAST_DDS_VENDOR}</IgnoreTypeInformation>"
         "</Compatibility>"
         "</Domain></CycloneDDS>")
+
+
+def participant_ports(domain_id: int) -> list[int]:
+    """The unicast discovery ports of participant indices 0..MAX_PARTICIPANT_INDEX in the domain
+    (RTPS's default port mapping: 7400 + 250 domain + 10 + 2 index)."""
+    base = 7400 + 250 * domain_id + 10
+    return [base + 2 * index for index in range(MAX_PARTICIPANT_INDEX + 1)]
 
 
 def cyclone_available() -> bool:
