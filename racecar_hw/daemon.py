@@ -296,36 +296,38 @@ class Daemon:
         # still finds none be a counted line, not a traceback a second (see docs/live-view.md, "Connections")
         stack.callback(raise_open_file_limit().restore)
         stack.callback(quiet_accept_errors(loop, self.refusals))
-        try:
+        coros: list[Coroutine[Any, Any, Any]] = []
+        try:  # whatever fails before the components run closes what was opened (a bag that cannot be
+            # created once left Zenoh's threads running, and the process hung)
             await self.net.open(loop, stack)
+            if self.config.static_transforms:
+                self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
+            if self.recorder is not None:
+                self.recorder.start()
+                stack.push_async_callback(quietly, loop.run_in_executor, None, self.recorder.stop)
+            for part in (self.scan_summary, self.setpoint):
+                if part is not None:
+                    part.start()
+                    stack.callback(part.close)
+            self.started_live = await self.net.start_live(self.control, stack)
+            for what, url in self.started_live.items():  # where to look, also when the log is quiet
+                log.info("%s on %s", {"foxglove": "live view (Foxglove)", "web": "status page"}[what], url)
+            if self.status is not None:
+                self.status.source = self.snapshot
+                self.status.start()
+                stack.push_async_callback(quietly, self.status.stop)
+            parts = (self.vesc, self.lidar, self.setpoint, self.figure8, self.follower, self.gamepad,
+                     self.keyboard, self.mavlink)
+            coros = [self.control.run(), self.safety.run(), *([self._watch_links()] if self.links else []),
+                     *(part.run() for part in parts if part is not None), *self._extra]
+            self._extra = []
+            self._tasks = [asyncio.create_task(c) for c in coros]
         except BaseException:
-            for coro in self._extra:  # never started: no "coroutine was never awaited"
+            for coro in [*self._extra, *(coros if not self._tasks else ())]:  # never started: not awaited
                 coro.close()
             self._extra = []
             await stack.aclose()
             raise
-        if self.config.static_transforms:
-            self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
-        if self.recorder is not None:
-            self.recorder.start()
-            stack.push_async_callback(quietly, loop.run_in_executor, None, self.recorder.stop)
-        for part in (self.scan_summary, self.setpoint):
-            if part is not None:
-                part.start()
-                stack.callback(part.close)
-        self.started_live = await self.net.start_live(self.control, stack)
-        for what, url in self.started_live.items():  # where to look, also when the log is quiet
-            log.info("%s on %s", {"foxglove": "live view (Foxglove)", "web": "status page"}[what], url)
-        if self.status is not None:
-            self.status.source = self.snapshot
-            self.status.start()
-            stack.push_async_callback(quietly, self.status.stop)
-        coros = [self.control.run(), self.safety.run(), *([self._watch_links()] if self.links else []),
-                 *(part.run() for part in (self.vesc, self.lidar, self.setpoint, self.figure8, self.follower,
-                                           self.gamepad, self.keyboard, self.mavlink) if part is not None),
-                 *self._extra]
-        self._extra = []
-        self._tasks = [asyncio.create_task(c) for c in coros]
         stack.push_async_callback(self._stop_tasks)  # and brake
         # Everything built so far (type stores, drivers, maps) lives until exit: keep it out of the
         # cyclic garbage collector, whose full passes over it would stall the control path.

@@ -313,3 +313,28 @@ def test_follow_arm_with_the_vesc_connected_exits_0(fakes, tmp_path):
                            "--config", str(cfg)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert any(isinstance(c.packet, SetRpm) and c.packet.erpm > 0 for c in vesc.commands)
+
+
+@pytest.mark.parametrize("where", ["exists", "file"])
+def test_a_bag_that_cannot_be_created_ends_run_in_one_line_with_zenoh_closed(tmp_path, where):
+    """A recorder that cannot open its bag (a fixed recorder.name after a restart, a file where the
+    folder should be) refuses in one line, and the process ends: the Zenoh session opened before
+    it was left open, and its threads kept the process alive through SIGTERM and SIGINT."""
+    from zenoh_util import endpoint, free_port
+
+    bags = tmp_path / "bags"
+    if where == "exists":
+        (bags / "drive").mkdir(parents=True)
+    else:
+        bags.write_text("not a folder")
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(yaml.safe_dump({
+        **_no_network(tmp_path), "vesc": {"port": str(tmp_path / "nope")},
+        "zenoh": {"enabled": True, "listen": [endpoint(free_port())]},
+        "recorder": {"enabled": True, "path": str(bags), "name": "drive"}}))
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+    why = "it exists already, not overwriting" if where == "exists" else "cannot create the bag folder"
+    assert proc.stderr.startswith("racecar-hw run: ") and why in proc.stderr, proc.stderr

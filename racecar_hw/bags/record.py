@@ -452,7 +452,11 @@ class Recorder:
         if self.running:
             return
         out = Path(self.params.path).expanduser()
-        out.mkdir(parents=True, exist_ok=True)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:  # no permission, a read-only file system, a file in the way
+            raise BagError(f"cannot create the bag folder {out} (recorder.path): "
+                           f"{err.strerror or err}") from None
         self._base = self.params.name or time.strftime("racecar_%Y%m%d-%H%M%S")
         self._dir = out
         now = wall_ns()
