@@ -195,6 +195,22 @@ def test_a_device_that_takes_no_data_fails_the_link_at_a_bounded_backlog(tmp_pat
     asyncio.run(scenario())
 
 
+def test_a_serial_port_in_use_is_refused_not_shared(tmp_path):
+    """Two daemons on one VESC once both opened its port and fought over it (each losing the link
+    two dozen times in seconds); the second is now refused, saying why, and gets it once free."""
+    async def scenario() -> None:
+        port, first = await _open_pty_link(tmp_path)
+        second = SerialLink(port.path)
+        with pytest.raises(DeviceIOError, match="is in use by another program"):
+            await second.open()
+        first.close()
+        await second.open()
+        second.close()
+        port.close()
+
+    asyncio.run(scenario())
+
+
 def test_read_within_times_out_and_returns_bytes(tmp_path):
     async def scenario() -> None:
         port, link = await _open_pty_link(tmp_path)

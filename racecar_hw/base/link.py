@@ -212,12 +212,15 @@ class SerialLink(_ReceivingLink):
 
     async def open(self) -> None:
         self._reset()
-        try:
+        try:  # exclusive: a second program (a second racecar-hw) must not share the port
             port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0,
-                                         exclusive=None)
+                                         exclusive=True)
         except (FileNotFoundError, serial.SerialException, OSError, ValueError) as err:
             if _is_missing(err):
                 raise DeviceNotFound(f"no serial device at {self.url}") from err
+            if "exclusively lock" in str(err):
+                raise DeviceIOError(f"{self.url} is in use by another program (a second racecar-hw? "
+                                    "see lsof or fuser)") from err
             raise DeviceIOError(f"cannot open {self.url}: {err}") from err
         self._port = port
         try:
