@@ -43,6 +43,26 @@ def test_a_worker_that_died_leaves_the_plot_to_this_process(tmp_path: Path) -> N
     assert (tmp_path / "there.png").read_bytes() == (tmp_path / "here.png").read_bytes()
 
 
+def test_a_stopped_worker_is_given_up_after_its_timeout_and_the_plot_drawn_here(tmp_path: Path,
+                                                                                monkeypatch) -> None:
+    """A child that is stopped (SIGSTOP) or stuck once held the run's end, Ctrl-C and all, for
+    good: after RESULT_TIMEOUT_S it is killed and the figure drawn in this process."""
+    import signal
+
+    from racecar_hw.sim import plot_worker
+
+    monkeypatch.setattr(plot_worker, "RESULT_TIMEOUT_S", 1.0)
+    args, kwargs = _figure_args()
+    plot_run(tmp_path / "here.png", *args, **kwargs)
+    with PlotWorker.start() as worker:
+        process = worker._process
+        assert process is not None
+        process.send_signal(signal.SIGSTOP)
+        worker.submit(tmp_path / "there.png", *args, **kwargs).wait()
+        assert process.poll() is not None  # killed, not left stopped
+    assert (tmp_path / "there.png").read_bytes() == (tmp_path / "here.png").read_bytes()
+
+
 def test_a_figure_the_child_cannot_draw_is_drawn_here_and_raises_as_before(tmp_path: Path) -> None:
     args, kwargs = _figure_args()
     kwargs["switches"] = [[0.0]]  # a switch without its source: plot_run raises

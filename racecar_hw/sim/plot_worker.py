@@ -9,8 +9,9 @@ and writes the trajectory CSV while the child draws; :meth:`PendingPlot.wait` re
 is written. The picture is the one :func:`~racecar_hw.sim.plot.plot_run` draws in-process, byte
 for byte: same function, same arguments.
 
-Failure is never worse than no worker: a child that did not start, died, or raised is reported
-in the log and the figure is drawn in this process instead (where a genuine plotting error then
+Failure is never worse than no worker: a child that did not start, died, raised, or took or gave
+nothing for :data:`RESULT_TIMEOUT_S` (stopped, stuck) is reported in the log (and killed) and the
+figure is drawn in this process instead (where a genuine plotting error then
 raises as it always did).
 
 Interruption: the child runs in a session of its own, so a Ctrl-C at the terminal reaches only
@@ -25,8 +26,10 @@ from __future__ import annotations
 import logging
 import os
 import pickle
+import select
 import subprocess
 import sys
+import time
 import traceback
 from pathlib import Path
 from typing import IO, Any
@@ -35,6 +38,10 @@ log = logging.getLogger(__name__)
 
 #: How long (s) :meth:`PlotWorker.close` waits for the child to end before killing it.
 CLOSE_TIMEOUT_S = 5.0
+#: How long (s) the run waits for the child's answer (it draws in well under a second; a child
+#: stopped or stuck once held the command, Ctrl-C and all, for good): then it is killed and the
+#: figure drawn in this process.
+RESULT_TIMEOUT_S = 30.0
 
 
 class PendingPlot:
@@ -87,9 +94,10 @@ class PlotWorker:
             return PendingPlot(None, call_args, kwargs)
         try:
             assert process.stdin is not None
-            pickle.dump((call_args, kwargs), process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            data = pickle.dumps((call_args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
+            _write_all(process.stdin.fileno(), data, RESULT_TIMEOUT_S)  # more than a pipe holds
             process.stdin.close()
-        except (OSError, pickle.PicklingError, TypeError, AttributeError) as err:
+        except (OSError, pickle.PicklingError, TypeError, AttributeError, TimeoutError) as err:
             log.info("plot worker: the figure could not be handed over (%s); drawn here", err)
             _end(process)
             return PendingPlot(None, call_args, kwargs)
@@ -103,9 +111,10 @@ class PlotWorker:
             return None
         try:
             assert process.stdout is not None
-            status, value = pickle.load(process.stdout)
-        except (OSError, EOFError, pickle.UnpicklingError, ValueError) as err:
-            log.info("plot worker: no answer (%s); the plot is drawn in this process", err)
+            status, value = pickle.loads(_read_to_end(process.stdout.fileno(), RESULT_TIMEOUT_S))
+        except (OSError, EOFError, pickle.UnpicklingError, ValueError, TimeoutError) as err:
+            log.info("plot worker: no answer (%s); the plot is drawn in this process",
+                     err or type(err).__name__)
             return None
         finally:
             _end(process)
@@ -125,6 +134,40 @@ class PlotWorker:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _write_all(fd: int, data: bytes, timeout_s: float) -> None:
+    """Write ``data`` to the child's ``fd``; TimeoutError if it takes none for ``timeout_s``."""
+    os.set_blocking(fd, False)
+    deadline = time.monotonic() + timeout_s
+    view = memoryview(data)
+    while view:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError(f"the child took {len(data) - len(view)} of {len(data)} bytes in "
+                               f"{timeout_s:.0f} s")
+        _, writable, _ = select.select([], [fd], [], left)
+        if writable:
+            try:
+                view = view[os.write(fd, view):]
+            except BlockingIOError:
+                pass
+
+
+def _read_to_end(fd: int, timeout_s: float) -> bytes:
+    """Everything the child writes to ``fd`` until it closes it; TimeoutError after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    chunks = []
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError(f"none in {timeout_s:.0f} s")
+        readable, _, _ = select.select([fd], [], [], left)
+        if readable:
+            data = os.read(fd, 1 << 16)
+            if not data:
+                return b"".join(chunks)
+            chunks.append(data)
 
 
 def _end(process: subprocess.Popen[bytes]) -> None:
