@@ -80,3 +80,22 @@ def test_a_flow_style_block_is_refused_and_the_file_left_as_it_was(tmp_path):
         write(path, MEASURED)
     assert path.read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["car.yaml"]
+
+
+def test_a_symlinked_config_is_written_through_the_link_keeping_mode_and_owner(tmp_path):
+    """The service's config is often a symlink, readable by the service's group: calibrating once
+    replaced the link with a file of its own and left it 0644 (or 0600 under umask 077)."""
+    import os
+
+    real = _car(tmp_path)
+    os.chmod(real, 0o640)
+    link = tmp_path / "link.yaml"
+    link.symlink_to(real)
+    old_umask = os.umask(0o077)
+    try:
+        write(link, MEASURED)
+    finally:
+        os.umask(old_umask)
+    assert link.is_symlink() and load_config(real).vesc.steering_angle_to_servo_gain == 1.3349
+    assert (real.stat().st_mode & 0o777) == 0o640
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["car.yaml", "link.yaml"]

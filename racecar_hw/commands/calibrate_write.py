@@ -53,13 +53,33 @@ def write(path: Path, measured: dict[str, float | None]) -> dict[str, float | No
         raise ConfigError("--write", f"{path}: the edit would change invert_servo; "
                                      "nothing written: put the snippet above in by hand")
     _check(path, vesc, measured)
-    tmp = path.with_name(f".{path.name}.calibrate")
-    tmp.write_text(after)
-    os.replace(tmp, path)
+    _replace(path, after)
     diff = difflib.unified_diff(before.splitlines(keepends=True), after.splitlines(keepends=True),
                                 str(path), str(path))
     print(f"\nwritten to {path}:\n" + "".join(diff), end="")
     return values
+
+
+def _replace(path: Path, text: str) -> None:
+    """Replace the file ``path`` names (through a symlink: the file it points at) with ``text`` at
+    once, keeping its mode and, where allowed, its owner: a config the service's user can read
+    stays readable (a plain rewrite under a tight umask made it 0600 root's, and replaced a
+    symlink with a copy)."""
+    real = path.resolve()
+    tmp = real.with_name(f".{real.name}.calibrate")
+    st = os.stat(real)
+    try:
+        with open(tmp, "w", encoding="utf-8") as out:
+            out.write(text)
+            out.flush()
+            os.fsync(out.fileno())
+        os.chmod(tmp, st.st_mode & 0o7777)
+        with contextlib.suppress(PermissionError):
+            os.chown(tmp, st.st_uid, st.st_gid)
+        os.replace(tmp, real)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
 
 
 def edited(text: str, values: dict[str, float | None]) -> str:
