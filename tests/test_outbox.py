@@ -238,3 +238,27 @@ def test_a_sleeping_thread_wakes_at_once_for_an_urgent_job_and_ends_at_stop() ->
         outbox.stop(DEADLINE_S)
     assert not thread.is_alive()
     assert done == ["urgent"]
+
+
+def test_stop_waits_for_a_slow_thread_while_it_makes_progress_and_not_for_a_stuck_one() -> None:
+    """A recorder's stop: however slow the disk, every queued job runs while jobs get done; a job
+    that never ends (a stuck disk) is left behind after ``stall_s`` without one, and stop says so
+    (it once waited for ever, Ctrl-C and the service manager's stop with it)."""
+    ran: list[int] = []
+    slow = Outbox("slow", size=100)
+    slow.start()
+    for k in range(8):
+        slow.put(lambda k=k: (threading.Event().wait(0.1), ran.append(k)))
+    assert slow.stop(timeout_s=None, stall_s=5.0) is True
+    assert ran == list(range(8))  # 0.8 s of jobs, none stalled 5 s: all ran
+
+    unstuck = threading.Event()
+    stuck = Outbox("stuck", size=100)
+    stuck.start()
+    stuck.put(unstuck.wait)
+    stuck.put(lambda: ran.append(99))
+    try:
+        assert stuck.stop(timeout_s=None, stall_s=0.5) is False  # left behind, with a warning
+        assert 99 not in ran
+    finally:
+        unstuck.set()

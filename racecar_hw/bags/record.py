@@ -89,6 +89,10 @@ LZ4_REFUSAL = (
 #: Niceness the writer thread gives itself (Linux: per thread): disk work yields the CPU to the
 #: control path whenever both want it. Lowering one's own priority needs no privilege.
 WRITER_NICE = 10
+#: At stop, the writer is waited for as long as it writes; after this long (s) without a message
+#: written (a stuck disk), it is left behind and the bag incomplete (recoverable): a slow disk once
+#: held the shutdown, and the car's service, for as long as it stayed slow.
+WRITER_STALL_S = 15.0
 
 
 @dataclass
@@ -487,7 +491,11 @@ class Recorder:
             self._sub.close()
             self._sub = None
         if self.running:
-            self._outbox.stop(timeout_s=None)  # every recorded message reaches the file
+            # every recorded message reaches the file, however slow the disk, while it takes any
+            if not self._outbox.stop(timeout_s=None, stall_s=WRITER_STALL_S):
+                log.error("the bag writer wrote nothing for %.0f s (a stuck disk?): %s is left "
+                          "incomplete; racecar-hw bag recover reads it", WRITER_STALL_S,
+                          self._file.path if self._file is not None else self._dir)
             stats = self.stats
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))

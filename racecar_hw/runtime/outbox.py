@@ -166,20 +166,34 @@ class Outbox:
             self._thread = None
             raise failure[0]
 
-    def stop(self, timeout_s: float | None = 2.0) -> None:
-        """Run what is queued (then ``on_stop``), and stop the thread; safe to call twice.
+    def stop(self, timeout_s: float | None = 2.0, *, stall_s: float | None = None) -> bool:
+        """Run what is queued (then ``on_stop``), and stop the thread; safe to call twice. Whether
+        the thread ended (True also when it was not running).
 
-        ``timeout_s``: how long to wait for that (None: as long as it takes); a thread still busy
-        then is left behind, with a warning.
+        ``timeout_s``: how long to wait for that (None: as long as it takes); ``stall_s``: with no
+        ``timeout_s``, how long to wait without a job done (None: no limit; a disk that writes
+        slowly is waited for, one that takes nothing is not). A thread still busy then is left
+        behind (a daemon thread: it does not hold the process), with a warning.
         """
         thread, self._thread = self._thread, None
         if thread is None:
-            return
+            return True
         self._stopping = True
         self._wake.set()
-        thread.join(timeout_s)
+        if timeout_s is not None or stall_s is None:
+            thread.join(timeout_s)
+        else:
+            done, since = self.done + self.failed, time.monotonic()
+            while thread.is_alive() and time.monotonic() - since < stall_s:
+                thread.join(min(1.0, stall_s))
+                if self.done + self.failed != done:
+                    done, since = self.done + self.failed, time.monotonic()
         if thread.is_alive():
-            log.warning("%s: thread still busy after %.1f s; left behind", self.name, timeout_s)
+            log.warning("%s: thread still busy after %.1f s%s; left behind", self.name,
+                        timeout_s if timeout_s is not None else stall_s,
+                        "" if timeout_s is not None else " without a job done")
+            return False
+        return True
 
     def put(self, fn: Callable[..., None], *args: Any, urgent: bool = False) -> None:
         """Queue ``fn(*args)`` for the thread; when full, a job is dropped (see ``drop``).
