@@ -90,6 +90,10 @@ class StopSignals:
         if self.noted is not None:
             raise KeyboardInterrupt
 
+    def note(self, signum: int, frame: FrameType | None) -> None:
+        """The noting handler itself (a signal handler's signature)."""
+        self._handle(signum, frame)
+
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.noted is None:
             self.noted = signum

@@ -44,10 +44,22 @@ def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int],
         loop.call_soon(callback, noted.noted)
 
     def remove() -> None:
-        for sig in STOP_SIGNALS:
-            loop.remove_signal_handler(sig)
-        if noted is not None:
+        if noted is None:
+            for sig in STOP_SIGNALS:
+                loop.remove_signal_handler(sig)
+            return
+        # asyncio puts Python's default back as it removes its SIGINT handler, looking it up as
+        # signal.default_int_handler: a Ctrl-C before handle_again() raised KeyboardInterrupt (exit
+        # 130 after a finished run). Meanwhile that name is the noting handler. (Masking the
+        # signal in this thread would not do: another thread takes it, and the handler runs here.)
+        default = signal.default_int_handler
+        signal.default_int_handler = noted.note  # type: ignore[assignment]
+        try:
+            for sig in STOP_SIGNALS:
+                loop.remove_signal_handler(sig)
             noted.handle_again()  # not Python's defaults, which asyncio leaves behind
+        finally:
+            signal.default_int_handler = default  # type: ignore[assignment]
 
     return remove
 
