@@ -560,3 +560,24 @@ def test_metadata_is_what_rosbag2_humble_reads(tmp_path: Path, fmt: str) -> None
         scanned = scan_mcap((bag / info["relative_file_paths"][0]).read_bytes())
         channels = {topic: cid for cid, (_sid, topic, _enc) in scanned.channels.items()}
         _humble_qos(scanned.qos[channels["/scan"]])
+
+
+def test_a_write_failure_mid_run_is_said_at_the_end_not_as_a_writer_behind(tmp_path):
+    """The file-size limit (as a full disk) stops recording: the log says so when it happens and
+    again as the run ends, with the counts; it once repeated "bag writer is behind" every second
+    and ended silently, the bag listed as if complete."""
+    import re
+    import resource
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))  # Python ignores SIGXFSZ
+
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--scenario", "wall", "--speed",
+                           "max", "--duration", "4", "--no-status", "--out", str(tmp_path / "out"),
+                           "--record", str(tmp_path / "bags")],
+                          capture_output=True, text=True, preexec_fn=limit, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "bag writing failed, recording stops" in proc.stderr and "File too large" in proc.stderr
+    assert re.search(r"recording stopped early \(OSError: .*File too large\): \d+ messages written, "
+                     r"\d+ dropped", proc.stderr), proc.stderr[-3000:]
+    assert "bag writer is behind" not in proc.stderr

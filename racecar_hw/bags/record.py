@@ -499,6 +499,10 @@ class Recorder:
             stats = self.stats
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
+        if self._error is not None:  # said when it happened; said again where a run ends
+            log.error("recording stopped early (%s): %d messages written, %d dropped; racecar-hw "
+                      "bag recover reads what is on disk", self._error, self.stats.written,
+                      self.stats.dropped)
         return self.stats
 
     def __enter__(self) -> Recorder:
@@ -612,7 +616,7 @@ class Recorder:
             self._file.flush()
             self._flushed = self._written
         dropped = self._all_dropped
-        if dropped > self._dropped_logged:
+        if dropped > self._dropped_logged and self._error is None:
             log.warning("bag writer is behind: dropped %d messages so far (queue_size %d)",
                         dropped, self.params.queue_size)
             self._dropped_logged = dropped
