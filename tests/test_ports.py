@@ -108,21 +108,22 @@ def test_run_refuses_a_taken_port_in_one_line_naming_the_key(tmp_path):
                 "gamepad": {"enabled": False}, "zenoh": {"enabled": False},
                 "foxglove": {"port": held, "enabled": key == "foxglove"},
                 "web": {"port": held, "enabled": key == "web"}}))
-            proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
-                                  capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 1, proc.stderr
-        assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
-        assert proc.stderr.startswith(f"racecar-hw run: {key}.port: 127.0.0.1:{held} is already in use"), \
-            proc.stderr
+            stderr = _one_line_refusal(cfg)
+        assert stderr.startswith(f"racecar-hw run: {key}.port: 127.0.0.1:{held} is already in use"), stderr
     with held_udp_port() as held:
         cfg = tmp_path / "mavlink.yaml"
         cfg.write_text(yaml.safe_dump({
             "vesc": {"port": str(tmp_path / "no-vesc")}, "lidar": {"enabled": False},
             "gamepad": {"enabled": False}, "zenoh": {"enabled": False}, "web": {"enabled": False},
             "foxglove": {"enabled": False}, "mavlink": {"enabled": True, "bind_port": held}}))
-        proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
-                              capture_output=True, text=True, timeout=120)
+        stderr = _one_line_refusal(cfg)
+    assert stderr.startswith(f"racecar-hw run: mavlink.bind_port: 127.0.0.1:{held} is already in use"), stderr
+
+
+def _one_line_refusal(cfg) -> str:
+    """``racecar-hw run --config cfg``'s standard error, once it exited 1 in one line, no traceback."""
+    proc = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
+                          capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1, proc.stderr
-    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
-    assert proc.stderr.startswith(f"racecar-hw run: mavlink.bind_port: 127.0.0.1:{held} is already in use"), \
-        proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+    return proc.stderr

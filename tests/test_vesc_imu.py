@@ -100,16 +100,24 @@ def test_odometry_takes_a_gyro_yaw_rate_in_place_of_the_steering_model():
     assert odo.yaw_rate == 0.3 and odo.pose.yaw == pytest.approx(0.15)  # midpoint: (0 + 0.3) / 2
 
 
-@pytest.mark.parametrize("firmware", [(6, 2), (6, 5)])
-def test_the_driver_polls_the_fake_imu_and_publishes_it(tmp_path, device_thread, firmware):
+def _standing_fake(device_thread, tmp_path, gyro_bias_dps: float, **kw) -> tuple:
+    """A fake VESC standing still whose gyro reads ``gyro_bias_dps`` and nothing else, a bus, and
+    the list of what the driver publishes on /imu."""
     from test_vesc_driver import start_fake
 
-    fake = start_fake(device_thread, tmp_path / "vesc", firmware=firmware)
+    fake = start_fake(device_thread, tmp_path / "vesc", **kw)
     fake.imu.motion = lambda: PlanarMotion(0.0, 0.0, 0.0, 0.0)
-    fake.imu.errors = ImuErrors(gyro_bias_dps=2.0, gyro_noise_dps=0.0, accel_noise_g=0.0, vibration_g=0.0)
+    fake.imu.errors = ImuErrors(gyro_bias_dps=gyro_bias_dps, gyro_noise_dps=0.0, accel_noise_g=0.0,
+                                vibration_g=0.0)
     bus = Bus()
-    seen = []
+    seen: list = []
     bus.subscribe(TOPIC_IMU, seen.append)
+    return fake, bus, seen
+
+
+@pytest.mark.parametrize("firmware", [(6, 2), (6, 5)])
+def test_the_driver_polls_the_fake_imu_and_publishes_it(tmp_path, device_thread, firmware):
+    fake, bus, seen = _standing_fake(device_thread, tmp_path, 2.0, firmware=firmware)
 
     async def scenario() -> None:
         params = VescParams(port=fake.path, odometry_yaw_rate="imu", imu_bias_time_s=0.3)
@@ -128,14 +136,7 @@ def test_imu_replies_beyond_the_sensors_full_scale_are_dropped_and_spare_the_gyr
         tmp_path, device_thread):
     """A gyro reading past +-2000 deg/s (finite, so not refused by the codec) is never published
     and never reaches the gyro bias or the odometry; plausible replies after it are."""
-    from test_vesc_driver import start_fake
-
-    fake = start_fake(device_thread, tmp_path / "vesc")
-    fake.imu.motion = lambda: PlanarMotion(0.0, 0.0, 0.0, 0.0)
-    fake.imu.errors = ImuErrors(gyro_bias_dps=5.0e6, gyro_noise_dps=0.0, accel_noise_g=0.0, vibration_g=0.0)
-    bus = Bus()
-    seen = []
-    bus.subscribe(TOPIC_IMU, seen.append)
+    fake, bus, seen = _standing_fake(device_thread, tmp_path, 5.0e6)
 
     async def scenario() -> None:
         params = VescParams(port=fake.path, odometry_yaw_rate="imu", imu_bias_time_s=0.3)
