@@ -450,9 +450,7 @@ class VescDriver(ReconnectingDevice):
             raise
         except DeviceError as err:  # a VESC that stopped answering: its queued commands are stale
             self._lost = err
-            discard = getattr(link, "discard_unsent", None)
-            if discard is not None:
-                discard()
+            link.discard_unsent()
             link.close()
         except Exception:
             log.exception("VESC poll loop failed; dropping the link to reconnect")

@@ -64,6 +64,10 @@ class Link(ABC):
     def close(self) -> None:
         """Close the link. Safe to call more than once."""
 
+    def discard_unsent(self) -> None:  # noqa: B027 - nothing to discard unless a link queues
+        """Drop what was written but not yet sent (before giving a device up); a link that queues
+        nothing of its own has nothing to drop."""
+
     @property
     @abstractmethod
     def is_open(self) -> bool:
