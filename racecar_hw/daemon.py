@@ -323,7 +323,7 @@ class Daemon:
             self._extra = []
             self._tasks = [asyncio.create_task(c) for c in coros]
         except BaseException:
-            for coro in [*self._extra, *(coros if not self._tasks else ())]:  # never started: not awaited
+            for coro in [*self._extra, *coros]:  # never started: no "coroutine was never awaited"
                 coro.close()
             self._extra = []
             await stack.aclose()
