@@ -202,10 +202,11 @@ def test_a_set_that_cannot_be_applied_is_reported_with_the_files_errors(tmp_path
 
 def _string_keys(*, topics: bool) -> list[str]:
     """Every config key (a list's first item for a list of sections) whose name ends so: ``topic``
-    (``lidar.topic``, ``safety.scan_topic``), or ``frame_id`` and ``port`` (a device path)."""
+    (``lidar.topic``, ``safety.scan_topic``), or ``frame_id``, ``port`` and ``device`` (a device path)
+    and ``host`` (an address to listen on)."""
     from racecar_hw.config import describe_config
 
-    ends = ("topic",) if topics else ("frame_id", "port")
+    ends = ("topic",) if topics else ("frame_id", "port", "device", "host")
     return [key.replace("[]", ".0") for key, default, _ in describe_config()
             if key.split(".")[-1].endswith(ends) and (isinstance(default, str) or default is None)
             and key != "follower.topic"]  # a topic in the bag; empty: the bag's only one
@@ -233,15 +234,18 @@ def test_every_topic_must_be_absolute(check_config, key, value):
 
 
 @pytest.mark.parametrize("key", _string_keys(topics=False))
-def test_every_frame_id_and_device_port_must_not_be_empty(check_config, key):
+def test_every_frame_id_device_and_host_must_not_be_empty(check_config, key):
     """``--set vesc.port=`` passed, and run then looked for a serial device at ''; an empty VESC
-    odometry, base or IMU frame passed while an empty static_transforms frame_id was refused."""
+    odometry, base or IMU frame passed while an empty static_transforms frame_id was refused; an
+    empty ``web.host`` or ``foxglove.host`` (which binds every interface) and an empty
+    ``gamepad.device`` (a substring of every pad's name) passed too."""
     proc = check_config(*_enabled(key), "--set", f"{key}=")
     assert proc.returncode == 1, (key, proc.stdout[-300:])
     line = proc.stderr.splitlines()[0]
     assert line.endswith(f"must not be empty (from --set {key}=)"), line
     assert {"vesc.port", "vesc.odom_frame_id", "vesc.base_frame_id", "vesc.imu_frame_id", "lidar.port",
-            "lidar.frame_id", "static_transforms.0.frame_id"} <= set(_string_keys(topics=False))
+            "lidar.frame_id", "static_transforms.0.frame_id", "web.host", "foxglove.host",
+            "gamepad.device"} <= set(_string_keys(topics=False))
 
 
 def test_a_set_numbers_the_mux_locks_and_inputs_as_check_config_lists_them(check_config):

@@ -30,7 +30,8 @@ class FoxgloveParams(GatedServerParams):
     """The Foxglove live-view server."""
 
     enabled: bool = param(True, "serve the live view to Foxglove and Lichtblick (WebSocket)")
-    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs token")
+    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs token",
+                      nonempty=True)
     port: int = param(8765, "TCP port (0: any free port, logged at start)", min=0, max=65535)
     token: str = param("", "required in the URL (ws://car:8765/?token=...) when host is not loopback; "
                            "optional on loopback")

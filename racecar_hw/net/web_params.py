@@ -19,7 +19,8 @@ class WebParams(GatedServerParams):
     """The status page with the e-stop."""
 
     enabled: bool = param(True, "serve the status page with the e-stop")
-    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs a token")
+    host: str = param("127.0.0.1", "address to listen on; anything but loopback needs a token",
+                      nonempty=True)
     port: int = param(8080, "TCP port (0: any free port, logged at start)", min=0, max=65535)
     token: str = param("", "the page's token (open http://car:8080/?token=...); empty on a "
                            "non-loopback host: one is generated and printed at start")

@@ -540,7 +540,7 @@ class GamepadParams:
 
     enabled: bool = param(False, "run the gamepad teleop")
     device: str = param("auto", "a path (/dev/input/by-id/..., /dev/input/eventN, or a FIFO), a "
-                                "substring of the device name, or auto (first known pad)")
+                                "substring of the device name, or auto (first known pad)", nonempty=True)
     profile: str = param("auto", "button/axis mapping; auto picks it from the USB id or name",
                          choices=("auto", *PROFILES))
     topic: str = param(TELEOP_TOPIC, "mux input for AckermannDriveStamped teleop commands", topic=True)
