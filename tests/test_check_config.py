@@ -187,6 +187,24 @@ def test_an_error_from_a_set_names_the_users_key_and_the_set(check_config, setti
     assert "car.yaml" not in line
 
 
+def test_a_foxglove_host_that_needs_a_token_is_blamed_on_where_the_host_was_set(tmp_path, check_config):
+    """The check named foxglove.token, which nobody had set, so the error was blamed on the line of the
+    file's ``foxglove:`` section instead of the ``--set foxglove.host=...`` that made it."""
+    proc = check_config("--set", "foxglove.enabled=true", "--set", "foxglove.host=0.0.0.0")
+    assert proc.returncode == 1 and proc.stdout == "" and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line.startswith("racecar-hw check-config: foxglove.host: '0.0.0.0' is not loopback: set "
+                           "foxglove.token"), line
+    assert line.endswith(" (from --set foxglove.host=0.0.0.0)") and "car.yaml" not in line, line
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("foxglove:\n  enabled: true\n  host: 0.0.0.0\n")  # line 3
+    line, = check_config(str(cfg)).stderr.splitlines()
+    assert line.startswith(f"racecar-hw check-config: {cfg}:3: foxglove.host: '0.0.0.0' is not loopback"), \
+        line
+    assert check_config("--set", "foxglove.enabled=true", "--set", "foxglove.host=0.0.0.0",
+                        "--set", "foxglove.token=secret").returncode == 0
+
+
 def test_a_set_that_cannot_be_applied_is_reported_with_the_files_errors(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gian: 4614\n")

@@ -68,9 +68,10 @@ class FoxgloveParams(GatedServerParams):
             origins.append(origin.strip().lower().rstrip("/"))
         self.allowed_origins = origins
         if self.enabled and not is_loopback(self.host) and not self.token:
-            raise ConfigError("foxglove.token", f"foxglove.host {self.host!r} is not loopback: set "
-                                                "foxglove.token (clients add ?token=... to the URL), or "
-                                                "keep host 127.0.0.1 and reach it over ssh -L")
+            # keyed on the host, the value that needs the token: check-config names where it was set
+            raise ConfigError("foxglove.host", f"{self.host!r} is not loopback: set foxglove.token "
+                                               "(clients add ?token=... to the URL), or keep host "
+                                               "127.0.0.1 and reach it over ssh -L")
 
 
 def _is_origin(text: str) -> bool:
