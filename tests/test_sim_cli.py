@@ -106,7 +106,7 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
     assert err == ("racecar-hw sim: scenario.drivers.0.input: 'nav_9' is not a mux input; inputs: "
                    "safety, teleop, nav_0, nav_1, nav_2, nav_3, foxglove, cmd_vel\n")
     assert main(["sim", "--no-status", "--out", str(tmp_path), "--follow", str(tmp_path / "nope")]) == 1
-    assert capsys.readouterr().err == f"racecar-hw sim: bag not found: {tmp_path / 'nope'}\n"
+    assert capsys.readouterr().err == f"racecar-hw sim: --follow: bag not found: {tmp_path / 'nope'}\n"
     rec = Recorder(Bus(), record_params(tmp_path, name="other"))
     rec.start()
     rec.bus.publish(NAV0, AckermannDriveStamped())
@@ -116,6 +116,34 @@ def test_a_bad_driver_input_or_a_missing_bag_is_one_line_before_anything_runs(tm
     err = capsys.readouterr().err
     assert err.startswith("racecar-hw sim: topic /cmd_vel is not in") and err.count("\n") == 1
     assert not list(tmp_path.glob("*.json"))
+
+
+@pytest.mark.parametrize("lockstep", [[], ["--speed", "max"]], ids=["real time", "lockstep"])
+def test_a_scenario_drivers_missing_bag_is_refused_with_the_outputs_naming_its_key(
+        tmp_path, capsys, monkeypatch, lockstep):
+    """A scenario file whose follow driver (or a car's) names a bag that is not there was refused
+    only once the run loaded its bags, with neither the key nor the car, after the plot's process
+    had started; now with the output checks, before any of it, naming the key and the path."""
+    from racecar_hw.sim import loopback, plot_worker
+
+    def started(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(loopback.Loopback, "__init__", started)
+    monkeypatch.setattr(plot_worker.PlotWorker, "start", started)
+    bag = tmp_path / "drives" / "lap.mcap"
+    one = tmp_path / "one.yaml"
+    one.write_text(f"map: room\nstart: [2.0, 5.0, 0.0]\ndrivers:\n  - {{type: follow, bag: {bag}}}\n")
+    assert main(["sim", "--no-status", "--scenario", str(one), "--out", str(tmp_path), *lockstep]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == f"racecar-hw sim: scenario.drivers.0.bag: bag not found: {bag}", err
+    two = tmp_path / "two.yaml"
+    two.write_text(f"map: corridor\ncars:\n  - {{name: a, start: [3.0, 0.0, 0.0]}}\n"
+                   f"  - {{name: b, drivers: [{{type: follow, bag: {bag}}}]}}\n")
+    assert main(["sim", "--scenario", str(two), "--out", str(tmp_path), *lockstep]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == f"racecar-hw sim: scenario.cars.1.drivers.0.bag: bag not found: {bag}", err
+    assert not list(tmp_path.glob("*.json")) and not list(tmp_path.glob("*.csv"))
 
 
 @pytest.mark.parametrize(("option", "words"), [

@@ -198,7 +198,8 @@ def test_a_scenario_refused_before_its_devices_start_leaves_the_running_episode_
     """What Episode.start would refuse before anything of the scenario starts is refused by reset
     before it ends the running episode: a bad ``config:`` key, a missing map, a bad firmware, a
     scenario with cars, a negative seed in a Scenario made in code, a start inside a wall, a driver
-    on no mux input."""
+    on no mux input, a follow driver's bag that is not there (which started and failed the new
+    episode after the running one had ended)."""
     track = load_scenario("track")
     bad = {
         "config": (load_scenario("track", ["config={safety: {nosuchkey: 1}}"]), "safety.nosuchkey"),
@@ -208,6 +209,8 @@ def test_a_scenario_refused_before_its_devices_start_leaves_the_running_episode_
         "seed": (dataclasses.replace(track, world=dataclasses.replace(track.world, seed=-5)), "negative"),
         "start": (load_scenario("track", ["start=[6.0, 5.75, 0.0]"]), "start_pose"),
         "driver": (load_scenario("track", ["drivers=[{input: nav_9}]"]), "nav_9"),
+        "bag": (load_scenario("track", [f"drivers=[{{type: follow, bag: {tmp_path / 'nope.mcap'}}}]"]),
+                r"scenario\.drivers\.0\.bag: bag not found: .*nope\.mcap"),
     }
     with RaceEnv() as env:
         env.reset(seed=1)

@@ -140,6 +140,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return 0
     require_extra("sim", "the simulator (its maps and plot)")
     scenario = build_scenario(args)
+    # a follow driver's bag, with the outputs: before anything starts (the plot's process, a daemon)
+    if args.follow and not Path(args.follow).exists():
+        raise ConfigError("--follow", f"bag not found: {args.follow}")
+    scenario.check_bags()
     args.overrides = offline_at_max_speed(args.speed, args.overrides, "racecar-hw sim")
     out = Path(args.out) if args.out else (Path(args.report).parent if args.report else Path("sim-out"))
     check_outputs(args, out, Path(args.report or out / f"{scenario.name or 'sim'}.json"))

@@ -42,8 +42,10 @@ class ScenarioDrivers:
         self._followed: dict[int, float] = {}  # follow drivers' fraction of their replay published
 
     def check(self) -> None:
-        """Refuse, before anything starts, a driver on an input the mux does not have (a one-line
-        error); follow drivers' bags are loaded next, by :meth:`load_bags`."""
+        """Refuse, before anything starts, a driver on an input the mux does not have or a follow
+        driver whose bag is not there (a one-line error); follow drivers' bags are loaded next, by
+        :meth:`load_bags`."""
+        self.scenario.check_bags()
         inputs = [inp.name for inp in self.config.mux.inputs]
         for i, spec in enumerate(self.scenario.drivers):
             if spec.input not in inputs:

@@ -167,8 +167,9 @@ class Loopback:
 
     def check(self) -> Config:
         """Refuse what :meth:`run` would refuse before its devices start, starting nothing: the
-        config (the scenario's merged in), the drivers' mux inputs, the firmware, the lidar's
-        mounting and the start pose on the map; returns the config. Bags are loaded by the run."""
+        config (the scenario's merged in), the drivers' mux inputs, that follow drivers' bags are
+        there, the firmware, the lidar's mounting and the start pose on the map; returns the config.
+        Bags are read by the run."""
         config = self._build_config()
         ScenarioDrivers(self.scenario, config, self.clock).check()
         self.rig.check(config)

@@ -287,6 +287,21 @@ class Scenario:
             raise ConfigError("map", f"no shipped map {self.map!r}; shipped maps: {', '.join(names)}")
         return shipped
 
+    def check_bags(self, key: str = "scenario") -> None:
+        """Refuse (a ConfigError naming the driver's ``bag`` key and the path) a ``follow`` driver,
+        the scenario's or a car's, whose bag is not there, starting nothing. A bag that is there is
+        read, and a damaged one refused, when the run loads it (still before its devices start)."""
+        groups = [(f"{key}.drivers", self.drivers)]
+        groups += [(f"{key}.cars.{k}.drivers", car.drivers) for k, car in enumerate(self.cars)]
+        for prefix, drivers in groups:
+            for i, spec in enumerate(drivers):
+                if spec.type != "follow":
+                    continue
+                if not spec.bag:
+                    raise ConfigError(f"{prefix}.{i}.bag", "a follow driver needs a bag")
+                if not Path(spec.bag).exists():
+                    raise ConfigError(f"{prefix}.{i}.bag", f"bag not found: {spec.bag}")
+
     def firmware_version(self) -> tuple[int, int]:
         """``firmware`` as (major, minor)."""
         major, sep, minor = self.firmware.partition(".")
