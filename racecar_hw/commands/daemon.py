@@ -111,6 +111,18 @@ def exit_if_undriven(command: str, daemon: Daemon) -> int:
     return 1
 
 
+def exit_if_recording_failed(command: str, daemon: Daemon) -> int:
+    """1, after one line on stderr, when the bag recorder stopped early on a write error (a full or
+    unwritable disk: the car drove on, the recording did not); else 0."""
+    stats = daemon.recorder.stats if daemon.recorder is not None else None
+    if stats is None or stats.error is None:
+        return 0
+    print(f"racecar-hw {command}: the recording failed: {stats.error} ({stats.written} messages "
+          f"written, {stats.dropped} dropped; racecar-hw bag recover reads what is on disk)",
+          file=sys.stderr)
+    return 1
+
+
 async def run_daemon(daemon: Daemon, stop: asyncio.Event | None = None, *,
                      noted: StopSignals | None = None) -> int:
     """Run ``daemon`` until SIGINT, SIGTERM (or one ``noted`` before the loop ran) or ``stop`` is set.

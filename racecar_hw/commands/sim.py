@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.commands.daemon import add_config_options
+from racecar_hw.commands.daemon import add_config_options, exit_if_recording_failed
 from racecar_hw.config import load_config
 from racecar_hw.net.zenoh_logins import install_for
 from racecar_hw.runtime.extras import require_extra
@@ -204,11 +204,14 @@ def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plott
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
     print(outputs(result.report, report))
+    code = 0
     failure = loopback.daemon.failure if loopback.daemon is not None else None
     if failure is not None:  # the report says so too (stop_reason)
         print(f"racecar-hw sim: stopped early: {failure[0]} failed: {failure[1]}", file=sys.stderr)
-        return 1
-    return 0
+        code = 1
+    if loopback.daemon is not None:  # the report says so too (recording_error)
+        code = exit_if_recording_failed("sim", loopback.daemon) or code
+    return code
 
 
 def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
@@ -238,7 +241,9 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
         print(f"{name + ':':11} plot {car['plot_png']}, trajectory {car['trajectory_csv']}")
         for bag in car.get("bags") or []:
             print(f"{'':11} bag {bag}")
-    return 0
+    failed = [exit_if_recording_failed(f"sim: car {name}", car.daemon)
+              for name, car in fleet.cars.items() if car.daemon is not None]
+    return 1 if any(failed) else 0
 
 
 def fleet_summary(report: dict[str, Any]) -> str:

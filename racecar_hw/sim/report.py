@@ -146,6 +146,9 @@ class RunReport:
             # the bags --record wrote (ROS 2: the bag directory)
             "bags": ([str(f) for f in daemon.recorder.stats.files] if daemon.recorder is not None
                      else []),
+            # why the recording stopped early (a write error: the disk full or unwritable); the
+            # command then exits 1
+            "recording_error": daemon.recorder.stats.error if daemon.recorder is not None else None,
             # where the live view and the status page listened during the run
             "live": dict(daemon.started_live),
             # lockstep (virtual time; speed: a multiple of real time, or "max") or real time
