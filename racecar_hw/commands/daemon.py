@@ -30,7 +30,8 @@ def add_config_options(parser: argparse.ArgumentParser, default: str = "the ship
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the daemon on the car's real devices",
                        description="Run the configured components on real devices until SIGINT or "
-                                   "SIGTERM; then brake, centre, flush the recorder and exit 0.")
+                                   "SIGTERM; then brake, centre, flush the recorder and exit 0 "
+                                   "(1 when a component failed or the recording did).")
     add_config_options(p)
     p.add_argument("--no-status", action="store_true", help="no live status panel")
     p.set_defaults(func=cmd_run)
@@ -93,6 +94,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         daemon.follower.load()  # a damaged bag is a one-line error before the car is touched
     with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
         code = asyncio.run(run_daemon(daemon, noted=stops))
+    code = exit_if_recording_failed("run", daemon) or code  # as sim: a recording asked for and lost
     if daemon.drives_itself():  # a bag or the figure-8 was to drive: say so when it never could
         code = code or exit_if_undriven("run", daemon)
     return code

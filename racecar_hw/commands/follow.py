@@ -9,7 +9,12 @@ import os
 from racecar_hw.bags.follow import BagFollower
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
-from racecar_hw.commands.daemon import add_config_options, exit_if_undriven, run_daemon
+from racecar_hw.commands.daemon import (
+    add_config_options,
+    exit_if_recording_failed,
+    exit_if_undriven,
+    run_daemon,
+)
 from racecar_hw.config import FollowerSection, load_config
 from racecar_hw.daemon import Daemon
 from racecar_hw.net.zenoh_logins import install_for
@@ -75,6 +80,7 @@ def cmd_follow(args: argparse.Namespace) -> int:
             code = asyncio.run(_follow(daemon, follower, stops))
     if daemon.arming.changes and not daemon.arming.armed:
         print(f"racecar-hw follow: stopped at {follower.published} commands: {daemon.arming.reason}")
+    code = exit_if_recording_failed("follow", daemon) or code
     return code or exit_if_undriven("follow", daemon)
 
 
