@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import signal
 import subprocess
@@ -88,7 +89,69 @@ def test_a_second_ctrl_c_still_writes_the_report_without_the_plot(tmp_path, monk
     assert report["interrupted"] is True and report["stop_reason"] == "SIGINT"
     assert read_csv(report["trajectory_csv"]) and report["plot_png"] is None
     assert not (tmp_path / "figure8.png").exists()
-    assert "plot:       none (a second Ctrl-C skipped it)" in out
+    assert "plot:       none (Ctrl-C skipped it)" in out
+
+
+def _plot_worker_of(pid: int) -> int | None:
+    """The pid of ``pid``'s plot worker (``python -m racecar_hw.sim.plot_worker``), if it has one."""
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except (OSError, ValueError):
+            continue
+        if int(stat.rpartition(")")[2].split()[1]) == pid and b"racecar_hw.sim.plot_worker" in cmdline:
+            return int(entry.name)
+    return None
+
+
+def _pipe_holds(path: str) -> int:
+    """The bytes waiting in the pipe at ``path`` (a /proc/PID/fd/N), without reading them."""
+    import array
+    import fcntl
+    import termios
+
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        count = array.array("i", [0])
+        fcntl.ioctl(fd, termios.FIONREAD, count)
+        return count[0]
+    finally:
+        os.close(fd)
+
+
+def test_ctrl_c_while_the_plot_worker_draws_skips_the_plot_and_keeps_the_results(tmp_path):
+    """The run is over and its figure handed to the plot worker, which is stuck (stopped here with
+    SIGSTOP, as a stuck or starved child would be): Ctrl-C was not acted upon for up to
+    RESULT_TIMEOUT_S (30 s), and then the plot was drawn anyway. Now it gives the plot up at once,
+    writes the report and the trajectory, says so in one line and exits 0, as a Ctrl-C that ends a
+    run does. (Nothing in the product is made slow for this: the child is frozen from outside.)"""
+    from conftest import wait_for
+
+    from racecar_hw.sim.plot_worker import RESULT_TIMEOUT_S
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "racecar_hw.cli", "sim", "--duration", "1", "--speed", "max",
+         "--no-status", "--out", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        wait_for(lambda: _plot_worker_of(proc.pid), timeout=60)  # started with the command
+        worker = _plot_worker_of(proc.pid)
+        assert worker is not None
+        os.kill(worker, signal.SIGSTOP)
+        # the run is over and the figure is being handed over: it fills the stopped child's stdin
+        wait_for(lambda: _pipe_holds(f"/proc/{worker}/fd/0") > 0, timeout=120)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=RESULT_TIMEOUT_S - 10)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    assert "racecar-hw sim: stopped while the plot was drawn: no plot (the report and the trajectory " \
+           "are written)" in err
+    report = json.loads((tmp_path / "figure8.json").read_text())
+    assert report["plot_png"] is None and read_csv(report["trajectory_csv"])
+    assert not (tmp_path / "figure8.png").exists()
+    assert "plot:       none (Ctrl-C skipped it)" in out
+    assert not Path(f"/proc/{worker}").exists()  # killed and reaped, not left stopped
 
 
 @pytest.mark.parametrize("value", ["-5", "0", "nan", "inf", "soon"])

@@ -260,7 +260,7 @@ def fleet_summary(report: dict[str, Any]) -> str:
 
 def outputs(report: dict[str, Any], report_path: Path) -> str:
     """Where each output of the run went: the report, the plot, the trajectory, any bag."""
-    plot = report["plot_png"] or "none (a second Ctrl-C skipped it)"
+    plot = report["plot_png"] or "none (Ctrl-C skipped it)"
     lines = [f"report:     {report_path}", f"plot:       {plot}",
              f"trajectory: {report['trajectory_csv']}"]
     lines += [f"bag:        {bag}" for bag in report.get("bags") or []]

@@ -235,7 +235,7 @@ class Loopback:
             if daemon.failure is not None:
                 self.request_stop(f"failure of {daemon.failure[0]}: {daemon.failure[1]}")
             await self._settle()
-            return RunReport(self).result()
+            return await RunReport(self).result()
         finally:
             await self.rig.aclose()
             self._tmp.cleanup()
@@ -256,6 +256,11 @@ class Loopback:
             self.stop_reason = reason
         if self._stop is not None:
             self._stop.set()
+
+    def next_stop(self) -> asyncio.Event:
+        """An event the next stop request sets: for what waits after the run ended (the plot)."""
+        self._stop = asyncio.Event()
+        return self._stop
 
     def hurry(self) -> None:
         """A second stop request: stop if not stopping yet, then write the report at once, without

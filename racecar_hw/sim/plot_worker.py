@@ -16,7 +16,10 @@ raises as it always did).
 
 Interruption: the child runs in a session of its own, so a Ctrl-C at the terminal reaches only
 the ``sim`` process, which handles it as before; the child ends when its standard input closes
-(:meth:`PlotWorker.close`, or the parent gone for any reason).
+(:meth:`PlotWorker.close`, or the parent gone for any reason). The run hands the figure over and
+waits for the answer in a thread (:meth:`PlotWorker.answer`), its event loop free to act on a
+Ctrl-C meanwhile: a stop request then gives the figure up (:meth:`PlotWorker.kill`) instead of
+waiting up to :data:`RESULT_TIMEOUT_S` for it.
 
 The pipe carries pickles between this process and the child it started, nothing else.
 """
@@ -71,6 +74,7 @@ class PlotWorker:
 
     def __init__(self, process: subprocess.Popen[bytes] | None) -> None:
         self._process = process
+        self._child = process  # for kill(), from another thread than the one waiting for it
 
     @classmethod
     def start(cls) -> PlotWorker:
@@ -122,6 +126,19 @@ class PlotWorker:
             log.info("plot worker: failed (%s); the plot is drawn in this process", value)
             return None
         return int(value[0]), int(value[1])
+
+    def answer(self, path: str | Path, *args: Any, **kwargs: Any) -> tuple[int, int] | None:
+        """:meth:`submit` and :meth:`result` in one, for a thread of its own: the PNG's size, or
+        None when the child could not draw it (or was killed): then nothing is drawn here."""
+        self.submit(path, *args, **kwargs)
+        return self.result()
+
+    def kill(self) -> None:
+        """Give the figure up (a stop request while it is drawn): the child is killed, so that
+        :meth:`answer` or :meth:`result`, waiting for it in another thread, returns None at once."""
+        child = self._child
+        if child is not None and child.poll() is None:
+            child.kill()
 
     def close(self) -> None:
         """End the child if it is still there (nothing submitted, or not waited for)."""

@@ -6,9 +6,12 @@ float is rounded to 4 decimals and a non-finite one is null. See docs/sim.md for
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import os
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -91,7 +94,7 @@ class RunReport:
     def __init__(self, loopback: Loopback) -> None:
         self.run = loopback
 
-    def result(self) -> SimResult:
+    async def result(self) -> SimResult:
         run = self.run
         assert run.world is not None and run.daemon is not None and run.vesc is not None
         world, daemon = run.world, run.daemon
@@ -165,16 +168,41 @@ class RunReport:
                 report["trajectory_csv"], result.trajectory_csv = str(csv_path), csv_path
                 return result
             # the plot is drawn by the run's plot worker (another process) while the CSV is written
-            plot = (run.plotter or PlotWorker(None)).submit(
-                png_path, run.map, world.trajectory, run.intervention_marks, world.collisions,
-                list(world.obstacles.values()), title=stem, series=run.control_samples,
-                switches=report["mux_switches"])
-            write_csv(csv_path, world.samples)
-            plot.wait()
-            report["trajectory_csv"] = str(csv_path)
-            report["plot_png"] = str(png_path)
-            result.trajectory_csv, result.plot_png = csv_path, png_path
+            drawn = await self._draw(
+                lambda: write_csv(csv_path, world.samples), png_path, run.map, world.trajectory,
+                run.intervention_marks, world.collisions, list(world.obstacles.values()), title=stem,
+                series=run.control_samples, switches=report["mux_switches"])
+            report["trajectory_csv"], result.trajectory_csv = str(csv_path), csv_path
+            if drawn:
+                report["plot_png"], result.plot_png = str(png_path), png_path
+            else:
+                print("racecar-hw sim: stopped while the plot was drawn: no plot (the report and the "
+                      "trajectory are written)", file=sys.stderr, flush=True)
         return result
+
+    async def _draw(self, meanwhile: Callable[[], None], *args: Any, **kwargs: Any) -> bool:
+        """Draw the plot (:func:`~racecar_hw.sim.plot.plot_run`'s arguments) while ``meanwhile()``
+        runs; False when a stop request (Ctrl-C) gave it up. The plot worker's answer is awaited
+        in a thread, the event loop free to act on a signal: it once held the loop, Ctrl-C and
+        all, for up to RESULT_TIMEOUT_S. Drawn here (no worker, or one that could not) at once."""
+        stop = self.run.next_stop()
+        plotter = self.run.plotter or PlotWorker(None)
+        answer = asyncio.get_running_loop().run_in_executor(None, lambda: plotter.answer(*args, **kwargs))
+        stopped = asyncio.ensure_future(stop.wait())
+        try:
+            meanwhile()
+            await asyncio.wait({answer, stopped}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stopped.cancel()
+            if not answer.done():
+                plotter.kill()  # the thread's wait ends at once
+        if not answer.done():
+            return False
+        if answer.result() is None:
+            from racecar_hw.sim.plot import plot_run  # noqa: PLC0415 - matplotlib, only when needed
+
+            plot_run(*args, **kwargs)
+        return True
 
     def _odometry_error(self) -> float | None:
         """How far the car truly is (m) from where its odometry says at the end, the odom frame
