@@ -10,6 +10,8 @@ import subprocess
 import pytest
 import yaml
 
+from racecar_hw.base.errors import ConfigError
+from racecar_hw.base.overrides import MAX_FLOW_DEPTH, parse_yaml
 from racecar_hw.cli import main
 
 
@@ -75,6 +77,21 @@ def test_a_clash_only_the_components_see_is_reported_too(check_config):
     assert line.endswith("(from --set gamepad.topic=/estop)")
 
 
+def test_flow_nesting_is_refused_past_its_limit_as_it_is_scanned():
+    """PyYAML's scanner slows with the square of the nesting (10 KB of brackets took it 4 s before
+    the composer's recursion failed): text deeper than MAX_FLOW_DEPTH is refused where it goes too
+    deep, and text at the limit parses."""
+    at_limit = parse_yaml("[" * MAX_FLOW_DEPTH + "]" * MAX_FLOW_DEPTH, "text")
+    for _ in range(MAX_FLOW_DEPTH - 1):
+        at_limit, = at_limit
+    assert at_limit == []
+    with pytest.raises(ConfigError, match=rf"text is not valid YAML: line 2, column {MAX_FLOW_DEPTH + 4}: "
+                                          "nested too deep"):
+        parse_yaml("a: 1\nb: " + "{" * (MAX_FLOW_DEPTH + 1) + "}" * (MAX_FLOW_DEPTH + 1), "text")
+    # brackets in a quoted string are text, not nesting
+    assert parse_yaml("a: '" + "[" * 500 + "'", "text") == {"a": "[" * 500}
+
+
 @pytest.mark.parametrize(("setting", "key", "words"), [
     ("mux.max_decel_mps2=0.05", "mux.max_decel_mps2", "is below safety.max_decel_mps2 (4.0)"),
     ("vesc.brake_current_a=0", "vesc.brake_current_a", "out of range; allowed: 1.0 to 200.0")])
@@ -91,7 +108,7 @@ def test_settings_that_would_let_the_car_brake_late_or_coast_are_refused(check_c
 
 @pytest.mark.parametrize(("content", "words"), [
     (b"vesc:\n  port: /dev/ttyACM0 \xb5\n", "is not UTF-8 text (byte 0xb5 at offset 27)"),
-    (b"vesc: " + b"[" * 5000 + b"]" * 5000 + b"\n", "is not valid YAML: nested too deep"),
+    (b"vesc: " + b"[" * 5000 + b"]" * 5000 + b"\n", "is not valid YAML: line 1, column 71: nested too deep"),
     (b"vesc:\n  poll_rate_hz: " + b"9" * 5000 + b"\n", "is not valid YAML: Exceeds the limit"),
     (b"vesc:\n  port: /dev/a\n  port: /dev/b\n", "line 3, column 3: found the key 'port' twice"),
     (b"vesc:\n  port: [\n", "line 3, column 1: expected the node content")])

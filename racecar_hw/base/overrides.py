@@ -18,9 +18,24 @@ import yaml
 
 from racecar_hw.base.errors import ConfigError
 
+#: The deepest nesting of flow collections (``[...]``, ``{...}``) a YAML text may have. PyYAML's
+#: scanner takes time growing with the square of the depth (10 KB of ``[`` took it 4 s) before the
+#: composer's recursion fails, so deeper text is refused as it is scanned.
+MAX_FLOW_DEPTH = 64
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last)."""
+
+class ShallowSafeLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing flow collections nested more than :data:`MAX_FLOW_DEPTH` deep
+    (a ScannerError at the bracket that goes too deep) before its scanner slows down on them."""
+
+    def fetch_flow_collection_start(self, TokenClass: Any) -> None:  # noqa: N803 - PyYAML's name
+        if self.flow_level >= MAX_FLOW_DEPTH:
+            raise yaml.scanner.ScannerError(None, None, "nested too deep", self.get_mark())
+        super().fetch_flow_collection_start(TokenClass)  # type: ignore[misc]
+
+
+class _UniqueKeyLoader(ShallowSafeLoader):
+    """:class:`ShallowSafeLoader`, refusing a key given twice in one mapping (PyYAML keeps the last)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: set[Any] = set()
@@ -81,7 +96,7 @@ def key_lines(path: str | Path) -> dict[tuple[str | int, ...], int]:
 
     Empty for a file that cannot be read or parsed (load_yaml reports that)."""
     try:
-        root = yaml.compose(Path(path).read_text(encoding="utf-8"))
+        root = yaml.compose(Path(path).read_text(encoding="utf-8"), Loader=ShallowSafeLoader)
     except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
         return {}
     out: dict[tuple[str | int, ...], int] = {}
