@@ -23,7 +23,7 @@ class SimProcess:
 
     def __init__(self, args: Sequence[str], timeout_s: float = 60.0, **popen: Any) -> None:
         # the Zenoh bridge (on by default, on a fixed port) is not what these tests are about
-        command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--no-status",
+        command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--no-status", "--no-plot",
                    "--set", "zenoh.enabled=false", "--set", "dds.enabled=false", *args]
         # ``popen``: more for subprocess.Popen (a preexec_fn that lowers the file limit)
         self.proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,

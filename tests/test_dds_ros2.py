@@ -34,7 +34,7 @@ def _start_sim(ns: NetNs, out, *sets: str, duration: float = 40.0) -> subprocess
     # timeout comes on the world's clock whatever the machine's load (tests/test_net_zenoh_sim.py)
     command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", "wall", "--speed", "1",
                "--scenario-set", "drivers=[]", "--duration", str(duration), "--no-status",
-               "--out", str(out), "--report", str(out / "report.json"),
+               "--no-plot", "--out", str(out), "--report", str(out / "report.json"),
                "--set", "zenoh.enabled=false", "--set", "foxglove.port=0", "--set", "web.port=0"]
     for item in sets:
         command += ["--set", item]

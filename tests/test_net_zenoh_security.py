@@ -119,7 +119,7 @@ def test_check_config_and_the_daemon_both_refuse_an_empty_dictionary(tmp_path):
                            capture_output=True, text=True, timeout=120, cwd=ROOT)
     report = tmp_path / "report.json"
     start = subprocess.run([sys.executable, "-m", "racecar_hw.cli", "sim", "--duration", "5", "--no-status",
-                            *sets, "--report", str(report)],
+                            "--no-plot", *sets, "--report", str(report)],
                            capture_output=True, text=True, timeout=120, cwd=ROOT)
     for proc in (check, start):
         assert proc.returncode == 1, proc.stdout + proc.stderr

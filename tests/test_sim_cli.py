@@ -373,6 +373,29 @@ def test_at_max_speed_the_command_loads_no_network_library(tmp_path):
     assert json.loads((tmp_path / "wall.json").read_text())["live"] == {}
 
 
+@pytest.mark.parametrize("scenario", ["wall", "two-cars"])
+def test_no_plot_writes_the_report_and_trajectory_and_draws_nothing(tmp_path, capsys, monkeypatch, scenario):
+    """``--no-plot`` (sweeps, batch runs): the report and every trajectory CSV as without it, no
+    PNG, no plot process, and the command says why there is no plot."""
+    import racecar_hw.sim.plot_worker as plot_worker
+
+    started = []
+    real_start = plot_worker.PlotWorker.start
+    monkeypatch.setattr(plot_worker.PlotWorker, "start", lambda: started.append(True) or real_start())
+    code = main(["sim", "--scenario", scenario, "--duration", "1", "--no-status", "--speed", "max",
+                 "--no-plot", "--out", str(tmp_path)])
+    stdout = capsys.readouterr().out
+    assert code == 0 and not started
+    report = json.loads((tmp_path / f"{scenario}.json").read_text())
+    assert report["plot_png"] is None and not list(tmp_path.glob("*.png"))
+    assert "plot:       none (--no-plot)" in stdout, stdout
+    csvs = [report["trajectory_csv"]] if "cars" not in report else [
+        car["trajectory_csv"] for car in report["cars"].values()]
+    assert len(csvs) == (2 if scenario == "two-cars" else 1)
+    for csv in csvs:
+        assert read_csv(csv), csv
+
+
 def test_sim_says_where_every_output_went_and_bag_info_takes_the_mcap_file(tmp_path, capsys):
     """``sim --record`` prints the bag's path with the report's (named after the scenario), the
     plot's and the trajectory's; ``bag info`` takes the bag's .mcap file as well as its folder."""

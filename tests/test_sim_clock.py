@@ -154,7 +154,7 @@ def _start_sim(ns: NetNs, out: Path, *sets: str, clock_rate_hz: float) -> subpro
     out.mkdir(parents=True, exist_ok=True)
     command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", "wall",
                "--scenario-set", "drivers=[]", "--scenario-set", f"world.clock_rate_hz={clock_rate_hz}",
-               "--duration", "60", "--no-status", "--out", str(out),
+               "--duration", "60", "--no-status", "--no-plot", "--out", str(out),
                "--report", str(out / "report.json"), "--set", "zenoh.enabled=false",
                "--set", "foxglove.port=0", "--set", "web.port=0"]
     for item in sets:

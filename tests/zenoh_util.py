@@ -96,7 +96,7 @@ def start_sim(out: Path, listen_port: int | None, *sets: str, scenario: str = "w
     None: real time.
     """
     out.mkdir(parents=True, exist_ok=True)
-    command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--scenario", scenario,
+    command = [sys.executable, "-m", "racecar_hw.cli", "-v", "sim", "--no-plot", "--scenario", scenario,
                "--duration", str(duration), "--no-status", "--out", str(out),
                "--report", str(out / "report.json"), "--set", "foxglove.port=0", "--set", "web.port=0"]
     if speed is not None:

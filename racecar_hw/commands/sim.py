@@ -61,6 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="lockstep at N times real time, or max: as fast as the machine allows "
                         "(implies --lockstep; the default is real time over ptys and TCP)")
     p.add_argument("--no-status", action="store_true", help="no live status panel")
+    p.add_argument("--no-plot", action="store_true",
+                   help="draw no plot: the report and the trajectory CSV only (sweeps, batch runs; "
+                        "the plot costs about a second of CPU)")
     add_config_options(p, default="the shipped sim config, config/sim.yaml")
     p.set_defaults(func=cmd_sim)
 
@@ -151,7 +154,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return cmd_fleet(args, scenario, out)
     from racecar_hw.sim.plot_worker import PlotWorker  # noqa: PLC0415 - with the command
 
-    if not (args.lockstep or args.speed is not None):
+    if args.no_plot or not (args.lockstep or args.speed is not None):
         return _cmd_loopback(args, scenario, out, PlotWorker(None))
     # lockstep: the plot's process imports matplotlib on the other core while this one starts and
     # runs (in real time the plot is drawn here, as always: no second process competes with the
@@ -189,7 +192,7 @@ def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plott
     loopback = Loopback(scenario, config_path=args.config, overrides=overrides, out_dir=out,
                         status=status, duration_s=args.duration,
                         until_replay_ends=bool(args.follow) and not given, lockstep=lockstep,
-                        plotter=plotter)
+                        plotter=plotter, plot=not args.no_plot)
     with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
         if lockstep:
             from racecar_hw.runtime import lockstep as virtual  # noqa: PLC0415 - with the option
@@ -203,7 +206,7 @@ def _cmd_loopback(args: argparse.Namespace, scenario: Scenario, out: Path, plott
     report = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
     # after the daemon has closed the status panel: a few lines, the whole report is in the file
     print(summary(result.report))
-    print(outputs(result.report, report))
+    print(outputs(result.report, report, "--no-plot" if args.no_plot else "Ctrl-C skipped it"))
     code = 0
     failure = loopback.daemon.failure if loopback.daemon is not None else None
     if failure is not None:  # the report says so too (stop_reason)
@@ -227,7 +230,7 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
                                         "over Zenoh: docs/sim.md, \"Several cars\")")
     _count_zenoh_logins(args.config, args.overrides)
     fleet = Fleet(scenario, config_path=args.config, overrides=args.overrides, out_dir=out,
-                  duration_s=args.duration, record_dir=args.record)
+                  duration_s=args.duration, record_dir=args.record, plot=not args.no_plot)
     speed = args.speed if args.speed is not None else 1.0
     with StopSignals(keep=True) as stops:  # noted until the loop handles them, and after it
         result = virtual.run(_run(fleet, stops), None if math.isinf(speed) else speed)
@@ -236,9 +239,9 @@ def cmd_fleet(args: argparse.Namespace, scenario: Scenario, out: Path) -> int:
     path = write_report(result, args.report or out / f"{scenario.name or 'sim'}.json")
     print(fleet_summary(result.report))
     print(f"report:     {path}")
-    print(f"plot:       {result.report['plot_png']}")
+    print(f"plot:       {result.report['plot_png'] or 'none (--no-plot)'}")
     for name, car in result.report["cars"].items():
-        print(f"{name + ':':11} plot {car['plot_png']}, trajectory {car['trajectory_csv']}")
+        print(f"{name + ':':11} plot {car['plot_png'] or 'none'}, trajectory {car['trajectory_csv']}")
         for bag in car.get("bags") or []:
             print(f"{'':11} bag {bag}")
     failed = [exit_if_recording_failed(f"sim: car {name}", car.daemon)
@@ -258,9 +261,10 @@ def fleet_summary(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def outputs(report: dict[str, Any], report_path: Path) -> str:
-    """Where each output of the run went: the report, the plot, the trajectory, any bag."""
-    plot = report["plot_png"] or "none (Ctrl-C skipped it)"
+def outputs(report: dict[str, Any], report_path: Path, no_plot: str) -> str:
+    """Where each output of the run went: the report, the plot (``no_plot``: why there is none, if
+    there is none), the trajectory, any bag."""
+    plot = report["plot_png"] or f"none ({no_plot})"
     lines = [f"report:     {report_path}", f"plot:       {plot}",
              f"trajectory: {report['trajectory_csv']}"]
     lines += [f"bag:        {bag}" for bag in report.get("bags") or []]

@@ -210,19 +210,21 @@ class Fleet:
     :class:`~racecar_hw.runtime.lockstep.VirtualTimeLoop` (:func:`racecar_hw.runtime.lockstep.run`).
 
     ``config_path`` and ``overrides`` (``--set``) apply to every car; ``out_dir``: where each car's
-    trajectory CSV and plot go (named SCENARIO-CAR); ``record_dir``: record each car's topics to a
-    bag in ``record_dir/CAR``; ``setup``: called with each car once its daemon exists (tests).
+    trajectory CSV and plot go (named SCENARIO-CAR; ``plot=False``: no plot); ``record_dir``: record
+    each car's topics to a bag in ``record_dir/CAR``; ``setup``: called with each car once its
+    daemon exists (tests).
     """
 
     def __init__(self, scenario: Scenario, *, config_path: str | Path | None = None,
                  overrides: tuple[str, ...] | list[str] = (), out_dir: str | Path | None = None,
                  duration_s: float | None = None, record_dir: str | Path | None = None,
-                 setup: Callable[[FleetCar], None] | None = None) -> None:
+                 setup: Callable[[FleetCar], None] | None = None, plot: bool = True) -> None:
         if not scenario.cars:
             raise ConfigError("cars", f"scenario {scenario.name!r} has no cars: it runs one car "
                                       "(racecar_hw.sim.loopback.Loopback)")
         self.scenario = scenario
         self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.plot = plot  # False: no plot of the fleet or of a car (the CSVs are written)
         self.setup = setup
         #: port -> the car whose daemon listens (or will listen) there
         self.promised_ports: dict[int, str] = {}
@@ -238,7 +240,8 @@ class Fleet:
                 sub.config = merge(sub.config, {"recorder": {"enabled": True,
                                                              "path": str(Path(record_dir) / entry.name)}})
             self.cars[entry.name] = FleetCar(self, entry.name, sub, config_path=config_path,
-                                             overrides=overrides, out_dir=out_dir, duration_s=duration_s)
+                                             overrides=overrides, out_dir=out_dir, duration_s=duration_s,
+                                             plot=plot)
         self.stop_reason = "duration"
 
     # --- time -----------------------------------------------------------------------------------

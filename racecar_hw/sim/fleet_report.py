@@ -87,7 +87,7 @@ class FleetReport:
         }
         result = SimResult(report)
         out = fleet.out_dir
-        if out is not None and ref is not None:
+        if out is not None and ref is not None and fleet.plot:
             out.mkdir(parents=True, exist_ok=True)
             ends = {name: footprint_box(world.pose, world.params) for name, world in worlds.items()}
             png = plot_fleet(out / f"{sc.name or 'sim'}.png", ref.map,

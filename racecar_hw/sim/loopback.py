@@ -68,7 +68,7 @@ class Loopback:
                  status: StatusPanel | None = None, duration_s: float | None = None,
                  until_replay_ends: bool = False,
                  setup: Callable[[Loopback], None] | None = None, lockstep: bool = False,
-                 car_name: str = "car", plotter: PlotWorker | None = None) -> None:
+                 car_name: str = "car", plotter: PlotWorker | None = None, plot: bool = True) -> None:
         if scenario.cars:
             raise ConfigError("cars", f"scenario {scenario.name!r} has several cars: run it with "
                                       "racecar_hw.sim.fleet.Fleet")
@@ -87,6 +87,7 @@ class Loopback:
         self.setup = setup
         #: draws the run's plot in another process (started before the run); None: in this one
         self.plotter = plotter
+        self.plot = plot  # False: the report and the trajectory CSV only (sweeps, batch runs)
         #: the fakes in the daemon's loop behind in-memory links, on the loop's (virtual) clock
         #: (run it with :func:`racecar_hw.runtime.lockstep.run`), instead of ptys and TCP in real time
         self.lockstep = lockstep

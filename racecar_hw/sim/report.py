@@ -163,7 +163,7 @@ class RunReport:
             stem = run.scenario.name or "sim"
             csv_path = run.out_dir / f"{stem}-trajectory.csv"
             png_path = run.out_dir / f"{stem}.png"
-            if run.hurried:  # a second Ctrl-C: the numbers and the trajectory, not the picture
+            if run.hurried or not run.plot:  # a second Ctrl-C, --no-plot: no picture
                 write_csv(csv_path, world.samples)
                 report["trajectory_csv"], result.trajectory_csv = str(csv_path), csv_path
                 return result
