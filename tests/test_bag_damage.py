@@ -585,8 +585,8 @@ def test_sim_follow_refuses_each_real_bad_bag(bag_fixtures, tmp_path, capsys, ca
         path, out, record = bag_fixtures / name, tmp_path / f"out{i}", tmp_path / f"record{i}"
         capsys.readouterr()
         caplog.clear()
-        code = cli_main(["sim", "--follow", str(path), "--no-status", "--out", str(out), "--record",
-                         str(record), *(["--follow-topic", topic] if topic else [])])
+        code = cli_main(["sim", "--follow", str(path), "--no-status", "--no-plot", "--out", str(out),
+                         "--record", str(record), *(["--follow-topic", topic] if topic else [])])
         stdout, stderr = capsys.readouterr()
         err = stderr + "".join(f"{r.levelname} {r.name}: {r.getMessage()}\n" for r in caplog.records)
         assert code == 1 and stdout == "", (path, code, stdout, err)

@@ -40,7 +40,7 @@ def _calibrate(capsys, *args: str) -> tuple[int, str, str]:
 def _figure8(capsys, tmp_path, config) -> dict:
     out = tmp_path / f"fig8-{config.stem}"
     code = main(["sim", "--scenario", "miscalibrated-figure8", "--speed", "max", "--config", str(config),
-                 "--no-status", "--out", str(out), "--report", str(out / "report.json"),
+                 "--no-status", "--no-plot", "--out", str(out), "--report", str(out / "report.json"),
                  *set_args(*OFFLINE)])
     assert code == 0, capsys.readouterr().err[-3000:]
     return json.loads((out / "report.json").read_text())
