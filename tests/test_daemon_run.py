@@ -9,6 +9,8 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -35,19 +37,25 @@ def _notifications(sock: socket.socket, until: float, last: str = "STOPPING=1") 
     return got
 
 
-def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_path):
-    vesc, lidar = fakes
+def _recording_config(tmp_path: Path, lidar: Any, **recorder: Any) -> Path:
+    """A car config for ``run`` on the fakes (the lidar over TCP), no network interface but the live
+    view and the page on free ports, recording to ``tmp_path/bags`` with ``recorder``'s settings."""
     host, port = lidar.tcp_address
     config = {
         "vesc": {"port": str(tmp_path / "vesc")},
         "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
         "status": {"enabled": False}, "zenoh": {"enabled": False}, "dds": {"enabled": False},
         "foxglove": {"port": 0}, "web": {"port": 0},
-        "recorder": {"enabled": True, "path": str(tmp_path / "bags"), "name": "drive",
-                     "format": "mcap"},
+        "recorder": {"enabled": True, "path": str(tmp_path / "bags"), **recorder},
     }
     cfg = tmp_path / "car.yaml"
     cfg.write_text(yaml.safe_dump(config))
+    return cfg
+
+
+def test_run_notifies_systemd_records_and_stops_safely_on_sigterm(fakes, tmp_path):
+    vesc, lidar = fakes
+    cfg = _recording_config(tmp_path, lidar, name="drive", format="mcap")
     notify = tmp_path / "notify.sock"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(notify))
@@ -99,16 +107,7 @@ def test_run_exits_1_and_says_so_when_the_recording_failed(fakes, tmp_path):
     import threading
 
     _vesc, lidar = fakes
-    host, port = lidar.tcp_address
-    config = {
-        "vesc": {"port": str(tmp_path / "vesc")},
-        "lidar": {"model": "ust-10lx", "tcp": f"{host}:{port}"},
-        "status": {"enabled": False}, "zenoh": {"enabled": False}, "dds": {"enabled": False},
-        "foxglove": {"port": 0}, "web": {"port": 0},
-        "recorder": {"enabled": True, "path": str(tmp_path / "bags"), "flush_interval_s": 0.2},
-    }
-    cfg = tmp_path / "car.yaml"
-    cfg.write_text(yaml.safe_dump(config))
+    cfg = _recording_config(tmp_path, lidar, flush_interval_s=0.2)
     limit = 100_000  # bytes: a second or two of scans
     proc = subprocess.Popen([sys.executable, "-m", "racecar_hw.cli", "run", "--config", str(cfg)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -128,8 +127,9 @@ def test_run_exits_1_and_says_so_when_the_recording_failed(fakes, tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == 1, err
-    # said by the command at its end (not a crash); the recorder's abort of the cut bag may log a
-    # traceback of its own (the MCAP writer's, seen once), which is the recorder's business
+    # said by the command at its end, not a crash; the cut bag's abort is one log line too (its
+    # file's close, writing the buffered bytes again, showed a traceback in 4 of 6 runs)
+    assert "Traceback" not in err, err
     assert re.search(r"^racecar-hw run: the recording failed: OSError: \[Errno 27\] File too large "
                      r"\(\d+ messages written, \d+ dropped; ", err, re.MULTILINE), err
 

@@ -367,6 +367,8 @@ class BagFile:
                 self._ros1.abort()
             elif self._storage is not None:
                 self._storage.abort()
+        except OSError as err:  # the disk still takes nothing: the buffered bytes are lost, as said
+            log.warning("bag %s: closed with its last buffered bytes unwritten (%s)", self.path, err)
         except Exception:
             log.exception("aborting bag %s failed", self.path)
 
