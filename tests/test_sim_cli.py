@@ -230,6 +230,20 @@ def test_an_output_that_cannot_be_written_is_one_line_before_anything_runs(tmp_p
     assert not (tmp_path / "out").exists()  # nothing ran: no trajectory, no plot
 
 
+@pytest.mark.parametrize("option", ["--out", "--report", "--record"])
+def test_an_output_in_a_place_that_takes_no_file_is_refused_for_root_too(tmp_path, capsys, option):
+    """/proc's permission bits let root write (``os.access`` says yes), but it takes no file: the
+    run went on and its end raised a traceback, the report lost. A file is now tried there first."""
+    target = "/proc/racecar-hw-nope" + (".json" if option == "--report" else "")
+    out = [] if option == "--out" else ["--out", str(tmp_path / "out")]
+    code = main(["sim", "--scenario", "wall", "--duration", "0.5", "--speed", "max", "--no-status",
+                 *out, option, target])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 1 and not any("Traceback" in line for line in err), err
+    assert err[-1].startswith(f"racecar-hw sim: {option}: {target} cannot be written: /proc "), err
+    assert not (tmp_path / "out").exists()
+
+
 def test_follow_options_come_first_and_scenario_sets_apply_to_them(tmp_path):
     args = build_parser().parse_args(["sim", "--follow", str(tmp_path / "b"), "--scenario-set",
                                       "drivers.0.rate_hz=10", "--scenario-set",

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -85,6 +86,14 @@ def check_writable(path: str | Path, option: str, *, directory: bool) -> None:
         raise ConfigError(option, f"{p} cannot be made: {base} is a file, not a directory")
     if not os.access(base, os.W_OK | os.X_OK):
         raise ConfigError(option, f"{p} cannot be written: {base} is not writable")
+    # the OS's word, not the permission bits': root passes os.access on /proc, which takes no file
+    # (a nameless file tried where the run would start making its own, nothing left behind)
+    try:
+        with tempfile.TemporaryFile(dir=base):
+            pass
+    except OSError as err:
+        raise ConfigError(option, f"{p} cannot be written: {base} takes no file ({err.strerror or err})") \
+            from None
 
 
 class RunReport:
