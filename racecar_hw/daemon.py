@@ -173,6 +173,7 @@ class Daemon:
                                    diagnostics_rate_hz=config.mux.diagnostics_rate_hz,
                                    notifier=self.notifier, statuses=self._statuses)
         self.stats = self.control.stats
+        self.arming.on_change(lambda change: change.armed or self.control.stop_now())
         #: e-stops asked for through the live and network interfaces (the simulator's timing log)
         self.estop_requests = self.control.estop_requests
         self.scan_summary = (ScanSummaryPublisher(bus, config.scan_summary)

@@ -206,3 +206,28 @@ def test_the_outboxes_wait_for_a_remote_answer_while_remote_code_answers_scans()
     events.clear()
     control.take_scan(scan())
     assert events[-1] == "idle"
+
+
+def test_a_disarm_is_written_at_once_and_a_scan_before_the_next_tick_does_not_resend_the_drive():
+    """Disarming (the page, the gamepad, MAVLink) wrote the stop only at the next control tick; a
+    scan in between re-sent the mux's last output, the drive from before the disarm, past the
+    arming filter (a review found it in the code). The stop now goes out with the disarm."""
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "foxglove.enabled=false", "web.enabled=false",
+                                "arming.start_armed=true", *QUIET_NET])
+    daemon = Daemon(config)
+    written: list[float] = []
+    daemon.control._write = lambda drive: written.append(drive.speed)
+    open_space = LaserScan(angle_min=-1.0, angle_increment=0.01, range_min=0.02, range_max=30.0,
+                           ranges=np.full(201, 25.0, dtype=np.float32))
+    open_space.header.frame_id = "laser"
+    for _ in range(60):  # driving at 2 m/s
+        daemon.bus.publish(TELEOP, AckermannDriveStamped(drive=AckermannDrive(speed=2.0)))
+        daemon.control.take_scan(open_space)
+        daemon.control.tick(monotonic_ns())
+    assert written[-1] == 2.0
+    written.clear()
+    daemon.disarm("test")
+    daemon.control.take_scan(open_space)  # before the next tick
+    assert written and all(speed < 2.0 for speed in written), written
+    assert written[-1] == written[0] and daemon.mux.last_output.drive.speed == written[0]

@@ -241,6 +241,13 @@ class ControlPath:
         """
         return self.stats.ticks > 0 and now_ns - self.stats.last_tick_ns < 2 * self._period_ns
 
+    def stop_now(self) -> None:
+        """The car was disarmed: its stop is written now, not at the next tick (until then a scan
+        would re-send the command from before, which the arming filter has not seen)."""
+        now = monotonic_ns()
+        if self.alive(now):
+            self._out_of_turn(now)
+
     def _out_of_turn(self, now: int) -> None:
         msg = self.mux.decide(now, self.filters)
         self._write(msg.drive)
