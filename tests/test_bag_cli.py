@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import shutil
+import sqlite3
 from pathlib import Path
 
 import pytest
+import yaml
 
 from racecar_hw.bags.follow import load_commands
 from racecar_hw.bags.record import BagFile
@@ -225,3 +227,74 @@ def test_a_recovery_stopped_midway_leaves_nothing_and_the_next_one_runs(tmp_path
     assert main(["bag", "recover", str(bag)]) == 0
     assert f"recovered 5 messages into {target}" in capsys.readouterr().out
     assert [c.drive.speed for c in load_commands(target, CMD)] == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def hot_database(folder: Path) -> Path:
+    """A sqlite3 bag file (five messages) with a hot journal: a transaction cut off midway, as a
+    killed process leaves it (the files are copied while the transaction is open)."""
+    bag = write_bag(folder, "sqlite3", close=True)
+    db, victim = bag / "run_0.db3", folder / "victim.db3"
+    con = sqlite3.connect(db, isolation_level=None)
+    con.execute("PRAGMA cache_size=1")
+    con.execute("BEGIN")
+    con.execute("DELETE FROM messages")
+    con.execute("CREATE TABLE filler(x)")
+    for _ in range(100):  # more than the cache holds: pages go to the file, the old ones to the journal
+        con.execute("INSERT INTO filler VALUES (zeroblob(4000))")
+    shutil.copy(db, victim)
+    shutil.copy(db.with_name("run_0.db3-journal"), folder / "victim.db3-journal")
+    con.execute("ROLLBACK")
+    con.close()
+    return victim
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+def test_recover_takes_only_files_in_the_bag_whatever_metadata_yaml_names(tmp_path, capsys):
+    """metadata.yaml listing ../victim/victim.db3 made recover open that database read-write (rolling
+    back its journal: a file outside the bag changed) and write a metadata.yaml naming it."""
+    victim = hot_database(tmp_path / "victim")
+    outside = snapshot(victim.parent)
+    bag = write_bag(tmp_path, "sqlite3", close=False)
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    listed = f"  - run_0.db3\n  - ../victim/victim.db3\n  - {victim}\n"
+    meta.write_text(text.replace("  - run_0.db3\n", listed))
+    assert main(["bag", "info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "complete:  no: " in out and "messages:  5 (readable ones)" in out
+    assert main(["bag", "recover", str(bag)]) == 0
+    assert f"recovered 5 messages into {bag}" in capsys.readouterr().out
+    assert snapshot(victim.parent) == outside
+    info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == ["run_0.db3"]
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "complete:  yes" in capsys.readouterr().out
+    # a bag with nothing of its own: refused in one line, metadata.yaml left as it was
+    (bag / "run_0.db3").unlink()
+    meta.write_text(text.replace("  - run_0.db3\n", "  - ../victim/victim.db3\n"))
+    assert main(["bag", "recover", str(bag)]) == 1
+    assert capsys.readouterr().err == f"racecar-hw bag: {bag} holds no .mcap or .db3 file: not a ROS 2 bag\n"
+    assert snapshot(victim.parent) == outside
+    assert meta.read_text() == text.replace("  - run_0.db3\n", "  - ../victim/victim.db3\n")
+
+
+def test_recover_in_place_refuses_a_linked_database(tmp_path, capsys):
+    """SQLite rolls back the journal where a linked database really is: outside the bag."""
+    victim = hot_database(tmp_path / "victim")
+    outside = snapshot(victim.parent)
+    bag = write_bag(tmp_path, "sqlite3", close=False)
+    (bag / "run_1.db3").symlink_to(victim)
+    assert main(["bag", "recover", str(bag)]) == 1
+    err = capsys.readouterr().err
+    assert err == (f"racecar-hw bag: {bag / 'run_1.db3'} is a symbolic link: not recovered in place, which "
+                   "could change the file it points to outside the bag; give an output (-o OUT) to "
+                   "recover a copy\n")
+    assert snapshot(victim.parent) == outside
+    assert main(["bag", "recover", str(bag), "-o", str(tmp_path / "copy")]) == 0
+    assert "recovered 5 messages into" in capsys.readouterr().out
+    assert snapshot(victim.parent) == outside
+    assert not (tmp_path / "copy" / "run_1.db3").is_symlink()
+

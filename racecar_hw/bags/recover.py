@@ -33,7 +33,7 @@ import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import yaml
 from rosbags.interfaces import Qos
@@ -548,15 +548,15 @@ def read_db(db: Path, *, readonly: bool = False) -> DbContent:
 
 
 def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
-    meta = _metadata(bagdir)
+    meta, unusable = _load_metadata(bagdir)
     if meta is None:
-        return "metadata.yaml is missing"
+        return unusable
     # A non-empty rollback journal is a transaction that never finished. (A -wal file is not: in
     # WAL mode it holds committed transactions until a checkpoint, and readers take them.)
     hot = [db.name for db in dbs if _size(db.parent / f"{db.name}-journal")]
     if hot:
         return f"{', '.join(hot)} has a journal left by an interrupted write"
-    listed = set(meta.get("relative_file_paths") or [])
+    listed = set(_listed_names(meta))
     contents = []
     for db in dbs:
         try:
@@ -567,9 +567,10 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
             return (f"{db.name} is empty ({_size(db)} bytes, no tables): the recording was killed "
                     "as it opened this split")
         contents.append(content)
-    if (meta.get("custom_data") or {}).get("racecar_hw") == RECORDING_OPEN:
+    custom = meta.get("custom_data")
+    if isinstance(custom, dict) and custom.get("racecar_hw") == RECORDING_OPEN:
         return "the recording was not closed (metadata.yaml is from its last flush)"
-    said = {f.get("path"): f.get("message_count") for f in meta.get("files") or []}
+    said = _listed_counts(meta)
     for content in contents:
         name, n = content.path.name, sum(content.counts.values())
         if name in said and said[name] != n:
@@ -585,6 +586,14 @@ def _size(path: Path) -> int:
 
 
 def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
+    # Opening a database read-write rolls back its journal wherever the database really is: through a
+    # link, that can be outside the bag. (A copy, -o OUT, holds the linked files' contents instead.)
+    for db in dbs:
+        for part in (db, *(db.with_name(db.name + end) for end in ("-journal", "-wal", "-shm"))):
+            if part.is_symlink():
+                raise BagError(f"{part} is a symbolic link: not recovered in place, which could change "
+                               "the file it points to outside the bag; give an output (-o OUT) to "
+                               "recover a copy")
     # a file without tables holds nothing: left out of metadata.yaml, which readers go by
     contents = [c for c in (read_db(db) for db in dbs) if not c.empty]
     topics: dict[str, dict[str, object]] = {}
@@ -614,6 +623,7 @@ def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
     }
     meta = bagdir / "metadata.yaml"
     tmp = meta.with_suffix(".yaml.tmp")
+    tmp.unlink(missing_ok=True)  # a file (or a link to one outside the bag) left there is not written into
     tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False), "utf8")
     tmp.replace(meta)
     return RecoveryResult(bagdir, total, False)
@@ -622,21 +632,61 @@ def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
 # --- which bag, which files, complete? --------------------------------------------------------
 
 
-def _metadata(bagdir: Path) -> dict | None:
+def _load_metadata(bagdir: Path) -> tuple[dict | None, str]:
+    """``rosbag2_bagfile_information`` of the bag's ``metadata.yaml``, or None and why it is not usable."""
     try:
-        data = yaml.safe_load((bagdir / "metadata.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return None
+        text = (bagdir / "metadata.yaml").read_text("utf8")
+    except FileNotFoundError:
+        return None, "metadata.yaml is missing"
+    except (OSError, ValueError) as err:
+        return None, f"metadata.yaml is not readable ({type(err).__name__})"
+    try:
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark
+        at = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        return None, f"metadata.yaml is not usable: {at}{err.problem or err.context}"
+    except (yaml.YAMLError, RecursionError) as err:
+        return None, f"metadata.yaml is not usable ({type(err).__name__})"
     info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
-    return info if isinstance(info, dict) else None
+    if not isinstance(info, dict):
+        return None, "metadata.yaml is not usable: it has no rosbag2_bagfile_information"
+    return info, ""
+
+
+def _metadata(bagdir: Path) -> dict | None:
+    return _load_metadata(bagdir)[0]
+
+
+def _listed_names(meta: dict) -> list[str]:
+    """The file names ``relative_file_paths`` lists, each once: only the name of each path, as rosbags
+    reads it (rosbag2 before version 4 wrote ``<bag>/<file>``), so only files in the bag directory
+    are ever taken; an entry that is not a string is left out (never turned into one)."""
+    paths = meta.get("relative_file_paths")
+    if not isinstance(paths, list):
+        return []
+    names = (PurePath(p).name for p in paths if isinstance(p, str))
+    return list(dict.fromkeys(n for n in names if n not in ("", ".", "..")))
+
+
+def _listed_counts(meta: dict) -> dict[str, int]:
+    """Message count per file name from ``files``; entries not as rosbag2 writes them are left out."""
+    files = meta.get("files")
+    counts: dict[str, int] = {}
+    for f in files if isinstance(files, list) else []:
+        if isinstance(f, dict) and isinstance(f.get("path"), str):
+            n = f.get("message_count")
+            if isinstance(n, int) and not isinstance(n, bool):
+                counts[PurePath(f["path"]).name] = n
+    return counts
 
 
 def _storage_files(bagdir: Path, suffix: str) -> list[Path]:
-    """The bag's files: in metadata.yaml's order, then any other on disk (written after it)."""
-    meta = _metadata(bagdir) or {}
-    listed = [bagdir / name for name in meta.get("relative_file_paths") or [] if str(name).endswith(suffix)]
-    listed = [p for p in listed if p.exists()]
-    extra = sorted(p for p in bagdir.glob(f"*{suffix}") if p not in listed)
+    """The bag's files, all in ``bagdir``: in metadata.yaml's order, then any other on disk (written
+    after it)."""
+    listed = [bagdir / name for name in _listed_names(_metadata(bagdir) or {}) if name.endswith(suffix)]
+    listed = [p for p in listed if p.is_file()]
+    extra = sorted(p for p in bagdir.glob(f"*{suffix}") if p not in listed and p.is_file())
     return listed + extra
 
 
@@ -674,8 +724,9 @@ def inspect_bag(path: str | Path) -> BagState:
                 if size < 2 * len(MCAP_MAGIC) or fh.read() != MCAP_MAGIC:
                     return BagState(src, "mcap", mcaps, False,
                                     f"{f.name} has no footer (the recording was not closed)")
-        if _metadata(src) is None:
-            return BagState(src, "mcap", mcaps, False, "metadata.yaml is missing")
+        meta, unusable = _load_metadata(src)
+        if meta is None:
+            return BagState(src, "mcap", mcaps, False, unusable)
         for f in mcaps:
             bad = mcap_chunk_crc_error(f)
             if bad is not None:
