@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import sqlite3
+import tracemalloc
 from pathlib import Path
 
 import pytest
@@ -298,3 +299,27 @@ def test_recover_in_place_refuses_a_linked_database(tmp_path, capsys):
     assert snapshot(victim.parent) == outside
     assert not (tmp_path / "copy" / "run_1.db3").is_symlink()
 
+
+LAUGHS = "".join(f"{a}: &{a} [{', '.join([f'*{b}'] * 10) if b else ', '.join(['lol'] * 10)}]\n"
+                 for a, b in zip("abcdef", ["", *"abcde"], strict=True))
+
+
+@pytest.mark.parametrize("fmt", ["sqlite3", "mcap"])
+def test_metadata_with_yaml_aliases_is_refused_cheaply(tmp_path, capsys, fmt):
+    """A 'billion laughs' (aliases nested 8 deep in 600 bytes; 6 here) in relative_file_paths: bag
+    info turned it into a string, 833 MB and 28 s, then failed with a TypeError. rosbag2 never
+    writes aliases: the metadata is not used, and the bag reads as one whose metadata.yaml is bad."""
+    bag = write_bag(tmp_path, fmt, close=True)
+    (bag / "metadata.yaml").write_text(LAUGHS + "rosbag2_bagfile_information:\n  version: 8\n"
+                                       f"  storage_identifier: {fmt}\n  relative_file_paths: [*f]\n")
+    tracemalloc.start()
+    try:
+        assert main(["bag", "info", str(bag)]) == 0
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    out = capsys.readouterr().out
+    assert "complete:  no: metadata.yaml is not usable: line 2, column 8: an alias (*a), which bag " \
+           "metadata never has\n" in out
+    assert "messages:  5 (readable ones)" in out
+    assert peak < 8 * 2**20, peak
