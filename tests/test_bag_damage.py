@@ -593,3 +593,75 @@ def test_sim_follow_refuses_each_real_bad_bag(bag_fixtures, tmp_path, capsys, ca
         _one_line_naming(err, path)
         assert err.startswith("racecar-hw sim: ") and cause in err, (cause, err)
         assert not out.exists() and not record.exists(), path  # the simulation never started
+
+
+# --- only regular files, and only storage files that are checked -------------------------------
+
+
+def _hide_storage(bagdir: Path, name: str) -> Path:
+    """Rename the bag's one storage file to ``name``, and list it so in metadata.yaml (rosbags opens
+    what metadata.yaml lists, by name, whatever the name)."""
+    file = storage(bagdir)
+    meta = bagdir / "metadata.yaml"
+    meta.write_text(meta.read_text().replace(file.name, name))
+    file.rename(bagdir / name)
+    return bagdir / name
+
+
+@pytest.mark.parametrize("kind", ["mcap zstd bomb", "sqlite3"])
+def test_a_storage_file_listed_under_another_name_is_refused_by_follow_and_info(tmp_path, kind):
+    """metadata.yaml listing payload.bin (a zstd chunk lying about its size, or a sound sqlite3
+    database): nothing here finds it by name, so nothing would check it before rosbags reads it whole.
+    The follower and ``bag info`` refuse the bag alike, naming the file, in bounded memory."""
+    from racecar_hw.bags.info import bag_info
+
+    path = BOMBS["mcap zstd"](tmp_path) if kind == "mcap zstd bomb" else bag(tmp_path, "sqlite3", commands())
+    hidden = _hide_storage(path, "payload.bin")
+
+    def follow() -> None:
+        load_commands(path, TOPIC, limits=LIMITS, max_message_bytes=BOMB_LIMIT)
+
+    def info() -> None:
+        bag_info(path)
+
+    for what in (follow, info):
+        peak = _peak_bytes(what)
+        text = what.error  # type: ignore[attr-defined]
+        assert peak < 8 * 2**20, (what.__name__, peak, text)
+        assert text.startswith(f"{hidden}: metadata.yaml lists a storage file not named *.mcap or *.db3"), \
+            text
+        assert "\n" not in text
+
+
+def _run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "racecar_hw.cli", *args], capture_output=True, text=True,
+                          timeout=30)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "symlink to a fifo"])
+def test_a_fifo_named_like_a_split_is_refused_not_read(tmp_path, kind):
+    """A FIFO (or a link to one) named x_1.mcap in a bag directory, or given as the bag: ``follow``
+    and ``bag info`` refuse it in one line naming it, instead of waiting forever for a writer."""
+    import os
+
+    path = bag(tmp_path, "mcap", commands())
+    fifo = path / "x_1.mcap"
+    if kind == "fifo":
+        os.mkfifo(fifo)
+    else:
+        os.mkfifo(tmp_path / "pipe")
+        fifo.symlink_to(tmp_path / "pipe")
+    runs = {"follow dir": _run_cli("follow", str(path), "--set", "gamepad.enabled=false"),
+            "info dir": _run_cli("bag", "info", str(path)),
+            "follow fifo": _run_cli("follow", str(fifo), "--set", "gamepad.enabled=false"),
+            "info fifo": _run_cli("bag", "info", str(fifo))}
+    for what, proc in runs.items():
+        assert proc.returncode == 1, (what, proc.stdout, proc.stderr)
+        assert f"{fifo} is a FIFO, not a regular file: refused, not read" in proc.stderr, (what, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1, (what, proc.stderr)
+
+
+def test_check_storage_refuses_a_character_device_without_reading_it():
+    """A device is refused from its mode: /dev/zero would be read without end."""
+    with pytest.raises(BagError, match="/dev/zero is a character device, not a regular file"):
+        check_storage(Path("/dev/zero"))

@@ -133,6 +133,7 @@ def _describe(conns: Sequence[Connection]) -> str:
 def _open_reader(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> AnyReader:
     if not path.exists():
         raise BagError(f"bag not found: {path}")
+    check_storage(path, max_bytes)  # first: it refuses a FIFO or device before anything reads it
     if path.is_file() and path.stat().st_size == 0:
         raise BagError(f"{path} is empty (0 bytes): not a bag (was the recording killed before "
                        "anything was written?)")
@@ -140,7 +141,6 @@ def _open_reader(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> AnyR
         files = [p for p in path.iterdir() if p.suffix in (".mcap", ".db3")]
         if files and all(p.stat().st_size == 0 for p in files):
             raise BagError(f"{path}: its storage file is empty (0 bytes)")
-    check_storage(path, max_bytes)
     # imported here, where a bag is read: rosbags' readers and their storage plug-ins are a few MB
     # a daemon that does not follow a bag never needs (docs/install.md, "Memory")
     from rosbags.highlevel import AnyReader  # noqa: PLC0415

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from racecar_hw.bags.recover import BagState, inspect_bag, read_db, scan_mcap, scan_ros1
-from racecar_hw.bags.validate import describe, guarded
+from racecar_hw.bags.validate import MCAP_MAGIC, describe, guarded, open_regular, storage_files
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -54,7 +54,18 @@ class BagInfo:
 
 @guarded
 def bag_info(path: str | Path) -> BagInfo:
-    """Summarize the bag at ``path`` (a ROS 1 file or a ROS 2 directory); raises :class:`BagError`."""
+    """Summarize the bag at ``path`` (a ROS 1 file or a ROS 2 directory); raises :class:`BagError`.
+
+    As ``racecar-hw follow``, it reads only regular files, and refuses a ROS 2 bag whose
+    metadata.yaml lists a storage file not named ``*.mcap`` or ``*.db3`` (:func:`storage_files`).
+    """
+    src = Path(path)
+    if src.is_dir():
+        storage_files(src)
+    elif src.exists() or src.is_symlink():
+        with open_regular(src) as f:
+            if f.read(len(MCAP_MAGIC)) == MCAP_MAGIC:  # a ROS 2 bag's .mcap file: the bag is its directory
+                storage_files(src.parent)
     state = inspect_bag(path)
     if state.complete:
         return _from_reader(state)

@@ -30,13 +30,17 @@ import contextlib
 import dataclasses
 import functools
 import math
+import os
 import sqlite3
+import stat
 import struct
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import IO, Any, Protocol, TypeVar
+
+import yaml
 
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
@@ -111,21 +115,91 @@ def guarded(fn: F) -> F:
 def check_storage(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
     """Refuse (BagError) a bag whose declared sizes exceed the file or ``max_bytes``.
 
-    ``path`` is a ROS 1 ``.bag`` file, an MCAP file, or a ROS 2 bag directory (each ``.mcap`` and
-    ``.db3`` in it is checked). Files of other kinds are left to the reader, which refuses them.
+    ``path`` is a ROS 1 ``.bag`` file, an MCAP file, or a ROS 2 bag directory (each of its
+    :func:`storage_files` is checked). Files of other kinds are left to the reader, which refuses
+    them. Only regular files are read: anything else is refused (:func:`regular_file`).
     """
-    files = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3")) if path.is_dir() else [path]
+    files = storage_files(path) if path.is_dir() else [regular_file(path)]
     for file in files:
         if file.suffix == ".db3":
             _check_sqlite3(file, max_bytes)
             continue
-        with file.open("rb") as f:
+        with open_regular(file) as f:
             magic = f.read(len(ROS1_MAGIC))
             size = file.stat().st_size
             if magic.startswith(MCAP_MAGIC):
                 _check_mcap(_Storage(file, f, size, max_bytes))
             elif magic == ROS1_MAGIC:
                 _check_ros1(_Storage(file, f, size, max_bytes))
+
+
+#: The names a ROS 2 bag's storage files have: the readers here (``bag info``, ``bag recover``) and
+#: :func:`check_storage` find them by name.
+STORAGE_SUFFIXES = (".mcap", ".db3")
+
+
+def regular_file(path: Path) -> Path:
+    """``path``, when it is a regular file (or a symbolic link to one); else :class:`BagError`.
+
+    A FIFO or a device named like a bag file would make a reader wait forever (or read without
+    end): it is refused, naming it, before anything opens it."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as err:
+        raise BagError(f"cannot read bag file {path}: {describe(err)}") from err
+    if not stat.S_ISREG(mode):
+        raise BagError(_not_regular(path, mode))
+    return path
+
+
+def _not_regular(path: Path, mode: int) -> str:
+    kinds = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory"))
+    kind = next((name for test, name in kinds if test(mode)), "of another kind")
+    return f"{path} is {kind}, not a regular file: refused, not read"
+
+
+def open_regular(path: Path) -> IO[bytes]:
+    """``path`` opened for reading, refused (BagError) unless it is a regular file when opened: the
+    check before opening and this one leave no moment where a FIFO put in its place blocks the open."""
+    fd = os.open(regular_file(path), os.O_RDONLY | os.O_NONBLOCK)
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise BagError(_not_regular(path, mode))
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
+
+
+def _listed_names(bagdir: Path) -> list[str]:
+    """The storage file names ``metadata.yaml`` lists, as rosbags takes them: by name only
+    (``PurePath(x).name``), inside the bag directory. Entries that are not strings, and metadata
+    that does not parse, are left to the reader, which refuses them."""
+    try:
+        data = yaml.safe_load((bagdir / "metadata.yaml").read_bytes())
+    except (OSError, yaml.YAMLError):
+        return []
+    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+    listed = info.get("relative_file_paths") if isinstance(info, dict) else None
+    if not isinstance(listed, list):
+        return []
+    return [PurePath(x).name for x in listed if isinstance(x, str)]
+
+
+def storage_files(bagdir: Path) -> list[Path]:
+    """The storage files of the ROS 2 bag directory ``bagdir``: every ``.mcap`` and ``.db3`` in it,
+    which include every file its ``metadata.yaml`` lists (the files rosbags opens), all regular files.
+
+    Refused (:class:`BagError`, naming the file): a listed file not named ``*.mcap`` or ``*.db3``
+    (nothing here would find it by name, so nothing would check it before rosbags reads it
+    whole), and a storage file that is not a regular file (:func:`regular_file`).
+    """
+    for name in _listed_names(bagdir):
+        if not name.endswith(STORAGE_SUFFIXES):
+            raise BagError(f"{bagdir / name}: metadata.yaml lists a storage file not named *.mcap or "
+                           "*.db3; the bag is refused (its storage files must be named by their kind)")
+    files = sorted(p for p in bagdir.iterdir() if p.suffix in STORAGE_SUFFIXES)
+    return [regular_file(p) for p in files]
 
 
 @dataclass
@@ -382,7 +456,7 @@ def mcap_chunk_crc_error(path: Path, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
     """The first chunk of the MCAP file at ``path`` that fails its CRC-32 (:func:`crc_mismatch`), or
     None. Walks the records up to the footer or the first one cut off (an interrupted recording):
     structure is the readers' business (and :func:`check_storage`'s), only checksums are checked."""
-    with path.open("rb") as f:
+    with open_regular(path) as f:
         s = _Storage(path, f, path.stat().st_size, max_bytes)
         pos = len(MCAP_MAGIC)
         number = 0
@@ -543,5 +617,6 @@ def check_commands(commands: Sequence[_Timed], path: str | Path, topic: str) -> 
 
 
 __all__ = ["ABSURD_SPEED_MPS", "ABSURD_STEERING_RAD", "DEFAULT_MAX_MESSAGE_BYTES", "CommandLimits",
-           "check_commands", "check_storage", "crc_mismatch", "describe", "guarded", "inflate",
-           "inflated_size", "mcap_chunk_crc_error", "reading"]
+           "STORAGE_SUFFIXES", "check_commands", "check_storage", "crc_mismatch", "describe", "guarded",
+           "inflate", "inflated_size", "mcap_chunk_crc_error", "open_regular", "reading",
+           "regular_file", "storage_files"]
