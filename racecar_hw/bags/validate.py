@@ -45,6 +45,7 @@ import yaml
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
 from racecar_hw.base.messages import AckermannDrive
+from racecar_hw.base.overrides import ShallowSafeLoader
 from racecar_hw.base.text import one_line
 
 #: The largest record (a message, or a chunk of messages) read from a bag, in bytes. A drive
@@ -176,8 +177,8 @@ def _listed_names(bagdir: Path) -> list[str]:
     (``PurePath(x).name``), inside the bag directory. Entries that are not strings, and metadata
     that does not parse, are left to the reader, which refuses them."""
     try:
-        data = yaml.safe_load((bagdir / "metadata.yaml").read_bytes())
-    except (OSError, yaml.YAMLError):
+        data = yaml.load((bagdir / "metadata.yaml").read_bytes(), Loader=ShallowSafeLoader)  # noqa: S506
+    except (OSError, ValueError, RecursionError, yaml.YAMLError):
         return []
     info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
     listed = info.get("relative_file_paths") if isinstance(info, dict) else None
