@@ -665,3 +665,26 @@ def test_check_storage_refuses_a_character_device_without_reading_it():
     """A device is refused from its mode: /dev/zero would be read without end."""
     with pytest.raises(BagError, match="/dev/zero is a character device, not a regular file"):
         check_storage(Path("/dev/zero"))
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_a_drive_message_far_larger_than_a_command_is_refused_while_reading(tmp_path, fmt):
+    """Every command is held until all are read: sixteen 60 MB messages on the drive topic (each
+    under the 64 MiB chunk limit, in an 11 KB bz2 bag) took ``follow`` to 1.1 GB before its refusal.
+    A message over MAX_COMMAND_BYTES is refused as it is read: no drive command comes close."""
+    from racecar_hw.bags.follow import MAX_COMMAND_BYTES
+    from racecar_hw.bags.record import BagFile
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Header, Time
+    from racecar_hw.rosmsg.typestore import types_for
+
+    big = AckermannDriveStamped(Header(Time(1, 0), "x" * (MAX_COMMAND_BYTES + 1)), AckermannDrive(speed=0.5))
+    small = AckermannDriveStamped(Header(Time(1, 0), "base_link"), AckermannDrive(speed=0.5))
+    path = tmp_path / ("big.bag" if fmt == "ros1" else "big/big_0")
+    bag = BagFile(path, fmt, "none", types_for(1 if fmt == "ros1" else 2))
+    for i, msg in enumerate((small, big, small)):
+        bag.write(TOPIC, msg, 10**9 + i * 10**8)
+    bag.close()
+    words = (rf"a message on {TOPIC} \(ackermann_msgs/msg/AckermannDriveStamped\) holds \d+ bytes, where "
+             rf"a drive command takes under {MAX_COMMAND_BYTES}")
+    with pytest.raises(BagError, match=words):
+        load_commands(path if fmt == "ros1" else path.parent)

@@ -199,6 +199,11 @@ def command_from_message(msgtype: str, msg: Any, t_ns: int,
     return Command(t_ns, types.from_ros(drive, AckermannDrive))
 
 
+#: The largest message (bytes, serialized) taken as a drive command: an AckermannDriveStamped or a
+#: TwistStamped is under 100 bytes and its frame id; every command is held until all are read.
+MAX_COMMAND_BYTES = 64 * 1024
+
+
 @guarded
 def load_commands(path: str | Path, topic: str | None = None,
                   wheelbase_m: float = DEFAULT_WHEELBASE_M, *, limits: CommandLimits | None = None,
@@ -227,7 +232,12 @@ def load_commands(path: str | Path, topic: str | None = None,
         if not mine:
             raise BagError(f"topic {topic} is not in {bag}; topics found: {_describe(conns)}")
         expected = sum(c.msgcount for c in mine)
-        raw = [(c, t, data) for c, t, data in reader.messages(connections=mine)]
+        raw = []
+        for c, t, data in reader.messages(connections=mine):
+            if len(data) > MAX_COMMAND_BYTES:  # kept until all are read: a bag of such would fill memory
+                raise BagError(f"{bag}: a message on {topic} ({c.msgtype}) holds {len(data)} bytes, where a "
+                               f"drive command takes under {MAX_COMMAND_BYTES}: damaged, or not commands")
+            raw.append((c, t, data))
         if expected and not raw:
             raise BagError(
                 f"{bag}: the metadata says {expected} messages on {topic}, but reading yielded 0. "
