@@ -385,3 +385,46 @@ def test_obstacle_bins_are_valid_cm(ranges: list[float], angle_min: float) -> No
     assert len(distances) == 72 and (min_cm, max_cm) == (5, 3000)
     for d in distances:
         assert d == 65535 or 0 <= d <= max_cm + 1
+
+
+def test_an_override_sent_while_the_station_was_lost_does_not_come_back_with_65535() -> None:
+    """After the heartbeat-loss failsafe, one RC override with every channel 65535 ("unchanged")
+    brought back the full throttle the station had sent while it was declared lost (a review
+    reproduced it: 0 m/s, then 2.0 m/s). Refused overrides are not kept, and the failsafe (or any
+    mode but MANUAL) forgets the held channels."""
+    async def main() -> None:
+        bus = Bus()
+        arming = Arming(start_armed=True)
+        rec = Recorder(bus)
+        gs = Station()
+        params = MavlinkParams(enabled=True, gcs_address=f"127.0.0.1:{gs.port}", bind_port=0, rate_hz=50.0)
+        link = MavlinkGcs(bus, params, arming)
+        task = asyncio.create_task(link.run())
+        await gs.wait("HEARTBEAT")  # the station answers where the car's heartbeat came from
+        gs.beating = True
+        beats = asyncio.create_task(gs.beat())
+        await async_wait_for(lambda: link.gcs_alive)
+        gs.conn.mav.rc_channels_override_send(1, 1, 1500, 65535, 2000, 65535, 65535, 65535, 65535, 65535)
+        await async_wait_for(lambda: rec.drives and rec.drives[-1][0] == pytest.approx(2.0))
+        gs.beating = False  # the station goes quiet but its overrides keep coming
+        lost = link.counters["gcs_timeouts"]
+        while link.counters["gcs_timeouts"] == lost:
+            gs.conn.mav.rc_channels_override_send(1, 1, 1500, 65535, 2000, 65535, 65535, 65535, 65535, 65535)
+            await asyncio.sleep(0.1)
+        await async_wait_for(lambda: rec.drives[-1] == (0.0, 0.0))
+        ignored = link.counters["inputs_ignored"]
+        for _ in range(3):  # refused: the station is lost
+            gs.conn.mav.rc_channels_override_send(1, 1, 1500, 65535, 2000, 65535, 65535, 65535, 65535, 65535)
+        await async_wait_for(lambda: link.counters["inputs_ignored"] >= ignored + 3)
+        gs.heartbeat()
+        await async_wait_for(lambda: link.gcs_alive)
+        taken = link.counters["manual_inputs"]
+        gs.conn.mav.rc_channels_override_send(1, 1, *[65535] * 8)
+        await async_wait_for(lambda: link.counters["manual_inputs"] == taken + 1)
+        link.tick()
+        assert rec.drives[-1][0] == 0.0, rec.drives[-5:]
+        await stop(beats)
+        await stop(task)
+        gs.close()
+
+    asyncio.run(main())

@@ -54,21 +54,30 @@ class Sticks:
                                   -_axis(msg.y) * self.params.max_steering_rad, now, "manual_control")
 
     def take_rc_override(self, msg: Any, now: int) -> None:
-        """An RC_CHANNELS_OVERRIDE message (addressed to us) arrived at ``now``."""
+        """An RC_CHANNELS_OVERRIDE message (addressed to us) arrived at ``now``. A release (0) always
+        counts; a value only from an input that may drive now: one refused (the station lost, not
+        MANUAL) is not kept for a later 65535 ("unchanged") to bring back."""
+        accepted = self._accept()
         for channel, raw in ((1, msg.chan1_raw), (3, msg.chan3_raw)):
-            if raw == UINT16_MAX:
-                self._rc_value(channel, now)  # "unchanged": a live value stays as it was set
-                continue
-            self._rc[channel] = None if raw == 0 else (raw, now)
+            if raw == 0:
+                self._rc[channel] = None
+            elif raw != UINT16_MAX and accepted:
+                self._rc[channel] = (raw, now)
         steering, throttle = self._rc_value(1, now), self._rc_value(3, now)
         if steering is None and throttle is None:
             if self.manual is not None and self.manual.kind == "rc_override":
                 self.manual = None  # both channels released or expired: stop driving now
             return
-        if not self._accept():
+        if not accepted:
             return
         self.manual = ManualInput(self._pwm(throttle) * self.params.max_speed_mps,
                                   -self._pwm(steering) * self.params.max_steering_rad, now, "rc_override")
+
+    def forget(self) -> None:
+        """Drop the input and every override channel (the station lost, or not in MANUAL): nothing
+        held from before comes back with a later 65535 ("unchanged")."""
+        self.manual = None
+        self._rc = dict.fromkeys(self._rc)
 
     def drive(self, now: int, allowed: bool) -> AckermannDrive | None:
         """The command to publish at ``now``: None while there is no fresh input or driving is not
