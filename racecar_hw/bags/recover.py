@@ -34,7 +34,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
-from typing import Any
 
 import yaml
 from rosbags.interfaces import Qos
@@ -47,6 +46,8 @@ from racecar_hw.bags.validate import (
     crc_mismatch,
     guarded,
     inflate,
+    listed_names,
+    load_metadata,
     mcap_chunk_crc_error,
 )
 from racecar_hw.bags.writers import (
@@ -57,7 +58,6 @@ from racecar_hw.bags.writers import (
     Ros2Bag,
 )
 from racecar_hw.base.errors import BagError
-from racecar_hw.base.overrides import ShallowSafeLoader
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -550,7 +550,7 @@ def read_db(db: Path, *, readonly: bool = False) -> DbContent:
 
 
 def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
-    meta, unusable = _load_metadata(bagdir)
+    meta, unusable = load_metadata(bagdir)
     if meta is None:
         return unusable
     # A non-empty rollback journal is a transaction that never finished. (A -wal file is not: in
@@ -558,7 +558,7 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
     hot = [db.name for db in dbs if _size(db.parent / f"{db.name}-journal")]
     if hot:
         return f"{', '.join(hot)} has a journal left by an interrupted write"
-    listed = set(_listed_names(meta))
+    listed = set(listed_names(meta))
     contents = []
     for db in dbs:
         try:
@@ -634,56 +634,8 @@ def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
 # --- which bag, which files, complete? --------------------------------------------------------
 
 
-class _MetadataLoader(ShallowSafeLoader):
-    """PyYAML's safe loader (flow nesting limited) refusing aliases (``*name``) in ``metadata.yaml``.
-
-    rosbag2, rosbags and our writers never write one, and 600 bytes of aliases nested 8 deep stand
-    for 10^8 strings to whatever walks the result: ``bag info`` took 833 MB and 28 s on such a file.
-    """
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.composer.ComposerError(None, None, f"an alias (*{event.anchor}), which bag metadata "
-                                              "never has", event.start_mark)
-        return super().compose_node(parent, index)
-
-
-def _load_metadata(bagdir: Path) -> tuple[dict | None, str]:
-    """``rosbag2_bagfile_information`` of the bag's ``metadata.yaml``, or None and why it is not usable."""
-    try:
-        text = (bagdir / "metadata.yaml").read_text("utf8")
-    except FileNotFoundError:
-        return None, "metadata.yaml is missing"
-    except (OSError, ValueError) as err:
-        return None, f"metadata.yaml is not readable ({type(err).__name__})"
-    try:
-        data = yaml.load(text, Loader=_MetadataLoader)  # noqa: S506 - a SafeLoader
-    except yaml.MarkedYAMLError as err:
-        mark = err.problem_mark
-        at = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        return None, f"metadata.yaml is not usable: {at}{err.problem or err.context}"
-    except (yaml.YAMLError, RecursionError) as err:
-        return None, f"metadata.yaml is not usable ({type(err).__name__})"
-    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
-    if not isinstance(info, dict):
-        return None, "metadata.yaml is not usable: it has no rosbag2_bagfile_information"
-    return info, ""
-
-
 def _metadata(bagdir: Path) -> dict | None:
-    return _load_metadata(bagdir)[0]
-
-
-def _listed_names(meta: dict) -> list[str]:
-    """The file names ``relative_file_paths`` lists, each once: only the name of each path, as rosbags
-    reads it (rosbag2 before version 4 wrote ``<bag>/<file>``), so only files in the bag directory
-    are ever taken; an entry that is not a string is left out (never turned into one)."""
-    paths = meta.get("relative_file_paths")
-    if not isinstance(paths, list):
-        return []
-    names = (PurePath(p).name for p in paths if isinstance(p, str))
-    return list(dict.fromkeys(n for n in names if n not in ("", ".", "..")))
+    return load_metadata(bagdir)[0]
 
 
 def _listed_counts(meta: dict) -> dict[str, int]:
@@ -701,7 +653,7 @@ def _listed_counts(meta: dict) -> dict[str, int]:
 def _storage_files(bagdir: Path, suffix: str) -> list[Path]:
     """The bag's files, all in ``bagdir``: in metadata.yaml's order, then any other on disk (written
     after it)."""
-    listed = [bagdir / name for name in _listed_names(_metadata(bagdir) or {}) if name.endswith(suffix)]
+    listed = [bagdir / name for name in listed_names(_metadata(bagdir) or {}) if name.endswith(suffix)]
     listed = [p for p in listed if p.is_file()]
     extra = sorted(p for p in bagdir.glob(f"*{suffix}") if p not in listed and p.is_file())
     return listed + extra
@@ -741,7 +693,7 @@ def inspect_bag(path: str | Path) -> BagState:
                 if size < 2 * len(MCAP_MAGIC) or fh.read() != MCAP_MAGIC:
                     return BagState(src, "mcap", mcaps, False,
                                     f"{f.name} has no footer (the recording was not closed)")
-        meta, unusable = _load_metadata(src)
+        meta, unusable = load_metadata(src)
         if meta is None:
             return BagState(src, "mcap", mcaps, False, unusable)
         for f in mcaps:
