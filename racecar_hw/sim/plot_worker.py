@@ -17,7 +17,7 @@ raises as it always did).
 Interruption: the child runs in a session of its own, so a Ctrl-C at the terminal reaches only
 the ``sim`` process, which handles it as before; the child ends when its standard input closes
 (:meth:`PlotWorker.close`, or the parent gone for any reason). The run hands the figure over and
-waits for the answer in a thread (:meth:`PlotWorker.answer`), its event loop free to act on a
+waits for the answer in a thread (:meth:`PendingPlot.answer`), its event loop free to act on a
 Ctrl-C meanwhile: a stop request then gives the figure up (:meth:`PlotWorker.kill`) instead of
 waiting up to :data:`RESULT_TIMEOUT_S` for it.
 
@@ -55,14 +55,19 @@ class PendingPlot:
         self._args = args
         self._kwargs = kwargs
 
+    def answer(self) -> tuple[int, int] | None:
+        """The worker's answer: the PNG's size in pixels (width, height), or None when there is no
+        worker or it could not draw (or was killed, :meth:`PlotWorker.kill`). Nothing is drawn here;
+        blocks, so a run's event loop asks it from a thread."""
+        worker, self._worker = self._worker, None
+        return worker.result() if worker is not None else None
+
     def wait(self) -> tuple[int, int]:
         """The PNG's size in pixels (width, height) once it is written; drawn here if the worker
         could not."""
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            size = worker.result()
-            if size is not None:
-                return size
+        size = self.answer()
+        if size is not None:
+            return size
         from racecar_hw.sim.plot import plot_run  # noqa: PLC0415 - matplotlib, only when needed
 
         return plot_run(*self._args, **self._kwargs)
@@ -127,15 +132,9 @@ class PlotWorker:
             return None
         return int(value[0]), int(value[1])
 
-    def answer(self, path: str | Path, *args: Any, **kwargs: Any) -> tuple[int, int] | None:
-        """:meth:`submit` and :meth:`result` in one, for a thread of its own: the PNG's size, or
-        None when the child could not draw it (or was killed): then nothing is drawn here."""
-        self.submit(path, *args, **kwargs)
-        return self.result()
-
     def kill(self) -> None:
         """Give the figure up (a stop request while it is drawn): the child is killed, so that
-        :meth:`answer` or :meth:`result`, waiting for it in another thread, returns None at once."""
+        :meth:`result`, waiting for it in another thread, returns None at once."""
         child = self._child
         if child is not None and child.poll() is None:
             child.kill()

@@ -21,7 +21,7 @@ from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.sim.car import CLEARANCE_RANGE_M, footprint
 from racecar_hw.sim.obstacles import point_polygon_distance
-from racecar_hw.sim.plot_worker import PlotWorker
+from racecar_hw.sim.plot_worker import PendingPlot, PlotWorker
 from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
 from racecar_hw.sim.world import compose
 
@@ -196,7 +196,12 @@ class RunReport:
         all, for up to RESULT_TIMEOUT_S. Drawn here (no worker, or one that could not) at once."""
         stop = self.run.next_stop()
         plotter = self.run.plotter or PlotWorker(None)
-        answer = asyncio.get_running_loop().run_in_executor(None, lambda: plotter.answer(*args, **kwargs))
+
+        def hand_over() -> tuple[PendingPlot, tuple[int, int] | None]:
+            pending = plotter.submit(*args, **kwargs)
+            return pending, pending.answer()
+
+        answer = asyncio.get_running_loop().run_in_executor(None, hand_over)
         stopped = asyncio.ensure_future(stop.wait())
         try:
             meanwhile()
@@ -207,10 +212,9 @@ class RunReport:
                 plotter.kill()  # the thread's wait ends at once
         if not answer.done():
             return False
-        if answer.result() is None:
-            from racecar_hw.sim.plot import plot_run  # noqa: PLC0415 - matplotlib, only when needed
-
-            plot_run(*args, **kwargs)
+        pending, size = answer.result()
+        if size is None:
+            pending.wait()  # drawn here
         return True
 
     def _odometry_error(self) -> float | None:
