@@ -257,9 +257,10 @@ class MavlinkGcs:
     def tick(self, now_ns: int | None = None) -> None:
         """Heartbeat watch, teleop publishing, and telemetry when due."""
         now = self._clock() if now_ns is None else now_ns
-        if self.presence.lost(now) or self.commands.mode != MODES["MANUAL"]:
+        manual = self.commands.mode == MODES["MANUAL"]
+        if self.presence.lost(now) or not manual:
             self.sticks.forget()
-        drive = self.sticks.drive(now, self.gcs_alive and self.commands.mode == MODES["MANUAL"])
+        drive = self.sticks.drive(now, self.gcs_alive and manual)
         if drive is not None:
             self._publish_drive(drive)
             self._publishing = True
