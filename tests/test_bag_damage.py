@@ -688,3 +688,92 @@ def test_a_drive_message_far_larger_than_a_command_is_refused_while_reading(tmp_
              rf"a drive command takes under {MAX_COMMAND_BYTES}")
     with pytest.raises(BagError, match=words):
         load_commands(path if fmt == "ros1" else path.parent)
+
+
+# --- bag info and bag recover count messages, they do not keep them ----------------------------
+
+#: The review's hostile bag, scaled down: sixteen messages on the drive topic, each in a chunk of its
+#: own, compressed to almost nothing (theirs: sixteen of 60 MB in 11 KB of bz2, 1 GB for bag info).
+BIG_COUNT, BIG_BYTES = 16, 4 * 2**20
+
+
+def _big_drive_bag(tmp_path: Path, fmt: str, cut: bool) -> Path:
+    """BIG_COUNT AckermannDriveStamped of BIG_BYTES (a frame id of "x"): a ROS 1 bag in bz2 chunks or
+    a ROS 2 MCAP bag in zstd chunks; ``cut``: an unfinished recording (no index, no summary)."""
+    from racecar_hw.bags.ros1_writer import Ros1Writer
+    from racecar_hw.bags.writers import ROS1_MAGIC, ros1_file_header
+    from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
+
+    frame = struct.pack("<I", BIG_BYTES) + b"x" * BIG_BYTES
+    if fmt == "ros1":
+        path = tmp_path / f"big_{cut}.bag"
+        msgdef, md5 = ros1_types().store.generate_msgdef(DRIVE)
+        with Ros1Writer(path, "bz2") as writer:
+            conn = writer.add_connection(TOPIC, "ackermann_msgs/AckermannDriveStamped", md5, msgdef)
+            for i in range(BIG_COUNT):
+                writer.write(conn, T0 + i * 10**8, struct.pack("<III", i, 1, 0) + frame + bytes(20))
+        if cut:
+            with path.open("r+b") as f:
+                f.seek(len(ROS1_MAGIC))
+                f.write(ros1_file_header(0, 0, 0))
+        return path
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    path = tmp_path / f"big_{cut}"
+    writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        conn = writer.add_connection(TOPIC, DRIVE, typestore=ros2_types().store)
+        for i in range(BIG_COUNT):
+            writer.write(conn, T0 + i * 10**8, b"\x00\x01\x00\x00" + struct.pack("<II", 1, 0) + frame
+                         + bytes(24))
+    if cut:  # killed before its summary: up to the data-end record
+        file = storage(path)
+        data = file.read_bytes()
+        pos = 8
+        while data[pos] != 0x0F:
+            pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
+        file.write_bytes(data[:pos])
+    return path
+
+
+def _traced_peak(fn):
+    """``fn()`` and the most memory Python held while it ran (bytes, traced)."""
+    tracemalloc.start()
+    try:
+        result = fn()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return result, peak
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+@pytest.mark.parametrize("cut", [False, True], ids=["closed", "unfinished"])
+def test_info_and_recover_of_many_big_messages_hold_one_chunk_at_a_time(tmp_path, fmt, cut):
+    """``bag info`` and ``bag recover`` count each message and write it as it is read: a bag of
+    sixteen 4 MiB drive messages (64 MiB, under 100 kB compressed) is summarized and recovered
+    whole, holding a few chunks at most, where keeping the messages took all 64 MiB and more."""
+    from racecar_hw.bags.info import bag_info
+
+    path = _big_drive_bag(tmp_path, fmt, cut)
+    assert sum(f.stat().st_size for f in ([path] if path.is_file() else path.iterdir())) < 100_000
+    small = bag(tmp_path, fmt, commands(3), "small")
+    recover_bag(small, tmp_path / ("small_out.bag" if fmt == "ros1" else "small_out"))
+    bag_info(small)  # the readers' imports and type stores, made before anything is traced
+
+    info, peak = _traced_peak(lambda: bag_info(path))
+    assert info.state.complete is not cut
+    assert [(t.topic, t.count) for t in info.topics] == [(TOPIC, BIG_COUNT)]
+    assert (info.start_ns, info.end_ns) == (T0, T0 + (BIG_COUNT - 1) * 10**8)
+    assert peak < 8 * BIG_BYTES, ("info", peak)
+
+    out = tmp_path / ("out.bag" if fmt == "ros1" else "out")
+    result, peak = _traced_peak(lambda: recover_bag(path, out))
+    assert (result.messages, result.was_complete) == (BIG_COUNT, not cut)
+    assert peak < 8 * BIG_BYTES, ("recover", peak)
+    if cut:
+        recovered = bag_info(out)
+        assert recovered.state.complete
+        assert [(t.topic, t.count) for t in recovered.topics] == [(TOPIC, BIG_COUNT)]

@@ -1,9 +1,12 @@
 """What is in a bag (``racecar-hw bag info``): topics, types, counts, time range, and whether it is complete.
 
 A complete bag is summarized from its index (ROS 1) or summary and metadata (ROS 2) through
-rosbags, without reading every message. An incomplete one (an interrupted recording) is summarized
-from what :mod:`racecar_hw.bags.recover` finds in its files: the messages a recovery would keep
-(an empty split file holds none).
+rosbags, without reading every message (a ROS 1 bag's chunks are read once all the same, by
+:func:`~racecar_hw.bags.recover.inspect_bag`, to check its index against them). An incomplete one
+(an interrupted recording) is summarized from what :mod:`racecar_hw.bags.recover` finds in its
+files: the messages a recovery would keep (an empty split file holds none). Either way messages
+are counted as they are read, never kept: memory holds the file and one decompressed chunk (at
+most 64 MiB, ``max_message_bytes``), whatever the number of messages.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import datetime
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from racecar_hw.bags.recover import BagState, inspect_bag, read_db, scan_mcap, scan_ros1
+from racecar_hw.bags.recover import BagState, Tally, inspect_bag, read_db, scan_mcap, scan_ros1
 from racecar_hw.bags.validate import MCAP_MAGIC, describe, guarded, open_regular, storage_files
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import BagError
@@ -71,28 +74,39 @@ def bag_info(path: str | Path) -> BagInfo:
         return _from_reader(state)
     if state.format == "sqlite3":
         return _from_databases(state)
-    times: dict[str, list[int]] = {}
-    types: dict[str, str] = {}
+    found = _Found()
     if state.format == "ros1":
         scan = scan_ros1(state.path.read_bytes())
-        for cid, t_ns, _data in scan.messages:
-            conn = scan.connections.get(cid)
-            if conn is not None:
-                topic = conn["topic"].decode()
-                pkg, _, name = conn["type"].decode().partition("/")
-                types[topic] = f"{pkg}/msg/{name}"
-                times.setdefault(topic, []).append(t_ns)
+        for cid, conn in scan.connections.items():
+            pkg, _, name = conn["type"].decode().partition("/")
+            found.add(scan.tally, cid, conn["topic"].decode(), f"{pkg}/msg/{name}")
     else:
         for file in state.files:
             mcap = scan_mcap(file.read_bytes())
-            for cid, t_ns, _data in mcap.messages:
-                if cid in mcap.channels:
-                    sid, topic, _enc = mcap.channels[cid]
-                    types[topic] = mcap.schemas[sid][0] if sid in mcap.schemas else "?"
-                    times.setdefault(topic, []).append(t_ns)
-    every = [t for ts in times.values() for t in ts]
-    return BagInfo(state, [TopicSummary(t, types[t], len(ts)) for t, ts in sorted(times.items())],
-                   min(every, default=None), max(every, default=None))
+            for cid, (sid, topic, _enc) in mcap.channels.items():
+                found.add(mcap.tally, cid, topic, mcap.schemas[sid][0] if sid in mcap.schemas else "?")
+    topics = [TopicSummary(t, found.types[t], n) for t, n in sorted(found.counts.items())]
+    return BagInfo(state, topics, min(found.starts, default=None), max(found.ends, default=None))
+
+
+@dataclass
+class _Found:
+    """What a scan's tally says of the topics of an unfinished bag (messages on a connection or
+    channel id the scan found no definition of are left out, as a recovery leaves them out)."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    types: dict[str, str] = field(default_factory=dict)
+    starts: list[int] = field(default_factory=list)
+    ends: list[int] = field(default_factory=list)
+
+    def add(self, tally: Tally, cid: int, topic: str, msgtype: str) -> None:
+        n = tally.counts.get(cid, 0)
+        if not n:
+            return
+        self.counts[topic] = self.counts.get(topic, 0) + n
+        self.types[topic] = msgtype
+        self.starts.append(tally.first[cid])
+        self.ends.append(tally.last[cid])
 
 
 def _from_databases(state: BagState) -> BagInfo:
