@@ -777,3 +777,28 @@ def test_info_and_recover_of_many_big_messages_hold_one_chunk_at_a_time(tmp_path
         recovered = bag_info(out)
         assert recovered.state.complete
         assert [(t.topic, t.count) for t in recovered.topics] == [(TOPIC, BIG_COUNT)]
+
+
+def test_a_chunk_over_max_message_bytes_is_refused_by_info_and_recover_naming_it(tmp_path):
+    """A chunk holding more than 64 MiB uncompressed (here one message of 65 MiB of zeros, 100 bytes
+    of bz2) is more than any reader here holds: ``bag info`` and ``bag recover`` refuse the bag in
+    one line naming it, the chunk's offset and the limit, not as a decompression bomb."""
+    from racecar_hw.bags.ros1_writer import Ros1Writer
+    from racecar_hw.bags.validate import DEFAULT_MAX_MESSAGE_BYTES
+    from racecar_hw.rosmsg.typestore import ros1_types
+
+    path = tmp_path / "huge.bag"
+    msgdef, md5 = ros1_types().store.generate_msgdef("std_msgs/msg/String")
+    with Ros1Writer(path, "bz2") as writer:
+        conn = writer.add_connection("/blob", "std_msgs/String", md5, msgdef)
+        writer.write(conn, T0, struct.pack("<I", DEFAULT_MAX_MESSAGE_BYTES + 2**20)
+                     + bytes(DEFAULT_MAX_MESSAGE_BYTES + 2**20))
+    assert path.stat().st_size < 10_000
+    for args in (("info", str(path)), ("recover", str(path), "-o", str(tmp_path / "out.bag"))):
+        proc = _run_cli("bag", *args)
+        assert proc.returncode == 1, (args, proc.stdout, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert str(path) in proc.stderr and "the bz2 chunk at byte 4117 holds more than 67108864 bytes " \
+            "uncompressed (it declares 68157" in proc.stderr, proc.stderr
+        assert "over the limit of 67108864 (max_message_bytes)" in proc.stderr, proc.stderr
+    assert not (tmp_path / "out.bag").exists()

@@ -223,8 +223,15 @@ def _decompress(data: memoryview, compression: str, declared: int, where: str) -
     bound = min(declared, DEFAULT_MAX_MESSAGE_BYTES)
     what = f"the {compression} {where} declaring {declared} bytes uncompressed"
     out = bytearray()
-    for piece in inflate([data], compression, bound, what):
-        out += piece
+    try:
+        for piece in inflate([data], compression, bound, what):
+            out += piece
+    except BagError:
+        if declared <= bound:  # it lies about its size
+            raise
+        raise BagError(f"the {compression} {where} holds more than {bound} bytes uncompressed (it declares "
+                       f"{declared}), over the limit of {bound} (max_message_bytes) a chunk may have; "
+                       "refused") from None
     return out
 
 
