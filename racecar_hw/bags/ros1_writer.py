@@ -40,9 +40,14 @@ def _field(name: str, value: bytes) -> bytes:
     return _U32.pack(len(raw)) + raw
 
 
-def _record(fields: list[tuple[str, bytes]], data: bytes) -> bytes:
+def _record_head(fields: list[tuple[str, bytes]], data_len: int) -> bytes:
+    """A record up to its data: the header and the data's length."""
     header = b"".join(_field(n, v) for n, v in fields)
-    return _U32.pack(len(header)) + header + _U32.pack(len(data)) + data
+    return _U32.pack(len(header)) + header + _U32.pack(data_len)
+
+
+def _record(fields: list[tuple[str, bytes]], data: bytes) -> bytes:
+    return _record_head(fields, len(data)) + data
 
 
 def _time(t_ns: int) -> bytes:
@@ -140,12 +145,13 @@ class Ros1Writer:
     def _write_chunk(self) -> None:
         if not self._index:
             return
-        raw = bytes(self._chunk)
+        raw = self._chunk  # written as it is, not copied: a chunk of one camera image is MBs
         data = bz2.compress(raw, 9) if self.compression == "bz2" else raw
         fh = self._fh
         pos = fh.tell()
-        fh.write(_record([("op", bytes([_OP_CHUNK])), ("compression", self.compression.encode()),
-                          ("size", _u32(len(raw)))], data))
+        fh.write(_record_head([("op", bytes([_OP_CHUNK])), ("compression", self.compression.encode()),
+                               ("size", _u32(len(raw)))], len(data)))
+        fh.write(data)
         counts = {}
         for cid, entries in self._index.items():
             counts[cid] = len(entries)
