@@ -362,3 +362,22 @@ def test_a_certificate_child_that_answers_nothing_is_one_clear_error(tmp_path, m
     monkeypatch.setenv("PYTHONPATH", str(tmp_path))
     with pytest.raises(CertificateError, match="loopback certificate: the child process answered b''"):
         make_loopback_cert()
+
+
+def test_servers_of_one_process_share_its_certificate_and_a_plain_request_gets_a_new_one(monkeypatch):
+    """``PendingCert(reuse=True)`` (the Foxglove server's) makes the process's certificate once; later
+    ones start no child process. Without ``reuse`` every certificate is new."""
+    from racecar_hw.net import loopback_tls  # noqa: PLC0415
+
+    monkeypatch.setattr(loopback_tls, "_made", {})
+    first = loopback_tls.PendingCert(reuse=True).result()
+    fresh = make_loopback_cert()
+    assert fresh.key_pem != first.key_pem
+
+    def no_child(*args, **kwargs):
+        raise AssertionError(f"a child process was started: {args}")
+
+    monkeypatch.setattr(loopback_tls.subprocess, "Popen", no_child)
+    again = loopback_tls.PendingCert(reuse=True)
+    assert again.result() is first
+    assert again.result() is first

@@ -140,7 +140,7 @@ class FoxgloveServer:
         self._next_scene_ns = 0
         self._log_handler: _LogHandler | None = None
         #: the SDK server's loopback certificate, made by a child process from now until start()
-        self._cert: PendingCert | None = PendingCert()
+        self._cert: PendingCert | None = PendingCert(reuse=True)
 
     # --- life cycle -----------------------------------------------------------------------------
 
@@ -173,7 +173,7 @@ class FoxgloveServer:
         if self.teleop.teleop_input is not None:
             capabilities.append(Capability.ClientPublish)
         # the SDK behind the relay, on loopback with TLS only the relay trusts (see net.relay)
-        pending, self._cert = self._cert or PendingCert(), None
+        pending, self._cert = self._cert or PendingCert(reuse=True), None
         cert = pending.result()
         try:
             self.server = foxglove.start_server(

@@ -52,14 +52,24 @@ class CertificateError(RacecarError):
     """The loopback certificate could not be made."""
 
 
+#: The certificates this process made with ``reuse``, by their days of validity.
+_made: dict[int, LoopbackCert] = {}
+
+
 class PendingCert:
     """A certificate being made: the child process starts at once and :meth:`result` collects it,
     so the caller can do other work (start its other interfaces) meanwhile. :meth:`cancel` ends a
-    child whose certificate is not wanted."""
+    child whose certificate is not wanted.
 
-    def __init__(self, valid_days: int = 3650) -> None:
+    With ``reuse``, a certificate this process already made with ``reuse`` (for as many days) is
+    given back, and no child starts: the key stays in this process either way."""
+
+    def __init__(self, valid_days: int = 3650, reuse: bool = False) -> None:
         self._error: OSError | None = None
         self._process: subprocess.Popen[bytes] | None = None
+        self._days = valid_days if reuse else None
+        if self._days is not None and self._days in _made:
+            return
         try:
             self._process = subprocess.Popen([sys.executable, *SAFE_PATH, "-m", __name__, str(valid_days)],
                                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
@@ -69,6 +79,9 @@ class PendingCert:
 
     def result(self) -> LoopbackCert:
         """The certificate (waits for the child); :class:`CertificateError` if it failed."""
+        if self._days is not None and self._days in _made:
+            self.cancel()
+            return _made[self._days]
         process, self._process = self._process, None
         if process is None:
             raise CertificateError(f"cannot make the loopback certificate: "
@@ -83,11 +96,14 @@ class PendingCert:
             raise CertificateError(f"cannot make the loopback certificate: {last}")
         try:
             pems = json.loads(stdout)
-            return LoopbackCert(pems["cert"].encode(), pems["key"].encode())
+            made = LoopbackCert(pems["cert"].encode(), pems["key"].encode())
         except (ValueError, KeyError, TypeError, AttributeError) as err:
             # a child that ran other code (an older racecar_hw first on PYTHONPATH, say) answers nothing
             raise CertificateError(f"cannot make the loopback certificate: the child process answered "
                                    f"{stdout[:60]!r} ({err})") from None
+        if self._days is not None:
+            _made[self._days] = made
+        return made
 
     def cancel(self) -> None:
         """End the child if its certificate was not collected (safe to call twice)."""
