@@ -89,6 +89,15 @@ from racecar_hw.teleop.mavlink_sticks import ManualInput, Sticks
 from racecar_hw.teleop.mavlink_telemetry import Telemetry, obstacle_bins, odom_to_ned, quaternion_matrix
 
 log = logging.getLogger(__name__)
+
+#: The names of :attr:`MavlinkGcs.counters`.
+COUNTERS = (
+    "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "mavlink1_refused", "unsigned_refused",
+    "bad_signature", "old_timestamp", "future_timestamp", "oversized", "overfull", "commands", "acks",
+    "manual_inputs", "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts", "send_errors",
+    "datagrams", "station_datagrams", "drain_rests", "signing_restarts")
+
+
 class MavlinkGcs:
     """The ground-station link on the bus. ``await run()`` until cancelled.
 
@@ -105,8 +114,10 @@ class MavlinkGcs:
 
     :attr:`counters` (for tests and end-to-end checks): ``rx``, ``tx``, ``foreign`` (datagrams from
     another host), ``bad_data``, ``unsigned_refused``, ``bad_signature``, ``old_timestamp``,
-    ``future_timestamp``, ``commands``, ``acks``, ``manual_inputs``, ``inputs_ignored`` (teleop
-    outside MANUAL or without a fresh ground-station heartbeat), ``gcs_timeouts``,
+    ``future_timestamp``, ``oversized`` and ``overfull`` (datagrams longer, or with more frames,
+    than a ground station sends: :mod:`~racecar_hw.teleop.mavlink_rx`), ``commands``, ``acks``,
+    ``manual_inputs``, ``inputs_ignored`` (teleop outside MANUAL or without a fresh ground-station
+    heartbeat), ``gcs_timeouts``,
     ``teleop_published``, ``statustexts``, ``send_errors``, ``datagrams`` (read from the sockets),
     ``station_datagrams`` (of those, read from the station's own socket), ``drain_rests`` (a socket
     still had datagrams waiting after its budget: a flood), ``signing_restarts``.
@@ -126,11 +137,7 @@ class MavlinkGcs:
         self._clock = clock
         self._wall_clock = wall_clock
         gcs_host, gcs_port = params.gcs
-        self.counters: dict[str, int] = dict.fromkeys((
-            "rx", "tx", "foreign", "other_sender", "bad_data", "unknown_ids", "mavlink1_refused",
-            "unsigned_refused", "bad_signature", "old_timestamp", "future_timestamp", "commands", "acks",
-            "manual_inputs", "inputs_ignored", "gcs_timeouts", "teleop_published", "statustexts",
-            "send_errors", "datagrams", "station_datagrams", "drain_rests", "signing_restarts"), 0)
+        self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self.udp = MavlinkSocket(params.bind, (gcs_host, gcs_port) if gcs_port else None, self.counters,
                                  self.handle_datagram, lambda tally: self.security.note_tally(tally))
         # pymavlink only packs and signs what we send; received datagrams go through self.security

@@ -25,7 +25,7 @@ from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.loopback import is_loopback
 from racecar_hw.runtime.refusals import Refusals
 from racecar_hw.teleop.mavlink_params import BIND_NEEDS_SIGNING, NEEDS_SIGNING
-from racecar_hw.teleop.mavlink_rx import MavlinkRx
+from racecar_hw.teleop.mavlink_rx import MAX_DATAGRAM, MavlinkRx
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,8 @@ REFUSAL_REASONS = {
     "old_timestamp": "replayed or old signing timestamp",
     "future_timestamp": "signing timestamp too far ahead of our clock",
     "other_sender": "not the ground station's system id",
+    "oversized": f"datagram longer than {MAX_DATAGRAM} bytes",
+    "overfull": "more frames in one datagram than a ground station sends",
 }
 
 

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from racecar_hw.teleop.mavlink_rx import MAX_DATAGRAM
 from racecar_hw.teleop.mavlink_signing import Tally
 
 log = logging.getLogger(__name__)
@@ -34,8 +35,10 @@ DRAIN_BUDGET_NS = 500_000
 DRAIN_PAUSE_S = 0.010
 #: Datagrams read per batch (the station's address is handled first within a batch).
 DRAIN_BATCH = 64
-#: Largest datagram read (bytes); a MAVLink 2 frame is at most 280.
-RECV_SIZE = 65536
+#: Bytes read of a datagram: one more than the decoder takes (a MAVLink 2 frame is at most 280
+#: bytes), so that a longer datagram, cut here by the kernel, is still seen to be too long and is
+#: refused whole without copying its 64 KiB.
+RECV_SIZE = MAX_DATAGRAM + 1
 
 #: Handles one datagram from an address, summing its refusals in the tally.
 DatagramHandler = Callable[[bytes, tuple[Any, ...], Tally], None]
