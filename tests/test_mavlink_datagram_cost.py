@@ -3,13 +3,18 @@
 A reviewer's 65,507-byte datagram of ``FD FF 00 00 00`` cost the decoder some 13,000 CRCs (64 ms);
 20 such datagrams a second held the event loop for seconds. Ground stations send one frame or a
 few per datagram (a MAVLink 2 frame is at most 280 bytes): a longer datagram is refused before any
-CRC, and a shorter one is decoded with a bounded number of frame starts and frames.
+CRC, a shorter one is decoded with a bounded number of frame starts and frames, and the socket's
+drain budget is looked at after every datagram.
 """
 
 from __future__ import annotations
 
+import asyncio
 import os
+import socket
+import time
 from pathlib import Path
+from typing import Any
 
 from conftest import async_wait_for
 from test_mavlink_security import Packer, Station, run_signed
@@ -19,6 +24,8 @@ from racecar_hw.base.clock import wall_ns
 from racecar_hw.teleop.arming import Arming
 from racecar_hw.teleop.mavlink_gcs import MavlinkGcs, MavlinkParams, signing_timestamp
 from racecar_hw.teleop.mavlink_rx import MAX_CANDIDATES, MAX_DATAGRAM, MAX_FRAMES, MavlinkRx
+from racecar_hw.teleop.mavlink_signing import Tally
+from racecar_hw.teleop.mavlink_socket import DRAIN_BUDGET_NS, MavlinkSocket
 
 #: The reviewer's datagram: every fifth byte an FD whose header names HEARTBEAT with 255 bytes of
 #: payload, so every one of them is a CRC over 265 bytes.
@@ -87,6 +94,40 @@ def test_the_reviewers_datagrams_reach_the_link_as_one_refusal_each(tmp_path: Pa
         attacker.close()
 
     run_signed(tmp_path, scenario)
+
+
+def test_the_drain_budget_is_looked_at_after_every_datagram():
+    """Datagrams each costing the whole budget: every wake-up of the reader handles one, then the
+    socket rests; none is lost (what a spent budget left of a batch is handled when it reads
+    again). Before, a batch of 64 was handled whatever it cost."""
+    async def main() -> None:
+        handled: list[bytes] = []
+        wakeups: list[int] = []
+
+        def costly(data: bytes, addr: tuple[Any, ...], tally: Tally) -> None:
+            handled.append(data)
+            spent = time.monotonic_ns() + DRAIN_BUDGET_NS
+            while time.monotonic_ns() < spent:  # stands for a datagram that costs the budget
+                pass
+
+        counters = dict.fromkeys(("tx", "send_errors", "datagrams", "station_datagrams", "drain_rests"), 0)
+        udp = MavlinkSocket(("127.0.0.1", 0), None, counters, costly,
+                            lambda tally: wakeups.append(len(handled)))
+        await udp.start()
+        sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for i in range(10):
+            sender.sendto(bytes((i,)), ("127.0.0.1", udp.port))
+        try:
+            await async_wait_for(lambda: len(handled) == 10)
+        finally:
+            udp.close()
+            sender.close()
+        per_wakeup = [b - a for a, b in zip([0, *wakeups], wakeups, strict=False)]
+        assert max(per_wakeup) == 1, per_wakeup
+        assert handled == [bytes((i,)) for i in range(10)]  # in order, none lost
+        assert counters["datagrams"] == 10 and counters["drain_rests"] >= 9
+
+    asyncio.run(main())
 
 
 def test_a_station_sending_one_frame_a_datagram_is_decoded_with_one_crc_a_frame():

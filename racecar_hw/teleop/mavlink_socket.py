@@ -8,9 +8,11 @@ Floods: the ground station's address has a socket of its own: a second socket on
 (``SO_REUSEPORT``), connected to the station, to which the kernel delivers the station's datagrams
 in preference to the shared socket, so a flood from other addresses fills only the shared socket's
 buffer and cannot push the station's heartbeats out. Each socket is drained each time it is
-readable (the station's first), until empty or for ``DRAIN_BUDGET_NS``; a socket that still has
-datagrams waiting after that rests for ``DRAIN_PAUSE_S`` (the kernel drops what overflows its
-buffer), so a flood takes about 5 % of the event loop at most and the control loop keeps its time.
+readable (the station's first), until empty or for ``DRAIN_BUDGET_NS``, looked at after every
+datagram; a socket that still has datagrams waiting after that rests for ``DRAIN_PAUSE_S`` (the
+kernel drops what overflows its buffer), so a flood takes about 5 % of the event loop at most and
+the control loop keeps its time. Datagrams are read in batches (the station's address first within
+one); what a spent budget left of a batch is handled first when the socket reads again.
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ DRAIN_BUDGET_NS = 500_000
 #: How long a socket that still had datagrams waiting after its budget rests (s): under a flood
 #: a socket takes at most budget / (budget + pause) of the loop, about 5 %.
 DRAIN_PAUSE_S = 0.010
-#: Datagrams read per batch (the station's address is handled first within a batch).
+#: Datagrams read per batch (the station's address is handled first within a batch). The budget
+#: is looked at after every datagram, not per batch: one batch of costly datagrams once took 64
+#: times the budget.
 DRAIN_BATCH = 64
 #: Bytes read of a datagram: one more than the decoder takes (a MAVLink 2 frame is at most 280
 #: bytes), so that a longer datagram, cut here by the kernel, is still seen to be too long and is
@@ -42,6 +46,8 @@ RECV_SIZE = MAX_DATAGRAM + 1
 
 #: Handles one datagram from an address, summing its refusals in the tally.
 DatagramHandler = Callable[[bytes, tuple[Any, ...], Tally], None]
+#: Datagrams read and not yet handled, with their source addresses.
+Batch = list[tuple[bytes, tuple[Any, ...]]]
 
 
 class MavlinkSocket:
@@ -66,6 +72,7 @@ class MavlinkSocket:
         self._station_sock: socket.socket | None = None  #: connected to the station: its datagrams
         self._dest_addr: tuple[Any, ...] | None = None  #: dest as a socket address of our family
         self._paused: dict[int, asyncio.TimerHandle] = {}  #: fd: the resumption of a resting socket
+        self._unhandled: dict[int, Batch] = {}  #: fd: what a spent budget left of a batch
         self._buf = bytearray(RECV_SIZE)
         self._view = memoryview(self._buf)
 
@@ -156,6 +163,7 @@ class MavlinkSocket:
         for handle in self._paused.values():
             handle.cancel()
         self._paused.clear()
+        self._unhandled.clear()
         for sock in (self._station_sock, self._sock):
             if sock is not None:
                 if self._loop is not None and not self._loop.is_closed():
@@ -189,44 +197,60 @@ class MavlinkSocket:
             self._paused[fd] = self._loop.call_later(DRAIN_PAUSE_S, self._resume, sock)
 
     def _resume(self, sock: socket.socket) -> None:
-        """A resting socket reads again."""
+        """A resting socket reads again, at once if a spent budget left datagrams unhandled."""
         fd = sock.fileno()
         if self._paused.pop(fd, None) is None or self._loop is None or fd < 0:
             return
         station = sock is self._station_sock
         self._loop.add_reader(fd, self._on_station_readable if station else self._on_shared_readable)
+        if fd in self._unhandled:
+            self._read(sock)
 
     def _drain_socket(self, sock: socket.socket, deadline: int, tally: Tally) -> bool:
-        """Read and handle ``sock``'s datagrams in batches; False when the budget ran out first."""
-        station = sock is self._station_sock
-        dest = self._dest_addr[:2] if self._dest_addr is not None else None
+        """Handle ``sock``'s datagrams (what a spent budget left first, then batches read) until
+        it is empty or ``deadline`` (monotonic ns) passes, looked at after every datagram; False
+        when the budget ran out first."""
+        fd = sock.fileno()
         while True:
-            batch: list[tuple[bytes, tuple[Any, ...]]] = []
+            batch = self._unhandled.pop(fd, None)
             empty = False
-            for _ in range(DRAIN_BATCH):
-                try:
-                    n, addr = sock.recvfrom_into(self._buf)
-                except BlockingIOError:
-                    empty = True
-                    break
-                except ConnectionRefusedError:  # an ICMP error for an earlier send: not a datagram
-                    self.counters["send_errors"] += 1
-                    continue
-                except OSError:
-                    empty = True
-                    break
-                batch.append((bytes(self._view[:n]), addr))
-            self.counters["datagrams"] += len(batch)
-            if station:
-                self.counters["station_datagrams"] += len(batch)
-            elif dest is not None and len(batch) > 1:  # the station's address first (stable)
-                batch.sort(key=lambda item: item[1][:2] != dest)
-            for data, addr in batch:
+            if batch is None:
+                batch, empty = self._read_batch(sock)
+            for k, (data, addr) in enumerate(batch):
                 self._on_datagram(data, addr, tally)
+                if time.monotonic_ns() >= deadline:
+                    if k + 1 < len(batch):
+                        self._unhandled[fd] = batch[k + 1:]
+                        return False
+                    return empty
             if empty:
                 return True
-            if time.monotonic_ns() >= deadline:
-                return False
+
+    def _read_batch(self, sock: socket.socket) -> tuple[Batch, bool]:
+        """Up to :data:`DRAIN_BATCH` datagrams of ``sock``, the station's address first (stable),
+        and whether the socket was emptied."""
+        batch: Batch = []
+        empty = False
+        for _ in range(DRAIN_BATCH):
+            try:
+                n, addr = sock.recvfrom_into(self._buf)
+            except BlockingIOError:
+                empty = True
+                break
+            except ConnectionRefusedError:  # an ICMP error for an earlier send: not a datagram
+                self.counters["send_errors"] += 1
+                continue
+            except OSError:
+                empty = True
+                break
+            batch.append((bytes(self._view[:n]), addr))
+        self.counters["datagrams"] += len(batch)
+        dest = self._dest_addr[:2] if self._dest_addr is not None else None
+        if sock is self._station_sock:
+            self.counters["station_datagrams"] += len(batch)
+        elif dest is not None and len(batch) > 1:
+            batch.sort(key=lambda item: item[1][:2] != dest)
+        return batch, empty
 
 
 def _udp_socket(family: int) -> socket.socket:
