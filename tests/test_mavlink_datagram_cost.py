@@ -1,10 +1,11 @@
 """What one hostile datagram may cost the MAVLink link, counted in work, not in time.
 
-A reviewer's 65,507-byte datagram of ``FD FF 00 00 00`` cost the decoder some 13,000 CRCs (64 ms);
-20 such datagrams a second held the event loop for seconds. Ground stations send one frame or a
-few per datagram (a MAVLink 2 frame is at most 280 bytes): a longer datagram is refused before any
-CRC, a shorter one is decoded with a bounded number of frame starts and frames, and the socket's
-drain budget is looked at after every datagram.
+A reviewer's 65,507-byte datagram of ``FD FF 00 00 00`` cost the decoder some 13,000 CRCs (64 ms),
+and one packed with 4,679 PARAM_REQUEST_LISTs made the link send 18,716 PARAM_VALUEs; 20 and 2
+such datagrams a second held the event loop for seconds. Ground stations send one frame or a few
+per datagram (a MAVLink 2 frame is at most 280 bytes): a longer datagram is refused before any
+CRC, a shorter one is decoded with a bounded number of frame starts and frames, the socket's drain
+budget is looked at after every datagram, and parameter lists go out at most once a tick.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from conftest import async_wait_for
-from test_mavlink_security import Packer, Station, run_signed
+from test_mavlink_security import Packer, Station, mav, run_signed, started
 
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.clock import wall_ns
@@ -126,6 +127,32 @@ def test_the_drain_budget_is_looked_at_after_every_datagram():
         assert max(per_wakeup) == 1, per_wakeup
         assert handled == [bytes((i,)) for i in range(10)]  # in order, none lost
         assert counters["datagrams"] == 10 and counters["drain_rests"] >= 9
+
+    asyncio.run(main())
+
+
+def test_parameter_lists_go_out_once_a_tick_however_many_were_asked_for():
+    """200 PARAM_REQUEST_LISTs between two ticks: the four parameters go out once (the link used
+    to send the whole list for each request at once: 800 PARAM_VALUEs)."""
+    async def main() -> None:
+        gs = Station()
+        link = await started(MavlinkParams(enabled=True, gcs_address=gs.address, bind_port=0), Arming())
+        try:
+            addr = gs.sock.getsockname()
+            for _ in range(200 // MAX_FRAMES):
+                link.handle_datagram(param_request_lists(MAX_FRAMES), addr)
+            assert link.counters["rx"] == 200 and not gs.find("PARAM_VALUE")
+            link.tick()
+            link.tick()  # nothing asked since the last tick: nothing more
+            await async_wait_for(lambda: len(gs.find("PARAM_VALUE")) >= 4)
+            # a marker: once its answer is in, everything sent before it has come
+            marker = Packer().command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HEARTBEAT)
+            link.handle_datagram(marker, addr)
+            await gs.wait("COMMAND_ACK")
+            assert sorted(m.param_index for m in gs.find("PARAM_VALUE")) == [0, 1, 2, 3]
+        finally:
+            link.close()
+            gs.close()
 
     asyncio.run(main())
 

@@ -262,7 +262,7 @@ class MavlinkGcs:
     # --- the fixed-rate step ---------------------------------------------------------------------
 
     def tick(self, now_ns: int | None = None) -> None:
-        """Heartbeat watch, teleop publishing, and telemetry when due."""
+        """Heartbeat watch, teleop publishing, telemetry and a requested parameter list when due."""
         now = self._clock() if now_ns is None else now_ns
         manual = self.commands.mode == MODES["MANUAL"]
         if self.presence.lost(now) or not manual:
@@ -276,6 +276,7 @@ class MavlinkGcs:
             self._publishing = False
         if self.udp.bound:
             self.telemetry.send_due(now)
+            self.commands.send_due()
 
     def _publish_drive(self, drive: AckermannDrive) -> None:
         msg = AckermannDriveStamped(stamp_now("base_link", self._wall_clock()), drive)
