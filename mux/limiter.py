@@ -8,7 +8,11 @@ schedule, so a stop is not slowed down by a late loop either.
 Speed: a change toward zero (braking) is limited by ``max_decel_mps2``, a change away from zero by
 ``max_accel_mps2``. A target on the other side of zero brakes to zero first and spends the rest of
 the step accelerating the other way. Steering: the angle moves by at most
-``max_steering_rate_radps`` per second.
+``max_steering_rate_radps`` per second, toward the target clamped to ``steering_range`` (the angles
+the car can drive, the VESC conversion's): a target beyond the servo's reach is driven at the
+limit, so the held angle never winds up past what the car steers. Otherwise a command of 1 rad on
+a car that steers 0.26 held the limiter at 1 rad, and a turn the other way then waited
+(1 - 0.26) / 3.2 s = 0.23 s before the wheels moved at all, off the arc the safety controller checked.
 
 ROS 1's throttle_interpolator ran its speed timer at ``1 / max_delta_rpm`` instead of
 ``1 / rate``, which lets roughly ``gain * max_accel^2 / rate^2`` through (about 10 m/s^2 for a
@@ -32,7 +36,8 @@ class RateLimiter:
     """Rate limits for speed (m/s) and steering angle (rad), stepped at a fixed period (s)."""
 
     def __init__(self, max_accel_mps2: float, max_decel_mps2: float, max_steering_rate_radps: float,
-                 period_s: float, enabled: bool = True) -> None:
+                 period_s: float, enabled: bool = True,
+                 steering_range: tuple[float, float] = (-math.inf, math.inf)) -> None:
         for name, value in (("max_accel_mps2", max_accel_mps2), ("max_decel_mps2", max_decel_mps2),
                             ("max_steering_rate_radps", max_steering_rate_radps),
                             ("period_s", period_s)):
@@ -43,16 +48,19 @@ class RateLimiter:
         self.max_steering_rate_radps = max_steering_rate_radps
         self.period_s = period_s
         self.enabled = enabled
+        #: (right, left) steering angles (rad) the car drives at full lock; targets are clamped to it
+        self.steering_range = (float(steering_range[0]), float(steering_range[1]))
         #: the last output speed, m/s
         self.speed = 0.0
         #: the last output steering angle, rad
         self.steering_angle = 0.0
 
     @classmethod
-    def from_params(cls, params: MuxParams) -> RateLimiter:
+    def from_params(cls, params: MuxParams,
+                    steering_range: tuple[float, float] = (-math.inf, math.inf)) -> RateLimiter:
         """The limiter configured by the mux parameters, stepping at ``1 / rate_hz``."""
         return cls(params.max_accel_mps2, params.max_decel_mps2, params.max_steering_rate_radps,
-                   1.0 / params.rate_hz, params.limiter_enabled)
+                   1.0 / params.rate_hz, params.limiter_enabled, steering_range)
 
     def reset(self, speed: float = 0.0, steering_angle: float = 0.0) -> None:
         """Forget the past output: the next step starts from ``speed`` and ``steering_angle``."""
@@ -67,7 +75,8 @@ class RateLimiter:
 
     def step(self, speed: float, steering_angle: float, periods: int = 1) -> tuple[float, float]:
         """Move toward the target over ``periods`` fixed periods; returns (speed, steering)."""
-        speed, steering_angle = float(speed), float(steering_angle)
+        low, high = self.steering_range
+        speed, steering_angle = float(speed), min(max(float(steering_angle), low), high)
         if self.enabled:
             dt = self.period_s * max(1, periods)
             speed = self._speed_toward(speed, dt)

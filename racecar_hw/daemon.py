@@ -143,10 +143,11 @@ class Daemon:
         laser = laser_to_base(config, self.tf)
         self.vesc: VescDriver | None = VescDriver(bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = make_driver(bus, config.lidar) if config.lidar.enabled else None
-        self.mux = CommandMux(bus, config.mux, refusals=self.refusals)
+        steering_range = AckermannConversion.from_params(config.vesc).steering_range()
+        self.mux = CommandMux(bus, config.mux, refusals=self.refusals, steering_range=steering_range)
         stack.callback(self.mux.close)
         self.safety = SafetyNode(bus, config.safety, laser, defer_memory=True, scans_from_bus=False,
-                                 steering_limit_rad=AckermannConversion.from_params(config.vesc).steering_range())
+                                 steering_limit_rad=steering_range)
         stack.callback(self.safety.close)
         self.arming = Arming.from_params(config.arming)
         pad, keys = Origin("gamepad", "gamepad"), Origin("keyboard", "keyboard")

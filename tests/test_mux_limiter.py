@@ -192,3 +192,23 @@ def test_clamp_lowers_the_held_speed_keeping_its_direction_and_the_next_steps_ra
     lim = _limiter()
     lim.clamp(0.0)
     assert lim.speed == 0.0
+
+
+def test_a_steering_target_beyond_the_cars_reach_is_held_at_full_lock_not_wound_up():
+    """A car that steers 0.26 rad each way, commanded 1 rad left for a second and then 1 rad right:
+    the held angle stops at 0.26, so the first step of the turn back already moves the wheels."""
+    lim = RateLimiter(2.5, 8.0, 3.2, 0.02, steering_range=(-0.26, 0.26))
+    for _ in range(50):
+        _, steering = lim.step(1.0, 1.0)
+    assert steering == pytest.approx(0.26, abs=TOL)
+    _, steering = lim.step(1.0, -1.0)
+    assert steering == pytest.approx(0.26 - 3.2 * 0.02, abs=TOL)
+    # without the range, the same commands wind the limiter up to 1 rad (what the mux had before)
+    free = RateLimiter(2.5, 8.0, 3.2, 0.02)
+    for _ in range(50):
+        free.step(1.0, 1.0)
+    assert free.step(1.0, -1.0)[1] == pytest.approx(1.0 - 3.2 * 0.02, abs=TOL)
+    # and with the limits off the output is still within what the car drives
+    off = RateLimiter(2.5, 8.0, 3.2, 0.02, enabled=False, steering_range=(-0.3, 0.2))
+    assert off.step(1.0, -1.0)[1] == -0.3
+    assert off.step(1.0, 1.0)[1] == 0.2

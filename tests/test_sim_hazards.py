@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from lockstep_sim import run_lockstep, shares_run, shipped_run
+from lockstep_sim import run_lockstep, shares_run, shipped_run, trajectory
 
 from racecar_hw.sim.scenario import scenario_names
 
@@ -82,3 +82,21 @@ def test_a_hazard_collides_without_the_safety_controller_and_not_with_it(name):
     assert shipped["min_clearance_m"] > CLEAR_MARGIN_M
     # it was the controller, for the reason the scenario is about, that kept the car clear
     assert shipped["safety_interventions_by_reason"] == {HAZARDS[name]: 1}
+
+
+def test_a_steering_command_beyond_full_lock_turns_the_wheels_back_at_once(tmp_path):
+    """The reviewer's case (docs/safety.md): circling at 3 m/s on a command of 1 rad (the car steers
+    0.26), then 1 rad the other way at 3.0 s. The wheels start back within 0.1 s of the new command
+    (the script's, the mux's and the VESC's periods), as they do for a command of 0.26; before, the
+    mux's limiter first unwound from 1 rad to 0.26, and the wheels stayed at full lock until 3.285 s,
+    on an arc the safety controller was no longer checking."""
+    scenario = tmp_path / "windup.yaml"
+    steps = "[[0.0, 3.0, 1.0], [3.0, 3.0, -1.0]]"
+    scenario.write_text("map: room\nstart: [2.0, -2.0, 0.0]\nduration_s: 3.5\n"
+                        f"drivers:\n  - {{type: script, input: nav_0, steps: {steps}}}\n")
+    _result, lb = run_lockstep(str(scenario))
+    samples = trajectory(lb)
+    lock = max(s.steering for s in samples)
+    assert 0.2 < lock < 0.3  # driven at full lock before the switch
+    back = next(s.t for s in samples if s.t > 3.0 and s.steering < lock - 0.01)
+    assert back < 3.1, back
