@@ -270,7 +270,7 @@ def test_reversing_into_a_wall_seen_before_a_u_turn_stops_with_the_memory():
 
 
 def test_a_stop_that_starts_for_a_late_scan_and_ends_for_a_wall_reports_the_wall():
-    # the car waits 0.65 m from the far wall (face at x = 7.95 m) with the lidar unplugged; asked
+    # the car waits 0.7 m from the far wall (face at x = 8.0 m) with the lidar unplugged; asked
     # for 2 m/s it is held for stale_scan; once scans are back the wall cuts the command, and the
     # report's entry that continues the intervention says what it stopped for and how far from it
     r, _ = run("wall", "start=[6.85, 0.0, 0.0]", "duration_s=5.0",
@@ -287,7 +287,7 @@ def test_a_stop_that_starts_for_a_late_scan_and_ends_for_a_wall_reports_the_wall
     # it crept up to the wall at what the controller allowed, and stopped short of it there
     assert stop["stopped_at_s"] > stop["t_s"] and stop["stopping_distance_m"] > 0.1
     assert 0.1 < stop["distance_left_m"] < 0.5
-    assert r["final_pose"]["x"] + 0.45 == pytest.approx(7.95 - stop["distance_left_m"], abs=0.05)
+    assert r["final_pose"]["x"] + 0.45 == pytest.approx(8.0 - stop["distance_left_m"], abs=0.01)
 
 
 def test_reversing_into_the_same_wall_without_the_memory_collides():

@@ -200,3 +200,21 @@ def test_run_steps_on_real_time_in_the_device_thread(device_thread: DeviceThread
     assert stalled.wait(20)
     assert world.collided
     future.cancel()
+
+
+def test_range_source_tells_when_a_beam_was_measured() -> None:
+    # a scan's points are where the lidar saw them from when it measured them (the report places
+    # an intervention's point with the car's pose then, not at the scan's arrival)
+    world, _ = make_world()
+    source = world.range_source(noise_std_m=0.0)
+    before = monotonic_ns()
+    source.ranges(np.linspace(-1.0, 1.0, 5), 111)  # a sweep
+    between = monotonic_ns()
+    source.ranges(np.array([2.0, 2.5]), 222)  # a batch of two beams
+    after = monotonic_ns()
+    assert source.measured_before(0.0, after) == 111  # the latest measurement with that beam
+    assert source.measured_before(2.2, after) == 222
+    assert source.measured_before(-1.0 - 2 * math.pi, after) == 111  # angles wrap
+    assert source.measured_before(2.2, between) is None  # not measured yet then
+    assert source.measured_before(0.0, before - 1) is None
+    assert source.measured_before(3.0, after) is None  # no beam there

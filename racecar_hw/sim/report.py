@@ -17,16 +17,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from racecar_hw.base.clock import NS_PER_S
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.sim.car import CLEARANCE_RANGE_M, footprint
+from racecar_hw.sim.car import CLEARANCE_RANGE_M, CarParams, footprint
 from racecar_hw.sim.obstacles import point_polygon_distance
+from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.plot_worker import PendingPlot, PlotWorker
 from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
-from racecar_hw.sim.world import compose
+from racecar_hw.sim.world import SimRangeSource, compose
 
 if TYPE_CHECKING:
     from racecar_hw.sim.loopback import Loopback
+    from safety.controller import Obstacle
+
+#: How near (m) to an intervention's point the map's cells are the wall it stopped for (its
+#: ``distance_left_m``): the part of the wall around the point, not a side wall elsewhere.
+WALL_NEAR_M = 0.5
 
 #: The keys of a report that depend on where and when it ran, not on what the car did: output
 #: paths, the live interfaces' ports, and the real seconds the run took. Two lockstep runs of a
@@ -266,11 +274,11 @@ class RunReport:
             point = None
             if event.obstacle is not None and event.scan_ns is not None:
                 o = event.obstacle
-                scan_t = world.sim_time_at(event.scan_ns)
-                point = compose(world.pose_at(event.scan_ns), (o.x, o.y, 0.0))
+                seen_ns = self._seen_at(o, event.scan_ns)
+                point = compose(world.pose_at(seen_ns), (o.x, o.y, 0.0))
                 entry["source"] = o.source
                 entry["obstacle"] = {"x": _num(point.x), "y": _num(point.y)}
-                entry["object"] = world.what_is_at(point.x, point.y, scan_t)
+                entry["object"] = world.what_is_at(point.x, point.y, world.sim_time_at(seen_ns))
             stopped = rest_time(samples, t, end)
             if stopped is not None:
                 entry["stopped_at_s"] = round(stopped, 3)
@@ -279,12 +287,55 @@ class RunReport:
             if point is not None and when is not None:
                 at = next((s for s in samples if s.t >= when), samples[-1])
                 corners = footprint((at.x, at.y, at.yaw), world.params)
-                gap = next((shape.distance_to(corners) for label, shape in world.obstacles_at(when)
-                            if label == entry["object"]),
-                           point_polygon_distance(point.x, point.y, corners))
+                if entry["object"] == "map":
+                    gap = _wall_gap(world.scene.map, (at.x, at.y, at.yaw), world.params, point.x, point.y)
+                else:
+                    gap = next((shape.distance_to(corners) for label, shape in world.obstacles_at(when)
+                                if label == entry["object"]),
+                               point_polygon_distance(point.x, point.y, corners))
                 entry["distance_left_m"] = _num(gap)
             out.append(entry)
         return out
+
+    def _seen_at(self, obstacle: Obstacle, scan_ns: int) -> int:
+        """When (monotonic ns) the car was where ``obstacle`` (base_link, of the scan that arrived at
+        ``scan_ns``) is relative to: a return of the scan (or a ray of its blind sector), where the
+        car was when the lidar measured that beam, up to a sweep before the scan arrived (at 5 m/s
+        and 40 Hz, 9 cm); a remembered point, where the car was at the scan's arrival, since the
+        controller placed it in base_link with the odom pose it had then."""
+        lidar = self.run.lidar
+        source = getattr(lidar, "range_source", None)
+        if obstacle.source == "memory" or not isinstance(source, SimRangeSource):
+            return scan_ns
+        lx, ly, lyaw = source.laser_pose_in_base
+        angle = math.atan2(obstacle.y - ly, obstacle.x - lx) - lyaw
+        measured = source.measured_before(angle, scan_ns)
+        return scan_ns if measured is None else measured
+
+
+def _wall_gap(occupancy: OccupancyMap, pose: tuple[float, float, float], params: CarParams, x: float,
+              y: float) -> float:
+    """The gap (m) between the footprint at ``pose`` and the map's occupied cells within
+    :data:`WALL_NEAR_M` of (``x``, ``y``): the wall there, not any wall (a side wall in a corridor is
+    not what the car stopped for); measured as the world measures clearance (car.Collider). inf
+    when no cell is that near."""
+    res = occupancy.resolution
+    reach = math.ceil(WALL_NEAR_M / res) + 1
+    ci, cj = (int(v) for v in occupancy.world_to_cell(x, y))
+    i0, j0 = max(ci - reach, 0), max(cj - reach, 0)
+    jj, ii = occupancy.occupied[j0:cj + reach + 1, i0:ci + reach + 1].nonzero()
+    cx, cy = occupancy.cell_to_world(ii + i0, jj + j0)
+    near = np.hypot(cx - x, cy - y) <= WALL_NEAR_M
+    if not near.any():
+        return math.inf
+    px, py, yaw = pose
+    dx, dy = cx[near] - px, cy[near] - py
+    c, s = math.cos(yaw), math.sin(yaw)
+    lx, ly = c * dx + s * dy, -s * dx + c * dy
+    front = params.length - params.rear_overhang
+    out_x = np.maximum(np.maximum(-params.rear_overhang - lx, lx - front), 0.0)
+    out_y = np.maximum(np.abs(ly) - params.width / 2, 0.0)
+    return max(float(np.sqrt(np.min(out_x * out_x + out_y * out_y))) - res / 2, 0.0)
 
 
 def _speed_at(samples: list[TrajectorySample], t: float) -> float:

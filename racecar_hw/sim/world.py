@@ -26,7 +26,9 @@ thread-safe; the ERPM/servo callables and ``on_collision`` are called from the s
 from __future__ import annotations
 
 import logging
+import math
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -46,6 +48,14 @@ from racecar_hw.sim.trajectory import TrajectoryReport, TrajectorySample, report
 from vesc.imu_model import PlanarMotion
 
 log = logging.getLogger(__name__)
+
+#: Measurements a :class:`SimRangeSource` remembers (:meth:`SimRangeSource.measured_before`): a
+#: UST-10LX's 40 sweeps a second for 40 minutes, an RPLIDAR's batches of beams for several.
+MEASUREMENTS_KEPT = 100_000
+
+#: How far (rad) a beam's angle may lie outside a measurement's beams and still be one of them: a
+#: scan's beams are the device's, binned (an RPLIDAR's, 1° or less apart), not the ones measured.
+BEAM_TOLERANCE_RAD = 0.02
 
 
 class World:
@@ -320,14 +330,21 @@ class SimRangeSource:
         self.noise_std_m = float(noise_std_m)
         self.laser_pose_in_base = laser_pose_in_base
         self._rng = rng
-        self._rng_lock = threading.Lock()
+        self._lock = threading.Lock()
+        #: (monotonic ns when measured, the stamp measured at, lowest and highest angle) of the
+        #: latest :data:`MEASUREMENTS_KEPT` calls of :meth:`ranges`
+        self._measured: deque[tuple[int, int, float, float]] = deque(maxlen=MEASUREMENTS_KEPT)
 
     def ranges(self, angles: np.ndarray, stamp_ns: int) -> np.ndarray:
         """Measured ranges (m) along ``angles`` (rad, CCW, laser frame) at ``stamp_ns`` (monotonic)."""
+        if len(angles):
+            span = float(np.min(angles)), float(np.max(angles))
+            with self._lock:
+                self._measured.append((monotonic_ns(), stamp_ns, *span))
         laser = compose(self.world.pose_at(stamp_ns), self.laser_pose_in_base)
         ranges = self.world.true_ranges(angles, self.max_range, laser, self.world.sim_time_at(stamp_ns))
         if self.noise_std_m > 0:
-            with self._rng_lock:
+            with self._lock:
                 noise = self._rng.normal(0.0, self.noise_std_m, size=ranges.shape)
             # in place over every beam: a beam with no return (inf) stays inf, a finite one gets
             # its noise, clipped at 0 (the same numbers as masking the finite beams, fewer copies)
@@ -336,5 +353,19 @@ class SimRangeSource:
             ranges[ranges > self.max_range] = np.inf
         return ranges
 
+    def measured_before(self, angle: float, before_ns: int) -> int | None:
+        """The stamp (monotonic ns) a beam at ``angle`` (rad, laser frame) of a scan that arrived at
+        ``before_ns`` was measured at: that of the latest measurement made by then whose beams span
+        it (a sweep's, or a batch's of an RPLIDAR); None when no measurement kept does. A device
+        measures a beam before it sends it, and a scan arrives after its sweep: the lidar saw its
+        points from where the car was then, up to a scan period before the daemon had them."""
+        with self._lock:
+            kept = list(self._measured)
+        angle = math.remainder(angle, math.tau)
+        for measured_ns, stamp_ns, lo, hi in reversed(kept):
+            if measured_ns <= before_ns and lo - BEAM_TOLERANCE_RAD <= angle <= hi + BEAM_TOLERANCE_RAD:
+                return stamp_ns
+        return None
 
-__all__ = ["MAX_EXTRAPOLATION_S", "Collision", "SimRangeSource", "World", "compose"]
+
+__all__ = ["MAX_EXTRAPOLATION_S", "MEASUREMENTS_KEPT", "Collision", "SimRangeSource", "World", "compose"]
