@@ -248,14 +248,16 @@ class RunReport:
         (the first then ends there): what the car stopped for, and how far from it, are in that one.
 
         ``source``: the live scan or the obstacle memory (None without an obstacle, e.g. a stale
-        scan). ``obstacle``: the limiting point in the map frame; ``object``: what the world has
-        there (``map``, a scenario obstacle's name, or None: nothing, a remembered point of
-        something that has gone). ``ended_at_s``: when the controller let go (None: at the end of
-        the run). ``stopped_at_s``: when the car came to rest before that (:func:`rest_time`: a car
-        that stood at the start and then drove stopped where it came to rest again; None: it only
-        slowed down); ``stopping_distance_m``: path driven until then; ``distance_left_m``: the gap
+        scan). ``obstacle``: the limiting point in the map frame (:meth:`_seen_at` says from which
+        pose); ``object``: what the world has there (``map``, a scenario obstacle's name, or None:
+        nothing, a remembered point of something that has gone or that the memory misplaced).
+        ``ended_at_s``: when the controller let go (None: at the end of the run). ``stopped_at_s``:
+        when the car came to rest before that (:func:`rest_time`: a car that stood at the start and
+        then drove stopped where it came to rest again; None: it only slowed down);
+        ``stopping_distance_m``: path driven until then; ``distance_left_m``: the gap
         between the car's footprint and that object at standstill, or when the intervention ended
-        if the car only slowed (for the map or nothing: the gap to the point).
+        if the car only slowed (for the map: to the wall around the point, :func:`_wall_gap`; for
+        nothing: to the point).
         """
         assert self.run.world is not None and self.run.daemon is not None
         world = self.run.world
