@@ -323,3 +323,26 @@ def test_metadata_with_yaml_aliases_is_refused_cheaply(tmp_path, capsys, fmt):
            "metadata never has\n" in out
     assert "messages:  5 (readable ones)" in out
     assert peak < 8 * 2**20, peak
+
+
+def test_a_recovered_sqlite3_bag_is_complete_though_sqlite_leaves_its_journal_zeroed(tmp_path, capsys):
+    """A recording killed in a transaction leaves a hot journal. Recovery rolls it back; SQLite may
+    keep the file with its header zeroed (no longer hot, as SQLite itself judges a journal), and
+    ``bag info`` then went on calling the bag interrupted, and ``bag recover`` looped."""
+    victim = hot_database(tmp_path / "hot")
+    bag = write_bag(tmp_path, "sqlite3", close=False)
+    shutil.copy(victim, bag / "run_0.db3")
+    shutil.copy(victim.with_name("victim.db3-journal"), bag / "run_0.db3-journal")
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "has a journal left by an interrupted write" in capsys.readouterr().out
+    assert main(["bag", "recover", str(bag)]) == 0
+    assert f"recovered 5 messages into {bag}" in capsys.readouterr().out
+    journal = bag / "run_0.db3-journal"
+    # what SQLite left (a cold journal, or none), never a journal SQLite would roll back again
+    assert not journal.exists() or journal.read_bytes()[:1] in (b"", b"\0")
+    zeroed = bytes(28) + b"x" * 1000  # as PERSIST or a rollback that could not delete leaves it
+    journal.write_bytes(zeroed)
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "complete:  yes" in capsys.readouterr().out
+    assert main(["bag", "recover", str(bag)]) == 0
+    assert "nothing to recover" in capsys.readouterr().out.lower()

@@ -49,6 +49,7 @@ from racecar_hw.bags.validate import (
     listed_names,
     load_metadata,
     mcap_chunk_crc_error,
+    open_regular,
 )
 from racecar_hw.bags.writers import (
     MCAP_CHUNK_CRC_OFFSET,
@@ -626,9 +627,9 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
     meta, unusable = load_metadata(bagdir)
     if meta is None:
         return unusable
-    # A non-empty rollback journal is a transaction that never finished. (A -wal file is not: in
-    # WAL mode it holds committed transactions until a checkpoint, and readers take them.)
-    hot = [db.name for db in dbs if _size(db.parent / f"{db.name}-journal")]
+    # A hot rollback journal is a transaction that never finished. (A -wal file is not: in WAL
+    # mode it holds committed transactions until a checkpoint, and readers take them.)
+    hot = [db.name for db in dbs if _hot_journal(db.parent / f"{db.name}-journal")]
     if hot:
         return f"{', '.join(hot)} has a journal left by an interrupted write"
     listed = set(listed_names(meta))
@@ -651,6 +652,17 @@ def _sqlite3_problem(bagdir: Path, dbs: list[Path]) -> str:
         if name in said and said[name] != n:
             return f"metadata.yaml counts {said[name]} messages in {name}, it holds {n}"
     return ""
+
+
+def _hot_journal(path: Path) -> bool:
+    """Whether a rollback journal holds a transaction to roll back, as SQLite judges it: not empty
+    and its first byte not zero. A journal whose header is zeroed is finished: SQLite leaves it so
+    in PERSIST mode, or after a rollback that could not delete it, and never rolls it back."""
+    try:
+        with open_regular(path) as f:
+            return f.read(1) not in (b"", b"\0")
+    except (OSError, BagError):
+        return _size(path) > 0  # there but unreadable, or not a regular file: not to be trusted
 
 
 def _size(path: Path) -> int:
