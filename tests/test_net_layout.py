@@ -80,3 +80,13 @@ def test_the_lichtblick_layout_is_a_binary_split_tree_of_known_panels():
     # the scan keeps its flat colour: without a colour field the viewers switch to a colour map
     scan = next(c for k, c in legacy["configById"].items() if k.startswith("3D!"))["topics"]["/scan"]
     assert scan["colorMode"] == "flat" and scan["colorField"]
+
+
+def test_help_is_help_not_a_folder_named_help(tmp_path, monkeypatch, capsys):
+    """``python -m racecar_hw.net.layout --help`` wrote the layouts into a new folder ``--help``."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        main(["--help"])
+    assert stop.value.code == 0
+    assert "usage: python -m racecar_hw.net.layout" in capsys.readouterr().out
+    assert list(tmp_path.iterdir()) == []

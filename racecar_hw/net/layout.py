@@ -138,10 +138,17 @@ def write_layouts(directory: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    from racecar_hw.base.resources import config_dir
+    """``python -m racecar_hw.net.layout [DIR]``: write the layouts (and print their paths)."""
+    import argparse  # noqa: PLC0415 - only the command line needs it
 
-    directory = Path(args[0]) if args else config_dir() / "foxglove"
+    from racecar_hw.base.resources import config_dir  # noqa: PLC0415
+
+    parser = argparse.ArgumentParser(prog="python -m racecar_hw.net.layout",
+                                     description="Write the Foxglove and Lichtblick layouts.")
+    parser.add_argument("directory", nargs="?", type=Path, default=None,
+                        help="where to write them (default: the shipped config/foxglove)")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    directory = args.directory if args.directory is not None else config_dir() / "foxglove"
     for path in write_layouts(directory):
         print(path)
     return 0
