@@ -697,9 +697,10 @@ def test_a_drive_message_far_larger_than_a_command_is_refused_while_reading(tmp_
 BIG_COUNT, BIG_BYTES = 16, 4 * 2**20
 
 
-def _big_drive_bag(tmp_path: Path, fmt: str, cut: bool) -> Path:
+def _big_drive_bag(tmp_path: Path, fmt: str, cut: bool, compressed: bool = True) -> Path:
     """BIG_COUNT AckermannDriveStamped of BIG_BYTES (a frame id of "x"): a ROS 1 bag in bz2 chunks or
-    a ROS 2 MCAP bag in zstd chunks; ``cut``: an unfinished recording (no index, no summary)."""
+    a ROS 2 MCAP bag in zstd chunks (``compressed``; else uncompressed chunks); ``cut``: an
+    unfinished recording (no index, no summary)."""
     from racecar_hw.bags.ros1_writer import Ros1Writer
     from racecar_hw.bags.writers import ROS1_MAGIC, ros1_file_header
     from racecar_hw.rosmsg.typestore import ros1_types, ros2_types
@@ -708,7 +709,7 @@ def _big_drive_bag(tmp_path: Path, fmt: str, cut: bool) -> Path:
     if fmt == "ros1":
         path = tmp_path / f"big_{cut}.bag"
         msgdef, md5 = ros1_types().store.generate_msgdef(DRIVE)
-        with Ros1Writer(path, "bz2") as writer:
+        with Ros1Writer(path, "bz2" if compressed else "none") as writer:
             conn = writer.add_connection(TOPIC, "ackermann_msgs/AckermannDriveStamped", md5, msgdef)
             for i in range(BIG_COUNT):
                 writer.write(conn, T0 + i * 10**8, struct.pack("<III", i, 1, 0) + frame + bytes(20))
@@ -722,7 +723,8 @@ def _big_drive_bag(tmp_path: Path, fmt: str, cut: bool) -> Path:
 
     path = tmp_path / f"big_{cut}"
     writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    if compressed:
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     with writer:
         conn = writer.add_connection(TOPIC, DRIVE, typestore=ros2_types().store)
         for i in range(BIG_COUNT):
@@ -777,6 +779,33 @@ def test_info_and_recover_of_many_big_messages_hold_one_chunk_at_a_time(tmp_path
         recovered = bag_info(out)
         assert recovered.state.complete
         assert [(t.topic, t.count) for t in recovered.topics] == [(TOPIC, BIG_COUNT)]
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+@pytest.mark.parametrize("cut", [False, True], ids=["closed", "unfinished"])
+def test_info_and_recover_read_an_uncompressed_bag_from_the_file_not_whole(tmp_path, fmt, cut):
+    """``bag info`` and ``bag recover`` read the storage file as they scan it: an uncompressed bag of
+    sixteen 4 MiB messages (64 MiB on disk) is summarized and recovered holding a chunk or two, where
+    reading the file whole (``read_bytes``) held all 64 MiB (a 600 MB camera bag took 600 MB)."""
+    from racecar_hw.bags.info import bag_info
+
+    path = _big_drive_bag(tmp_path, fmt, cut, compressed=False)
+    on_disk = sum(f.stat().st_size for f in ([path] if path.is_file() else path.iterdir()))
+    assert on_disk > BIG_COUNT * BIG_BYTES
+    small = bag(tmp_path, fmt, commands(3), "small")
+    recover_bag(small, tmp_path / ("small_out.bag" if fmt == "ros1" else "small_out"))
+    bag_info(small)  # the readers' imports and type stores, made before anything is traced
+
+    info, peak = _traced_peak(lambda: bag_info(path))
+    assert [(t.topic, t.count) for t in info.topics] == [(TOPIC, BIG_COUNT)]
+    assert peak < 4 * BIG_BYTES, ("info", peak)
+
+    out = tmp_path / ("out.bag" if fmt == "ros1" else "out")
+    result, peak = _traced_peak(lambda: recover_bag(path, out))
+    assert (result.messages, result.was_complete) == (BIG_COUNT, not cut)
+    assert peak < 4 * BIG_BYTES, ("recover", peak)
+    if cut:
+        assert [(t.topic, t.count) for t in bag_info(out).topics] == [(TOPIC, BIG_COUNT)]
 
 
 def test_a_chunk_over_max_message_bytes_is_refused_by_info_and_recover_naming_it(tmp_path):

@@ -5,8 +5,9 @@ rosbags, without reading every message (a ROS 1 bag's chunks are read once all t
 :func:`~racecar_hw.bags.recover.inspect_bag`, to check its index against them). An incomplete one
 (an interrupted recording) is summarized from what :mod:`racecar_hw.bags.recover` finds in its
 files: the messages a recovery would keep (an empty split file holds none). Either way messages
-are counted as they are read, never kept: memory holds the file and one decompressed chunk (at
-most 64 MiB, ``max_message_bytes``), whatever the number of messages.
+are counted as they are read, never kept, and the files are read as they are scanned
+(:mod:`racecar_hw.bags.filebytes`): memory holds one chunk (a compressed one at most 64 MiB
+decompressed, ``max_message_bytes``), whatever the number of messages and the size of the file.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import datetime
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from racecar_hw.bags.filebytes import open_file_bytes
 from racecar_hw.bags.recover import BagState, Tally, inspect_bag, read_db, scan_mcap, scan_ros1
 from racecar_hw.bags.validate import MCAP_MAGIC, describe, guarded, open_regular, storage_files
 from racecar_hw.base.clock import NS_PER_S
@@ -76,13 +78,15 @@ def bag_info(path: str | Path) -> BagInfo:
         return _from_databases(state)
     found = _Found()
     if state.format == "ros1":
-        scan = scan_ros1(state.path.read_bytes())
+        with open_file_bytes(state.path) as data:
+            scan = scan_ros1(data)
         for cid, conn in scan.connections.items():
             pkg, _, name = conn["type"].decode().partition("/")
             found.add(scan.tally, cid, conn["topic"].decode(), f"{pkg}/msg/{name}")
     else:
         for file in state.files:
-            mcap = scan_mcap(file.read_bytes())
+            with open_file_bytes(file) as data:
+                mcap = scan_mcap(data)
             for cid, (sid, topic, _enc) in mcap.channels.items():
                 found.add(mcap.tally, cid, topic, mcap.schemas[sid][0] if sid in mcap.schemas else "?")
     topics = [TopicSummary(t, found.types[t], n) for t, n in sorted(found.counts.items())]

@@ -20,8 +20,9 @@ alone, a ROS 1 header, a database without tables): it holds no messages, and the
 read and recovered as they are.
 
 :func:`inspect_bag` says which format a bag is in, which files it has, and whether it is complete
-(and if not, why), without changing anything. The scanners are plain functions over bytes (no
-I/O), so they can be tested on truncated and damaged data.
+(and if not, why), without changing anything. The scanners are plain functions over the bytes of
+a file, given as bytes or read from the file as they go (:mod:`racecar_hw.bags.filebytes`), so
+they can be tested on truncated and damaged data and never hold a whole file.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import shutil
 import sqlite3
 import struct
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
@@ -39,6 +40,15 @@ import yaml
 from rosbags.interfaces import Qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from racecar_hw.bags.filebytes import (
+    ByteSource,
+    FileBytes,
+    MemoryBytes,
+    as_source,
+    occurrences,
+    open_file_bytes,
+    pieces,
+)
 from racecar_hw.bags.qos import dump_qos_v8
 from racecar_hw.bags.ros1_writer import Ros1Writer
 from racecar_hw.bags.validate import (
@@ -141,10 +151,11 @@ class McapScan:
     tally: Tally = field(default_factory=Tally)         # messages per channel id, counted
 
 
-def scan_mcap(data: bytes, on_message: MessageSink | None = None) -> McapScan:
-    """Every schema and channel in ``data`` up to the first truncated record, its messages counted
-    (``tally``) and, if given, passed to ``on_message`` one at a time, none of them kept: memory
-    holds ``data`` and one decompressed chunk (at most DEFAULT_MAX_MESSAGE_BYTES).
+def scan_mcap(data: bytes | ByteSource, on_message: MessageSink | None = None) -> McapScan:
+    """Every schema and channel in ``data`` (bytes, or a file's :class:`ByteSource`) up to the first
+    truncated record, its messages counted (``tally``) and, if given, passed to ``on_message`` one at
+    a time, none of them kept: memory holds one record or chunk (a compressed one decompressed: at
+    most DEFAULT_MAX_MESSAGE_BYTES), not the file.
 
     An empty ``data``, or one cut inside the magic (a split killed as it was opened), holds nothing.
     A chunk that carries a CRC-32 its records do not have is left out whole (``bad_chunks``): the
@@ -152,40 +163,42 @@ def scan_mcap(data: bytes, on_message: MessageSink | None = None) -> McapScan:
     other chunks' messages keep their channels even when the damaged chunk defined them: a caller
     that needs every message's channel scans twice (once for the channels, once with ``on_message``).
     """
-    if not data.startswith(MCAP_MAGIC):
-        if MCAP_MAGIC.startswith(data):
+    src = as_source(data)
+    head = bytes(src.read(0, len(MCAP_MAGIC)))
+    if head != MCAP_MAGIC:
+        if MCAP_MAGIC.startswith(head):
             return McapScan({}, {})
         raise BagError("not an MCAP file (bad magic)")
     scan = McapScan({}, {})
     chunks = 0
-    for pos, op, body in _mcap_records_at(data, len(MCAP_MAGIC)):
+    for pos, op, start, length in _mcap_records_at(src, len(MCAP_MAGIC)):
         if op == 0x06:
             chunks += 1
-            _mcap_chunk(body, scan, chunks, pos, on_message)
+            _mcap_chunk(src, start, length, scan, chunks, pos, on_message)
         elif op == 0x02:
             scan.complete = True
-        else:
-            _mcap_record(op, body, scan, on_message)
+        elif op in _MCAP_SCANNED:
+            _mcap_record(op, src.read(start, length), scan, on_message)
     return scan
 
 
-def _mcap_records(data: memoryview, pos: int) -> Iterator[tuple[int, memoryview]]:
-    for _at, op, body in _mcap_records_at(data, pos):
-        yield op, body
+#: The MCAP records a scan reads (schema, channel, message); it steps over the others (indexes,
+#: statistics, attachments, metadata) without reading them.
+_MCAP_SCANNED = frozenset((0x03, 0x04, 0x05))
 
 
-def _mcap_records_at(data: bytes | bytearray | memoryview, pos: int) -> Iterator[tuple[int, int, memoryview]]:
-    """(offset, opcode, body) of each record from ``pos`` up to the first one cut off; each body is a
-    view into ``data``, not a copy."""
-    view = memoryview(data)
-    end = len(view)
+def _mcap_records_at(src: ByteSource, pos: int) -> Iterator[tuple[int, int, int, int]]:
+    """(offset, opcode, offset of the body, length of the body) of each record from ``pos`` up to the
+    first one cut off; the bodies are not read."""
+    end = src.size
     while pos + 9 <= end:
-        op = view[pos]
-        (length,) = _U64.unpack_from(view, pos + 1)
+        head = src.read(pos, 9)
+        op = head[0]
+        (length,) = _U64.unpack_from(head, 1)
         stop = pos + 9 + length
         if stop > end:
             return
-        yield pos, op, view[pos + 9:stop]
+        yield pos, op, pos + 9, length
         pos = stop
 
 
@@ -194,38 +207,49 @@ def _mcap_string(body: memoryview, pos: int) -> tuple[str, int]:
     return bytes(body[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
 
 
-def _mcap_chunk(body: memoryview, scan: McapScan, number: int, at: int,
+def _mcap_chunk(src: ByteSource, start: int, length: int, scan: McapScan, number: int, at: int,
                 on_message: MessageSink | None) -> None:
-    """The records of chunk ``number`` (1 = the first), at byte ``at``, into ``scan``; none of them
-    when the chunk fails its CRC-32."""
-    pos = 8 + 8 + 8 + 4
-    compression, pos = _mcap_string(body, pos)
-    (size,) = _U64.unpack_from(body, pos)
-    records: memoryview | bytearray = body[pos + 8:pos + 8 + size]
+    """The records of chunk ``number`` (1 = the first), at byte ``at``, its body the ``length`` bytes
+    at ``start``, into ``scan``; none of them when the chunk fails its CRC-32. A compressed chunk is
+    read in pieces as it is decompressed, an uncompressed one whole."""
+    head = src.read(start, min(length, 32))
+    (n,) = _U32.unpack_from(head, 28)  # the compression's name, then the records' length
+    head = src.read(start, min(length, 32 + n + 8))
+    compression, pos = _mcap_string(head, 28)
+    (size,) = _U64.unpack_from(head, pos)
+    first = start + pos + 8
+    size = max(0, min(size, start + length - first))  # no further than the chunk
+    records: memoryview | bytearray
     if compression in ("lz4", "zstd"):
-        (declared,) = _U64.unpack_from(body, 16)
-        records = _decompress(records, compression, declared, f"chunk {number} (at byte {at})")
+        (declared,) = _U64.unpack_from(head, 16)
+        records = _decompress(pieces(src, first, size), compression, declared,
+                              f"chunk {number} (at byte {at})")
     elif compression:
         raise BagError(f"MCAP chunk compression {compression!r} is not supported by the recovery")
-    (recorded,) = _U32.unpack_from(body, MCAP_CHUNK_CRC_OFFSET - 9)
+    else:
+        records = src.read(first, size)
+    (recorded,) = _U32.unpack_from(head, MCAP_CHUNK_CRC_OFFSET - 9)
     if recorded:
         computed = zlib.crc32(records)
         if computed != recorded:
             scan.bad_chunks.append(crc_mismatch("", number, at, recorded, computed, hint=False)[2:])
             return
-    for op, rec in _mcap_records(memoryview(records), 0):
-        _mcap_record(op, rec, scan, on_message)
+    inner = MemoryBytes(records)
+    for _at, op, body, n in _mcap_records_at(inner, 0):
+        if op in _MCAP_SCANNED:
+            _mcap_record(op, inner.read(body, n), scan, on_message)
 
 
-def _decompress(data: memoryview, compression: str, declared: int, where: str) -> bytearray:
-    """A chunk's records (the chunk ``where``: its number or offset), decompressed in bounded steps:
-    no more than the ``declared`` size, nor than the largest chunk the follower reads
-    (DEFAULT_MAX_MESSAGE_BYTES), else BagError. Grown in place, so the chunk is in memory once."""
+def _decompress(pieces: Iterable[memoryview], compression: str, declared: int, where: str) -> bytearray:
+    """A chunk's records (the chunk ``where``: its number or offset; its data given in ``pieces``),
+    decompressed in bounded steps: no more than the ``declared`` size, nor than the largest chunk
+    the follower reads (DEFAULT_MAX_MESSAGE_BYTES), else BagError. Grown in place, so the chunk is
+    in memory once."""
     bound = min(declared, DEFAULT_MAX_MESSAGE_BYTES)
     what = f"the {compression} {where} declaring {declared} bytes uncompressed"
     out = bytearray()
     try:
-        for piece in inflate([data], compression, bound, what):
+        for piece in inflate(pieces, compression, bound, what):
             out += piece
     except BagError:
         if declared <= bound:  # it lies about its size
@@ -284,9 +308,9 @@ def _staged(target: Path) -> Iterator[Path]:
 
 def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
     """Two passes over each file: its schemas and channels (which a closed file repeats after the
-    chunks), then its messages, written one at a time (none is kept: memory holds one file and one
-    decompressed chunk)."""
-    scans = [scan_mcap(f.read_bytes()) for f in files]
+    chunks), then its messages, written one at a time (none is kept: memory holds one chunk, not the
+    file)."""
+    scans = [_scan_mcap_file(f) for f in files]
     store = get_typestore(Stores.EMPTY)
     with _staged(out) as staging, Ros2Bag(staging, "mcap") as writer:
         conns = {}  # (topic, type, qos) -> connection, over every file
@@ -309,10 +333,16 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
                 if cid in mine:
                     writer.write(mine[cid], t_ns, payload)
 
-            scan_mcap(file.read_bytes(), write)
+            _scan_mcap_file(file, write)
             count += sum(n for cid, n in scan.tally.counts.items() if cid in mine)
     bad = [f"{f.name}: {text}" for f, scan in zip(files, scans, strict=True) for text in scan.bad_chunks]
     return RecoveryResult(out, count, False, bad)
+
+
+def _scan_mcap_file(file: Path, on_message: MessageSink | None = None) -> McapScan:
+    """:func:`scan_mcap` of the file ``file``, read from it as the scan goes."""
+    with open_file_bytes(file) as data:
+        return scan_mcap(data, on_message)
 
 
 def _qos(text: str) -> list[Qos]:
@@ -342,31 +372,37 @@ class Ros1Scan:
     tally: Tally = field(default_factory=Tally)         # messages per connection id, counted
 
 
-def scan_ros1(data: bytes, on_message: MessageSink | None = None) -> Ros1Scan:
-    """Every connection in the chunks of ``data`` up to the first truncated record, and its
-    messages counted (``tally``) and, if given, passed to ``on_message`` one at a time, none of
-    them kept: memory holds ``data`` and one decompressed chunk (at most DEFAULT_MAX_MESSAGE_BYTES).
+#: A record: its header fields, and the offset and length of its data (not read)
+_Record = tuple[dict[str, bytes], int, int]
+
+
+def scan_ros1(data: bytes | ByteSource, on_message: MessageSink | None = None) -> Ros1Scan:
+    """Every connection in the chunks of ``data`` (bytes, or a file's :class:`ByteSource`) up to the
+    first truncated record, and its messages counted (``tally``) and, if given, passed to
+    ``on_message`` one at a time, none of them kept: memory holds one chunk (a compressed one
+    decompressed: at most DEFAULT_MAX_MESSAGE_BYTES), not the file.
 
     The file header is read by its own length fields, so both layouts (rosbag's and rosbags')
     work. Damaged bytes between records (a chunk whose start was overwritten) are stepped over
     to the next chunk record.
     """
-    if not data.startswith(ROS1_MAGIC):
+    src = as_source(data)
+    if bytes(src.read(0, len(ROS1_MAGIC))) != ROS1_MAGIC:
         raise BagError("not a ROS 1 bag (bad magic)")
     scan = Ros1Scan({})
     pos = len(ROS1_MAGIC)
-    end = len(data)
+    end = src.size
     while pos + 8 <= end:  # chunks, then (in a closed bag) the index's connection and chunk-info records
-        record = _ros1_record_at(data, pos)
+        record = _ros1_record_at(src, pos, end)
         if record is None:
-            if _ros1_truncated(data, pos):
+            if _ros1_truncated(src, pos, end):
                 break
-            found = _ros1_next_chunk(data, pos, end)
+            found = _ros1_next_chunk(src, pos, end)
             if found is None:
                 break
             scan.damaged.append(pos)
             pos, record = found
-        fields, body, nxt = record
+        fields, start, length = record
         op = fields.get("op", b"\x00")[0]
         if op == 0x03:
             scan.index_pos = _U64.unpack(fields["index_pos"])[0]
@@ -375,26 +411,30 @@ def scan_ros1(data: bytes, on_message: MessageSink | None = None) -> Ros1Scan:
             scan.indexed = scan.index_pos != 0
         elif op == 0x05:
             scan.chunks.append(pos)
-            _ros1_chunk(fields, body, scan, pos, on_message)
+            _ros1_chunk(src, record, scan, pos, on_message)
         else:
-            _ros1_record(fields, body, scan, on_message)
-        pos = nxt
+            _ros1_record(src, record, scan, on_message)
+        pos = start + length
     return scan
 
 
-def _ros1_chunk(fields: dict[str, bytes], body: memoryview, scan: Ros1Scan, at: int,
+def _ros1_chunk(src: ByteSource, chunk: _Record, scan: Ros1Scan, at: int,
                 on_message: MessageSink | None) -> None:
-    """The records of the chunk record at byte ``at`` into ``scan``."""
+    """The records of the chunk record at byte ``at`` into ``scan``: a compressed chunk read in pieces
+    as it is decompressed, an uncompressed one whole."""
+    fields, start, length = chunk
     compression = fields["compression"].decode()
-    records: memoryview | bytearray = body
     if compression in ("bz2", "lz4"):
         size = fields["size"]
         declared = _U32.unpack(size)[0] if len(size) == 4 else DEFAULT_MAX_MESSAGE_BYTES
-        records = _decompress(body, compression, declared, f"chunk at byte {at}")
-    elif compression != "none":
+        records = MemoryBytes(_decompress(pieces(src, start, length), compression, declared,
+                                          f"chunk at byte {at}"))
+    elif compression == "none":
+        records = MemoryBytes(src.read(start, length))
+    else:
         raise BagError(f"unknown ROS 1 chunk compression {compression!r}")
-    for inner, inner_body in _ros1_records(records, 0):
-        _ros1_record(inner, inner_body, scan, on_message)
+    for record in _ros1_records(records):
+        _ros1_record(records, record, scan, on_message)
 
 
 def _ros1_fields(header: bytes) -> dict[str, bytes] | None:
@@ -412,95 +452,98 @@ def _ros1_fields(header: bytes) -> dict[str, bytes] | None:
     return fields if pos == len(header) else None
 
 
-def _ros1_truncated(data: bytes, pos: int) -> bool:
-    """Whether the record at ``pos`` runs past the end of ``data`` (an interrupted write)."""
-    (hlen,) = _U32.unpack_from(data, pos)
-    if pos + 8 + hlen > len(data):
+def _u32_at(src: ByteSource, pos: int) -> int:
+    return int(_U32.unpack(src.read(pos, 4))[0])
+
+
+def _ros1_truncated(src: ByteSource, pos: int, end: int) -> bool:
+    """Whether the record at ``pos`` runs past ``end`` (an interrupted write)."""
+    hlen = _u32_at(src, pos)
+    if pos + 8 + hlen > end:
         return hlen < 1 << 20  # plausible length: cut off; else garbage
-    (dlen,) = _U32.unpack_from(data, pos + 4 + hlen)
-    return pos + 8 + hlen + dlen > len(data) and _ros1_fields(data[pos + 4:pos + 4 + hlen]) is not None
+    dlen = _u32_at(src, pos + 4 + hlen)
+    return pos + 8 + hlen + dlen > end and _ros1_fields(bytes(src.read(pos + 4, hlen))) is not None
 
 
-_Record = tuple[dict[str, bytes], memoryview, int]  # header fields, data (a view), offset of the next record
-
-
-def _ros1_record_at(data: bytes | bytearray | memoryview, pos: int) -> _Record | None:
-    """The record at ``pos``: its fields, its data (a view into ``data``, not a copy) and where the
-    next one starts; None if damaged."""
-    end = len(data)
-    (hlen,) = _U32.unpack_from(data, pos)
+def _ros1_record_at(src: ByteSource, pos: int, end: int) -> _Record | None:
+    """The record at ``pos`` (ending by ``end``): its fields and where its data is; None if damaged."""
+    head = src.read(pos, 256)  # the lengths and header of most records, in one read
+    (hlen,) = _U32.unpack_from(head, 0)
     if pos + 8 + hlen > end:
         return None
-    fields = _ros1_fields(bytes(data[pos + 4:pos + 4 + hlen]))
+    if len(head) < 8 + hlen:
+        head = src.read(pos, 8 + hlen)
+    fields = _ros1_fields(bytes(head[4:4 + hlen]))
     if not fields or "op" not in fields or len(fields["op"]) != 1:
         return None
-    (dlen,) = _U32.unpack_from(data, pos + 4 + hlen)
+    (dlen,) = _U32.unpack_from(head, 4 + hlen)
     start = pos + 8 + hlen
     if start + dlen > end:
         return None
     if fields["op"][0] == 0x05 and not {"compression", "size"} <= set(fields):
         return None
-    return fields, memoryview(data)[start:start + dlen], start + dlen
+    return fields, start, dlen
 
 
 _CHUNK_OP = _U32.pack(4) + b"op=\x05"
 
 
-def _ros1_next_chunk(data: bytes, pos: int, end: int) -> tuple[int, _Record] | None:
+def _ros1_next_chunk(src: ByteSource, pos: int, end: int) -> tuple[int, _Record] | None:
     """The next chunk record at or after ``pos`` whose header and data parse, or None.
 
     Rewriting a bag's header with a longer layout overwrites the first chunk's header length;
     its fields after that are intact, so a chunk record whose op field starts 4 bytes in is
     read from its fields (op, compression, size: the three a chunk header has).
     """
-    while (found := data.find(b"op=\x05", pos, end)) >= 0:
-        pos = found + 1
+    for found in occurrences(src, b"op=\x05", pos, end):
         start = found - 8  # the record's two length fields may be the damaged bytes before pos
         if start < len(ROS1_MAGIC):
             continue
-        record = _ros1_record_at(data, start) if data[found - 4:found + 4] == _CHUNK_OP else None
+        record = _ros1_record_at(src, start, end) if bytes(src.read(found - 4, 8)) == _CHUNK_OP else None
         if record is None:
-            record = _ros1_chunk_from_fields(data, found, end)
+            record = _ros1_chunk_from_fields(src, found, end)
         if record is not None:
             return start, record
     return None
 
 
-def _ros1_chunk_from_fields(data: bytes, op_at: int, end: int) -> _Record | None:
+def _ros1_chunk_from_fields(src: ByteSource, op_at: int, end: int) -> _Record | None:
     fields: dict[str, bytes] = {"op": b"\x05"}
     pos = op_at + 4
     while pos + 4 <= end and not {"compression", "size"} <= set(fields):
-        (n,) = _U32.unpack_from(data, pos)
+        n = _u32_at(src, pos)
         if n > 64 or pos + 4 + n > end:
             return None
-        name, eq, value = data[pos + 4:pos + 4 + n].partition(b"=")
+        name, eq, value = bytes(src.read(pos + 4, n)).partition(b"=")
         if not eq or name not in (b"compression", b"size"):
             return None
         fields[name.decode()] = value
         pos += 4 + n
     if pos + 4 > end or len(fields.get("size", b"")) != 4:
         return None
-    (dlen,) = _U32.unpack_from(data, pos)
+    dlen = _u32_at(src, pos)
     if pos + 4 + dlen > end:
         return None
-    return fields, memoryview(data)[pos + 4:pos + 4 + dlen], pos + 4 + dlen
+    return fields, pos + 4, dlen
 
 
-def _ros1_records(data: memoryview | bytearray, pos: int) -> Iterator[tuple[dict[str, bytes], memoryview]]:
-    while pos + 8 <= len(data):
-        record = _ros1_record_at(data, pos)
+def _ros1_records(src: ByteSource) -> Iterator[_Record]:
+    """The records of a chunk's data, up to the first damaged one."""
+    pos = 0
+    while pos + 8 <= src.size:
+        record = _ros1_record_at(src, pos, src.size)
         if record is None:
             return
-        fields, body, pos = record
-        yield fields, body
+        yield record
+        pos = record[1] + record[2]
 
 
-def _ros1_record(fields: dict[str, bytes], body: memoryview, scan: Ros1Scan,
-                 on_message: MessageSink | None) -> None:
+def _ros1_record(src: ByteSource, record: _Record, scan: Ros1Scan, on_message: MessageSink | None) -> None:
+    fields, start, length = record
     op = fields.get("op", b"\x00")[0]
     if op == 0x07:
         (cid,) = _U32.unpack(fields["conn"])
-        conn = _ros1_fields(bytes(body))
+        conn = _ros1_fields(bytes(src.read(start, length)))
         if conn is not None:
             scan.connections.setdefault(cid, conn)
     elif op == 0x02:
@@ -509,38 +552,44 @@ def _ros1_record(fields: dict[str, bytes], body: memoryview, scan: Ros1Scan,
         t_ns = sec * 1_000_000_000 + nsec
         scan.tally.add(cid, t_ns)
         if on_message is not None:
-            on_message(cid, t_ns, body)
+            on_message(cid, t_ns, src.read(start, length))
 
 
-def check_ros1_index(data: bytes, scan: Ros1Scan) -> str:
-    """Why the index of a scanned bag cannot be trusted; empty when it can.
+def check_ros1_index(data: bytes | ByteSource, scan: Ros1Scan) -> str:
+    """Why the index of a scanned bag (``data``: bytes, or a file's :class:`ByteSource`) cannot be
+    trusted; empty when it can.
 
     Trusted: the header points inside the file at ``conn_count`` connection records and
     ``chunk_count`` chunk-info records, every chunk info points at a chunk record, and the
     chunk infos count exactly the messages the chunks hold.
     """
+    src = as_source(data)
+    size = src.size
     if not scan.indexed:
         return "not indexed (index_pos 0: the recording was not closed)"
     if scan.damaged:
         return (f"damaged bytes at offset {scan.damaged[0]} (a chunk was overwritten, e.g. by a tool "
                 "rewriting the file header in another layout)")
-    if not len(ROS1_MAGIC) < scan.index_pos <= len(data):  # an empty index ends the file
-        return f"the header's index_pos {scan.index_pos} is outside the file ({len(data)} bytes)"
+    if not len(ROS1_MAGIC) < scan.index_pos <= size:  # an empty index ends the file
+        return f"the header's index_pos {scan.index_pos} is outside the file ({size} bytes)"
     conns = infos = counted = 0
+    chunks = set(scan.chunks)
     pos = scan.index_pos
-    while pos + 8 <= len(data):
-        record = _ros1_record_at(data, pos)
+    while pos + 8 <= size:
+        record = _ros1_record_at(src, pos, size)
         if record is None:
             return f"unreadable index record at byte {pos}"
-        fields, body, pos = record
+        fields, start, length = record
+        pos = start + length
         op = fields["op"][0]
         if op == 0x07:
             conns += 1
         elif op == 0x06:
             infos += 1
             (chunk_pos,) = _U64.unpack(fields["chunk_pos"])
-            if chunk_pos not in scan.chunks:
+            if chunk_pos not in chunks:
                 return f"the index names a chunk at byte {chunk_pos}, where there is none"
+            body = src.read(start, length)
             counted += sum(_U32.unpack_from(body, i + 4)[0] for i in range(0, len(body) - 7, 8))
         else:
             return f"unexpected record (op {op}) in the index at byte {pos}"
@@ -555,11 +604,15 @@ def check_ros1_index(data: bytes, scan: Ros1Scan) -> str:
 
 def _recover_ros1(file: Path, out: Path) -> RecoveryResult:
     """Two passes: the connections (and whether the index can be trusted), then the messages,
-    written one at a time (none is kept: memory holds the file and one decompressed chunk)."""
-    data = file.read_bytes()
+    written one at a time (none is kept: memory holds one chunk, not the file)."""
+    with open_file_bytes(file) as data:
+        return _rewrite_ros1(data, out)
+
+
+def _rewrite_ros1(data: FileBytes, out: Path) -> RecoveryResult:
     scan = scan_ros1(data)
     if not check_ros1_index(data, scan):
-        return RecoveryResult(file, scan.tally.total, True)
+        return RecoveryResult(data.path, scan.tally.total, True)
     with _staged(out) as staging, Ros1Writer(staging) as writer:
         conns = {}
         for cid, f in scan.connections.items():
@@ -756,13 +809,14 @@ def inspect_bag(path: str | Path) -> BagState:
     if src.is_file():
         if src.stat().st_size == 0:
             raise BagError(f"{src} is empty (0 bytes): nothing was flushed before the recording ended")
-        data = src.read_bytes()
-        if ROS1_MAGIC.startswith(data):
-            raise BagError(f"{src} holds only {len(data)} bytes, a cut-off bag header: nothing was "
-                           "flushed before the recording ended")
-        if not data.startswith(MCAP_MAGIC):
-            problem = check_ros1_index(data, scan_ros1(data))
-            return BagState(src, "ros1", [src], not problem, problem)
+        with open_file_bytes(src) as data:
+            head = bytes(data.read(0, len(ROS1_MAGIC)))
+            if ROS1_MAGIC.startswith(head) and data.size <= len(ROS1_MAGIC):
+                raise BagError(f"{src} holds only {data.size} bytes, a cut-off bag header: nothing was "
+                               "flushed before the recording ended")
+            if not head.startswith(MCAP_MAGIC):
+                problem = check_ros1_index(data, scan_ros1(data))
+                return BagState(src, "ros1", [src], not problem, problem)
         src = src.parent  # a ROS 2 bag's .mcap file: the bag is its directory
     mcaps = _storage_files(src, ".mcap")
     dbs = _storage_files(src, ".db3")
@@ -814,7 +868,7 @@ def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResu
         return _recover_ros1(src, target)
     if state.format == "mcap":
         if state.complete:
-            messages = sum(scan_mcap(f.read_bytes()).tally.total for f in state.files)
+            messages = sum(_scan_mcap_file(f).tally.total for f in state.files)
             return RecoveryResult(src, messages, True)
         if all(_size(f) <= len(MCAP_MAGIC) for f in state.files):
             raise BagError(f"nothing to recover: every file of {src} is empty (the recording was "
