@@ -134,6 +134,20 @@ class Tally:
         return sum(self.counts.values())
 
 
+#: The chunk compressions a recovered bag keeps, in order of preference, when its source used them;
+#: any other (ROS 1 lz4, which the ROS 1 writer does not write) is written uncompressed.
+ROS1_COMPRESSIONS = ("bz2",)
+MCAP_COMPRESSIONS = ("zstd", "lz4")
+
+
+def kept_compression(found: set[str], supported: tuple[str, ...]) -> str:
+    """The chunk compression a recovered bag is written with: the first of ``supported`` among the
+    compressions ``found`` in its source's chunks, else ``none``. A small bag of compressible
+    messages (sixteen 60 MB messages in 11 KB of bz2) stays small, where it was written out whole
+    (960 MB)."""
+    return next((c for c in supported if c in found), "none")
+
+
 # --- MCAP -------------------------------------------------------------------------------------
 
 
@@ -149,6 +163,7 @@ class McapScan:
     #: the chunks left out because they fail their CRC-32 (:func:`crc_mismatch`, without the path)
     bad_chunks: list[str] = field(default_factory=list)
     tally: Tally = field(default_factory=Tally)         # messages per channel id, counted
+    compressions: set[str] = field(default_factory=set)  # of the chunks ("none", "zstd", "lz4")
 
 
 def scan_mcap(data: bytes | ByteSource, on_message: MessageSink | None = None) -> McapScan:
@@ -228,6 +243,7 @@ def _mcap_chunk(src: ByteSource, start: int, length: int, scan: McapScan, number
         raise BagError(f"MCAP chunk compression {compression!r} is not supported by the recovery")
     else:
         records = src.read(first, size)
+    scan.compressions.add(compression or "none")
     (recorded,) = _U32.unpack_from(head, MCAP_CHUNK_CRC_OFFSET - 9)
     if recorded:
         computed = zlib.crc32(records)
@@ -312,7 +328,8 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
     file)."""
     scans = [_scan_mcap_file(f) for f in files]
     store = get_typestore(Stores.EMPTY)
-    with _staged(out) as staging, Ros2Bag(staging, "mcap") as writer:
+    compression = kept_compression(set().union(*(scan.compressions for scan in scans)), MCAP_COMPRESSIONS)
+    with _staged(out) as staging, Ros2Bag(staging, "mcap", compression) as writer:
         conns = {}  # (topic, type, qos) -> connection, over every file
         count = 0
         for file, scan in zip(files, scans, strict=True):
@@ -370,6 +387,7 @@ class Ros1Scan:
     chunks: list[int] = field(default_factory=list)     # file offsets of the chunk records
     damaged: list[int] = field(default_factory=list)    # offsets of unreadable records stepped over
     tally: Tally = field(default_factory=Tally)         # messages per connection id, counted
+    compressions: set[str] = field(default_factory=set)  # of the chunks ("none", "bz2", "lz4")
 
 
 #: A record: its header fields, and the offset and length of its data (not read)
@@ -433,6 +451,7 @@ def _ros1_chunk(src: ByteSource, chunk: _Record, scan: Ros1Scan, at: int,
         records = MemoryBytes(src.read(start, length))
     else:
         raise BagError(f"unknown ROS 1 chunk compression {compression!r}")
+    scan.compressions.add(compression)
     for record in _ros1_records(records):
         _ros1_record(records, record, scan, on_message)
 
@@ -613,7 +632,8 @@ def _rewrite_ros1(data: FileBytes, out: Path) -> RecoveryResult:
     scan = scan_ros1(data)
     if not check_ros1_index(data, scan):
         return RecoveryResult(data.path, scan.tally.total, True)
-    with _staged(out) as staging, Ros1Writer(staging) as writer:
+    compression = kept_compression(scan.compressions, ROS1_COMPRESSIONS)
+    with _staged(out) as staging, Ros1Writer(staging, compression) as writer:
         conns = {}
         for cid, f in scan.connections.items():
             latching = f.get("latching")

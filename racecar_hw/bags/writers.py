@@ -267,14 +267,15 @@ def bag_info(storage_identifier: str, *, duration: int, start: int, count: int,
 class Ros2Bag:
     """A rosbag2 bag directory ``path`` with one storage file ``<path.name>.<ext>`` and its
     ``metadata.yaml``, written at :meth:`close` (a context manager: closes on success, aborts on
-    an error). The recovery writes its output with it."""
+    an error). The recovery writes its output with it; ``compression``: MCAP chunk compression
+    (``none``, ``zstd``, ``lz4``)."""
 
-    def __init__(self, path: Path, fmt: str = "mcap") -> None:
+    def __init__(self, path: Path, fmt: str = "mcap", compression: str = "none") -> None:
         if path.exists():
             raise BagError(f"{path} exists already, not overwriting")
         self.path = path
         self.format = fmt
-        self.storage = open_storage(path, path.name, fmt)
+        self.storage = open_storage(path, path.name, fmt, compression)
         self._topics: dict[int, list[Any]] = {}
         self._first: int | None = None
         self._last = 0
