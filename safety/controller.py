@@ -74,7 +74,8 @@ class Intervention:
     why, and what the controller saw at its start.
 
     ``obstacle`` is in base_link at the scan received at ``scan_ns`` (None when no point limits the
-    path, e.g. a stale scan); speeds in m/s.
+    path, e.g. a stale scan): where the car was at ``pose_ns``, the time of the odometry pose the
+    scan was placed with (its first beam's; None without one); speeds in m/s.
 
     ``continues``: not a new intervention but the one before it, which started for something else
     (a late scan, the reverse cap), becoming a stop for an obstacle at ``t_ns``: what it stops for
@@ -90,6 +91,7 @@ class Intervention:
     scan_ns: int | None
     end_ns: int | None = None
     continues: bool = False
+    pose_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -135,8 +137,8 @@ class _CachedScan:
     """One scan, already reduced to its usable returns as base_link points.
 
     ``x[:live]``, ``y[:live]`` are the scan's own returns, the next ``blind`` the obstacles put on
-    its blind sectors' rays, the rest remembered points; ``pose`` is base_link in odom at the scan
-    (None without odometry); ``remembered``: folded into the memory.
+    its blind sectors' rays, the rest remembered points; ``pose`` is base_link in odom at
+    ``pose_ns`` (None without odometry); ``remembered``: folded into the memory.
     """
 
     x: np.ndarray
@@ -149,6 +151,7 @@ class _CachedScan:
     pose: Pose | None = None
     remembered: bool = False
     blind: int = 0
+    pose_ns: int | None = None
 
 
 class _Hysteresis:
@@ -258,7 +261,8 @@ class SafetyController:
 
     # --- scans --------------------------------------------------------------------------------
 
-    def on_scan(self, scan: LaserScan, now_ns: int, pose: Pose | None = None) -> None:
+    def on_scan(self, scan: LaserScan, now_ns: int, pose: Pose | None = None,
+                pose_ns: int | None = None) -> None:
         """Cache ``scan`` (received at ``now_ns``) as base_link points of its usable returns.
 
         A beam is usable when its range is at least ``range_min``: ``inf`` (no return) and
@@ -269,7 +273,8 @@ class SafetyController:
         two or more beams less than :data:`~safety.memory.MIN_ANGLE_INCREMENT_RAD` or more than a
         turn apart) has no usable beam and no point: it is a ``bad_scan``.
 
-        ``pose``: base_link in odom at ``now_ns``, from odometry; None when there is none (a
+        ``pose``: base_link in odom at ``pose_ns`` (default ``now_ns``; the daemon gives the time of
+        the sweep's first beam), from odometry; None when there is none (a
         non-finite pose counts as none). With it and the memory on, the remembered points join the
         scan's (after them: ``live`` tells which are which). A scan not yet folded into the memory
         (no :meth:`remember` since) is folded in first.
@@ -315,7 +320,8 @@ class SafetyController:
                 turn = complex(math.cos(yaw), -math.sin(yaw))
                 z = np.concatenate((z, remembered * turn - complex(px, py) * turn))
         self._scan = _CachedScan(z.real, z.imag, now_ns, usable / n if n else 0.0, sweep, live, scan,
-                                 pose, blind=0 if blind is None else len(blind))
+                                 pose, blind=0 if blind is None else len(blind),
+                                 pose_ns=None if pose is None else now_ns if pose_ns is None else pose_ns)
 
     def remember(self) -> None:
         """Fold the cached scan into the obstacle memory (once; nothing when the memory is off, or
@@ -405,8 +411,7 @@ class SafetyController:
             self.interventions_by_reason[reason] = self.interventions_by_reason.get(reason, 0) + 1
             self._obstacle_noted = reason == "obstacle" and obstacle is not None
             self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
-                                      self._scan.received_ns if self._scan is not None else None),
-                         source)
+                                      **self._scan_times()), source)
         elif (intervening and needs_cut and reason == "obstacle" and obstacle is not None
               and not self._obstacle_noted):
             # started for a late scan or the reverse cap, and now an obstacle cuts the command: once
@@ -414,11 +419,16 @@ class SafetyController:
             self._obstacle_noted = True
             self._ended(now_ns)
             self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
-                                      self._scan.received_ns if self._scan is not None else None,
-                                      continues=True), source)
+                                      **self._scan_times(), continues=True), source)
         if magnitude > cap:
             drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
         return drive, self.state
+
+    def _scan_times(self) -> dict[str, int | None]:
+        """An intervention's ``scan_ns`` and ``pose_ns``: the cached scan's arrival and pose times."""
+        scan = self._scan
+        return {"scan_ns": None if scan is None else scan.received_ns,
+                "pose_ns": None if scan is None else scan.pose_ns}
 
     def _record(self, event: Intervention, source: str) -> None:
         """Keep ``event`` and log it: one line per intervention start or change to an obstacle."""

@@ -50,6 +50,24 @@ _LEVELS = {
 }
 
 
+#: The longest sweep :func:`sweep_ns` believes (s): a lidar turns at least once a second.
+MAX_SWEEP_S = 1.0
+
+
+def sweep_ns(scan: LaserScan) -> int:
+    """How long (ns) before its last beam a scan's first beam was measured: ``|time_increment|``
+    times the beams between them, at most the scan's ``scan_time`` (when it gives one) and
+    :data:`MAX_SWEEP_S`; 0 when the scan does not say (a non-finite or zero increment)."""
+    step = abs(float(scan.time_increment))
+    if not (math.isfinite(step) and step > 0.0):
+        return 0
+    span = step * max(len(scan.ranges) - 1, 0)
+    period = float(scan.scan_time)
+    if math.isfinite(period) and period > 0.0:
+        span = min(span, period)
+    return round(min(span, MAX_SWEEP_S) * NS_PER_S)
+
+
 class SafetyNode:
     """The safety controller on the bus: scans and odometry in, filtered commands and state out.
 
@@ -102,10 +120,17 @@ class SafetyNode:
         return self.controller.interventions
 
     def take_scan(self, scan: LaserScan) -> None:
-        """Judge the next commands against ``scan`` (never raises: a failure latches a fault)."""
+        """Judge the next commands against ``scan`` (never raises: a failure latches a fault).
+
+        The scan's points are where the lidar saw them, relative to where the car was then: the
+        odometry pose the controller places them with (in the obstacle memory) and brings the
+        remembered points into their frame with is the one at the sweep's first beam
+        (:func:`sweep_ns` before the scan's arrival), not at its arrival, up to 19 ms later for a
+        UST-10LX: at 5 m/s in a full-lock turn that placed a pole 0.28 m from where it was."""
         now = self.clock()
         try:
-            self.controller.on_scan(scan, now, self.pose_at(now))
+            placed = now - sweep_ns(scan)
+            self.controller.on_scan(scan, now, self.pose_at(placed), placed)
         except Exception as err:
             self._latch(err, "taking a scan in")
             return
@@ -136,15 +161,15 @@ class SafetyNode:
                            float(twist.linear.x), float(twist.angular.z), now)
 
     def pose_at(self, now_ns: int) -> tuple[float, float, float] | None:
-        """base_link in odom at ``now_ns``: the latest odometry pose carried forward by its twist
-        (at most ``odom_timeout_s``); None without odometry that fresh or finite."""
+        """base_link in odom at ``now_ns``: the latest odometry pose carried by its twist to that
+        time, forward or back (at most ``odom_timeout_s``); None without odometry that near or
+        finite."""
         if self._odom_pose is None:
             return None
         x, y, yaw, v, w, at = self._odom_pose
         dt = (now_ns - at) / NS_PER_S
-        if dt > self.params.odom_timeout_s:
+        if abs(dt) > self.params.odom_timeout_s:
             return None
-        dt = max(dt, 0.0)
         heading = yaw + 0.5 * w * dt
         pose = (x + v * dt * math.cos(heading), y + v * dt * math.sin(heading), yaw + w * dt)
         return pose if all(math.isfinite(p) for p in pose) else None

@@ -23,6 +23,7 @@ from racecar_hw.base.messages import (
 )
 from racecar_hw.base.params import build
 from safety import ConeSafety, SafetyNode, SafetyParams
+from safety.node import sweep_ns
 from safety.params import MUX_SAFETY_TOPIC, ConeParams
 
 MS = 1_000_000
@@ -326,3 +327,30 @@ def test_node_in_cone_mode_runs_the_cone_and_still_brakes_when_blind() -> None:
     assert node.filter(AckermannDrive(speed=2.0), "teleop").speed == 0.0
     assert node.state.reason == "stale_scan"
     assert isinstance(node.state_message(), DiagnosticArray)
+
+
+def test_a_scans_returns_are_placed_with_the_pose_at_its_first_beam_not_at_its_arrival() -> None:
+    """A UST-10LX's 1081 beams take 18.75 ms; its frame arrives after the last. Placed with the pose
+    at arrival, a return was remembered 18.75 ms of driving too far ahead (9 cm at 5 m/s; in a
+    full-lock turn a pole ended up 0.28 m from where it was, lockstep)."""
+    def nearest_remembered(time_increment: float) -> float:
+        bus, clock = Bus(), ManualClock()
+        node = SafetyNode(bus, SafetyParams(), clock=clock)  # the laser at base_link
+        scan = blocked_ahead(2.0)
+        scan.time_increment = time_increment
+        bus.publish("/odom", odom_at(0.0, 0.0, 0.0, speed=5.0))  # just now, driving along x
+        bus.publish("/scan", scan)
+        memory = node.controller.memory
+        assert memory is not None and len(memory) > 0
+        return float(np.min(memory.points().real))
+
+    ust = 0.025 / 1440  # the UST-10LX's beam time: 1440 steps a turn
+    scan = blocked_ahead(2.0)
+    scan.time_increment = ust
+    assert sweep_ns(scan) == round(1080 * ust * 1e9)  # 18.75 ms
+    at_arrival = nearest_remembered(0.0)  # no beam timing: placed at its arrival, as before
+    at_first_beam = nearest_remembered(ust)
+    # the car was 5 m/s * 18.75 ms = 9.4 cm back when the lidar measured (the memory's cells are
+    # 5 cm: the same cell edge moves by one or two cells)
+    assert at_arrival - at_first_beam == pytest.approx(5.0 * 0.01875, abs=0.05)
+    assert at_first_beam < at_arrival

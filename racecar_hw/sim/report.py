@@ -276,7 +276,7 @@ class RunReport:
             point = None
             if event.obstacle is not None and event.scan_ns is not None:
                 o = event.obstacle
-                seen_ns = self._seen_at(o, event.scan_ns)
+                seen_ns = self._seen_at(o, event.scan_ns, event.pose_ns)
                 point = compose(world.pose_at(seen_ns), (o.x, o.y, 0.0))
                 entry["source"] = o.source
                 entry["obstacle"] = {"x": _num(point.x), "y": _num(point.y)}
@@ -299,16 +299,17 @@ class RunReport:
             out.append(entry)
         return out
 
-    def _seen_at(self, obstacle: Obstacle, scan_ns: int) -> int:
+    def _seen_at(self, obstacle: Obstacle, scan_ns: int, pose_ns: int | None) -> int:
         """When (monotonic ns) the car was where ``obstacle`` (base_link, of the scan that arrived at
         ``scan_ns``) is relative to: a return of the scan (or a ray of its blind sector), where the
         car was when the lidar measured that beam, up to a sweep before the scan arrived (at 5 m/s
-        and 40 Hz, 9 cm); a remembered point, where the car was at the scan's arrival, since the
-        controller placed it in base_link with the odom pose it had then."""
+        and 40 Hz, 9 cm); a remembered point, where the car was at ``pose_ns``, the time of the
+        odometry pose the controller brought the memory into the scan's frame with (the sweep's
+        first beam: safety.node.sweep_ns)."""
         lidar = self.run.lidar
         source = getattr(lidar, "range_source", None)
         if obstacle.source == "memory" or not isinstance(source, SimRangeSource):
-            return scan_ns
+            return scan_ns if pose_ns is None else pose_ns
         lx, ly, lyaw = source.laser_pose_in_base
         angle = math.atan2(obstacle.y - ly, obstacle.x - lx) - lyaw
         measured = source.measured_before(angle, scan_ns)
