@@ -18,6 +18,7 @@ import yaml
 from live_sim import SimProcess
 
 from racecar_hw.config import load_config, move_to_free_ports, taken_listeners
+from racecar_hw.net.ports import PortLock
 
 
 @contextlib.contextmanager
@@ -127,3 +128,56 @@ def _one_line_refusal(cfg) -> str:
     assert proc.returncode == 1, proc.stderr
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
     return proc.stderr
+
+
+@pytest.mark.slow
+def test_two_sims_started_together_on_the_same_free_ports_both_run():
+    """Both found the ports free, both bound them, and the second exited (a reviewer's two sims
+    started at once, 3 of 3). One takes the ports; the other, held off by the PortLock until the
+    first listens, then finds them taken and moves."""
+    with held_ports(3) as (z, f, w):
+        pass  # three ports nobody holds now
+    args = ["--duration", "60", "--set", "zenoh.enabled=true",
+            *[a for s in _sets(z, f, w) for a in ("--set", s)]]
+    sims = [SimProcess(args), SimProcess(args)]
+    try:
+        for sim in sims:
+            sim.wait_for("racecar-hw running")
+        moved = [any(f"zenoh.listen[0] 127.0.0.1:{z} is taken" in line for line in sim.lines) for sim in sims]
+        assert sorted(moved) == [False, True], [sim.lines[-20:] for sim in sims]
+        assert all(sim.proc.poll() is None for sim in sims)
+    finally:
+        for sim in sims:
+            sim.stop()
+
+
+def test_the_port_lock_holds_off_a_second_holder_until_the_first_lets_go(tmp_path):
+    lock_file = tmp_path / "ports.lock"
+    holder = subprocess.Popen([sys.executable, "-c", f"""
+import sys, time
+from racecar_hw.net.ports import PortLock
+lock = PortLock(__import__("pathlib").Path({str(lock_file)!r}))
+assert lock.acquire()
+print("held", flush=True)
+sys.stdin.readline()
+lock.release()
+print("released", flush=True)
+sys.stdin.readline()
+"""], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        second = PortLock(lock_file)
+        assert not second.acquire(wait_s=0.2)  # held elsewhere: given up after the wait
+        holder.stdin.write("\n")
+        holder.stdin.flush()
+        assert holder.stdout.readline() == "released\n"
+        assert second.acquire(wait_s=30)
+        second.release()
+        second.release()  # twice is harmless
+    finally:
+        holder.kill()
+        holder.wait()
+    link = tmp_path / "link.lock"
+    link.symlink_to(tmp_path / "elsewhere")
+    assert not PortLock(link).acquire(wait_s=0)  # a symbolic link is not followed
+    assert not (tmp_path / "elsewhere").exists()

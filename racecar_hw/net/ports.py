@@ -10,13 +10,26 @@ free port instead and prints where.
 do, so a port in TIME_WAIT is free and one another program listens on is taken). :class:`Listener`
 names one listening interface of a configuration; :func:`taken_message` is the one line of the
 refusal. Nothing here keeps a socket open.
+
+Trying a port and binding it are two moments: two sims started together both found 7447 free and
+both bound it, and the second exited. :class:`PortLock` closes that gap between the processes of one
+user on this machine: a sim holds it from trying its ports until it listens on them.
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
+import os
 import socket
+import tempfile
+import time
 from dataclasses import dataclass
+from pathlib import Path
+
+#: How long (s) a sim waits for another one on this machine to listen on the ports it took, before
+#: it tries its own anyway (a sim starts listening within a second or two of taking them).
+PORT_LOCK_WAIT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -71,6 +84,51 @@ def free_port(host: str, kind: str = "tcp") -> int:
 
 
 _TYPES = {"tcp": socket.SOCK_STREAM, "udp": socket.SOCK_DGRAM}
+
+
+class PortLock:
+    """The lock the sims of one user on this machine hold from trying their ports until they listen
+    on them: ``flock`` on ``racecar-hw-ports-UID.lock`` in the temporary directory (not followed if
+    it is a symbolic link), let go by :meth:`release` or when the process ends, however it ends."""
+
+    def __init__(self, path: Path | None = None) -> None:
+        default = Path(tempfile.gettempdir()) / f"racecar-hw-ports-{os.getuid()}.lock"
+        self.path = path if path is not None else default
+        self._fd: int | None = None
+
+    def acquire(self, wait_s: float = PORT_LOCK_WAIT_S) -> bool:
+        """Take the lock, waiting up to ``wait_s`` for another holder (blocking: before anything of
+        the run starts); False when it could not be had (the sim goes on without it, as before)."""
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o600)
+        except OSError:
+            return False
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if time.monotonic() < deadline:
+                    time.sleep(0.02)
+                    continue
+            except OSError:
+                pass
+            else:
+                self._fd = fd
+                return True
+            os.close(fd)
+            return False
+
+    async def released(self) -> None:
+        """:meth:`release`, as a task: added to a daemon, whose components' tasks start once its
+        interfaces listen, it lets go then."""
+        self.release()
+
+    def release(self) -> None:
+        """Let go of the lock (safe to call twice, or without it)."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)  # closing the only descriptor of the open file lets go of the flock
 
 
 def taken_message(listener: Listener) -> str:

@@ -28,9 +28,9 @@ from typing import Any
 from mux.estop import DAEMON, Origin
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.overrides import merge
-from racecar_hw.config import Config, load_config, move_to_free_ports, shipped_config
+from racecar_hw.config import Config, listeners, load_config, move_to_free_ports, shipped_config
 from racecar_hw.daemon import Daemon
-from racecar_hw.net.ports import Listener
+from racecar_hw.net.ports import Listener, PortLock
 from racecar_hw.runtime.panel import StatusPanel
 from racecar_hw.sim.car import CarParams
 from racecar_hw.sim.clock_topic import add_clock
@@ -58,6 +58,22 @@ SCENARIO = Origin(DAEMON, "scenario")
 #: network at --speed max"). Settings given after them turn an interface back on.
 OFFLINE_OVERRIDES = ("zenoh.enabled=false", "dds.enabled=false", "foxglove.enabled=false",
                      "web.enabled=false", "rosout.enabled=false")
+
+
+
+def take_free_ports(config: Config, lock: PortLock) -> list[tuple[Listener, str]]:
+    """The rule for ports (docs/live-view.md, "Ports"): a sim listens on free ports instead of
+    taken ones, and says where; returns the moved ones. After every refusal, so a refused run
+    touches no port. With something to listen on, it takes ``lock`` first, which the run holds
+    until its daemon listens (its components run), so that another sim starting meanwhile does not
+    find the same ports free."""
+    if listeners(config):
+        lock.acquire()
+    moved = move_to_free_ports(config)
+    for listener, where in moved:
+        print(f"racecar-hw sim: {listener.key} {listener.address()} is taken (another racecar-hw?); "
+              f"{listener.what} is on {where} instead", file=sys.stderr, flush=True)
+    return moved
 
 
 class Loopback:
@@ -106,6 +122,7 @@ class Loopback:
         self.hurried = False
         #: listeners whose configured port was taken, with where they listen instead
         self.moved_ports: list[tuple[Listener, str]] = []
+        self._port_lock = PortLock()  # held from taking ports until they are bound
 
     _car_params = staticmethod(car_params)
 
@@ -181,12 +198,8 @@ class Loopback:
         self._tmp.cleanup()
 
     def _take_free_ports(self, config: Config) -> None:
-        """The rule for ports (docs/live-view.md, "Ports"): a sim listens on free ports instead of
-        taken ones, and says where. After every refusal, so a refused run touches no port."""
-        self.moved_ports = move_to_free_ports(config)
-        for listener, where in self.moved_ports:
-            print(f"racecar-hw sim: {listener.key} {listener.address()} is taken (another racecar-hw?); "
-                  f"{listener.what} is on {where} instead", file=sys.stderr, flush=True)
+        """:func:`take_free_ports` (a fleet's car claims its share of one process's ports instead)."""
+        self.moved_ports = take_free_ports(config, self._port_lock)
 
     # --- running --------------------------------------------------------------------------------
 
@@ -216,6 +229,7 @@ class Loopback:
                 stop.set()
             for spec in self.scenario.drivers:
                 daemon.add_task(drivers.drive(spec, daemon.bus))
+            daemon.add_task(self._port_lock.released())
             daemon.add_task(self._faults())
             daemon.add_task(self._place_obstacles())
             daemon.add_task(self.observer.watch(daemon, world))
@@ -238,6 +252,7 @@ class Loopback:
             await self._settle()
             return await RunReport(self).result()
         finally:
+            self._port_lock.release()
             await self.rig.aclose()
             self._tmp.cleanup()
 
