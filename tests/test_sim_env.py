@@ -172,6 +172,34 @@ def test_refusals():
         env.reset()
 
 
+@pytest.mark.parametrize("action", [
+    np.array([[0.1, 1.5]]),  # f1tenth_gym's (num_agents, 2) [[steering, speed]]
+    np.array([[1.5], [0.1]]), np.array([1.5, 0.1, 0.0]), ("1.5", "0.1"), (True, False),
+    np.array([True, False]), np.array(["1.5", "0.1"]), np.array([1.5, 0.1], dtype=object),
+    [1.5], [[1.5, 0.1]], (np.bool_(True), 0.1), (1.5 + 0j, 0.1), 1.5, None, {"speed": 1.5}, "ab",
+])
+def test_an_action_that_is_not_two_real_numbers_is_refused_saying_the_order(action):
+    """Not reshaped into a pair: an f1tenth_gym (1, 2) array was taken as speed 0.1, steering 1.5."""
+    from racecar_hw.sim.env import _action  # noqa: PLC0415
+
+    with pytest.raises(ValueError) as err:
+        _action(action)
+    assert "(speed m/s, steering rad)" in str(err.value)
+    assert "f1tenth_gym's [[steering, speed]] per agent is the other way round" in str(err.value)
+
+
+@pytest.mark.parametrize("action", [
+    (1.5, 0.1), [1.5, 0.1], [1, 0], (np.float32(1.5), np.int64(0)), np.array([1.5, 0.1]),
+    np.array([1.5, 0.1], dtype=np.float32), np.array([1, 0]),
+])
+def test_an_action_of_two_real_numbers_is_speed_then_steering(action):
+    from racecar_hw.sim.env import _action  # noqa: PLC0415
+
+    speed, steering = _action(action)
+    assert (speed, steering) == pytest.approx((float(action[0]), float(action[1])))
+    assert type(speed) is float and type(steering) is float
+
+
 @pytest.mark.parametrize(("kwargs", "words"), [
     ({"max_laps": 0}, "max_laps must be a whole number of laps from 1"),
     ({"max_laps": -1}, "max_laps must be a whole number"),

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import reprlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -172,7 +174,9 @@ class RaceEnv:
 
     def step(self, action: Sequence[float]) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         """Send ``action`` = (speed m/s, steering rad, + left) on the env's mux input and run one
-        control period: ``(observation, reward, terminated, truncated, info)``.
+        control period: ``(observation, reward, terminated, truncated, info)``. The action is two
+        real numbers, a tuple or list of two or an array of shape (2,); anything else (f1tenth_gym's
+        (num_agents, 2) ``[[steering, speed]]``, text, bools, NaN) is refused with ValueError.
 
         The reward is the lap progress of this step (laps; 0 without a lap centre). Terminated: the
         car collided (the world's contact, latched), or ``max_laps`` laps are done. Truncated: the
@@ -247,15 +251,35 @@ def _lap_centre(lap_centre: Sequence[float] | None) -> tuple[float, float] | Non
     return x, y
 
 
+#: What :func:`_action` says an action is, in every refusal: the order, and f1tenth_gym's other one.
+ACTION_FORM = ("an action is (speed m/s, steering rad): two real numbers, as a tuple or list of two or "
+               "an array of shape (2,); f1tenth_gym's [[steering, speed]] per agent is the other way round")
+
+
 def _action(action: Sequence[float]) -> tuple[float, float]:
-    """(speed, steering) from an action; refuses a wrong shape or a value that is not finite."""
-    try:
-        speed, steering = (float(v) for v in np.asarray(action, dtype=np.float64).reshape(-1))
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"an action is (speed m/s, steering rad), got {action!r}") from err
+    """(speed, steering) from an action: exactly two real numbers (a tuple or list of two, or an
+    array of shape (2,)); refuses (ValueError) another shape, text, bools and values not finite."""
+    if isinstance(action, (tuple, list)):
+        values = list(action)
+        real = len(values) == 2 and all(_real(v) for v in values)
+    elif isinstance(action, np.ndarray):
+        values = action.tolist() if action.shape == (2,) else []
+        real = action.shape == (2,) and action.dtype.kind in "iuf"
+    else:
+        real = False
+    if not real:
+        got = f"an array of shape {action.shape} ({action.dtype})" if isinstance(action, np.ndarray) \
+            else reprlib.repr(action)
+        raise ValueError(f"{ACTION_FORM}; got {got}")
+    speed, steering = float(values[0]), float(values[1])
     if not (math.isfinite(speed) and math.isfinite(steering)):
         raise ValueError(f"an action must be finite, got speed {speed!r}, steering {steering!r}")
     return speed, steering
+
+
+def _real(value: object) -> bool:
+    """A real number: an int or float (numpy's too), not a bool or text."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 __all__ = ["DEFAULT_SCENARIO", "ENV_OVERRIDES", "READY_TIMEOUT_S", "RaceEnv"]
