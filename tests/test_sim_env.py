@@ -155,6 +155,10 @@ def test_refusals():
                 env.step(bad)
         with pytest.raises(ValueError, match="poses"):
             env.reset(options={"poses": [[0.0, 0.0, 0.0]]})
+        # the scenario twice: refused, not one of them run silently
+        for same_or_not in ("wall", "track"):
+            with pytest.raises(ValueError, match=r"both as the argument \('track'\) and in options"):
+                env.reset("track", options={"scenario": same_or_not})
         # a bad seed or scenario is refused before the running episode ends: it steps on
         before = env.steps
         for bad_seed in (-1, 1.5, True):

@@ -139,13 +139,17 @@ class RaceEnv:
         """End the running episode (its daemon stopped, its fakes unplugged) and start ``scenario``
         (default: the env's) with the world's random seed ``seed`` (None: the scenario's
         ``world.seed``); returns once the car is ready to drive: ``(observation, info)``.
-        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``.
+        ``options``: Gymnasium's reset options; ``{"scenario": ...}`` is the same as ``scenario``
+        (both at once is refused, ValueError, even when they agree).
         What refuses the new scenario before its devices start (a bad option, seed, map, config,
         driver input, firmware or start pose, a scenario with ``cars``) is raised before the
         running episode ends: that one steps on."""
         if self._closed:
             raise RuntimeError("the env is closed")
         options = dict(options or {})
+        if scenario is not None and "scenario" in options:
+            raise ValueError(f"a scenario both as the argument ({scenario!r}) and in options "
+                             f"({options['scenario']!r}): give it once")
         if scenario is None:
             scenario = options.pop("scenario", None)
         if set(options) - {"scenario"}:
