@@ -143,6 +143,26 @@ def test_an_episode_is_truncated_at_its_length():
     assert ends == [(False, False)] * 4 + [(False, True)] * 2
 
 
+def test_the_action_bounds_are_the_vesc_conversions_and_an_action_beyond_is_driven_at_them():
+    """An action out of range is clamped silently; ``env.action_bounds`` says to what, from the
+    episode's config: the VESC conversion's limits, not the car model's mechanical steering limit."""
+    from racecar_hw.sim.car import CarParams  # noqa: PLC0415
+
+    with RaceEnv("track") as env:
+        env.reset(seed=1)
+        low, high = env.action_bounds
+        assert low == pytest.approx([-5.0, -0.26]) and high == pytest.approx([5.0, 0.26])
+        assert high[1] < CarParams().max_steering_angle
+        for _ in range(10):  # 0.2 s; the limiter turns 3.2 rad/s: at the bound after 0.08 s
+            *_, info = env.step((0.5, 5.0))
+        assert info["command"][1] == pytest.approx(high[1])  # the mux's output: clamped
+        assert info["steering_rad"] == pytest.approx(high[1], abs=1e-3)  # what the wheels do
+    with RaceEnv("track", overrides=["vesc.speed_max_mps=2", "vesc.steering_max_rad=0.2"]) as env:
+        env.reset(seed=1)
+        low, high = env.action_bounds
+        assert low == pytest.approx([-2.0, -0.2]) and high == pytest.approx([2.0, 0.2])
+
+
 def test_refusals():
     with RaceEnv() as env:
         with pytest.raises(RuntimeError, match="reset"):

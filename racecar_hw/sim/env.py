@@ -42,6 +42,7 @@ from racecar_hw.sim.loopback import OFFLINE_OVERRIDES, Loopback
 from racecar_hw.sim.report import SimResult
 from racecar_hw.sim.scenario import Scenario, load_scenario
 from racecar_hw.sim.world import World
+from vesc.ackermann import AckermannConversion
 
 #: The scenario an env runs unless told otherwise: the track map with nobody else driving.
 DEFAULT_SCENARIO = "track"
@@ -126,6 +127,19 @@ class RaceEnv:
         """The angle (rad, counter-clockwise, 0 ahead, lidar frame) of each of the observation's
         scan ranges (after :meth:`reset`)."""
         return self._running().scan_angles()
+
+    @property
+    def action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)``, each ``[speed m/s, steering rad]``: what the car can be commanded at most
+        either way, from the episode's config (after :meth:`reset`): the VESC conversion's
+        ``vesc.speed_max_mps`` and its steering range (``vesc.steering_max_rad``, 0.26 rad in the
+        shipped configs, or less on a side the servo range clips). An action beyond is clamped,
+        silently; the safety controller may allow less (``observation["safety"]``)."""
+        config = self.loopback.config
+        assert config is not None  # a running episode's
+        conversion = AckermannConversion.from_params(config.vesc)
+        right, left = conversion.steering_range()
+        return (np.array([-conversion.speed_max_mps, right]), np.array([conversion.speed_max_mps, left]))
 
     @property
     def time_s(self) -> float:
