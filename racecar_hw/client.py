@@ -28,7 +28,10 @@ shipped configs 0.265 m ahead of the rear axle and 0.10 m up, facing forward (``
 **At start** ``car.scan``, ``car.odom`` and ``car.safety`` are None until the first message arrives
 (a few tens of milliseconds after connecting, longer while the daemon starts): iterate
 (``car.scans()``), or wait with ``car.next_scan()`` / ``car.next_odom()`` / :meth:`Car.wait_ready`,
-which raise :class:`ClientError` after their timeout instead of returning None.
+which raise :class:`ClientError` after their timeout instead of returning None. ``wait_ready`` waits
+for a scan and odometry only: the safety state, republished at 2 Hz while nothing changes, may come
+half a second later (``next(car.safety_states())`` waits for it). After :meth:`Car.close` every
+read raises ``ClientError("the client is closed")``, these properties too.
 
 **Simulation time.** ``Car(use_sim_time=True)`` follows the simulator's ``/clock`` as a ROS 2 node
 with ``use_sim_time`` does: :meth:`Car.now` is the newest ``/clock`` (seconds; 0.0 until the
@@ -270,8 +273,11 @@ class _Stream(Generic[T]):
 
     @property
     def latest(self) -> T | None:
-        """The newest value so far, or None (a sample that does not decode counts as none)."""
+        """The newest value so far, or None (a sample that does not decode counts as none);
+        ClientError once the client is closed, as every read then."""
         with self._cond:
+            if self.closed:
+                raise ClientError("the client is closed")
             return self._take()
 
     def _take(self) -> T | None:
@@ -619,8 +625,9 @@ class Car(_SimTime, _EstopControls):
         return self.odom_stream.latest
 
     def wait_ready(self, timeout: float | None = 5.0) -> None:
-        """Wait until a scan and odometry have arrived, so ``scan`` and ``odom`` are not None;
-        ClientError after ``timeout`` s (the daemon not running, or not reachable)."""
+        """Wait until a scan and odometry have arrived, so ``scan`` and ``odom`` are not None
+        (``safety`` may still be None); ClientError after ``timeout`` s (the daemon not running, or
+        not reachable), or at once when the client is closed."""
         if self.scan_stream.latest is None:
             self.next_scan(timeout)
         if self.odom_stream.latest is None:

@@ -412,3 +412,28 @@ def test_closing_the_client_wakes_every_reader_with_a_clear_error():
     finally:
         peer.close()
     assert [str(e) for e in errors] == ["the client is closed"]
+
+
+def test_after_close_the_latest_values_and_wait_ready_raise_instead_of_answering_stale():
+    """``car.scan``, ``car.odom``, ``car.safety``, ``now()`` on sim time and ``wait_ready()`` after
+    close: ClientError("the client is closed"), as docs/interop.md says of a read after close (they
+    gave the last values, and wait_ready returned, once a scan and odometry had come). The car's
+    peer is a bare Zenoh session: the values are put in the client's streams by hand."""
+    import zenoh
+
+    from racecar_hw.net.zenoh_config import session_config
+
+    port = free_port()
+    peer = zenoh.open(session_config("peer", [f"tcp/127.0.0.1:{port}"], []))
+    try:
+        car = Car(f"tcp/127.0.0.1:{port}", mode="peer", use_sim_time=True)
+        for stream in (car.scan_stream, car.odom_stream, car.safety_stream, car.clock_stream):
+            stream.push(7)  # any value: what is read back is all that matters
+        car.wait_ready(timeout=0)
+        assert (car.scan, car.odom, car.safety, car.now_ns()) == (7, 7, 7, 7)
+        car.close()
+        for read in (lambda: car.scan, lambda: car.odom, lambda: car.safety, car.now, car.wait_ready):
+            with pytest.raises(ClientError, match="^the client is closed$"):
+                read()
+    finally:
+        peer.close()
