@@ -90,7 +90,13 @@ from racecar_hw.net.topics import (
     named,
     topic_table,
 )
-from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, PROFILES, ZenohAuthParams, session_config
+from racecar_hw.net.zenoh_config import (
+    DEFAULT_ENDPOINT,
+    PROFILES,
+    ZenohAuthParams,
+    parse_endpoint,
+    session_config,
+)
 from racecar_hw.net.zenoh_node import ZenohNode
 from racecar_hw.net.zenoh_security import check_credentials, zenoh_error_text
 from racecar_hw.rosmsg.typestore import ros2_types
@@ -240,6 +246,21 @@ def _names(mux: MuxParams, safety: SafetyParams, profile: str,
         return {row.bus: row.ros for row in named(rows, mux, profile, remap, key="")}
     except ConfigError as err:
         raise ClientError(str(err).lstrip(".")) from None
+
+
+def _endpoints(endpoints: list[str]) -> list[str]:
+    """``endpoints`` if each is ``<protocol>/<address>`` (``tcp/127.0.0.1:7447``), checked before Zenoh
+    reads them: its error for ``localhost:7447`` is a JSON5 parse error. ClientError naming it."""
+    for endpoint in endpoints:
+        try:
+            if not isinstance(endpoint, str):
+                raise ConfigError("connect", f"{endpoint!r} is not a Zenoh endpoint "
+                                             f"(like {DEFAULT_ENDPOINT})")
+            parse_endpoint(endpoint, "connect")
+        except ConfigError as err:
+            bare = isinstance(endpoint, str) and "/" not in endpoint and ":" in endpoint
+            raise ClientError(f"{err}" + (f"; did you mean 'tcp/{endpoint}'?" if bare else "")) from None
+    return endpoints
 
 
 class _Stream(Generic[T]):
@@ -505,7 +526,7 @@ class Car(_SimTime, _EstopControls):
                  ros_distro: str = "jazzy", use_sim_time: bool = False) -> None:
         import zenoh  # noqa: PLC0415 - the Rust extension loads only when a client is made
 
-        self.endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self.endpoints = _endpoints([connect] if isinstance(connect, str) else list(connect))
         if ros_distro not in rmw.ROS_DISTROS:
             raise ClientError(f"ros_distro {ros_distro!r}: one of {', '.join(rmw.ROS_DISTROS)} "
                               "(the daemon's zenoh.ros_distro)")

@@ -437,3 +437,21 @@ def test_after_close_the_latest_values_and_wait_ready_raise_instead_of_answering
                 read()
     finally:
         peer.close()
+
+
+@pytest.mark.parametrize(("connect", "words"), [
+    ("localhost:7447", "connect: 'localhost:7447' is not a Zenoh endpoint (like tcp/127.0.0.1:7447); "
+                       "protocols: tcp, udp, tls, quic, ws, unixsock-stream; "
+                       "did you mean 'tcp/localhost:7447'?"),
+    (["tcp/127.0.0.1:7447", "10.0.0.2:7447"], "'10.0.0.2:7447' is not a Zenoh endpoint"),
+    ("tcp/localhost", "connect: 'tcp/localhost': expected host:port"),
+    ("TCP/127.0.0.1:7447", "'TCP/127.0.0.1:7447' is not a Zenoh endpoint (like tcp/127.0.0.1:7447)"),
+    ([7447], "7447 is not a Zenoh endpoint (like tcp/127.0.0.1:7447)"),
+])
+def test_an_endpoint_not_in_zenohs_form_is_refused_before_zenoh_reads_it(connect, words):
+    """``Car("localhost:7447")`` said "is the daemon running, and does it want a user and password?
+    (Zenoh: Json5Err(...))": now one line naming the endpoint and the form it wants."""
+    with pytest.raises(ClientError) as err:
+        Car(connect)
+    assert words in str(err.value) and "\n" not in str(err.value)
+    assert "Zenoh:" not in str(err.value) and "user and password" not in str(err.value)
