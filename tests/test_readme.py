@@ -3,6 +3,7 @@ every command it names."""
 
 from __future__ import annotations
 
+import argparse
 import re
 import shlex
 from pathlib import Path
@@ -133,6 +134,27 @@ def test_every_command_in_the_table_exists(capsys) -> None:
             parser.parse_args([*command.split(), "--help"])
         assert exc.value.code == 0, command
     capsys.readouterr()
+
+
+def _options(command: str) -> set[str]:
+    """The long options of a command (``bag info``: a sub-command's), but ``--help``."""
+    parser = build_parser()
+    for word in command.split():
+        parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[word]
+    return {o for a in parser._actions for o in a.option_strings if o.startswith("--")} - {"--help"}
+
+
+def test_the_command_table_names_options_that_exist_and_every_option_of_sim() -> None:
+    """A row names only options its command has; the sim row names all of them (it lacked
+    --scenario-set and --out, which the README uses and points to)."""
+    table = README.split("## Command line", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\| `racecar-hw ([\w-]+(?: (?:info|recover))?)([^`]*)` \|(.*)$", table, flags=re.M)
+    for command, synopsis, _ in rows:
+        named = set(re.findall(r"--[a-z][\w-]*", synopsis))
+        assert named <= _options(command), (command, named - _options(command))
+    sim = next(row for row in rows if row[0] == "sim")
+    assert _options("sim") <= set(re.findall(r"--[a-z][\w-]*", sim[1] + sim[2])), \
+        _options("sim") - set(re.findall(r"--[a-z][\w-]*", sim[1] + sim[2]))
 
 
 #: Each test file that may skip, with what the README's list of skip reasons must name for it.
