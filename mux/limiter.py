@@ -10,7 +10,10 @@ Speed: a change toward zero (braking) is limited by ``max_decel_mps2``, a change
 the step accelerating the other way. Steering: the angle moves by at most
 ``max_steering_rate_radps`` per second, toward the target clamped to ``steering_range`` (the angles
 the car can drive, the VESC conversion's): a target beyond the servo's reach is driven at the
-limit, so the held angle never winds up past what the car steers. Otherwise a command of 1 rad on
+limit, so the held angle never winds up past what the car steers. Speed targets are clamped
+to ``speed_max_mps`` (the VESC conversion's) the same way: a command of 100 m/s held the limiter at
+7.5 m/s after 3 s while the VESC drove 5, and a stop then spent 0.3 s ramping down from 7.5 at the
+full 5 m/s before the car slowed at all. Otherwise a command of 1 rad on
 a car that steers 0.26 held the limiter at 1 rad, and a turn the other way then waited
 (1 - 0.26) / 3.2 s = 0.23 s before the wheels moved at all, off the arc the safety controller checked.
 
@@ -37,7 +40,8 @@ class RateLimiter:
 
     def __init__(self, max_accel_mps2: float, max_decel_mps2: float, max_steering_rate_radps: float,
                  period_s: float, enabled: bool = True,
-                 steering_range: tuple[float, float] = (-math.inf, math.inf)) -> None:
+                 steering_range: tuple[float, float] = (-math.inf, math.inf),
+                 speed_max_mps: float = math.inf) -> None:
         for name, value in (("max_accel_mps2", max_accel_mps2), ("max_decel_mps2", max_decel_mps2),
                             ("max_steering_rate_radps", max_steering_rate_radps),
                             ("period_s", period_s)):
@@ -50,17 +54,19 @@ class RateLimiter:
         self.enabled = enabled
         #: (right, left) steering angles (rad) the car drives at full lock; targets are clamped to it
         self.steering_range = (float(steering_range[0]), float(steering_range[1]))
+        #: the fastest speed (m/s, either way) the car is sent; targets are clamped to it
+        self.speed_max_mps = float(speed_max_mps)
         #: the last output speed, m/s
         self.speed = 0.0
         #: the last output steering angle, rad
         self.steering_angle = 0.0
 
     @classmethod
-    def from_params(cls, params: MuxParams,
-                    steering_range: tuple[float, float] = (-math.inf, math.inf)) -> RateLimiter:
+    def from_params(cls, params: MuxParams, steering_range: tuple[float, float] = (-math.inf, math.inf),
+                    speed_max_mps: float = math.inf) -> RateLimiter:
         """The limiter configured by the mux parameters, stepping at ``1 / rate_hz``."""
         return cls(params.max_accel_mps2, params.max_decel_mps2, params.max_steering_rate_radps,
-                   1.0 / params.rate_hz, params.limiter_enabled, steering_range)
+                   1.0 / params.rate_hz, params.limiter_enabled, steering_range, speed_max_mps)
 
     def reset(self, speed: float = 0.0, steering_angle: float = 0.0) -> None:
         """Forget the past output: the next step starts from ``speed`` and ``steering_angle``."""
@@ -76,7 +82,8 @@ class RateLimiter:
     def step(self, speed: float, steering_angle: float, periods: int = 1) -> tuple[float, float]:
         """Move toward the target over ``periods`` fixed periods; returns (speed, steering)."""
         low, high = self.steering_range
-        speed, steering_angle = float(speed), min(max(float(steering_angle), low), high)
+        top = self.speed_max_mps
+        speed, steering_angle = min(max(float(speed), -top), top), min(max(float(steering_angle), low), high)
         if self.enabled:
             dt = self.period_s * max(1, periods)
             speed = self._speed_toward(speed, dt)

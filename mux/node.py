@@ -74,19 +74,21 @@ class CommandMux:
     Use from the bus's event loop thread only. ``clock`` gives monotonic ns (message arrival,
     ages), ``wall_clock`` the output stamps. The daemon's control loop
     (:class:`~racecar_hw.runtime.ticker.PeriodicTimer`) calls :meth:`step` at ``rate_hz``.
-    ``steering_range``: the (right, left) steering angles (rad) the car drives at full lock; the
-    output never asks for more (:class:`~mux.limiter.RateLimiter`).
+    ``steering_range``: the (right, left) steering angles (rad) the car drives at full lock, and
+    ``speed_max_mps`` the fastest it is sent (m/s, either way); the output never asks for more
+    (:class:`~mux.limiter.RateLimiter`).
     """
 
     def __init__(self, bus: Bus, params: MuxParams | None = None, *,
                  clock: Callable[[], int] = monotonic_ns,
                  wall_clock: Callable[[], int] = wall_ns,
                  refusals: Refusals | None = None,
-                 steering_range: tuple[float, float] = (-math.inf, math.inf)) -> None:
+                 steering_range: tuple[float, float] = (-math.inf, math.inf),
+                 speed_max_mps: float = math.inf) -> None:
         self.bus = bus
         self.params = params = params if params is not None else MuxParams()
         self.table = MuxTable.from_params(params)
-        self.limiter = RateLimiter.from_params(params, steering_range)
+        self.limiter = RateLimiter.from_params(params, steering_range, speed_max_mps)
         self.machine = MuxStateMachine()
         self._clock = clock
         self._wall_clock = wall_clock

@@ -143,8 +143,10 @@ class Daemon:
         laser = laser_to_base(config, self.tf)
         self.vesc: VescDriver | None = VescDriver(bus, config.vesc) if config.vesc.enabled else None
         self.lidar: LidarDriver | None = make_driver(bus, config.lidar) if config.lidar.enabled else None
-        steering_range = AckermannConversion.from_params(config.vesc).steering_range()
-        self.mux = CommandMux(bus, config.mux, refusals=self.refusals, steering_range=steering_range)
+        conversion = AckermannConversion.from_params(config.vesc)
+        steering_range = conversion.steering_range()
+        self.mux = CommandMux(bus, config.mux, refusals=self.refusals, steering_range=steering_range,
+                              speed_max_mps=conversion.speed_max_mps)
         stack.callback(self.mux.close)
         self.safety = SafetyNode(bus, config.safety, laser, defer_memory=True, scans_from_bus=False,
                                  steering_limit_rad=steering_range)

@@ -212,3 +212,21 @@ def test_a_steering_target_beyond_the_cars_reach_is_held_at_full_lock_not_wound_
     off = RateLimiter(2.5, 8.0, 3.2, 0.02, enabled=False, steering_range=(-0.3, 0.2))
     assert off.step(1.0, -1.0)[1] == -0.3
     assert off.step(1.0, 1.0)[1] == 0.2
+
+
+def test_a_speed_target_beyond_the_cars_top_speed_is_held_at_it_not_wound_up():
+    """A command of 100 m/s for 3 s on a car sent at most 5 m/s, then a stop: the held speed stops
+    at 5, so the stop brakes from 5 at once (it once ramped down from 7.5 while the VESC still got 5)."""
+    lim = RateLimiter(2.5, 8.0, 3.2, 0.02, speed_max_mps=5.0)
+    for _ in range(150):
+        speed, _ = lim.step(100.0, 0.0)
+    assert speed == pytest.approx(5.0, abs=TOL)
+    assert lim.step(0.0, 0.0)[0] == pytest.approx(5.0 - 8.0 * 0.02, abs=TOL)
+    for _ in range(150):
+        speed, _ = lim.step(-100.0, 0.0)
+    assert speed == pytest.approx(-5.0, abs=TOL)
+    # without the bound the same commands wind it up (what the mux had before)
+    free = RateLimiter(2.5, 8.0, 3.2, 0.02)
+    for _ in range(150):
+        speed, _ = free.step(100.0, 0.0)
+    assert speed == pytest.approx(7.5, abs=1e-6)

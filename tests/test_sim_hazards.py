@@ -100,3 +100,21 @@ def test_a_steering_command_beyond_full_lock_turns_the_wheels_back_at_once(tmp_p
     assert 0.2 < lock < 0.3  # driven at full lock before the switch
     back = next(s.t for s in samples if s.t > 3.0 and s.steering < lock - 0.01)
     assert back < 3.1, back
+
+
+def test_a_speed_command_beyond_the_top_speed_stops_as_fast_as_one_at_it(tmp_path):
+    """10 m/s commanded for 3 s down the corridor (the car is sent at most 5), then a stop: the car
+    slows as soon as after a command of 5 m/s. The limiter once held 7.5 m/s and spent 0.3 s
+    ramping down to 5 before the wheels slowed."""
+    def first_slowing(speed: float) -> float:
+        scenario = tmp_path / f"fast-{speed:g}.yaml"
+        scenario.write_text("map: corridor\nstart: [0.0, 0.0, 0.0]\nduration_s: 4.0\n"
+                            f"drivers:\n  - {{type: script, input: nav_0, steps: [[0.0, {speed}, 0.0], "
+                            "[3.0, 0.0, 0.0]]}\n")
+        _result, lb = run_lockstep(str(scenario), overrides=("safety.mode=off",))
+        samples = trajectory(lb)
+        top = max(s.speed for s in samples if s.t < 3.0)
+        assert top > 4.9  # the VESC's 5 m/s either way
+        return next(s.t for s in samples if s.t > 3.0 and s.speed < top - 0.2)
+
+    assert first_slowing(10.0) == pytest.approx(first_slowing(5.0), abs=0.03)
