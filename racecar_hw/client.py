@@ -94,7 +94,7 @@ from racecar_hw.net.zenoh_config import (
     DEFAULT_ENDPOINT,
     PROFILES,
     ZenohAuthParams,
-    parse_endpoint,
+    check_connect,
     session_config,
 )
 from racecar_hw.net.zenoh_node import ZenohNode
@@ -249,18 +249,11 @@ def _names(mux: MuxParams, safety: SafetyParams, profile: str,
 
 
 def _endpoints(endpoints: list[str]) -> list[str]:
-    """``endpoints`` if each is ``<protocol>/<address>`` (``tcp/127.0.0.1:7447``), checked before Zenoh
-    reads them: its error for ``localhost:7447`` is a JSON5 parse error. ClientError naming it."""
-    for endpoint in endpoints:
-        try:
-            if not isinstance(endpoint, str):
-                raise ConfigError("connect", f"{endpoint!r} is not a Zenoh endpoint "
-                                             f"(like {DEFAULT_ENDPOINT})")
-            parse_endpoint(endpoint, "connect")
-        except ConfigError as err:
-            bare = isinstance(endpoint, str) and "/" not in endpoint and ":" in endpoint
-            raise ClientError(f"{err}" + (f"; did you mean 'tcp/{endpoint}'?" if bare else "")) from None
-    return endpoints
+    """``endpoints`` if each is ``<protocol>/<address>`` (:func:`check_connect`); ClientError naming it."""
+    try:
+        return [check_connect(endpoint, "connect") for endpoint in endpoints]
+    except ConfigError as err:
+        raise ClientError(str(err)) from None
 
 
 class _Stream(Generic[T]):

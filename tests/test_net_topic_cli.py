@@ -10,6 +10,8 @@ import pytest
 import yaml
 from zenoh_util import ROOT, endpoint, free_port, start_sim, switches
 
+from racecar_hw.cli import main
+
 
 def _command(port: int, args: tuple[str, ...]) -> list[str]:
     return [sys.executable, "-m", "racecar_hw.cli", "topic", "--connect", endpoint(port), *args]
@@ -170,3 +172,11 @@ def test_values_the_message_cannot_hold_are_one_clear_error_before_anything_is_s
     with pytest.raises(TopicError, match=re.escape(words)) as err:
         _pub(None, 0, args)
     assert "\n" not in str(err.value)
+
+
+def test_a_connect_without_its_protocol_is_one_line_naming_the_fix(capsys):
+    """``--connect localhost:7447`` said "is the daemon running?" with Zenoh's JSON5 parse error."""
+    assert main(["topic", "--connect", "localhost:7447", "list"]) == 1
+    assert capsys.readouterr().err == (
+        "racecar-hw topic: --connect: 'localhost:7447' is not a Zenoh endpoint (like tcp/127.0.0.1:7447); "
+        "protocols: tcp, udp, tls, quic, ws, unixsock-stream; did you mean 'tcp/localhost:7447'?\n")

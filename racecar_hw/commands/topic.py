@@ -25,7 +25,7 @@ from racecar_hw.base import messages
 from racecar_hw.base.errors import ConfigError, RacecarError
 from racecar_hw.base.messages import Message
 from racecar_hw.net import rmw
-from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, ZenohAuthParams, session_config
+from racecar_hw.net.zenoh_config import DEFAULT_ENDPOINT, ZenohAuthParams, check_connect, session_config
 from racecar_hw.net.zenoh_security import check_credentials, zenoh_error_text
 from racecar_hw.rosmsg.typestore import MESSAGE_CLASSES, ros2_types
 
@@ -80,6 +80,10 @@ def cmd_topic(args: argparse.Namespace) -> int:
     except ConfigError as err:
         raise TopicError(str(err)) from None
     auth = ZenohAuthParams(user=args.user, password=args.password)
+    try:
+        check_connect(args.connect, "--connect")
+    except ConfigError as err:
+        raise TopicError(str(err)) from None
     try:
         session = zenoh.open(session_config(args.mode, [], [args.connect], auth=auth))
     except zenoh.ZError as err:

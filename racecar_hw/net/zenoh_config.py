@@ -194,6 +194,22 @@ def parse_endpoint(endpoint: str, key: str) -> tuple[str, str, int | None]:
     return proto, host.strip("[]"), int(port)
 
 
+def check_connect(endpoint: object, key: str) -> str:
+    """``endpoint`` if it is ``<protocol>/<address>`` (``tcp/127.0.0.1:7447``), checked before Zenoh
+    reads it (its error for ``localhost:7447`` is a JSON5 parse error); ConfigError naming ``key``,
+    with the likely fix for a bare ``host:port``."""
+    try:
+        if not isinstance(endpoint, str):
+            raise ConfigError(key, f"{endpoint!r} is not a Zenoh endpoint (like tcp/127.0.0.1:7447)")
+        parse_endpoint(endpoint, key)
+    except ConfigError as err:
+        if isinstance(endpoint, str) and "/" not in endpoint and ":" in endpoint:
+            raise ConfigError(err.key, f"{str(err).removeprefix(f'{err.key}: ')}; did you mean "
+                                       f"'tcp/{endpoint}'?") from None
+        raise
+    return endpoint
+
+
 #: rmw_zenoh's settings (rmw_zenoh_cpp/config/DEFAULT_RMW_ZENOH_{ROUTER,SESSION}_CONFIG.json5, as of
 #: rmw_zenoh PRs #509 and #820) that matter here, set even where they equal Zenoh 1.10's defaults so
 #: another Zenoh release cannot change them; the router and session files agree on all of them.
