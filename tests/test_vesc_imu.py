@@ -93,6 +93,46 @@ def test_the_model_is_repeatable_for_a_seed():
     assert run(3) == run(3) and run(3) != run(4)
 
 
+def test_the_model_reports_the_mean_acceleration_since_its_last_sample():
+    """The world's speed rises in steps (at the 50 Hz command rate, held over its 5 ms steps), so
+    its acceleration over the last step is 0 at most instants: a 50 Hz sample must still feel
+    the mean acceleration since the previous sample, as a real accelerometer's low-pass does."""
+    t = 0.0
+
+    def staircase() -> PlanarMotion:  # +0.05 m/s every 20 ms, flat within: 2.5 m/s²
+        step = int(t / 0.02 + 1e-9)
+        return PlanarMotion(0.05 * step, 0.0, 0.0, 0.0)
+
+    model = ImuModel(staircase, errors=EXACT)
+    model.sample(t)
+    seen = []
+    for _ in range(10):
+        t += 0.02
+        seen.append(model.sample(t).acc_x * G)
+    assert seen == pytest.approx([2.5] * 10)
+    assert model.sample(t).acc_x * G == pytest.approx(2.5)  # again at the same instant: the same mean
+
+
+def test_in_lockstep_the_imu_feels_the_car_speed_up():
+    """The real daemon on the simulated car: while it speeds up, /imu's forward acceleration
+    averages the world's dv/dt (it read about 0 from the last 5 ms world step)."""
+    from racecar_hw.sim.env import RaceEnv
+
+    seen: list = []
+    with RaceEnv("corridor", overrides=["safety.mode=off"]) as env:
+        env.reset()
+        env.daemon.bus.subscribe(TOPIC_IMU, seen.append)
+        for _ in range(25):
+            env.step((0.0, 0.0))
+        v0, t0, n0 = env.world.speed, env.time_s, len(seen)
+        for _ in range(25):
+            env.step((3.0, 0.0))
+        dv_dt = (env.world.speed - v0) / (env.time_s - t0)
+        ax = [m.linear_acceleration.x for m in seen[n0:]]
+    assert dv_dt > 1.5 and len(ax) >= 20
+    assert sum(ax) / len(ax) == pytest.approx(dv_dt, rel=0.15)
+
+
 def test_odometry_takes_a_gyro_yaw_rate_in_place_of_the_steering_model():
     odo = OdometryIntegrator.from_params(VescParams())
     odo.update(4614.0, 0.5304, 0)

@@ -1,13 +1,18 @@
 """The fake VESC's IMU: what a board on a moving car would report, in the firmware's units.
 
 The simulation supplies the car's planar motion at the rear axle (:class:`PlanarMotion`: speed,
-yaw rate, and their rates of change). :class:`ImuModel` turns it into what an IMU mounted at
-``mount`` (x, y in metres from base_link, yaw in radians) measures, as COMM_GET_IMU_DATA reports
-it (:class:`~vesc.codec.ImuData`: deg/s, g, quaternion):
+yaw rate, and their rates of change over its last step). :class:`ImuModel` turns it into what an
+IMU mounted at ``mount`` (x, y in metres from base_link, yaw in radians) measures, as
+COMM_GET_IMU_DATA reports it (:class:`~vesc.codec.ImuData`: deg/s, g, quaternion):
 
 - specific force: gravity (+1 g on z), plus the acceleration of the mounting point, which for a
   rigid body in the plane is ``a_base + alpha x r - omega^2 r`` with ``a_base`` = (dv/dt, v·omega)
-  (longitudinal, and the centripetal v²·tan(delta)/L), rotated into the board's axes;
+  (longitudinal, and the centripetal v²·tan(delta)/L), rotated into the board's axes. dv/dt and
+  d(omega)/dt are the means since the previous sample, (v - v_prev) / (t - t_prev), as a real
+  accelerometer's low-pass filter averages them: the world's speed rises in steps at the command
+  rate, so its acceleration over its last step is 0 most of the time and a spike in between, and a
+  50 Hz poll would mostly read 0 while the car speeds up. The first sample takes the world's own
+  value, and a second sample at the same instant repeats the previous mean;
 - angular rate: omega on z (a yaw-only mounting leaves it unchanged);
 - orientation: the integrated yaw since the model started (the firmware's yaw is relative to the
   heading at boot), roll and pitch 0 on a flat floor;
@@ -72,19 +77,28 @@ class ImuModel:
         self._yaw = 0.0
         self._phase = 0.0
         self._last_s: float | None = None
+        #: the motion at the previous sample, and the mean (dv/dt, d(omega)/dt) reported then
+        self._prev: PlanarMotion | None = None
+        self._mean = (0.0, 0.0)
 
     def sample(self, t_s: float, mask: int = 0xFFFF) -> ImuData:
         """The reply at time ``t_s`` (seconds, any monotonic origin) with the fields of ``mask``."""
         m = self.motion()
         dt = 0.0 if self._last_s is None else max(0.0, t_s - self._last_s)
         self._last_s = t_s
+        if self._prev is None:
+            self._mean = (m.accel, m.yaw_accel)
+        elif dt > 0.0:
+            self._mean = ((m.speed - self._prev.speed) / dt, (m.yaw_rate - self._prev.yaw_rate) / dt)
+        self._prev = m
         self._yaw = math.remainder(self._yaw + m.yaw_rate * dt, math.tau)
         e, rng = self.errors, self._rng
         self._phase = math.remainder(self._phase + math.tau * e.vibration_hz_per_mps * abs(m.speed) * dt,
                                      math.tau)
         x, y, mount_yaw = self.mount
-        w, alpha = m.yaw_rate, m.yaw_accel
-        ax = m.accel - alpha * y - w * w * x
+        w = m.yaw_rate
+        accel, alpha = self._mean
+        ax = accel - alpha * y - w * w * x
         ay = m.speed * w + alpha * x - w * w * y
         c, s = math.cos(mount_yaw), math.sin(mount_yaw)
         bx, by = c * ax + s * ay, -s * ax + c * ay  # into the board's axes
