@@ -470,6 +470,18 @@ def test_imu_trailing_bytes_after_the_id_are_ignored():
     assert back == ImuData(gyro_z=3.0, controller_id=2)
 
 
+@pytest.mark.parametrize("fw", [(3, 52), (5, 2), (6, 2)])
+def test_imu_trailing_bytes_before_6_05_are_not_a_controller_id(fw):
+    """Firmware before 6.05 sends no id byte: whatever follows the fields is ignored, not read as
+    one (the reference: decode by the echoed mask, ignore trailing bytes)."""
+    payload = _imu_payload({8: 3.0}, 2) + b"\x99"
+    assert decode_imu_data(payload, fw) == ImuData(gyro_z=3.0)
+    host = VescCodec(Role.HOST, fw)
+    host.receive_data(frame(payload))
+    assert host.events() == [ImuData(gyro_z=3.0)]
+    assert decode_imu_data(payload, (6, 5)) == ImuData(gyro_z=3.0, controller_id=2)
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=80))
 def test_imu_decoder_never_raises(body):

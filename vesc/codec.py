@@ -619,9 +619,11 @@ def encode_imu_data(reply: ImuData, firmware: tuple[int, int] | None = None) -> 
     return bytes(out)
 
 
-def decode_imu_data(payload: bytes) -> ImuData | RawPacket:
-    """An IMU reply payload (id included), read by its echoed mask; a byte after the fields is
-    the controller id (6.05 on), anything beyond it is ignored."""
+def decode_imu_data(payload: bytes, firmware: tuple[int, int] | None = None) -> ImuData | RawPacket:
+    """An IMU reply payload (id included), read by its echoed mask. From firmware 6.05 on
+    (:data:`IMU_ID_SINCE`; None, not known yet, means the newest) the byte after the fields is the
+    controller id; before 6.05 nothing follows the fields, and anything that does is ignored, as
+    is anything after the id."""
     if len(payload) < 3:
         return RawPacket(payload, "GET_IMU_DATA reply without its mask")
     mask = _U16.unpack_from(payload, 1)[0]
@@ -635,7 +637,7 @@ def decode_imu_data(payload: bytes) -> ImuData | RawPacket:
         name = next(n for n, v in zip(names, values, strict=True) if not math.isfinite(v))
         return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
     fields: dict[str, float | int] = dict(zip(names, values, strict=True))
-    if len(payload) > end:
+    if len(payload) > end and (firmware is None or firmware >= IMU_ID_SINCE):
         fields["controller_id"] = payload[end]
     return ImuData(**fields)  # type: ignore[arg-type]
 
@@ -728,7 +730,7 @@ def decode_reply(payload: bytes, firmware: tuple[int, int] | None) -> Reply | Ra
     if cid == CommandId.GET_VALUES:
         return decode_values(payload, firmware)
     if cid == CommandId.GET_IMU_DATA:
-        return decode_imu_data(payload)
+        return decode_imu_data(payload, firmware)
     return RawPacket(payload)
 
 
