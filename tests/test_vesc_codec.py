@@ -465,6 +465,23 @@ def test_imu_short_or_non_finite_replies_are_raw():
         encode_payload(ImuData(gyro_z=1e39))
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_imu_non_finite_unused_fields_are_left_out_and_the_rest_kept(bad):
+    """A NaN in the magnetometer or the firmware's roll/pitch/yaw (nothing publishes them) reads as
+    absent; the rates, accelerations and quaternion of the same reply are kept. A NaN in any of
+    those still refuses the reply."""
+    values = dict(FULL_IMU)
+    values[2], values[9], values[11] = bad, bad, -bad  # yaw, mag_x, mag_z
+    back = decode_imu_data(_imu_payload(values))
+    assert isinstance(back, ImuData)
+    assert back.yaw is None and back.mag_x is None and back.mag_z is None
+    assert back.roll == FULL_IMU[0] and back.mag_y == 0.0
+    assert (back.gyro_z, back.acc_z, back.q0) == (45.75, 0.984375, 0.75)
+    for bit in (3, 6, 12):  # acc_x, gyro_x, q0
+        refused = decode_imu_data(_imu_payload({**values, bit: bad}))
+        assert isinstance(refused, RawPacket) and IMU_FIELDS[bit] in refused.reason
+
+
 def test_imu_trailing_bytes_after_the_id_are_ignored():
     back = decode_imu_data(_imu_payload({8: 3.0}, 2) + b"\x99\x98")
     assert back == ImuData(gyro_z=3.0, controller_id=2)
@@ -554,6 +571,8 @@ def _reference_decode_imu(payload: bytes) -> ImuData | RawPacket:
     for k, name in enumerate(names):
         value = struct.unpack_from(">f", payload, 3 + 4 * k)[0]
         if not math.isfinite(value):
+            if name in codec.IMU_LENIENT_FIELDS:
+                continue
             return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
         fields[name] = value
     if len(payload) > end:

@@ -216,6 +216,11 @@ class Alive:
 #: angular rate (deg/s), magnetic field (µT; 0 on BMI160/LSM6DS3 boards), orientation quaternion.
 IMU_FIELDS: tuple[str, ...] = ("roll", "pitch", "yaw", "acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y",
                                "gyro_z", "mag_x", "mag_y", "mag_z", "q0", "q1", "q2", "q3")
+#: Fields whose non-finite value (NaN, inf) is read as absent, as if the mask had left it out,
+#: instead of refusing the reply: nothing in racecar-hw publishes them (the firmware's roll, pitch
+#: and yaw, the magnetometer), so a NaN there must not throw away good gyro and accelerometer
+#: readings. A non-finite acceleration, rate or quaternion component refuses the whole reply.
+IMU_LENIENT_FIELDS = frozenset({"roll", "pitch", "yaw", "mag_x", "mag_y", "mag_z"})
 #: Every field: what the F1TENTH driver asks for.
 IMU_MASK_ALL = 0xFFFF
 #: The firmware that added COMM_GET_IMU_DATA (CHANGELOG: 3.52).
@@ -239,7 +244,8 @@ class ImuData:
 
     ``roll``, ``pitch``, ``yaw`` rad (the firmware negates roll and yaw relative to the quaternion:
     use ``q0..q3`` or ``gyro_z`` for heading); ``acc_*`` g; ``gyro_*`` deg/s; ``mag_*`` µT;
-    ``q0`` (w), ``q1..q3`` (x, y, z). A field the reply's mask left out is None. ``controller_id``
+    ``q0`` (w), ``q1..q3`` (x, y, z). A field the reply's mask left out is None, and so is one of
+    :data:`IMU_LENIENT_FIELDS` that came as NaN or inf: every value present is finite. ``controller_id``
     is the CAN id byte firmware 6.05 and later appends (None before).
     """
 
@@ -633,10 +639,14 @@ def decode_imu_data(payload: bytes, firmware: tuple[int, int] | None = None) -> 
         return RawPacket(payload, f"GET_IMU_DATA reply of {len(payload)} bytes, its mask {mask:#06x} "
                                   f"needs {end}")
     values = _f32s(len(names)).unpack_from(payload, 3)
-    if not all(map(math.isfinite, values)):
-        name = next(n for n, v in zip(names, values, strict=True) if not math.isfinite(v))
-        return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
     fields: dict[str, float | int] = dict(zip(names, values, strict=True))
+    if not all(map(math.isfinite, values)):
+        for name, value in zip(names, values, strict=True):
+            if math.isfinite(value):
+                continue
+            if name not in IMU_LENIENT_FIELDS:
+                return RawPacket(payload, f"GET_IMU_DATA {name} is not finite")
+            del fields[name]  # unused: read as absent (IMU_LENIENT_FIELDS)
     if len(payload) > end and (firmware is None or firmware >= IMU_ID_SINCE):
         fields["controller_id"] = payload[end]
     return ImuData(**fields)  # type: ignore[arg-type]
