@@ -10,6 +10,7 @@ import pytest
 from conftest import async_wait_for
 
 from racecar_hw.base.bus import Bus
+from racecar_hw.base.clock import monotonic_ns
 from vesc.codec import ImuData
 from vesc.driver import TOPIC_IMU, VescDriver
 from vesc.imu import G, GyroBias, ImuCovariances, imu_message
@@ -37,15 +38,39 @@ def test_imu_message_is_in_si_units_with_its_frame_and_covariances():
 
 
 def test_a_reply_without_the_quaternion_says_orientation_not_provided():
-    msg = imu_message(ImuData(gyro_z=10.0), 0, "imu", COV)
+    msg = imu_message(ImuData(gyro_x=0.0, gyro_y=0.0, gyro_z=10.0), 0, "imu", COV)
     assert msg.orientation_covariance[0] == -1.0
     assert msg.angular_velocity.z == pytest.approx(math.radians(10.0))
+
+
+def _provided(cov) -> bool:
+    return cov[0] != -1.0
+
+
+def test_a_group_the_mask_leaves_out_is_not_provided():
+    """sensor_msgs/Imu: covariance element 0 at -1 means no estimate. A gyro-only reply (mask
+    0x01C0) has no acceleration and no orientation; an accelerometer-only one no rates; a gyro
+    with z alone (mask 0x0100) no whole angular velocity."""
+    gyro_only = imu_message(ImuData(gyro_x=1.0, gyro_y=2.0, gyro_z=3.0), 0, "imu", COV)
+    assert not _provided(gyro_only.linear_acceleration_covariance)
+    assert not _provided(gyro_only.orientation_covariance)
+    assert _provided(gyro_only.angular_velocity_covariance)
+    assert gyro_only.angular_velocity.z == pytest.approx(math.radians(3.0))
+    assert (gyro_only.linear_acceleration.x, gyro_only.linear_acceleration.z) == (0.0, 0.0)
+    acc_only = imu_message(ImuData(acc_x=0.1, acc_y=0.0, acc_z=1.0), 0, "imu", COV)
+    assert not _provided(acc_only.angular_velocity_covariance)
+    assert _provided(acc_only.linear_acceleration_covariance)
+    assert acc_only.linear_acceleration.z == pytest.approx(G)
+    z_only = imu_message(ImuData(gyro_z=3.0), 0, "imu", COV)
+    assert not _provided(z_only.angular_velocity_covariance)
+    assert list(z_only.angular_velocity_covariance[1:]) == [0.0] * 8
 
 
 @pytest.mark.parametrize("quat", [(0.0, 0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0), (0.5, 0.0, 0.0, 0.0)])
 def test_a_quaternion_that_is_no_rotation_says_orientation_not_provided(quat):
     """All zeros (an IMU not yet running) or a norm far from 1 (damaged) is no orientation."""
-    msg = imu_message(ImuData(gyro_z=10.0, q0=quat[0], q1=quat[1], q2=quat[2], q3=quat[3]), 0, "imu", COV)
+    msg = imu_message(ImuData(gyro_x=0.0, gyro_y=0.0, gyro_z=10.0, q0=quat[0], q1=quat[1], q2=quat[2],
+                              q3=quat[3]), 0, "imu", COV)
     assert msg.orientation_covariance[0] == -1.0
     assert msg.angular_velocity.z == pytest.approx(math.radians(10.0))
 
@@ -190,6 +215,26 @@ def test_imu_replies_beyond_the_sensors_full_scale_are_dropped_and_spare_the_gyr
 
     asyncio.run(scenario())
     assert all(abs(m.angular_velocity.z) < 1.0 for m in seen)
+
+
+def test_the_driver_publishes_a_reply_without_the_gyro_as_rates_not_provided(tmp_path, device_thread):
+    """An accelerometer-only reply (mask 0x0038) is published with its acceleration, the rates and
+    orientation marked not provided; it reaches neither the gyro bias nor odometry."""
+    fake, bus, seen = _standing_fake(device_thread, tmp_path, 2.0)
+    full = fake.imu.sample
+    fake.imu.sample = lambda t_s, mask=0xFFFF: full(t_s, 0x0038)
+
+    async def scenario() -> None:
+        params = VescParams(port=fake.path, odometry_yaw_rate="imu", imu_bias_time_s=0.1)
+        async with VescDriver(bus, params) as driver:
+            await async_wait_for(lambda: len(seen) >= 10, timeout=20)
+            assert driver.gyro_bias.still_s == 0.0 and driver._gyro_yaw_rate(monotonic_ns()) is None
+
+    asyncio.run(scenario())
+    msg = seen[-1]
+    assert msg.linear_acceleration.z == pytest.approx(G, rel=1e-5)
+    assert msg.linear_acceleration_covariance[0] > 0.0
+    assert msg.angular_velocity_covariance[0] == -1.0 and msg.orientation_covariance[0] == -1.0
 
 
 def test_old_firmware_is_not_asked_for_the_imu(tmp_path, device_thread):

@@ -95,7 +95,7 @@ from vesc.codec import (
     VescCodec,
     known_firmware,
 )
-from vesc.imu import DEG, GyroBias, ImuCovariances, imu_message
+from vesc.imu import DEG, GyroBias, ImuCovariances, imu_message, imu_provides
 from vesc.odometry import OdometryIntegrator
 from vesc.params import VescParams
 
@@ -222,7 +222,9 @@ class VescDriver(ReconnectingDevice):
                                        params.imu_linear_acceleration_variance)
         self.gyro_bias = GyroBias(params.imu_bias_time_s)
         self._last_imu: Imu | None = None
-        self._last_imu_ns = 0
+        #: the last gyro z rate (rad/s, bias included) and when it came (monotonic ns)
+        self._gyro_z: float | None = None
+        self._gyro_z_ns = 0
         self._imu_stale_ns = nanoseconds(IMU_STALE_POLLS / params.poll_rate_hz)
         self._standing = True  # the last telemetry said ERPM 0
 
@@ -637,14 +639,13 @@ class VescDriver(ReconnectingDevice):
 
     def _gyro_yaw_rate(self, now_ns: int) -> float | None:
         """The bias-corrected gyro z rate (rad/s) for odometry, or None: use the steering model."""
-        imu = self._last_imu
-        if (self.params.odometry_yaw_rate != "imu" or imu is None or not self.gyro_bias.settled
-                or now_ns - self._last_imu_ns > self._imu_stale_ns):
+        if (self.params.odometry_yaw_rate != "imu" or self._gyro_z is None or not self.gyro_bias.settled
+                or now_ns - self._gyro_z_ns > self._imu_stale_ns):
             return None
-        return imu.angular_velocity.z - self.gyro_bias.bias
+        return self._gyro_z - self.gyro_bias.bias
 
     def _on_imu(self, data: ImuData) -> None:
-        if self._firmware is None or data.gyro_z is None:
+        if self._firmware is None:
             return
         if not _plausible_imu(data):
             self.stats.implausible_imu += 1
@@ -653,10 +654,15 @@ class VescDriver(ReconnectingDevice):
                 (data.gyro_x, data.gyro_y, data.gyro_z), (data.acc_x, data.acc_y, data.acc_z))
             return
         mono, stamp = monotonic_ns(), wall_ns()
-        self.stats.imu_replies += 1
-        self.gyro_bias.update(data.gyro_z * DEG, self._standing, mono)
         msg = imu_message(data, stamp, self.params.imu_frame_id, self._imu_cov)
-        self._last_imu, self._last_imu_ns = msg, mono
+        if not imu_provides(msg):  # no whole group (e.g. a magnetometer-only mask): nothing to say
+            return
+        self.stats.imu_replies += 1
+        if data.gyro_z is not None:  # the bias and odometry need only z
+            self._gyro_z = data.gyro_z * DEG
+            self._gyro_z_ns = mono
+            self.gyro_bias.update(self._gyro_z, self._standing, mono)
+        self._last_imu = msg
         self.bus.publish(TOPIC_IMU, msg)
 
 

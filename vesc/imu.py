@@ -32,6 +32,9 @@ DEG = math.pi / 180.0
 #: Norms of the reply's quaternion taken as an orientation (the firmware sends a unit quaternion;
 #: float32 rounding moves it by far less).
 QUATERNION_NORM_RANGE = (0.9, 1.1)
+#: A covariance that says "not provided" (sensor_msgs/Imu: element 0 is -1).
+_NOT_PROVIDED = np.zeros(9)
+_NOT_PROVIDED[0] = -1.0
 
 
 @dataclass(frozen=True)
@@ -67,35 +70,44 @@ def imu_message(data: ImuData, stamp_ns: int, frame_id: str, cov: ImuCovariances
                 gyro_bias_z: float = 0.0) -> Imu:
     """``data`` as sensor_msgs/Imu stamped ``stamp_ns`` (wall ns) in ``frame_id``.
 
-    Missing fields (the reply's mask left them out) read as zero. A missing quaternion, or one
-    whose norm is not about 1 (:data:`QUATERNION_NORM_RANGE`: all zeros from an IMU not yet
-    running, damaged bytes), gives an orientation covariance of -1 ("not provided", as
-    sensor_msgs/Imu defines it). ``gyro_bias_z`` (rad/s) is subtracted from the z rate.
+    A group the reply does not carry whole (the mask left out any of its fields) is "not
+    provided" as sensor_msgs/Imu defines it: zeros, and a covariance of zeros with element 0 at
+    -1: the acceleration (``acc_x..z``), the angular velocity (``gyro_x..z``), or the orientation
+    (``q0..q3``; also a quaternion whose norm is not about 1, :data:`QUATERNION_NORM_RANGE`: all
+    zeros from an IMU not yet running, damaged bytes). ``gyro_bias_z`` (rad/s) is subtracted from
+    the z rate.
     """
     o_cov, w_cov, a_cov = cov.arrays()
+    rates = (data.gyro_x, data.gyro_y, data.gyro_z)
+    accelerations = (data.acc_x, data.acc_y, data.acc_z)
     quat = (data.q0, data.q1, data.q2, data.q3)
     norm = (math.sqrt(sum(float(q) * float(q) for q in quat))  # type: ignore[arg-type]
             if all(q is not None for q in quat) else 0.0)
     lo, hi = QUATERNION_NORM_RANGE
     if not lo <= norm <= hi:
-        orientation = Quaternion()
-        o_cov = np.zeros(9)
-        o_cov[0] = -1.0
+        orientation, o_cov = Quaternion(), _NOT_PROVIDED.copy()
     else:
         w, x, y, z = (float(q) for q in quat)  # type: ignore[arg-type]
         orientation = Quaternion(x / norm, y / norm, z / norm, w / norm)
+    if None in rates:
+        angular_velocity, w_cov = Vector3(), _NOT_PROVIDED.copy()
+    else:
+        wx, wy, wz = (float(r) * DEG for r in rates)  # type: ignore[arg-type]
+        angular_velocity = Vector3(wx, wy, wz - gyro_bias_z)
+    if None in accelerations:
+        linear_acceleration, a_cov = Vector3(), _NOT_PROVIDED.copy()
+    else:
+        linear_acceleration = Vector3(*(float(a) * G for a in accelerations))  # type: ignore[arg-type]
+    return Imu(header=Header(Time.from_ns(stamp_ns), frame_id),
+               orientation=orientation, orientation_covariance=o_cov,
+               angular_velocity=angular_velocity, angular_velocity_covariance=w_cov,
+               linear_acceleration=linear_acceleration, linear_acceleration_covariance=a_cov)
 
-    def v(a: float | None) -> float:
-        return 0.0 if a is None else float(a)
 
-    return Imu(
-        header=Header(Time.from_ns(stamp_ns), frame_id),
-        orientation=orientation, orientation_covariance=o_cov,
-        angular_velocity=Vector3(v(data.gyro_x) * DEG, v(data.gyro_y) * DEG,
-                                 v(data.gyro_z) * DEG - gyro_bias_z),
-        angular_velocity_covariance=w_cov,
-        linear_acceleration=Vector3(v(data.acc_x) * G, v(data.acc_y) * G, v(data.acc_z) * G),
-        linear_acceleration_covariance=a_cov)
+def imu_provides(msg: Imu) -> bool:
+    """Whether ``msg`` carries anything: an orientation, angular velocity or acceleration."""
+    return any(cov[0] != -1.0 for cov in (msg.orientation_covariance, msg.angular_velocity_covariance,
+                                          msg.linear_acceleration_covariance))
 
 
 class GyroBias:
