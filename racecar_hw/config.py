@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,7 @@ from racecar_hw.base.overrides import apply_override, key_lines, key_path, load_
 from racecar_hw.base.params import build, describe, param, to_dict, unknown_key
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.topics import CMD_VEL_BUS_TOPIC, FOXGLOVE_INPUT_TOPIC
-from racecar_hw.base.transforms import StaticTransformParams, build_static_transforms
+from racecar_hw.base.transforms import StaticTransformParams, TfTree, build_static_transforms
 from racecar_hw.net.dds_config import DdsParams
 from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.ports import Listener, free_port, port_taken
@@ -179,6 +180,7 @@ def build_config(data: dict[str, Any]) -> Config:
         config.dds.validate("dds")
     _check_scan_timing(config)
     _check_braking(config)
+    _check_imu_mount(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
     return config
@@ -362,6 +364,35 @@ def _check_braking(config: Config) -> None:
                           "stopping distances assume the car brakes at that rate, and the limiter, "
                           "which runs after it (and ramps down a timed-out input or a stale scan), "
                           "would brake more gently; raise it, or lower safety.max_decel_mps2")
+
+
+#: Largest tilt (rad) of the IMU frame's z axis from base_link's that is accepted: the driver takes
+#: the IMU's z rate as the yaw rate, which a tilt scales by cos(tilt) (0.5 % at this bound).
+IMU_TILT_MAX_RAD = 0.1
+
+
+def _check_imu_mount(config: Config) -> None:
+    """Refuse a ``base_link -> imu`` with roll or pitch: the driver (``odometry_yaw_rate: imu``, the
+    gyro bias) and ``racecar-hw calibrate`` take the IMU's z rate as the car's yaw rate, untransformed,
+    so the firmware's mounting rotation must make z point up (docs/vesc.md, "The IMU")."""
+    vesc = config.vesc
+    if not (vesc.enabled and vesc.imu):
+        return
+    try:
+        tree = TfTree.from_params(config.static_transforms)
+    except ConfigError:
+        return  # a malformed tree is reported where the daemon builds it
+    if not tree.can_transform("base_link", vesc.imu_frame_id):
+        return
+    z_up = float(tree.lookup("base_link", vesc.imu_frame_id)[2, 2])
+    tilt = math.acos(max(-1.0, min(1.0, z_up)))
+    if tilt > IMU_TILT_MAX_RAD:
+        index = next(i for i, t in enumerate(config.static_transforms)
+                     if t.child_frame_id == vesc.imu_frame_id)
+        raise ConfigError(f"static_transforms[{index}]", f"base_link -> {vesc.imu_frame_id} tilts the "
+                          f"IMU's z axis {math.degrees(tilt):.0f} deg from up (roll or pitch), but the "
+                          "driver and calibrate read its z rate as the yaw rate: set VESC Tool's IMU "
+                          "mounting rotation so z points up, and give only xyz and yaw here")
 
 
 def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = (),

@@ -6,6 +6,7 @@ check-config as a process of its own)."""
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 
 import pytest
 import yaml
@@ -320,3 +321,25 @@ def test_an_element_of_a_list_is_one_error(check_config, setting, words):
     proc = check_config("--set", setting)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
     assert proc.stderr.splitlines() == [f"racecar-hw check-config: {words} (from --set {setting})"]
+
+
+@pytest.mark.parametrize(("rotation", "refused"), [
+    ("ypr: [0.0, 0.0, 3.14159265]", True),     # upside down: the z rate is the yaw rate negated
+    ("ypr: [0.0, 0.5, 0.0]", True),            # pitched
+    ("quaternion: [1.0, 0.0, 0.0, 0.0]", True),
+    ("ypr: [1.5707963, 0.0, 0.0]", False),     # turned about z: z still up
+    ("ypr: [0.0, 0.05, 0.0]", False)])         # a few degrees off level
+def test_an_imu_mount_with_roll_or_pitch_is_refused(tmp_path, check_config, rotation, refused):
+    """The driver's gyro odometry and bias and calibrate read the IMU's z rate as the yaw rate,
+    untransformed: an upside-down ``base_link -> imu`` was accepted and turned left into right."""
+    text = (Path(__file__).parents[1] / "config" / "car.yaml").read_text()
+    row = "{frame_id: base_link, child_frame_id: imu, xyz: [0.12, 0.0, 0.04]}"
+    assert row in text
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text(text.replace(row, row[:-1] + f", {rotation}}}"))
+    proc = check_config(str(cfg))
+    assert proc.returncode == (1 if refused else 0), proc.stderr
+    if refused:
+        line, = proc.stderr.splitlines()
+        assert "static_transforms[1]: base_link -> imu tilts the IMU's z axis" in line, line
+        assert check_config(str(cfg), "--set", "vesc.imu=false").returncode == 0
