@@ -91,3 +91,24 @@ def test_speed_is_for_the_simulated_car_only(capsys):
     assert main(["calibrate", "--speed", "max", "--yes"]) == 1
     assert capsys.readouterr().err == ("racecar-hw calibrate: --speed: the simulation's clock is for --sim; "
                                        "a real car runs in real time\n")
+
+
+def test_an_imu_message_without_rates_is_not_a_rate_of_zero():
+    """The driver publishes a reply without the gyro with its angular velocity "not provided"
+    (covariance element 0 at -1, the rates zeros): the procedure must not take it as standing still."""
+    import numpy as np
+
+    from racecar_hw.base.bus import Bus
+    from racecar_hw.base.messages import Imu, Vector3
+    from racecar_hw.base.topics import TOPIC_IMU
+    from racecar_hw.sources.calibration import CalibrationParams, CalibrationProcedure, CarWatch
+
+    bus = Bus()
+    proc = CalibrationProcedure(bus, CalibrationParams(), CarWatch(lambda: True, lambda: None, lambda: None))
+    not_provided = np.zeros(9)
+    not_provided[0] = -1.0
+    bus.publish(TOPIC_IMU, Imu(angular_velocity_covariance=not_provided))
+    assert proc._s.imu_ns == 0
+    bus.publish(TOPIC_IMU, Imu(angular_velocity=Vector3(0.0, 0.0, 0.25)))
+    assert proc._s.imu_ns != 0 and proc._s.gyro_z == 0.25
+    proc.close()

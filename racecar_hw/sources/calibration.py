@@ -178,6 +178,8 @@ class CalibrationProcedure:
             self._recording.append((tach, s.wall.distance_m, s.wall.normal_rad))
 
     def _on_imu(self, msg: Imu) -> None:
+        if msg.angular_velocity_covariance[0] == -1.0:
+            return  # a reply without the gyro (sensor_msgs/Imu: not provided), not a rate of 0
         now = monotonic_ns()
         s = self._s
         if s.imu_ns:
