@@ -58,7 +58,8 @@ def test_calibrate_finds_the_miscalibrated_cars_gains_and_odometry_closes_after(
     gain, offset, steer = (found[k] for k in ("speed_to_erpm_gain", "steering_angle_to_servo_offset",
                                               "steering_angle_to_servo_gain"))
     assert gain[0] == pytest.approx(gain[1], rel=0.02)
-    assert offset[0] == pytest.approx(offset[1], abs=0.005)
+    # within its error bar (±0.0002): fitted against the unrounded servo positions it was 0.0005 off
+    assert offset[0] == pytest.approx(offset[1], abs=0.00025)
     assert steer[0] == pytest.approx(steer[1], rel=0.03)
     # written into the file, its comments kept, and the diff shown
     written = config.read_text()

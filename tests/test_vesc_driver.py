@@ -26,6 +26,7 @@ from vesc.codec import (
     Values,
     encode_fw_version,
     frame,
+    servo_on_wire,
 )
 from vesc.driver import TOPIC_CORE, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF, VescDriver
 from vesc.fake import CommandRecord, FakeVesc
@@ -121,7 +122,7 @@ def test_handshake_and_telemetry_per_layout(tmp_path, device_thread, firmware):
             assert isinstance(rec.last(TOPIC_TF), TFMessage)
             servo = rec.last(TOPIC_SERVO)
             assert isinstance(servo, Float64)
-            assert servo.data == pytest.approx(CONV.steering_to_servo(0.1))
+            assert servo.data == servo_on_wire(CONV.steering_to_servo(0.1))  # as the VESC receives it
             assert not fake.timed_out  # 50 Hz motor commands keep the firmware timeout fed
             assert driver.stats.frames_rx >= 10 and driver.stats.crc_errors == 0
 
@@ -151,6 +152,27 @@ def test_commands_arrive_with_exact_values():
             keep_driving = asyncio.create_task(drive_for(driver, 10.0, -0.5, 0.3))
             await async_wait_for(lambda: fake.erpm == -2307 and fake.servo == 0.215, timeout=5)
             keep_driving.cancel()
+
+    lockstep.run(scenario())
+
+
+def test_the_servo_topic_says_what_the_vesc_received():
+    """``servo_position_command`` carries the position in the thousandths the VESC receives, not the
+    unrounded one: calibration fits the servo offset against it (the unrounded 0.65175 put the
+    fitted offset 0.0005 from the car's, outside its error bar). Odometry steers by the same."""
+    async def scenario() -> None:
+        fake = memory_fake("servo-topic")
+        bus = Bus()
+        rec = Recorder(bus, TOPIC_SERVO)
+        async with VescDriver(bus, VescParams(port=fake.path)) as driver:
+            await async_wait_for(lambda: driver.connected)
+            raw = CONV.steering_to_servo(-0.1)
+            assert raw != round(raw, 3)  # 0.5304 + 0.12135: a position between two thousandths
+            fake.clear_commands()
+            driver.command(AckermannDrive(speed=1.0, steering_angle=-0.1))
+            await async_wait_for(lambda: any(isinstance(r.packet, SetServoPosition) for r in fake.commands))
+            servo = next(r.packet for r in fake.commands if isinstance(r.packet, SetServoPosition))
+            assert rec.last(TOPIC_SERVO).data == servo.position == driver.servo_sent == 0.652
 
     lockstep.run(scenario())
 

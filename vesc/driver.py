@@ -7,7 +7,8 @@ the GET_VALUES layout), then polls GET_VALUES at ``poll_rate_hz`` and publishes:
 topic                                      type                      when
 =========================================  ========================  ===========================
 ``/vesc/sensors/core``                     VescStateStamped          every telemetry reply
-``/vesc/sensors/servo_position_command``   Float64 (0..1)            every servo position sent
+``/vesc/sensors/servo_position_command``   Float64 (0..1)            every servo position sent, as
+                                                                     the VESC receives it (thousandths)
 ``/odom``                                  Odometry                  every telemetry reply
 ``/tf``                                    TFMessage (odom->base)    every reply, if publish_tf
 ``/imu``                                   Imu (SI, ``imu`` frame)   every IMU reply, if imu
@@ -94,6 +95,7 @@ from vesc.codec import (
     Values,
     VescCodec,
     known_firmware,
+    servo_on_wire,
 )
 from vesc.imu import DEG, GyroBias, ImuCovariances, imu_message, imu_provides
 from vesc.odometry import OdometryIntegrator
@@ -267,7 +269,7 @@ class VescDriver(ReconnectingDevice):
 
     @property
     def servo_sent(self) -> float:
-        """The last servo position written to the VESC (0..1)."""
+        """The last servo position written to the VESC (0..1), in the thousandths it travels in."""
         return self._servo_sent
 
     @property
@@ -560,8 +562,9 @@ class VescDriver(ReconnectingDevice):
                 self._last_motor_tx_ns = now
                 self._last_motor_tx_cpu_ns = time.thread_time_ns()
             elif isinstance(p, SetServoPosition):
-                self._servo_sent = p.position
-                self.bus.publish(TOPIC_SERVO, Float64(p.position))
+                # what the VESC received (thousandths): calibration fits against it, odometry steers by it
+                self._servo_sent = servo_on_wire(p.position)
+                self.bus.publish(TOPIC_SERVO, Float64(self._servo_sent))
             elif isinstance(p, GetValuesRequest):
                 self._unanswered += 1
         return True
