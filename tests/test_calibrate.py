@@ -88,6 +88,24 @@ def test_calibrate_stops_the_car_and_says_why(args, why, capsys):
     assert "Traceback" not in stderr
 
 
+@pytest.mark.parametrize(("key", "why", "amount"), [
+    ("vesc.invert_motor", r"the car drove away from the wall when told to drive toward it \((\S+) m\)", 0.1),
+    ("vesc.invert_servo", r"the car turned ([-+]\d+) deg off its heading", 6),
+])
+def test_a_car_going_the_other_way_stops_at_once_naming_the_key(key, why, amount, capsys):
+    """The config's flag wrong for the car: the motor backs it away from the wall it was told to
+    approach, or the heading hold steers it further off. Stopped within 5 cm or 5 degrees, not
+    metres later with a wall "6 cm from flat"."""
+    code, stdout, stderr = _calibrate(capsys, "--set", f"{key}=true")
+    assert code == 1, stdout[-2000:] + stderr[-2000:]
+    assert "Traceback" not in stderr
+    line = stderr.strip().splitlines()[-1]
+    m = re.search(why, line)
+    assert m and f"check {key}" in line, line
+    assert abs(float(m.group(1))) <= amount
+    assert "ERPM gain" not in stdout  # on the first leg
+
+
 def test_speed_is_for_the_simulated_car_only(capsys):
     assert main(["calibrate", "--speed", "max", "--yes"]) == 1
     assert capsys.readouterr().err == ("racecar-hw calibrate: --speed: the simulation's clock is for --sim; "

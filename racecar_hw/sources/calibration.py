@@ -18,7 +18,10 @@ facing a flat wall ``wall_distance_m`` ahead of the lidar:
 Aborts (:class:`CalibrationAborted`, the car braked first): the car disarmed or another source
 (or a deadman lock, or an e-stop) took over; the safety controller intervened; no flat wall where
 it should be, or the wall stops agreeing with the distance driven; the lidar, the IMU or the VESC's
-telemetry went quiet.
+telemetry went quiet. On the straight legs, before any of those could tell (:class:`StraightLeg`): the
+wall moving ``WRONG_WAY_M`` the wrong way (the motor turns the other way: ``vesc.invert_motor``)
+or the heading ``MAX_HEADING_DEG`` off (the heading hold steers the wrong way:
+``vesc.invert_servo`` or the steering gain's sign).
 """
 
 from __future__ import annotations
@@ -55,6 +58,12 @@ from racecar_hw.sources.calibration_fit import (
 
 #: Sensors silent for this long abort the procedure (s).
 SILENT_S = 0.5
+#: On a straight leg, the wall this much (m) farther when driving toward it (or nearer when backing):
+#: the car drives the other way. The fitted distance varies by millimetres from scan to scan.
+WRONG_WAY_M = 0.05
+#: On a straight leg, the heading this far off (deg): the heading hold steers the wrong way. The sim's
+#: car with its servo offset 0.15 off (0.11 rad of steering) peaks at 3.7 deg, then comes back.
+MAX_HEADING_DEG = 5.0
 
 
 class CalibrationAborted(Exception):
@@ -327,9 +336,9 @@ class CalibrationProcedure:
         await self._stop_and_settle()
         self._heading = 0.0
         steer_bias = 0.0
-        first = (0.0, 0.0)
         samples: list[tuple[float, float, float]] = []
         direction = 1.0 if speed > 0 else -1.0
+        leg = StraightLeg(self.step, direction, self._wall().distance_m, self.params.configured_erpm_gain)
         started = monotonic_ns()
         max_s = 3.0 * abs(self.params.wall_distance_m) / abs(speed) + 5.0
         while True:
@@ -338,9 +347,8 @@ class CalibrationProcedure:
             distance = self._wall().distance_m
             if now - started > 0.8 * NS_PER_S and self._recording is None:  # at speed: record
                 self._recording = samples
-                first = (self._s.tach[-1][1], distance)
-            if self._recording is not None:
-                self._check_wall_follows(first, distance)
+                leg.first = (self._s.tach[-1][1], distance)
+            leg.check(distance, self._heading, self._s.tach[-1][1])
             if done(distance) or now - started > max_s * NS_PER_S:
                 break
             # a PI on the heading: the integral learns the steering that truly drives straight
@@ -350,14 +358,6 @@ class CalibrationProcedure:
         self._recording = None
         await self._stop_and_settle()
         return samples
-
-    def _check_wall_follows(self, first: tuple[float, float], distance: float) -> None:
-        """Abort when the wall's distance changed far more or less than the car drove (config gain)."""
-        driven = abs(self._s.tach[-1][1] - first[0]) * 10.0 / self.params.configured_erpm_gain
-        moved = abs(distance - first[1])
-        if abs(moved - driven) > 0.3 * driven + 0.3:
-            raise CalibrationAborted(f"stopped during {self.step}: the wall is not where it should be "
-                                     f"(it moved {moved:.2f} m while the car drove about {driven:.2f} m)")
 
     async def _arc(self, steering: float, speed: float) -> Arc:
         """Drive an arc; the averages over its steady part."""
@@ -384,6 +384,38 @@ class CalibrationProcedure:
         for _ in range(int(self.params.rate_hz * 0.3)):
             self._send(0.0, 0.0)
             await asyncio.sleep(1.0 / self.params.rate_hz)
+
+
+@dataclass
+class StraightLeg:
+    """A straight leg's checks, each scan: which way the car goes, whether its heading holds, whether
+    the wall keeps agreeing with the distance driven (once ``first`` is set)."""
+
+    step: str
+    direction: float            #: +1 toward the wall, -1 back
+    start_m: float              #: the wall's distance at the start
+    erpm_gain: float            #: the config's, for the distance driven
+    first: tuple[float, float] | None = None  #: (tachometer, wall distance) from where it is compared
+
+    def check(self, distance: float, heading: float, tach: float) -> None:
+        """Raise :class:`CalibrationAborted` naming the likely config key (or the wall) if wrong."""
+        wrong_way = (distance - self.start_m) * self.direction
+        if wrong_way > WRONG_WAY_M:
+            told, went = ("toward", "away from") if self.direction > 0 else ("away from", "toward")
+            raise CalibrationAborted(f"stopped during {self.step}: the car drove {went} the wall when told "
+                                     f"to drive {told} it ({wrong_way:.2f} m): the motor turns the other "
+                                     "way; check vesc.invert_motor")
+        if abs(deg := math.degrees(heading)) > MAX_HEADING_DEG:
+            raise CalibrationAborted(f"stopped during {self.step}: the car turned {deg:+.0f} "
+                                     "deg off its heading while the heading hold steered against it: the "
+                                     "steering goes the other way; check vesc.invert_servo (or the sign of "
+                                     "vesc.steering_angle_to_servo_gain)")
+        if self.first is not None:  # the wall's distance changed far more or less than the car drove
+            driven = abs(tach - self.first[0]) * 10.0 / self.erpm_gain
+            moved = abs(distance - self.first[1])
+            if abs(moved - driven) > 0.3 * driven + 0.3:
+                raise CalibrationAborted(f"stopped during {self.step}: the wall is not where it should be "
+                                         f"(it moved {moved:.2f} m while the car drove about {driven:.2f} m)")
 
 
 def _leg(samples: list[tuple[float, float, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
