@@ -106,6 +106,22 @@ def test_a_car_going_the_other_way_stops_at_once_naming_the_key(key, why, amount
     assert "ERPM gain" not in stdout  # on the first leg
 
 
+@pytest.mark.parametrize("how", ["read-only", "no room for the scratch file"])
+def test_write_to_a_file_that_cannot_be_replaced_is_refused_before_the_car_moves(how, tmp_path, capsys):
+    config = tmp_path / "car.yaml"
+    shutil.copy(ROOT / "config" / "sim.yaml", config)
+    shipped = config.read_text()
+    if how == "read-only":
+        config.chmod(0o444)
+    else:
+        (tmp_path / ".car.yaml.calibrate-check").mkdir()  # stops root too, as a read-only directory would not
+    code, stdout, stderr = _calibrate(capsys, "--write", str(config))
+    assert code == 1
+    assert stderr.startswith(f"racecar-hw calibrate: --write: {config}: ") and stderr.count("\n") == 1, stderr
+    assert "standing still" not in stdout  # the car never moved
+    assert config.read_text() == shipped
+
+
 def test_speed_is_for_the_simulated_car_only(capsys):
     assert main(["calibrate", "--speed", "max", "--yes"]) == 1
     assert capsys.readouterr().err == ("racecar-hw calibrate: --speed: the simulation's clock is for --sim; "

@@ -10,7 +10,7 @@ import pytest
 from zenoh_util import ROOT
 
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.commands.calibrate_write import write
+from racecar_hw.commands.calibrate_write import check_writable, write
 from racecar_hw.config import load_config
 from vesc.ackermann import AckermannConversion
 
@@ -99,3 +99,40 @@ def test_a_symlinked_config_is_written_through_the_link_keeping_mode_and_owner(t
     assert link.is_symlink() and load_config(real).vesc.steering_angle_to_servo_gain == 1.3349
     assert (real.stat().st_mode & 0o777) == 0o640
     assert sorted(p.name for p in tmp_path.iterdir()) == ["car.yaml", "link.yaml"]
+
+
+def test_a_read_only_file_is_refused_before_the_car_moves(tmp_path):
+    """0444: replacing it through a new file renamed over it needs only the directory's permission,
+    and root may write it anyway; the mode's write bits are read, so this holds as root too."""
+    path = _car(tmp_path)
+    path.chmod(0o444)
+    with pytest.raises(ConfigError, match=r"^--write: .*car\.yaml: read-only \(-r--r--r--"):
+        check_writable(path)
+
+
+@pytest.mark.parametrize("scratch", [".car.yaml.calibrate-check", ".car.yaml.calibrate"])
+def test_a_file_whose_scratch_file_cannot_be_created_is_refused_before_the_car_moves(tmp_path, scratch):
+    """The check opens the scratch file for writing, so any reason it cannot be created (a read-only
+    directory, a read-only mount, here a directory in its place, which stops root as well) refuses."""
+    path = _car(tmp_path)
+    (tmp_path / scratch).mkdir()
+    with pytest.raises(ConfigError, match=rf"^--write: .*car\.yaml: cannot create .*{scratch} "):
+        check_writable(path)
+
+
+def test_a_writable_file_passes_and_the_check_leaves_nothing_behind(tmp_path):
+    path = _car(tmp_path)
+    check_writable(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["car.yaml"]
+
+
+@pytest.mark.parametrize("scratch", [".car.yaml.calibrate-check", ".car.yaml.calibrate"])
+def test_an_os_error_while_writing_is_one_line_and_the_file_untouched(tmp_path, scratch):
+    """After the drive (the directory made read-only meanwhile): a ConfigError naming --write, not a
+    PermissionError's traceback after the values were shown."""
+    path = _car(tmp_path)
+    before = path.read_text()
+    (tmp_path / scratch).mkdir()
+    with pytest.raises(ConfigError, match=r"^--write: .*car\.yaml: .*; nothing written: put the snippet "):
+        write(path, MEASURED)
+    assert path.read_text() == before

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build
-from racecar_hw.commands.calibrate_write import configured, write
+from racecar_hw.commands.calibrate_write import check_writable, configured, write
 from racecar_hw.commands.daemon import add_config_options, run_daemon
 from racecar_hw.commands.sim import _speed, offline_at_max_speed
 from racecar_hw.config import Config, load_config
@@ -90,6 +90,8 @@ class _Truth:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.write and not Path(args.write).is_file():
         raise ConfigError("--write", f"{args.write}: no such config file (copy config/car.yaml first)")
+    if args.write:
+        check_writable(Path(args.write))  # before the car moves, not after the drive
     if args.speed is not None and not args.sim:
         raise ConfigError("--speed", "the simulation's clock is for --sim; a real car runs in real time")
     if args.sim:

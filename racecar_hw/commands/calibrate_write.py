@@ -10,6 +10,12 @@ indentation; a right-turn gain left from an earlier calibration is set to null w
 turn alike. The edited text must load as a valid config whose conversion gives back the measured
 gains and offset; otherwise nothing is written and the reason names ``--write`` (a flow-style
 ``vesc: {...}`` block, for one, is left for a person to edit).
+
+:func:`check_writable` runs before the car moves: a read-only file (no write permission bit, or none
+for us) is refused, not replaced (renaming a new file over it needs only the directory's
+permission), and so is a file whose scratch files (the loading check's beside it, the replacement's
+beside the file a symlink points at) cannot be created. An OS error in :func:`write` itself is a
+ConfigError too: one line, the file untouched.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import difflib
 import math
 import os
 import re
+import stat
 from pathlib import Path
 
 from racecar_hw.base.errors import ConfigError
@@ -44,20 +51,58 @@ def configured(measured: dict[str, float | None], vesc: VescParams) -> dict[str,
 def write(path: Path, measured: dict[str, float | None]) -> dict[str, float | None]:
     """Put the ``measured`` values into the config at ``path`` as :func:`configured` says, print the
     diff and return what was written; ConfigError naming ``--write`` (file untouched) when the result
-    would not be a valid config stating the measurement."""
-    before = path.read_text()
-    values = configured(measured, _load(path, before, "as it is").vesc)
-    after = edited(before, values)
-    vesc = _load(path, after, "after the edit").vesc
-    if configured(measured, vesc) != values:  # the edit changed a flag's meaning: never silently
-        raise ConfigError("--write", f"{path}: the edit would change invert_servo; "
-                                     "nothing written: put the snippet above in by hand")
-    _check(path, vesc, measured)
-    _replace(path, after)
+    would not be a valid config stating the measurement, or reading or writing it failed."""
+    try:
+        before = path.read_text()
+        values = configured(measured, _load(path, before, "as it is").vesc)
+        after = edited(before, values)
+        vesc = _load(path, after, "after the edit").vesc
+        if configured(measured, vesc) != values:  # the edit changed a flag's meaning: never silently
+            raise ConfigError("--write", f"{path}: the edit would change invert_servo; "
+                                         "nothing written: put the snippet above in by hand")
+        _check(path, vesc, measured)
+        _replace(path, after)
+    except OSError as err:  # after the drive: one line, the values are on the screen above
+        raise ConfigError("--write", f"{path}: {_why(err)}; nothing written: put the snippet above "
+                                     "in by hand") from None
     diff = difflib.unified_diff(before.splitlines(keepends=True), after.splitlines(keepends=True),
                                 str(path), str(path))
     print(f"\nwritten to {path}:\n" + "".join(diff), end="")
     return values
+
+
+def check_writable(path: Path) -> None:
+    """ConfigError naming ``--write`` and ``path`` unless :func:`write` could replace the file: it
+    has a write permission bit and we may write it (the bits are read as well as ``os.access`` asked:
+    root may write anything, and a 0444 config is meant to stay as it is), and its scratch files
+    can be created (a real open, whatever the reason it fails: permissions, a read-only mount)."""
+    try:
+        real = path.resolve()
+        mode = os.stat(real).st_mode
+    except OSError as err:
+        raise ConfigError("--write", f"{path}: {_why(err)}") from None
+    if not mode & 0o222 or not os.access(real, os.W_OK):
+        raise ConfigError("--write", f"{path}: read-only ({stat.filemode(mode)}, no write permission "
+                                     "for us): make it writable first, or leave out --write")
+    for scratch in _scratch(path):
+        try:
+            fd = os.open(scratch, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        except OSError as err:
+            raise ConfigError("--write", f"{path}: cannot create {scratch} ({err.strerror}): the file is "
+                                         "replaced through a new file beside it") from None
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(scratch)
+
+
+def _scratch(path: Path) -> tuple[Path, Path]:
+    """The loading check's file (beside ``path``) and the replacement's (beside the file it names)."""
+    real = path.resolve()
+    return path.with_name(f".{path.name}.calibrate-check"), real.with_name(f".{real.name}.calibrate")
+
+
+def _why(err: OSError) -> str:
+    return f"{err.strerror or err} ({err.filename})" if err.filename else str(err.strerror or err)
 
 
 def _replace(path: Path, text: str) -> None:
@@ -66,7 +111,7 @@ def _replace(path: Path, text: str) -> None:
     stays readable (a plain rewrite under a tight umask made it 0600 root's, and replaced a
     symlink with a copy)."""
     real = path.resolve()
-    tmp = real.with_name(f".{real.name}.calibrate")
+    tmp = _scratch(path)[1]
     st = os.stat(real)
     try:
         with open(tmp, "w", encoding="utf-8") as out:
@@ -113,7 +158,7 @@ def edited(text: str, values: dict[str, float | None]) -> str:
 
 def _load(path: Path, text: str, when: str) -> Config:
     """``text`` loaded as the config file at ``path`` would be (beside it, for relative paths)."""
-    tmp = path.with_name(f".{path.name}.calibrate-check")
+    tmp = _scratch(path)[0]
     try:
         tmp.write_text(text)
         return load_config(tmp)
