@@ -317,6 +317,11 @@ class FakeHokuyo:
     def reset_clock(self) -> None:
         self._boot_ns = monotonic_ns()
 
+    @property
+    def clock_zero_ns(self) -> int:
+        """The monotonic ns at which the device's millisecond counter read 0."""
+        return self._boot_ns
+
     def measure(self, cmd: ScanCommand, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """Distances (mm or error codes) and intensities for the steps ``cmd`` asks for."""
         m = self.model

@@ -257,7 +257,12 @@ def test_frames_carry_the_device_time_of_their_sweep_start(device_thread, tmp_pa
 
 def test_hokuyolx_time_sync_sees_stamps_at_the_sweep_start(fake):
     """hokuyolx syncs to the device clock (TM0, ten TM1, TM2) and turns frame stamps into UNIX
-    ms: they match the sweep starts within 2 ms, a sweep (18.75 ms) before the frames leave."""
+    ms: less the error of its sync, they are the sweep starts (the device's counter truncates to
+    the millisecond), a sweep (18.75 ms) before the frames leave.
+
+    The sync's error is hokuyolx's: the mean of ten TM1 round trips, each as late as the host
+    was busy (2.03 ms off on a loaded run, where this test once asked the stamps to be within 2 ms
+    of the sweeps, so flaked). It is measured against the device clock's true zero and taken out."""
     # tsync=True: syncs on connect. The stamps are checked below against the sweeps; hokuyolx's own
     # re-sync on a stamp over time_tolerance from the host's clock would loop for ever on one frame
     # read late on a loaded machine (it checks the same stale stamp again), so it is out of reach.
@@ -269,11 +274,12 @@ def test_hokuyolx_time_sync_sees_stamps_at_the_sweep_start(fake):
     unix_minus_mono_ms = time.time() * 1000 - time.monotonic_ns() / 1e6
     starts = [s / 1e6 + unix_minus_mono_ms for s in list(fake.sweep_starts_ns)[-4:]]
     sent = [s / 1e6 + unix_minus_mono_ms for s in list(fake.frames_sent_ns)[-4:]]
-    errors = [ts - start for (_, ts, _), start in zip(frames, starts, strict=True)]
-    assert abs(float(np.median(errors))) < 2.0, errors
-    assert all(abs(e) < 4.0 for e in errors), errors
+    sync_error = lx.tzero - (fake.clock_zero_ns / 1e6 + unix_minus_mono_ms)
+    assert abs(sync_error) < 25.0, sync_error
+    errors = [ts - sync_error - start for (_, ts, _), start in zip(frames, starts, strict=True)]
+    assert all(-1.05 < e < 0.05 for e in errors), (errors, sync_error)
     for (_, ts, _), out in zip(frames, sent, strict=True):
-        assert out - ts > 15.0  # sent once the sweep reached step 1080, not stamped at sending
+        assert out - (ts - sync_error) > 15.0  # sent once the sweep reached step 1080, not stamped at sending
 
 
 # --- the URG-04LX as the device is --------------------------------------------------------------
