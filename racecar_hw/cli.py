@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 from racecar_hw import __version__
 from racecar_hw.base.errors import RacecarError
-from racecar_hw.runtime.interrupts import INTERRUPTED, STOP_SIGNALS, StopSignals
+from racecar_hw.runtime.interrupts import INTERRUPTED, STOP_SIGNALS, StopSignals, ignore_restart_signing
 
 #: Command modules under racecar_hw.commands, in the order ``--help`` lists them.
 COMMANDS: tuple[str, ...] = (
@@ -51,12 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``racecar-hw`` console script.
 
-    First of all SIGINT and SIGTERM are handled: start-up takes about a second, and a stop signal
+    First of all SIGINT, SIGTERM and SIGHUP are handled: start-up takes about a second, and a stop signal
     in it ends the command quietly with status 130 once the imports are done
     (:mod:`racecar_hw.runtime.interrupts`), instead of a traceback, or of being lost by a
     background job that inherited SIGINT ignored. The slower imports come after that.
     """
     _skip_the_last_collection()
+    ignore_restart_signing()  # its default kills: the daemon takes it once it runs
     try:
         with StopSignals() as stops:
             return _main(argv, stops)

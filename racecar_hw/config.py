@@ -96,14 +96,6 @@ class StatusSection:
     refresh_hz: float = param(4.0, "panel refresh rate", unit="Hz", min=0.2, max=30.0)
 
 
-@dataclass
-class WatchdogSection:
-    """systemd integration (only active when started by systemd with NOTIFY_SOCKET set)."""
-
-    stall_s: float = param(0.5, "the control loop counts as stalled (no watchdog ping) after this "
-                                "long without a tick", unit="s", min=0.05, max=60.0)
-
-
 def _default_transforms() -> list[StaticTransformParams]:
     return [StaticTransformParams(frame_id="base_link", child_frame_id="laser", xyz=(0.265, 0.0, 0.1))]
 
@@ -130,7 +122,6 @@ class Config:
     zenoh: ZenohParams = field(default_factory=ZenohParams)
     dds: DdsParams = field(default_factory=DdsParams)
     rosout: RosoutParams = field(default_factory=RosoutParams)
-    watchdog: WatchdogSection = field(default_factory=WatchdogSection)
     foxglove: FoxgloveParams = field(default_factory=FoxgloveParams)
     web: WebParams = field(default_factory=WebParams)
 
@@ -140,7 +131,7 @@ _SECTIONS: dict[str, type] = {
     "scan_summary": ScanSummarySection, "setpoint": SetpointSection, "figure8": Figure8Section,
     "follower": FollowerSection, "recorder": RecorderParams, "arming": ArmingParams,
     "gamepad": GamepadParams, "keyboard": KeyboardSection, "mavlink": MavlinkParams,
-    "status": StatusSection, "watchdog": WatchdogSection,
+    "status": StatusSection,
     "foxglove": FoxgloveParams, "web": WebParams, "zenoh": ZenohParams, "dds": DdsParams,
     "rosout": RosoutParams,
 }

@@ -81,7 +81,8 @@ START_UP = {
 }
 
 
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=["SIGINT", "SIGTERM", "SIGHUP"])
 @pytest.mark.parametrize("command", sorted(START_UP))
 def test_a_stop_signal_as_the_command_starts_ends_it_quietly(tmp_path, command, stop) -> None:
     """Sent as soon as racecar-hw handles it (its first line; about a second of imports is still
@@ -183,3 +184,50 @@ def test_a_ctrl_c_while_the_loops_handlers_are_removed_is_noted_not_raised(monke
             wait_for(lambda: stops.noted == signal.SIGINT, timeout=10)
         finally:
             loop.close()
+
+
+def _run_recording(tmp_path: Path) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "racecar_hw.cli", "-v", "run", "--no-status",
+           *set_args(*QUIET_NET, "vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                     "recorder.enabled=true", f"recorder.path={tmp_path / 'rec'}", "recorder.format=mcap")]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def _until_running(proc: subprocess.Popen) -> None:
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if "racecar-hw running" in line:
+            return
+    raise AssertionError("the daemon ended before it ran")
+
+
+def test_a_hangup_ends_run_as_a_stop_does(tmp_path) -> None:
+    """``racecar-hw run`` started by hand over SSH, and the session drops: SIGHUP killed it on the
+    spot (exit 129), the motor left running until the VESC's own timeout and the bag open. It is
+    a stop signal now: exit 0 and the bag closed."""
+    from racecar_hw.bags.info import bag_info
+
+    proc = _run_recording(tmp_path)
+    with reaped(proc):
+        _until_running(proc)
+        proc.send_signal(signal.SIGHUP)
+        _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    (bag,) = (tmp_path / "rec").iterdir()
+    assert bag_info(bag).state.complete
+
+
+def test_a_reload_signal_during_start_up_does_nothing(tmp_path) -> None:
+    """SIGUSR1 (``systemctl reload``: restart the MAVLink signing state) sent as the command starts,
+    before the daemon takes it, killed the process (exit 138); now it does nothing until then."""
+    proc = _run_recording(tmp_path)
+    with reaped(proc):
+        wait_for(lambda: _catches(proc.pid, signal.SIGTERM) or proc.poll() is not None, timeout=60,
+                 interval=0.001)
+        proc.send_signal(signal.SIGUSR1)
+        _until_running(proc)
+        proc.send_signal(signal.SIGUSR1)  # the daemon's: said in the log, the car runs on
+        proc.send_signal(signal.SIGTERM)
+        _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "SIGUSR1: the MAVLink link is off" in err

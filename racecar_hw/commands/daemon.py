@@ -29,8 +29,8 @@ def add_config_options(parser: argparse.ArgumentParser, default: str = "the ship
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the daemon on the car's real devices",
-                       description="Run the configured components on real devices until SIGINT or "
-                                   "SIGTERM; then brake, centre, flush the recorder and exit 0 "
+                       description="Run the configured components on real devices until SIGINT, SIGTERM or "
+                                   "SIGHUP; then brake, centre, flush the recorder and exit 0 "
                                    "(1 when a component failed or the recording did).")
     add_config_options(p)
     p.add_argument("--no-status", action="store_true", help="no live status panel")

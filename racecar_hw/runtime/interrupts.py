@@ -1,4 +1,9 @@
-"""SIGINT and SIGTERM from a command's first moment: noted during start-up, then KeyboardInterrupt.
+"""SIGINT, SIGTERM and SIGHUP from a command's first moment: noted during start-up, then KeyboardInterrupt.
+
+SIGHUP (the terminal or SSH session a command runs in went away) stops a command as SIGTERM does:
+``racecar-hw run`` started by hand over SSH brakes, centres, closes its bag and exits 0 when the
+Wi-Fi drops. Python leaves SIGHUP at its default, which killed the daemon on the spot: the motor
+ran on until the VESC's own timeout and the bag was left open.
 
 ``racecar-hw`` takes about a second to start (imports, building the argument parser). Python's own
 Ctrl-C handling then printed a ``KeyboardInterrupt`` traceback, SIGTERM killed the process
@@ -27,9 +32,28 @@ import signal
 from collections.abc import Iterator
 from types import FrameType
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
-#: The exit status of a command stopped by SIGINT or SIGTERM before it could finish (as a shell
+#: The signal that restarts the MAVLink link's signing state in a running daemon (``systemctl
+#: reload racecar-hw`` sends it; see docs/teleop.md). Not SIGHUP: a daemon run in an SSH session
+#: ends when the session hangs up (a stop signal). Outside the daemon's run (its start-up, its
+#: shutdown, other commands) it does nothing (:func:`ignore_restart_signing`): its default would
+#: kill the process.
+RESTART_SIGNING_SIGNAL = signal.SIGUSR1
+
+
+def _nothing(signum: int, frame: object) -> None:
+    """A handler that does nothing (not SIG_IGN, which a child process would inherit)."""
+
+
+def ignore_restart_signing() -> None:
+    """:data:`RESTART_SIGNING_SIGNAL` does nothing until the daemon takes it
+    (:func:`racecar_hw.runtime.signals.add_restart_signing_handler`): a ``systemctl reload`` or a
+    ``kill -USR1`` during start-up killed the daemon (the signing state is new then anyway)."""
+    signal.signal(RESTART_SIGNING_SIGNAL, _nothing)
+
+
+#: The exit status of a command stopped by a stop signal before it could finish (as a shell
 #: reports a program stopped by Ctrl-C): during start-up, a one-shot command, a third signal to
 #: ``sim``. Commands that serve until stopped exit 0 on a stop signal (their documented end).
 INTERRUPTED = 130
@@ -41,7 +65,7 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
 
 @contextlib.contextmanager
 def interrupt_on_stop_signals() -> Iterator[None]:
-    """Within the block, SIGINT and SIGTERM raise KeyboardInterrupt in the main thread; the
+    """Within the block, SIGINT, SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread; the
     handlers found are put back after it (an inherited "ignored" included)."""
     previous = {sig: signal.signal(sig, _raise_interrupt) for sig in STOP_SIGNALS}
     try:
@@ -52,7 +76,7 @@ def interrupt_on_stop_signals() -> Iterator[None]:
 
 
 class StopSignals:
-    """SIGINT and SIGTERM noted (:attr:`noted`) from ``with`` on, raised after :meth:`interrupt`.
+    """SIGINT, SIGTERM and SIGHUP noted (:attr:`noted`) from ``with`` on, raised after :meth:`interrupt`.
 
     Leaving the block puts back the handlers found on entering it; with ``keep`` (a command that
     runs until stopped, inside :func:`racecar_hw.cli.main`'s own block) it leaves its noting handler
@@ -79,7 +103,7 @@ class StopSignals:
             signal.signal(sig, handler)  # type: ignore[arg-type]
 
     def handle_again(self) -> None:
-        """Take SIGINT and SIGTERM back (after an event loop's own handlers were removed: asyncio
+        """Take SIGINT, SIGTERM and SIGHUP back (after an event loop's own handlers were removed: asyncio
         then leaves Python's defaults, KeyboardInterrupt and death by SIGTERM, not ours)."""
         for sig in STOP_SIGNALS:
             signal.signal(sig, self._handle)

@@ -1,4 +1,4 @@
-"""SIGINT and SIGTERM stop a command, whatever signal disposition the process inherited.
+"""SIGINT, SIGTERM and SIGHUP stop a command, whatever signal disposition the process inherited.
 
 A process started in the background by a non-interactive shell (``cmd &`` in a script, a CI job,
 a test harness that was itself started so) inherits SIGINT (and SIGQUIT) *ignored*, as POSIX
@@ -17,22 +17,24 @@ import signal
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
-from racecar_hw.runtime.interrupts import STOP_SIGNALS, StopSignals, interrupt_on_stop_signals
+from racecar_hw.runtime.interrupts import (
+    RESTART_SIGNING_SIGNAL,
+    STOP_SIGNALS,
+    StopSignals,
+    ignore_restart_signing,
+    interrupt_on_stop_signals,
+)
 
 __all__ = ["RESTART_SIGNING_SIGNAL", "STOP_SIGNALS", "StopSignals", "add_restart_signing_handler",
-           "add_stop_handlers", "interrupt_on_stop_signals", "run_until_stop_signal"]
-
-#: The signal that restarts the MAVLink link's signing state in a running daemon (``systemctl
-#: reload racecar-hw`` sends it; see docs/teleop.md). Not SIGHUP: a daemon run in an SSH session
-#: should still end when the session hangs up.
-RESTART_SIGNING_SIGNAL = signal.SIGUSR1
+           "add_stop_handlers", "ignore_restart_signing", "interrupt_on_stop_signals",
+           "run_until_stop_signal"]
 
 T = TypeVar("T")
 
 
 def add_stop_handlers(loop: asyncio.AbstractEventLoop, callback: Callable[[int], None], *,
                       noted: StopSignals | None = None) -> Callable[[], None]:
-    """``callback(signum)`` on SIGINT and SIGTERM in ``loop``; returns a function that removes them.
+    """``callback(signum)`` on SIGINT, SIGTERM and SIGHUP in ``loop``; returns a function that removes them.
 
     ``noted``: the :class:`StopSignals` that covered the loop's start; a signal it noted is handed
     to ``callback`` at once (as soon as the loop runs), and it takes the signals back when the
@@ -74,7 +76,12 @@ def add_restart_signing_handler(loop: asyncio.AbstractEventLoop,
         logging.getLogger("racecar_hw.daemon").warning("%s: %s", RESTART_SIGNING_SIGNAL.name, restart())
 
     loop.add_signal_handler(RESTART_SIGNING_SIGNAL, on_signal)
-    return lambda: loop.remove_signal_handler(RESTART_SIGNING_SIGNAL)
+
+    def remove() -> None:
+        loop.remove_signal_handler(RESTART_SIGNING_SIGNAL)  # (asyncio leaves the default behind)
+        ignore_restart_signing()
+
+    return remove
 
 
 def run_until_stop_signal(make: Callable[[], Coroutine[Any, Any, T]]) -> T | None:
