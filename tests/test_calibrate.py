@@ -93,10 +93,11 @@ def test_calibrate_stops_the_car_and_says_why(args, why, capsys):
     ("vesc.invert_servo", r"the car turned ([-+]\d+) deg off its heading", 6),
 ])
 def test_a_car_going_the_other_way_stops_at_once_naming_the_key(key, why, amount, capsys):
-    """The config's flag wrong for the car: the motor backs it away from the wall it was told to
-    approach, or the heading hold steers it further off. Stopped within 5 cm or 5 degrees, not
-    metres later with a wall "6 cm from flat"."""
-    code, stdout, stderr = _calibrate(capsys, "--set", f"{key}=true")
+    """The config's flag wrong for the car (set in the config, not on the simulated car): the motor
+    backs it away from the wall it was told to approach, or the heading hold steers it further off.
+    Stopped within 5 cm or 5 degrees, not metres later with a wall "6 cm from flat"."""
+    flag = key.removeprefix("vesc.")
+    code, stdout, stderr = _calibrate(capsys, "--set", f"{key}=true", "--scenario-set", f"car.{flag}=false")
     assert code == 1, stdout[-2000:] + stderr[-2000:]
     assert "Traceback" not in stderr
     line = stderr.strip().splitlines()[-1]
@@ -104,6 +105,25 @@ def test_a_car_going_the_other_way_stops_at_once_naming_the_key(key, why, amount
     assert m and f"check {key}" in line, line
     assert abs(float(m.group(1))) <= amount
     assert "ERPM gain" not in stdout  # on the first leg
+
+
+def test_a_car_wired_backwards_with_a_mirrored_servo_calibrates(capsys):
+    """A motor wired backwards and a mirrored servo, configured so (``invert_motor``,
+    ``invert_servo``): the tachometer counts down going forward, which the ERPM fit once took for a
+    wall that did not move ("is the wall flat and straight ahead?"). The gains are found, the ERPM
+    gain as the magnitude the config states and the servo gains as the mirrored config states them."""
+    code, stdout, stderr = _calibrate(capsys, "--set", "vesc.invert_motor=true",
+                                      "--set", "vesc.invert_servo=true")
+    assert code == 0, stdout[-3000:] + stderr[-3000:]
+    found = {name: (float(a), float(b)) for name, a, b in VALUE.findall(stdout)}
+    gain, offset, steer = (found[k] for k in ("speed_to_erpm_gain", "steering_angle_to_servo_offset",
+                                              "steering_angle_to_servo_gain"))
+    assert gain[0] == pytest.approx(gain[1], rel=0.02) and gain[1] > 0
+    assert offset[0] == pytest.approx(offset[1], abs=0.00025)
+    assert steer[0] == pytest.approx(steer[1], rel=0.03) and steer[1] > 0  # the servo's, mirrored
+    snippet = dict(re.findall(r"^  (\w+): (\S+)$", stdout.split("config snippet:")[1], re.MULTILINE))
+    assert float(snippet["speed_to_erpm_gain"]) == gain[0]
+    assert float(snippet["steering_angle_to_servo_gain"]) == -steer[0]  # as the config with invert_servo
 
 
 @pytest.mark.parametrize("how", ["read-only", "no room for the scratch file"])

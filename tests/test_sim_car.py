@@ -197,6 +197,29 @@ def test_the_daemon_and_the_simulated_car_agree_on_straight() -> None:
         VescParams().steering_angle_to_servo_offset)
 
 
+def test_the_simulated_car_is_wired_as_the_config_says_unless_the_scenario_says_otherwise():
+    """A config with ``invert_motor`` and ``invert_servo`` describes a car whose motor is wired
+    backwards and whose servo is mirrored: the simulated car is that car (it once ignored both flags,
+    so such a config drove the simulated car backwards and steered it the wrong way), so a command
+    drives it as the config means; the scenario's ``car`` can say the flags are wrong for it."""
+    from racecar_hw.base.messages import AckermannDrive
+    from racecar_hw.config import load_config, shipped_config
+    from racecar_hw.sim.car import speed_from_erpm, steering_from_servo
+    from racecar_hw.sim.rig import car_params
+    from racecar_hw.sim.scenario import CarSpec
+    from vesc.ackermann import AckermannConversion
+
+    config = load_config(shipped_config("sim"), ["vesc.invert_motor=true", "vesc.invert_servo=true"])
+    sent = AckermannConversion.from_params(config.vesc).to_vesc(AckermannDrive(speed=1.0, steering_angle=0.1))
+    assert sent.erpm < 0 and sent.servo > config.vesc.steering_angle_to_servo_offset  # mirrored on the wire
+    car = car_params(config)
+    assert speed_from_erpm(sent.erpm, car) == pytest.approx(1.0)
+    assert steering_from_servo(sent.servo, car) == pytest.approx(0.1, abs=1e-3)  # (the wire's thousandths)
+    wrong = car_params(config, CarSpec(invert_motor=False, invert_servo=False))
+    assert speed_from_erpm(sent.erpm, wrong) == pytest.approx(-1.0)
+    assert steering_from_servo(sent.servo, wrong) == pytest.approx(-0.1, abs=1e-3)
+
+
 def _clearance_over_every_cell(occ_map: OccupancyMap, pose: tuple[float, float, float]) -> float:
     """The map gap the collider measures, over every occupied cell of the map (no window)."""
     res = occ_map.resolution

@@ -124,7 +124,8 @@ def _params(args: argparse.Namespace, config: Config) -> CalibrationParams:
     return build(CalibrationParams, {
         "wall_distance_m": args.wall_distance, "stop_distance_m": args.stop_distance,
         "wheelbase_m": config.vesc.wheelbase_m, "input_topic": inputs[args.input],
-        "input_name": args.input, "configured_erpm_gain": config.vesc.speed_to_erpm_gain}, "calibrate")
+        "input_name": args.input, "configured_erpm_gain": config.vesc.speed_to_erpm_gain,
+        "invert_motor": config.vesc.invert_motor}, "calibrate")
 
 
 def _watch(daemon: Daemon) -> CarWatch:
@@ -184,7 +185,7 @@ def _run_sim(args: argparse.Namespace) -> tuple[CalibrationResult | str, _Truth]
         daemon = loopback.daemon
         assert daemon is not None and loopback.vesc is not None
         car = loopback.car_params
-        truth.append(_Truth(car.speed_to_erpm_gain, car.steering_angle_to_servo_offset,
+        truth.append(_Truth(abs(car.speed_to_erpm_gain), car.steering_angle_to_servo_offset,
                             car.steering_angle_to_servo_gain,
                             car.steering_angle_to_servo_gain_right or car.steering_angle_to_servo_gain,
                             math.radians(loopback.vesc.imu.errors.gyro_bias_dps)))

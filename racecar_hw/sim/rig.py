@@ -173,21 +173,26 @@ class FakeRig:
 def car_params(config: Config, true: CarSpec | None = None) -> CarParams:
     """The simulated car: calibrated for the daemon's config, so it drives straight at the
     servo position that reaches the VESC for steering 0 (the offset in thousandths, as the
-    wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift),
-    except where the scenario's ``car`` gives its true values."""
+    wire carries it: 0.5304 is sent as 0.530, and a car "straight" at 0.5304 would drift) and
+    wired as its ``invert_motor`` and ``invert_servo`` say, except where the scenario's ``car``
+    gives its true values."""
     v, fp = config.vesc, config.safety.footprint
     t = true if true is not None else CarSpec()
 
-    def pick(value: float | None, configured: float | None) -> float | None:
+    def pick(value: Any, configured: Any) -> Any:
         return configured if value is None else value
 
     right = (t.steering_angle_to_servo_gain_right if t.steering_angle_to_servo_gain is not None
              else pick(t.steering_angle_to_servo_gain_right, v.steering_angle_to_servo_gain_right))
-    return CarParams(speed_to_erpm_gain=pick(t.speed_to_erpm_gain, v.speed_to_erpm_gain),
+    # the car's true signs: a motor wired backwards, a mirrored servo (as the config's flags say
+    # unless the scenario's car says otherwise)
+    motor = -1.0 if pick(t.invert_motor, v.invert_motor) else 1.0
+    servo = -1.0 if pick(t.invert_servo, v.invert_servo) else 1.0
+    return CarParams(speed_to_erpm_gain=motor * pick(t.speed_to_erpm_gain, v.speed_to_erpm_gain),
                      speed_to_erpm_offset=v.speed_to_erpm_offset,
-                     steering_angle_to_servo_gain=pick(t.steering_angle_to_servo_gain,
-                                                       v.steering_angle_to_servo_gain),
-                     steering_angle_to_servo_gain_right=right,
+                     steering_angle_to_servo_gain=servo * pick(t.steering_angle_to_servo_gain,
+                                                               v.steering_angle_to_servo_gain),
+                     steering_angle_to_servo_gain_right=None if right is None else servo * right,
                      steering_angle_to_servo_offset=pick(t.steering_angle_to_servo_offset,
                                                          servo_on_wire(v.steering_angle_to_servo_offset)),
                      wheelbase=pick(t.wheelbase_m, v.wheelbase_m), length=fp.length_m,

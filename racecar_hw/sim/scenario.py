@@ -207,6 +207,10 @@ class CarSpec:
                                                              "of right turns; null: as left",
                                                              unit="1/rad", min=-10.0, max=10.0)
     wheelbase_m: float | None = param(None, "the true wheelbase", unit="m", min=0.05, max=2.0)
+    invert_motor: bool | None = param(None, "the motor truly wired backwards (its ERPM and tachometer "
+                                      "count the other way); null: as vesc.invert_motor says")
+    invert_servo: bool | None = param(None, "the servo truly mirrored about its centre; null: as "
+                                      "vesc.invert_servo says")
     gyro_bias_dps: float = param(0.5, "the fake IMU's gyro z offset", unit="deg/s", min=-10.0, max=10.0)
 
 

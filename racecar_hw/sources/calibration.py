@@ -98,6 +98,8 @@ class CalibrationParams:
     configured_erpm_gain: float = param(4614.0, "the config's ERPM gain: a wall whose distance changes "
                                         "by far more or less than the distance driven says so is not "
                                         "a wall to trust", unit="ERPM/(m/s)", min=1.0, max=100000.0)
+    invert_motor: bool = param(False, "the config's vesc.invert_motor: the motor's ERPM and tachometer "
+                                      "count backwards as the car drives forward")
 
 
 @dataclass
@@ -198,8 +200,11 @@ class CalibrationProcedure:
     def _on_core(self, msg: VescStateStamped) -> None:
         now = monotonic_ns()
         s = self._s
-        s.tach = [*s.tach[-1:], (now, float(msg.state.displacement))]
-        s.erpm, s.core_ns = float(msg.state.speed), now
+        # counted the way the car drives: a motor wired backwards (vesc.invert_motor) counts its
+        # tachometer down and its ERPM negative going forward, and the ERPM gain is a magnitude
+        sign = -1.0 if self.params.invert_motor else 1.0
+        s.tach = [*s.tach[-1:], (now, sign * float(msg.state.displacement))]
+        s.erpm, s.core_ns = sign * float(msg.state.speed), now
 
     def _on_servo(self, msg: Float64) -> None:
         self._s.servo = float(msg.data)
