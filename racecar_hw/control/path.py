@@ -166,10 +166,7 @@ class ControlPath:
             self.mux.publish_output(cut)
         if wrote:
             self.safety.publish_state_if_due(now)
-        times = self.stats.scan_times
-        times.append(now)
-        if len(times) >= 2:
-            self.stats.scan_rate_hz = (len(times) - 1) * NS_PER_S / max(1, times[-1] - times[0])
+        self.stats.note_scan(now)
         self.safety.remember()  # before waking the outboxes' threads, which would contend for the GIL
         if now - self._remote_write_ns > REMOTE_ANSWER_NS:
             self._idle()

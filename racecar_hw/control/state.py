@@ -90,7 +90,7 @@ class CarState:
             vesc_reconnects=vesc.stats.reconnects if vesc is not None else 0,
             vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
             lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
-            lidar_rate_hz=self.stats.scan_rate_hz if lidar is not None else None,
+            lidar_rate_hz=self.stats.scan_rate_hz(monotonic_ns()) if lidar is not None else None,
             lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
             estop=mux.estop_text() if mux.estop is not None else "",
             refused=tuple(self.security.rows()), refused_recently=self.security.recent(),

@@ -6,6 +6,14 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+from racecar_hw.base.clock import NS_PER_S
+
+#: The scan rate counts the arrivals of this last stretch of time (ns; 1 s, the age past which the
+#: MAVLink telemetry calls the lidar unhealthy): with none for that long the rate is 0 Hz, not the
+#: rate from before the lidar went quiet. A lidar silent for ``lidar.stale_timeout_s`` (0.5 s) is
+#: reconnected, so a working one has at least two arrivals in it.
+SCAN_RATE_WINDOW_NS = NS_PER_S
+
 
 @dataclass
 class ControlStats:
@@ -15,15 +23,26 @@ class ControlStats:
     missed_ticks: int = 0
     scan_cuts: int = 0
     last_tick_ns: int = 0
-    scan_rate_hz: float = 0.0
     #: recent scan-to-command latencies (ns): from the read that completed a scan returning to the
     #: scan path's VESC command written
     scan_to_command_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
     #: the loop thread's CPU time (ns) in each of those: the rest of a latency is time the thread
     #: was off the CPU (preempted, or its virtual CPU not running)
     scan_to_command_cpu_ns: deque[int] = field(default_factory=lambda: deque(maxlen=100_000))
-    #: arrival times (monotonic ns) of the last scans, for scan_rate_hz
+    #: arrival times (monotonic ns) of the last scans, for :meth:`scan_rate_hz`
     scan_times: deque[int] = field(default_factory=lambda: deque(maxlen=20))
+
+    def note_scan(self, now_ns: int) -> None:
+        """A scan arrived at ``now_ns`` (monotonic ns)."""
+        self.scan_times.append(now_ns)
+
+    def scan_rate_hz(self, now_ns: int) -> float:
+        """Scans per second (Hz) over the last :data:`SCAN_RATE_WINDOW_NS` before ``now_ns``
+        (monotonic ns): 0 with fewer than two arrivals in it (none yet, or the lidar went quiet)."""
+        recent = [t for t in self.scan_times if now_ns - t <= SCAN_RATE_WINDOW_NS]
+        if len(recent) < 2:
+            return 0.0
+        return (len(recent) - 1) * NS_PER_S / max(1, recent[-1] - recent[0])
 
     def latency_ms(self) -> dict[str, float]:
         """Percentiles of the recent scan-to-command latencies, milliseconds.
