@@ -6,6 +6,12 @@ MAVLink telemetry show, is a view of the same read plus the panel's own lines (l
 live interfaces listen, the keyboard's keys). ``/diagnostics`` carries the same counters (the
 control path's :meth:`~racecar_hw.control.path.ControlPath.status`, the mux's, the safety node's).
 
+What comes from the VESC's telemetry (the measured speed from odometry, the battery voltage) is
+shown only while it is fresh: when the last reply is older than ``safety.odom_timeout_s`` (0.5 s,
+the age past which the safety controller takes no measured speed from odometry) or the VESC's link
+is not up, it is unknown (None; ``-`` in the status line), not the last value from before the VESC
+went quiet. The scan rate counts recent arrivals only (:meth:`ControlStats.scan_rate_hz`).
+
 Units: m/s, rad, V, s; positions in ``base_link``.
 """
 
@@ -18,9 +24,10 @@ from typing import Any
 
 from lidar_drivers.base import LidarDriver
 from mux.node import CommandMux
-from racecar_hw.base.bus import Bus
+from racecar_hw.base.bus import Bus, Latest
 from racecar_hw.base.clock import NS_PER_S, monotonic_ns
 from racecar_hw.base.messages import AckermannDrive
+from racecar_hw.base.topics import TOPIC_CORE
 from racecar_hw.base.transforms import yaw_of
 from racecar_hw.config import Config
 from racecar_hw.control.stats import ControlStats
@@ -69,12 +76,13 @@ class CarState:
     def live_state(self) -> LiveState:
         """The car now, for the live interfaces (:class:`racecar_hw.net.control.CarControl`)."""
         mux, vesc, lidar = self.mux, self.vesc, self.lidar
+        now = monotonic_ns()
         out = mux.last_output
         drive = out.drive if out is not None else AckermannDrive()
         asked = mux.last_command(mux.source)
-        odom = self.bus.latest(self.config.safety.odom_topic)
+        odom = self._fresh(self.config.safety.odom_topic, now)
         safety = self.safety.state
-        state = vesc.last_state if vesc is not None else None
+        state = self._fresh(TOPIC_CORE, now) if vesc is not None else None
         scan = self.bus.latest_entry(self.config.safety.scan_topic)
         return LiveState(
             commanded_mps=float(asked.speed) if asked is not None else 0.0,
@@ -89,12 +97,22 @@ class CarState:
             vesc_connected=vesc.connected if vesc is not None else None,
             vesc_reconnects=vesc.stats.reconnects if vesc is not None else 0,
             vesc_crc_errors=vesc.stats.crc_errors if vesc is not None else 0,
-            lidar_scan_age_s=(monotonic_ns() - scan.received_ns) / NS_PER_S if scan is not None else None,
-            lidar_rate_hz=self.stats.scan_rate_hz(monotonic_ns()) if lidar is not None else None,
+            lidar_scan_age_s=(now - scan.received_ns) / NS_PER_S if scan is not None else None,
+            lidar_rate_hz=self.stats.scan_rate_hz(now) if lidar is not None else None,
             lidar_reconnects=lidar.stats.reconnects if lidar is not None else 0,
             estop=mux.estop_text() if mux.estop is not None else "",
             refused=tuple(self.security.rows()), refused_recently=self.security.recent(),
             control_ticks=self.stats.ticks, control_missed_ticks=self.stats.missed_ticks)
+
+    def _fresh(self, topic: str, now_ns: int) -> Any | None:
+        """The last VESC telemetry message on ``topic``, or None when it is older than
+        ``safety.odom_timeout_s`` (s) at ``now_ns`` (monotonic ns) or the VESC's link is not up."""
+        entry: Latest[Any] | None = self.bus.latest_entry(topic)
+        if entry is None or (self.vesc is not None and not self.vesc.connected):
+            return None
+        if now_ns - entry.received_ns > self.config.safety.odom_timeout_s * NS_PER_S:
+            return None
+        return entry.msg
 
     def snapshot(self) -> StatusSnapshot:
         """What the status panel and the MAVLink telemetry show: :meth:`live_state` and the panel's

@@ -42,12 +42,16 @@ class CarShape:
 
 @dataclass(frozen=True)
 class LiveState:
-    """The car now. None: not known (no odometry yet) or not fitted (no lidar configured)."""
+    """The car now. None: not known (no odometry yet, or none fresh) or not fitted (no lidar configured).
+
+    ``measured_mps`` and ``battery_v`` come from the VESC's telemetry and are None while it is not
+    fresh (:mod:`racecar_hw.control.state`); ``lidar_rate_hz`` counts the last second's scans only.
+    """
 
     commanded_mps: float        #: what the active source asks for
     output_mps: float           #: what goes to the VESC (after safety and the rate limiter)
     allowed_mps: float          #: the safety controller's allowed speed; inf when it does not limit
-    measured_mps: float | None  #: odometry
+    measured_mps: float | None  #: odometry, while fresh
     steering_rad: float         #: output steering, + left
     source: str                 #: the mux's active source (an input, idle, estop, fault)
     mux_state: str              #: running, estop or fault

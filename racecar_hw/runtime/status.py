@@ -16,7 +16,8 @@ NONE = "-"
 
 @dataclass(frozen=True)
 class StatusSnapshot:
-    """What the car is doing, for the operator. None means "not known yet" or "not fitted".
+    """What the car is doing, for the operator. None means "not known (yet, or any more: a device gone
+    quiet)" or "not fitted".
 
     Speed in m/s (rear axle, negative in reverse), steering in rad (positive left), battery in V,
     scan rate in Hz, the safety controller's state and the speed it allows (m/s), each device's
