@@ -146,6 +146,21 @@ def summarize(scan: LaserScan) -> ScanSummary:
                        float(r[hi]), float(scan.angle_min + scan.angle_increment * hi), n)
 
 
+#: A lost session whose cause repeats is logged again at most this often (s); :attr:`last_error`
+#: (the status panel, the link reminders) has every one.
+REPEAT_LOG_S = 60.0
+
+
+class NoScan(DeviceTimeout):
+    """No scan for the stale timeout. ``key`` says what the loss is without its counts (log lines
+    repeat by it): when the device sent malformed data meanwhile, the text names it ("the last 12
+    replies were malformed: 540 readings, expected 1081")."""
+
+    def __init__(self, text: str, key: str) -> None:
+        super().__init__(text)
+        self.key = key
+
+
 class LidarDriver(ReconnectingDevice):
     """One lidar: connect, configure, stream scans to the bus, reconnect forever.
 
@@ -157,6 +172,8 @@ class LidarDriver(ReconnectingDevice):
     """
 
     OPEN_PROVES_DEVICE = False
+    #: what the device's malformed data is counted in, for :class:`NoScan`'s text
+    MALFORMED_UNIT = "replies"
 
     def __init__(self, bus: Bus, params: LidarParams) -> None:
         super().__init__(params.reconnect_backoff_min_s, params.reconnect_backoff_max_s)
@@ -183,6 +200,9 @@ class LidarDriver(ReconnectingDevice):
         self._session_scans = 0  # scans published by the current session
         self._previous_error: str | None = None  # last_error when the current session began
         self._ended: asyncio.Future[None] | None = None
+        #: malformed replies (or packets) since the latest scan or stream start, and the last's reason
+        self._malformed, self._malformed_reason = 0, ""
+        self._logged: tuple[str, float] | None = None  # the last loss logged: its key, monotonic s
 
     @property
     def device_name(self) -> str:  # type: ignore[override]
@@ -199,10 +219,27 @@ class LidarDriver(ReconnectingDevice):
         """The error that ended the last session stands until this one publishes a scan."""
 
     def _on_session_lost(self, err: DeviceError) -> None:
+        """Logged when its cause (:attr:`NoScan.key`, else the text) differs from the last logged
+        loss's, and at most every :data:`REPEAT_LOG_S` while it repeats."""
         self.stats.device_errors += 1
-        if self.last_error != str(err):
+        key, now = getattr(err, "key", str(err)), monotonic()
+        if self._logged is None or self._logged[0] != key or now - self._logged[1] >= REPEAT_LOG_S:
             log.warning("lidar %s: %s; reconnecting", self.params.model, err)
+            self._logged = (key, now)
         self.last_error = str(err)
+
+    def note_malformed(self, reason: str, count: int = 1) -> None:
+        """``count`` malformed replies (or packets) came, the last for ``reason``; a stream that
+        ends for want of scans says so (:class:`NoScan`)."""
+        self._malformed += count
+        self._malformed_reason = reason
+
+    def _no_scan(self, link: Link, timeout_s: float) -> NoScan:
+        text = f"{link.name}: no scan for {timeout_s:.2f} s"
+        if not self._malformed:
+            return NoScan(text, text)
+        return NoScan(f"{text}; the last {self._malformed} {self.MALFORMED_UNIT} were malformed: "
+                      f"{self._malformed_reason}", f"{text}; malformed: {self._malformed_reason}")
 
     def _on_session_end(self) -> None:
         self.connected = False
@@ -222,6 +259,7 @@ class LidarDriver(ReconnectingDevice):
         if self._session_scans == 0 and self.last_error == self._previous_error:
             self.last_error = None
         self._session_scans += 1
+        self._malformed = 0
         self.stats.scans += 1
         self.frame_arrival_ns = self.rx_ns
         self.frame_arrival_cpu_ns = self.rx_cpu_ns
@@ -240,7 +278,7 @@ class LidarDriver(ReconnectingDevice):
         ``backlog`` first handles what was read before (frames that came with the start reply).
         ``on_bytes`` runs in the link's reader callback, so a scan reaches the safety controller
         and the VESC without waking a task. The stream ends with the link's DeviceError, with the
-        error given to :meth:`_end_stream`, or with DeviceTimeout when no scan is published for
+        error given to :meth:`_end_stream`, or with :class:`NoScan` when no scan is published for
         ``timeout_s()`` seconds (checked by a loop timer, rearmed only when it fires). Any other
         exception from the handlers (a fault in handling a frame) is logged and becomes a
         DeviceError, so the driver reconnects rather than stops.
@@ -249,6 +287,7 @@ class LidarDriver(ReconnectingDevice):
         ended: asyncio.Future[None] = loop.create_future()
         self._ended = ended
         self._last_scan_s = monotonic()
+        self._malformed = 0
 
         def check_overdue() -> None:
             nonlocal timer
@@ -256,7 +295,7 @@ class LidarDriver(ReconnectingDevice):
                 return
             left = self._last_scan_s + timeout_s() - monotonic()
             if left <= 0:
-                ended.set_exception(DeviceTimeout(f"{link.name}: no scan for {timeout_s():.2f} s"))
+                ended.set_exception(self._no_scan(link, timeout_s()))
             else:
                 timer = loop.call_later(left, check_overdue)
 

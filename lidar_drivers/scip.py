@@ -674,6 +674,9 @@ class ResponseDecoder:
         self._buf = bytearray()
         self._cr = False
         self._events: deque[Event] = deque()
+        #: why :meth:`_reply` last found a reply's body unreadable ("540 readings, expected 1081"),
+        #: for the MalformedResponse of a reply that no other cut makes whole
+        self._unreadable: str | None = None
         self.checksum_errors = 0
         self.resyncs = 0
         self.bytes_in = 0
@@ -741,8 +744,11 @@ class ResponseDecoder:
         while i < len(heads):
             # a head may sit inside a reply (a tag can hold "QT\n00P"-like text, and garbage
             # glued to an echo can read as its tag): try the next few heads as this reply's end
+            why = None
             for j in range(i, min(i + HEAD_TRIES, len(heads))):
+                self._unreadable = None
                 event = self._reply(_without_final_lf(block[heads[i]:ends[j]], ends[j] < len(block)))
+                why = self._unreadable if j == i else why
                 if event is not None and (j == i or not isinstance(event, ChecksumMismatch)):
                     if isinstance(event, ChecksumMismatch):
                         self.checksum_errors += 1
@@ -750,7 +756,8 @@ class ResponseDecoder:
                     i = j + 1
                     break
             else:
-                self._drop(block[heads[i]:ends[i]], "a damaged reply (cut short, or run into the next one)")
+                self._drop(block[heads[i]:ends[i]],
+                           why or "a damaged reply (cut short, or run into the next one)")
                 i += 1
 
     @staticmethod
@@ -795,7 +802,8 @@ class ResponseDecoder:
                 return self._scan(echo_text, req, status, stamp, rest[6:], len(sub) + 2)
         except ChecksumError as err:
             return ChecksumMismatch(sub, f"data line: {err}")
-        except ValueError:
+        except ValueError as err:
+            self._unreadable = str(err)
             return None
         return None
 

@@ -190,11 +190,15 @@ class HokuyoDriver(LidarDriver):
         self._decoder.receive_data(data)
 
     def _count(self, event: Event) -> None:
+        """Count a damaged reply; a stream that ends for want of scans names the last one's reason
+        (:meth:`note_malformed`), each one is logged at DEBUG only."""
         if isinstance(event, ChecksumMismatch):
             self.stats.checksum_errors += 1
+            self.note_malformed(f"checksum mismatch ({event.reason})")
             log.debug("lidar: %s", event.reason)
         elif isinstance(event, MalformedResponse):
             self.stats.resyncs += 1
+            self.note_malformed(event.reason)
             log.debug("lidar: dropped %d bytes: %s", len(event.raw), event.reason)
 
     async def _request(self, cmd: Command, timeout: float = REPLY_TIMEOUT_S) -> Reply:

@@ -19,10 +19,11 @@ reports its nearest valid step, or its smallest code when none is valid. Intensi
 
 Each TCP connection is its own session (laser off, standby); the pty has one session that lives
 until :meth:`unplug` (power loss). Faults for tests: :meth:`inject_garbage`,
-:meth:`corrupt_next_checksum`, :meth:`split_writes`, :meth:`fail_next_frame` (an error status),
-:meth:`mute` (a silent device), :meth:`unplug`/:meth:`replug` (pty) and :meth:`drop_connection`
-(TCP). Run :meth:`serve` in a :class:`~racecar_hw.runtime.devicethread.DeviceThread`;
-the fault methods may be called from any thread.
+:meth:`corrupt_next_checksum`, :meth:`split_writes`, :meth:`wrong_length` (scans of the wrong
+length), :meth:`fail_next_frame` (an error status), :meth:`mute` (a silent device),
+:meth:`unplug`/:meth:`replug` (pty) and :meth:`drop_connection` (TCP). Run :meth:`serve` in a
+:class:`~racecar_hw.runtime.devicethread.DeviceThread`; the fault methods may be called from any
+thread.
 """
 
 from __future__ import annotations
@@ -296,6 +297,7 @@ class FakeHokuyo:
         self._garbage = b""
         self._split = False
         self._corrupt = False
+        self._extra_readings = 0
         self._fail_status: str | None = None
         self._muted = False
         self.unplugged = False
@@ -372,6 +374,9 @@ class FakeHokuyo:
         """One encoded scan reply for ``cmd`` measured at monotonic ``at_ns`` (default: now)."""
         at = monotonic_ns() if at_ns is None else at_ns
         dist, inten = self.measure(cmd, at)
+        if extra := self._extra_readings:  # a misbehaving device: more or fewer than asked for
+            n = max(0, len(dist) + extra)
+            dist, inten = np.resize(dist, n), np.resize(inten, n)
         data = encode_scan(echo, status, self.time_ms(at), dist, inten if cmd.intensities else None,
                            cmd.width)
         if self._corrupt:
@@ -502,6 +507,11 @@ class FakeHokuyo:
     def split_writes(self, on: bool = True) -> None:
         """Write each reply in random pieces of 1..300 bytes, 1 ms apart."""
         self._split = on
+
+    def wrong_length(self, extra: int) -> None:
+        """Stream scans with ``extra`` readings more than asked for (fewer when negative; 0: right
+        again), each line's checksum intact."""
+        self._extra_readings = extra
 
     def fail_next_frame(self, status: str) -> None:
         """Answer the next streamed scan with ``status`` (e.g. ``"50"``, a hardware fault)."""

@@ -316,6 +316,17 @@ def test_truncated_frames_are_error_events_not_exceptions():
     assert isinstance(cut, ChecksumMismatch)
 
 
+@pytest.mark.parametrize("readings", [150, 400])
+def test_a_frame_of_the_wrong_length_says_how_many_readings_it_had(readings):
+    """Whole lines, every checksum right, the wrong number of readings: the drop's reason says so
+    (the driver's reconnect warning quotes it), not just "a damaged reply"."""
+    echo = md_frame(list(range(300))).split(b"\n", 1)[0]  # asks for 300 readings
+    body = md_frame(list(range(readings))).split(b"\n", 1)[1]
+    (event,) = decode_all(echo + b"\n" + body)
+    assert isinstance(event, MalformedResponse)
+    assert event.reason == f"{readings} readings, expected 300"
+
+
 def test_endless_noise_is_bounded():
     d = ResponseDecoder()
     for _ in range(5):

@@ -238,6 +238,35 @@ def test_silent_device_is_detected_and_recovered(device_thread, tmp_path):
     drive(params_for(fake, stale_timeout_s=0.3), scenario)
 
 
+@pytest.mark.parametrize("length", ["half", "100 too many"])
+def test_scans_of_the_wrong_length_are_named_once_in_the_reconnect_warning(device_thread, tmp_path, caplog,
+                                                                           length):
+    """A device streaming scans of the wrong length is reconnected for want of scans; the warning
+    said only "no scan for 0.30 s" (the reason went to DEBUG, and the codec had dropped it), and
+    its repeats were silent. It now names the malformed replies and why, once while it repeats."""
+    import logging
+
+    fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
+    asked: list[int] = []
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        await more_scans(scans, 2)
+        assert driver.request is not None
+        n = driver.request.values
+        asked.append(n)
+        fake.wrong_length(n // 2 - n if length == "half" else 100)
+        await async_wait_for(lambda: driver.stats.reconnects >= 3 and driver.last_error, 30)
+        assert "replies were malformed" in (driver.last_error or "")
+
+    with caplog.at_level(logging.WARNING):
+        drive(params_for(fake, stale_timeout_s=0.3), scenario)
+    n = asked[0]
+    why = f"{n // 2 if length == 'half' else n + 100} readings, expected {n}"
+    lost = [r.getMessage() for r in caplog.records if "reconnecting" in r.getMessage()]
+    named = [line for line in lost if why in line and "replies were malformed" in line]
+    assert len(named) == 1, lost  # three losses or more, one line
+
+
 def test_hardware_fault_status_is_surfaced_with_its_meaning(device_thread, tmp_path):
     fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
 
