@@ -152,9 +152,10 @@ REPEAT_LOG_S = 60.0
 
 
 class NoScan(DeviceTimeout):
-    """No scan for the stale timeout. ``key`` says what the loss is without its counts (log lines
-    repeat by it): when the device sent malformed data meanwhile, the text names it ("the last 12
-    replies were malformed: 540 readings, expected 1081")."""
+    """No scan for the stale timeout. ``key`` says what the loss is without its counts and, for
+    malformed data, without the timeout (log lines repeat by it): when the device sent malformed
+    data meanwhile, the text names it ("the last 12 replies were malformed: 540 readings, expected
+    1081")."""
 
     def __init__(self, text: str, key: str) -> None:
         super().__init__(text)
@@ -238,8 +239,9 @@ class LidarDriver(ReconnectingDevice):
         text = f"{link.name}: no scan for {timeout_s:.2f} s"
         if not self._malformed:
             return NoScan(text, text)
-        return NoScan(f"{text}; the last {self._malformed} {self.MALFORMED_UNIT} were malformed: "
-                      f"{self._malformed_reason}", f"{text}; malformed: {self._malformed_reason}")
+        why = self._malformed_reason
+        return NoScan(f"{text}; the last {self._malformed} {self.MALFORMED_UNIT} were malformed: {why}",
+                      f"{link.name}: no scan; malformed: {why}")
 
     def _on_session_end(self) -> None:
         self.connected = False

@@ -89,6 +89,8 @@ DEFAULT_RPM = 600
 class RplidarDriver(LidarDriver):
     """Streams one RPLIDAR (models a1, a2m8, a2m7, a2m12, a3, s1, c1) to ``params.topic``."""
 
+    MALFORMED_UNIT = "packets"
+
     def __init__(self, bus: Bus, params: LidarParams) -> None:
         super().__init__(bus, params)
         if not params.port:
@@ -349,11 +351,18 @@ class RplidarDriver(LidarDriver):
         return published
 
     def _account(self) -> None:
+        """Take the codec's new errors into the stats; a stream that ends for want of scans names
+        them (:meth:`note_malformed`)."""
         st = self._client.stats
         errors, resyncs = st.checksum_errors + st.bad_nodes, st.resyncs
-        self.stats.checksum_errors += errors - self._seen[0]
-        self.stats.resyncs += resyncs - self._seen[1]
+        new_errors, new_resyncs = errors - self._seen[0], resyncs - self._seen[1]
+        self.stats.checksum_errors += new_errors
+        self.stats.resyncs += new_resyncs
         self._seen = (errors, resyncs)
+        if new_errors:
+            self.note_malformed("bad checksum or check bit", new_errors)
+        elif new_resyncs:
+            self.note_malformed("out of sync (bytes that start no packet)", new_resyncs)
 
     # --- link helpers --------------------------------------------------------------------------
 

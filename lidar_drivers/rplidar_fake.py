@@ -122,6 +122,7 @@ class FakeRplidar:
         self._rng = np.random.default_rng(seed)
         self._garbage = 0
         self._corrupt = False
+        self._corrupt_all = False
         self._split = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread: int | None = None
@@ -337,7 +338,7 @@ class FakeRplidar:
                 dist_mm = self._measure(theta, stamps, mode)
                 data = self._encode(kind, idx % per_rev == 0, theta, dist_mm, group, first)
             first = False
-            if self._corrupt:
+            if self._corrupt or self._corrupt_all:
                 self._corrupt = False
                 if kind == AnswerType.SCAN:  # the check bit of the first node
                     data = data[:1] + bytes((data[1] & 0xFE,)) + data[2:]
@@ -425,6 +426,13 @@ class FakeRplidar:
         """Break the next capsule's checksum (express) or the next node's check bit (standard)."""
         def apply() -> None:
             self._corrupt = True
+        self._in_loop(apply)
+
+    def corrupt_checksums(self, on: bool) -> None:
+        """Break every capsule's checksum or node's check bit (as :meth:`corrupt_next_checksum`)
+        until turned off."""
+        def apply() -> None:
+            self._corrupt_all = on
         self._in_loop(apply)
 
     def split_writes(self, on: bool) -> None:

@@ -453,6 +453,22 @@ def test_out_of_range_is_inf(device_thread, tmp_path):
     run_driver(device_thread, tmp_path, "a1", scenario, scan_mode="Standard")
 
 
+def test_a_stream_of_bad_checksums_is_named_once_in_the_reconnect_warning(device_thread, tmp_path, caplog):
+    """Every capsule damaged: the driver reconnects for want of scans (after 0.5 s, then 3 s, the
+    start-up timeout), and the warning says why (as the Hokuyo driver's does,
+    tests/test_scip_driver.py), once while it repeats."""
+    async def scenario(driver, fake, scans):
+        await async_wait_for(lambda: len(scans) >= 2, 15)
+        fake.corrupt_checksums(True)
+        await async_wait_for(lambda: driver.stats.device_errors >= 3, 30)
+        assert "packets were malformed: bad checksum" in (driver.last_error or ""), driver.last_error
+
+    with caplog.at_level(logging.WARNING):
+        run_driver(device_thread, tmp_path, "a2m8", scenario, scan_mode="express")
+    lost = [r.getMessage() for r in caplog.records if "reconnecting" in r.getMessage()]
+    assert len([line for line in lost if "packets were malformed: bad checksum" in line]) == 1, lost
+
+
 @pytest.mark.parametrize(("model", "mode"), [("a2m8", "standard"), ("a2m8", "express"),
                                               ("a2m8", "sensitivity"), ("c1", "denseboost")])
 def test_garbage_bad_checksums_and_split_writes(device_thread, tmp_path, model, mode):
