@@ -39,6 +39,9 @@ from safety.params import SafetyParams
 
 log = logging.getLogger(__name__)
 
+#: Reasons that mean the lidar gives nothing to trust: allowed speed 0 (and, with
+#: ``centre_when_blind``, the steering centred).
+BLIND = frozenset(("no_scan", "stale_scan", "bad_scan"))
 #: Why the allowed speed is what it is.
 REASONS = ("clear", "obstacle", "stale_scan", "no_scan", "bad_scan", "reverse_cap", "exempt", "off",
            "fault")
@@ -146,6 +149,7 @@ class _CachedScan:
     received_ns: int
     usable_fraction: float
     sweep_s: float
+    return_fraction: float = 1.0  #: beams with a range from range_min to range_max
     live: int = 0
     scan: LaserScan | None = None
     pose: Pose | None = None
@@ -291,6 +295,9 @@ class SafetyController:
         else:  # beams without sensible directions (all along one ray, or none): refuse the scan
             at_least_min = np.zeros(n, dtype=bool)
         usable = int(np.count_nonzero(at_least_min))
+        # beams that returned a range (inf, no return, does not; nor a reading past range_max)
+        top = scan.range_max if scan.range_max > scan.range_min else math.inf
+        returned = int(np.count_nonzero(at_least_min & (r <= top))) if usable else 0
         if pose is not None and not (math.isfinite(pose[0]) and math.isfinite(pose[1])
                                      and math.isfinite(pose[2])):
             pose = None
@@ -319,8 +326,9 @@ class SafetyController:
                 px, py, yaw = pose
                 turn = complex(math.cos(yaw), -math.sin(yaw))
                 z = np.concatenate((z, remembered * turn - complex(px, py) * turn))
-        self._scan = _CachedScan(z.real, z.imag, now_ns, usable / n if n else 0.0, sweep, live, scan,
-                                 pose, blind=0 if blind is None else len(blind),
+        self._scan = _CachedScan(z.real, z.imag, now_ns, usable / n if n else 0.0, sweep,
+                                 returned / n if n else 0.0, live, scan, pose,
+                                 blind=0 if blind is None else len(blind),
                                  pose_ns=None if pose is None else now_ns if pose_ns is None else pose_ns)
 
     def remember(self) -> None:
@@ -420,6 +428,8 @@ class SafetyController:
             self._ended(now_ns)
             self._record(Intervention(now_ns, reason, allowed, speed, measured_speed_mps, obstacle,
                                       **self._scan_times(), continues=True), source)
+        if reason in BLIND and self.params.centre_when_blind:
+            return dataclasses.replace(drive, speed=0.0, steering_angle=0.0), self.state
         if magnitude > cap:
             drive = dataclasses.replace(drive, speed=math.copysign(cap, speed) if cap > 0.0 else 0.0)
         return drive, self.state
@@ -459,7 +469,8 @@ class SafetyController:
         age_ns = now_ns - scan.received_ns
         if age_ns > p.scan_timeout_s * NS_PER_S:
             return 0.0, math.nan, None, "stale_scan"
-        if scan.usable_fraction < p.min_valid_fraction or scan.usable_fraction == 0.0:
+        if (scan.usable_fraction < p.min_valid_fraction or scan.usable_fraction == 0.0
+                or scan.return_fraction < p.min_return_fraction):
             return 0.0, math.nan, None, "bad_scan"
         if p.mode == "cone":
             # The cone node stops the car through the mux; here only a blind lidar stops it.

@@ -123,6 +123,16 @@ class SafetyParams:
                                            "than this are usable: NaN (device fault) or below "
                                            "range_min (blocked window) do not count; inf does",
                                       min=0.0, max=1.0)
+    min_return_fraction: float = param(0.01, "refuse (allowed speed 0) a scan in which fewer beams "
+                                              "than this return a range (from range_min to range_max): "
+                                              "a blinded or failing lidar reports every beam as no "
+                                              "return (an RPLIDAR's distance 0, published inf), which "
+                                              "the car cannot tell from open space; 0 trusts such a scan",
+                                       min=0.0, max=1.0)
+    centre_when_blind: bool = param(True, "while the lidar is blind (no scan yet, a stale or a bad "
+                                          "scan) the command is a stop with the steering centred, "
+                                          "as every stale input's is; false keeps the commanded "
+                                          "steering while the car brakes")
     ignore_inside_footprint: bool = param(False, "ignore returns inside the footprint (the lidar "
                                                  "seeing its own car); otherwise they block at 0 m")
     reverse_speed_cap_mps: float = param(0.5, "largest reverse speed (the forward lidar cannot see "

@@ -14,7 +14,7 @@ from scans import LASER_X, Segment, left_arc, scan_at, square, straight, ust10lx
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.messages import AckermannDrive, LaserScan
 from racecar_hw.base.params import build
-from safety.controller import SafetyController, planar_transform
+from safety.controller import BLIND, SafetyController, planar_transform
 from safety.params import SafetyParams
 
 MS = 1_000_000
@@ -236,13 +236,13 @@ def test_a_remembered_post_in_the_blind_sector_limits_a_tight_forward_turn() -> 
     # a post behind and left of the car, on the circle a full-lock left turn drives: the live scan
     # cannot see it (bearing from the laser about 146 degrees), the memory saw it on the way in
     post = square(-0.6, 0.59, 0.05)
-    c = controller()
+    c = controller(min_return_fraction=0.0)  # open space of no return at all: trusted here
     now = drive_along(c, straight((-1.6, 0.0, 0.0), 1.6, speed=1.0), post)
     steering = math.atan(0.25 / 0.6)  # a 0.6 m turn radius
     out, state = c.limit(drive(5.0, steering), "nav", 0.0, now)
     assert state.obstacle is not None and state.obstacle.source == "memory"
     assert state.free_distance < 4.0  # three quarters of the 3.8 m circle, less the body
-    sighted = controller(memory={"enabled": False})
+    sighted = controller(memory={"enabled": False}, min_return_fraction=0.0)
     now = drive_along(sighted, straight((-1.6, 0.0, 0.0), 1.6, speed=1.0), post)
     _, blind = sighted.limit(drive(5.0, steering), "nav", 0.0, now)
     assert blind.free_distance == 10.0 and out.speed < 5.0
@@ -440,6 +440,43 @@ def test_nan_inf_and_short_beams_are_ignored() -> None:
     assert vb == pytest.approx(va, abs=1e-4)
 
 
+@pytest.mark.parametrize("no_return", [np.inf, 45.0])  # none, or past range_max (30 m)
+def test_a_scan_without_a_return_is_a_blind_lidar_not_open_space(no_return: float) -> None:
+    """An RPLIDAR blinded or failing reports every beam as no return (distance 0, published inf):
+    the car cannot tell that from open space, and drove on at full speed. Refused as a bad scan
+    below safety.min_return_fraction (1 % of the beams); a sparse view above it still drives, and
+    0 trusts even an empty view."""
+    empty = ust10lx_scan([])
+    empty.ranges = np.full(empty.ranges.size, no_return, dtype=np.float32)
+    c = controller()
+    c.on_scan(empty, 0)
+    out, state = c.limit(drive(2.0), "nav", 0.0, 0)
+    assert out.speed == 0.0 and state.reason == "bad_scan"
+    sparse = ust10lx_scan([])
+    sparse.ranges = np.full(sparse.ranges.size, np.inf, dtype=np.float32)
+    sparse.ranges[:11] = 25.0  # a far wall on 11 of 1081 beams, behind the car's right
+    c.on_scan(sparse, 25 * MS)
+    assert c.limit(drive(2.0), "nav", 0.0, 25 * MS)[1].allowed_speed > 2.0
+    trusting = controller(min_return_fraction=0.0)
+    trusting.on_scan(empty, 0)
+    assert trusting.limit(drive(2.0), "nav", 0.0, 0)[0].speed == 2.0
+
+
+def test_a_blind_lidar_brakes_and_centres_the_steering() -> None:
+    """A stale scan (the lidar stalled or unplugged) stopped the car with its steering held at the
+    command (0.15 rad on the VESC's servo for seconds): the fail-safe rule is brake and centre.
+    ``centre_when_blind: false`` keeps the commanded steering while the car brakes."""
+    for centre, expected in ((True, 0.0), (False, 0.15)):
+        c = controller(centre_when_blind=centre)
+        c.on_scan(ust10lx_scan(corridor()), 0)
+        assert c.limit(drive(1.0, 0.15), "nav", 0.0, 0)[0] == drive(1.0, 0.15)
+        out, state = c.limit(drive(1.0, 0.15), "nav", 1.0, 150 * MS)  # older than scan_timeout_s
+        assert state.reason == "stale_scan" and out.speed == 0.0 and out.steering_angle == expected
+    fresh = controller()
+    out, state = fresh.limit(drive(1.0, -0.2), "teleop", 0.0, 0)  # no scan yet
+    assert state.reason == "no_scan" and (out.speed, out.steering_angle) == (0.0, 0.0)
+
+
 def test_mostly_invalid_scan_is_refused() -> None:
     scan = ust10lx_scan(corridor())
     scan.ranges = np.where(np.arange(scan.ranges.size) % 4 == 0, scan.ranges, np.nan).astype(np.float32)
@@ -541,7 +578,10 @@ def test_property_output_never_exceeds_input(ranges: list[float], angle_min: flo
     assert math.isfinite(out.speed)
     assert abs(out.speed) <= abs(speed)
     assert out.speed == 0.0 or math.copysign(1.0, out.speed) == math.copysign(1.0, speed)
-    assert out.steering_angle == steering
+    if state.reason in BLIND:  # nothing to trust: a stop with the steering centred
+        assert out.speed == 0.0 and out.steering_angle == 0.0
+    else:
+        assert out.steering_angle == steering
     assert state.allowed_speed >= 0.0 and not math.isnan(state.allowed_speed)
 
 
@@ -730,7 +770,7 @@ def test_single_unusable_beams_are_ignored_and_blind_points_are_not_remembered()
     empty = ust10lx_scan([])
     holey = np.asarray(empty.ranges, dtype=np.float32).copy()
     holey[::5] = np.nan
-    c = controller()
+    c = controller(min_return_fraction=0.0)  # open space of no return at all: trusted here
     c.on_scan(LaserScan(angle_min=empty.angle_min, angle_max=empty.angle_max,
                         angle_increment=empty.angle_increment, scan_time=empty.scan_time,
                         range_min=empty.range_min, range_max=empty.range_max, ranges=holey), now_ns=0)

@@ -50,7 +50,9 @@ def scan_with(ranges: np.ndarray, stamp_ns: int = 123 * MS) -> LaserScan:
 
 
 def open_scan() -> LaserScan:
-    return scan_with(np.full(1081, np.inf))
+    """Open space: walls 25 m away, beyond any path (a scan without a single return is refused as a
+    blinded lidar: safety.min_return_fraction)."""
+    return scan_with(np.full(1081, 25.0))
 
 
 def blocked_ahead(distance: float) -> LaserScan:
