@@ -3,7 +3,8 @@
 Priorities: a larger number wins. Timeouts are measured from the arrival of the last message on
 the topic (monotonic clock), never from its header stamp. The defaults keep the ROS racecar topic
 names (MIT ``mux.launch`` layout, flattened into one mux): safety above teleop above ``nav_0`` ..
-``nav_3``, each with a 0.2 s timeout, and a zero command when nothing is fresh.
+``nav_3``, each with a 0.2 s timeout, and a zero command when nothing is fresh. ``safety`` and
+``teleop`` take no network commands (``network: false``): only the daemon's own sources drive them.
 
 Build from YAML with ``racecar_hw.base.params.build(MuxParams, mapping, "mux")``. Cross-field rules
 (unique priorities, names and topics) are checked when the instance is created and raise
@@ -40,6 +41,10 @@ class InputParams:
     timeout_s: float = param(0.2, "the source expires this long after its last message (every source "
                              "expires: the mux never holds a command)", unit="s",
                              min=MIN_INPUT_TIMEOUT_S, max=MAX_INPUT_TIMEOUT_S)
+    network: bool = param(True, "network sessions (Zenoh, DDS) may command this input; false: only "
+                          "the daemon's own sources (gamepad, keyboard, MAVLink, Foxglove teleop, "
+                          "calibration, the safety controller) drive it, and a network sample on its "
+                          "topic is refused and counted")
 
 
 @dataclass
@@ -60,8 +65,10 @@ class LockParams:
 
 def _default_inputs() -> list[InputParams]:
     inputs = [
-        InputParams("safety", f"{_LOW}/input/safety", 100, 0.2),
-        InputParams("teleop", f"{_LOW}/input/teleop", 90, 0.2),
+        # the operator's inputs: the safety controller and the gamepad (keyboard, ground station)
+        # drive them from inside the daemon; nobody on the network may override the operator
+        InputParams("safety", f"{_LOW}/input/safety", 100, 0.2, network=False),
+        InputParams("teleop", f"{_LOW}/input/teleop", 90, 0.2, network=False),
     ]
     for n, priority in enumerate((20, 15, 10, 5)):
         inputs.append(InputParams(f"nav_{n}", f"{_HIGH}/input/nav_{n}", priority, 0.2))

@@ -13,7 +13,9 @@
 It speaks ROS 2's rmw_zenoh wire format (:mod:`racecar_hw.net.rmw`) on the car's topic names, so it
 also talks to real ROS 2 nodes. :meth:`Car.drive` publishes an ``AckermannDriveStamped`` on a mux
 input (``nav_0`` unless told otherwise): the mux's timeout applies (0.2 s by default), so code
-that stops sending stops the car; send at 10-50 Hz. :class:`AsyncCar` is the same for asyncio.
+that stops sending stops the car; send at 10-50 Hz. The operator's inputs (``safety`` and
+``teleop`` by default: ``network: false`` in the daemon's ``mux.inputs``) take no network commands,
+and asking for one is a :class:`ClientError`. :class:`AsyncCar` is the same for asyncio.
 
 Units: metres, radians (+ left, counter-clockwise), seconds, m/s; scans in the laser frame, odometry
 in ``odom``. Stamps are seconds since the epoch (the sender's clock).
@@ -532,6 +534,8 @@ class Car(_SimTime, _EstopControls):
         self._names = _names(self.mux, safety, profile, remap)
         self._inputs = {i.name: i.topic for i in self.mux.inputs}
         self._inputs.setdefault(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC)
+        #: name -> its index in mux.inputs, for the inputs that take no network commands
+        self._operator_inputs = {i.name: n for n, i in enumerate(self.mux.inputs) if not i.network}
         self.input = input
         self.input_topic(input)  # refuse an unknown input now
         try:
@@ -571,11 +575,18 @@ class Car(_SimTime, _EstopControls):
         return self.namespace + self._names.get(bus_topic, bus_topic)
 
     def input_topic(self, name: str) -> str:
-        """The bus topic of the mux input ``name``; ClientError naming the inputs if unknown."""
+        """The bus topic of the mux input ``name``; ClientError naming the inputs this client may
+        drive if unknown, or if the input takes no network commands (``network: false`` in ``mux``:
+        ``safety`` and ``teleop`` by default, which the daemon would refuse)."""
+        usable = ", ".join(n for n in self._inputs if n not in self._operator_inputs)
+        if name in self._operator_inputs:
+            raise ClientError(f"mux input {name!r} takes no network commands (the daemon's mux.inputs"
+                              f"[{self._operator_inputs[name]}].network is false: only the car's "
+                              f"operator drives it); inputs a client may drive: {usable}")
         try:
             return self._inputs[name]
         except KeyError:
-            raise ClientError(f"no mux input {name!r}; inputs: {', '.join(self._inputs)}") from None
+            raise ClientError(f"no mux input {name!r}; inputs: {usable}") from None
 
     # --- subscriptions ------------------------------------------------------------------------
 

@@ -185,13 +185,14 @@ def added_inputs(fox: FoxgloveParams, zenoh: ZenohParams, inputs: list[InputPara
                  dds: DdsParams | None = None) -> list[InputParams]:
     """The mux inputs the features add after the configured ``inputs``, unless one of them has the
     name already: ``foxglove`` for Foxglove's Teleop panel (``foxglove.teleop``, its priority and
-    timeout from ``foxglove.teleop_priority`` and ``teleop_timeout_s``), then ``cmd_vel`` for
-    ROS 2's /cmd_vel over Zenoh or DDS (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
+    timeout from ``foxglove.teleop_priority`` and ``teleop_timeout_s``; closed to Zenoh and DDS),
+    then ``cmd_vel`` for ROS 2's /cmd_vel over Zenoh or DDS (``zenoh.cmd_vel``, priority 18, 0.2 s)."""
     names = {i["name"] if isinstance(i, dict) else i.name for i in inputs}
     added = []
     if fox.enabled and fox.teleop and FOXGLOVE_INPUT not in names:
+        # the Foxglove server's Teleop panel is its only source, not a Zenoh or DDS session
         added.append(InputParams(FOXGLOVE_INPUT, FOXGLOVE_INPUT_TOPIC, fox.teleop_priority,
-                                 fox.teleop_timeout_s))
+                                 fox.teleop_timeout_s, network=False))
     ros = zenoh.enabled or (dds is not None and dds.enabled)
     if ros and zenoh.cmd_vel and CMD_VEL_INPUT not in names:
         added.append(InputParams(CMD_VEL_INPUT, CMD_VEL_BUS_TOPIC, CMD_VEL_PRIORITY, CMD_VEL_TIMEOUT_S))

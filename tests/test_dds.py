@@ -20,14 +20,18 @@ from conftest import wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mux.params import MuxParams
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import ConfigError
-from racecar_hw.base.messages import Bool, String, Twist, Vector3
+from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped, Bool, String, Twist, Vector3
+from racecar_hw.base.topics import MUX_SAFETY_TOPIC, NAV0_TOPIC
 from racecar_hw.config import load_config
 from racecar_hw.net import dds_graph
 from racecar_hw.net.dds_config import DdsParams, cyclone_xml, security_plugins_available
-from racecar_hw.net.topics import DEFAULT, LATCHED, Direction, Topic
+from racecar_hw.net.topics import DEFAULT, LATCHED, Direction, Topic, topic_table
 from racecar_hw.rosmsg.typestore import ros2_types
+from racecar_hw.runtime.refusals import Refusals
+from safety.params import SafetyParams
 
 pytest.importorskip("cyclonedds", reason="cyclonedds (a dependency) is not installed")
 
@@ -291,6 +295,39 @@ def test_commands_are_checked_then_handed_to_the_bus():
         # to the bus first
         wait_for(lambda: s.received == 1, timeout=30)
         assert s.malformed == 0 and s.refused == 0
+
+
+def test_a_mux_input_closed_to_the_network_refuses_and_counts_every_sample_while_nav_drives():
+    """The daemon's own rows for safety (network: false by default) and nav_0: a sample on safety
+    is refused, counted per input with the key to change, and never reaches the bus (the mux)."""
+    domain_id = _domain()
+    params = DdsParams(domain_id=domain_id)
+    table = {row.bus: row for row in topic_table(MuxParams(), SafetyParams())}
+    safety, nav = table[MUX_SAFETY_TOPIC], table[NAV0_TOPIC]
+    refusals = Refusals()
+    car = _Car([safety, nav], params)
+    car.bridge = DdsBridge(car.bus, params, [safety, nav], on_input=car.inputs.append, refusals=refusals)
+    with car:
+        got: dict[str, list] = {MUX_SAFETY_TOPIC: [], NAV0_TOPIC: []}
+        for topic, into in got.items():
+            car.bus.subscribe(topic, into.append)
+        peer = DomainParticipant(domain_id)
+        drive_type = ros2_factory().topic_type("ackermann_msgs/msg/AckermannDriveStamped")
+        writers = [DataWriter(peer, DdsTopic(peer, "rt" + row.ros, drive_type), qos_of(DEFAULT))
+                   for row in (safety, nav)]
+        wait_for(lambda: all(w.get_publication_matched_status().current_count > 0 for w in writers),
+                 timeout=30)
+        cdr = ros2_types().serialize(AckermannDriveStamped(drive=AckermannDrive(speed=1.0)))
+        for _ in range(5):
+            writers[0].write(raw_sample(drive_type, cdr))
+        wait_for(lambda: car.bridge.inbox.counts()[MUX_SAFETY_TOPIC].refused == 5, timeout=30)
+        writers[1].write(raw_sample(drive_type, cdr))
+        wait_for(lambda: got[NAV0_TOPIC], timeout=30)
+        counts = car.bridge.inbox.counts()[MUX_SAFETY_TOPIC]
+    reason = "mux input safety takes no network commands (mux.inputs[0].network: false)"
+    assert got[MUX_SAFETY_TOPIC] == [] and car.inputs == [NAV0_TOPIC]
+    assert (counts.received, counts.handed_over, counts.reasons) == (0, 0, {reason: 5})
+    assert car.bridge.stats.refused == 5 and refusals.total("dds", reason) == 5
 
 
 def test_a_command_flood_is_handed_over_at_most_once_per_period_and_e_stops_never_coalesce():

@@ -157,6 +157,70 @@ def test_a_topic_estop_is_not_released_by_the_topic_where_the_config_leaves_netw
             assert car.mux_status(10).state == "running"
 
 
+@pytest.mark.slow
+def test_no_network_session_drives_the_operators_inputs_while_nav_0_still_drives(tmp_path):
+    """The reviewer's case on the running car: a session with no credentials on loopback (what any
+    local process may open) sends 1.0 m/s at 20 Hz on safety (priority 100, above the gamepad's
+    teleop) and on teleop. Both are the operator's (``network: false`` by default): every sample is
+    refused, counted and said in the log naming the key, the car stays still and the mux never
+    takes either as its source. nav_0, a network input, still drives."""
+    zenoh_port = free_port()
+    with _sim(tmp_path, zenoh_port, "--scenario-set", "drivers=[]") as sim:
+        page = _Page(sim.port("web"))
+        with Car(endpoint(zenoh_port)) as watcher, Car(endpoint(zenoh_port)) as attacker:
+            speeds = _Speeds(watcher)
+            wait_for(lambda: speeds.samples, timeout=60, interval=0.05)
+            with pytest.raises(ClientError, match=r"'teleop' takes no network commands .*mux\.inputs\[1\]"):
+                attacker.drive(1.0, 0.0, input="teleop")  # the client knows the shipped defaults
+            reasons = {name: f"mux input {name} takes no network commands (mux.inputs[{i}].network: false)"
+                       for i, name in enumerate(("safety", "teleop"))}
+
+            def refused(state: dict) -> dict[str, int]:
+                counts = {(c["surface"], c["reason"]): c["count"] for c in state["refused"]["counts"]}
+                return {name: counts.get(("zenoh", reason), 0) for name, reason in reasons.items()}
+
+            # what the client refuses to do, sent as a raw publish: the daemon must refuse it too
+            start = time.monotonic()
+            k = 0
+            while True:
+                state = page.state()
+                assert state["source"] == "idle" and abs(speeds.latest()) < 0.02, (state["source"],
+                                                                                   speeds.latest())
+                if min(refused(state).values()) >= 20:
+                    break
+                assert k < 1000, f"the daemon did not count the refusals: {refused(state)}"
+                command = _drive(1.0)
+                attacker.publish("/vesc/low_level/ackermann_cmd_mux/input/safety", command)
+                attacker.publish("/vesc/low_level/ackermann_cmd_mux/input/teleop", command)
+                k += 1
+                time.sleep(max(0.0, start + k * 0.05 - time.monotonic()))  # 20 Hz, as the reviewer's
+            end = time.monotonic()
+            wait_for(lambda: speeds.since(end + 0.5), timeout=10, interval=0.05)
+            during = speeds.since(start)
+            assert len(during) > 10 and max(abs(v) for v in during) < 0.02, during
+            assert page.state()["source"] == "idle"
+            for reason in reasons.values():
+                sim.wait_for(re.escape("zenoh: refused /vesc/low_level/ackermann_cmd_mux/input/") + ".*"
+                             + re.escape(reason), timeout_s=10)
+
+            # a network input still drives
+            start = time.monotonic()
+            while speeds.latest() < 0.3:
+                assert time.monotonic() < start + 30, "nav_0 did not drive the car"
+                attacker.drive(0.5, 0.0)  # nav_0
+                time.sleep(0.05)
+            attacker.stop()
+        log = "\n".join(sim.lines)
+    assert "-> safety" not in log and "-> teleop" not in log, [
+        line for line in sim.lines if "source" in line]
+
+
+def _drive(speed: float):
+    from racecar_hw.base.messages import AckermannDrive, AckermannDriveStamped
+
+    return AckermannDriveStamped(drive=AckermannDrive(speed=speed))
+
+
 def _bool(value: bool):
     from racecar_hw.base.messages import Bool
 

@@ -111,6 +111,30 @@ def test_missing_and_out_of_range_fields_name_the_key():
     assert err.value.key == "mux.hold_steering_when_idel"
 
 
+def test_the_operators_inputs_take_no_network_commands_and_the_rest_do():
+    """safety and teleop (the safety controller's and the gamepad's) are closed to Zenoh and DDS by
+    default; an input listed without ``network`` is open, as before the key existed."""
+    p = build(MuxParams, {}, "mux")
+    assert {i.name: i.network for i in p.inputs} == {
+        "safety": False, "teleop": False, "nav_0": True, "nav_1": True, "nav_2": True, "nav_3": True}
+    inputs = [{"name": "op", "topic": "/op", "priority": 9, "network": False},
+              {"name": "auto", "topic": "/auto", "priority": 5, "network": True},
+              {"name": "old", "topic": "/old", "priority": 1}]
+    assert [i.network for i in build(MuxParams, {"inputs": inputs}, "mux").inputs] == [False, True, True]
+
+
+@pytest.mark.parametrize("value", ["no", 0, 1, None, [False]])
+def test_a_network_flag_that_is_not_a_bool_names_the_key(value):
+    inputs = [{"name": "a", "topic": "/a", "priority": 1},
+              {"name": "b", "topic": "/b", "priority": 2, "network": value}]
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": inputs}, "mux")
+    assert err.value.key == "mux.inputs[1].network"
+    with pytest.raises(ConfigError) as err:
+        build(MuxParams, {"inputs": [{"name": "a", "topic": "/a", "networks": False}]}, "mux")
+    assert err.value.key == "mux.inputs[0].networks"
+
+
 @pytest.mark.parametrize("timeout", [0.0, 5.5, 100000.0])
 def test_every_input_expires_within_bounds(timeout):
     """No input may hold its last command: 0 (twist_mux's "never") and long timeouts are refused,

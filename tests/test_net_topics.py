@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from mux.params import LockParams, MuxParams
+from mux.params import InputParams, LockParams, MuxParams
 from racecar_hw.base.messages import AckermannDriveStamped, Bool, LaserScan, TFMessage
 from racecar_hw.net.topics import (
     LATCHED,
@@ -42,6 +42,20 @@ def test_every_mux_input_lock_and_the_estop_come_in():
         assert source.name in rows[source.topic].what
     for topic in ("/pause", "/estop", "/estop_release"):
         assert rows[topic].direction is Direction.IN and rows[topic].msgtype is Bool
+
+
+def test_an_input_closed_to_the_network_is_subscribed_and_refused_naming_its_key():
+    """One table, two wires: the row says why its samples are refused, and every interface reads it."""
+    rows = _rows()
+    for name, index in (("safety", 0), ("teleop", 1)):
+        row = rows[f"/vesc/low_level/ackermann_cmd_mux/input/{name}"]
+        assert row.direction is Direction.IN
+        assert row.refused == (f"mux input {name} takes no network commands "
+                               f"(mux.inputs[{index}].network: false)")
+    assert not rows["/vesc/high_level/ackermann_cmd_mux/input/nav_0"].refused
+    assert not rows["/estop"].refused and not rows["/estop_release"].refused  # stop is for anyone
+    opened = MuxParams(inputs=[InputParams("teleop", "/t", 90, network=True)])
+    assert not {row.bus: row for row in topic_table(opened, SafetyParams())}["/t"].refused
 
 
 def test_qos_follows_the_drivers_the_daemon_replaces():

@@ -67,7 +67,9 @@ class DdsStats:
     received: int = 0        #: incoming samples taken in by the inbox
     malformed: int = 0       #: incoming samples whose payload did not decode (dropped)
     non_finite: int = 0      #: incoming messages with a NaN or infinite number (dropped)
-    refused: int = 0         #: incoming commands refused: unauthenticated interface, not an input
+    #: incoming commands refused: unauthenticated interface, not an input, a mux input closed to
+    #: the network (``mux.inputs[N].network: false``)
+    refused: int = 0
 
 
 class _Out:
@@ -202,8 +204,9 @@ class DdsBridge(Bridge):
                                         listener=Listener(on_publication_matched=matched))
                 self._outs.append(out)
                 writer_gids.append(out.writer.guid.bytes)
-            elif row.bus in self.inbox.stop_topics or row.qos.latched:
-                # every e-stop message, in order, from Cyclone's thread: never coalesced
+            elif row.bus in self.inbox.stop_topics or row.qos.latched or row.refused:
+                # every e-stop message, in order, from Cyclone's thread: never coalesced (and every
+                # sample of a row closed to the network, each refused and counted)
                 reader = DataReader(self.participant, topic, qos,
                                     listener=Listener(on_data_available=self._receiver(row)))
                 self._readers.append(reader)

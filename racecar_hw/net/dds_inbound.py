@@ -9,7 +9,9 @@ control period (``period_s``, s) the newest sample is taken at once, in that thr
 gate's one thread (``dds-in``, for every row) takes it when the period is over. So a client
 answering every scan (40 Hz) wakes no thread of ours, an idle interface costs nothing, and a flood
 costs a short callback per sample and at most one take per row and period. The e-stop and its
-release are never coalesced: their listeners take every sample, in order. Every sample's CDR
+release are never coalesced: their listeners take every sample, in order. So are the samples of a
+row closed to the network (a mux input with ``network: false``, :attr:`Topic.refused`): each is
+refused and counted by the inbox (:meth:`Inbox.refuse`), never decoded. Every other sample's CDR
 payload is decoded and checked by the :class:`~racecar_hw.net.inbox.Inbox`; without
 ``accepts_commands`` (a non-loopback interface) each is refused and counted instead.
 """
@@ -57,6 +59,7 @@ class DdsReceiver:
         stats, lock, inbox = self.stats, self.lock, self.inbox
         accept = self.accepts_commands
         refusals = self.refusals
+        closed = row.refused
         outcome = {None: "received", MALFORMED: "malformed", NON_FINITE: "non_finite"}
 
         def receive(reader: Any) -> None:
@@ -67,6 +70,11 @@ class DdsReceiver:
             for sample in samples:
                 data = getattr(sample, "data", None)
                 if data is None:  # an instance state change (a writer went away), no data
+                    continue
+                if closed:  # a mux input closed to the network: counted per input, never decoded
+                    with lock:
+                        stats.refused += 1
+                    inbox.refuse(SURFACE, topic, closed)
                     continue
                 if not accept:
                     with lock:

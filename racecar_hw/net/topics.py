@@ -3,8 +3,11 @@
 One table for every live interface (the Zenoh bridge in rmw_zenoh's format, the Foxglove server):
 each row says what a bus topic is to the outside world. ``OUT`` rows go from the car to clients
 (``/scan``, ``/odom``, ...); ``IN`` rows come from clients into the daemon (mux inputs, locks, the
-e-stop and its release). Payloads are serialized by :mod:`racecar_hw.rosmsg`, the serializer the
-recorder uses, so a live message and a recorded one are the same bytes.
+e-stop and its release). A mux input with ``network: false`` (``safety`` and ``teleop`` by default:
+the operator's) is an ``IN`` row that every interface subscribes and refuses (:attr:`Topic.refused`):
+a sample on it is counted and logged with the key to change, never handed over. Payloads are
+serialized by :mod:`racecar_hw.rosmsg`, the serializer the recorder uses, so a live message and a
+recorded one are the same bytes.
 
 The ROS name of a row is its bus topic unless a profile or remap changes it (:func:`named`):
 ``racecar`` keeps the MIT/MuSHR ROS 1 names of the bus, ``f1tenth`` offers the F1TENTH ROS 2 names
@@ -115,6 +118,9 @@ class Topic:
     ros: str = ""
     #: the ROS name is used as is, without the interface's namespace (``/rosout``, as rcl does)
     absolute: bool = False
+    #: an ``IN`` row closed to the network: why every sample on it is refused (counted and logged
+    #: by each interface, never handed over); empty: open
+    refused: str = ""
 
     def __post_init__(self) -> None:
         if not self.ros:
@@ -160,9 +166,10 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
         rows.append(Topic(ROSOUT_TOPIC, Log, out, ROSOUT, "the daemon's log (rosout.level and above)",
                           absolute=True))
     into = Direction.IN
-    for source in mux.inputs:
+    for i, source in enumerate(mux.inputs):
         rows.append(Topic(source.topic, AckermannDriveStamped, into, DEFAULT,
-                          f"mux input {source.name} (priority {source.priority})"))
+                          f"mux input {source.name} (priority {source.priority})",
+                          refused="" if source.network else closed_input(source.name, i)))
     for lock in mux.locks:
         rows.append(Topic(lock.topic, Bool, into, DEFAULT, f"mux lock {lock.name}"))
     rows.append(Topic(mux.estop_topic, Bool, into, DEFAULT, "e-stop: true engages (latched)"))
@@ -171,6 +178,11 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
         rows.append(Topic(cmd_vel_topic, Twist, into, DEFAULT,
                           "velocity commands (Nav2), into mux input cmd_vel"))
     return rows
+
+
+def closed_input(name: str, index: int) -> str:
+    """Why a network sample on mux input ``name`` (``mux.inputs[index]``) is refused."""
+    return f"mux input {name} takes no network commands (mux.inputs[{index}].network: false)"
 
 
 #: The mux input the /cmd_vel converter drives, and its priority (between nav_0 and nav_1).

@@ -19,7 +19,8 @@ A thin I/O shell around the codec, with one Zenoh session:
   checks every number is finite and keeps the latest message per input for the event loop (e-stops
   at once and first, with their origin: only an operator releases what an operator latched,
   :mod:`mux.estop`). In the loop it is published on the bus like any local input. Anything else is
-  dropped and counted, samples of the wrong type on an input topic too.
+  dropped and counted, samples of the wrong type on an input topic too, and every sample on a mux
+  input closed to the network (``network: false``: ``safety`` and ``teleop`` by default).
 * **Services** (the read-only parameter services, :mod:`racecar_hw.net.parameters`), answered by
   :mod:`racecar_hw.net.zenoh_services` on rmw_zenoh's service keys.
 * **Graph.** A liveliness token for the node and one per publisher, subscriber and service server
@@ -80,6 +81,7 @@ class BridgeStats:
     service_errors: int = 0  #: service requests refused (no attachment, malformed, too big) or failed
     set_calls: int = 0       #: set_parameters calls answered (read-only: refused in the answer)
     wrong_type: int = 0      #: incoming samples on an input topic with another type or type hash
+    closed: int = 0          #: incoming samples on a mux input closed to the network (refused)
 
 
 class _Out:
@@ -241,9 +243,10 @@ class ZenohBridge(Bridge):
         s = self.stats
         log.info("zenoh bridge closed: %d published (%d dropped, queue full), %d skipped (no subscriber); "
                  "%d received, %d without attachment, %d malformed, %d with an old rmw_zenoh's attachment, "
-                 "%d non-finite, %d of a wrong type; %d service calls answered, %d refused", s.published,
-                 self.outbox.dropped, s.skipped, s.received, s.no_attachment, s.malformed, s.old_attachment,
-                 s.non_finite, s.wrong_type, s.service_calls, s.service_errors)
+                 "%d non-finite, %d of a wrong type, %d on inputs closed to the network; %d service calls "
+                 "answered, %d refused", s.published, self.outbox.dropped, s.skipped, s.received,
+                 s.no_attachment, s.malformed, s.old_attachment, s.non_finite, s.wrong_type, s.closed,
+                 s.service_calls, s.service_errors)
 
     # --- out: the publisher thread -----------------------------------------------------------
 

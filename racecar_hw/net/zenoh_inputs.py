@@ -10,7 +10,10 @@ checks every number is finite and keeps the latest message per input for the eve
 row's samples pass a :class:`~racecar_hw.net.command_gate.CommandGate` first: at most one offer
 per control period, the newest, at once when none was offered within the period (a client
 answering every scan costs no wake-up of a thread of ours). E-stop rows take every message, in
-order, never coalesced. See :mod:`racecar_hw.net.zenoh_bridge`.
+order, never coalesced. A row closed to the network (a mux input with ``network: false``,
+:attr:`~racecar_hw.net.topics.Topic.refused`) is subscribed too, so that every sample on it is
+refused and counted (``closed``, and per input by the inbox, whose refusals log the key to change),
+never decoded. See :mod:`racecar_hw.net.zenoh_bridge`.
 """
 
 from __future__ import annotations
@@ -69,7 +72,9 @@ class ZenohInputs:
             node.track(node.session.declare_subscriber(rmw.topic_key_pattern(node.names.domain_id, topic),
                                                        zenoh.handlers.Callback(guard, indirect=False)))
         else:
-            if row.bus in self.inbox.stop_topics:
+            if row.refused:
+                take = self.refuser(row)  # a mux input closed to the network: every sample refused
+            elif row.bus in self.inbox.stop_topics:
                 take = self.receiver(row)  # every e-stop message, in order: never coalesced
             else:
                 take = self.gate.row(self.receiver(row, gaps={}))
@@ -118,6 +123,19 @@ class ZenohInputs:
             self.refusals.note("zenoh", topic, reason)
 
         return guard
+
+    def refuser(self, row: Topic) -> Callable[[Any], None]:
+        """Refuse every sample of ``row``, a mux input closed to the network (:attr:`Topic.refused`):
+        counted in ``closed`` and by the inbox (per input, and in the refusals' log lines)."""
+        topic, reason = row.bus, row.refused
+        stats, lock, inbox = self.stats, self.lock, self.inbox
+
+        def refuse(sample: Any) -> None:
+            with lock:
+                stats.closed += 1
+            inbox.refuse(ORIGIN, topic, reason)
+
+        return refuse
 
     def receiver(self, row: Topic, gaps: dict[bytes, int] | None = None) -> Callable[[Any], None]:
         """Check one sample of ``row`` and offer it to the inbox (in Zenoh's or the row's thread).
