@@ -153,6 +153,28 @@ def test_a_flood_is_noted_in_the_refusals_a_line_per_interval():
     assert refusals.total("zenoh") == 999
 
 
+def test_a_client_at_the_tick_rate_is_not_called_a_flood_however_long_it_runs():
+    """A 50 Hz client whose messages sometimes meet in one period (jitter: one in twenty here) was
+    logged as a flood after 10-20 s, superseded messages being counted over all time. A flood is
+    FLOOD_NOTE superseded within FLOOD_WINDOW_NS; a real one is still noted."""
+    refusals = Refusals()
+    inbox, loop, clock, rec = make_inbox(period_s=0.02)
+    inbox.refusals = refusals
+    for k in range(3000):  # a minute at 50 Hz
+        clock.ns += 1 * MS if k % 20 == 1 else 20 * MS  # every twentieth right after the one before
+        inbox.offer("dds", NAV, _cmd(0.5))
+        loop.run()
+    inbox.flush_floods()
+    assert inbox.counts()[NAV].superseded >= 100  # what the old count called a flood
+    assert refusals.total("dds") == 0
+    for _ in range(300):  # then 300 within a period
+        clock.ns += 10_000
+        inbox.offer("dds", NAV, _cmd(0.5))
+        loop.run()
+    inbox.flush_floods()
+    assert refusals.total("dds") >= 299
+
+
 def test_nothing_is_handed_over_after_close():
     inbox, loop, clock, rec = make_inbox()
     inbox.offer("zenoh", NAV, _cmd(1.0))

@@ -63,8 +63,13 @@ log = logging.getLogger(__name__)
 Handover = Callable[[str, Message, str], None]
 
 #: Superseded messages of one input that make one "flood" note in the refusals (a line at most
-#: once per the refusals' interval): below it a client a little faster than the tick is no news.
+#: once per the refusals' interval) when they come within :data:`FLOOD_WINDOW_NS`: below it a
+#: client a little faster than the tick is no news. Counted over all time, a client at the tick
+#: rate whose messages sometimes meet in one period (jitter) was called a flood after 10-20 s.
 FLOOD_NOTE = 100
+#: The window (monotonic ns) in which :data:`FLOOD_NOTE` superseded messages are a flood: at least
+#: 50 a second beyond what the loop takes.
+FLOOD_WINDOW_NS = 2_000_000_000
 #: Why a message is refused (the reasons the inbox itself checks; surfaces add their own).
 MALFORMED = "malformed"
 NON_FINITE = "non-finite"
@@ -119,7 +124,7 @@ class InputCounts:
 class _Slot:
     """One input: its pending message (the latest) and when it may be handed over next."""
 
-    __slots__ = ("counts", "msg", "next_ns", "origin", "topic", "unreported")
+    __slots__ = ("counts", "flooded", "msg", "next_ns", "origin", "topic", "unreported", "window_ns")
 
     def __init__(self, topic: str) -> None:
         self.topic = topic
@@ -127,7 +132,9 @@ class _Slot:
         self.origin = ""
         self.next_ns = 0
         self.counts = InputCounts()
-        self.unreported = 0  #: superseded since the last flood note
+        self.unreported = 0  #: superseded since the last flood note, within the window
+        self.window_ns: int | None = None  #: when the flood window began (monotonic ns)
+        self.flooded = False  #: a flood was noted (what is left of it is noted at shutdown)
 
 
 class Inbox:
@@ -218,6 +225,8 @@ class Inbox:
                 return None  # not running (yet, or any more): nothing to hand over to
             slot.counts.received += 1 + superseded
             slot.counts.superseded += superseded
+            if slot.window_ns is None or now - slot.window_ns >= FLOOD_WINDOW_NS:
+                slot.window_ns, slot.unreported = now, 0
             slot.unreported += superseded
             if topic in self.stop_topics:
                 wake, replaced = self._stops.queue(topic, msg, origin, now, self._timer_ns)
@@ -233,7 +242,7 @@ class Inbox:
             if replaced:
                 slot.unreported += 1
             if slot.unreported >= FLOOD_NOTE:
-                flood, slot.unreported = slot.unreported, 0
+                flood, slot.unreported, slot.flooded = slot.unreported, 0, True
             if wake and not self._soon:
                 self._soon = True
                 self.wakeups += 1
@@ -324,11 +333,13 @@ class Inbox:
                     for t, s in sorted(self._slots.items())}
 
     def flush_floods(self) -> None:
-        """Note superseded messages not yet noted in the refusals (at shutdown)."""
+        """Note what is left of a flood not yet noted in the refusals (at shutdown); a client that
+        never flooded has none."""
         if self.refusals is None:
             return
         with self._lock:
-            pending = [(s.origin, s.topic, s.unreported) for s in self._slots.values() if s.unreported]
+            pending = [(s.origin, s.topic, s.unreported) for s in self._slots.values()
+                       if s.unreported and s.flooded]
             for s in self._slots.values():
                 s.unreported = 0
         for origin, topic, n in pending:
