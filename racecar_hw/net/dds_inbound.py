@@ -52,9 +52,12 @@ class DdsReceiver:
         #: the command rows' rate gate (its thread takes the samples that came within a period)
         self.gate = CommandGate("dds-in", period_s)
 
-    def receiver(self, row: Topic, name: str) -> Callable[[Any], None]:
+    def receiver(self, row: Topic, name: str,
+                 arrivals: Callable[[], int] | None = None) -> Callable[[Any], None]:
         """What takes ``row``'s samples from a reader (a listener's callback, or the gate's offer);
-        ``name`` is the row's full ROS name, for the refusals."""
+        ``name`` is the row's full ROS name, for the refusals. ``arrivals()``, for a reader that
+        keeps only its newest sample, says how many samples came since the last take (and starts
+        the count again): those beyond the taken ones were superseded in Cyclone's C code."""
         cls, topic = row.msgtype, row.bus
         stats, lock, inbox = self.stats, self.lock, self.inbox
         accept = self.accepts_commands
@@ -63,10 +66,12 @@ class DdsReceiver:
         outcome = {None: "received", MALFORMED: "malformed", NON_FINITE: "non_finite"}
 
         def receive(reader: Any) -> None:
+            came = arrivals() if arrivals is not None else 0
             try:
                 samples = reader.take(TAKE_N)
             except Exception:  # noqa: BLE001 - a reader being deleted at shutdown
                 return
+            superseded = max(came - len(samples), 0)
             for sample in samples:
                 data = getattr(sample, "data", None)
                 if data is None:  # an instance state change (a writer went away), no data
@@ -81,18 +86,33 @@ class DdsReceiver:
                         stats.refused += 1
                     refusals.note(SURFACE, name, _UNAUTHENTICATED)
                     continue
-                field = outcome.get(inbox.offer_cdr(SURFACE, topic, cls, data), "refused")
+                field = outcome.get(inbox.offer_cdr(SURFACE, topic, cls, data, superseded), "refused")
+                superseded = 0
                 with lock:
                     setattr(stats, field, getattr(stats, field) + 1)
 
         return receive
 
     def gated(self, row: Topic, name: str) -> Callable[[Any], None]:
-        """A command row reader's ``on_data_available``: the newest sample, at most once per period."""
-        arrive = self.gate.row(self.receiver(row, name))
+        """A command row reader's ``on_data_available``: the newest sample, at most once per period.
+
+        Cyclone calls it once per sample that arrives; the reader keeps the newest only, so the
+        calls since the last take, less the samples taken, are the flood's superseded samples
+        (counted as the inbox counts Zenoh's from the gaps in its sequence numbers)."""
+        count = [0]
+        lock = self.lock
+
+        def arrivals() -> int:
+            with lock:
+                came, count[0] = count[0], 0
+            return came
+
+        arrive = self.gate.row(self.receiver(row, name, arrivals))
 
         def on_data_available(reader: Any) -> None:  # in Cyclone's receiving thread
             hold_thread_state()
+            with lock:
+                count[0] += 1
             arrive(reader)
 
         return on_data_available
