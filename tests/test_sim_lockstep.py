@@ -71,9 +71,10 @@ def run(name: str, overrides: tuple[str, ...] = (), **kw) -> tuple[dict, list]:
 #: The scenarios whose two runs take over 10 s on a 2-core machine (long simulated times, two
 #: daemons): ``slow``, so that they start first (tests/conftest.py), and with a longer time limit
 #: than pytest-timeout's 300 s: on a machine shared with other test runs the miscalibrated car's
-#: two 120 s runs took 310 s, and pytest-timeout cannot end a lockstep run (docs/tests.md): its
-#: exception ends one of the run's tasks, and the run goes on with a lidar that stopped scanning.
-LONG = {"miscalibrated", "miscalibrated-figure8", "two-cars"}
+#: two runs (120 s of standing then, 20 s now) took 310 s, and pytest-timeout cannot end a lockstep
+#: run (docs/tests.md): its exception ends one of the run's tasks, and the run goes on with a lidar
+#: that stopped scanning.
+LONG = {"miscalibrated-figure8", "two-cars"}
 LONG_TIMEOUT_S = 1200
 
 
