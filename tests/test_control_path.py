@@ -148,6 +148,50 @@ def test_a_scan_cut_is_written_then_published_and_holds_the_limiter_down():
     assert daemon.mux.limiter.speed == cut  # clamped: the next tick ramps up from here at most
 
 
+@pytest.mark.parametrize("speed", [1.0, 0.0])  # driving, or standing with the wheels turned
+def test_a_blind_lidar_centres_the_steering_through_the_rate_limit_without_a_jump(speed):
+    """A scan that blinds the lidar (no return on any beam) stops the car and centres its steering
+    (safety.centre_when_blind) at once and through the mux's steering rate limit, as a cut. The
+    scan path once wrote a standing car's steering centred at once and the next tick put it back
+    near the limiter's angle: 0.2, 0.0, 0.136, 0.072, ... on the servo."""
+    config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
+                                "status.enabled=false", "foxglove.enabled=false", "web.enabled=false",
+                                "arming.start_armed=true", *QUIET_NET])
+    daemon = Daemon(config, bus=Bus())
+    written: list[tuple[float, float]] = []
+
+    class Motor:  # where the control path writes (the VESC driver's command)
+        def command(self, drive: AckermannDrive) -> None:
+            written.append((drive.speed, drive.steering_angle))
+
+    def scan(range_m: float) -> LaserScan:
+        msg = LaserScan(angle_min=-1.0, angle_increment=0.01, range_min=0.02, range_max=30.0,
+                        ranges=np.full(201, range_m, dtype=np.float32))
+        msg.header.frame_id = "laser"
+        return msg
+
+    def command() -> None:
+        drive = AckermannDrive(speed=speed, steering_angle=0.2)
+        daemon.bus.publish(TELEOP, AckermannDriveStamped(drive=drive))
+
+    control = daemon.control
+    control._write = Motor().command
+    for _ in range(60):  # open space, turning left at 0.2 rad
+        command()
+        control.take_scan(scan(25.0))
+        control.tick(monotonic_ns())
+    assert written[-1] == (speed, 0.2)
+    written.clear()
+    control.take_scan(scan(math.inf))  # blinded: every beam no return
+    for _ in range(20):
+        command()
+        control.tick(monotonic_ns())
+    steering = [s for _, s in written]
+    assert all(v == 0.0 for v, _ in written) and steering[-1] == 0.0, written
+    assert 0.0 < steering[0] < 0.2  # the first step toward centre, written with the scan
+    assert all(b <= a for a, b in zip(steering, steering[1:], strict=False)), steering  # no jump back
+
+
 def test_a_non_finite_command_stops_at_the_mux_edge_and_only_finite_commands_are_written():
     """The one finiteness check for bus sources is where a command enters the mux: NaN or inf
     there becomes a stop from that source (counted), so the filters, the limiter and the VESC

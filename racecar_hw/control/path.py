@@ -152,7 +152,9 @@ class ControlPath:
         if last is not None and self.alive(now):
             wrote = True
             drive = self.safety.limit(last.drive, self.mux.source or "idle", now)
-            if abs(drive.speed) < abs(last.drive.speed):
+            # (a blind lidar's centring, safety.centre_when_blind, is a cut too: through the mux's
+            # steering rate limit, or the servo would jump to centre and back at the next tick)
+            if abs(drive.speed) < abs(last.drive.speed) or drive.steering_angle != last.drive.steering_angle:
                 self.stats.scan_cuts += 1
                 cut = self.mux.cut(drive, now)
                 drive = cut.drive
