@@ -260,6 +260,7 @@ class LidarDriver(ReconnectingDevice):
         error that ended the previous session (:attr:`last_error`): the device works again."""
         if self._session_scans == 0 and self.last_error == self._previous_error:
             self.last_error = None
+            self._logged = None  # the device works again: its next loss is news, whatever its cause
         self._session_scans += 1
         self._malformed = 0
         self.stats.scans += 1

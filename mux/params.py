@@ -3,8 +3,9 @@
 Priorities: a larger number wins. Timeouts are measured from the arrival of the last message on
 the topic (monotonic clock), never from its header stamp. The defaults keep the ROS racecar topic
 names (MIT ``mux.launch`` layout, flattened into one mux): safety above teleop above ``nav_0`` ..
-``nav_3``, each with a 0.2 s timeout, and a zero command when nothing is fresh. ``safety`` and
-``teleop`` take no network commands (``network: false``): only the daemon's own sources drive them.
+``nav_3``, each with a 0.2 s timeout, and a zero command when nothing is fresh. An input on the
+operator's topics (``safety``, ``teleop``, ``foxglove``: :data:`OPERATOR_TOPICS`) takes no network
+commands unless its ``network`` says so: only the daemon's own sources drive it.
 
 Build from YAML with ``racecar_hw.base.params.build(MuxParams, mapping, "mux")``. Cross-field rules
 (unique priorities, names and topics) are checked when the instance is created and raise
@@ -20,8 +21,19 @@ from dataclasses import dataclass, field
 from mux.estop import OPERATORS, RELEASE_SOURCES
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import param
-from racecar_hw.base.topics import MUX_ACTIVE_TOPIC, MUX_HIGH, MUX_LOW
+from racecar_hw.base.topics import (
+    FOXGLOVE_INPUT_TOPIC,
+    MUX_ACTIVE_TOPIC,
+    MUX_HIGH,
+    MUX_LOW,
+    MUX_SAFETY_TOPIC,
+    TELEOP_TOPIC,
+)
 
+#: The topics the daemon's own operator sources drive (the gamepad, keyboard and ground station's
+#: teleop, the cone safety node's safety input, Foxglove's Teleop panel): an input on one of them
+#: takes no network commands unless its ``network`` says so.
+OPERATOR_TOPICS = frozenset((TELEOP_TOPIC, MUX_SAFETY_TOPIC, FOXGLOVE_INPUT_TOPIC))
 #: Source names the mux uses for itself; an input may not take one of them.
 RESERVED_SOURCES: tuple[str, ...] = ("idle", "estop", "fault")
 
@@ -41,10 +53,16 @@ class InputParams:
     timeout_s: float = param(0.2, "the source expires this long after its last message (every source "
                              "expires: the mux never holds a command)", unit="s",
                              min=MIN_INPUT_TIMEOUT_S, max=MAX_INPUT_TIMEOUT_S)
-    network: bool = param(True, "network sessions (Zenoh, DDS) may command this input; false: only "
-                          "the daemon's own sources (gamepad, keyboard, MAVLink, Foxglove teleop, "
-                          "calibration, the safety controller) drive it, and a network sample on its "
-                          "topic is refused and counted")
+    network: bool | None = param(None, "network sessions (Zenoh, DDS) may command this input; false: "
+                                 "only the daemon's own sources (gamepad, keyboard, MAVLink, Foxglove "
+                                 "teleop, calibration, the safety controller) drive it, and a network "
+                                 "sample on its topic is refused and counted; null (the default): "
+                                 "false on the operator's topics (the teleop, safety and foxglove "
+                                 "inputs' shipped topics), true on any other")
+
+    def __post_init__(self) -> None:
+        if self.network is None:  # a config listing its inputs does not open the operator's
+            self.network = self.topic not in OPERATOR_TOPICS
 
 
 @dataclass

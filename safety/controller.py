@@ -3,8 +3,9 @@ lidar sees on its path.
 
 :class:`SafetyController` is pure logic (no bus, no clock): feed it scans with :meth:`on_scan` and
 commands with :meth:`limit`, passing monotonic nanoseconds. It only ever lowers the magnitude of
-the speed; it never raises it, never flips its sign and never touches the steering (except to
-centre a non-finite steering angle). See ``docs/safety.md`` for the model.
+the speed; it never raises it, never flips its sign and never touches the steering, except to
+centre it while the lidar is blind (no, stale or bad scan; ``centre_when_blind``) and to centre a
+non-finite steering angle. See ``docs/safety.md`` for the model.
 
 Allowed speed, for a free path length ``d`` along the commanded arc::
 

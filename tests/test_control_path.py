@@ -150,10 +150,11 @@ def test_a_scan_cut_is_written_then_published_and_holds_the_limiter_down():
 
 @pytest.mark.parametrize("speed", [1.0, 0.0])  # driving, or standing with the wheels turned
 def test_a_blind_lidar_centres_the_steering_through_the_rate_limit_without_a_jump(speed):
-    """A scan that blinds the lidar (no return on any beam) stops the car and centres its steering
-    (safety.centre_when_blind) at once and through the mux's steering rate limit, as a cut. The
-    scan path once wrote a standing car's steering centred at once and the next tick put it back
-    near the limiter's angle: 0.2, 0.0, 0.136, 0.072, ... on the servo."""
+    """A scan that blinds the lidar (no return on any beam) stops the car at once and centres its
+    steering (safety.centre_when_blind) from the next tick at the mux's steering rate. The scan path
+    once wrote a standing car's steering centred at once and the next tick put it back near the
+    limiter's angle (0.2, 0.0, 0.136, 0.072, ... on the servo); then, as a cut, it took a limiter
+    step of its own between two ticks' steps (5.7 rad/s against the 3.2 allowed)."""
     config = load_config(None, ["vesc.enabled=false", "lidar.enabled=false", "gamepad.enabled=false",
                                 "status.enabled=false", "foxglove.enabled=false", "web.enabled=false",
                                 "arming.start_armed=true", *QUIET_NET])
@@ -183,13 +184,17 @@ def test_a_blind_lidar_centres_the_steering_through_the_rate_limit_without_a_jum
     assert written[-1] == (speed, 0.2)
     written.clear()
     control.take_scan(scan(math.inf))  # blinded: every beam no return
-    for _ in range(20):
+    assert written == [(0.0, 0.2)]  # braked at once, the steering left to the ticks
+    for k in range(20):
         command()
+        if k % 2:  # scans between the ticks, as at 40 Hz
+            control.take_scan(scan(math.inf))
         control.tick(monotonic_ns())
     steering = [s for _, s in written]
     assert all(v == 0.0 for v, _ in written) and steering[-1] == 0.0, written
-    assert 0.0 < steering[0] < 0.2  # the first step toward centre, written with the scan
-    assert all(b <= a for a, b in zip(steering, steering[1:], strict=False)), steering  # no jump back
+    step = config.mux.max_steering_rate_radps / config.mux.rate_hz  # per tick
+    ticks = [s for k, s in enumerate(steering) if k == 0 or s != steering[k - 1]]  # each change
+    assert all(0.0 <= a - b <= step + 1e-9 for a, b in zip(ticks, ticks[1:], strict=False)), steering
 
 
 def test_a_non_finite_command_stops_at_the_mux_edge_and_only_finite_commands_are_written():

@@ -106,6 +106,24 @@ def test_speed_and_battery_are_unknown_while_the_vesc_link_is_not_up(monkeypatch
         assert daemon.live_state().battery_v is None
 
 
+def test_a_slow_vesc_poll_is_not_stale_telemetry(monkeypatch):
+    """``vesc.poll_rate_hz`` may be as low as 1 Hz: its replies, 0.67 s apart at 1.5 Hz, are fresh
+    until two poll periods have passed (against 0.5 s, battery and speed flickered to '-')."""
+    clock = Clock()
+    with use_virtual_time(clock):
+        daemon = Daemon(load_config(None, ["vesc.port=/dev/null-vesc", "vesc.poll_rate_hz=1.5",
+                                           "lidar.enabled=false", *OFF]))
+        assert daemon.vesc is not None
+        monkeypatch.setattr(type(daemon.vesc), "connected", property(lambda self: True))
+        core = VescStateStamped()
+        core.state.voltage_input = 11.8
+        daemon.bus.publish(TOPIC_CORE, core)
+        clock.now += 670 * MS  # one poll period later, the next reply not in yet
+        assert daemon.live_state().battery_v == pytest.approx(11.8)
+        clock.now += 700 * MS  # two periods without a reply: stale
+        assert daemon.live_state().battery_v is None
+
+
 def test_speed_battery_and_scan_rate_are_unknown_once_the_fake_devices_go_quiet(fakes, tmp_path):
     fake_vesc, fake_lidar = fakes
     host, port = fake_lidar.tcp_address

@@ -9,6 +9,7 @@ import pytest
 from mux.params import InputParams, LockParams, MuxParams
 from racecar_hw.base.errors import ConfigError
 from racecar_hw.base.params import build, describe
+from racecar_hw.base.topics import FOXGLOVE_INPUT_TOPIC, MUX_SAFETY_TOPIC, TELEOP_TOPIC
 
 LOW = "/vesc/low_level/ackermann_cmd_mux"
 HIGH = "/vesc/high_level/ackermann_cmd_mux"
@@ -113,7 +114,9 @@ def test_missing_and_out_of_range_fields_name_the_key():
 
 def test_the_operators_inputs_take_no_network_commands_and_the_rest_do():
     """safety and teleop (the safety controller's and the gamepad's) are closed to Zenoh and DDS by
-    default; an input listed without ``network`` is open, as before the key existed."""
+    default; an input listed without ``network`` is open, unless it is on one of the operator's
+    topics: a config that lists its inputs as docs/mux.md's example did before the key existed
+    opened safety and teleop to any network session. ``network: true`` opens one on purpose."""
     p = build(MuxParams, {}, "mux")
     assert {i.name: i.network for i in p.inputs} == {
         "safety": False, "teleop": False, "nav_0": True, "nav_1": True, "nav_2": True, "nav_3": True}
@@ -121,9 +124,18 @@ def test_the_operators_inputs_take_no_network_commands_and_the_rest_do():
               {"name": "auto", "topic": "/auto", "priority": 5, "network": True},
               {"name": "old", "topic": "/old", "priority": 1}]
     assert [i.network for i in build(MuxParams, {"inputs": inputs}, "mux").inputs] == [False, True, True]
+    listed = [{"name": name, "topic": topic, "priority": k}
+              for k, (name, topic) in enumerate([("safety", MUX_SAFETY_TOPIC), ("teleop", TELEOP_TOPIC),
+                                                 ("foxglove", FOXGLOVE_INPUT_TOPIC), ("bag", "/bag")])]
+    def network() -> list[bool | None]:
+        return [i.network for i in build(MuxParams, {"inputs": listed}, "mux").inputs]
+
+    assert network() == [False, False, False, True]
+    listed[1]["network"] = True  # a ROS teleop node on the car (F1TENTH's joy_teleop), on purpose
+    assert network() == [False, True, False, True]
 
 
-@pytest.mark.parametrize("value", ["no", 0, 1, None, [False]])
+@pytest.mark.parametrize("value", ["no", 0, 1, [False]])
 def test_a_network_flag_that_is_not_a_bool_names_the_key(value):
     inputs = [{"name": "a", "topic": "/a", "priority": 1},
               {"name": "b", "topic": "/b", "priority": 2, "network": value}]

@@ -267,6 +267,30 @@ def test_scans_of_the_wrong_length_are_named_once_in_the_reconnect_warning(devic
     assert len(named) == 1, lost  # three losses or more, one line
 
 
+def test_a_loss_after_the_device_worked_again_is_logged_again(device_thread, tmp_path, caplog):
+    """Repeats of one cause are logged once while the device does not recover; once it published
+    scans again, the next loss is news whatever its cause (a second dropout a minute after the first
+    went unlogged when the once-a-minute rule outlived the recovery)."""
+    import logging
+
+    fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        await more_scans(scans, 2)
+        for k in range(2):
+            fake.mute(True)
+            await async_wait_for(lambda k=k: driver.stats.reconnects >= k + 1
+                                 and "no scan" in (driver.last_error or ""), 15)
+            fake.mute(False)
+            await more_scans(scans, len(scans) + 5)  # working again
+            assert driver.last_error is None, driver.last_error
+
+    with caplog.at_level(logging.WARNING):
+        drive(params_for(fake, stale_timeout_s=0.3), scenario)
+    lost = [r.getMessage() for r in caplog.records if "reconnecting" in r.getMessage()]
+    assert len(lost) >= 2, lost
+
+
 def test_hardware_fault_status_is_surfaced_with_its_meaning(device_thread, tmp_path):
     fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
 

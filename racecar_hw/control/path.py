@@ -34,6 +34,7 @@ Times are monotonic integer nanoseconds. Use from the event loop thread only.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -151,10 +152,11 @@ class ControlPath:
         wrote = False
         if last is not None and self.alive(now):
             wrote = True
-            drive = self.safety.limit(last.drive, self.mux.source or "idle", now)
-            # (a blind lidar's centring, safety.centre_when_blind, is a cut too: through the mux's
-            # steering rate limit, or the servo would jump to centre and back at the next tick)
-            if abs(drive.speed) < abs(last.drive.speed) or drive.steering_angle != last.drive.steering_angle:
+            # the speed only: a blind lidar's centring (safety.centre_when_blind) is the ticks' to
+            # make at the mux's steering rate (here the servo jumped to centre and back at the tick)
+            drive = dataclasses.replace(self.safety.limit(last.drive, self.mux.source or "idle", now),
+                                        steering_angle=last.drive.steering_angle)
+            if abs(drive.speed) < abs(last.drive.speed):
                 self.stats.scan_cuts += 1
                 cut = self.mux.cut(drive, now)
                 drive = cut.drive

@@ -8,7 +8,8 @@ control path's :meth:`~racecar_hw.control.path.ControlPath.status`, the mux's, t
 
 What comes from the VESC's telemetry (the measured speed from odometry, the battery voltage) is
 shown only while it is fresh: when the last reply is older than ``safety.odom_timeout_s`` (0.5 s,
-the age past which the safety controller takes no measured speed from odometry) or the VESC's link
+the age past which the safety controller takes no measured speed from odometry; at least two poll
+periods, for a ``vesc.poll_rate_hz`` under 4 Hz) or the VESC's link
 is not up, it is unknown (None; ``-`` in the status line), not the last value from before the VESC
 went quiet. The scan rate counts recent arrivals only (:meth:`ControlStats.scan_rate_hz`).
 
@@ -106,11 +107,15 @@ class CarState:
 
     def _fresh(self, topic: str, now_ns: int) -> Any | None:
         """The last VESC telemetry message on ``topic``, or None when it is older than
-        ``safety.odom_timeout_s`` (s) at ``now_ns`` (monotonic ns) or the VESC's link is not up."""
+        ``safety.odom_timeout_s`` (s; with a VESC, at least two of its poll periods) at ``now_ns``
+        (monotonic ns) or the VESC's link is not up."""
         entry: Latest[Any] | None = self.bus.latest_entry(topic)
         if entry is None or (self.vesc is not None and not self.vesc.connected):
             return None
-        if now_ns - entry.received_ns > self.config.safety.odom_timeout_s * NS_PER_S:
+        max_age_s = self.config.safety.odom_timeout_s
+        if self.vesc is not None:  # a slow poll (vesc.poll_rate_hz under 2 Hz) is not a stale one
+            max_age_s = max(max_age_s, 2.0 / self.config.vesc.poll_rate_hz)
+        if now_ns - entry.received_ns > max_age_s * NS_PER_S:
             return None
         return entry.msg
 
