@@ -66,7 +66,7 @@ from racecar_hw.bags.ros1_writer import Ros1Writer
 from racecar_hw.bags.writers import Storage, bag_info, open_storage
 from racecar_hw.base.bus import Bus, Subscription
 from racecar_hw.base.clock import NS_PER_S, wall_ns
-from racecar_hw.base.errors import BagError, ConfigError
+from racecar_hw.base.errors import BagError, BagWriteError, ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
 from racecar_hw.rosmsg.typestore import BagTypes, types_for
@@ -265,10 +265,14 @@ class Ros2BagMetadata:
         text = self.text(current)
         meta = self.bagdir / "metadata.yaml"
         tmp = meta.with_suffix(".yaml.tmp")
-        with tmp.open("w", encoding="utf8") as fh:
-            fh.write(text)
-            _sync(fh)
-        tmp.replace(meta)
+        try:
+            with tmp.open("w", encoding="utf8") as fh:
+                fh.write(text)
+                _sync(fh)
+            tmp.replace(meta)
+        except FileNotFoundError as err:  # the folder went (the storage file's check says so first)
+            raise BagWriteError(f"{self.bagdir}: the bag folder was deleted or moved while "
+                                "recording") from err
 
 
 class UnserializableMessage(BagError):

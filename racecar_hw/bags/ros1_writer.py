@@ -23,8 +23,8 @@ import struct
 from pathlib import Path
 from typing import Any
 
-from racecar_hw.bags.writers import ROS1_MAGIC, ros1_file_header
-from racecar_hw.base.errors import BagError
+from racecar_hw.bags.writers import ROS1_MAGIC, check_still_there, ros1_file_header
+from racecar_hw.base.errors import BagError, BagWriteError
 
 #: A chunk is written once its records exceed this many bytes (as rosbag's default, 768 KiB).
 CHUNK_THRESHOLD = 768 * 1024
@@ -97,7 +97,9 @@ class Ros1Writer:
         try:
             self._fh = self.path.open("xb")
         except OSError as err:
-            raise BagError(f"cannot create bag {self.path}: {err}") from err
+            raise BagWriteError(f"cannot create bag {self.path}: {err}") from err
+        st = os.fstat(self._fh.fileno())
+        self._identity = st.st_dev, st.st_ino
         self._fh.write(ROS1_MAGIC + ros1_file_header(0, 0, 0))
         self.connections: list[Ros1Connection] = []
         self._keys: dict[tuple[Any, ...], Ros1Connection] = {}
@@ -162,10 +164,12 @@ class Ros1Writer:
         self._index = {}
 
     def flush(self) -> None:
-        """Write the pending chunk (if it holds a message) and fsync: a crash keeps it."""
+        """Write the pending chunk (if it holds a message) and fsync: a crash keeps it. Raises
+        :class:`BagWriteError` when the file was deleted or moved meanwhile."""
         self._write_chunk()
         self._fh.flush()
         os.fsync(self._fh.fileno())
+        check_still_there(self.path, self._identity)
 
     def close(self) -> None:
         """Write the pending chunk, the index (connections, chunk infos) and the file header."""
@@ -184,6 +188,7 @@ class Ros1Writer:
         fh.flush()
         os.fsync(fh.fileno())
         fh.close()
+        check_still_there(self.path, self._identity)
 
     def abort(self) -> None:
         """Close the file without writing the index."""

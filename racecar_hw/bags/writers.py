@@ -38,7 +38,7 @@ from typing import Any, Protocol
 
 import yaml
 
-from racecar_hw.base.errors import BagError
+from racecar_hw.base.errors import BagError, BagWriteError
 from racecar_hw.runtime.extras import require_extra
 
 #: rosbag2 metadata version written. Humble (rosbag2 0.15, ``rosbag2_storage/src/rosbag2_storage/
@@ -98,6 +98,29 @@ def _sync(fh: Any) -> None:
     os.fsync(fh.fileno())
 
 
+def file_identity(path: Path) -> tuple[int, int]:
+    """(device, inode) of the file at ``path``: what :func:`check_still_there` compares with."""
+    st = os.stat(path)
+    return st.st_dev, st.st_ino
+
+
+def check_still_there(path: Path, identity: tuple[int, int]) -> None:
+    """Raise :class:`BagWriteError` when ``path`` is no longer the file being written (``identity``,
+    :func:`file_identity` when it was created): deleted or moved while it was written, everything
+    written into it is lost (or elsewhere) however well the writes went. One ``stat``: writers call
+    it at each flush and at close, not per message."""
+    try:
+        st = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        pass
+    except OSError:  # cannot look (a folder made unreadable): not known to be gone
+        return
+    else:
+        if (st.st_dev, st.st_ino) == identity:
+            return
+    raise BagWriteError(f"{path}: the bag file was deleted or moved while recording")
+
+
 class Storage(Protocol):
     """One storage file of a rosbag2 bag, written by one thread."""
 
@@ -136,6 +159,7 @@ class McapStorage:
         self._writer = McapWriter(self._fh, chunk_size=MCAP_CHUNK_SIZE,
                                   compression=CompressionType[compression.upper()], enable_crcs=True)
         self._writer.start(profile="ros2", library=f"racecar-hw (mcap {MCAP_VERSION})")
+        self._identity = file_identity(path)
         self._schemas: dict[str, int] = {}
 
     def add_connection(self, topic: str, msgtype: str, msgdef: str, digest: str, qos: str) -> int:
@@ -150,12 +174,14 @@ class McapStorage:
     def flush(self) -> None:
         self._writer.flush()  # closes the pending chunk (with its CRC) and writes it out
         _sync(self._fh)
+        check_still_there(self.path, self._identity)
 
     def close(self, metadata: str) -> None:
         self._writer.add_metadata("rosbag2", {"serialized_metadata": metadata})
         self._writer.finish()
         _sync(self._fh)
         self._fh.close()
+        check_still_there(self.path, self._identity)
 
     def abort(self) -> None:
         self._fh.close()
@@ -186,31 +212,48 @@ class Sqlite3Storage:
             raise BagError(f"{path} exists already, not overwriting")
         self._conn = sqlite3.connect(path)
         self._conn.executescript(self.SCHEMA)
+        self._identity = file_identity(path)
         self._types: set[str] = set()
         self._topics = 0
 
     def add_connection(self, topic: str, msgtype: str, msgdef: str, digest: str, qos: str) -> int:
         if msgtype not in self._types:
             self._types.add(msgtype)
-            self._conn.execute("INSERT INTO message_definitions (topic_type, encoding,"
-                               " encoded_message_definition, type_description_hash) VALUES (?, ?, ?, ?)",
-                               (msgtype, "ros2msg", msgdef, digest))
+            self._execute("INSERT INTO message_definitions (topic_type, encoding,"
+                          " encoded_message_definition, type_description_hash) VALUES (?, ?, ?, ?)",
+                          (msgtype, "ros2msg", msgdef, digest))
         self._topics += 1
-        self._conn.execute("INSERT INTO topics VALUES (?, ?, ?, ?, ?, ?)",
-                           (self._topics, topic, msgtype, "cdr", qos, digest))
+        self._execute("INSERT INTO topics VALUES (?, ?, ?, ?, ?, ?)",
+                      (self._topics, topic, msgtype, "cdr", qos, digest))
         return self._topics
 
     def write(self, cid: int, t_ns: int, data: bytes) -> None:
-        self._conn.execute("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)",
-                           (cid, t_ns, data))
+        self._execute("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)", (cid, t_ns, data))
+
+    def _execute(self, sql: str, values: tuple[Any, ...]) -> None:
+        # a database deleted under sqlite fails a transaction's first write (and the commit) with
+        # "attempt to write a readonly database" (SQLITE_READONLY_DBMOVED): said as what happened
+        try:
+            self._conn.execute(sql, values)
+        except sqlite3.Error:
+            check_still_there(self.path, self._identity)
+            raise
 
     def flush(self) -> None:
-        self._conn.commit()
+        self._commit()
+
+    def _commit(self) -> None:
+        try:
+            self._conn.commit()
+        except sqlite3.Error:
+            check_still_there(self.path, self._identity)
+            raise
+        check_still_there(self.path, self._identity)
 
     def close(self, metadata: str) -> None:
-        self._conn.execute("INSERT INTO metadata (metadata_version, metadata) VALUES (?, ?)",
-                           (ROS2_METADATA_VERSION, metadata))
-        self._conn.commit()
+        self._execute("INSERT INTO metadata (metadata_version, metadata) VALUES (?, ?)",
+                      (ROS2_METADATA_VERSION, metadata))
+        self._commit()
         self._conn.execute("PRAGMA optimize")
         self._conn.close()
 

@@ -13,6 +13,8 @@
     │   └── LocalProtocolError   the caller asked for something the protocol cannot say
     ├── TopicTypeError         a message of the wrong type on a bus topic
     └── BagError               a bag that cannot be read or written as asked
+        └── BagWriteError      a bag (or a recovered copy) that cannot be written: the disk's
+                               fault or the folder's, not the data's
 
 Drivers translate pyserial and OS errors at their boundary with ``raise ... from err``.
 """
@@ -66,3 +68,9 @@ class TopicTypeError(RacecarError, TypeError):
 
 class BagError(RacecarError):
     """A bag is missing, malformed, or lacks what was asked of it."""
+
+
+class BagWriteError(BagError):
+    """A bag being written (recorded, or the output of a recovery) cannot be: the disk is full, the
+    file was deleted or moved while it was written. The message names the file written, never the
+    bag read (which is fine)."""
