@@ -32,9 +32,10 @@ import sqlite3
 import struct
 import zlib
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
+from typing import Any, TypeVar
 
 import yaml
 from rosbags.interfaces import Qos
@@ -54,6 +55,7 @@ from racecar_hw.bags.ros1_writer import Ros1Writer
 from racecar_hw.bags.validate import (
     DEFAULT_MAX_MESSAGE_BYTES,
     crc_mismatch,
+    describe,
     guarded,
     inflate,
     listed_names,
@@ -68,7 +70,8 @@ from racecar_hw.bags.writers import (
     ROS2_METADATA_VERSION,
     Ros2Bag,
 )
-from racecar_hw.base.errors import BagError
+from racecar_hw.base.errors import BagError, BagWriteError
+from racecar_hw.base.text import one_line
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -303,6 +306,15 @@ def _mcap_record(op: int, body: memoryview, scan: McapScan, on_message: MessageS
             on_message(cid, log_time, body[22:])
 
 
+def _cannot_write(target: Path, err: BaseException) -> BagWriteError:
+    """``err`` (an OSError, or a BagError raised for one) met writing the recovery's output ``target``,
+    as one line naming ``target`` and the OS's reason: the disk's fault, not the bag's (a full disk
+    was said as "cannot read bag <input>: damaged data (OSError: [Errno 28] ...)")."""
+    cause = err if isinstance(err, OSError) else err.__cause__
+    reason = cause.strerror if isinstance(cause, OSError) and cause.strerror else one_line(err, 160)
+    return BagWriteError(f"cannot write {target}: {reason}")
+
+
 @contextmanager
 def _staged(target: Path) -> Iterator[Path]:
     """Where to write the recovered bag ``target`` (a file or a directory): in a hidden folder beside
@@ -314,12 +326,50 @@ def _staged(target: Path) -> Iterator[Path]:
     try:
         folder.mkdir(parents=True)
     except OSError as err:
-        raise BagError(f"cannot write beside {target}: {err}") from err
+        raise _cannot_write(target, err) from err
     try:
         yield folder / target.name
-        (folder / target.name).rename(target)
+        try:
+            (folder / target.name).rename(target)
+        except OSError as err:
+            raise _cannot_write(target, err) from err
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+W = TypeVar("W", Ros2Bag, Ros1Writer)
+
+
+@contextmanager
+def _output(target: Path, open_writer: Callable[[], W]) -> Iterator[W]:
+    """The writer of the recovered bag ``target`` (``open_writer`` makes it, in the staging folder):
+    closed when the body is done, aborted when it fails. An OSError opening or closing it is said
+    as :func:`_cannot_write`, naming ``target``; the body's writes go through :func:`_write_to`."""
+    try:
+        writer = open_writer()
+    except (OSError, BagWriteError) as err:
+        raise _cannot_write(target, err) from err
+    try:
+        yield writer
+    except BaseException:
+        with suppress(Exception):  # closing flushes the buffered bytes: on a full disk, it fails too
+            writer.abort()
+        raise
+    try:
+        writer.close()
+    except OSError as err:
+        with suppress(Exception):
+            writer.abort()
+        raise _cannot_write(target, err) from err
+
+
+def _write_to(target: Path, write: Callable[..., None], *args: Any) -> None:
+    """``write(*args)`` into the recovered bag ``target``; an OSError is said as :func:`_cannot_write`
+    (the scan around it reads the input, whose errors stay "damaged data")."""
+    try:
+        write(*args)
+    except OSError as err:
+        raise _cannot_write(target, err) from err
 
 
 def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
@@ -329,7 +379,7 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
     scans = [_scan_mcap_file(f) for f in files]
     store = get_typestore(Stores.EMPTY)
     compression = kept_compression(set().union(*(scan.compressions for scan in scans)), MCAP_COMPRESSIONS)
-    with _staged(out) as staging, Ros2Bag(staging, "mcap", compression) as writer:
+    with _staged(out) as staging, _output(out, lambda: Ros2Bag(staging, "mcap", compression)) as writer:
         conns = {}  # (topic, type, qos) -> connection, over every file
         count = 0
         for file, scan in zip(files, scans, strict=True):
@@ -348,7 +398,7 @@ def _recover_mcap(files: list[Path], out: Path) -> RecoveryResult:
 
             def write(cid: int, t_ns: int, payload: memoryview, mine: dict[int, int] = mine) -> None:
                 if cid in mine:
-                    writer.write(mine[cid], t_ns, payload)
+                    _write_to(out, writer.write, mine[cid], t_ns, payload)
 
             _scan_mcap_file(file, write)
             count += sum(n for cid, n in scan.tally.counts.items() if cid in mine)
@@ -633,7 +683,7 @@ def _rewrite_ros1(data: FileBytes, out: Path) -> RecoveryResult:
     if not check_ros1_index(data, scan):
         return RecoveryResult(data.path, scan.tally.total, True)
     compression = kept_compression(scan.compressions, ROS1_COMPRESSIONS)
-    with _staged(out) as staging, Ros1Writer(staging, compression) as writer:
+    with _staged(out) as staging, _output(out, lambda: Ros1Writer(staging, compression)) as writer:
         conns = {}
         for cid, f in scan.connections.items():
             latching = f.get("latching")
@@ -645,7 +695,7 @@ def _rewrite_ros1(data: FileBytes, out: Path) -> RecoveryResult:
 
         def write(cid: int, t_ns: int, payload: memoryview) -> None:
             if cid in conns:
-                writer.write(conns[cid], t_ns, payload)
+                _write_to(out, writer.write, conns[cid], t_ns, payload)
 
         scan_ros1(data, write)
         count = sum(n for cid, n in scan.tally.counts.items() if cid in conns)
@@ -692,6 +742,8 @@ def read_db(db: Path, *, readonly: bool = False) -> DbContent:
         finally:
             con.close()
     except sqlite3.Error as err:
+        if err.sqlite_errorcode == sqlite3.SQLITE_FULL:  # rolling back a journal onto a full disk
+            raise BagWriteError(f"cannot write {db}: {err}") from err
         raise BagError(f"{db} is not a readable sqlite3 bag: {err}") from err
     return DbContent(db, topics, counts, lo or 0, hi or 0)
 
@@ -783,9 +835,14 @@ def _recover_sqlite3(bagdir: Path, dbs: list[Path]) -> RecoveryResult:
     }
     meta = bagdir / "metadata.yaml"
     tmp = meta.with_suffix(".yaml.tmp")
-    tmp.unlink(missing_ok=True)  # a file (or a link to one outside the bag) left there is not written into
-    tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False), "utf8")
-    tmp.replace(meta)
+    try:
+        tmp.unlink(missing_ok=True)  # a file (or a link to one outside the bag) left there is not written in
+        tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False), "utf8")
+        tmp.replace(meta)
+    except OSError as err:
+        with suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise _cannot_write(meta, err) from err
     return RecoveryResult(bagdir, total, False)
 
 
@@ -904,7 +961,61 @@ def recover_bag(path: str | Path, out: str | Path | None = None) -> RecoveryResu
     # a copy to fix, the bag as it was left alone (journals and WAL files go along)
     target = Path(out)
     try:
-        shutil.copytree(src, target)
+        target.mkdir(parents=True)
+    except FileExistsError as err:
+        raise BagError(f"{out} exists already, not overwriting") from err
     except OSError as err:
-        raise BagError(f"cannot copy {src} to {target}: {err}") from err
-    return _recover_sqlite3(target, [target / f.name for f in state.files])
+        raise _cannot_write(target, err) from err
+    try:  # a copy that fails (a full disk) is removed: a retry would refuse an OUT that exists
+        _copy_bag(src, target)
+        return _recover_sqlite3(target, [target / f.name for f in state.files])
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        raise
+
+
+#: Bytes copied at a time by :func:`_copy_bag`.
+COPY_STEP = 1 << 20
+
+
+def _copy_bag(src: Path, target: Path) -> None:
+    """The bag directory ``src`` copied into the (new, empty) directory ``target``, each file's
+    contents as :func:`shutil.copytree` copies them, a failure said in one line: reading ``src`` as
+    the bag's (``cannot read bag``), writing as ``target``'s (:func:`_cannot_write`). (copytree's
+    own error was the Python list of every file's (source, destination, error).)"""
+
+    def copy_file(from_path: str, to_path: str) -> None:
+        try:  # a FIFO would block the copy: refused (BagError), as every reader here refuses it
+            fin = open_regular(Path(from_path))
+        except OSError as err:
+            raise BagError(f"cannot read bag file {from_path}: {describe(err)}") from err
+        with fin:
+            try:
+                fout = open(to_path, "xb", buffering=0)  # noqa: SIM115 - as fin
+            except OSError as err:
+                raise _cannot_write(target, err) from err
+            with fout:
+                while True:
+                    try:
+                        block = fin.read(COPY_STEP)
+                    except OSError as err:
+                        raise BagError(f"cannot read bag file {from_path}: {describe(err)}") from err
+                    if not block:
+                        break
+                    view = memoryview(block)
+                    while view:
+                        try:
+                            view = view[fout.write(view):]
+                        except OSError as err:
+                            raise _cannot_write(target, err) from err
+        with suppress(OSError):  # times and modes: nothing a reader needs
+            shutil.copystat(from_path, to_path)
+
+    try:
+        shutil.copytree(src, target, copy_function=copy_file, dirs_exist_ok=True)
+    except shutil.Error as err:  # a folder's times or modes, or a link copytree could not follow
+        problems = err.args[0] if err.args and isinstance(err.args[0], list) else []
+        why = problems[0][-1] if problems else err  # (source, destination, error text) each
+        raise BagError(f"cannot copy {src} to {target}: {one_line(why, 160)}") from err
+    except OSError as err:
+        raise BagError(f"cannot copy {src} to {target}: {err.strerror or one_line(err, 160)}") from err

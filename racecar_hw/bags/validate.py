@@ -43,7 +43,7 @@ from typing import IO, Any, Protocol, TypeVar
 import yaml
 
 from racecar_hw.base.clock import NS_PER_S
-from racecar_hw.base.errors import BagError
+from racecar_hw.base.errors import BagError, BagWriteError
 from racecar_hw.base.messages import AckermannDrive
 from racecar_hw.base.overrides import ShallowSafeLoader
 from racecar_hw.base.text import one_line
@@ -88,11 +88,12 @@ def describe(err: BaseException) -> str:
 
 @contextlib.contextmanager
 def reading(path: str | Path) -> Iterator[None]:
-    """Turn anything but :class:`BagError` raised inside into a BagError naming ``path``."""
+    """Turn anything but :class:`BagError` raised inside into a BagError naming ``path``. A
+    :class:`BagWriteError` (an output that cannot be written: it names that) leaves as it is."""
     try:
         yield
     except BagError as err:
-        if str(path) in str(err):
+        if str(path) in str(err) or isinstance(err, BagWriteError):
             raise
         raise BagError(f"{path}: {err}") from err  # a scanner's error, said without the file
     except (Exception, MemoryError, RecursionError) as err:

@@ -352,6 +352,10 @@ class Ros2Bag:
         self.storage.close(text)
         (self.path / "metadata.yaml").write_text(text, encoding="utf8")
 
+    def abort(self) -> None:
+        """Close the storage file without finishing it (no metadata.yaml)."""
+        self.storage.abort()
+
     def __enter__(self) -> Ros2Bag:
         return self
 
@@ -359,4 +363,4 @@ class Ros2Bag:
         if exc_type is None:
             self.close()
         else:
-            self.storage.abort()
+            self.abort()
