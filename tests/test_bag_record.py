@@ -618,3 +618,25 @@ def test_a_bag_aborted_on_a_full_disk_is_one_log_line_not_a_traceback(tmp_path, 
     bag.abort()
     assert [(r.levelname, r.exc_info) for r in caplog.records] == [("WARNING", None)], caplog.text
     assert "closed with its last buffered bytes unwritten" in caplog.text
+
+
+@pytest.mark.parametrize("name", ["../escape", "a/b", "..", ".", "/abs"])
+def test_a_name_that_is_a_path_is_a_config_error(tmp_path: Path, name: str) -> None:
+    """recorder.name is a name inside recorder.path: ``../escape`` once put a ROS 2 bag's files
+    beside the folder and replaced the metadata.yaml of the folder's parent."""
+    with pytest.raises(ConfigError, match=r"^name: .* is not a plain name"):
+        record_params(tmp_path / "bags", name=name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_any_existing_ros1_split_of_the_name_is_refused_at_start(tmp_path: Path) -> None:
+    """A later split's file (``x_1.bag``) in the folder once ended the recording when the split
+    opened (0.4 s in, thousands of messages dropped); now the start refuses, as for ``x_0.bag``."""
+    (tmp_path / "x_1.bag").write_bytes(b"precious")
+    (tmp_path / "x_extra.bag").write_bytes(b"not a split of x")
+    rec = Recorder(Bus(), record_params(tmp_path, "ros1", name="x", split_size_mb=0.5))
+    with pytest.raises(BagError, match=r"x_1\.bag exists already.*recorder\.name"):
+        rec.start()
+    rec.stop()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x_1.bag", "x_extra.bag"]
+    assert (tmp_path / "x_1.bag").read_bytes() == b"precious"

@@ -48,6 +48,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +126,10 @@ class RecorderParams:
         if self.compression == "bz2" and self.format != "ros1":
             raise ConfigError("compression", f"bz2 is for ROS 1 bags only, not format {self.format!r}; "
                                              "use 'none'")
+        if self.name in (".", "..") or "/" in self.name or os.sep in self.name or "\0" in self.name:
+            # a path would put the bag's files (ROS 2: and a metadata.yaml) outside recorder.path
+            raise ConfigError("name", f"{self.name!r} is not a plain name (no '/', not '.' or '..'): "
+                                      "the bag goes into recorder.path, named this")
 
 
 @dataclass
@@ -395,6 +400,17 @@ class BagFile:
         return conn
 
 
+def refuse_taken_splits(folder: Path, base: str) -> None:
+    """Raise :class:`BagError` when a ROS 1 split ``<base>_<n>.bag`` exists in ``folder``: found at
+    start, not when the recording reaches that split (which once ended a recording 0.4 s in)."""
+    taken = sorted(p.name for p in folder.glob(f"{glob_escape(base)}_*.bag")
+                   if p.name[len(base) + 1:-4].isdigit())
+    if taken:
+        raise BagError(f"cannot record into {folder}: {', '.join(taken[:3])}"
+                       f"{' ...' if len(taken) > 3 else ''} exists already, not overwriting "
+                       "(recorder.name: choose another, or move those bags)")
+
+
 #: Stand-ins for the numbers of metadata.yaml when its template is dumped (19 digits, unique).
 _SENTINEL = 7_319_000_000_000_000_000
 
@@ -469,6 +485,8 @@ class Recorder:
                            f"{err.strerror or err}") from None
         self._base = self.params.name or time.strftime("racecar_%Y%m%d-%H%M%S")
         self._dir = out
+        if self.params.format == "ros1":
+            refuse_taken_splits(out, self._base)
         now = wall_ns()
         for topic in LATCHED_TOPICS:
             latest = self.bus.latest(topic)
