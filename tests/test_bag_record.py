@@ -582,12 +582,12 @@ def test_a_write_failure_mid_run_is_said_at_the_end_not_as_a_writer_behind(tmp_p
     # is not a success: exit 1, said by the command (it exited 0, only the log saying so)
     assert proc.returncode == 1, proc.stderr[-3000:]
     assert "bag writing failed, recording stops" in proc.stderr and "File too large" in proc.stderr
-    assert re.search(r"recording stopped early \(OSError: .*File too large\): \d+ messages written, "
+    assert re.search(r"recording stopped early \(OSError: .*File too large\): \d+ messages on disk, "
                      r"\d+ dropped", proc.stderr), proc.stderr[-3000:]
     assert "bag writer is behind" not in proc.stderr
     assert re.search(r"^racecar-hw sim: the recording failed: OSError: \[Errno 27\] File too large "
-                     r"\(\d+ messages written, \d+ dropped; racecar-hw bag recover reads what is on "
-                     r"disk\)$", proc.stderr, re.MULTILINE), proc.stderr[-3000:]
+                     r"\(\d+ messages on disk, \d+ dropped; racecar-hw bag recover reads them\)$",
+                     proc.stderr, re.MULTILINE), proc.stderr[-3000:]
     report = json.loads((tmp_path / "out" / "wall.json").read_text())
     assert report["recording_error"] == "OSError: [Errno 27] File too large", report["recording_error"]
     assert Path(report["trajectory_csv"]).stat().st_size > 0 and Path(report["plot_png"]).is_file()
@@ -640,3 +640,35 @@ def test_any_existing_ros1_split_of_the_name_is_refused_at_start(tmp_path: Path)
     rec.stop()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x_1.bag", "x_extra.bag"]
     assert (tmp_path / "x_1.bag").read_bytes() == b"precious"
+
+
+def _fill_disk_under(file: Path) -> None:
+    """Put /dev/full under this process's open descriptor of ``file``: the disk takes nothing more."""
+    fds = [int(fd.name) for fd in Path("/proc/self/fd").iterdir()
+           if fd.is_symlink() and os.readlink(fd) == str(file)]
+    assert len(fds) == 1, fds
+    full = os.open("/dev/full", os.O_WRONLY)
+    try:
+        os.dup2(full, fds[0])
+    finally:
+        os.close(full)
+
+
+def test_after_a_write_failure_written_is_what_is_on_disk_and_the_rest_is_dropped(tmp_path: Path) -> None:
+    """A failed flush loses what was written since the last one: "written" once counted those too
+    (an MCAP bag reported 2204 messages written and held none), and they were counted nowhere."""
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="full", topics=[CMD], flush_interval_s=0.05))
+    rec.start()
+    for i in range(10):
+        bus.publish(CMD, cmd(i))
+    wait_for(lambda: rec.stats.flushed == 10, timeout=30)
+    _fill_disk_under(tmp_path / "full" / "full_0.mcap")
+    for i in range(10, 25):
+        bus.publish(CMD, cmd(i))
+    wait_for(lambda: rec.stats.error is not None, timeout=30)
+    stats = rec.stop()
+    assert stats.error is not None  # ENOSPC, or EINVAL from fsync when nothing was pending
+    assert (stats.written, stats.flushed, stats.dropped) == (10, 10, 15)
+    result = recover_bag(stats.files[0], tmp_path / "recovered")
+    assert result.messages == 10

@@ -131,7 +131,7 @@ def test_run_exits_1_and_says_so_when_the_recording_failed(fakes, tmp_path):
     # file's close, writing the buffered bytes again, showed a traceback in 4 of 6 runs)
     assert "Traceback" not in err, err
     assert re.search(r"^racecar-hw run: the recording failed: OSError: \[Errno 27\] File too large "
-                     r"\(\d+ messages written, \d+ dropped; ", err, re.MULTILINE), err
+                     r"\(\d+ messages on disk, \d+ dropped; ", err, re.MULTILINE), err
 
 
 def test_latency_summary_splits_time_on_and_off_the_cpu():

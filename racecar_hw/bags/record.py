@@ -524,9 +524,8 @@ class Recorder:
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
         if self._error is not None:  # said when it happened; said again where a run ends
-            log.error("recording stopped early (%s): %d messages written, %d dropped; racecar-hw "
-                      "bag recover reads what is on disk", self._error, self.stats.written,
-                      self.stats.dropped)
+            log.error("recording stopped early (%s): %d messages on disk, %d dropped; racecar-hw "
+                      "bag recover reads them", self._error, self.stats.flushed, self.stats.dropped)
         return self.stats
 
     def __enter__(self) -> Recorder:
@@ -592,6 +591,7 @@ class Recorder:
             self._static[topic] = msg
         if self._should_split(t_ns):
             self._file.close(last=False)
+            self._flushed = self._written  # a closed split is on disk
             self._file = self._open_split()
             for static_topic, static_msg in self._static.items():
                 if static_topic != topic:
@@ -649,10 +649,16 @@ class Recorder:
         self._error = f"{type(err).__name__}: {err}"
         log.error("bag writing failed, recording stops (messages now count as dropped): %s",
                   self._error)
-        self._dropped += self._outbox.clear()
+        self._lose_unflushed()
         if self._file is not None:
             self._file.abort()
             self._file = None
+
+    def _lose_unflushed(self) -> None:
+        """The recording stops short: what was queued, and what was written since the last flush
+        (not known to be on disk), count as dropped; ``written`` is what is on disk."""
+        self._dropped += self._outbox.clear() + self._written - self._flushed
+        self._written = self._flushed
 
     def _close(self) -> None:
         if self._file is None:

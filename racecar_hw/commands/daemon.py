@@ -119,8 +119,8 @@ def exit_if_recording_failed(command: str, daemon: Daemon) -> int:
     stats = daemon.recorder.stats if daemon.recorder is not None else None
     if stats is None or stats.error is None:
         return 0
-    print(f"racecar-hw {command}: the recording failed: {stats.error} ({stats.written} messages "
-          f"written, {stats.dropped} dropped; racecar-hw bag recover reads what is on disk)",
+    print(f"racecar-hw {command}: the recording failed: {stats.error} ({stats.flushed} messages "
+          f"on disk, {stats.dropped} dropped; racecar-hw bag recover reads them)",
           file=sys.stderr)
     return 1
 
