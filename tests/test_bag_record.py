@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -672,3 +673,76 @@ def test_after_a_write_failure_written_is_what_is_on_disk_and_the_rest_is_droppe
     assert (stats.written, stats.flushed, stats.dropped) == (10, 10, 15)
     result = recover_bag(stats.files[0], tmp_path / "recovered")
     assert result.messages == 10
+
+
+class StuckDisk:
+    """A disk under ``root`` whose fsync hangs from :meth:`stick` on until released (at the end of
+    the test): the physical world the reviewer made with strace's fsync delay injection."""
+
+    def __init__(self, root: Path, real_fsync: Any) -> None:
+        self.root, self._real = str(root), real_fsync
+        self.stuck = threading.Event()
+        self.blocked = threading.Event()  # a thread waits in fsync
+        self.released = threading.Event()
+
+    def stick(self) -> None:
+        self.stuck.set()
+
+    def fsync(self, fd: int) -> None:
+        if self.stuck.is_set() and os.readlink(f"/proc/self/fd/{fd}").startswith(self.root):
+            self.blocked.set()
+            self.released.wait()
+        self._real(fd)
+
+
+@pytest.fixture
+def stuck_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Any:
+    disk = StuckDisk(tmp_path, os.fsync)
+    monkeypatch.setattr(os, "fsync", disk.fsync)
+    yield disk
+    disk.released.set()  # the abandoned writer thread finishes and ends
+
+
+def test_a_writer_left_behind_on_a_stuck_disk_is_a_failed_recording(
+        tmp_path: Path, stuck_disk: StuckDisk, monkeypatch: pytest.MonkeyPatch) -> None:
+    """stop() leaves a writer stuck in fsync behind (after WRITER_STALL_S): that recording was
+    once reported as a success (no error, so exit 0) with "0 dropped", its queue silently lost."""
+    import racecar_hw.bags.record as bag_record
+
+    monkeypatch.setattr(bag_record, "WRITER_STALL_S", 0.5)
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="stuck", topics=[CMD], flush_interval_s=0.05))
+    rec.start()
+    for i in range(10):
+        bus.publish(CMD, cmd(i))
+    wait_for(lambda: rec.stats.flushed == 10, timeout=30)
+    stuck_disk.stick()
+    for i in range(10, 20):
+        bus.publish(CMD, cmd(i))
+    assert stuck_disk.blocked.wait(30)  # the writer waits in a flush's fsync
+    for i in range(20, 25):
+        bus.publish(CMD, cmd(i))  # queued behind it
+    stats = rec.stop()
+    assert stats.error == (f"the bag writer did not finish within 0.5 s (a stuck disk?): "
+                           f"{tmp_path / 'stuck'} is incomplete"), stats.error
+    assert (stats.written, stats.flushed, stats.dropped) == (10, 10, 15)
+
+
+def test_a_full_queue_behind_a_stuck_writer_is_said_while_it_is_stuck(
+        tmp_path: Path, stuck_disk: StuckDisk, caplog: pytest.LogCaptureFixture) -> None:
+    """The "bag writer is behind" warning came from the writer thread, after a flush: a writer
+    stuck in fsync never said it. Now the bus side says it, at most once per flush interval."""
+    bus = Bus()
+    rec = Recorder(bus, record_params(tmp_path, name="behind", topics=[CMD], queue_size=4,
+                                      flush_interval_s=0.05))
+    rec.start()
+    stuck_disk.stick()
+    assert stuck_disk.blocked.wait(30)  # the writer waits in a (periodic) flush's fsync
+    caplog.set_level(logging.WARNING, logger="racecar_hw.bags.record")
+    for i in range(50):
+        bus.publish(CMD, cmd(i))
+    behind = [r.getMessage() for r in caplog.records if "bag writer is behind" in r.getMessage()]
+    assert behind[:1] == ["bag writer is behind: dropped 1 messages so far (queue_size 4)"], caplog.text
+    stuck_disk.released.set()
+    stats = rec.stop()
+    assert (stats.written, stats.dropped, stats.error) == (4, 46, None)

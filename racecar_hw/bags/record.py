@@ -42,6 +42,7 @@ before recording began. ROS 2 topics are offered with the QoS a ROS 2 publisher 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import time
@@ -400,15 +401,55 @@ class BagFile:
         return conn
 
 
-def refuse_taken_splits(folder: Path, base: str) -> None:
-    """Raise :class:`BagError` when a ROS 1 split ``<base>_<n>.bag`` exists in ``folder``: found at
-    start, not when the recording reaches that split (which once ended a recording 0.4 s in)."""
-    taken = sorted(p.name for p in folder.glob(f"{glob_escape(base)}_*.bag")
-                   if p.name[len(base) + 1:-4].isdigit())
-    if taken:
-        raise BagError(f"cannot record into {folder}: {', '.join(taken[:3])}"
-                       f"{' ...' if len(taken) > 3 else ''} exists already, not overwriting "
-                       "(recorder.name: choose another, or move those bags)")
+class Splits:
+    """The files of one recording, named as the ROS tools name them: ``rosbag record --split``'s
+    ``<name>_0.bag``, ``<name>_1.bag`` ... (ROS 1), or one bag folder ``<name>/`` whose files are
+    the splits (``ros2 bag record --max-bag-size``: ``<name>_0.mcap`` ...).
+
+    Made at start, it refuses a name already taken there: a ROS 2 bag folder, or any ROS 1 split
+    ``<name>_<n>.bag`` (one found only when the recording reached that split once ended it 0.4 s in).
+    """
+
+    def __init__(self, folder: Path, base: str, params: RecorderParams, types: BagTypes) -> None:
+        self.folder, self.base, self.params, self.types = folder, base, params, types
+        self.index = 0
+        self.files: list[Path] = []  # the bag folder (ROS 2) or every .bag (ROS 1)
+        if params.format != "ros1":
+            if (folder / base).exists():
+                raise BagError(f"cannot create bag {folder / base}: it exists already, not overwriting")
+            return
+        taken = sorted(p.name for p in folder.glob(f"{glob_escape(base)}_*.bag")
+                       if p.name[len(base) + 1:-4].isdigit())
+        if taken:
+            raise BagError(f"cannot record into {folder}: {', '.join(taken[:3])}"
+                           f"{' ...' if len(taken) > 3 else ''} exists already, not overwriting "
+                           "(recorder.name: choose another, or move those bags)")
+
+    def due(self, f: BagFile, t_ns: int) -> bool:
+        """Whether a message at ``t_ns`` goes into a new split rather than into ``f``."""
+        if f.count == 0:
+            return False
+        p = self.params
+        if p.split_size_mb and f.bytes >= p.split_size_mb * 1e6:
+            return True
+        first = f.first_ns if f.first_ns is not None else t_ns
+        return bool(p.split_duration_s) and t_ns - first >= p.split_duration_s * NS_PER_S
+
+    def open(self, previous: BagFile | None) -> BagFile:
+        """The next split (``previous``: the one before, closed; ROS 2 shares its metadata)."""
+        p, index = self.params, self.index
+        if p.format == "ros1":
+            path = self.folder / f"{self.base}_{index}.bag"
+            bag = BagFile(path, "ros1", p.compression, self.types)
+            self.files.append(path)
+        else:
+            bagdir = self.folder / self.base
+            bag = BagFile(bagdir / f"{self.base}_{index}", p.format, p.compression, self.types,
+                          previous.meta if previous is not None else None)
+            if index == 0:
+                self.files.append(bagdir)
+        self.index += 1
+        return bag
 
 
 #: Stand-ins for the numbers of metadata.yaml when its template is dumped (19 digits, unique).
@@ -440,17 +481,17 @@ class Recorder:
         self._wanted: dict[str, bool] = {}
         self._static: dict[str, Message] = {}
         self._file: BagFile | None = None
-        self._split_index = 0
-        self._base = ""
+        self._splits: Splits | None = None
+        self._dir = Path(params.path)
         self._next_flush = 0.0
         self._written = 0
         self._release_hold: Callable[[], None] = lambda: None
         self._dropped = 0  # after a write error (the outbox counts those of a full queue)
         self._dropped_logged = 0
+        self._behind_said_at = -math.inf
         self._unserializable: set[str] = set()  # topics that had a message the serializer refused
         self._bytes = 0
         self._flushed = 0
-        self._files: list[Path] = []
         self._error: str | None = None
 
     # --- public API ---------------------------------------------------------------------------
@@ -459,7 +500,7 @@ class Recorder:
     def stats(self) -> RecorderStats:
         """Counts so far (written, dropped, payload bytes, waiting) and the bags created."""
         return RecorderStats(self._written, self._all_dropped, self._bytes, len(self._outbox),
-                             self._flushed, list(self._files), self._error)
+                             self._flushed, list(self._splits.files if self._splits else []), self._error)
 
     @property
     def _all_dropped(self) -> int:
@@ -483,10 +524,9 @@ class Recorder:
         except OSError as err:  # no permission, a read-only file system, a file in the way
             raise BagError(f"cannot create the bag folder {out} (recorder.path): "
                            f"{err.strerror or err}") from None
-        self._base = self.params.name or time.strftime("racecar_%Y%m%d-%H%M%S")
         self._dir = out
-        if self.params.format == "ros1":
-            refuse_taken_splits(out, self._base)
+        self._splits = Splits(out, self.params.name or time.strftime("racecar_%Y%m%d-%H%M%S"),
+                              self.params, self.types)
         now = wall_ns()
         for topic in LATCHED_TOPICS:
             latest = self.bus.latest(topic)
@@ -517,9 +557,11 @@ class Recorder:
         if self.running:
             # every recorded message reaches the file, however slow the disk, while it takes any
             if not self._outbox.stop(timeout_s=None, stall_s=WRITER_STALL_S):
-                log.error("the bag writer wrote nothing for %.0f s (a stuck disk?): %s is left "
-                          "incomplete; racecar-hw bag recover reads it", WRITER_STALL_S,
-                          self._file.path if self._file is not None else self._dir)
+                # left behind: a recording cut short, not a success (what it had queued is lost)
+                bag = self.stats.files[-1] if self.stats.files else self._dir
+                self._error = (f"the bag writer did not finish within {WRITER_STALL_S:g} s (a stuck "
+                               f"disk?): {bag} is incomplete")
+                self._lose_unflushed()
             stats = self.stats
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
@@ -547,6 +589,16 @@ class Recorder:
             self._dropped += 1
             return
         self._outbox.put(self._write, topic, msg, wall_ns())
+        if self._outbox.dropped > self._dropped_logged:  # said here: a stuck writer says nothing
+            self._say_behind()
+
+    def _say_behind(self) -> None:
+        now = time.monotonic()
+        if now >= self._behind_said_at + self.params.flush_interval_s:
+            self._behind_said_at = now
+            self._dropped_logged = self._all_dropped
+            log.warning("bag writer is behind: dropped %d messages so far (queue_size %d)",
+                        self._dropped_logged, self.params.queue_size)
 
     def control_idle(self) -> None:
         """The control path is idle until its next event: wake the writer if a drain is due."""
@@ -562,7 +614,8 @@ class Recorder:
     # --- writer thread ------------------------------------------------------------------------
 
     def _open_first(self) -> None:
-        self._file = self._open_split()
+        assert self._splits is not None
+        self._file = self._splits.open(None)
         self._next_flush = time.monotonic() + self.params.flush_interval_s
 
     def _flush_if_due(self) -> float:
@@ -586,13 +639,13 @@ class Recorder:
             self._fail(err)
 
     def _write_file(self, topic: str, msg: Message, t_ns: int) -> None:
-        assert self._file is not None
+        assert self._file is not None and self._splits is not None
         if topic in LATCHED_TOPICS:
             self._static[topic] = msg
-        if self._should_split(t_ns):
+        if self._splits.due(self._file, t_ns):
             self._file.close(last=False)
             self._flushed = self._written  # a closed split is on disk
-            self._file = self._open_split()
+            self._file = self._splits.open(self._file)
             for static_topic, static_msg in self._static.items():
                 if static_topic != topic:
                     self._bytes += self._file.write(static_topic, static_msg, t_ns)
@@ -606,44 +659,11 @@ class Recorder:
                             "dropped)", err)
             return
         self._written += 1
-    def _should_split(self, t_ns: int) -> bool:
-        f = self._file
-        assert f is not None
-        if f.count == 0:
-            return False
-        p = self.params
-        if p.split_size_mb and f.bytes >= p.split_size_mb * 1e6:
-            return True
-        first = f.first_ns if f.first_ns is not None else t_ns
-        return bool(p.split_duration_s) and t_ns - first >= p.split_duration_s * NS_PER_S
-
-    def _open_split(self) -> BagFile:
-        index = self._split_index
-        if self.params.format == "ros1":  # rosbag record --split: name_0.bag, name_1.bag, ...
-            path = self._dir / f"{self._base}_{index}.bag"
-            bag = BagFile(path, "ros1", self.params.compression, self.types)
-            self._files.append(path)
-        else:  # ros2 bag record --max-bag-size: one bag, files name_0.mcap, name_1.mcap, ...
-            bagdir = self._dir / self._base
-            if index == 0 and bagdir.exists():
-                raise BagError(f"cannot create bag {bagdir}: it exists already, not overwriting")
-            bag = BagFile(bagdir / f"{self._base}_{index}", self.params.format,
-                          self.params.compression, self.types,
-                          self._file.meta if self._file is not None else None)
-            if index == 0:
-                self._files.append(bagdir)
-        self._split_index += 1
-        return bag
 
     def _flush(self) -> None:
         if self._file is not None:
             self._file.flush()
             self._flushed = self._written
-        dropped = self._all_dropped
-        if dropped > self._dropped_logged and self._error is None:
-            log.warning("bag writer is behind: dropped %d messages so far (queue_size %d)",
-                        dropped, self.params.queue_size)
-            self._dropped_logged = dropped
 
     def _fail(self, err: Exception) -> None:
         self._error = f"{type(err).__name__}: {err}"
