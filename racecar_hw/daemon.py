@@ -307,7 +307,7 @@ class Daemon:
             if self.config.static_transforms:
                 self.bus.publish("/tf_static", self.tf.to_tf_message(wall_ns()))
             if self.recorder is not None:
-                self.recorder.start()
+                await start_recorder(self.recorder, stop)
                 stack.push_async_callback(quietly, loop.run_in_executor, None, self.recorder.stop)
             for part in (self.scan_summary, self.setpoint):
                 if part is not None:
@@ -367,6 +367,25 @@ class Daemon:
         """Undo start-up in reverse: stop the tasks and brake, stop the live interfaces, flush the
         recorder, close the network, then what was built first. Safe to call twice."""
         await self._stack.aclose()
+
+
+async def start_recorder(recorder: Recorder, stop: asyncio.Event) -> None:
+    """Start ``recorder`` without holding the event loop while its first bag opens (in an executor
+    job): a disk that does not answer fails the start after WRITER_STALL_S with a BagError naming
+    recorder.path, and ``stop`` set meanwhile ends the wait at once (a stuck disk once held the
+    start, and Ctrl-C, for as long as it stayed stuck)."""
+    if not recorder.open():
+        return
+    opened = asyncio.get_running_loop().run_in_executor(None, recorder.wait_opened, None)
+    stopped = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait((opened, stopped), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        stopped.cancel()
+        if not opened.done():
+            recorder.abandon_open()
+    await opened
+    recorder.subscribe()
 
 
 async def _until_stop_or_failure(stop: asyncio.Event, tasks: list[asyncio.Task[Any]]

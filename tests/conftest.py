@@ -9,6 +9,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -320,3 +321,31 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     finally:
         if not (_alone(item) and _alone(nextitem)):
             lock.release()
+
+
+class StuckDisk:
+    """A disk under ``root`` whose fsync hangs from :meth:`stick` on until released (at the end of
+    the test): the physical world the reviewer made with strace's fsync delay injection."""
+
+    def __init__(self, root: Path, real_fsync: Callable[[int], None]) -> None:
+        self.root, self._real = str(root), real_fsync
+        self.stuck = threading.Event()
+        self.blocked = threading.Event()  # a thread waits in fsync
+        self.released = threading.Event()
+
+    def stick(self) -> None:
+        self.stuck.set()
+
+    def fsync(self, fd: int) -> None:
+        if self.stuck.is_set() and os.readlink(f"/proc/self/fd/{fd}").startswith(self.root):
+            self.blocked.set()
+            self.released.wait()
+        self._real(fd)
+
+
+@pytest.fixture
+def stuck_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[StuckDisk]:
+    disk = StuckDisk(tmp_path, os.fsync)
+    monkeypatch.setattr(os, "fsync", disk.fsync)
+    yield disk
+    disk.released.set()  # the abandoned writer thread finishes and ends

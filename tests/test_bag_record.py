@@ -12,7 +12,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +19,7 @@ import numpy as np
 import pytest
 import yaml
 from bag_ros1tools import append_with_real_rosbag, read_real_bag, rosbag_cli
-from conftest import wait_for
+from conftest import StuckDisk, wait_for
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin
@@ -673,34 +672,6 @@ def test_after_a_write_failure_written_is_what_is_on_disk_and_the_rest_is_droppe
     assert (stats.written, stats.flushed, stats.dropped) == (10, 10, 15)
     result = recover_bag(stats.files[0], tmp_path / "recovered")
     assert result.messages == 10
-
-
-class StuckDisk:
-    """A disk under ``root`` whose fsync hangs from :meth:`stick` on until released (at the end of
-    the test): the physical world the reviewer made with strace's fsync delay injection."""
-
-    def __init__(self, root: Path, real_fsync: Any) -> None:
-        self.root, self._real = str(root), real_fsync
-        self.stuck = threading.Event()
-        self.blocked = threading.Event()  # a thread waits in fsync
-        self.released = threading.Event()
-
-    def stick(self) -> None:
-        self.stuck.set()
-
-    def fsync(self, fd: int) -> None:
-        if self.stuck.is_set() and os.readlink(f"/proc/self/fd/{fd}").startswith(self.root):
-            self.blocked.set()
-            self.released.wait()
-        self._real(fd)
-
-
-@pytest.fixture
-def stuck_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Any:
-    disk = StuckDisk(tmp_path, os.fsync)
-    monkeypatch.setattr(os, "fsync", disk.fsync)
-    yield disk
-    disk.released.set()  # the abandoned writer thread finishes and ends
 
 
 def test_a_writer_left_behind_on_a_stuck_disk_is_a_failed_recording(

@@ -410,8 +410,14 @@ class Splits:
     ``<name>_<n>.bag`` (one found only when the recording reached that split once ended it 0.4 s in).
     """
 
-    def __init__(self, folder: Path, base: str, params: RecorderParams, types: BagTypes) -> None:
+    def __init__(self, folder: Path, params: RecorderParams, types: BagTypes) -> None:
+        base = params.name or time.strftime("racecar_%Y%m%d-%H%M%S")
         self.folder, self.base, self.params, self.types = folder, base, params, types
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:  # no permission, a read-only file system, a file in the way
+            raise BagError(f"cannot create the bag folder {folder} (recorder.path): "
+                           f"{err.strerror or err}") from None
         self.index = 0
         self.files: list[Path] = []  # the bag folder (ROS 2) or every .bag (ROS 1)
         if params.format != "ros1":
@@ -511,34 +517,51 @@ class Recorder:
         """Whether the writer thread is running."""
         return self._outbox.running
 
-    def start(self) -> None:
-        """Open the first bag, queue the latched topics already published, and subscribe."""
+    def start(self, timeout_s: float | None = None) -> None:
+        """:meth:`open`, :meth:`wait_opened` (``timeout_s``), :meth:`subscribe`."""
+        if self.open():
+            self.wait_opened(timeout_s)
+            self.subscribe()
+
+    def open(self) -> bool:
+        """Make the bag folder and start the writer thread, which opens the first bag (not waited
+        for here); whether that is under way (not when disabled or started already)."""
         if not self.params.enabled:
             log.info("bag recording disabled")
-            return
+            return False
         if self.running:
-            return
-        out = Path(self.params.path).expanduser()
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as err:  # no permission, a read-only file system, a file in the way
-            raise BagError(f"cannot create the bag folder {out} (recorder.path): "
-                           f"{err.strerror or err}") from None
-        self._dir = out
-        self._splits = Splits(out, self.params.name or time.strftime("racecar_%Y%m%d-%H%M%S"),
-                              self.params, self.types)
+            return False
+        self._splits = Splits(Path(self.params.path).expanduser(), self.params, self.types)
+        self._dir = self._splits.folder
         now = wall_ns()
         for topic in LATCHED_TOPICS:
             latest = self.bus.latest(topic)
             if latest is not None and self._is_wanted(topic):
                 self._outbox.put(self._write, topic, latest, now)
         # The writer thread opens the bag: sqlite3 connections belong to the thread that made them.
+        self._outbox.start(setup=self._open_first, wait=False)
+        return True
+
+    def wait_opened(self, timeout_s: float | None = None) -> None:
+        """Wait (blocking) for the first bag to open, at most ``timeout_s`` (None: :data:`WRITER_STALL_S`)
+        or until :meth:`abandon_open`; else :class:`BagError` (a stuck disk once held start and Ctrl-C)."""
+        timeout_s = WRITER_STALL_S if timeout_s is None else timeout_s
         try:
-            self._outbox.start(setup=self._open_first)
+            if not self._outbox.wait_started(timeout_s):
+                why = ("stopped while its disk did not answer" if self._outbox.abandoned else
+                       f"the disk did not answer for {timeout_s:g} s")
+                raise BagError(f"cannot start recording into {self._dir} (recorder.path): {why}")
         except BagError as err:
             self._error = str(err)
             self._outbox.clear()
             raise
+
+    def abandon_open(self) -> None:
+        """Make a :meth:`wait_opened` in another thread raise its :class:`BagError` now (a stop)."""
+        self._outbox.abandon_start()
+
+    def subscribe(self) -> None:
+        """Record from now on (after :meth:`wait_opened`; on the bus's event-loop thread)."""
         assert self._file is not None
         # in lockstep the sim's time waits for a writer that fell behind, instead of dropping (but
         # not for a writer thread that is gone: its queue would never drain)

@@ -137,6 +137,9 @@ class Outbox:
         self._idle = False  # the thread sleeps, with no timer, until a job comes
         self._hurry = False  # an urgent job (or a full batch) is queued: no batch wait
         self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._abandoned = False
+        self._failure: list[BaseException] = []
         self._drain_due = math.inf  # monotonic s: from then on a control_idle() wakes the thread
         #: jobs dropped because the queue was full
         self.dropped = 0
@@ -149,22 +152,48 @@ class Outbox:
         """Whether the thread is running."""
         return self._thread is not None and self._thread.is_alive()
 
-    def start(self, setup: Callable[[], None] | None = None) -> None:
+    def start(self, setup: Callable[[], None] | None = None, *, wait: bool = True) -> None:
         """Start the thread (idempotent). ``setup`` runs in it first; what it raises is raised here
-        (and the thread is gone)."""
+        (and the thread is gone). ``wait=False``: return at once; :meth:`wait_started` waits."""
         if self._thread is not None:
             return
         self._stopping = False
-        ready = threading.Event()
-        failure: list[BaseException] = []
-        self._thread = threading.Thread(target=self._run, args=(setup, ready, failure),
+        self._ready = threading.Event()
+        self._abandoned = False
+        self._failure = []
+        self._thread = threading.Thread(target=self._run, args=(setup, self._ready, self._failure),
                                         name=self.name, daemon=True)
         self._thread.start()
-        ready.wait()
-        if failure:
-            self._thread.join()
-            self._thread = None
-            raise failure[0]
+        if wait:
+            self.wait_started(None)
+
+    def wait_started(self, timeout_s: float | None) -> bool:
+        """Wait for ``setup`` (see :meth:`start`), at most ``timeout_s`` (None: no limit); re-raise
+        what it raised. False when it did not finish in time or :meth:`abandon_start` was called:
+        the thread is then left behind (a daemon thread, stopping by itself if setup ever ends)."""
+        thread = self._thread
+        if thread is None:
+            return False
+        if self._ready.wait(timeout_s) and not self._abandoned:
+            if self._failure:
+                thread.join()
+                self._thread = None
+                raise self._failure[0]
+            return True
+        self._thread = None
+        self._stopping = True  # should setup end after all: run what is queued, on_stop, end
+        self._wake.set()
+        return False
+
+    @property
+    def abandoned(self) -> bool:
+        """Whether :meth:`abandon_start` was called since the last :meth:`start`."""
+        return self._abandoned
+
+    def abandon_start(self) -> None:
+        """Make a :meth:`wait_started` in another thread return False now (any thread may call)."""
+        self._abandoned = True
+        self._ready.set()
 
     def stop(self, timeout_s: float | None = 2.0, *, stall_s: float | None = None) -> bool:
         """Run what is queued (then ``on_stop``), and stop the thread; safe to call twice. Whether
