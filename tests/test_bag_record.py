@@ -140,6 +140,18 @@ def test_mcap_packages_read_our_mcap(tmp_path: Path) -> None:
     assert list(scans[3].ranges) == [4.0] * 1081
 
 
+def test_a_listed_topic_that_nothing_published_is_warned_of_at_stop(tmp_path: Path, caplog) -> None:
+    """``recorder.topics: [/scna]`` (a typo) recorded nothing and said so only at info level."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="racecar_hw.bags.record"):
+        record(tmp_path, n=3, topics=["/scna", "/sc*", CMD, "/nope/*"])
+    warned = [r.getMessage() for r in caplog.records if "recorder.topics" in r.getMessage()]
+    assert len(warned) == 2, warned
+    assert warned[0].startswith("recorder.topics: nothing was published on '/scna' while recording")
+    assert "'/nope/*'" in warned[1] and "/scan" in warned[1]  # what was published, to compare
+
+
 def test_lz4_and_bad_compression_refused() -> None:
     with pytest.raises(ConfigError, match="real rosbag .* cannot read the LZ4 chunks"):
         RecorderParams(format="ros1", compression="lz4")

@@ -588,6 +588,7 @@ class Recorder:
             stats = self.stats
             log.info("recorded %d messages (%d dropped, %d bytes) into %s", stats.written,
                      stats.dropped, stats.bytes, ", ".join(map(str, stats.files)))
+            _warn_unmatched(self.params.topics, self._wanted)
         if self._error is not None:  # said when it happened; said again where a run ends
             log.error("recording stopped early (%s): %d messages on disk, %d dropped; racecar-hw "
                       "bag recover reads them", self._error, self.stats.flushed, self.stats.dropped)
@@ -716,6 +717,16 @@ class Recorder:
         if dropped > self._dropped_logged:
             log.warning("bag recorder dropped %d messages in total", dropped)
             self._dropped_logged = dropped
+
+
+def _warn_unmatched(patterns: list[str], seen: dict[str, bool]) -> None:
+    """Warn of each of ``recorder.topics``'s ``patterns`` that matched none of the topics ``seen``
+    on the bus while recording: a typo ("/scna") recorded nothing, and the run ended with exit 0 and
+    an info line, the bag holding nothing of what was asked."""
+    for pattern in patterns:
+        if not any(fnmatchcase(topic, pattern) for topic in seen):
+            log.warning("recorder.topics: nothing was published on %r while recording (published: %s)",
+                        pattern, ", ".join(sorted(seen)) or "nothing")
 
 
 def record_params(path: str | Path, fmt: str = "mcap", **overrides: Any) -> RecorderParams:
