@@ -152,6 +152,22 @@ def test_a_listed_topic_that_nothing_published_is_warned_of_at_stop(tmp_path: Pa
     assert "'/nope/*'" in warned[1] and "/scan" in warned[1]  # what was published, to compare
 
 
+def test_a_sqlite3_bag_keeps_its_metadata_mapping_as_rosbag2_reads_it(tmp_path: Path) -> None:
+    """rosbag2's sqlite3 plugin (Jazzy on) decodes the ``metadata`` table's text as a BagMetadata
+    when it opens the file: the ``rosbag2_bagfile_information`` mapping itself, not the whole
+    metadata.yaml document (with it, the bag failed to open: "invalid node; first invalid key")."""
+    import sqlite3
+
+    rec = record(tmp_path, n=3, fmt="sqlite3")
+    bag = rec.stats.files[0]
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as conn:
+        ((version, text),) = conn.execute("SELECT metadata_version, metadata FROM metadata").fetchall()
+    stored = yaml.safe_load(text)
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert version == stored["version"] and stored == meta
+
+
 def test_lz4_and_bad_compression_refused() -> None:
     with pytest.raises(ConfigError, match="real rosbag .* cannot read the LZ4 chunks"):
         RecorderParams(format="ros1", compression="lz4")
@@ -363,24 +379,36 @@ def test_mcap_written_with_the_mcap_library_holds_what_rosbags_writes(tmp_path: 
     ours.close()
     ref.close()
 
-    def content(path: Path) -> tuple[Any, ...]:
+    def content(path: Path, hashes: dict[str, str | None]) -> tuple[Any, ...]:
         with path.open("rb") as fh:
             reader = make_reader(fh, validate_crcs=True)
             header = reader.get_header()
             summary = reader.get_summary()
             assert summary is not None
             schemas = sorted((s.name, s.encoding, s.data) for s in summary.schemas.values())
+            # (rosbags writes no topic_type_hash into a channel; rosbag2 does, checked below)
+            hashes.update({c.topic: c.metadata.pop("topic_type_hash", None)
+                           for c in summary.channels.values()})
             channels = sorted((c.topic, c.message_encoding, summary.schemas[c.schema_id].name,
                                tuple(sorted(c.metadata.items()))) for c in summary.channels.values())
             messages = [(c.topic, m.log_time, m.publish_time, m.data)
                         for _s, c, m in reader.iter_messages(log_time_order=False)]
             metadata = [(r.name, sorted(r.metadata)) for r in reader.iter_metadata()]
+            records.extend(yaml.safe_load(r.metadata["serialized_metadata"]) for r in reader.iter_metadata())
             return header.profile, schemas, channels, sorted(messages), metadata, summary.statistics
 
-    mine = content(tmp_path / "ours" / "bag" / "bag.mcap")
-    theirs = content(tmp_path / "ref" / "bag" / "bag.mcap")
+    hashes: dict[str, str | None] = {}
+    records: list[dict[str, Any]] = []
+    mine = content(tmp_path / "ours" / "bag" / "bag.mcap", hashes)
+    theirs = content(tmp_path / "ref" / "bag" / "bag.mcap", {})
     assert mine[:5] == theirs[:5]
     assert mine[0] == "ros2" and mine[4] == [("rosbag2", ["serialized_metadata"])]
+    # the record holds the bag's metadata mapping itself, as rosbags' (and rosbag2's): with the
+    # document's top key Jazzy's ros2 bag failed ("invalid node; first invalid key: version")
+    ours_record, theirs_record = records
+    assert "version" in ours_record and "rosbag2_bagfile_information" not in ours_record
+    assert {k: v for k, v in ours_record.items() if k not in ("custom_data", "ros_distro")} == {
+        k: v for k, v in theirs_record.items() if k not in ("custom_data", "ros_distro")}
     assert {enc for _n, enc, _d in mine[1]} == {"ros2msg"} and {c[1] for c in mine[2]} == {"cdr"}
     assert mine[5].message_count == len(msgs) and mine[5].chunk_count >= 2  # the flush
     with (tmp_path / "ours" / "bag" / "bag.mcap").open("rb") as fh:  # every chunk has its CRC-32
@@ -399,6 +427,10 @@ def test_mcap_written_with_the_mcap_library_holds_what_rosbags_writes(tmp_path: 
     assert meta["rosbag2_bagfile_information"].pop("custom_data") == {"racecar_hw": "closed"}
     assert ref_meta["rosbag2_bagfile_information"].pop("custom_data") is None
     assert meta == ref_meta
+    # each channel says its RIHS01 type hash, as rosbag2 writes it: metadata.yaml's
+    listed = {t["topic_metadata"]["name"]: t["topic_metadata"]["type_description_hash"]
+              for t in meta["rosbag2_bagfile_information"]["topics_with_message_count"]}
+    assert {topic: hashes[topic] for topic in listed} == listed and all(listed.values())
     assert scan_mcap(mcap).complete
 
 

@@ -7,8 +7,9 @@ standard library, ROS 1 in :mod:`racecar_hw.bags.ros1_writer`).
 
 * :class:`McapStorage`: one ``<stem>.mcap`` file of a rosbag2 bag as ``rosbag2_storage_mcap``
   writes it: profile ``ros2``, schemas ``ros2msg`` (the concatenated ``.msg`` definitions),
-  messages ``cdr``, each channel's ``offered_qos_profiles`` in its metadata, and at close a
-  ``rosbag2`` metadata record whose ``serialized_metadata`` is the bag's ``metadata.yaml``.
+  messages ``cdr``, each channel's ``offered_qos_profiles`` and ``topic_type_hash`` (RIHS01) in
+  its metadata, and at close a ``rosbag2`` metadata record whose ``serialized_metadata`` is the
+  bag's metadata (:func:`storage_metadata`).
   Chunks (1 MiB) carry the CRC-32 of their uncompressed records (issue 24; the follower,
   ``bag info`` and ``bag recover`` verify it, docs/bags.md "Checksums"); schemas and channels are
   written into the chunk that first uses them, so a file cut off before its summary still says
@@ -143,6 +144,16 @@ class Storage(Protocol):
         """Close without finishing."""
 
 
+def storage_metadata(metadata_yaml: str) -> str:
+    """What a storage file keeps of the bag's ``metadata_yaml``: its ``rosbag2_bagfile_information``
+    mapping alone (``version``, ``storage_identifier``, ...), as rosbag2 and rosbags write it.
+    rosbag2 decodes it as a ``BagMetadata``; the whole document (the mapping under its top key)
+    made Jazzy's ``ros2 bag`` fail with "invalid node; first invalid key: version" (a sqlite3 bag at
+    open, an MCAP bag at play and at ``info`` of the file alone). Once per file, at its close."""
+    info = yaml.safe_load(metadata_yaml)["rosbag2_bagfile_information"]
+    return yaml.dump(info, Dumper=yaml.SafeDumper, sort_keys=False)
+
+
 class McapStorage:
     """One rosbag2 MCAP storage file, written with the ``mcap`` library (see the module doc)."""
 
@@ -166,7 +177,9 @@ class McapStorage:
         sid = self._schemas.get(msgtype)
         if sid is None:
             sid = self._schemas[msgtype] = self._writer.register_schema(msgtype, "ros2msg", msgdef.encode())
-        return self._writer.register_channel(topic, "cdr", sid, {"offered_qos_profiles": qos})
+        # (rosbag2 from Jazzy on reads the type hash from here when it opens a .mcap file alone)
+        return self._writer.register_channel(topic, "cdr", sid, {"offered_qos_profiles": qos,
+                                                                  "topic_type_hash": digest})
 
     def write(self, cid: int, t_ns: int, data: bytes) -> None:
         self._writer.add_message(cid, t_ns, data, t_ns)
@@ -177,7 +190,7 @@ class McapStorage:
         check_still_there(self.path, self._identity)
 
     def close(self, metadata: str) -> None:
-        self._writer.add_metadata("rosbag2", {"serialized_metadata": metadata})
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": storage_metadata(metadata)})
         self._writer.finish()
         _sync(self._fh)
         self._fh.close()
@@ -252,7 +265,7 @@ class Sqlite3Storage:
 
     def close(self, metadata: str) -> None:
         self._execute("INSERT INTO metadata (metadata_version, metadata) VALUES (?, ?)",
-                      (ROS2_METADATA_VERSION, metadata))
+                      (ROS2_METADATA_VERSION, storage_metadata(metadata)))
         self._commit()
         self._conn.execute("PRAGMA optimize")
         self._conn.close()
