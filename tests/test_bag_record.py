@@ -87,7 +87,8 @@ def read_ours(paths: list[Path]) -> dict[str, list[object]]:
 
 
 @pytest.mark.parametrize(("fmt", "compression"),
-                         [("mcap", "none"), ("sqlite3", "none"), ("ros1", "none"), ("ros1", "bz2")])
+                         [("mcap", "none"), ("mcap", "zstd"), ("sqlite3", "none"), ("ros1", "none"),
+                          ("ros1", "bz2")])
 def test_round_trip(tmp_path: Path, fmt: str, compression: str) -> None:
     rec = record(tmp_path, fmt=fmt, compression=compression, exclude=["/ign*"])
     stats = rec.stats
@@ -102,6 +103,15 @@ def test_round_trip(tmp_path: Path, fmt: str, compression: str) -> None:
         np.testing.assert_array_equal(s.ranges, scan(i).ranges)
         assert s.header == scan(i).header
     assert [c.drive.speed for c in load_commands(stats.files[0], CMD)] == [0.5 * i for i in range(20)]
+    if fmt == "mcap":  # zstd: the chunks are (the setting once reached no MCAP file), CRCs and all
+        from mcap.reader import make_reader
+
+        (mcap,) = stats.files[0].glob("*.mcap")
+        with mcap.open("rb") as fh:
+            summary = make_reader(fh, validate_crcs=True).get_summary()
+        assert summary is not None
+        assert {c.compression or "none" for c in summary.chunk_indexes} == {compression}
+        assert inspect_bag(stats.files[0]).complete
 
 
 @pytest.mark.parametrize("compression", ["none", "bz2"])
@@ -171,8 +181,14 @@ def test_a_sqlite3_bag_keeps_its_metadata_mapping_as_rosbag2_reads_it(tmp_path: 
 def test_lz4_and_bad_compression_refused() -> None:
     with pytest.raises(ConfigError, match="real rosbag .* cannot read the LZ4 chunks"):
         RecorderParams(format="ros1", compression="lz4")
-    with pytest.raises(ConfigError, match="bz2 is for ROS 1 bags only"):
+    with pytest.raises(ConfigError, match="bz2 is not offered for format 'mcap': use 'zstd' or 'none'"):
         RecorderParams(format="mcap", compression="bz2")
+    with pytest.raises(ConfigError, match="lz4 is not offered for format 'mcap': use 'zstd' or 'none'"):
+        RecorderParams(format="mcap", compression="lz4")  # (it once said "for ROS 1 bags")
+    with pytest.raises(ConfigError, match="zstd is not offered for format 'ros1': use 'bz2' or 'none'"):
+        RecorderParams(format="ros1", compression="zstd")
+    with pytest.raises(ConfigError, match="zstd is not offered for format 'sqlite3': use 'none'"):
+        RecorderParams(format="sqlite3", compression="zstd")
 
 
 def test_disabled_recorder_records_nothing(tmp_path: Path) -> None:

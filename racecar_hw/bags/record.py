@@ -83,6 +83,9 @@ LATCHED_TOPICS = ("/tf_static",)
 BATCH_S = 0.2
 #: ... or as soon as this many messages wait (or a quarter of ``queue_size``, if smaller).
 WAKE_AT = 256
+#: The chunk compressions each format offers: MCAP's zstd as rosbag2's MCAP plug-in writes it
+#: (``zstd_fast``); ROS 1's bz2 as ``rosbag record --bz2``.
+COMPRESSIONS = {"mcap": ("none", "zstd"), "sqlite3": ("none",), "ros1": ("none", "bz2")}
 LZ4_REFUSAL = (
     "lz4 is not offered for ROS 1 bags: the real rosbag (ROS Noetic, Debian python3-rosbag) cannot "
     "read the LZ4 chunks rosbags writes; use compression 'bz2' or 'none'"
@@ -106,8 +109,8 @@ class RecorderParams:
     name: str = param("", "base name of the bag; empty = racecar_<YYYYmmdd-HHMMSS>")
     format: str = param("mcap", "bag format: ROS 2 mcap or sqlite3, or a ROS 1 .bag",
                         choices=("mcap", "sqlite3", "ros1"))
-    compression: str = param("none", "chunk compression; bz2 is for ROS 1 only, lz4 is refused",
-                             choices=("none", "bz2", "lz4"))
+    compression: str = param("none", "chunk compression: zstd for MCAP, bz2 for ROS 1; lz4 is refused",
+                             choices=("none", "zstd", "bz2", "lz4"))
     topics: list[str] = param([], "topics to record (shell patterns allowed); empty = all")
     exclude: list[str] = param([], "topics never recorded (shell patterns allowed)")
     queue_size: int = param(10000, "messages waiting for the writer before new ones are dropped",
@@ -122,11 +125,11 @@ class RecorderParams:
     def __post_init__(self) -> None:
         if self.enabled and self.format == "mcap":  # refused at start, not when the first bag opens
             require_extra("mcap", "recording MCAP bags (or format: sqlite3 or ros1)", "recorder.format")
-        if self.compression == "lz4":
-            raise ConfigError("compression", LZ4_REFUSAL)
-        if self.compression == "bz2" and self.format != "ros1":
-            raise ConfigError("compression", f"bz2 is for ROS 1 bags only, not format {self.format!r}; "
-                                             "use 'none'")
+        offered = COMPRESSIONS[self.format]
+        if self.compression not in offered:
+            raise ConfigError("compression", LZ4_REFUSAL if (self.format, self.compression) == ("ros1", "lz4")
+                              else f"{self.compression} is not offered for format {self.format!r}: use "
+                              + " or ".join(repr(c) for c in reversed(offered)))
         if self.name in (".", "..") or "/" in self.name or os.sep in self.name or "\0" in self.name:
             # a path would put the bag's files (ROS 2: and a metadata.yaml) outside recorder.path
             raise ConfigError("name", f"{self.name!r} is not a plain name (no '/', not '.' or '..'): "
@@ -315,7 +318,7 @@ class BagFile:
             self._ros1 = Ros1Writer(path, compression)
             self.file_name = path.name
         else:
-            self._storage = open_storage(path.parent, path.name, fmt)
+            self._storage = open_storage(path.parent, path.name, fmt, compression)
             self.file_name = self._storage.path.name
         if self.meta is not None:
             self.meta.write(self)
