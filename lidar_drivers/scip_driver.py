@@ -21,7 +21,11 @@ step is measured, so the stamp is the arrival time (wall clock) of the frame's l
 the sweep from the first to the last beam (``(end - start) * 60 / (SCAN * ARES)``), minus the
 transfer time: ``bytes * 10 / baud`` on a serial link (URG-04LX USB CDC ignores the baud, so
 this overestimates there), and 0 over TCP (a frame takes under 1 ms at 100 Mbit/s). The
-device's own millisecond timestamp is not used for the stamp.
+device's own millisecond timestamp is not used for the stamp, with one exception: when one read
+returns several frames (a host that read late), only the last of them was complete at the read's
+time; each earlier one is stamped from the next one's stamp less the difference of their device
+timestamps (less ``scan_time`` if that difference is not between 0 and 1 s), so every scan keeps
+its own stamp, earlier than the next by about a scan period (:func:`frame_stamps`).
 
 Reconnects (the base class loop): a lost link, a reply timeout or no scan for
 ``max(stale_timeout_s, 3 scan periods)`` raise :class:`~racecar_hw.base.errors.DeviceError`. Status
@@ -92,6 +96,31 @@ def scan_geometry(dev: SensorParams, req: ScanCommand) -> ScanGeometry:
                         range_max=dev.dmax / 1000.0,
                         scan_time=(req.interval + 1) * dev.scan_period_s,
                         time_increment=cluster * dev.step_time_s)
+
+
+DEVICE_CLOCK_MODULUS_MS = 1 << 24
+"""The device timestamp is a 24-bit millisecond counter."""
+MAX_DEVICE_GAP_MS = 1000
+"""A device-clock gap between two frames of one read that is taken as true (else: ``scan_time``)."""
+
+
+def frame_stamps(frames: list[ScanReply], last_ns: int, scan_time_s: float) -> list[int]:
+    """Stamps (ns) of ``frames``, decoded from one read in arrival order, given the last one's.
+
+    Only the last frame was complete when the read returned: each earlier one precedes the next
+    by the difference of their device timestamps (the frames' sweep starts, 1 ms resolution; a
+    frame lost between them counts), or by ``scan_time_s`` when that difference is not in
+    ``(0, MAX_DEVICE_GAP_MS]``. So the stamps strictly increase, about a scan period apart.
+    """
+    stamps = [last_ns] * len(frames)
+    for i in range(len(frames) - 2, -1, -1):
+        gap_ms = (frames[i + 1].timestamp_ms - frames[i].timestamp_ms) % DEVICE_CLOCK_MODULUS_MS
+        if 0 < gap_ms <= MAX_DEVICE_GAP_MS:
+            gap_ns = gap_ms * 1_000_000
+        else:
+            gap_ns = round(scan_time_s * NS_PER_S)
+        stamps[i] = stamps[i + 1] - gap_ns
+    return stamps
 
 
 _NO_INTENSITIES = np.zeros(0, dtype=np.float32)
@@ -297,13 +326,17 @@ class HokuyoDriver(LidarDriver):
         stale = max(self.params.stale_timeout_s, 3 * period)
         echo_body = req.echo(0)[:-2]
 
-        def on_event(event: Event) -> None:
+        def is_scan(event: Event) -> bool:
+            return (isinstance(event, ScanReply) and event.status == "99"
+                    and event.echo.startswith(echo_body))
+
+        def on_event(event: Event, stamps: dict[int, int]) -> None:
             self._count(event)
             if not isinstance(event, Reply) or not event.echo.startswith(echo_body):
                 return
             if isinstance(event, ScanReply):
                 if event.status == "99":
-                    self.publish(self.to_laser_scan(event, dev))
+                    self.publish(self.to_laser_scan(event, dev, stamps[id(event)]))
                 return
             if event.ok:
                 return
@@ -313,8 +346,16 @@ class HokuyoDriver(LidarDriver):
                                              f"{event.meaning}"))
 
         def drain() -> None:  # first: the frames read with the acknowledgement
-            while (event := self._decoder.next_event()) is not None:
-                on_event(event)
+            # decode the whole read before publishing: only its last frame ends at the read's time
+            events = list(iter(self._decoder.next_event, None))
+            frames = [e for e in events if is_scan(e)]
+            stamps: dict[int, int] = {}
+            if frames:
+                last_ns = self.first_beam_ns(frames[-1], dev)
+                times = frame_stamps(frames, last_ns, period)
+                stamps = {id(f): t for f, t in zip(frames, times, strict=True)}
+            for event in events:
+                on_event(event, stamps)
 
         def on_bytes(data: bytes) -> None:
             self._receive(data)
@@ -322,13 +363,21 @@ class HokuyoDriver(LidarDriver):
 
         await self._stream_from(self._link, on_bytes, lambda: stale, drain)
 
-    def to_laser_scan(self, frame: ScanReply, dev: SensorParams) -> LaserScan:
-        """One frame as a LaserScan stamped with its first beam's estimated time."""
+    def first_beam_ns(self, frame: ScanReply, dev: SensorParams) -> int:
+        """The first beam's estimated time (wall ns) of ``frame``, the last one the latest read
+        completed: the read's time less the sweep from the first to the last beam and the
+        transfer time."""
         req = frame.request
-        geo = _cached_geometry(dev, req)
         sweep_s = (req.end - req.start) * dev.step_time_s
         transfer_s = frame.nbytes * 10.0 / self._baud if self.serial else 0.0
-        stamp = self._rx_wall_ns - round((sweep_s + transfer_s) * NS_PER_S)
+        return self._rx_wall_ns - round((sweep_s + transfer_s) * NS_PER_S)
+
+    def to_laser_scan(self, frame: ScanReply, dev: SensorParams, stamp_ns: int | None = None
+                      ) -> LaserScan:
+        """One frame as a LaserScan stamped ``stamp_ns``, its first beam's estimated time (default:
+        :meth:`first_beam_ns`, right for the last frame of a read; see :func:`frame_stamps`)."""
+        geo = _cached_geometry(dev, frame.request)
+        stamp = self.first_beam_ns(frame, dev) if stamp_ns is None else stamp_ns
         intensities = (frame.intensities.astype(np.float32) if frame.intensities is not None
                        else _NO_INTENSITIES)
         return LaserScan(

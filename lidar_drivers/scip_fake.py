@@ -19,9 +19,10 @@ reports its nearest valid step, or its smallest code when none is valid. Intensi
 
 Each TCP connection is its own session (laser off, standby); the pty has one session that lives
 until :meth:`unplug` (power loss). Faults for tests: :meth:`inject_garbage`,
-:meth:`corrupt_next_checksum`, :meth:`split_writes`, :meth:`wrong_length` (scans of the wrong
-length), :meth:`fail_next_frame` (an error status), :meth:`mute` (a silent device),
-:meth:`unplug`/:meth:`replug` (pty) and :meth:`drop_connection` (TCP). Run :meth:`serve` in a
+:meth:`corrupt_next_checksum`, :meth:`split_writes`, :meth:`bunch_next_frames` (frames that
+arrive together), :meth:`wrong_length` (scans of the wrong length), :meth:`fail_next_frame` (an
+error status), :meth:`mute` (a silent device), :meth:`unplug`/:meth:`replug` (pty) and
+:meth:`drop_connection` (TCP). Run :meth:`serve` in a
 :class:`~racecar_hw.runtime.devicethread.DeviceThread`; the fault methods may be called from any
 thread.
 """
@@ -79,6 +80,7 @@ class _Session:
         self.time_mode = False
         self.stream: asyncio.Task[None] | None = None
         self.closed = False
+        self._held: list[bytes] = []  # streamed frames held back by FakeHokuyo.bunch_next_frames
 
     async def send(self, data: bytes) -> None:
         """Write one whole reply; faults (garbage, split writes) apply here."""
@@ -247,11 +249,17 @@ class _Session:
                 # measured and stamped at the sweep's step 0, however late this host sends it
                 step0_ns = round(step0 * NS_PER_S)
                 frame = fake.frame(cmd, cmd.echo(remaining), "99", at_ns=step0_ns)
-                # noted before the write: a reader may react before it returns
-                fake.frames_sent_ns.append(monotonic_ns())
                 fake.sweep_starts_ns.append(step0_ns)
-                await self.send_frame(frame)
-                fake.scans_sent += 1
+                if fake._bunch > 1:  # held back, to leave with the next frame in one write
+                    fake._bunch -= 1
+                    self._held.append(frame)
+                else:
+                    frames, self._held = [*self._held, frame], []
+                    fake._bunch = 0
+                    # noted before the write: a reader may react before it returns
+                    fake.frames_sent_ns.extend([monotonic_ns()] * len(frames))
+                    await self.send_frame(b"".join(frames))
+                    fake.scans_sent += len(frames)
             if cmd.count and remaining == 0:
                 self.stream = None
                 return
@@ -296,6 +304,7 @@ class FakeHokuyo:
         self._rng = random.Random(seed)
         self._garbage = b""
         self._split = False
+        self._bunch = 0
         self._corrupt = False
         self._extra_readings = 0
         self._fail_status: str | None = None
@@ -507,6 +516,11 @@ class FakeHokuyo:
     def split_writes(self, on: bool = True) -> None:
         """Write each reply in random pieces of 1..300 bytes, 1 ms apart."""
         self._split = on
+
+    def bunch_next_frames(self, n: int = 2) -> None:
+        """Send the next ``n`` streamed frames in one write when the last of them is due, as a
+        host that reads late finds them: each still carries its own sweep's device time."""
+        self._bunch = n
 
     def wrong_length(self, extra: int) -> None:
         """Stream scans with ``extra`` readings more than asked for (fewer when negative; 0: right

@@ -305,6 +305,45 @@ def test_hardware_fault_status_is_surfaced_with_its_meaning(device_thread, tmp_p
     drive(params_for(fake), scenario)
 
 
+def test_two_frames_in_one_read_each_keep_their_own_stamp(device_thread, tmp_path):
+    # a loaded host reads late and gets two frames in one read: the earlier one must not be
+    # stamped as the later one (it was complete a scan period before the read)
+    fake = start_fake(device_thread, "ust-10lx", tmp_path, tcp=True)
+
+    async def scenario(driver: HokuyoDriver, scans: list[LaserScan]) -> None:
+        arrivals: list[tuple[int, int]] = []  # (stamp, monotonic ns of the read that completed it)
+        driver.bus.subscribe(driver.params.topic,
+                             lambda s: arrivals.append((s.header.stamp.to_ns(), driver.frame_arrival_ns)))
+        await more_scans(scans, 2)
+        fake.bunch_next_frames(2)
+        await async_wait_for(lambda: fake._bunch == 0, 15)
+        await more_scans(scans, 2)
+        pairs = [i for i in range(len(arrivals) - 1) if arrivals[i][1] == arrivals[i + 1][1]]
+        assert pairs, "no two frames came in one read"
+        stamps = [stamp for stamp, _ in arrivals]
+        assert all(a < b for a, b in zip(stamps[:-1], stamps[1:], strict=True)), np.diff(stamps)
+        period_ns = fake.model.scan_period_s * 1e9
+        for i in pairs:
+            assert stamps[i + 1] - stamps[i] == pytest.approx(period_ns, abs=2e6)
+
+    drive(params_for(fake), scenario)
+
+
+def test_frames_of_one_read_are_stamped_back_from_the_last_by_the_device_clock():
+    from lidar_drivers.scip import ResponseDecoder
+    from lidar_drivers.scip_driver import frame_stamps
+
+    req = ScanCommand(name="MD", start=0, end=1080)
+
+    d = ResponseDecoder()
+    for ts in (0xFFFFF0, 9, 34):  # the 24-bit device clock wraps between the first two
+        d.receive_data(encode_scan(req.echo(0), "99", ts, np.full(1081, 1000)))
+    frames = [d.next_event() for _ in range(3)]
+    assert frame_stamps(frames, 10**9, 0.025) == [10**9 - 50_000_000, 10**9 - 25_000_000, 10**9]
+    # a device-clock gap that is not plausible: the frames are a scan period apart
+    assert frame_stamps(frames[::-1][1:], 10**9, 0.025) == [10**9 - 25_000_000, 10**9]
+
+
 def test_error_codes_become_inf_or_nan():
     dev = SensorParams("UTM-30LX", 23, 60000, 1440, 0, 1080, 540, 2400)
     r = ranges_m(dev, np.array([0, 1, 2, 3, 22, 23, 1234, 60000, 65533]))
