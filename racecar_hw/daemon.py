@@ -188,7 +188,6 @@ class Daemon:
                                      reverse_speed_cap_mps=reverse_speed_cap(config),
                                      limits=command_limits(config))
                          if config.follower.enabled else None)
-        self.recorder = Recorder(bus, config.recorder) if config.recorder.enabled else None
         self.status = status
         self.links: dict[str, LinkWatch] = {}
         if self.vesc is not None:
@@ -207,6 +206,10 @@ class Daemon:
         self.net = net = Interfaces(config, bus, self.control, self, self.refusals)
         self.zenoh, self.dds, self.inbox, self.cmd_vel = net.zenoh, net.dds, net.inbox, net.cmd_vel
         self.live_topics = net.live_topics
+        #: records with the live table's latched topics (its QoS, latching, every split starting with them)
+        self.recorder = (Recorder(bus, config.recorder,
+                                  latched={t.bus: t.qos for t in self.live_topics if t.qos.latched})
+                         if config.recorder.enabled else None)
         if self.cmd_vel is not None:
             stack.callback(self.cmd_vel.close)
         if self.recorder is not None:

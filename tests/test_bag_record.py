@@ -3,6 +3,7 @@ rosbag, the mcap packages), drops, splitting, and recovery after SIGKILL."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -21,10 +22,11 @@ import yaml
 from bag_ros1tools import append_with_real_rosbag, read_real_bag, rosbag_cli
 from conftest import StuckDisk, wait_for
 from rosbags.highlevel import AnyReader
-from rosbags.interfaces import Connection
+from rosbags.interfaces import Connection, QosDurability, QosReliability
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
+from mux.params import MuxParams
 from racecar_hw.bags.follow import load_commands, summarize_bag
 from racecar_hw.bags.record import BagFile, Recorder, RecorderParams, offered_qos, record_params
 from racecar_hw.bags.recover import inspect_bag, recover_bag, scan_mcap
@@ -38,12 +40,20 @@ from racecar_hw.base.messages import (
     AckermannDriveStamped,
     Header,
     LaserScan,
+    Log,
+    MapMetaData,
     Message,
+    OccupancyGrid,
+    String,
     TFMessage,
     Time,
     TransformStamped,
 )
+from racecar_hw.base.topics import MUX_ACTIVE_TOPIC
+from racecar_hw.net.topics import topic_table
 from racecar_hw.rosmsg.typestore import ros2_types, types_for
+from racecar_hw.sim.live import MAP_TOPIC, SIM_TOPICS
+from safety.params import SafetyParams
 
 CMD = "/vesc/low_level/ackermann_cmd_mux/input/teleop"
 ROOT = Path(__file__).resolve().parents[1]
@@ -229,6 +239,103 @@ def test_split_by_size(tmp_path: Path) -> None:
     assert all(p["/tf_static"] == [static_tf()] for p in per_file)  # each split is self-contained
     assert sum(len(p["/scan"]) for p in per_file) == 60
     assert all(f.stat().st_size < 0.05e6 + 20_000 for f in files[:-1]), [f.stat().st_size for f in files]
+
+
+def occupancy_grid() -> OccupancyGrid:
+    return OccupancyGrid(Header(Time(3, 0), "map"), MapMetaData(Time(3, 0), 0.05, 10, 10),
+                         np.arange(100, dtype=np.int8))
+
+
+def split_topics(f: Path) -> list[str]:
+    """The topics of one split's messages, in file order (ROS 1 .bag, ROS 2 .mcap or .db3)."""
+    if f.suffix == ".bag":
+        with AnyReader([f]) as reader:
+            return [conn.topic for conn, _t, _raw in reader.messages()]
+    if f.suffix == ".mcap":
+        from mcap.reader import make_reader
+
+        with f.open("rb") as fh:
+            return [channel.topic for _s, channel, _m in make_reader(fh).iter_messages(log_time_order=False)]
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(f)) as db:
+        return [row[0] for row in db.execute("SELECT topics.name FROM messages JOIN topics ON "
+                                             "messages.topic_id = topics.id ORDER BY messages.id")]
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "sqlite3", "ros1"])
+def test_latched_topics_of_the_live_table_are_latched_in_the_bag_and_start_every_split(
+        tmp_path: Path, fmt: str) -> None:
+    live = {row.bus: row.qos for row in [*topic_table(MuxParams(), SafetyParams()), *SIM_TOPICS]}
+    latched = [MAP_TOPIC, MUX_ACTIVE_TOPIC, "/tf_static"]
+    assert all(live[t].latched for t in latched)  # what the live interfaces offer transient local
+    bus = Bus()
+    bus.publish("/tf_static", static_tf())  # all three published before the recording starts
+    bus.publish(MAP_TOPIC, occupancy_grid())
+    bus.publish(MUX_ACTIVE_TOPIC, String("teleop"))
+    rec = Recorder(bus, record_params(tmp_path, fmt, name="latched", split_size_mb=0.05))
+    rec.start()
+    for i in range(60):
+        bus.publish("/scan", scan(i))
+        if i == 20:
+            bus.publish(MUX_ACTIVE_TOPIC, String("nav_0"))
+    stats = rec.stop()
+    assert stats.dropped == 0
+    if fmt == "ros1":
+        splits = stats.files
+    else:
+        (bag,) = stats.files
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        splits = [bag / name for name in meta["relative_file_paths"]]
+    assert len(splits) >= 3
+    for f in splits:  # each split alone has every latched topic, before its first scan
+        topics = split_topics(f)
+        first_scan = topics.index("/scan")
+        assert all(t in topics[:first_scan + 1] for t in latched), (f.name, topics[:5])
+    with AnyReader(stats.files) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        active = [reader.deserialize(raw, c.msgtype).data for c, _t, raw in reader.messages()
+                  if c.topic == MUX_ACTIVE_TOPIC]
+    # the latest value starts each split: teleop until it changed, nav_0 after
+    changed = active.index("nav_0")
+    assert active[0] == "teleop" and set(active[changed:]) == {"nav_0"}
+    if fmt == "ros1":  # every split's connection header says latching=1, as rosbag record writes it
+        for f in splits:
+            with AnyReader([f]) as reader:
+                got = {c.topic: c.ext.latching for c in reader.connections}
+            assert got == {**dict.fromkeys(latched, 1), "/scan": None}, f.name
+        return
+    # ROS 2: transient local (durability 1) in metadata.yaml, in the reader's view ...
+    offered = {t["topic_metadata"]["name"]: yaml.safe_load(t["topic_metadata"]["offered_qos_profiles"])
+               for t in meta["topics_with_message_count"]}
+    assert {t: [p["durability"] for p in offered[t]] for t in latched} == dict.fromkeys(latched, [1])
+    assert all(conns[t].ext.offered_qos_profiles[0].durability == QosDurability.TRANSIENT_LOCAL
+               for t in latched)
+    if fmt == "mcap":  # ... and in every split's MCAP channel metadata
+        for f in splits:
+            scanned = scan_mcap(f.read_bytes())
+            by_topic = {topic: scanned.qos[cid] for cid, (_sid, topic, _enc) in scanned.channels.items()}
+            assert all(yaml.safe_load(by_topic[t])[0]["durability"] == 1 for t in latched), f.name
+
+
+def test_the_recorder_takes_latched_topics_renamed_in_the_live_table(tmp_path: Path) -> None:
+    bus = Bus()
+    bus.publish("/mux/active", String("teleop"))
+    rows = topic_table(MuxParams(active_topic="/mux/active"), SafetyParams())
+    rec = Recorder(bus, record_params(tmp_path, "ros1", name="renamed"),
+                   latched={row.bus: row.qos for row in rows if row.qos.latched})
+    rec.start()
+    stats = rec.stop()
+    with AnyReader(stats.files) as reader:
+        assert {c.topic: c.ext.latching for c in reader.connections} == {"/mux/active": 1}
+
+
+def test_rosout_is_offered_as_rcl_offers_it() -> None:
+    (row,) = [row for row in topic_table(MuxParams(), SafetyParams(), rosout=True) if row.bus == "/rosout"]
+    assert row.qos.latched and row.qos.depth == 1000
+    (qos,) = offered_qos("/rosout", Log)
+    assert (qos.depth, qos.durability, qos.reliability) == (1000, QosDurability.TRANSIENT_LOCAL,
+                                                            QosReliability.RELIABLE)
 
 
 def test_split_by_duration(tmp_path: Path) -> None:

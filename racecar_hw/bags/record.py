@@ -33,10 +33,16 @@ Splitting by size or duration closes each split as a complete file, so only the 
 written at the moment of the crash needs recovery. A ROS 2 recording is one bag directory
 ``<name>/`` whose files are the splits (``<name>_0.mcap``, ``<name>_1.mcap``, ... listed in its one
 ``metadata.yaml``), as ``ros2 bag record --max-bag-size`` writes them; a ROS 1 recording's splits
-are ``<name>_<n>.bag`` files, as ``rosbag record --split`` writes them. Static transforms
-(``/tf_static``, latched) are written at the start of every split, including those published
-before recording began. ROS 2 topics are offered with the QoS a ROS 2 publisher would use
-(:func:`offered_qos`): ``/tf_static`` transient-local, LaserScan the sensor-data profile.
+are ``<name>_<n>.bag`` files, as ``rosbag record --split`` writes them.
+
+Latched topics: which topics are latched, and with what QoS, is the live topic table's knowledge
+(:data:`racecar_hw.base.topics.LATCHED_TOPICS`: ``/tf_static``, the mux's active source, ``/map``,
+``/rosout``; the daemon passes its configured table's latched rows). The latest message of each is
+written at the start of every split, including one published before recording began, so a split
+alone has the map and the static transforms. ROS 2 topics are offered with the QoS a ROS 2
+publisher would use (:func:`offered_qos`, in ``metadata.yaml`` and in each MCAP channel's
+metadata): latched topics transient-local, LaserScan the sensor-data profile; ROS 1 connections of
+latched topics carry ``latching=1``, as ``rosbag record`` writes them.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ import math
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from glob import escape as glob_escape
@@ -71,6 +77,9 @@ from racecar_hw.base.clock import NS_PER_S, wall_ns
 from racecar_hw.base.errors import BagError, BagWriteError, ConfigError
 from racecar_hw.base.messages import Message
 from racecar_hw.base.params import param
+from racecar_hw.base.qos import SENSOR_DATA, Durability, Reliability
+from racecar_hw.base.qos import Qos as TopicQos
+from racecar_hw.base.topics import LATCHED_TOPICS
 from racecar_hw.rosmsg.typestore import BagTypes, types_for
 from racecar_hw.runtime.extras import require_extra
 from racecar_hw.runtime.lockstep import hold_while
@@ -78,7 +87,6 @@ from racecar_hw.runtime.outbox import Outbox
 
 log = logging.getLogger(__name__)
 
-LATCHED_TOPICS = ("/tf_static",)
 #: The writer thread wakes this often to drain the queue (one wakeup per batch, not per message).
 BATCH_S = 0.2
 #: ... or as soon as this many messages wait (or a quarter of ``queue_size``, if smaller).
@@ -153,26 +161,27 @@ class RecorderStats:
     error: str | None = None
 
 
-def _static_qos() -> Qos:
+def bag_qos(qos: TopicQos) -> Qos:
+    """A topic's QoS as rosbag2 writes an offered profile (KEEP_LAST ``depth``, no deadline,
+    lifespan or lease, automatic liveliness)."""
     zero = QosTime(0, 0)
-    return Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
-               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+    reliability = (QosReliability.RELIABLE if qos.reliability is Reliability.RELIABLE
+                   else QosReliability.BEST_EFFORT)
+    durability = (QosDurability.TRANSIENT_LOCAL if qos.durability is Durability.TRANSIENT_LOCAL
+                  else QosDurability.VOLATILE)
+    return Qos(QosHistory.KEEP_LAST, qos.depth, reliability, durability, zero, zero,
+               QosLiveliness.AUTOMATIC, zero, False)
 
 
-def _sensor_data_qos() -> Qos:
-    """rclcpp's ``SensorDataQoS()`` (rmw_qos_profile_sensor_data), which lidar drivers publish with."""
-    zero = QosTime(0, 0)
-    return Qos(QosHistory.KEEP_LAST, 5, QosReliability.BEST_EFFORT, QosDurability.VOLATILE,
-               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
-
-
-def offered_qos(topic: str, cls: type[Message]) -> list[Qos]:
-    """The QoS profiles a ROS 2 publisher of ``topic`` would offer: latched topics transient-local,
-    sensor streams (LaserScan) the sensor-data profile, everything else the default (none listed)."""
-    if topic in LATCHED_TOPICS:
-        return [_static_qos()]
+def offered_qos(topic: str, cls: type[Message],
+                latched: Mapping[str, TopicQos] = LATCHED_TOPICS) -> list[Qos]:
+    """The QoS profiles a ROS 2 publisher of ``topic`` would offer: latched topics (``latched``, the
+    live table's) transient-local, sensor streams (LaserScan) the sensor-data profile, everything
+    else the default (none listed)."""
+    if topic in latched:
+        return [bag_qos(latched[topic])]
     if cls.ROS_TYPE == "sensor_msgs/msg/LaserScan":
-        return [_sensor_data_qos()]
+        return [bag_qos(SENSOR_DATA)]
     return []
 
 
@@ -298,10 +307,12 @@ class BagFile:
     """
 
     def __init__(self, path: Path, fmt: str, compression: str, types: BagTypes,
-                 meta: Ros2BagMetadata | None = None) -> None:
+                 meta: Ros2BagMetadata | None = None,
+                 latched: Mapping[str, TopicQos] = LATCHED_TOPICS) -> None:
         self.path = path
         self.format = fmt
         self.types = types
+        self.latched = latched  # topic -> QoS of the latched topics
         self.bytes = 0
         self.count = 0
         self.first_ns: int | None = None
@@ -392,10 +403,10 @@ class BagFile:
             pkg, _, name = typename.partition("/msg/")
             conn: Any = self._ros1.add_connection(topic, f"{pkg}/{name}", digest, msgdef,
                                                   callerid="/racecar_hw",
-                                                  latching=1 if topic in LATCHED_TOPICS else None)
+                                                  latching=1 if topic in self.latched else None)
         else:
             assert self._storage is not None and self.meta is not None
-            qos = dump_qos_v8(offered_qos(topic, cls))
+            qos = dump_qos_v8(offered_qos(topic, cls, self.latched))
             conn = self._storage.add_connection(topic, typename, msgdef, digest, qos)
             self.meta.add_topic(topic, typename, qos, digest)
         self._conns[topic] = conn
@@ -413,9 +424,11 @@ class Splits:
     ``<name>_<n>.bag`` (one found only when the recording reached that split once ended it 0.4 s in).
     """
 
-    def __init__(self, folder: Path, params: RecorderParams, types: BagTypes) -> None:
+    def __init__(self, folder: Path, params: RecorderParams, types: BagTypes,
+                 latched: Mapping[str, TopicQos] = LATCHED_TOPICS) -> None:
         base = params.name or time.strftime("racecar_%Y%m%d-%H%M%S")
         self.folder, self.base, self.params, self.types = folder, base, params, types
+        self.latched = latched
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as err:  # no permission, a read-only file system, a file in the way
@@ -449,12 +462,12 @@ class Splits:
         p, index = self.params, self.index
         if p.format == "ros1":
             path = self.folder / f"{self.base}_{index}.bag"
-            bag = BagFile(path, "ros1", p.compression, self.types)
+            bag = BagFile(path, "ros1", p.compression, self.types, latched=self.latched)
             self.files.append(path)
         else:
             bagdir = self.folder / self.base
             bag = BagFile(bagdir / f"{self.base}_{index}", p.format, p.compression, self.types,
-                          previous.meta if previous is not None else None)
+                          previous.meta if previous is not None else None, self.latched)
             if index == 0:
                 self.files.append(bagdir)
         self.index += 1
@@ -477,9 +490,13 @@ class Recorder:
     ``stop()`` flushes and closes (safe twice). Also a context manager.
     """
 
-    def __init__(self, bus: Bus, params: RecorderParams) -> None:
+    def __init__(self, bus: Bus, params: RecorderParams,
+                 latched: Mapping[str, TopicQos] | None = None) -> None:
         self.bus = bus
         self.params = params
+        #: the latched topics and their QoS: :data:`LATCHED_TOPICS` and ``latched`` (the daemon's
+        #: configured topic table, where the mux's active topic may have another name)
+        self.latched: Mapping[str, TopicQos] = {**LATCHED_TOPICS, **(latched or {})}
         self.types = types_for(1 if params.format == "ros1" else 2)
         # The writer drains every BATCH_S; a queue this long wakes it at once (well before drops).
         # A full queue drops the new message: the bag keeps what it has queued.
@@ -488,7 +505,7 @@ class Recorder:
                               on_batch=self._flush_if_due, on_stop=self._close)
         self._sub: Subscription | None = None
         self._wanted: dict[str, bool] = {}
-        self._static: dict[str, Message] = {}
+        self._latest_latched: dict[str, Message] = {}  # the latest message of each latched topic
         self._file: BagFile | None = None
         self._splits: Splits | None = None
         self._dir = Path(params.path)
@@ -534,10 +551,11 @@ class Recorder:
             return False
         if self.running:
             return False
-        self._splits = Splits(Path(self.params.path).expanduser(), self.params, self.types)
+        self._splits = Splits(Path(self.params.path).expanduser(), self.params, self.types,
+                              self.latched)
         self._dir = self._splits.folder
         now = wall_ns()
-        for topic in LATCHED_TOPICS:
+        for topic in self.latched:
             latest = self.bus.latest(topic)
             if latest is not None and self._is_wanted(topic):
                 self._outbox.put(self._write, topic, latest, now)
@@ -667,15 +685,15 @@ class Recorder:
 
     def _write_file(self, topic: str, msg: Message, t_ns: int) -> None:
         assert self._file is not None and self._splits is not None
-        if topic in LATCHED_TOPICS:
-            self._static[topic] = msg
+        if topic in self.latched:
+            self._latest_latched[topic] = msg
         if self._splits.due(self._file, t_ns):
             self._file.close(last=False)
             self._flushed = self._written  # a closed split is on disk
             self._file = self._splits.open(self._file)
-            for static_topic, static_msg in self._static.items():
-                if static_topic != topic:
-                    self._bytes += self._file.write(static_topic, static_msg, t_ns)
+            for latched_topic, latched_msg in self._latest_latched.items():
+                if latched_topic != topic:
+                    self._bytes += self._file.write(latched_topic, latched_msg, t_ns)
         try:
             self._bytes += self._file.write(topic, msg, t_ns)
         except UnserializableMessage as err:  # the message's fault, not the bag's: drop it, go on

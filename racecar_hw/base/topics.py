@@ -8,6 +8,11 @@ default is the constant here, and the configured value wins.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from types import MappingProxyType
+
+from racecar_hw.base.qos import LATCHED, ROSOUT, Qos
+
 #: The low-level mux's inputs (safety, teleop and the ground station's operator inputs).
 MUX_LOW = "/vesc/low_level/ackermann_cmd_mux"
 #: The high-level mux's inputs (navigation code, /cmd_vel).
@@ -45,3 +50,17 @@ TOPIC_TF_STATIC = "/tf_static"
 TOPIC_IMU = "/imu"
 #: rosgraph_msgs/Clock, the simulation's time (ROS 2 ``use_sim_time``); outside any namespace.
 CLOCK_TOPIC = "/clock"
+#: nav_msgs/OccupancyGrid, the simulator's map (latched).
+MAP_TOPIC = "/map"
+#: rcl_interfaces/Log, the daemon's log (:mod:`racecar_hw.net.rosout`); outside any namespace.
+ROSOUT_TOPIC = "/rosout"
+
+#: The latched topics (ROS 2 transient local, ROS 1 latching) and their QoS: the one table the live
+#: topic table (:mod:`racecar_hw.net.topics`, :mod:`racecar_hw.sim.live`) and the recorder
+#: (:mod:`racecar_hw.bags.record`) read. A late joiner gets the latest; every bag split starts with it.
+LATCHED_TOPICS: Mapping[str, Qos] = MappingProxyType({
+    TOPIC_TF_STATIC: LATCHED,   # what static_transform_publisher offers
+    MUX_ACTIVE_TOPIC: LATCHED,  # the mux's active source, published on change
+    MAP_TOPIC: LATCHED,         # what map_server offers
+    ROSOUT_TOPIC: ROSOUT,       # rcl's rosout publisher: the recent records
+})

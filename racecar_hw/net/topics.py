@@ -13,8 +13,10 @@ The ROS name of a row is its bus topic unless a profile or remap changes it (:fu
 ``racecar`` keeps the MIT/MuSHR ROS 1 names of the bus, ``f1tenth`` offers the F1TENTH ROS 2 names
 (autonomy on ``/drive``, the joystick on ``/teleop``, ``/sensors/core``, ...). QoS follows the
 drivers the daemon replaces: the sensor-data profile for ``/scan`` (best effort,
-depth 5), transient local depth 1 for ``/tf_static`` (late joiners get it), reliable depth 10
-otherwise.
+depth 5), transient local for the latched topics of :data:`racecar_hw.base.topics.LATCHED_TOPICS`
+(``/tf_static``, the mux's active source, ``/rosout``, the simulator's ``/map``: late joiners get
+them; the recorder takes the same table), reliable depth 10 otherwise. The QoS classes live in
+:mod:`racecar_hw.base.qos` (re-exported here).
 """
 
 from __future__ import annotations
@@ -45,7 +47,17 @@ from racecar_hw.base.messages import (
     Twist,
     VescStateStamped,
 )
-from racecar_hw.base.topics import CLOCK_TOPIC
+from racecar_hw.base.qos import CLOCK_QOS as CLOCK_QOS
+from racecar_hw.base.qos import CLOCK_SUBSCRIPTION as CLOCK_SUBSCRIPTION
+from racecar_hw.base.qos import DEFAULT as DEFAULT
+from racecar_hw.base.qos import LATCHED as LATCHED
+from racecar_hw.base.qos import ROSOUT as ROSOUT
+from racecar_hw.base.qos import SENSOR_DATA as SENSOR_DATA
+from racecar_hw.base.qos import Durability as Durability
+from racecar_hw.base.qos import Qos as Qos
+from racecar_hw.base.qos import Reliability as Reliability
+from racecar_hw.base.topics import CLOCK_TOPIC, LATCHED_TOPICS, MUX_ACTIVE_TOPIC, TOPIC_TF_STATIC
+from racecar_hw.base.topics import ROSOUT_TOPIC as ROSOUT_TOPIC
 from safety.params import SafetyParams
 from vesc.driver import TOPIC_CORE, TOPIC_IMU, TOPIC_ODOM, TOPIC_SERVO, TOPIC_TF
 
@@ -55,53 +67,6 @@ class Direction(enum.Enum):
 
     OUT = "out"  #: the car publishes, clients subscribe
     IN = "in"    #: clients publish, the car subscribes
-
-
-class Reliability(enum.IntEnum):
-    """ROS 2 ``rmw_qos_reliability_policy_e`` values."""
-
-    RELIABLE = 1
-    BEST_EFFORT = 2
-
-
-class Durability(enum.IntEnum):
-    """ROS 2 ``rmw_qos_durability_policy_e`` values."""
-
-    TRANSIENT_LOCAL = 1
-    VOLATILE = 2
-
-
-@dataclass(frozen=True)
-class Qos:
-    """The QoS a topic is offered with (history is always KEEP_LAST ``depth``)."""
-
-    reliability: Reliability = Reliability.RELIABLE
-    durability: Durability = Durability.VOLATILE
-    depth: int = 10
-
-    @property
-    def latched(self) -> bool:
-        """Late joiners get the last ``depth`` messages (ROS 2 TRANSIENT_LOCAL, ROS 1 latching)."""
-        return self.durability is Durability.TRANSIENT_LOCAL
-
-
-#: rclcpp's ``SensorDataQoS``: what real lidar drivers offer ``/scan`` with.
-SENSOR_DATA = Qos(Reliability.BEST_EFFORT, Durability.VOLATILE, 5)
-#: What ``static_transform_publisher`` offers ``/tf_static`` with.
-LATCHED = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1)
-#: rclcpp's default QoS with depth 10.
-DEFAULT = Qos()
-#: rcl's ``/rosout`` publisher (``rcl_qos_profile_rosout_default``, less its 10 s lifespan): a late
-#: rqt_console still gets the recent records, and a TRANSIENT_LOCAL reader matches it over DDS.
-ROSOUT = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1000)
-#: The bus topic (and ROS name) of the daemon's log (:mod:`racecar_hw.net.rosout`).
-ROSOUT_TOPIC = "/rosout"
-#: What the simulator offers ``/clock`` with: reliable, volatile, keep last 1. ROS 2 nodes read it
-#: with ``ClockQoS`` (:data:`CLOCK_SUBSCRIPTION`); a reliable writer matches best-effort readers and
-#: reliable ones alike (a best-effort writer only the former), and only the newest time matters.
-CLOCK_QOS = Qos(Reliability.RELIABLE, Durability.VOLATILE, 1)
-#: rclcpp's and rclpy's ``ClockQoS``, the QoS ROS 2's time source subscribes ``/clock`` with.
-CLOCK_SUBSCRIPTION = Qos(Reliability.BEST_EFFORT, Durability.VOLATILE, 1)
 
 
 @dataclass(frozen=True)
@@ -149,12 +114,13 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
         Topic(scan_topic, LaserScan, out, SENSOR_DATA, "lidar scan, frame laser"),
         Topic(TOPIC_ODOM, Odometry, out, DEFAULT, "wheel odometry, odom -> base_link"),
         Topic(TOPIC_TF, TFMessage, out, DEFAULT, "odom -> base_link transform"),
-        Topic("/tf_static", TFMessage, out, LATCHED, "static transforms (base_link -> laser ...)"),
+        Topic(TOPIC_TF_STATIC, TFMessage, out, LATCHED_TOPICS[TOPIC_TF_STATIC],
+              "static transforms (base_link -> laser ...)"),
         Topic(TOPIC_CORE, VescStateStamped, out, DEFAULT, "VESC telemetry"),
         Topic(TOPIC_SERVO, Float64, out, DEFAULT, "servo position command (0..1)"),
         Topic(TOPIC_IMU, Imu, out, DEFAULT, "the VESC's IMU (SI units, frame imu)"),
         Topic(mux.output_topic, AckermannDriveStamped, out, DEFAULT, "mux output: the drive command"),
-        Topic(mux.active_topic, String, out, LATCHED, "the mux's active source"),
+        Topic(mux.active_topic, String, out, LATCHED_TOPICS[MUX_ACTIVE_TOPIC], "the mux's active source"),
         Topic(mux.diagnostics_topic, DiagnosticArray, out, DEFAULT, "diagnostics"),
         Topic(safety.state_topic, DiagnosticArray, out, DEFAULT, "safety controller state"),
     ]
@@ -163,7 +129,8 @@ def topic_table(mux: MuxParams, safety: SafetyParams, *, scan_topic: str = "/sca
     if open_space_topic:
         rows.append(Topic(open_space_topic, OpenSpace, out, DEFAULT, "longest range and its angle"))
     if rosout:
-        rows.append(Topic(ROSOUT_TOPIC, Log, out, ROSOUT, "the daemon's log (rosout.level and above)",
+        rows.append(Topic(ROSOUT_TOPIC, Log, out, LATCHED_TOPICS[ROSOUT_TOPIC],
+                          "the daemon's log (rosout.level and above)",
                           absolute=True))
     into = Direction.IN
     for i, source in enumerate(mux.inputs):

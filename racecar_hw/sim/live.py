@@ -25,10 +25,11 @@ from racecar_hw.base.messages import (
     Quaternion,
     stamp_now,
 )
+from racecar_hw.base.topics import LATCHED_TOPICS, MAP_TOPIC
 from racecar_hw.base.transforms import StaticTransformParams
 from racecar_hw.control.path import EstopRequest
 from racecar_hw.daemon import Daemon
-from racecar_hw.net.topics import DEFAULT, LATCHED, Direction, Topic
+from racecar_hw.net.topics import DEFAULT, Direction, Topic
 from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.pacer import Pacer
 from racecar_hw.sim.world import World
@@ -37,7 +38,6 @@ from vesc.fake import CommandRecord, FakeVesc
 
 log = logging.getLogger(__name__)
 
-MAP_TOPIC = "/map"
 TRUE_POSE_TOPIC = "/sim/pose"
 MAP_FRAME = "map"
 ODOM_FRAME = "odom"
@@ -45,7 +45,7 @@ ODOM_FRAME = "odom"
 TRUE_POSE_RATE_HZ = 20.0
 
 SIM_TOPICS = (
-    Topic(MAP_TOPIC, OccupancyGrid, Direction.OUT, LATCHED, "the simulator's map"),
+    Topic(MAP_TOPIC, OccupancyGrid, Direction.OUT, LATCHED_TOPICS[MAP_TOPIC], "the simulator's map"),
     Topic(TRUE_POSE_TOPIC, PoseStamped, Direction.OUT, DEFAULT, "the simulated car's true pose in map"),
 )
 _MOTOR = (SetRpm, SetCurrentBrake, SetCurrent, SetDuty)
