@@ -510,14 +510,12 @@ class Recorder:
         self._splits: Splits | None = None
         self._dir = Path(params.path)
         self._next_flush = 0.0
-        self._written = 0
+        self._written = self._bytes = self._flushed = 0  # messages written, their bytes, on disk
         self._release_hold: Callable[[], None] = lambda: None
-        self._dropped = 0  # after a write error (the outbox counts those of a full queue)
-        self._dropped_logged = 0
+        # dropped after a write error (the outbox counts those of a full queue), and said so far
+        self._dropped = self._dropped_logged = 0
         self._behind_said_at = -math.inf
         self._unserializable: set[str] = set()  # topics that had a message the serializer refused
-        self._bytes = 0
-        self._flushed = 0
         self._error: str | None = None
 
     # --- public API ---------------------------------------------------------------------------
@@ -532,10 +530,7 @@ class Recorder:
     def _all_dropped(self) -> int:
         return self._dropped + self._outbox.dropped
 
-    @property
-    def running(self) -> bool:
-        """Whether the writer thread is running."""
-        return self._outbox.running
+    running = property(lambda self: self._outbox.running, doc="Whether the writer thread is running.")
 
     def start(self, timeout_s: float | None = None) -> None:
         """:meth:`open`, :meth:`wait_opened` (``timeout_s``), :meth:`subscribe`."""
