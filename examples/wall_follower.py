@@ -1,9 +1,11 @@
 """Follow the right-hand wall around a loop, from /scan only, with racecar_hw.client.
 
-Start the simulated car on the track map, then this, in another terminal::
+Start the simulated car on the track map, then this, in another terminal (from the checkout, with
+the README's ``.venv``)::
 
-    racecar-hw sim --scenario wall --scenario-set map=track --scenario-set 'drivers=[]' --duration 120
-    python examples/wall_follower.py --laps 1
+    .venv/bin/racecar-hw sim --scenario wall --scenario-set map=track \
+        --scenario-set 'drivers=[]' --duration 120
+    .venv/bin/python examples/wall_follower.py --laps 1
 
 It drives counter-clockwise (the outer wall on the right), the classic F1TENTH wall follower: two
 beams on the right give the wall's distance and angle, projected ``lookahead_m`` ahead; a PD
