@@ -308,7 +308,7 @@ class BagFile:
 
     def __init__(self, path: Path, fmt: str, compression: str, types: BagTypes,
                  meta: Ros2BagMetadata | None = None,
-                 latched: Mapping[str, TopicQos] = LATCHED_TOPICS) -> None:
+                 latched: Mapping[str, TopicQos] = LATCHED_TOPICS, seq: dict[str, int] | None = None) -> None:
         self.path = path
         self.format = fmt
         self.types = types
@@ -319,7 +319,9 @@ class BagFile:
         self.last_ns = 0
         self._conns: dict[str, Any] = {}  # topic -> connection id (ROS 2) or Ros1Connection
         self.topic_counts: dict[str, int] = {}
-        self._seq: dict[str, int] = {}
+        #: each topic's last ROS 1 header ``seq``: shared by the splits of a recording, so it goes
+        #: on across them as ``rosbag record --split`` writes it (it started again at 1 in each)
+        self.seq: dict[str, int] = {} if seq is None else seq
         if fmt != "ros1" and meta is None:
             meta = Ros2BagMetadata(path.parent, fmt)
         self.meta = meta
@@ -336,7 +338,7 @@ class BagFile:
 
     def write(self, topic: str, msg: Message, t_ns: int) -> int:
         """Serialize and append ``msg``; returns the payload size in bytes."""
-        seq = self._seq.get(topic, 0) + 1
+        seq = self.seq.get(topic, 0) + 1
         try:
             data = self.types.serialize(msg, seq)
         except Exception as err:
@@ -345,7 +347,7 @@ class BagFile:
         conn = self._conns.get(topic)
         if conn is None:
             conn = self._add_connection(topic, type(msg))
-        self._seq[topic] = seq
+        self.seq[topic] = seq
         if self._storage is not None:
             self._storage.write(conn, t_ns, data)
         else:
@@ -411,7 +413,6 @@ class BagFile:
             self.meta.add_topic(topic, typename, qos, digest)
         self._conns[topic] = conn
         self.topic_counts[topic] = 0
-        self._seq[topic] = 0
         return conn
 
 
@@ -462,7 +463,8 @@ class Splits:
         p, index = self.params, self.index
         if p.format == "ros1":
             path = self.folder / f"{self.base}_{index}.bag"
-            bag = BagFile(path, "ros1", p.compression, self.types, latched=self.latched)
+            bag = BagFile(path, "ros1", p.compression, self.types, latched=self.latched,
+                          seq=previous.seq if previous is not None else None)
             self.files.append(path)
         else:
             bagdir = self.folder / self.base
