@@ -13,6 +13,8 @@ from racecar_hw.base.params import param
 HOKUYO_MODELS = ("urg-04lx", "ust-10lx", "ust-20lx", "utm-30lx", "utm-30lx-ew")
 #: Hokuyo models on USB (serial); the others are Ethernet units.
 HOKUYO_USB_MODELS = ("urg-04lx", "utm-30lx")
+#: Models with an Ethernet port (``tcp``); every other one is reached on a serial port (``port``).
+ETHERNET_MODELS = tuple(m for m in HOKUYO_MODELS if m not in HOKUYO_USB_MODELS)
 RPLIDAR_MODELS = ("a1", "a2m8", "a2m7", "a2m12", "a3", "s1", "c1")
 MODELS = HOKUYO_MODELS + RPLIDAR_MODELS
 
@@ -47,6 +49,13 @@ class LidarParams:
     def __post_init__(self) -> None:
         if self.port == "":  # nonempty= would be lost in `str | None`'s "fits none of str"
             raise ConfigError("port", "must not be empty")
+        if self.tcp is not None and self.model.lower() not in ETHERNET_MODELS:
+            kind = "a USB lidar" if self.model.lower() in HOKUYO_MODELS else "a serial lidar"
+            raise ConfigError("tcp", f"the {self.model} is {kind} with no Ethernet port; set lidar.port "
+                                     "for it and lidar.tcp: null")
+        if self.port is not None and self.tcp is not None:
+            raise ConfigError("tcp", "lidar.port and lidar.tcp are both set; set one: lidar.port for USB, "
+                                     "lidar.tcp for Ethernet; the other null")
         if self.tcp is not None and not is_memory(self.tcp):  # mem://: a lockstep run's link
             try:
                 _, port = parse_host_port(self.tcp, default_port=1)  # no port: the driver's default

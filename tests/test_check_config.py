@@ -142,6 +142,30 @@ def test_a_check_across_a_sections_keys_names_the_full_key_and_its_set(check_con
     assert line == f"racecar-hw check-config: {words} (from --set {setting})", line
 
 
+@pytest.mark.parametrize(("sets", "words"), [
+    (["lidar.model=urg-04lx", "lidar.port=/dev/sensors/hokuyo"],
+     "lidar.tcp: the urg-04lx is a USB lidar with no Ethernet port; set lidar.port for it and "
+     "lidar.tcp: null"),
+    (["lidar.model=a2m8", "lidar.port=/dev/sensors/rplidar"],
+     "lidar.tcp: the a2m8 is a serial lidar with no Ethernet port; set lidar.port for it and "
+     "lidar.tcp: null"),
+    (["lidar.port=/dev/ttyACM0"],
+     "lidar.tcp: lidar.port and lidar.tcp are both set; set one: lidar.port for USB, lidar.tcp for "
+     "Ethernet; the other null")])
+def test_a_lidar_port_beside_the_shipped_tcp_is_refused_at_the_tcp_line(tmp_path, check_config, sets, words):
+    """The shipped config sets lidar.tcp; a USB model's lidar.port beside it passed and the driver
+    dialled the USB lidar over TCP forever (tcp won), and an RPLIDAR's tcp was ignored."""
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("lidar:\n  model: ust-10lx\n  tcp: 192.168.0.10:10940\n"
+                   "safety: {scan_timeout_s: 0.3, scan_period_s: 0.1}\n")  # an RPLIDAR's sweep
+    args = [a for s in sets for a in ("--set", s)]
+    proc = check_config(str(cfg), *args)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    line, = proc.stderr.splitlines()
+    assert line == f"racecar-hw check-config: {cfg}:3: {words}", line
+    assert check_config(str(cfg), *args, "--set", "lidar.tcp=null").returncode == 0
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")

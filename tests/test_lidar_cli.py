@@ -40,6 +40,13 @@ def test_a_usb_hokuyo_is_not_served_over_tcp(model, capsys):
     assert f"the {model} is a USB lidar with no Ethernet port; serve it on a pty with --link PATH" in out
 
 
+@pytest.mark.parametrize(("model", "kind"), [("urg-04lx", "a USB lidar"), ("a1", "a serial lidar")])
+def test_lidar_info_refuses_tcp_for_a_lidar_without_ethernet(model, kind, capsys):
+    assert main(["lidar-info", "--tcp", "127.0.0.1:1", "--model", model]) == 2
+    out = capsys.readouterr().out
+    assert out == f"racecar-hw lidar-info: the {model} is {kind} with no Ethernet port; use --port\n"
+
+
 @pytest.mark.parametrize("transport", ["tcp", "pty"])
 def test_lidar_info_against_the_fake(device_thread, tmp_path, capsys, transport):
     fake = FakeHokuyo("urg-04lx" if transport == "pty" else "ust-10lx", RoomRangeSource(8, 6),

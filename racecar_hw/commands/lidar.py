@@ -11,7 +11,7 @@ import threading
 import time
 
 from lidar_drivers.base import LidarDriver, RandomRangeSource, RangeSource, RoomRangeSource, summarize
-from lidar_drivers.params import HOKUYO_MODELS, HOKUYO_USB_MODELS, MODELS, LidarParams
+from lidar_drivers.params import ETHERNET_MODELS, HOKUYO_MODELS, HOKUYO_USB_MODELS, MODELS, LidarParams
 from lidar_drivers.registry import family, make_driver, make_fake, model_for_reported, model_name
 from racecar_hw.base.bus import Bus
 from racecar_hw.base.errors import DeviceError
@@ -136,8 +136,9 @@ PROBE_MODELS = {"tcp": ("ust-10lx",), "port": ("urg-04lx", "a1")}
 
 def lidar_info(args: argparse.Namespace) -> int:
     """Print the lidar's identity, geometry and one scan's closest/farthest return."""
-    if args.model and args.tcp and family(args.model) != "hokuyo":
-        print(f"racecar-hw lidar-info: {args.model} is a serial lidar; use --port")
+    if args.model and args.tcp and args.model not in ETHERNET_MODELS:
+        kind = "a USB lidar" if args.model in HOKUYO_MODELS else "a serial lidar"
+        print(f"racecar-hw lidar-info: the {args.model} is {kind} with no Ethernet port; use --port")
         return 2
     detected = args.model is None
     driver, scan = None, None

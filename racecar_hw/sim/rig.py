@@ -95,7 +95,7 @@ class FakeRig:
             if use_tcp:  # the Ethernet link, in memory
                 config.lidar.tcp, config.lidar.port = lidar_path, None
             else:
-                config.lidar.port = lidar_path
+                config.lidar.port, config.lidar.tcp = lidar_path, None
             return config
         assert self.devices is not None
         self.devices.start()
@@ -107,9 +107,9 @@ class FakeRig:
             raise RuntimeError("fake lidar did not start")
         if use_tcp:
             host, port = self.lidar.tcp_address
-            config.lidar.tcp = f"{host}:{port}"
+            config.lidar.tcp, config.lidar.port = f"{host}:{port}", None  # one set, the other null
         else:
-            config.lidar.port = lidar_path
+            config.lidar.port, config.lidar.tcp = lidar_path, None
         return config
 
     def check(self, config: Config) -> None:
