@@ -256,7 +256,7 @@ def test_a_scenario_refused_before_its_devices_start_leaves_the_running_episode_
     bad = {
         "config": (load_scenario("track", ["config={safety: {nosuchkey: 1}}"]), "safety.nosuchkey"),
         "map": (load_scenario("track", [f"map={tmp_path / 'nope.yaml'}"]), "nope.yaml"),
-        "firmware": (load_scenario("track", ["firmware=abc"]), "firmware: 'abc' is not X.Y"),
+        "firmware": (load_scenario("track", ["firmware=abc"]), "firmware: 'abc' is not X.YY, like 6.02"),
         "cars": ("two-cars", "several cars"),
         "seed": (dataclasses.replace(track, world=dataclasses.replace(track.world, seed=-5)), "negative"),
         "start": (load_scenario("track", ["start=[6.0, 5.75, 0.0]"]), "start_pose"),

@@ -195,6 +195,13 @@ def test_wall_with_an_rplidar_a1_on_a_pty(tmp_path):
     assert r["final_clearance_m"] <= 1.0
 
 
+@pytest.mark.parametrize(("firmware", "written"), [("'6.2'", "6.02"), ("'3.40'", "3.40")])
+def test_the_report_writes_the_firmware_as_vesc_info_does(firmware, written):
+    """The report wrote "6.2" for the fake that vesc-info and the fake-vesc banner call 6.02."""
+    result, loopback = run_lockstep("wall", f"firmware={firmware}", duration_s=0.5)
+    assert loopback.vesc is not None and result.report["vesc"]["firmware"] == written
+
+
 def test_a_usb_hokuyo_is_reached_on_a_pty_even_with_transport_tcp():
     """The URG-04LX has no Ethernet port: the scenario's default transport (tcp) does not make
     the fake listen on one; the daemon opens its serial port as it would /dev/ttyACM0 (in lockstep,

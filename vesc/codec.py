@@ -364,6 +364,13 @@ class Layout(enum.Enum):
 KNOWN_MAJORS = range(2, 8)
 
 
+def firmware_text(version: tuple[int, int]) -> str:
+    """``version`` as the VESC (and VESC Tool, and vesc-info) writes it: the minor in two digits,
+    6.02 for (6, 2) and 3.40 for (3, 40)."""
+    major, minor = version
+    return f"{major}.{minor:02d}"
+
+
 def known_firmware(version: tuple[int, int]) -> bool:
     """Whether ``version`` is one whose telemetry layout this codec knows (2.0 to 7.99)."""
     major, minor = version

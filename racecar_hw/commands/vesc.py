@@ -8,7 +8,7 @@ import dataclasses
 import sys
 
 from racecar_hw.runtime.signals import run_until_stop_signal
-from vesc.codec import KNOWN_MAJORS, values_layout
+from vesc.codec import KNOWN_MAJORS, firmware_text, values_layout
 from vesc.driver import probe
 
 
@@ -52,11 +52,10 @@ def fake_vesc(args: argparse.Namespace) -> int:
     from vesc.fake import FakeVesc  # noqa: PLC0415 - here, not in every daemon that builds the parser
 
     fake = FakeVesc(args.link, firmware=args.firmware)
-    major, minor = args.firmware
 
     async def serve() -> None:
-        print(f"fake VESC (firmware {major}.{minor:02d}) at {fake.path} -> {fake.port.slave_path}; "
-              "Ctrl-C to stop", flush=True)
+        print(f"fake VESC (firmware {firmware_text(args.firmware)}) at {fake.path} -> "
+              f"{fake.port.slave_path}; Ctrl-C to stop", flush=True)
         await fake.serve()
 
     try:
@@ -75,12 +74,12 @@ def vesc_info(args: argparse.Namespace) -> int:
     """
     fw, values = asyncio.run(probe(args.port, args.baudrate, args.timeout))
     known = values is not None
-    print(f"firmware: {fw.major}.{fw.minor:02d}" + ("" if known else " (unknown)"))
+    print(f"firmware: {firmware_text(fw.version)}" + ("" if known else " (unknown)"))
     print(f"hardware: {fw.hw_name if fw.hw_name is not None else '(not reported)'}")
     if fw.uuid is not None:
         print(f"uuid:     {fw.uuid.hex()}")
     if values is None:
-        print(f"racecar-hw vesc-info: firmware {fw.major}.{fw.minor:02d} is not one racecar-hw knows "
+        print(f"racecar-hw vesc-info: firmware {firmware_text(fw.version)} is not one racecar-hw knows "
               f"(it knows {KNOWN_MAJORS.start}.x to {KNOWN_MAJORS.stop - 1}.x): its telemetry layout is "
               "unknown, so none was decoded, and the driver will not drive this VESC", file=sys.stderr)
         return 1

@@ -27,6 +27,7 @@ from racecar_hw.sim.occupancy import OccupancyMap
 from racecar_hw.sim.plot_worker import PendingPlot, PlotWorker
 from racecar_hw.sim.trajectory import TrajectorySample, rest_time, stopping_distance, write_csv
 from racecar_hw.sim.world import SimRangeSource, compose
+from vesc.codec import firmware_text
 
 if TYPE_CHECKING:
     from racecar_hw.sim.loopback import Loopback
@@ -148,7 +149,7 @@ class RunReport:
                 "frames_rx": vstats.frames_rx if vstats else 0,
                 "crc_errors": vstats.crc_errors if vstats else 0,
                 "reconnects": vstats.reconnects if vstats else 0,
-                "firmware": run.scenario.firmware,
+                "firmware": firmware_text(run.scenario.firmware_version()),  # 6.02, as vesc-info
             },
             "lidar": {
                 "model": run.scenario.lidar.model,

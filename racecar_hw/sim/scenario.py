@@ -248,7 +248,8 @@ class Scenario:
                                               unit="m, m, rad")
     duration_s: float = param(20.0, "scenario time to run (from when the car is ready)", unit="s",
                               min=0.1, max=3600.0)
-    firmware: str = param("6.2", "fake VESC firmware version X.Y (selects the telemetry layout)")
+    firmware: str = param("6.02", "fake VESC firmware version X.YY as vesc-info prints it (6.2 reads "
+                                  "as 6.02; selects the telemetry layout)")
     lidar: LidarSpec = param(LidarSpec(), "the fake lidar")
     world: WorldSpec = param(WorldSpec(), "the world simulation")
     drivers: list[DriverSpec] = param([], "who drives")
@@ -310,7 +311,7 @@ class Scenario:
         """``firmware`` as (major, minor)."""
         major, sep, minor = self.firmware.partition(".")
         if not (sep and major.isdigit() and minor.isdigit()):
-            raise ConfigError("firmware", f"{self.firmware!r} is not X.Y")
+            raise ConfigError("firmware", f"{self.firmware!r} is not X.YY, like 6.02")
         return int(major), int(minor)
 
 
