@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 
@@ -71,6 +74,36 @@ def test_lidar_info_without_a_device_fails_cleanly(tmp_path, capsys):
     assert main(["lidar-info", "--port", str(tmp_path / "none"), "--model", "urg-04lx",
                  "--timeout", "0.5"]) == 1
     assert "no scan" in capsys.readouterr().out
+
+
+def test_lidar_info_where_nothing_listens_says_so_and_not_give_model(capsys):
+    """Nothing at the address: the advice was "give --model", which no model would have helped."""
+    with socket.socket() as bound:  # bound, not listening: a connection is refused
+        bound.bind(("127.0.0.1", 0))
+        address = "{}:{}".format(*bound.getsockname())
+        assert main(["lidar-info", "--tcp", address, "--timeout", "0.3"]) == 1
+    out = capsys.readouterr().out
+    assert out == (f"racecar-hw lidar-info: nothing listens at {address}; check the address (lidar.tcp), "
+                   "the cable and the lidar's power\n")
+
+
+def test_lidar_info_where_something_answers_but_no_lidar_gives_model(device_thread, capsys):
+    """Something answers at the address, but not as a UST-10LX names itself: then --model helps."""
+    async def chatter(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(OSError):
+            while await reader.read(100):
+                writer.write(b"no SCIP here\n\n")
+        writer.close()
+
+    server = device_thread.call(asyncio.start_server, chatter, "127.0.0.1", 0)
+    try:
+        address = "{}:{}".format(*server.sockets[0].getsockname())
+        assert main(["lidar-info", "--tcp", address, "--timeout", "0.5"]) == 1
+    finally:
+        device_thread.call(server.close)
+    out = capsys.readouterr().out
+    assert out.startswith("racecar-hw lidar-info: something answered but no lidar named itself within 0.5 s, "
+                          "tried as ust-10lx") and out.endswith("; give --model\n"), out
 
 
 def test_fake_lidar_process_serves_until_ctrl_c(capsys):

@@ -146,8 +146,10 @@ def lidar_info(args: argparse.Namespace) -> int:
     # of its driver ended without the device naming itself) hands over to the next at once, not
     # after --timeout; a port that is not there yet is waited for (the device may be plugged in)
     hand_over = detected and args.port is not None and os.path.exists(args.port)
+    answered = False  # whether any byte came back, as any model
     for model in [args.model] if args.model else PROBE_MODELS["tcp" if args.tcp else "port"]:
         driver, scan = _probe(args, model, hand_over=hand_over)
+        answered = answered or driver.stats.bytes_in > 0
         reported = driver.info.get("model")
         key = model_for_reported(reported) if reported else None
         if detected and key is not None and key != model:
@@ -157,11 +159,14 @@ def lidar_info(args: argparse.Namespace) -> int:
             break
     assert driver is not None
     if detected:
+        if not driver.info.get("model") and not answered:  # no model would have fared better
+            print(f"racecar-hw lidar-info: {_silence(args, driver.last_error)}")
+            return 1
         if not driver.info.get("model"):
             tried = " or ".join(PROBE_MODELS["tcp" if args.tcp else "port"])
             why = f" ({driver.last_error})" if driver.last_error else ""
-            print(f"racecar-hw lidar-info: no lidar named itself within {args.timeout:g} s, tried as "
-                  f"{tried}{why}; give --model")
+            print(f"racecar-hw lidar-info: something answered but no lidar named itself within "
+                  f"{args.timeout:g} s, tried as {tried}{why}; give --model")
             return 1
         args.model = model
     reported = driver.info.get("model")
@@ -190,6 +195,14 @@ def lidar_info(args: argparse.Namespace) -> int:
         print(f"closest:    {s.closest:.3f} m at {math.degrees(s.closest_angle):.2f} deg")
         print(f"farthest:   {s.farthest:.3f} m at {math.degrees(s.farthest_angle):.2f} deg")
     return 0
+
+
+def _silence(args: argparse.Namespace, error: str | None) -> str:
+    """What to tell the user when nothing answered at ``--tcp`` or ``--port`` (``error``: why)."""
+    where = f"{args.tcp}" if args.tcp else f"{args.port}"
+    what = error or f"nothing answered at {where} within {args.timeout:g} s"
+    key = "the address (lidar.tcp)" if args.tcp else "the port (lidar.port)"
+    return f"{what}; check {key}, the cable and the lidar's power"
 
 
 def _model_mismatch(model: str, reported: str | None) -> str | None:
