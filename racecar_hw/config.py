@@ -30,7 +30,7 @@ from racecar_hw.base.overrides import apply_override, key_lines, key_path, load_
 from racecar_hw.base.params import build, describe, param, to_dict, unknown_key
 from racecar_hw.base.resources import config_file
 from racecar_hw.base.topics import CMD_VEL_BUS_TOPIC, FOXGLOVE_INPUT_TOPIC
-from racecar_hw.base.transforms import StaticTransformParams, TfTree, build_static_transforms
+from racecar_hw.base.transforms import StaticTransform, StaticTransformParams, TfTree, build_static_transforms
 from racecar_hw.net.dds_config import DdsParams
 from racecar_hw.net.foxglove_params import FoxgloveParams
 from racecar_hw.net.ports import Listener, free_port, port_taken
@@ -171,6 +171,7 @@ def build_config(data: dict[str, Any]) -> Config:
         config.dds.validate("dds")
     _check_scan_timing(config)
     _check_braking(config)
+    _check_transform_tree(config)
     _check_imu_mount(config)
     if config.figure8.enabled:
         config.figure8.params(config.vesc.wheelbase_m)
@@ -363,6 +364,18 @@ def _check_braking(config: Config) -> None:
 IMU_TILT_MAX_RAD = 0.1
 
 
+def _check_transform_tree(config: Config) -> None:
+    """Refuse a static transform that gives a frame a second parent or closes a cycle, naming its
+    item (``static_transforms[N]``) as an item's own errors do: check-config gives its line, and
+    reports it with the others rather than once they are fixed and the daemon builds the tree."""
+    tree = TfTree()
+    for index, params in enumerate(config.static_transforms):
+        try:
+            tree.add(StaticTransform.from_params(params))
+        except ConfigError as err:
+            raise ConfigError(f"static_transforms[{index}]", str(err).split(": ", 1)[-1]) from err
+
+
 def _check_imu_mount(config: Config) -> None:
     """Refuse a ``base_link -> imu`` with roll or pitch: the driver (``odometry_yaw_rate: imu``, the
     gyro bias) and ``racecar-hw calibrate`` take the IMU's z rate as the car's yaw rate, untransformed,
@@ -486,7 +499,8 @@ def check_config(path: str | Path | None, overrides: list[str] | tuple[str, ...]
             seen.add(err.key)
             where = key_path(err.key)
             problems.append(ConfigProblem(_source(where, file, lines, sets), err))
-            if not err.key or not remove_key(data, _value_path(data, where)):
+            path = _value_path(data, where)
+            if not err.key or _renumbers(data, path) or not remove_key(data, path):
                 break
             continue
         return (None, problems) if problems else (config, [])
@@ -507,6 +521,20 @@ def _value_path(data: dict[str, Any], where: tuple[str | int, ...]) -> tuple[str
             isinstance(item, dict) for item in node):
         return where[:-1]
     return where
+
+
+def _renumbers(data: dict[str, Any], path: tuple[str | int, ...]) -> bool:
+    """Whether taking out the value at ``path`` would renumber others: an item of a list with items
+    after it (``static_transforms[2]`` of five), whose later errors would then name the wrong item
+    and line. The check stops there instead."""
+    node: Any = data
+    for part in path[:-1]:
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            return False
+    last = path[-1] if path else None
+    return isinstance(last, int) and isinstance(node, list) and last < len(node) - 1
 
 
 def _source(where: tuple[str | int, ...], file: Path, lines: dict[tuple[str | int, ...], int],

@@ -166,6 +166,28 @@ def test_a_lidar_port_beside_the_shipped_tcp_is_refused_at_the_tcp_line(tmp_path
     assert check_config(str(cfg), *args, "--set", "lidar.tcp=null").returncode == 0
 
 
+@pytest.mark.parametrize(("item", "words"), [
+    ("{frame_id: odom, child_frame_id: laser}",
+     "frame 'laser' already has parent 'base_link'; a frame cannot also be a child of 'odom'"),
+    ("{frame_id: laser, child_frame_id: base_link}", "'laser' -> 'base_link' would close a cycle")])
+def test_a_transform_tree_error_names_its_item_and_line_with_the_other_errors(tmp_path, check_config,
+                                                                              item, words):
+    """A second parent or a cycle was reported without file, line or key, and only once every
+    other error was fixed (the daemon built the tree)."""
+    cfg = tmp_path / "car.yaml"
+    cfg.write_text("static_transforms:\n"
+                   "  - {frame_id: base_link, child_frame_id: laser}\n"
+                   f"  - {item}\n"                                         # line 3
+                   "  - {frame_id: base_link, child_frame_id: cam, xyz: [1, 2]}\n"
+                   "safety:\n  margn_m: 1\n")
+    proc = check_config(str(cfg))
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"racecar-hw check-config: {cfg}:6: safety.margn_m: unknown key; did you mean margin_m?",
+        f"racecar-hw check-config: {cfg}:4: static_transforms[2].xyz: expected 3 values, got 2",
+        f"racecar-hw check-config: {cfg}:3: static_transforms[1]: {words}"], proc.stderr
+
+
 def test_a_good_file_prints_the_effective_config(tmp_path, check_config):
     cfg = tmp_path / "car.yaml"
     cfg.write_text("vesc:\n  speed_to_erpm_gain: 4000\n")

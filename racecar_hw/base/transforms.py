@@ -422,7 +422,7 @@ class TfTree:
         child, parent = transform.child_frame_id, transform.frame_id
         known = self._parent.get(child)
         if known is not None and known.frame_id != parent:
-            raise ConfigError(child, f"frame already has parent {known.frame_id!r}; "
+            raise ConfigError(child, f"frame {child!r} already has parent {known.frame_id!r}; "
                                      f"a frame cannot also be a child of {parent!r}")
         frame: str | None = parent
         while frame is not None:
