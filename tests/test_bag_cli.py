@@ -352,8 +352,6 @@ def write_big_unfinished_bag(tmp_path: Path, fmt: str, compression: str, monkeyp
     """Eight drive commands whose frame id is 1 MiB of "x" (8 MiB of messages, a few kB compressed), in
     ``compression`` chunks, left as a killed recorder leaves them (flushed, not closed). The recorder's
     own writers, except ROS 1 lz4 (written by rosbags: ours refuses it), whose index is then cut off."""
-    from racecar_hw.bags import record
-    from racecar_hw.bags.writers import open_storage
 
     messages = [(AckermannDriveStamped(Header(Time(1, 0), "x" * 2**20), AckermannDrive(speed=float(i))),
                  T0 + i * 100_000_000) for i in range(8)]
@@ -374,9 +372,8 @@ def write_big_unfinished_bag(tmp_path: Path, fmt: str, compression: str, monkeyp
         data[at:at + 8] = bytes(8)  # not indexed, as a killed recording
         path.write_bytes(data)
         return path
-    monkeypatch.setattr(record, "open_storage", lambda d, n, f: open_storage(d, n, f, compression))
     path = tmp_path / ("big.bag" if fmt == "ros1" else "big/big_0")
-    bag = BagFile(path, fmt, compression if fmt == "ros1" else "none", types_for(1 if fmt == "ros1" else 2))
+    bag = BagFile(path, fmt, compression, types_for(1 if fmt == "ros1" else 2))  # (MCAP lz4 too: its chunks)
     for msg, t_ns in messages:
         bag.write(CMD, msg, t_ns)
     bag.flush()
