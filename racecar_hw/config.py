@@ -511,12 +511,7 @@ def _value_path(data: dict[str, Any], where: tuple[str | int, ...]) -> tuple[str
     """The key to take out after an error at ``where``: the whole value when ``where`` is an element
     of a list of values (``static_transforms[0].xyz[0]``: the xyz), whose length may be checked
     (taking one element out would be a second error, of a shortened list); else ``where``."""
-    node: Any = data
-    for part in where[:-1]:
-        try:
-            node = node[part]
-        except (KeyError, IndexError, TypeError):
-            return where
+    node = _parent(data, where)
     if isinstance(where[-1] if where else None, int) and isinstance(node, list) and not all(
             isinstance(item, dict) for item in node):
         return where[:-1]
@@ -527,14 +522,20 @@ def _renumbers(data: dict[str, Any], path: tuple[str | int, ...]) -> bool:
     """Whether taking out the value at ``path`` would renumber others: an item of a list with items
     after it (``static_transforms[2]`` of five), whose later errors would then name the wrong item
     and line. The check stops there instead."""
+    node = _parent(data, path)
+    last = path[-1] if path else None
+    return isinstance(last, int) and isinstance(node, list) and last < len(node) - 1
+
+
+def _parent(data: dict[str, Any], path: tuple[str | int, ...]) -> Any:
+    """The value that holds the one at ``path`` (None when the path does not lead there)."""
     node: Any = data
     for part in path[:-1]:
         try:
             node = node[part]
         except (KeyError, IndexError, TypeError):
-            return False
-    last = path[-1] if path else None
-    return isinstance(last, int) and isinstance(node, list) and last < len(node) - 1
+            return None
+    return node
 
 
 def _source(where: tuple[str | int, ...], file: Path, lines: dict[tuple[str | int, ...], int],

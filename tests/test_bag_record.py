@@ -767,6 +767,18 @@ def test_a_write_failure_mid_run_is_said_at_the_end_not_as_a_writer_behind(tmp_p
     assert "wall: ran" in proc.stdout and f"bag:        {tmp_path / 'bags'}" in proc.stdout
 
 
+def _fill_disk_under(file: Path) -> None:
+    """Put /dev/full under this process's open descriptor of ``file``: the disk takes nothing more."""
+    fds = [int(fd.name) for fd in Path("/proc/self/fd").iterdir()
+           if fd.is_symlink() and os.readlink(fd) == str(file)]
+    assert len(fds) == 1, fds
+    full = os.open("/dev/full", os.O_WRONLY)
+    try:
+        os.dup2(full, fds[0])
+    finally:
+        os.close(full)
+
+
 def test_a_bag_aborted_on_a_full_disk_is_one_log_line_not_a_traceback(tmp_path, caplog):
     """After a write error the recorder aborts the bag, and closing its file tries to write the
     buffered bytes again: on a disk that still takes nothing that raised again, and the log showed
@@ -776,15 +788,7 @@ def test_a_bag_aborted_on_a_full_disk_is_one_log_line_not_a_traceback(tmp_path, 
     bag = BagFile(path, "mcap", "none", types_for(2))
     for i in range(50):
         bag.write("/scan", LaserScan(Header(Time(1, 0), "laser"), ranges=[1.0] * 360), i * 25_000_000)
-    mcap_file = path.with_suffix(".mcap")
-    fds = [int(fd.name) for fd in Path("/proc/self/fd").iterdir()
-           if fd.is_symlink() and os.readlink(fd) == str(mcap_file)]
-    assert len(fds) == 1, fds
-    full = os.open("/dev/full", os.O_WRONLY)
-    try:
-        os.dup2(full, fds[0])
-    finally:
-        os.close(full)
+    _fill_disk_under(path.with_suffix(".mcap"))
     with pytest.raises(OSError):
         bag.flush()
     caplog.set_level(logging.WARNING, logger="racecar_hw.bags.record")
@@ -813,18 +817,6 @@ def test_any_existing_ros1_split_of_the_name_is_refused_at_start(tmp_path: Path)
     rec.stop()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x_1.bag", "x_extra.bag"]
     assert (tmp_path / "x_1.bag").read_bytes() == b"precious"
-
-
-def _fill_disk_under(file: Path) -> None:
-    """Put /dev/full under this process's open descriptor of ``file``: the disk takes nothing more."""
-    fds = [int(fd.name) for fd in Path("/proc/self/fd").iterdir()
-           if fd.is_symlink() and os.readlink(fd) == str(file)]
-    assert len(fds) == 1, fds
-    full = os.open("/dev/full", os.O_WRONLY)
-    try:
-        os.dup2(full, fds[0])
-    finally:
-        os.close(full)
 
 
 def test_after_a_write_failure_written_is_what_is_on_disk_and_the_rest_is_dropped(tmp_path: Path) -> None:
