@@ -819,15 +819,21 @@ def test_any_existing_ros1_split_of_the_name_is_refused_at_start(tmp_path: Path)
     assert (tmp_path / "x_1.bag").read_bytes() == b"precious"
 
 
-def test_after_a_write_failure_written_is_what_is_on_disk_and_the_rest_is_dropped(tmp_path: Path) -> None:
-    """A failed flush loses what was written since the last one: "written" once counted those too
-    (an MCAP bag reported 2204 messages written and held none), and they were counted nowhere."""
+def _ten_flushed(tmp_path: Path, name: str) -> tuple[Bus, Recorder]:
+    """A recorder of the drive topic (bag ``name``) that has written and flushed ten commands."""
     bus = Bus()
-    rec = Recorder(bus, record_params(tmp_path, name="full", topics=[CMD], flush_interval_s=0.05))
+    rec = Recorder(bus, record_params(tmp_path, name=name, topics=[CMD], flush_interval_s=0.05))
     rec.start()
     for i in range(10):
         bus.publish(CMD, cmd(i))
     wait_for(lambda: rec.stats.flushed == 10, timeout=30)
+    return bus, rec
+
+
+def test_after_a_write_failure_written_is_what_is_on_disk_and_the_rest_is_dropped(tmp_path: Path) -> None:
+    """A failed flush loses what was written since the last one: "written" once counted those too
+    (an MCAP bag reported 2204 messages written and held none), and they were counted nowhere."""
+    bus, rec = _ten_flushed(tmp_path, "full")
     _fill_disk_under(tmp_path / "full" / "full_0.mcap")
     for i in range(10, 25):
         bus.publish(CMD, cmd(i))
@@ -846,12 +852,7 @@ def test_a_writer_left_behind_on_a_stuck_disk_is_a_failed_recording(
     import racecar_hw.bags.record as bag_record
 
     monkeypatch.setattr(bag_record, "WRITER_STALL_S", 0.5)
-    bus = Bus()
-    rec = Recorder(bus, record_params(tmp_path, name="stuck", topics=[CMD], flush_interval_s=0.05))
-    rec.start()
-    for i in range(10):
-        bus.publish(CMD, cmd(i))
-    wait_for(lambda: rec.stats.flushed == 10, timeout=30)
+    bus, rec = _ten_flushed(tmp_path, "stuck")
     stuck_disk.stick()
     for i in range(10, 20):
         bus.publish(CMD, cmd(i))
